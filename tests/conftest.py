@@ -1,0 +1,115 @@
+"""Shared fixtures: test data location and small generated cages."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def data_path(*parts: str) -> Path:
+    """Path of a file in ``../shared/data``; skips the test when the data is absent."""
+    path = DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"test data not available: {path}")
+    return path
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    if not DATA.exists():
+        pytest.skip("../shared/data not available")
+    return DATA
+
+
+def read_triangles(path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of a mesh file (quads split), via meshio."""
+    import meshio
+
+    mesh = meshio.read(path)
+    tris = []
+    for block in mesh.cells:
+        if block.type == "triangle":
+            tris.append(block.data)
+        elif block.type == "quad":
+            q = block.data
+            tris.append(np.vstack([q[:, [0, 1, 2]], q[:, [0, 2, 3]]]))
+    return np.asarray(mesh.points, dtype=np.float64), np.vstack(tris).astype(np.int64)
+
+
+def box_cage(lo=(0.0, 0.0, 0.0), hi=(1.0, 1.0, 1.0), divisions: int = 1):
+    """Outward-oriented triangulated box with ``divisions`` segments per side."""
+    import itertools
+
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    verts: dict[tuple, int] = {}
+    faces = []
+
+    def vid(p):
+        key = tuple(np.round(p, 12))
+        if key not in verts:
+            verts[key] = len(verts)
+        return verts[key]
+
+    s = np.linspace(0.0, 1.0, divisions + 1)
+    for axis, side in itertools.product(range(3), (0, 1)):
+        u, v = [a for a in range(3) if a != axis]
+        for i, j in itertools.product(range(divisions), repeat=2):
+            quad = []
+            for di, dj in ((0, 0), (1, 0), (1, 1), (0, 1)):
+                p = np.empty(3)
+                p[axis] = side
+                p[u], p[v] = s[i + di], s[j + dj]
+                quad.append(vid(lo + p * (hi - lo)))
+            a, b, c, d = quad
+            # (u, v, axis) right-handed for axis order: flip so normals point outward
+            outward = (side == 1) == ((u, v, axis) in ((0, 1, 2), (1, 2, 0), (2, 0, 1)))
+            if outward:
+                faces += [(a, b, c), (a, c, d)]
+            else:
+                faces += [(a, c, b), (a, d, c)]
+    vertices = np.array(sorted(verts, key=verts.get), dtype=np.float64)
+    return vertices, np.array(faces, dtype=np.int64)
+
+
+def simple_cage(vertices, faces):
+    """Minimal cage object (vertices, faces, face_normals) for core tests."""
+    from vhm_viz.core.geometry import face_normals_and_areas
+
+    normals, areas = face_normals_and_areas(vertices, faces)
+    return SimpleNamespace(vertices=vertices, faces=faces, face_normals=normals, face_areas=areas)
+
+
+def interior_points(vertices, faces, count: int, rng, margin: float = 0.0):
+    """Random points inside a cage (by winding number), optionally ``margin`` away from it."""
+    from vhm_viz.core.basis import winding_number
+
+    lo, hi = vertices.min(0), vertices.max(0)
+    out = np.empty((0, 3))
+    while len(out) < count:
+        p = rng.uniform(lo, hi, (4 * count, 3))
+        p = p[winding_number(p, vertices, faces) > 0.5]
+        if margin > 0 and len(p):
+            p = p[_distance_to_triangles(p, vertices, faces) > margin]
+        out = np.vstack([out, p])
+    return out[:count]
+
+
+def _distance_to_triangles(points, vertices, faces):
+    """Brute-force point-to-triangle-soup distance (dense sampling is enough for margins)."""
+    # sample each triangle densely; margins are coarse so sampling error is acceptable
+    bary = []
+    k = 12
+    for i in range(k + 1):
+        for j in range(k + 1 - i):
+            bary.append((i / k, j / k, 1 - (i + j) / k))
+    bary = np.array(bary)
+    x = vertices[faces]
+    samples = np.einsum("sb,fbc->fsc", bary, x).reshape(-1, 3)
+    from scipy.spatial import cKDTree
+
+    return cKDTree(samples).query(points)[0]

@@ -1,0 +1,63 @@
+"""Exception types shared by every layer of vhm_viz."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class CageError(ValueError):
+    """A cage that cannot define a harmonic map (open, non-manifold, self-intersecting, ...).
+
+    Parameters
+    ----------
+    message : str
+        What is wrong, naming the offending vertices/faces.
+    indices : array_like of int, optional
+        The offending vertex or face indices, for programmatic use.
+    """
+
+    def __init__(self, message: str, indices=None):
+        super().__init__(message)
+        self.indices = None if indices is None else np.asarray(indices)
+
+
+class OutsideCageError(ValueError):
+    """Points that lie outside the cage, where the harmonic map is meaningless.
+
+    Parameters
+    ----------
+    message : str
+        Human-readable description.
+    indices : array_like of int
+        Indices of the points that are outside.
+    """
+
+    def __init__(self, message: str, indices):
+        super().__init__(message)
+        self.indices = np.asarray(indices)
+
+
+class ConstraintError(ValueError):
+    """Constraints that make the variational problem impossible or ill posed."""
+
+
+def describe_indices(indices, limit: int = 10) -> str:
+    """Format an index list for an error message, eliding past ``limit`` entries.
+
+    Parameters
+    ----------
+    indices : array_like of int
+        Indices to show.
+    limit : int
+        At most this many are listed.
+
+    Returns
+    -------
+    str
+        For example ``"3, 17, 42"`` or ``"3, 17, ... (120 in all)"``.
+    """
+    idx = [int(i) for i in np.asarray(indices).ravel()]
+    shown = ", ".join(str(i) for i in idx[:limit])
+    if len(idx) > limit:
+        shown += f", ... ({len(idx)} in all)"
+    return shown

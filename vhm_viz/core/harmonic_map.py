@@ -1,0 +1,226 @@
+"""The harmonic map ``f(p) = sum_v a_v phi_v(p) + sum_t b_t psi_t(p)`` of a cage."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vhm_viz.core.basis import _as_points, evaluate_basis, hessian5_to_full, winding_number
+from vhm_viz.core.errors import OutsideCageError, describe_indices
+from vhm_viz.core.geometry import face_normals_and_areas
+
+_OUTSIDE_POLICIES = ("raise", "passthrough", "nan")
+# Points per chunk when applying a map: bounds the basis temporaries to
+# chunk * (n + m) * 9 * 8 bytes (about 60 MB for a 750-column cage at order 2).
+DEFAULT_CHUNK = 1024
+
+
+class HarmonicMap:
+    """A harmonic map of the space inside a cage, in closed form.
+
+    Parameters
+    ----------
+    cage : Cage
+        Any object with ``vertices`` (n, 3), ``faces`` (m, 3) and ``face_normals`` (m, 3)
+        (normally a validated :class:`vhm_viz.Cage`).
+    coefficients : (n + m, 3) array_like
+        ``z = [a; b]``: vertex coefficients ``a_v`` first, then face coefficients ``b_t``.
+
+    Notes
+    -----
+    Jacobians follow ``J[k, i, j] = d f_i / d x_j`` and Hessians
+    ``H[k, i, j, l] = d^2 f_i / d x_j d x_l``. Points outside the cage (winding number
+    below 1/2) are refused by default, because the formulas there give a harmonic
+    function unrelated to the deformation the user set up.
+    """
+
+    def __init__(self, cage, coefficients):
+        self.cage = cage
+        z = np.array(coefficients, dtype=np.float64)
+        n, m = len(cage.vertices), len(cage.faces)
+        if z.shape != (n + m, 3):
+            raise ValueError(
+                f"coefficients must have shape (n_vertices + n_faces, 3) = ({n + m}, 3); "
+                f"got {z.shape}"
+            )
+        if not np.isfinite(z).all():
+            rows = np.nonzero(~np.isfinite(z).all(axis=1))[0]
+            raise ValueError(f"coefficients are not finite in rows {describe_indices(rows)}")
+        z.flags.writeable = False
+        self._z = z
+
+    # ---------------------------------------------------------------- constructors
+    @classmethod
+    def identity(cls, cage) -> HarmonicMap:
+        """The identity map: ``a_v = x_v``, ``b_t = N_t``."""
+        return cls.affine(cage, np.eye(3), np.zeros(3))
+
+    @classmethod
+    def affine(cls, cage, matrix, translation=(0.0, 0.0, 0.0)) -> HarmonicMap:
+        """The affine map ``p -> A p + T``, reproduced exactly inside the cage.
+
+        Parameters
+        ----------
+        cage : Cage
+        matrix : (3, 3) array_like
+            ``A``.
+        translation : (3,) array_like
+            ``T``.
+        """
+        a = np.asarray(matrix, dtype=np.float64).reshape(3, 3)
+        t = np.asarray(translation, dtype=np.float64).reshape(3)
+        v = np.asarray(cage.vertices, dtype=np.float64)
+        return cls(cage, np.vstack([v @ a.T + t, np.asarray(cage.face_normals) @ a.T]))
+
+    @classmethod
+    def from_target_cage(cls, cage, target_vertices) -> HarmonicMap:
+        """Cage-driven 3D Green Coordinates deformation (Lipman, Levin, Cohen-Or 2008).
+
+        ``a = target vertices``, ``b_t = s_t * N'_t`` with ``N'_t`` the unit normal of the
+        deformed face and ``s_t`` Green Coordinates' stretch factor, which makes the map
+        reproduce similarities of the cage exactly.
+
+        Parameters
+        ----------
+        cage : Cage
+            Source cage.
+        target_vertices : (n, 3) array_like
+            Deformed cage vertices (same connectivity).
+        """
+        src = np.asarray(cage.vertices, dtype=np.float64)
+        tgt = np.asarray(target_vertices, dtype=np.float64)
+        if tgt.shape != src.shape:
+            raise ValueError(f"target_vertices must have shape {src.shape}; got {tgt.shape}")
+        if not np.isfinite(tgt).all():
+            raise ValueError("target_vertices contain non-finite coordinates")
+        f = np.asarray(cage.faces)
+        return cls(
+            cage,
+            np.vstack(
+                [tgt, green_stretch(src, tgt, f)[:, None] * face_normals_and_areas(tgt, f)[0]]
+            ),
+        )
+
+    # ---------------------------------------------------------------- properties
+    @property
+    def coefficients(self) -> np.ndarray:
+        """``z`` (n + m, 3), read-only."""
+        return self._z
+
+    @property
+    def vertex_coefficients(self) -> np.ndarray:
+        """``a`` (n, 3): the vertex rows of ``z``."""
+        return self._z[: len(self.cage.vertices)]
+
+    @property
+    def face_coefficients(self) -> np.ndarray:
+        """``b`` (m, 3): the face rows of ``z``."""
+        return self._z[len(self.cage.vertices) :]
+
+    # ---------------------------------------------------------------- evaluation
+    def inside(self, points) -> np.ndarray:
+        """Boolean mask of the points inside the cage (winding number > 1/2)."""
+        return winding_number(points, self.cage.vertices, self.cage.faces) > 0.5
+
+    def evaluate(
+        self, points, *, order: int = 0, outside: str = "raise", chunk_size: int = DEFAULT_CHUNK
+    ):
+        """Map values and, on request, Jacobians and Hessians, in one pass over the basis.
+
+        Parameters
+        ----------
+        points : (N, 3) array_like
+        order : {0, 1, 2}
+            Highest derivative wanted.
+        outside : {"raise", "passthrough", "nan"}
+            Points outside the cage: raise :class:`OutsideCageError` naming them; leave
+            them where they are (identity value, Jacobian I, Hessian 0); or fill with NaN.
+        chunk_size : int
+            Points per basis evaluation (memory stays ``O(chunk_size * (n + m))``).
+
+        Returns
+        -------
+        f : (N, 3) ndarray
+        J : (N, 3, 3) ndarray or None
+        H : (N, 3, 3, 3) ndarray or None
+        """
+        if outside not in _OUTSIDE_POLICIES:
+            raise ValueError(f"outside must be one of {_OUTSIDE_POLICIES}; got {outside!r}")
+        p = _as_points(points)
+        inside = self.inside(p)
+        if not inside.all() and outside == "raise":
+            bad = np.nonzero(~inside)[0]
+            raise OutsideCageError(
+                f"{bad.size} of {len(p)} points are outside the cage (indices "
+                f"{describe_indices(bad)}); pass outside='passthrough' to leave them unchanged",
+                bad,
+            )
+        npts = len(p)
+        f = p.copy()
+        jac = np.broadcast_to(np.eye(3), (npts, 3, 3)).copy() if order >= 1 else None
+        hess = np.zeros((npts, 3, 3, 3)) if order >= 2 else None
+        idx = np.nonzero(inside)[0]
+        z = self._z
+        for s in range(0, idx.size, chunk_size):
+            rows = idx[s : s + chunk_size]
+            b = evaluate_basis(p[rows], self.cage.vertices, self.cage.faces, order=order)
+            f[rows] = b.values @ z
+            if order >= 1:
+                # gradients[k, j, c] z[c, i] = d f_i / d x_j  ->  J[k, i, j]
+                jac[rows] = np.swapaxes(b.gradients @ z, 1, 2)
+            if order >= 2:
+                hess[rows] = hessian5_to_full(np.swapaxes(b.hessians @ z, 1, 2))
+        if outside == "nan" and idx.size < npts:
+            out = ~inside
+            f[out] = np.nan
+            if jac is not None:
+                jac[out] = np.nan
+            if hess is not None:
+                hess[out] = np.nan
+        return f, jac, hess
+
+    def map(self, points, *, outside: str = "raise") -> np.ndarray:
+        """Deformed positions ``f(p)``, shape (N, 3). See :meth:`evaluate` for ``outside``."""
+        return self.evaluate(points, order=0, outside=outside)[0]
+
+    def jacobian(self, points, *, outside: str = "raise") -> np.ndarray:
+        """Jacobians ``J[k, i, j] = d f_i / d x_j``, shape (N, 3, 3)."""
+        return self.evaluate(points, order=1, outside=outside)[1]
+
+    def hessian(self, points, *, outside: str = "raise") -> np.ndarray:
+        """Hessians ``H[k, i, j, l] = d^2 f_i / d x_j d x_l``, shape (N, 3, 3, 3)."""
+        return self.evaluate(points, order=2, outside=outside)[2]
+
+    def __call__(self, points, **kwargs) -> np.ndarray:
+        """Same as :meth:`map`."""
+        return self.map(points, **kwargs)
+
+    def __repr__(self) -> str:
+        return f"HarmonicMap(n_vertices={len(self.cage.vertices)}, n_faces={len(self.cage.faces)})"
+
+
+def green_stretch(source_vertices, target_vertices, faces) -> np.ndarray:
+    """Green Coordinates' per-face stretch factor ``s_t``.
+
+    ``s_t = sqrt(|u'|^2 |v|^2 - 2 (u'.v')(u.v) + |v'|^2 |u|^2) / (sqrt(8) A_t)`` with
+    ``u, v`` the source edge vectors of face ``t``, ``u', v'`` the target ones and
+    ``A_t`` the source area (Lipman, Levin, Cohen-Or 2008, Section 3.1). It is 1 for
+    rigid motions and ``c`` for a uniform scale by ``c``.
+
+    Parameters
+    ----------
+    source_vertices, target_vertices : (n, 3) array_like
+    faces : (m, 3) array_like of int
+
+    Returns
+    -------
+    (m,) ndarray
+    """
+    s = np.asarray(source_vertices, dtype=np.float64)
+    t = np.asarray(target_vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    u, v = s[f[:, 1]] - s[f[:, 0]], s[f[:, 2]] - s[f[:, 0]]
+    u2, v2 = t[f[:, 1]] - t[f[:, 0]], t[f[:, 2]] - t[f[:, 0]]
+    dot = lambda a, b: np.einsum("ij,ij->i", a, b)  # noqa: E731
+    num = dot(u2, u2) * dot(v, v) - 2.0 * dot(u2, v2) * dot(u, v) + dot(v2, v2) * dot(u, u)
+    area = 0.5 * np.linalg.norm(np.cross(u, v), axis=1)
+    return np.sqrt(np.maximum(num, 0.0)) / (np.sqrt(8.0) * area)
