@@ -146,30 +146,27 @@ class HarmonicMap:
         if outside not in _OUTSIDE_POLICIES:
             raise ValueError(f"outside must be one of {_OUTSIDE_POLICIES}; got {outside!r}")
         p = _as_points(points)
-        inside = self.inside(p)
-        if not inside.all() and outside == "raise":
-            bad = np.nonzero(~inside)[0]
-            raise OutsideCageError(
-                f"{bad.size} of {len(p)} points are outside the cage (indices "
-                f"{describe_indices(bad)}); pass outside='passthrough' to leave them unchanged",
-                bad,
-            )
-        npts = len(p)
+        npts, n = len(p), len(self.cage.vertices)
         f = p.copy()
         jac = np.broadcast_to(np.eye(3), (npts, 3, 3)).copy() if order >= 1 else None
         hess = np.zeros((npts, 3, 3, 3)) if order >= 2 else None
-        idx = np.nonzero(inside)[0]
+        inside = np.ones(npts, dtype=bool)
         z = self._z
-        for s in range(0, idx.size, chunk_size):
-            rows = idx[s : s + chunk_size]
+        for s in range(0, npts, chunk_size):
+            rows = slice(s, s + chunk_size)
             b = evaluate_basis(p[rows], self.cage.vertices, self.cage.faces, order=order)
-            f[rows] = b.values @ z
+            # the winding number is the sum of the phi columns: no separate pass needed
+            ins = b.values[:, :n].sum(axis=1) > 0.5
+            inside[rows] = ins
+            if not ins.all() and outside == "raise":
+                self._raise_outside(p, s, ins)
+            f[rows] = np.where(ins[:, None], b.values @ z, p[rows])
             if order >= 1:
                 # gradients[k, j, c] z[c, i] = d f_i / d x_j  ->  J[k, i, j]
-                jac[rows] = np.swapaxes(b.gradients @ z, 1, 2)
+                jac[rows][ins] = np.swapaxes(b.gradients[ins] @ z, 1, 2)
             if order >= 2:
-                hess[rows] = hessian5_to_full(np.swapaxes(b.hessians @ z, 1, 2))
-        if outside == "nan" and idx.size < npts:
+                hess[rows][ins] = hessian5_to_full(np.swapaxes(b.hessians[ins] @ z, 1, 2))
+        if outside == "nan" and not inside.all():
             out = ~inside
             f[out] = np.nan
             if jac is not None:
@@ -177,6 +174,21 @@ class HarmonicMap:
             if hess is not None:
                 hess[out] = np.nan
         return f, jac, hess
+
+    def _raise_outside(self, p, start, inside_chunk):
+        """Raise OutsideCageError naming every outside point (scans the rest cheaply)."""
+        bad = [start + np.nonzero(~inside_chunk)[0]]
+        rest = p[start + len(inside_chunk) :]
+        if len(rest):
+            bad.append(start + len(inside_chunk) + np.nonzero(~self.inside(rest))[0])
+        if start:
+            bad.insert(0, np.nonzero(~self.inside(p[:start]))[0])
+        bad = np.concatenate(bad)
+        raise OutsideCageError(
+            f"{bad.size} of {len(p)} points are outside the cage (indices "
+            f"{describe_indices(bad)}); pass outside='passthrough' to leave them unchanged",
+            bad,
+        )
 
     def map(self, points, *, outside: str = "raise") -> np.ndarray:
         """Deformed positions ``f(p)``, shape (N, 3). See :meth:`evaluate` for ``outside``."""
