@@ -306,3 +306,36 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="host_faces"):
         evaluate_basis(np.zeros((2, 3)), v, f, host_faces=[0])
     assert evaluate_basis(np.zeros((0, 3)), v, f, order=2).hessians.shape == (0, 5, len(v) + len(f))
+
+
+def test_disjoint_shells_are_separate_domains():
+    """Two outward shells bound two domains: each point sees only its own shell."""
+    v1, f1 = box_cage((0, 0, 0), (1, 1, 3), 2)
+    v2, f2 = box_cage((1.2, 0, 0), (2.2, 1, 3), 2)
+    v = np.vstack([v1, v2])
+    f = np.vstack([f1, f2 + len(v1)])
+    n1, m1 = len(v1), len(f1)
+    rng = np.random.default_rng(12)
+    p1 = rng.uniform((0.1, 0.1, 0.1), (0.9, 0.9, 2.9), (20, 3))
+    p2 = p1 + (1.2, 0, 0)
+    gap = np.column_stack([np.full(5, 1.1), rng.uniform(0.1, 0.9, 5), rng.uniform(0.1, 2.9, 5)])
+    normals, _ = face_normals_and_areas(v, f)
+    a = np.eye(3) + 0.2 * rng.normal(size=(3, 3))
+    z = np.vstack([v @ a.T + 1.0, normals @ a.T])
+    b = evaluate_basis(np.vstack([p1, p2, gap]), v, f, order=2)
+    fv, jac, hess = _apply(b, z)
+    inside = slice(0, 40)
+    assert np.allclose(fv[inside], np.vstack([p1, p2])[inside] @ a.T + 1.0, atol=1e-12)
+    assert np.allclose(jac[inside], a, atol=1e-12) and np.abs(hess[inside]).max() < 1e-10
+    assert np.allclose(b.values[40:, : len(v)].sum(1), 0.0, atol=1e-12)  # the gap is outside
+    # moving shell 1 (any coefficients) changes nothing inside shell 2, exactly
+    z2 = z.copy()
+    z2[:n1] += rng.normal(size=(n1, 3))
+    z2[len(v) : len(v) + m1] += rng.normal(size=(m1, 3))
+    fv2, jac2, hess2 = _apply(evaluate_basis(p2, v, f, order=2), z2)
+    assert np.array_equal(fv2, fv[20:40]) and np.array_equal(jac2, jac[20:40])
+    assert np.array_equal(hess2, hess[20:40])
+    # numpy reference agrees
+    ref = evaluate_basis(np.vstack([p1, p2, gap]), v, f, order=2, backend="numpy")
+    for x, y in zip(b, ref, strict=True):
+        assert np.abs(x - y).max() <= 1e-12 * np.abs(y).max()

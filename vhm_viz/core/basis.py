@@ -104,6 +104,7 @@ class _CageData(NamedTuple):
     edge_length: np.ndarray  # (E,)
     face_edges: np.ndarray  # (m, 3) index of the edge opposite local vertex v
     face_edge_sign: np.ndarray  # (m, 3) +1 if edges[..] = (v+1, v+2) in that order, else -1
+    shells: tuple  # ((vertex ids, face ids), ...) of outward shells; empty for one shell
 
 
 def _prepare_cage(vertices: np.ndarray, faces: np.ndarray) -> _CageData:
@@ -137,7 +138,52 @@ def _prepare_cage(vertices: np.ndarray, faces: np.ndarray) -> _CageData:
         edge_length,
         face_edges,
         face_edge_sign,
+        _outward_shells(v, f, edges),
     )
+
+
+def _outward_shells(v: np.ndarray, f: np.ndarray, edges: np.ndarray) -> tuple:
+    """Vertex and face ids of each outward shell of a cage made of several shells.
+
+    A cage of several disjoint outward shells bounds several separate domains, and by
+    Green's third identity the map inside one of them needs only that shell's basis
+    functions (plus inward "hole" shells, which are kept for every point). Evaluating the
+    other shells' potentials there would couple parts of the shape that the cage
+    separates (paper Figure 11), so :func:`evaluate_basis` zeroes them. Returns ``()``
+    for a single shell (nothing to separate).
+    """
+    import scipy.sparse.csgraph as csgraph
+
+    n = len(v)
+    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    count, labels = csgraph.connected_components(graph, directed=False)
+    used = np.unique(f)
+    shell_ids = np.unique(labels[used])
+    if len(shell_ids) < 2:
+        return ()
+    face_label = labels[f[:, 0]]
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    vol = np.einsum("ij,ij->i", a, np.cross(b, c))
+    shells = []
+    for k in shell_ids:
+        faces_k = np.nonzero(face_label == k)[0]
+        if vol[faces_k].sum() > 0:  # outward shell: a separate domain
+            shells.append((np.nonzero(labels == k)[0], faces_k))
+    return tuple(shells) if len(shells) > 1 else ()
+
+
+def _separate_shells(cd: _CageData, values, gradients, hessians) -> None:
+    """Zero, for each point, the basis functions of outward shells that do not contain it."""
+    n = cd.vertices.shape[0]
+    for vids, fids in cd.shells:
+        outside = values[:, vids].sum(axis=1) < 0.5  # this shell's own winding number
+        if not outside.any():
+            continue
+        rows = np.nonzero(outside)[0]
+        cols = np.concatenate([vids, n + fids])
+        for arr in (values, gradients, hessians):
+            if arr is not None:
+                arr[np.ix_(rows, *([np.arange(arr.shape[1])] if arr.ndim == 3 else []), cols)] = 0.0
 
 
 # --------------------------------------------------------------------------------------
@@ -320,11 +366,12 @@ def _basis_kernel(
     V,
     F,
     N,
-    twice_area,
+    inv_twice_area,
     D,
     NxD,
     edges,
     edge_len,
+    inv_4pi_len,
     face_edges,
     face_edge_sign,
     host,
@@ -387,7 +434,7 @@ def _basis_kernel(
                     ec[q] = 0.0
                     ect[q] = 0.0
                 else:
-                    ec[q] = math.log1p(2.0 * dl / small) / (4.0 * math.pi * dl)
+                    ec[q] = math.log1p(2.0 * dl / small) * inv_4pi_len[q]
                     ect[q] = 1.0 / (2.0 * math.pi * big * small)
             degenerate[k] = degen
             for t in range(m):
@@ -416,7 +463,8 @@ def _basis_kernel(
                     lmin = 2
                 qn = face_edges[t, la]
                 cn2 = ecr[qn, 0] ** 2 + ecr[qn, 1] ** 2 + ecr[qn, 2] ** 2
-                if le[F[t, lmin]] <= 2.0 * math.sqrt(cn2) / edge_len[qn]:
+                lm = le[F[t, lmin]]
+                if lm * lm * edge_len[qn] * edge_len[qn] <= 4.0 * cn2:
                     la = lmin
                 ia = F[t, la]
                 ib = F[t, (la + 1) % 3]
@@ -463,7 +511,7 @@ def _basis_kernel(
                     Pz += cv[v] * NxD[t, v, 2]
                     psi -= cv[v] * (jv[v, 0] * nx + jv[v, 1] * ny + jv[v, 2] * nz)
                 values[k, n + t] = psi
-                inv2a = 1.0 / twice_area[t]
+                inv2a = inv_twice_area[t]
                 for v in range(3):
                     col = F[t, v]
                     values[k, col] += (Px * jv[v, 0] + Py * jv[v, 1] + Pz * jv[v, 2]) * inv2a
@@ -638,11 +686,12 @@ def evaluate_basis(
                 cd.vertices,
                 cd.faces,
                 cd.normals,
-                cd.twice_area,
+                1.0 / cd.twice_area,
                 cd.d,
                 cd.n_cross_d,
                 cd.edges,
                 cd.edge_length,
+                1.0 / (4.0 * math.pi * cd.edge_length),
                 cd.face_edges,
                 cd.face_edge_sign,
                 host,
@@ -670,6 +719,8 @@ def evaluate_basis(
         raise ValueError(f"backend must be 'numba' or 'numpy'; got {backend!r}")
     if degenerate.any():
         _fix_edge_and_vertex_points(p, cd, np.nonzero(degenerate)[0], values, gradients, hessians)
+    if cd.shells:
+        _separate_shells(cd, values, gradients, hessians)
     return BasisEvaluation(values, gradients, hessians)
 
 
