@@ -1,0 +1,984 @@
+"""Variational harmonic maps: the paper's deformation solver (Sections 2.2 and 3).
+
+:class:`Deformer` finds the harmonic map ``f(p) = D_p z`` of a cage that meets hard position
+and Jacobian constraints and is As-Rigid-As-Possible (or As-Similar-As-Possible) at a few
+anchor points while being smooth on the cage (problem P1 of the paper)::
+
+    min_z,R  sum_i |J_f(m_i) - R_i|^2 + lambda^2 sum_k |H_f(w_k)|^2
+    s.t.     f(q_i) = f_i,   J_f(t_i) = g_i,   R_i rotations (or similarities)
+
+Design (all documented choices in one place):
+
+* **Jacobian convention.** The user-facing Jacobian is ``J[i, j] = d f_i / d x_j``. The
+  basis gradients ``G_p`` (3 x (n+m), ``G[j, c] = d basis_c / d x_j``) give
+  ``G_p z = J^T``: the rows of the paper's eq. (4) stack hold the *transpose*. Internally
+  every 3x3 block (anchor Jacobians, local matrices, Jacobian targets) is stored transposed;
+  the public API converts at the boundary. The local step commutes with transposition.
+* **Smoothness samples.** By default 3 per cage face, at the barycentric points
+  ``(2/3, 1/6, 1/6)`` and permutations, pulled inward along the face normal by ``1e-3`` of
+  the cage's bounding-box diagonal (k = 3 m samples, each giving 5 Hessian rows
+  ``xx, xy, xz, yy, yz`` per map component, as in the paper's eq. 5). Your own samples can be
+  passed instead; samples lying exactly on a face need ``smoothness_host_faces`` so that the
+  interior limit of the basis is used.
+* **lambda** follows the paper: ``lambda = alpha * d * ||J_anchors||_inf / ||H_samples||_inf``
+  (infinity norms = largest absolute row sum of the stacked basis rows), ``alpha = 0.01``
+  by default. It depends on the sample layout (centroid samples roughly halve
+  ``||H||_inf``) and grows with ``d``; quality is flat for alpha in [0.001, 0.01].
+* **Hard constraints by elimination.** With ``K = [D_q; G_t]`` (``c = r + 3 s`` rows,
+  rows normalised) and a pivoted QR ``K^T P = Q R``, every solution is
+  ``z = P_h h + Q_2 y``; the rank of ``R`` detects dependent constraints and names them.
+  The least-squares part uses a QR of ``A = [J_anchors; lambda H_samples]`` computed once per
+  anchor layout (``A -> R_A``), then a QR of ``R_A Q_2`` per constraint layout. The result is
+  ``z = B [h; R]``, ``C = J_anchors B``; :attr:`n_factorizations` counts the QR
+  factorisations, and :meth:`update_targets` (same points, new targets) performs none.
+* **Translation.** It lies in the null space of both the Jacobian and the Hessian rows, so
+  at least one position constraint is required (:class:`ConstraintError` otherwise).
+* **Solver.** Local/global iteration on the anchors' local matrices, Anderson-accelerated
+  (window 6) with an energy safeguard, so the energy never increases (see
+  :mod:`vhm_viz.core.solver`). Stopping rule: the estimated distance to the fixed point,
+  ``|T(u) - u| / (1 - rho)`` (RMS per anchor, ``rho`` the observed contraction rate), below
+  ``tolerance``; the paper's "change of R_global" rule stops far too early at the slow
+  contraction of alpha = 0.01 (math notes, "Convergence").
+* **The solution** is ``z = B [h; R_local]`` with ``R_local`` the final local matrices (the
+  minimiser of the global step; energy-consistent), not the unprojected ``R_global`` of the
+  paper's eq. (8); the difference vanishes at convergence.
+* **A 180 degree twist from the identity** sits on a symmetric saddle; use ``init="previous"``
+  while ramping the target over a few steps (see :func:`vhm_viz.examples.bar`).
+
+Bindings (:meth:`Deformer.bind`) precompute ``F = D_points B`` so that deforming a shape is
+one matrix product (paper eq. 8). They store it relative to the rest pose,
+``x = p + F ([h; R] - [h_rest; I])``, which keeps float32 storage accurate (the product is
+small when the deformation is).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+import scipy.linalg as sla
+
+from vhm_viz.core.basis import evaluate_basis
+from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indices
+from vhm_viz.core.geometry import face_normals_and_areas
+from vhm_viz.core.solver import project_blocks, run_local_global
+
+__all__ = ["Deformer", "Binding", "SolveReport", "default_smoothness_samples"]
+
+_MODES = ("rigid", "similar")
+_INITS = ("previous", "identity", "random")
+# Winding-number tolerance for "inside" (points on the cage surface have 1/2).
+_WN_TOL = 1e-8
+# Relative rank tolerance of the constraint and least-squares factorisations.
+_RANK_TOL = 1e-10
+# Barycentric coordinates of the default smoothness samples (3-point quadrature rule).
+_SAMPLE_BARY = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
+_SAMPLE_INSET = 1e-3
+# Bindings with fewer F entries than this deform with numpy instead of the parallel kernel.
+_SMALL_F = 2_000_000
+
+
+def _blocks_T(a: np.ndarray) -> np.ndarray:
+    """(3d, 3) stack of transposed blocks <-> (d, 3, 3) user-facing matrices."""
+    return np.ascontiguousarray(np.swapaxes(a.reshape(-1, 3, 3), 1, 2))
+
+
+def _stack_T(j: np.ndarray) -> np.ndarray:
+    """(d, 3, 3) user-facing matrices -> (3d, 3) stack of their transposes."""
+    return np.ascontiguousarray(np.swapaxes(j, 1, 2).reshape(-1, 3))
+
+
+def _as_point_array(a, name: str, allow_empty: bool = False) -> np.ndarray:
+    p = np.asarray(a, dtype=np.float64)
+    if p.ndim == 1 and p.shape[0] == 3:
+        p = p[None]
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3); got {np.shape(a)}")
+    if not allow_empty and len(p) == 0:
+        raise ValueError(f"{name} is empty")
+    bad = ~np.isfinite(p).all(axis=1)
+    if bad.any():
+        raise ValueError(
+            f"{name} has non-finite values at indices {describe_indices(np.nonzero(bad)[0])}"
+        )
+    return p
+
+
+def _as_matrix_array(a, name: str) -> np.ndarray:
+    j = np.asarray(a, dtype=np.float64)
+    if j.shape == (3, 3):
+        j = j[None]
+    if j.ndim != 3 or j.shape[1:] != (3, 3):
+        raise ValueError(f"{name} must have shape (s, 3, 3); got {np.shape(a)}")
+    bad = ~np.isfinite(j).all(axis=(1, 2))
+    if bad.any():
+        raise ValueError(
+            f"{name} has non-finite values at indices {describe_indices(np.nonzero(bad)[0])}"
+        )
+    return j
+
+
+def default_smoothness_samples(vertices, faces, inset: float = _SAMPLE_INSET) -> np.ndarray:
+    """The default smoothness samples of a cage (3 per face, pulled inward).
+
+    Parameters
+    ----------
+    vertices : (n, 3) array_like
+    faces : (m, 3) array_like of int
+        Outward-oriented cage.
+    inset : float
+        Inward offset along the face normal, as a fraction of the bounding-box diagonal.
+
+    Returns
+    -------
+    (3 m, 3) float64
+        Samples ``3 t + i`` belong to face ``t``.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    normals, _ = face_normals_and_areas(v, f)
+    diag = float(np.linalg.norm(v.max(0) - v.min(0)))
+    pts = np.einsum("sb,fbc->fsc", _SAMPLE_BARY, v[f])
+    pts -= (inset * diag) * normals[:, None, :]
+    return pts.reshape(-1, 3)
+
+
+@dataclass
+class SolveReport:
+    """Outcome of :meth:`Deformer.solve`.
+
+    Attributes
+    ----------
+    iterations : int
+        Local/global iterations performed (accelerated or plain, each one local + global
+        step; rejected accelerated candidates are not counted separately).
+    converged : bool
+        Whether the stopping rule was met before ``max_iterations``.
+    energy, rigidity, smoothness : (iterations + 1,) float64
+        Energy history: total ``E`` and its two parts ``sum |J - R|^2`` and
+        ``lambda^2 sum |H|^2``, for the initial iterate and after each iteration; the last
+        entry is the energy of the returned solution. Never increasing (up to rounding).
+    residuals : (iterations + 1,) float64
+        Fixed-point residual ``|T(u) - u|`` (RMS per anchor) of each iterate.
+    seconds : float
+        Wall time of the iteration (excluding the O(d) set-up).
+    rejected_steps : int
+        Anderson-extrapolated iterates rejected by the energy safeguard.
+    init : str
+        The initialisation used.
+    """
+
+    iterations: int
+    converged: bool
+    energy: np.ndarray
+    rigidity: np.ndarray
+    smoothness: np.ndarray
+    residuals: np.ndarray
+    seconds: float
+    rejected_steps: int = 0
+    init: str = "previous"
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def energy_history(self) -> np.ndarray:
+        """(iterations + 1, 3): columns total, rigidity, smoothness."""
+        return np.column_stack([self.energy, self.rigidity, self.smoothness])
+
+    @property
+    def final_energy(self) -> float:
+        """Total energy of the returned solution."""
+        return float(self.energy[-1])
+
+    def __repr__(self) -> str:
+        return (
+            f"SolveReport(iterations={self.iterations}, converged={self.converged}, "
+            f"energy={self.energy[-1]:.6g} (rigidity {self.rigidity[-1]:.6g}, smoothness "
+            f"{self.smoothness[-1]:.6g}), seconds={self.seconds:.3g})"
+        )
+
+
+class Deformer:
+    """Variational harmonic map deformer (paper Sections 2.2 and 3).
+
+    Parameters
+    ----------
+    cage : Cage
+        A validated cage (any object with ``vertices``, ``faces`` and ``face_normals``).
+    anchors : (d, 3) array_like
+        Anchor points inside the cage (samples of rigidity lines, see
+        :func:`vhm_viz.anchors_from_polylines`).
+    mode : {"rigid", "similar"}
+        As-Rigid-As-Possible (local matrices are rotations) or As-Similar-As-Possible
+        (rotations times a scalar: singular values replaced by their mean, paper Figure 12).
+        Can be changed later through :attr:`mode` without refactorising.
+    alpha : float
+        Stiffness; ``lambda = alpha * d * ||J_anchors||_inf / ||H_samples||_inf``.
+    smoothness_samples : (k, 3) array_like, optional
+        Points where the Hessian is penalised. Default: :func:`default_smoothness_samples`.
+    smoothness_host_faces : (k,) array_like of int, optional
+        For samples exactly on cage faces, the face index (-1 for others): the basis then
+        uses the interior limit there.
+    anderson_window : int
+        Anderson acceleration window (0 for the plain local/global iteration of the paper).
+
+    Raises
+    ------
+    OutsideCageError
+        Anchors (or smoothness samples) outside the cage, listed by index.
+    ValueError
+        Bad shapes, non-finite values, unknown mode, non-positive alpha.
+    """
+
+    def __init__(
+        self,
+        cage,
+        anchors,
+        *,
+        mode: str = "rigid",
+        alpha: float = 0.01,
+        smoothness_samples=None,
+        smoothness_host_faces=None,
+        anderson_window: int = 6,
+    ):
+        self.cage = cage
+        self._V = np.ascontiguousarray(cage.vertices, dtype=np.float64)
+        self._Fc = np.ascontiguousarray(cage.faces, dtype=np.int64)
+        self._n, self._m = len(self._V), len(self._Fc)
+        self._N = self._n + self._m
+        normals = getattr(cage, "face_normals", None)
+        if normals is None:
+            normals, _ = face_normals_and_areas(self._V, self._Fc)
+        self._normals = np.asarray(normals, dtype=np.float64)
+        self.mode = mode
+        alpha = float(alpha)
+        if not (np.isfinite(alpha) and alpha > 0):
+            raise ValueError(f"alpha must be a positive number; got {alpha!r}")
+        self.alpha = alpha
+        self.anderson_window = int(anderson_window)
+        if self.anderson_window < 0:
+            raise ValueError("anderson_window must be >= 0")
+        self.n_factorizations = 0
+        self._layout_version = 0
+
+        a = _as_point_array(anchors, "anchors")
+        self._anchors = a
+        d = len(a)
+        ev = evaluate_basis(a, self._V, self._Fc, order=1)
+        self._check_inside(ev.values, "anchors")
+        if not np.isfinite(ev.gradients).all():
+            bad = np.nonzero(~np.isfinite(ev.gradients).all(axis=(1, 2)))[0]
+            raise ValueError(f"anchors {describe_indices(bad)} lie on a cage edge or vertex")
+        self._Jhat = np.ascontiguousarray(ev.gradients.reshape(3 * d, self._N))
+
+        if smoothness_samples is None:
+            w = default_smoothness_samples(self._V, self._Fc)
+            host = None
+        else:
+            w = _as_point_array(smoothness_samples, "smoothness_samples")
+            host = smoothness_host_faces
+        self._samples = w
+        evs = evaluate_basis(w, self._V, self._Fc, order=2, host_faces=host)
+        wn = evs.values[:, : self._n].sum(axis=1)
+        on_face = np.zeros(len(w), bool) if host is None else np.asarray(host).ravel() >= 0
+        out = (wn < 0.5 - _WN_TOL) & ~on_face
+        if out.any():
+            idx = np.nonzero(out)[0]
+            raise OutsideCageError(
+                f"{idx.size} smoothness samples are outside the cage "
+                f"(indices {describe_indices(idx)})"
+                + (
+                    "; the cage may be thinner than the default inset"
+                    if smoothness_samples is None
+                    else ""
+                ),
+                idx,
+            )
+        if not np.isfinite(evs.hessians).all():
+            bad = np.nonzero(~np.isfinite(evs.hessians).all(axis=(1, 2)))[0]
+            raise ValueError(
+                f"smoothness samples {describe_indices(bad)} lie on a cage edge or vertex"
+            )
+        self._Hhat = np.ascontiguousarray(evs.hessians.reshape(5 * len(w), self._N))
+
+        jn = np.abs(self._Jhat).sum(axis=1).max()
+        hn = np.abs(self._Hhat).sum(axis=1).max()
+        self.lambda_ = float(alpha * d * jn / hn)
+
+        # QR of A = [J; lambda H], once per anchor layout
+        A = np.vstack([self._Jhat, self.lambda_ * self._Hhat])
+        q, r = sla.qr(A, mode="economic", check_finite=False)
+        self.n_factorizations += 1
+        self._RA = r  # (N, N)
+        self._W = np.ascontiguousarray(q[: 3 * d].T)  # (N, 3d) = Q_A^T [I; 0]
+        self._z_identity = np.vstack([self._V, self._normals])
+
+        self._u = _stack_T(np.broadcast_to(np.eye(3), (d, 3, 3)).copy())
+        self._G = None
+        self._z = None
+        self._has_constraints = False
+        self._last_report = None
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def mode(self) -> str:
+        """``"rigid"`` or ``"similar"`` (switching needs no refactorisation)."""
+        return self._mode
+
+    @mode.setter
+    def mode(self, value: str) -> None:
+        if value not in _MODES:
+            raise ValueError(f"mode must be one of {_MODES}; got {value!r}")
+        self._mode = value
+
+    @property
+    def anchors(self) -> np.ndarray:
+        """(d, 3) anchor points."""
+        return self._anchors
+
+    @property
+    def n_anchors(self) -> int:
+        """Number of anchors ``d``."""
+        return len(self._anchors)
+
+    @property
+    def smoothness_samples(self) -> np.ndarray:
+        """(k, 3) smoothness sample points."""
+        return self._samples
+
+    @property
+    def n_constraints(self) -> int:
+        """Number of scalar constraint rows ``c = r + 3 s`` (per map component)."""
+        return self._c if self._has_constraints else 0
+
+    @property
+    def B(self) -> np.ndarray:
+        """(n+m, c+3d): ``z = B [h; R]``."""
+        self._require_constraints()
+        return self._B
+
+    @property
+    def C(self) -> np.ndarray:
+        """(3d, c+3d): ``J_anchors B`` (transposed-Jacobian rows, as in the paper)."""
+        self._require_constraints()
+        return np.hstack([self._C_h, self._C_R])
+
+    @property
+    def coefficients(self) -> np.ndarray:
+        """Current ``z`` (n+m, 3) for the current targets and local matrices."""
+        self._require_constraints()
+        if self._z is None:
+            self._z = self._B @ self.stacked_variables
+        return self._z
+
+    @property
+    def stacked_variables(self) -> np.ndarray:
+        """Current ``w = [h; R_local]`` ((c + 3d), 3), the right factor of ``z = B w``."""
+        self._require_constraints()
+        return np.vstack([self._h, self._u])
+
+    @property
+    def harmonic_map(self):
+        """The current map as a :class:`~vhm_viz.core.harmonic_map.HarmonicMap`."""
+        from vhm_viz.core.harmonic_map import HarmonicMap
+
+        return HarmonicMap(self.cage, self.coefficients)
+
+    @property
+    def jacobians_at_anchors(self) -> np.ndarray:
+        """(d, 3, 3) Jacobians ``J[i, j] = d f_i / d x_j`` of the current map at the anchors."""
+        self._require_constraints()
+        G = self._g + self._C_R @ self._u
+        return _blocks_T(G)
+
+    @property
+    def rotations_at_anchors(self) -> np.ndarray:
+        """(d, 3, 3) current local matrices (rotations, or similarities in "similar" mode)."""
+        return _blocks_T(self._u)
+
+    @property
+    def last_report(self) -> SolveReport | None:
+        """The report of the last :meth:`solve`."""
+        return self._last_report
+
+    # ------------------------------------------------------------------ helpers
+    def _check_inside(self, values: np.ndarray, what: str) -> None:
+        wn = values[:, : self._n].sum(axis=1)
+        out = ~(wn >= 0.5 - _WN_TOL)
+        if out.any():
+            idx = np.nonzero(out)[0]
+            raise OutsideCageError(
+                f"{idx.size} {what} outside the cage (indices {describe_indices(idx)})", idx
+            )
+
+    def _require_constraints(self) -> None:
+        if not self._has_constraints:
+            raise ConstraintError(
+                "no constraints set: call set_constraints(positions=..., targets=...) first "
+                "(at least one position constraint fixes the translation)"
+            )
+
+    @staticmethod
+    def _check_duplicates(points: np.ndarray, targets: np.ndarray, what: str, tol: float) -> None:
+        if len(points) < 2:
+            return
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(points).query_pairs(tol, output_type="ndarray")
+        if len(pairs):
+            i, j = (int(v) for v in pairs[0])
+            differ = not np.allclose(targets[i], targets[j], rtol=0, atol=1e-12)
+            raise ConstraintError(
+                f"{what} {i} and {j} are at the same point "
+                + (
+                    "with different targets (contradictory)"
+                    if differ
+                    else "(duplicate: remove one)"
+                )
+            )
+
+    # ------------------------------------------------------------------ constraints
+    def set_constraints(self, positions=None, targets=None, jacobian_points=None, jacobians=None):
+        """Set the hard constraints (paper problem P1).
+
+        Changing the constraint *points* rebuilds ``B`` and ``C`` (two QR factorisations of
+        size ``n+m``); to move targets only, use :meth:`update_targets`.
+
+        Parameters
+        ----------
+        positions : (r, 3) array_like
+            Points ``q_i`` inside the cage whose images are prescribed (r >= 1: at least one
+            position constraint is required to fix the translation).
+        targets : (r, 3) array_like
+            Their target positions ``f(q_i)``.
+        jacobian_points : (s, 3) array_like, optional
+            Points ``t_i`` inside the cage whose Jacobians are prescribed.
+        jacobians : (s, 3, 3) array_like, optional
+            Target Jacobians ``J[i, j] = d f_i / d x_j`` (``det > 0``).
+
+        Raises
+        ------
+        OutsideCageError
+            Constraint points outside the cage (indices listed).
+        ConstraintError
+            No position constraint; more constraint rows than degrees of freedom; duplicate
+            constraint points; linearly dependent constraints (named); Jacobian targets with
+            ``det <= 0``.
+        ValueError
+            Shapes, non-finite values.
+        """
+        if positions is None or targets is None:
+            raise ConstraintError(
+                "at least one position constraint is required (translation is otherwise free): "
+                "pass positions and targets"
+            )
+        q = _as_point_array(positions, "positions", allow_empty=True)
+        f = _as_point_array(targets, "targets", allow_empty=True)
+        if len(q) == 0:
+            raise ConstraintError(
+                "at least one position constraint is required (translation is otherwise free)"
+            )
+        if f.shape != q.shape:
+            raise ValueError(f"targets must have the shape of positions {q.shape}; got {f.shape}")
+        if (jacobian_points is None) != (jacobians is None):
+            raise ValueError("jacobian_points and jacobians must be given together")
+        if jacobian_points is None:
+            t = np.zeros((0, 3))
+            g = np.zeros((0, 3, 3))
+        else:
+            t = _as_point_array(jacobian_points, "jacobian_points", allow_empty=True)
+            g = _as_matrix_array(jacobians, "jacobians") if len(t) else np.zeros((0, 3, 3))
+            if len(g) != len(t):
+                raise ValueError(f"got {len(t)} jacobian_points but {len(g)} jacobians")
+        self._check_jacobian_targets(g)
+        r, s = len(q), len(t)
+        c = r + 3 * s
+        if c >= self._N:
+            raise ConstraintError(
+                f"more hard constraints than degrees of freedom: {r} position + 3 x {s} Jacobian "
+                f"rows = {c} >= n + m = {self._N} coefficients per component"
+            )
+        diag = float(np.linalg.norm(self._V.max(0) - self._V.min(0)))
+        self._check_duplicates(q, f, "position constraints", 1e-12 * diag)
+        self._check_duplicates(t, g.reshape(-1, 9), "Jacobian constraints", 1e-12 * diag)
+
+        evq = evaluate_basis(q, self._V, self._Fc, order=0)
+        self._check_inside(evq.values, "position constraints")
+        rows = [evq.values]
+        if s:
+            evt = evaluate_basis(t, self._V, self._Fc, order=1)
+            self._check_inside(evt.values, "Jacobian constraint points")
+            if not np.isfinite(evt.gradients).all():
+                bad = np.nonzero(~np.isfinite(evt.gradients).all(axis=(1, 2)))[0]
+                raise ValueError(
+                    f"Jacobian constraint points {describe_indices(bad)} lie on a cage edge "
+                    "or vertex"
+                )
+            rows.append(evt.gradients.reshape(3 * s, self._N))
+        K = np.vstack(rows)
+        labels = [f"position constraint {i}" for i in range(r)] + [
+            f"Jacobian constraint {i} (row {k})" for i in range(s) for k in range(3)
+        ]
+        self._build(K, labels)
+        self._q, self._t = q, t
+        self._r, self._s, self._c = r, s, c
+        self._h_rest = K @ self._z_identity
+        self._has_constraints = True
+        self._layout_version += 1
+        self._set_h(np.vstack([f, _stack_T(g)]) if s else f.copy())
+        return self
+
+    @staticmethod
+    def _check_jacobian_targets(g: np.ndarray) -> None:
+        if len(g):
+            det = np.linalg.det(g)
+            bad = np.nonzero(~(det > 0))[0]
+            if bad.size:
+                raise ConstraintError(
+                    f"Jacobian targets {describe_indices(bad)} have non-positive determinant "
+                    f"({', '.join(f'{det[i]:.3g}' for i in bad[:5])}): a harmonic deformation "
+                    "cannot fold or flatten space there"
+                )
+
+    def _build(self, K: np.ndarray, labels: list[str]) -> None:
+        """Factorise the constraint layout: B, C and the energy precomputations."""
+        c = K.shape[0]
+        scale = 1.0 / np.linalg.norm(K, axis=1)
+        Ks = K * scale[:, None]
+        Q, R, piv = sla.qr(Ks.T, mode="full", pivoting=True, check_finite=False)
+        self.n_factorizations += 1
+        diag = np.abs(np.diag(R))
+        rank = int(np.count_nonzero(diag > _RANK_TOL * diag[0]))
+        if rank < c:
+            dep = sorted(piv[rank:])
+            raise ConstraintError(
+                "rank-deficient constraints: "
+                + ", ".join(labels[i] for i in dep[:8])
+                + (f" (and {len(dep) - 8} more)" if len(dep) > 8 else "")
+                + " linearly depend on the others (duplicate or redundant constraints)"
+            )
+        Q1, Q2 = Q[:, :c], Q[:, c:]
+        E = np.zeros((c, c))
+        E[np.arange(c), piv] = scale[piv]
+        P = Q1 @ sla.solve_triangular(R[:c, :c], E, trans="T", check_finite=False)  # (N, c)
+        M2 = self._RA @ Q2
+        U2, T2 = sla.qr(M2, mode="economic", check_finite=False)
+        self.n_factorizations += 1
+        d2 = np.abs(np.diag(T2))
+        if d2.min() <= 1e-12 * d2.max():
+            raise ConstraintError(
+                "the constraints, anchors and smoothness samples do not determine the map "
+                "(a free direction remains, e.g. the translation): add position constraints"
+            )
+        X = sla.solve_triangular(T2, U2.T @ np.hstack([self._W, self._RA @ P]), check_finite=False)
+        d3 = 3 * self.n_anchors
+        B_R = Q2 @ X[:, :d3]
+        B_h = P - Q2 @ X[:, d3:]
+        self._B = np.ascontiguousarray(np.hstack([B_h, B_R]))
+        self._C_h = np.ascontiguousarray(self._Jhat @ B_h)
+        self._C_R = np.ascontiguousarray(self._Jhat @ B_R)
+        self._JP = self._Jhat @ P
+        HP = self._Hhat @ P
+        HB = self._Hhat @ self._B
+        self._KH = (self.lambda_**2) * (HB.T @ HP)  # (c + 3d, c)
+        self._z = None
+
+    def _set_h(self, h: np.ndarray) -> None:
+        c = self._c
+        self._h = np.ascontiguousarray(h, dtype=np.float64)
+        self._g = np.ascontiguousarray(self._C_h @ self._h)
+        self._jzp = np.ascontiguousarray(self._JP @ self._h)
+        L = self._KH @ self._h
+        self._l_r = np.ascontiguousarray(L[c:])
+        self._const_h = float(np.sum(L[:c] * self._h))
+        self._z = None
+
+    def update_targets(self, targets=None, jacobians=None):
+        """Change the targets of the current constraints without refactorising anything.
+
+        Parameters
+        ----------
+        targets : (r, 3) array_like, optional
+            New position targets (same count and order as in :meth:`set_constraints`).
+        jacobians : (s, 3, 3) array_like, optional
+            New Jacobian targets.
+        """
+        self._require_constraints()
+        h = self._h.copy()
+        if targets is not None:
+            f = _as_point_array(targets, "targets")
+            if f.shape != (self._r, 3):
+                raise ValueError(f"targets must have shape ({self._r}, 3); got {f.shape}")
+            h[: self._r] = f
+        if jacobians is not None:
+            g = _as_matrix_array(jacobians, "jacobians") if self._s else np.zeros((0, 3, 3))
+            if len(g) != self._s:
+                raise ValueError(f"expected {self._s} jacobians; got {len(g)}")
+            self._check_jacobian_targets(g)
+            h[self._r :] = _stack_T(g)
+        self._set_h(h)
+        return self
+
+    @property
+    def constraints(self) -> dict:
+        """Current constraints: ``positions``, ``targets``, ``jacobian_points``, ``jacobians``."""
+        self._require_constraints()
+        return {
+            "positions": self._q.copy(),
+            "targets": self._h[: self._r].copy(),
+            "jacobian_points": self._t.copy(),
+            "jacobians": _blocks_T(self._h[self._r :]) if self._s else np.zeros((0, 3, 3)),
+        }
+
+    # ------------------------------------------------------------------ solve
+    def solve(
+        self,
+        max_iterations: int = 1000,
+        tolerance: float = 1e-6,
+        init="previous",
+        seed=None,
+        anderson_window: int | None = None,
+    ) -> SolveReport:
+        """Run the local/global iteration (Anderson-accelerated) to convergence.
+
+        Parameters
+        ----------
+        max_iterations : int
+            Iteration cap.
+        tolerance : float
+            Estimated distance of the anchors' local matrices to the fixed point (RMS per
+            anchor, Frobenius norm; Jacobians are dimensionless, so this is a relative
+            measure): ``|T(u) - u| / (1 - rho)``, with ``rho`` the observed contraction rate.
+        init : {"previous", "identity", "random"} or (d, 3, 3) array_like
+            Starting local matrices: the last solution (identity before the first solve),
+            identities, random 3x3 matrices (paper Figure 7; ``seed`` seeds them), or given.
+        seed : int or numpy Generator, optional
+            For ``init="random"``.
+        anderson_window : int, optional
+            Overrides the deformer's window for this call (0: plain iteration).
+
+        Returns
+        -------
+        SolveReport
+        """
+        self._require_constraints()
+        d = self.n_anchors
+        if isinstance(init, str):
+            if init not in _INITS:
+                raise ValueError(f"init must be one of {_INITS} or an array; got {init!r}")
+            if init == "previous":
+                u0 = self._u.copy()
+            elif init == "identity":
+                u0 = _stack_T(np.broadcast_to(np.eye(3), (d, 3, 3)).copy())
+            else:
+                rng = np.random.default_rng(seed)
+                u0 = rng.standard_normal((3 * d, 3))
+            init_name = init
+        else:
+            u0 = _stack_T(_as_matrix_array(init, "init"))
+            if u0.shape != (3 * d, 3):
+                raise ValueError(f"init must have shape ({d}, 3, 3)")
+            init_name = "given"
+        max_iterations = int(max_iterations)
+        if max_iterations < 0:
+            raise ValueError("max_iterations must be >= 0")
+        tolerance = float(tolerance)
+        if not tolerance > 0:
+            raise ValueError("tolerance must be positive")
+        window = self.anderson_window if anderson_window is None else int(anderson_window)
+        hist = np.zeros((max_iterations + 2, 4))
+        t0 = time.perf_counter()
+        u, G, iters, converged, nrec, rejected = run_local_global(
+            self._C_R,
+            self._g,
+            self._jzp,
+            self._l_r,
+            self._const_h,
+            np.ascontiguousarray(u0, dtype=np.float64),
+            self._mode == "similar",
+            max_iterations,
+            tolerance,
+            window,
+            hist,
+        )
+        seconds = time.perf_counter() - t0
+        self._u = u
+        self._z = None
+        hist = hist[:nrec]
+        rep = SolveReport(
+            iterations=int(iters),
+            converged=bool(converged),
+            energy=hist[:, 0].copy(),
+            rigidity=hist[:, 1].copy(),
+            smoothness=hist[:, 2].copy(),
+            residuals=hist[:, 3].copy(),
+            seconds=seconds,
+            rejected_steps=int(rejected),
+            init=init_name,
+        )
+        self._last_report = rep
+        return rep
+
+    def energy(self, z=None) -> tuple[float, float, float]:
+        """Energy of a coefficient matrix evaluated directly from the basis rows (slow, exact).
+
+        ``rigidity = sum_i |J(m_i) - proj(J(m_i))|^2``, ``smoothness = lambda^2 |H z|^2``.
+
+        Parameters
+        ----------
+        z : (n+m, 3) array_like, optional
+            Default: the current coefficients.
+
+        Returns
+        -------
+        (total, rigidity, smoothness)
+        """
+        z = self.coefficients if z is None else np.asarray(z, dtype=np.float64)
+        G = self._Jhat @ z
+        T = project_blocks(G, similar=self._mode == "similar")
+        rig = float(np.sum((G - T) ** 2))
+        sm = float(self.lambda_**2 * np.sum((self._Hhat @ z) ** 2))
+        return rig + sm, rig, sm
+
+    # ------------------------------------------------------------------ binding
+    def bind(
+        self, points, *, outside: str = "raise", dtype=np.float64, chunk_size: int = 8192
+    ) -> Binding:
+        """Precompute ``F = D_points B`` for fast repeated deformation of a point set.
+
+        Parameters
+        ----------
+        points : (P, 3) array_like
+            The shape's points (mesh vertices, voxel centres, ...).
+        outside : {"raise", "passthrough"}
+            Points outside the cage: raise :class:`OutsideCageError` listing them (default),
+            or leave them unchanged by every deformation (their rows of ``F`` are not stored).
+        dtype : numpy dtype
+            ``float64`` (default) or ``float32`` storage of ``F`` (half the memory and
+            bandwidth; ``F`` acts on the change from the rest pose, so the rounding error
+            stays far below 1e-6 of the bounding-box diagonal for the bundled scenarios --
+            measured in ``benchmarks/bench_solver.py``).
+        chunk_size : int
+            Points per basis evaluation.
+
+        Returns
+        -------
+        Binding
+        """
+        self._require_constraints()
+        return Binding(self, points, outside=outside, dtype=dtype, chunk_size=chunk_size)
+
+    def __repr__(self) -> str:
+        return (
+            f"Deformer(mode={self._mode!r}, anchors={self.n_anchors}, cage=({self._n} vertices, "
+            f"{self._m} faces), samples={len(self._samples)}, lambda={self.lambda_:.4g}, "
+            f"constraints={self.n_constraints})"
+        )
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True)
+def _apply_rows(F, dwt, p, rows, out):  # pragma: no cover - compiled
+    """out[rows[i]] = p[rows[i]] + F[i] @ dw, with float64 accumulation.
+
+    A dedicated kernel: numpy's matmul of a tall (P, K) by a (K, 3) matrix runs at a
+    fraction of the memory bandwidth, while this product is purely bandwidth-bound.
+    """
+    for i in numba.prange(F.shape[0]):
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        for k in range(F.shape[1]):
+            f = F[i, k]
+            s0 += f * dwt[0, k]
+            s1 += f * dwt[1, k]
+            s2 += f * dwt[2, k]
+        r = rows[i]
+        out[r, 0] = p[r, 0] + s0
+        out[r, 1] = p[r, 1] + s1
+        out[r, 2] = p[r, 2] + s2
+
+
+class Binding:
+    """A point set bound to a :class:`Deformer`: deformation is one matrix product.
+
+    Created by :meth:`Deformer.bind`. ``deform()`` returns ``p + F (w - w_rest)`` with
+    ``w = [h; R_local]`` the deformer's current variables (paper eq. 8, written relative to
+    the rest pose ``w_rest = [h_rest; I]`` whose image is the identity). If the deformer's
+    constraint *points* change, ``F`` is recomputed on the next call.
+
+    Attributes
+    ----------
+    points : (P, 3) float64
+        The bound points.
+    inside : (P,) bool
+        Which points are inside the cage (the others pass through unchanged).
+    """
+
+    def __init__(
+        self, deformer: Deformer, points, *, outside="raise", dtype=np.float64, chunk_size=8192
+    ):
+        if outside not in ("raise", "passthrough"):
+            raise ValueError(f"outside must be 'raise' or 'passthrough'; got {outside!r}")
+        dtype = np.dtype(dtype)
+        if dtype not in (np.float32, np.float64):
+            raise ValueError(f"dtype must be float32 or float64; got {dtype}")
+        self.deformer = deformer
+        self.points = _as_point_array(points, "points", allow_empty=True).copy()
+        self.points.flags.writeable = False
+        self.dtype = dtype
+        self.chunk_size = int(chunk_size)
+        self.outside = outside
+        from vhm_viz.core.basis import winding_number
+
+        wn = winding_number(self.points, deformer._V, deformer._Fc)
+        self.inside = wn >= 0.5 - _WN_TOL
+        if not self.inside.all() and outside == "raise":
+            bad = np.nonzero(~self.inside)[0]
+            raise OutsideCageError(
+                f"{bad.size} of {len(self.points)} points are outside the cage (indices "
+                f"{describe_indices(bad)}); pass outside='passthrough' to leave them unchanged",
+                bad,
+            )
+        self._idx = np.nonzero(self.inside)[0]
+        self._all_inside = bool(self.inside.all())
+        self._F = None
+        self._FG = None
+        self._version = None
+        self._compute_F()
+
+    # -- precomputation
+    def _compute_F(self) -> None:
+        dfm = self.deformer
+        B = dfm._B
+        P = self._idx.size
+        F = np.empty((P, B.shape[1]), dtype=self.dtype)
+        pts = self.points[self._idx]
+        for s in range(0, P, self.chunk_size):
+            ev = evaluate_basis(pts[s : s + self.chunk_size], dfm._V, dfm._Fc, order=0)
+            F[s : s + self.chunk_size] = ev.values @ B
+        self._F = F
+        self._FG = None
+        self._version = dfm._layout_version
+
+    def _compute_FG(self) -> None:
+        dfm = self.deformer
+        B = dfm._B
+        P = self._idx.size
+        FG = np.empty((P, 3, B.shape[1]), dtype=self.dtype)
+        pts = self.points[self._idx]
+        for s in range(0, P, self.chunk_size):
+            ev = evaluate_basis(pts[s : s + self.chunk_size], dfm._V, dfm._Fc, order=1)
+            FG[s : s + self.chunk_size] = ev.gradients @ B
+        bad = ~np.isfinite(FG).all(axis=(1, 2))
+        if bad.any():
+            raise ValueError(
+                f"bound points {describe_indices(self._idx[bad])} lie on a cage edge or vertex: "
+                "the Jacobian is undefined there"
+            )
+        self._FG = FG.reshape(3 * P, B.shape[1])
+
+    def _refresh(self) -> None:
+        if self._version != self.deformer._layout_version:
+            self._compute_F()
+
+    def _delta_w(self) -> np.ndarray:
+        dfm = self.deformer
+        w = dfm.stacked_variables
+        w_rest = np.vstack(
+            [dfm._h_rest, _stack_T(np.broadcast_to(np.eye(3), (dfm.n_anchors, 3, 3)))]
+        )
+        return w - w_rest
+
+    @property
+    def nbytes(self) -> int:
+        """Memory of the stored ``F`` (and of the Jacobian binding, once computed)."""
+        return int(self._F.nbytes + (0 if self._FG is None else self._FG.nbytes))
+
+    @property
+    def F(self) -> np.ndarray:
+        """(P_inside, c + 3d) ``D_points B`` (read-only view)."""
+        self._refresh()
+        v = self._F.view()
+        v.flags.writeable = False
+        return v
+
+    # -- evaluation
+    def deform(self, out=None) -> np.ndarray:
+        """Deformed positions of the bound points, (P, 3) float64.
+
+        Parameters
+        ----------
+        out : (P, 3) float64 ndarray, optional
+            Written in place and returned.
+        """
+        self._refresh()
+        dwt = np.ascontiguousarray(self._delta_w().T, dtype=np.float64)
+        if out is None:
+            out = np.empty((len(self.points), 3))
+        elif out.shape != self.points.shape or out.dtype != np.float64:
+            raise ValueError(f"out must be a float64 array of shape {self.points.shape}")
+        if not self._all_inside:
+            out[:] = self.points
+        if self._F.size < _SMALL_F:
+            # small products: numpy avoids waking the kernel's thread pool
+            if self._all_inside:
+                np.add(self.points, self._F @ dwt.T.astype(self.dtype), out=out)
+            else:
+                out[self._idx] += self._F @ dwt.T.astype(self.dtype)
+        elif self._idx.size:
+            _apply_rows(self._F, dwt, self.points, self._idx, out)
+        return out
+
+    def jacobians(self) -> np.ndarray:
+        """Jacobians ``J[k, i, j] = d f_i / d x_j`` at the bound points, (P, 3, 3).
+
+        The first call precomputes the gradient binding (three times the memory of ``F``);
+        points passed through have ``J = I``.
+        """
+        self._refresh()
+        if self._FG is None:
+            self._compute_FG()
+        dw = self._delta_w().astype(self.dtype)
+        P = len(self.points)
+        jt = np.broadcast_to(np.eye(3), (P, 3, 3)).copy()
+        jt[self._idx] += (self._FG @ dw).reshape(-1, 3, 3)
+        return np.ascontiguousarray(np.swapaxes(jt, 1, 2))
+
+    def deform_normals(self, normals, *, normalize: bool = True) -> np.ndarray:
+        """Deform normals through the Jacobian: ``n' = cof(J) n`` (paper eq. 6).
+
+        ``cof(J) n = (J t1) x (J t2)`` for any tangent pair with ``t1 x t2 = n``, i.e. the
+        normal of the deformed tangent plane.
+
+        Parameters
+        ----------
+        normals : (P, 3) array_like
+            One normal per bound point.
+        normalize : bool
+            Return unit normals (default) or the raw ``cof(J) n`` (scaled by area change).
+
+        Returns
+        -------
+        (P, 3) float64
+        """
+        n = _as_point_array(normals, "normals", allow_empty=True)
+        if n.shape != self.points.shape:
+            raise ValueError(f"normals must have shape {self.points.shape}; got {n.shape}")
+        J = self.jacobians()
+        c0, c1, c2 = J[:, :, 0], J[:, :, 1], J[:, :, 2]
+        out = (
+            n[:, 0:1] * np.cross(c1, c2)
+            + n[:, 1:2] * np.cross(c2, c0)
+            + n[:, 2:3] * np.cross(c0, c1)
+        )
+        if normalize:
+            ln = np.linalg.norm(out, axis=1, keepdims=True)
+            out = np.divide(out, ln, out=np.zeros_like(out), where=ln > 0)
+        return out
+
+    def __repr__(self) -> str:
+        return (
+            f"Binding(points={len(self.points)}, inside={self._idx.size}, dtype={self.dtype}, "
+            f"F={self.nbytes / 1e6:.1f} MB)"
+        )

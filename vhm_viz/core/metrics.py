@@ -1,0 +1,285 @@
+"""Quality metrics of a deformation: the paper's E_rigid and E_volume, Jacobian measures.
+
+Surface measures (paper Section 4) compare a triangle mesh before and after deformation:
+
+* :func:`rigidity_distortion` -- the area-weighted ``(s1 - 1)^2 + (s2 - 1)^2`` of the
+  singular values of each triangle's 2x2 map (Liu et al. 2008, as in the paper's Table 1).
+* :func:`volume_change` -- ``|V_new - V_orig| / V_orig`` of the enclosed volume.
+
+Point measures take Jacobians ``J[k, i, j] = d f_i / d x_j`` of shape ``(N, 3, 3)`` (as
+returned by ``HarmonicMap.jacobian``): :func:`jacobian_determinant`,
+:func:`condition_number` (``s_max / s_min``), :func:`rotation_angle` (angle of the rotation
+of the polar decomposition), :func:`stretch` (largest singular value), :func:`foldover_count`
+(``det J <= 0``), and :func:`jacobian_measures` for all of them at once.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vhm_viz.core.geometry import signed_volume
+
+__all__ = [
+    "rigidity_distortion",
+    "triangle_singular_values",
+    "volume_change",
+    "singular_values",
+    "jacobian_determinant",
+    "condition_number",
+    "rotation_angle",
+    "stretch",
+    "foldover_count",
+    "jacobian_measures",
+]
+
+
+def _points(a, name: str) -> np.ndarray:
+    p = np.asarray(a, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3); got {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError(f"{name} contains non-finite values")
+    return p
+
+
+def _triangles(t, n_points: int) -> np.ndarray:
+    f = np.asarray(t)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(f"triangles must have shape (m, 3); got {f.shape}")
+    f = f.astype(np.int64)
+    if f.size and (f.min() < 0 or f.max() >= n_points):
+        raise ValueError(f"triangle indices must lie in [0, {n_points})")
+    return f
+
+
+def _frame_coords(p0, p1, p2):
+    """2D coordinates of the edges ``p1 - p0`` and ``p2 - p0`` in each triangle's plane.
+
+    Returns the (m, 2, 2) matrix whose columns are the two edge vectors, and twice the area.
+    """
+    e1 = p1 - p0
+    e2 = p2 - p0
+    l1 = np.linalg.norm(e1, axis=1)
+    n = np.cross(e1, e2)
+    twice_area = np.linalg.norm(n, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = e1 / l1[:, None]
+        v = np.cross(n / twice_area[:, None], u)
+    m = np.empty((len(p0), 2, 2))
+    m[:, 0, 0] = l1
+    m[:, 1, 0] = 0.0
+    m[:, 0, 1] = np.einsum("ij,ij->i", e2, u)
+    m[:, 1, 1] = np.einsum("ij,ij->i", e2, v)
+    return m, twice_area
+
+
+def _sv2(a, b, c, d):
+    """Singular values (s1 >= s2 >= 0) of 2x2 matrices [[a, b], [c, d]] in closed form."""
+    e = 0.5 * (a + d)
+    f = 0.5 * (a - d)
+    g = 0.5 * (c + b)
+    h = 0.5 * (c - b)
+    q = np.hypot(e, h)
+    r = np.hypot(f, g)
+    return q + r, np.abs(q - r)
+
+
+def triangle_singular_values(source_points, deformed_points, triangles):
+    """Singular values of the 2x2 map of each triangle from its source to its deformed shape.
+
+    Parameters
+    ----------
+    source_points, deformed_points : (N, 3) array_like
+        Vertex positions before and after the deformation (same connectivity).
+    triangles : (m, 3) array_like of int
+        Triangles.
+
+    Returns
+    -------
+    s : (m, 2) float64
+        ``s[:, 0] >= s[:, 1] >= 0``; NaN for triangles that are degenerate in the source.
+    source_areas : (m,) float64
+        Source triangle areas.
+    """
+    x = _points(source_points, "source_points")
+    y = _points(deformed_points, "deformed_points")
+    if x.shape != y.shape:
+        raise ValueError(f"source and deformed points differ in shape: {x.shape} vs {y.shape}")
+    f = _triangles(triangles, len(x))
+    ms, twice_area = _frame_coords(x[f[:, 0]], x[f[:, 1]], x[f[:, 2]])
+    md, _ = _frame_coords(y[f[:, 0]], y[f[:, 1]], y[f[:, 2]])
+    # deformed triangles that collapsed to a segment/point: their frame is NaN; treat the
+    # plane as arbitrary by measuring through the 3x2 map's Gram matrix instead.
+    ok = twice_area > 0
+    s = np.full((len(f), 2), np.nan)
+    if ok.any():
+        # 3x2 map M = E_def @ inv(E_src) where E are the 3x2 edge matrices; singular values of
+        # M via its 2x2 Gram matrix would lose accuracy, so use the 2D frames when possible.
+        inv = np.linalg.inv(ms[ok])
+        j2 = md[ok] @ inv
+        bad = ~np.isfinite(j2).all(axis=(1, 2))
+        s1, s2 = _sv2(j2[:, 0, 0], j2[:, 0, 1], j2[:, 1, 0], j2[:, 1, 1])
+        if bad.any():
+            # collapsed deformed triangles: fall back to the 3x2 map
+            idx = np.nonzero(ok)[0][bad]
+            ed = np.stack([y[f[idx, 1]] - y[f[idx, 0]], y[f[idx, 2]] - y[f[idx, 0]]], axis=2)
+            m32 = ed @ inv[bad]
+            sv = np.linalg.svd(m32, compute_uv=False)
+            s1[bad], s2[bad] = sv[:, 0], sv[:, 1]
+        s[ok, 0], s[ok, 1] = s1, s2
+    return s, 0.5 * twice_area
+
+
+def rigidity_distortion(source_points, deformed_points, triangles) -> float:
+    """The paper's rigidity distortion ``E_rigid`` of a deformed triangle mesh.
+
+    ``E_rigid = sum_t A_t [(s1_t - 1)^2 + (s2_t - 1)^2] / sum_t A_t`` with ``A_t`` the source
+    triangle area and ``s1_t, s2_t`` the singular values of the 2x2 linear map taking the
+    source triangle (in its own plane) to the deformed triangle (in its plane). Rigid motions
+    give 0. Source triangles of zero area are ignored (they carry no weight).
+
+    Parameters
+    ----------
+    source_points, deformed_points : (N, 3) array_like
+    triangles : (m, 3) array_like of int
+
+    Returns
+    -------
+    float
+    """
+    s, area = triangle_singular_values(source_points, deformed_points, triangles)
+    ok = area > 0
+    if not ok.any():
+        raise ValueError("all source triangles are degenerate (zero area)")
+    e = ((s[ok] - 1.0) ** 2).sum(axis=1)
+    return float((area[ok] * e).sum() / area[ok].sum())
+
+
+def volume_change(source_points, deformed_points, triangles) -> float:
+    """Relative change of the enclosed volume, ``|V_new - V_orig| / V_orig``.
+
+    Parameters
+    ----------
+    source_points, deformed_points : (N, 3) array_like
+        Vertices of a closed triangle mesh before and after deformation.
+    triangles : (m, 3) array_like of int
+        Consistently oriented triangles (either orientation: the sign cancels).
+
+    Returns
+    -------
+    float
+    """
+    x = _points(source_points, "source_points")
+    y = _points(deformed_points, "deformed_points")
+    f = _triangles(triangles, len(x))
+    v0 = signed_volume(x, f)
+    if v0 == 0.0:
+        raise ValueError("the source mesh encloses no volume")
+    v1 = signed_volume(y, f)
+    return float(abs(v1 - v0) / abs(v0))
+
+
+# ----------------------------------------------------------------------------- Jacobians
+def _jacobians(jacobians) -> np.ndarray:
+    j = np.asarray(jacobians, dtype=np.float64)
+    if j.shape == (3, 3):
+        j = j[None]
+    if j.ndim != 3 or j.shape[1:] != (3, 3):
+        raise ValueError(f"jacobians must have shape (N, 3, 3); got {j.shape}")
+    return j
+
+
+def singular_values(jacobians) -> np.ndarray:
+    """Singular values of each Jacobian, descending: shape (N, 3)."""
+    j = _jacobians(jacobians)
+    return np.linalg.svd(j, compute_uv=False)
+
+
+def jacobian_determinant(jacobians) -> np.ndarray:
+    """``det J`` per point (local volume ratio): shape (N,)."""
+    return np.linalg.det(_jacobians(jacobians))
+
+
+def condition_number(jacobians) -> np.ndarray:
+    """``s_max / s_min`` per point (``inf`` for singular Jacobians): shape (N,)."""
+    s = singular_values(jacobians)
+    return _cond(s)
+
+
+def _cond(s: np.ndarray) -> np.ndarray:
+    out = np.full(len(s), np.inf)
+    ok = s[:, 2] > 0
+    out[ok] = s[ok, 0] / s[ok, 2]
+    return out
+
+
+def stretch(jacobians) -> np.ndarray:
+    """Largest singular value ``s_max`` per point (largest length ratio): shape (N,)."""
+    return singular_values(jacobians)[:, 0]
+
+
+def _polar_rotation(j: np.ndarray) -> np.ndarray:
+    """Closest proper rotation ``U diag(1, 1, det(U V^T)) V^T`` of each matrix."""
+    u, _, vt = np.linalg.svd(j)
+    sign = np.sign(np.linalg.det(u @ vt))
+    sign[sign == 0] = 1.0
+    u = u.copy()
+    u[:, :, 2] *= sign[:, None]
+    return u @ vt
+
+
+def rotation_angle(jacobians, *, degrees: bool = False) -> np.ndarray:
+    """Angle of the rotation factor of each Jacobian's polar decomposition.
+
+    The rotation is the proper rotation closest to ``J`` in the Frobenius norm (for
+    ``det J < 0`` the sign of the smallest singular direction is flipped, as in the solver's
+    local step).
+
+    Parameters
+    ----------
+    jacobians : (N, 3, 3) array_like
+    degrees : bool
+        Return degrees instead of radians.
+
+    Returns
+    -------
+    (N,) float64 in ``[0, pi]`` (or ``[0, 180]``).
+    """
+    r = _polar_rotation(_jacobians(jacobians))
+    c = np.clip((np.trace(r, axis1=1, axis2=2) - 1.0) * 0.5, -1.0, 1.0)
+    a = np.arccos(c)
+    return np.degrees(a) if degrees else a
+
+
+def foldover_count(jacobians) -> int:
+    """Number of points whose Jacobian has ``det J <= 0`` (the map folds over there)."""
+    return int(np.count_nonzero(jacobian_determinant(jacobians) <= 0.0))
+
+
+def jacobian_measures(jacobians) -> dict:
+    """All per-point measures of an (N, 3, 3) Jacobian array in one SVD pass.
+
+    Returns
+    -------
+    dict
+        ``determinant``, ``condition_number`` (``s_max/s_min``), ``rotation_angle``
+        (radians), ``stretch`` (``s_max``), ``min_stretch`` (``s_min``), arrays of shape
+        (N,); and ``foldovers`` (int, count of ``det <= 0``).
+    """
+    j = _jacobians(jacobians)
+    u, s, vt = np.linalg.svd(j)
+    det = np.linalg.det(j)
+    sign = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
+    u = u.copy()
+    u[:, :, 2] *= sign[:, None]
+    r = u @ vt
+    angle = np.arccos(np.clip((np.trace(r, axis1=1, axis2=2) - 1.0) * 0.5, -1.0, 1.0))
+    cond = _cond(s)
+    return {
+        "determinant": det,
+        "condition_number": cond,
+        "rotation_angle": angle,
+        "stretch": s[:, 0],
+        "min_stretch": s[:, 2],
+        "foldovers": int(np.count_nonzero(det <= 0.0)),
+    }
