@@ -14,6 +14,11 @@ import sys
 # subcommand name -> module in this package; order is the order shown in --help
 _COMMANDS = {
     "demo": "demo",
+    "deform": "deform",
+    "analyze": "analyze",
+    "cage": "cage",
+    "anchors": "anchors",
+    "explore": "explore",
 }
 
 

@@ -1,0 +1,343 @@
+"""The command line: demo end to end, deform and analyze, and every kind of bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pv = pytest.importorskip("pyvista")
+
+from vhm_viz.cli import main  # noqa: E402
+from vhm_viz.scene import Scene  # noqa: E402
+
+
+def _run(capsys, *argv):
+    rc = main(list(map(str, argv)))
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+@pytest.fixture(scope="module")
+def demo_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    rc = main(["demo", "-o", str(out), "-q", "--resolution", "12", "--voxel", "0.12"])
+    assert rc == 0
+    return out
+
+
+def test_demo_writes_everything(demo_dir):
+    names = {p.name for p in demo_dir.iterdir()}
+    expected = {
+        "scene.json",
+        "bar_rest.vtp",
+        "bar_bent.vtp",
+        "bar_tets_rest.vtu",
+        "bar_tets_bent.vtu",
+        "bar_volume_rest.vti",
+        "bar_volume_bent.vts",
+        "bar_volume_bent.vti",
+        "figure4_slices.png",
+        "figure12_condition_histogram.png",
+        "energy.png",
+        "metrics.json",
+    }
+    assert expected <= names
+    assert not [n for n in names if n.startswith(".")]  # no temporary files left
+    metrics = json.loads((demo_dir / "metrics.json").read_text())
+    assert metrics["converged"] and metrics["foldovers"] == 0
+    assert 0.02 < metrics["E_rigid"] < 0.12  # paper Table 1 range / math notes: 0.068
+    assert 0.01 < metrics["E_volume"] < 0.1
+    bent = pv.read(demo_dir / "bar_bent.vtp")
+    rest = pv.read(demo_dir / "bar_rest.vtp")
+    assert bent.n_points == rest.n_points
+    assert bent.bounds[1] > 3.0  # the top went over to x = 3.18
+    assert isinstance(pv.read(demo_dir / "bar_tets_bent.vtu"), pv.UnstructuredGrid)
+    vol = pv.read(demo_dir / "bar_volume_bent.vti")
+    assert isinstance(vol, pv.ImageData) and "density" in vol.point_data
+    assert 0.9 < metrics["volume_voxel_sum_ratio"] < 1.15
+
+
+def test_demo_prints_where_outputs_are(tmp_path, capsys):
+    rc, out, err = _run(
+        capsys,
+        "demo",
+        "-o",
+        tmp_path / "d",
+        "-q",
+        "--resolution",
+        "6",
+        "--voxel",
+        "0.2",
+        "--no-tets",
+    )
+    assert rc == 0, err
+    assert str((tmp_path / "d").resolve()) in out
+    assert "figure4_slices.png" in out
+
+
+def test_deform_matches_the_scene(demo_dir, tmp_path, capsys):
+    out_path = tmp_path / "bent.vtp"
+    rc, out, err = _run(
+        capsys,
+        "deform",
+        demo_dir / "bar_rest.vtp",
+        "--scene",
+        demo_dir / "scene.json",
+        "-o",
+        out_path,
+        "--arrays",
+        "det,displacement",
+    )
+    assert rc == 0, err
+    lines = [ln for ln in out.splitlines() if ln.strip()]
+    assert len(lines) == 1
+    assert "iterations" in lines[0] and "E_volume" in lines[0]
+    assert "0 points outside the cage" in lines[0] and str(out_path) in lines[0]
+    assert "binding" in err and "solving" in err  # progress bars
+    result = pv.read(out_path)
+    rest = pv.read(demo_dir / "bar_rest.vtp")
+    scene = Scene.load(demo_dir / "scene.json")
+    dfm = scene.build()
+    scene.solve(dfm)
+    np.testing.assert_allclose(result.points, dfm.harmonic_map.map(rest.points), atol=1e-6)
+    assert "jacobian_determinant" in result.point_data
+    assert "displacement" in result.point_data
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_deform_volume_resampled_and_warped(demo_dir, tmp_path, capsys):
+    rc, out, err = _run(
+        capsys,
+        "deform",
+        demo_dir / "bar_volume_rest.vti",
+        "--scene",
+        demo_dir / "scene.json",
+        "-o",
+        tmp_path / "v.vti",
+        "-q",
+    )
+    assert rc == 0, err
+    assert "voxels with a pre-image" in out
+    assert isinstance(pv.read(tmp_path / "v.vti"), pv.ImageData)
+    rc, out, err = _run(
+        capsys,
+        "deform",
+        demo_dir / "bar_volume_rest.vti",
+        "--scene",
+        demo_dir / "scene.json",
+        "-o",
+        tmp_path / "v.vts",
+        "-q",
+    )
+    assert rc == 0, err
+    assert isinstance(pv.read(tmp_path / "v.vts"), pv.StructuredGrid)
+    rc, out, err = _run(
+        capsys,
+        "deform",
+        demo_dir / "bar_tets_rest.vtu",
+        "--scene",
+        demo_dir / "scene.json",
+        "-o",
+        tmp_path / "t.vtp",
+        "-q",
+    )
+    assert rc == 1 and "cannot write a UnstructuredGrid" in err
+
+
+def test_analyze_writes_figures_and_metrics(demo_dir, tmp_path, capsys):
+    out_dir = tmp_path / "analysis"
+    rc, out, err = _run(
+        capsys,
+        "analyze",
+        demo_dir / "bar_rest.vtp",
+        "--scene",
+        demo_dir / "scene.json",
+        "-o",
+        out_dir,
+        "-q",
+    )
+    assert rc == 0, err
+    assert len(out.strip().splitlines()) == 1 and "E_rigid" in out
+    for name in ("figure4_slices.png", "figure12_condition_histogram.png", "energy.png"):
+        assert (out_dir / name).stat().st_size > 5000
+    m = json.loads((out_dir / "metrics.json").read_text())
+    for key in (
+        "E_rigid",
+        "E_volume",
+        "jacobian_determinant",
+        "condition_number",
+        "foldovers",
+        "iterations",
+        "points_outside_cage",
+    ):
+        assert key in m
+    assert m["foldovers"] == 0 and m["condition_number"]["min"] >= 1.0
+    # tets: E_volume from the cell volumes, no E_rigid
+    rc, out, err = _run(
+        capsys,
+        "analyze",
+        demo_dir / "bar_tets_rest.vtu",
+        "--scene",
+        demo_dir / "scene.json",
+        "-o",
+        tmp_path / "a2",
+        "-q",
+    )
+    assert rc == 0, err
+    m = json.loads((tmp_path / "a2" / "metrics.json").read_text())
+    assert "E_volume" in m and "E_rigid" not in m
+
+
+def _one_line_error(rc, err):
+    assert rc != 0
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("vhm-viz ")
+    return lines[0]
+
+
+def test_bad_inputs(demo_dir, tmp_path, capsys):
+    scene = demo_dir / "scene.json"
+    rest = demo_dir / "bar_rest.vtp"
+    # missing input
+    line = _one_line_error(
+        *_run(
+            capsys,
+            "deform",
+            tmp_path / "nope.vtp",
+            "--scene",
+            scene,
+            "-o",
+            tmp_path / "o.vtp",
+            "-q",
+        )[::2]
+    )
+    assert "not found" in line
+    # missing scene
+    line = _one_line_error(
+        *_run(
+            capsys,
+            "deform",
+            rest,
+            "--scene",
+            tmp_path / "nope.json",
+            "-o",
+            tmp_path / "o.vtp",
+            "-q",
+        )[::2]
+    )
+    assert "scene file not found" in line
+    # malformed scene: wrong version, bad field
+    bad = json.loads(scene.read_text())
+    bad["version"] = 7
+    (tmp_path / "v7.json").write_text(json.dumps(bad))
+    line = _one_line_error(
+        *_run(
+            capsys, "deform", rest, "--scene", tmp_path / "v7.json", "-o", tmp_path / "o.vtp", "-q"
+        )[::2]
+    )
+    assert "'version'" in line and "unsupported version 7" in line
+    bad = json.loads(scene.read_text())
+    bad["constraints"]["targets"][1] = [1, 2]
+    (tmp_path / "b.json").write_text(json.dumps(bad))
+    line = _one_line_error(
+        *_run(capsys, "analyze", rest, "--scene", tmp_path / "b.json", "-o", tmp_path / "a", "-q")[
+            ::2
+        ]
+    )
+    assert "'constraints.targets[1]'" in line
+    (tmp_path / "j.json").write_text("{oops")
+    line = _one_line_error(
+        *_run(
+            capsys, "deform", rest, "--scene", tmp_path / "j.json", "-o", tmp_path / "o.vtp", "-q"
+        )[::2]
+    )
+    assert "not valid JSON" in line
+    # output = input (also through another spelling of the path)
+    copy = tmp_path / "in.vtp"
+    copy.write_bytes(rest.read_bytes())
+    before = copy.read_bytes()
+    for target in (copy, tmp_path / "." / "in.vtp"):
+        line = _one_line_error(
+            *_run(capsys, "deform", copy, "--scene", scene, "-o", target, "-q")[::2]
+        )
+        assert "refusing to overwrite the input" in line
+    assert copy.read_bytes() == before
+    # unreadable input
+    (tmp_path / "junk.vtp").write_text("not a vtk file")
+    line = _one_line_error(
+        *_run(
+            capsys,
+            "deform",
+            tmp_path / "junk.vtp",
+            "--scene",
+            scene,
+            "-o",
+            tmp_path / "o.vtp",
+            "-q",
+        )[::2]
+    )
+    assert "junk.vtp" in line
+    assert not (tmp_path / "o.vtp").exists()
+
+
+def test_cage_not_enclosing_the_data(demo_dir, tmp_path, capsys):
+    mesh = pv.read(demo_dir / "bar_rest.vtp")
+    mesh.points = mesh.points * np.array([1.0, 1.0, 1.2])  # pokes out of the top of the cage
+    big = tmp_path / "long.vtp"
+    mesh.save(big)
+    scene = demo_dir / "scene.json"
+    line = _one_line_error(
+        *_run(capsys, "deform", big, "--scene", scene, "-o", tmp_path / "o.vtp", "-q")[::2]
+    )
+    assert "outside the cage" in line and "--outside passthrough" in line
+    assert not (tmp_path / "o.vtp").exists()
+    rc, out, err = _run(
+        capsys,
+        "deform",
+        big,
+        "--scene",
+        scene,
+        "-o",
+        tmp_path / "o.vtp",
+        "-q",
+        "--outside",
+        "passthrough",
+    )
+    assert rc == 0, err
+    n_out = int((np.asarray(mesh.points)[:, 2] > 5.2).sum())
+    assert n_out > 0 and f"{n_out} points outside the cage" in out
+    res = pv.read(tmp_path / "o.vtp")
+    assert int(np.asarray(res.point_data["vhm_outside"]).sum()) == n_out
+
+
+def test_help_is_useful(capsys):
+    for cmd in ("deform", "analyze", "demo"):
+        with pytest.raises(SystemExit) as ex:
+            main([cmd, "--help"])
+        assert ex.value.code == 0
+        out = capsys.readouterr().out
+        assert "--output" in out or "-o" in out
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    assert "deform" in out and "analyze" in out and "demo" in out
+
+
+def test_console_script_runs():
+    exe = Path(sys.executable).with_name("vhm-viz")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "vhm_viz.cli"]
+    res = subprocess.run(
+        [*cmd, "deform", "/nonexistent/x.vtp", "--scene", "s.json", "-o", "y.vtp"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert res.returncode == 1
+    assert res.stderr.strip().count("\n") == 0
+    assert "input file not found" in res.stderr

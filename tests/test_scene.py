@@ -1,0 +1,271 @@
+"""Scene files: exact round trips, clear errors naming the field, building deformers."""
+
+from __future__ import annotations
+
+import json
+import sys
+import types
+
+import numpy as np
+import pytest
+from conftest import box_cage
+
+from vhm_viz import Cage
+from vhm_viz.core.deformer import Deformer
+from vhm_viz.scene import SCENE_FORMAT, Scene, SceneError
+
+
+def _deformer():
+    v, f = box_cage((-0.6, -0.6, -0.6), (0.6, 0.6, 0.6), 2)
+    cage = Cage(v, f)
+    anchors = np.column_stack([np.zeros(4), np.zeros(4), np.linspace(-0.4, 0.4, 4)])
+    dfm = Deformer(cage, anchors, mode="similar", alpha=0.02)
+    pos = np.array([[0.0, 0.0, -0.5], [0.0, 0.0, 0.5]])
+    tgt = pos + np.array([[0.0, 0.0, 0.0], [0.1 / 3, 0.2, -0.05]])
+    rot = np.array([[np.cos(0.3), -np.sin(0.3), 0.0], [np.sin(0.3), np.cos(0.3), 0.0], [0, 0, 1]])
+    dfm.set_constraints(positions=pos, targets=tgt, jacobian_points=pos[:1], jacobians=rot[None])
+    return dfm
+
+
+def _minimal(**changes):
+    d = {
+        "format": SCENE_FORMAT,
+        "version": 1,
+        "cage": {
+            "vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
+            "faces": [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        },
+        "anchors": [[0.2, 0.2, 0.2]],
+        "constraints": {"positions": [[0.1, 0.1, 0.1]], "targets": [[0.1, 0.1, 0.15]]},
+    }
+    d.update(changes)
+    return d
+
+
+def test_round_trip_is_exact(tmp_path):
+    dfm = _deformer()
+    scene = Scene.from_deformer(dfm, solver={"max_iterations": 77, "steps": 2})
+    path = tmp_path / "scene.json"
+    scene.save(path)
+    loaded = Scene.load(path)
+    assert loaded == scene
+    c0, c1 = scene.constraints, loaded.constraints
+    for k in c0:
+        np.testing.assert_array_equal(c0[k], c1[k])  # bit-exact floats (0.1/3 included)
+    np.testing.assert_array_equal(loaded.cage["vertices"], dfm.cage.vertices)
+    np.testing.assert_array_equal(loaded.anchors["points"], dfm.anchors)
+    assert loaded.mode == "similar" and loaded.alpha == 0.02
+    assert loaded.solver["max_iterations"] == 77 and loaded.solver["steps"] == 2
+    # saving the loaded scene writes the identical file
+    path2 = tmp_path / "again.json"
+    loaded.save(path2)
+    assert path2.read_text() == path.read_text()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again.json", "scene.json"]
+
+
+def test_minimal_file_is_normalised_and_round_trips(tmp_path):
+    scene = Scene.from_dict(_minimal())
+    d = scene.to_dict()
+    assert d["mode"] == "rigid" and d["alpha"] == 0.01
+    assert d["solver"]["init"] == "identity"
+    assert d["constraints"]["jacobians"] == []
+    assert Scene.from_dict(json.loads(json.dumps(d))).to_dict() == d
+
+
+def test_built_deformer_reproduces_the_original(tmp_path):
+    dfm = _deformer()
+    dfm.solve(init="identity")
+    scene = Scene.from_deformer(dfm)
+    path = tmp_path / "s.json"
+    scene.save(path)
+    dfm2 = Scene.load(path).build()
+    Scene.load(path).solve(dfm2)
+    pts = np.random.default_rng(0).uniform(-0.4, 0.4, (50, 3))
+    np.testing.assert_allclose(dfm2.harmonic_map.map(pts), dfm.harmonic_map.map(pts), atol=1e-8)
+
+
+def test_cage_path_relative_to_scene_file(tmp_path):
+    v, f = box_cage((-1, -1, -1), (1, 1, 1), 1)
+    Cage(v, f).save(tmp_path / "cage.obj")
+    sub = tmp_path / "scenes"
+    sub.mkdir()
+    d = _minimal(
+        cage="../cage.obj",
+        anchors=[[0, 0, 0.2]],
+        constraints={"positions": [[0, 0, 0]], "targets": [[0, 0, 0.1]]},
+    )
+    (sub / "s.json").write_text(json.dumps(d))
+    scene = Scene.load(sub / "s.json")
+    assert scene.to_dict()["cage"] == {"path": "../cage.obj"}
+    dfm = scene.build()
+    assert dfm.cage.n_vertices == 8
+
+
+def test_ramped_solve_reaches_the_direct_solution():
+    dfm = _deformer()
+    direct = Scene.from_deformer(dfm, solver={"tolerance": 1e-9, "max_iterations": 5000})
+    direct.solve(dfm)
+    ref = dfm.coefficients.copy()
+    dfm2 = _deformer()
+    ramped = Scene.from_deformer(
+        dfm2, solver={"steps": 3, "tolerance": 1e-9, "max_iterations": 5000}
+    )
+    reports = ramped.solve(dfm2)
+    assert len(reports) == 3
+    np.testing.assert_allclose(dfm2.coefficients, ref, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"version": 2}, "version"),
+        ({"version": "1"}, "version"),
+        ({"format": "something-else"}, "format"),
+        ({"colour": "red"}, "colour"),
+        ({"mode": "wobbly"}, "mode"),
+        ({"alpha": -1}, "alpha"),
+        ({"alpha": True}, "alpha"),
+        ({"cage": 5}, "cage"),
+        ({"cage": {"vertices": [[0, 0, 0]], "faces": []}}, "cage.vertices"),
+        (
+            {
+                "cage": {
+                    "vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]],
+                    "faces": [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 9]],
+                }
+            },
+            "cage.faces[3]",
+        ),
+        ({"cage": {"path": ""}}, "cage.path"),
+        ({"anchors": []}, "anchors"),
+        ({"anchors": [[0, 0]]}, "anchors[0]"),
+        ({"anchors": {"auto": 0}}, "anchors.auto"),
+        ({"anchors": {"skeleton": "x.tgf"}}, "anchors"),
+        ({"constraints": {"positions": [[0, 0, 0]]}}, "constraints.targets"),
+        (
+            {"constraints": {"positions": [[0, 0, 0]], "targets": [[0, 0, 0], [1, 1, 1]]}},
+            "constraints.targets",
+        ),
+        (
+            {"constraints": {"positions": [[0, 0, 0], [1, 2]], "targets": [[0, 0, 0]]}},
+            "constraints.positions[1]",
+        ),
+        (
+            {"constraints": {"positions": [[0, 0, "x"]], "targets": [[0, 0, 0]]}},
+            "constraints.positions[0][2]",
+        ),
+        (
+            {
+                "constraints": {
+                    "positions": [[0, 0, 0]],
+                    "targets": [[0, 0, 0]],
+                    "jacobian_points": [[0, 0, 0]],
+                    "jacobians": [[[1, 0], [0, 1]]],
+                }
+            },
+            "constraints.jacobians[0][0]",
+        ),
+        (
+            {
+                "constraints": {
+                    "positions": [[0, 0, 0]],
+                    "targets": [[0, 0, 0]],
+                    "jacobian_points": [[0, 0, 0]],
+                }
+            },
+            "constraints.jacobians",
+        ),
+        ({"solver": {"iterations": 5}}, "solver.iterations"),
+        ({"solver": {"init": "random"}}, "solver.init"),
+        ({"solver": {"steps": 0}}, "solver.steps"),
+    ],
+)
+def test_malformed_scene_names_the_field(change, field):
+    with pytest.raises(SceneError) as err:
+        Scene.from_dict(_minimal(**change))
+    assert err.value.field == field
+    assert f"'{field}'" in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_missing_fields_and_bad_json(tmp_path):
+    d = _minimal()
+    del d["constraints"]
+    with pytest.raises(SceneError, match="'constraints': missing"):
+        Scene.from_dict(d)
+    d = _minimal()
+    del d["version"]
+    with pytest.raises(SceneError, match="'version': missing"):
+        Scene.from_dict(d)
+    p = tmp_path / "bad.json"
+    p.write_text("{not json")
+    with pytest.raises(SceneError, match="bad.json: scene .*not valid JSON"):
+        Scene.load(p)
+    p.write_text("[1, 2]")
+    with pytest.raises(SceneError, match="bad.json"):
+        Scene.load(p)
+    with pytest.raises(FileNotFoundError):
+        Scene.load(tmp_path / "missing.json")
+    p.write_text(json.dumps(_minimal(version=99)))
+    with pytest.raises(
+        SceneError, match=r"bad.json: scene field 'version': unsupported version 99"
+    ):
+        Scene.load(p)
+
+
+def test_auto_cage_and_auto_anchors_call_the_helpers(monkeypatch):
+    pv = pytest.importorskip("pyvista")
+    import vhm_viz.autocage
+
+    calls = {}
+    v, f = box_cage((-1, -1, -1), (1, 1, 1), 2)
+
+    def fake_auto_cage(data, **kwargs):
+        calls["cage"] = (data, kwargs)
+        return Cage(v, f)
+
+    def fake_auto_anchors(data, count, cage=None):
+        calls["anchors"] = (data, count, cage)
+        return np.column_stack([np.zeros(count), np.zeros(count), np.linspace(-0.5, 0.5, count)])
+
+    monkeypatch.setattr(vhm_viz.autocage, "auto_cage", fake_auto_cage)
+    fake_module = types.ModuleType("vhm_viz.autoanchors")
+    fake_module.auto_anchors = fake_auto_anchors
+    monkeypatch.setitem(sys.modules, "vhm_viz.autoanchors", fake_module)
+
+    scene = Scene.from_dict(
+        _minimal(
+            cage={"auto": {"max_faces": 100}},
+            anchors={"auto": 5},
+            constraints={"positions": [[0, 0, 0]], "targets": [[0, 0, 0.1]]},
+        )
+    )
+    assert scene.needs_data
+    assert scene.to_dict()["cage"] == {"auto": {"max_faces": 100}}
+    assert scene.to_dict()["anchors"] == {"auto": 5}
+    with pytest.raises(SceneError, match="'cage'.*needs the data"):
+        scene.build()
+    mesh = pv.Sphere(radius=0.7)
+    dfm = scene.build(data=mesh)
+    assert calls["cage"][0] is mesh and calls["cage"][1] == {"max_faces": 100}
+    assert calls["anchors"][1] == 5 and calls["anchors"][2] is dfm.cage
+    assert dfm.n_anchors == 5
+    assert Scene.from_dict(_minimal(cage="auto")).cage == {"auto": {}}
+
+
+def test_filter_with_scene_file(tmp_path):
+    pv = pytest.importorskip("pyvista")
+    from vhm_viz.filters import HarmonicDeformationFilter, update
+
+    dfm = _deformer()
+    scene = Scene.from_deformer(dfm)
+    path = tmp_path / "s.json"
+    scene.save(path)
+    mesh = pv.Sphere(radius=0.45, theta_resolution=10, phi_resolution=8)
+    flt = HarmonicDeformationFilter()
+    flt.SetInputData(mesh)
+    flt.SetScene(str(path))
+    out = pv.wrap(update(flt))
+    scene.solve(dfm)
+    np.testing.assert_allclose(out.points, dfm.harmonic_map.map(mesh.points), atol=1e-8)
+    assert len(flt.solve_reports) == 1

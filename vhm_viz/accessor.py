@@ -1,0 +1,118 @@
+"""PyVista dataset accessor ``mesh.vhm``: deform, analyse, resample with one call.
+
+Registered on :class:`pyvista.DataSet` when this module is imported, and found by PyVista
+through the ``pyvista.accessors`` entry point (PyVista >= 0.48), so ``import vhm_viz`` is
+not even needed::
+
+    deformed = mesh.vhm.deform(deformer)        # same type rules as vtkWarpVector
+    quality = mesh.vhm.analyze(deformer)        # det / cond / rotation / foldover arrays
+    volume = image.vhm.resample(deformer)       # deformed volume on a regular grid
+
+``deformation`` is a :class:`~vhm_viz.Deformer`, a :class:`~vhm_viz.HarmonicMap`, a
+:class:`~vhm_viz.scene.Scene` or the path of a scene file.
+"""
+
+from __future__ import annotations
+
+import pyvista as pv
+
+__all__ = ["VHMAccessor"]
+
+
+def _configure(flt, deformation, cage, outside):
+    flt.SetDeformation(deformation)
+    flt.SetOutsidePolicy(outside)
+    if cage is not None:
+        flt.SetCageData(cage)
+
+
+class VHMAccessor:
+    """``mesh.vhm``: variational harmonic map operations on a PyVista dataset.
+
+    Parameters
+    ----------
+    mesh : pyvista.DataSet
+    """
+
+    def __init__(self, mesh):
+        self._mesh = mesh
+
+    def deform(
+        self,
+        deformation,
+        *,
+        outside: str = "error",
+        cage=None,
+        displacement: bool = False,
+        determinant: bool = False,
+        condition_number: bool = False,
+        normals: bool = True,
+    ):
+        """The deformed dataset (:class:`vhm_viz.filters.HarmonicDeformationFilter`).
+
+        Parameters
+        ----------
+        deformation : Deformer, HarmonicMap, Scene or path
+        outside : {"error", "passthrough"}
+            Points outside the cage: raise, or leave in place (flagged ``vhm_outside``).
+        cage : pyvista.PolyData or Cage, optional
+            The cage (input port 1); default: the deformation's.
+        displacement, determinant, condition_number : bool
+            Add the point arrays ``displacement``, ``jacobian_determinant``,
+            ``condition_number``.
+        normals : bool
+            Deform normals through the Jacobian.
+
+        Returns
+        -------
+        pyvista.DataSet
+            PolyData, UnstructuredGrid or StructuredGrid (images and rectilinear grids
+            become structured grids).
+        """
+        from vhm_viz.filters import HarmonicDeformationFilter, update
+
+        f = HarmonicDeformationFilter()
+        f.SetInputData(self._mesh)
+        _configure(f, deformation, cage, outside)
+        f.SetComputeDisplacement(displacement)
+        f.SetComputeJacobianDeterminant(determinant)
+        f.SetComputeConditionNumber(condition_number)
+        f.SetDeformNormals(normals)
+        return pv.wrap(update(f))
+
+    def analyze(self, deformation, *, outside: str = "error", cage=None):
+        """The dataset with Jacobian quality point arrays (rest geometry).
+
+        Adds ``jacobian_determinant``, ``condition_number``, ``rotation_angle`` (degrees)
+        and ``foldover`` (see :class:`vhm_viz.filters.JacobianAnalysisFilter`).
+        """
+        from vhm_viz.filters import JacobianAnalysisFilter, update
+
+        f = JacobianAnalysisFilter()
+        f.SetInputData(self._mesh)
+        _configure(f, deformation, cage, outside)
+        return pv.wrap(update(f))
+
+    def resample(
+        self, deformation, *, fill_value: float = 0.0, output: str = "deformed", cage=None
+    ):
+        """A deformed volume on a regular grid (``pyvista.ImageData`` input only).
+
+        See :class:`vhm_viz.filters.HarmonicResampleFilter`; ``output`` is ``"deformed"``
+        (bounding box of the deformed volume) or ``"input"`` (the input grid).
+        """
+        from vhm_viz.filters import HarmonicResampleFilter, update
+
+        if not isinstance(self._mesh, pv.ImageData):
+            raise TypeError(f"resample needs pyvista.ImageData; got {type(self._mesh).__name__}")
+        f = HarmonicResampleFilter()
+        f.SetInputData(self._mesh)
+        _configure(f, deformation, cage, "passthrough")
+        f.SetFillValue(fill_value)
+        f.SetOutputMode(output)
+        return pv.wrap(update(f))
+
+
+# PyVista >= 0.48 has the accessor registry; older versions simply lack ``mesh.vhm``.
+if hasattr(pv, "register_dataset_accessor"):
+    pv.register_dataset_accessor("vhm", pv.DataSet)(VHMAccessor)

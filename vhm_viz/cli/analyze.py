@@ -1,0 +1,195 @@
+"""``vhm-viz analyze``: quality figures and metrics of a deformation."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vhm_viz.cli._util import (
+    CLIError,
+    Progress,
+    build_and_solve,
+    check_input,
+    load_scene,
+    observe_progress,
+    one_line,
+    outside_message,
+    quiet_vtk,
+    read_dataset,
+    same_file,
+    surface_metrics,
+)
+from vhm_viz.core.errors import OutsideCageError
+
+#: Files written by ``analyze`` into the output directory.
+FILES = {
+    "figure4": "figure4_slices.png",
+    "figure12": "figure12_condition_histogram.png",
+    "energy": "energy.png",
+    "metrics": "metrics.json",
+}
+
+
+def add_parser(subparsers) -> None:
+    """Register the ``analyze`` subcommand."""
+    p = subparsers.add_parser(
+        "analyze",
+        help="figures and metrics of a deformation (Figure 4 slices, Figure 12 histogram)",
+        description="Solve SCENE for INPUT and write into DIR: the paper's Figure 4 (a slice "
+        "coloured by det J and by cond J), Figure 12 (condition-number histogram), the "
+        "energy-vs-iteration plot, and metrics.json (E_rigid and E_volume where the data "
+        "has a surface, det/cond statistics, foldovers).",
+    )
+    p.add_argument("input", metavar="INPUT", help="rest-pose dataset")
+    p.add_argument("--scene", "-s", required=True, metavar="SCENE", help="scene file (JSON)")
+    p.add_argument(
+        "-o", "--output", required=True, metavar="DIR", help="output directory (created if missing)"
+    )
+    p.add_argument(
+        "--outside",
+        choices=("error", "passthrough"),
+        default="error",
+        help="points outside the cage: fail (default) or ignore them",
+    )
+    p.add_argument(
+        "--normal",
+        default=None,
+        help="slice normal as x,y,z (default: the axis of least displacement)",
+    )
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``analyze``; returns the exit status."""
+    quiet_vtk()
+    try:
+        print(analyze(args))
+    except CLIError as exc:
+        print(f"vhm-viz analyze: error: {exc}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as exc:  # noqa: BLE001 -- every error is one line
+        print(f"vhm-viz analyze: error: {one_line(exc)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _stats(values: np.ndarray) -> dict:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {}
+    return {
+        "min": float(v.min()),
+        "max": float(v.max()),
+        "mean": float(v.mean()),
+        "median": float(np.median(v)),
+        "p01": float(np.percentile(v, 1)),
+        "p99": float(np.percentile(v, 99)),
+    }
+
+
+def _parse_normal(text):
+    if text is None:
+        return None
+    try:
+        n = np.array([float(t) for t in text.split(",")])
+    except ValueError:
+        n = np.zeros(0)
+    if n.shape != (3,) or not np.isfinite(n).all() or np.linalg.norm(n) == 0:
+        raise CLIError(f"--normal must be three numbers x,y,z (not all zero); got {text!r}")
+    return n
+
+
+def analyze(args: argparse.Namespace) -> str:
+    """Do the work; returns the summary line."""
+    import pyvista as pv
+
+    from vhm_viz import plotting
+    from vhm_viz.filters import HarmonicDeformationFilter, JacobianAnalysisFilter, update
+    from vhm_viz.scene import write_atomic_text
+
+    src = check_input(args.input)
+    out_dir = Path(args.output)
+    if same_file(src, out_dir) or (out_dir.exists() and not out_dir.is_dir()):
+        raise CLIError(f"output {out_dir} must be a directory (not the input or a file)")
+    normal = _parse_normal(args.normal)
+    scene = load_scene(args.scene)
+    mesh = read_dataset(src)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    t0 = time.perf_counter()
+    dfm, reports = build_and_solve(scene, mesh, quiet=args.quiet)
+    hm = dfm.harmonic_map
+    ana = JacobianAnalysisFilter()
+    ana.SetInputData(mesh)
+    ana.SetDeformer(dfm)
+    ana.SetOutsidePolicy(args.outside)
+    bar = Progress("analyzing", enabled=not args.quiet)
+    observe_progress(ana, bar)
+    try:
+        analysed = pv.wrap(update(ana))
+    except OutsideCageError as exc:
+        raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
+    bar.finish()
+    inside = np.ones(mesh.n_points, bool)
+    if "vhm_outside" in analysed.point_data:
+        inside = np.asarray(analysed.point_data["vhm_outside"]) == 0
+    det = np.asarray(analysed.point_data["jacobian_determinant"])[inside]
+    cond = np.asarray(analysed.point_data["condition_number"])[inside]
+    rot = np.asarray(analysed.point_data["rotation_angle"])[inside]
+
+    deformer_filter = HarmonicDeformationFilter()
+    deformer_filter.SetInputData(mesh)
+    deformer_filter.SetDeformer(dfm)
+    deformer_filter.SetOutsidePolicy(args.outside)
+    deformed = pv.wrap(update(deformer_filter))
+
+    surf = deformed if isinstance(deformed, pv.PolyData) else None
+    slice_ = plotting.jacobian_slice(mesh, hm, normal=normal)
+    pl = plotting.figure4(slice_, deformed_surface=surf, filename=out_dir / FILES["figure4"])
+    pl.close()
+    plotting.figure12({scene.mode: cond}, filename=out_dir / FILES["figure12"])
+    plotting.energy_plot(reports, filename=out_dir / FILES["energy"])
+
+    metrics = {
+        "input": str(src),
+        "points": int(mesh.n_points),
+        "points_outside_cage": int(ana.outside_count),
+        "mode": scene.mode,
+        "alpha": scene.alpha,
+        "iterations": int(sum(r.iterations for r in reports)),
+        "converged": bool(reports[-1].converged),
+        "energy": float(reports[-1].final_energy),
+        **surface_metrics(mesh, deformed),
+        "jacobian_determinant": _stats(det),
+        "condition_number": _stats(cond),
+        "rotation_angle_degrees": _stats(rot),
+        "foldovers": int(np.count_nonzero(det <= 0)),
+        "slice": {
+            "normal": np.asarray(slice_.field_data["slice_normal"]).ravel().tolist(),
+            "jacobian_determinant": _stats(slice_.point_data["jacobian_determinant"]),
+            "condition_number": _stats(slice_.point_data["condition_number"]),
+        },
+    }
+    write_atomic_text(out_dir / FILES["metrics"], json.dumps(metrics, indent=1) + "\n")
+    seconds = time.perf_counter() - t0
+    summary = [f"analyzed {mesh.n_points} points"]
+    if "E_rigid" in metrics:
+        summary.append(f"E_rigid {metrics['E_rigid']:.4f}")
+    if "E_volume" in metrics:
+        summary.append(f"E_volume {metrics['E_volume']:.4f}")
+    summary.append(
+        f"det J [{metrics['jacobian_determinant'].get('min', float('nan')):.3f}, "
+        f"{metrics['jacobian_determinant'].get('max', float('nan')):.3f}]"
+    )
+    summary.append(f"{metrics['foldovers']} foldovers")
+    summary.append(f"{seconds:.1f} s")
+    return ", ".join(summary) + f" -> {out_dir}/"

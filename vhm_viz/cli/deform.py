@@ -1,0 +1,168 @@
+"""``vhm-viz deform``: deform a mesh, tet mesh, point cloud or volume with a scene."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from vhm_viz.cli._util import (
+    INPUT_SUFFIXES,
+    OUTPUT_SUFFIXES,
+    CLIError,
+    Progress,
+    build_and_solve,
+    check_input,
+    load_scene,
+    observe_progress,
+    one_line,
+    outside_message,
+    quiet_vtk,
+    read_dataset,
+    same_file,
+    surface_metrics,
+    write_atomic,
+)
+from vhm_viz.core.errors import OutsideCageError
+
+
+def add_parser(subparsers) -> None:
+    """Register the ``deform`` subcommand."""
+    p = subparsers.add_parser(
+        "deform",
+        help="deform a dataset with a scene (cage, anchors, constraints)",
+        description="Deform INPUT with the variational harmonic map described by SCENE and "
+        "write OUTPUT. Surfaces stay surfaces, tet meshes stay tet meshes; a volume (.vti) "
+        "written to .vti is resampled onto a regular grid (pull-back through the inverse "
+        "map), to .vts it becomes a warped structured grid. Prints one summary line.",
+        epilog=f"input types: {' '.join(INPUT_SUFFIXES)}. Example: vhm-viz deform bar.vtp "
+        "--scene bar.json -o bent.vtp",
+    )
+    p.add_argument("input", metavar="INPUT", help="dataset to deform")
+    p.add_argument("--scene", "-s", required=True, metavar="SCENE", help="scene file (JSON)")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        metavar="OUTPUT",
+        help="output file (never the input; written atomically)",
+    )
+    p.add_argument(
+        "--outside",
+        choices=("error", "passthrough"),
+        default="error",
+        help="points outside the cage: fail (default) or leave them in place, "
+        "flagged by the point array vhm_outside",
+    )
+    p.add_argument(
+        "--arrays", default="", help="comma-separated extra point arrays: displacement, det, cond"
+    )
+    p.add_argument(
+        "--fill-value",
+        type=float,
+        default=0.0,
+        help="volume resampling: value of voxels without a pre-image (default 0)",
+    )
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``deform``; returns the exit status."""
+    quiet_vtk()
+    try:
+        print(deform(args))
+    except CLIError as exc:
+        print(f"vhm-viz deform: error: {exc}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as exc:  # noqa: BLE001 -- every error is one line
+        print(f"vhm-viz deform: error: {one_line(exc)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _parse_arrays(text: str) -> set[str]:
+    names = {t.strip() for t in text.split(",") if t.strip()}
+    known = {"displacement", "det", "cond"}
+    bad = sorted(names - known)
+    if bad:
+        raise CLIError(f"unknown --arrays entry {bad[0]!r}; use displacement, det, cond")
+    return names
+
+
+def deform(args: argparse.Namespace) -> str:
+    """Do the work; returns the summary line."""
+    import pyvista as pv
+
+    from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
+
+    src = check_input(args.input)
+    out = Path(args.output)
+    if same_file(src, out):
+        raise CLIError(f"refusing to overwrite the input file {src}; choose another -o")
+    if out.is_dir():
+        raise CLIError(f"output {out} is a directory; give a file name")
+    arrays = _parse_arrays(args.arrays)
+    scene = load_scene(args.scene)
+    mesh = read_dataset(src)
+    resample = isinstance(mesh, pv.ImageData) and out.suffix.lower() == ".vti"
+    out_type = "ImageData" if resample else _output_type(mesh)
+    if out.suffix.lower() not in OUTPUT_SUFFIXES[out_type]:
+        raise CLIError(
+            f"cannot write a {out_type} to {out.suffix!r}; use "
+            f"{', '.join(OUTPUT_SUFFIXES[out_type])}"
+        )
+    if not out.parent.exists():
+        raise CLIError(f"output directory does not exist: {out.parent}")
+
+    t0 = time.perf_counter()
+    dfm, reports = build_and_solve(scene, mesh, quiet=args.quiet)
+    if resample:
+        flt = HarmonicResampleFilter()
+        flt.SetFillValue(args.fill_value)
+        label = "resampling"
+    else:
+        flt = HarmonicDeformationFilter()
+        flt.SetOutsidePolicy(args.outside)
+        flt.SetComputeDisplacement("displacement" in arrays)
+        flt.SetComputeJacobianDeterminant("det" in arrays)
+        flt.SetComputeConditionNumber("cond" in arrays)
+        label = "binding"
+    flt.SetInputData(mesh)
+    flt.SetDeformer(dfm)
+    bar = Progress(label, enabled=not args.quiet)
+    observe_progress(flt, bar)
+    try:
+        result = pv.wrap(update(flt))
+    except OutsideCageError as exc:
+        raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
+    bar.finish()
+    write_atomic(result, out)
+    seconds = time.perf_counter() - t0
+
+    iterations = sum(r.iterations for r in reports)
+    parts = [f"deformed {mesh.n_points} points ({type(mesh).__name__})"]
+    parts.append(f"{iterations} iterations" + ("" if reports[-1].converged else " (not converged)"))
+    if resample:
+        stats = flt.stats
+        parts.append(f"{stats['valid']}/{stats['voxels']} voxels with a pre-image")
+    else:
+        metrics = surface_metrics(mesh, result)
+        if "E_volume" in metrics:
+            parts.append(f"E_volume {metrics['E_volume']:.4f}")
+        parts.append(f"{flt.outside_count} points outside the cage")
+    parts.append(f"{seconds:.1f} s")
+    return ", ".join(parts) + f" -> {out}"
+
+
+def _output_type(mesh) -> str:
+    import pyvista as pv
+
+    if isinstance(mesh, pv.PolyData):
+        return "PolyData"
+    if isinstance(mesh, pv.UnstructuredGrid):
+        return "UnstructuredGrid"
+    return "StructuredGrid"

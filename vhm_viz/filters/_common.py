@@ -1,0 +1,398 @@
+"""What the VTK filters share: where the deformation comes from, VTK/numpy helpers.
+
+A filter's deformation is set on the filter in one of three ways:
+
+* :meth:`DeformationSource.SetDeformer` -- a :class:`~vhm_viz.Deformer` with constraints
+  (solved on first use if it never was);
+* :meth:`DeformationSource.SetScene` -- a :class:`~vhm_viz.scene.Scene` (or the path of a
+  scene file), built and solved by the filter;
+* :meth:`DeformationSource.SetHarmonicMap` -- a fixed :class:`~vhm_viz.HarmonicMap`.
+
+Input port 1 (optional) takes the cage as ``vtkPolyData``. When it is connected it *is*
+the cage: a deformer or scene whose cage differs is rebuilt on it with the same anchors,
+constraints, mode and alpha (and re-solved); a fixed harmonic map cannot be moved to
+another cage, so a mismatch is an error. When it is not connected, the deformation's own
+cage is used. The whole cage is requested in every piece (as ``vtkProbeFilter`` does for
+its source), so the filters stream and run piece-wise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from vtkmodules.numpy_interface import dataset_adapter as dsa
+from vtkmodules.util import numpy_support as ns
+from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
+from vtkmodules.vtkCommonCore import vtkObject
+from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkPolyData
+from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
+
+from vhm_viz.filters._binding import AbortedError, normalize_outside
+
+__all__ = ["DeformationSource", "update", "numpy_points", "geometry_key"]
+
+_SDDP = vtkStreamingDemandDrivenPipeline
+# Relative tolerance (of the cage diagonal) for "the port-1 cage is the deformer's cage".
+_CAGE_TOL = 1e-9
+
+
+def numpy_points(ds) -> np.ndarray:
+    """Points of any vtkDataSet as a (N, 3) float64 array (a copy for implicit points)."""
+    pts = ds.GetPoints() if hasattr(ds, "GetPoints") else None
+    if pts is not None and pts.GetData() is not None:
+        return np.asarray(ns.vtk_to_numpy(pts.GetData()), dtype=np.float64).reshape(-1, 3)
+    n = ds.GetNumberOfPoints()
+    out = np.empty((n, 3))
+    p = [0.0, 0.0, 0.0]
+    for i in range(n):  # only reached for exotic datasets; image/rectilinear are converted
+        ds.GetPoint(i, p)
+        out[i] = p
+    return out
+
+
+def geometry_key(ds) -> tuple:
+    """A hashable key that changes when the geometry (point positions) of ``ds`` changes.
+
+    Point sets: identity and modification time of their points. Images: extent, origin,
+    spacing, direction. Rectilinear grids: extent and the coordinate arrays' times.
+    """
+    if ds is None:
+        return (None,)
+    if ds.IsA("vtkImageData"):
+        d = ds.GetDirectionMatrix()
+        direction = tuple(d.GetElement(i, j) for i in range(3) for j in range(3))
+        return ("image", ds.GetExtent(), ds.GetOrigin(), ds.GetSpacing(), direction)
+    if ds.IsA("vtkRectilinearGrid"):
+        coords = (ds.GetXCoordinates(), ds.GetYCoordinates(), ds.GetZCoordinates())
+        return ("rect", ds.GetExtent(), *((id(c), c.GetMTime()) for c in coords))
+    pts = ds.GetPoints()
+    if pts is None:
+        return ("empty", ds.GetNumberOfPoints())
+    return ("points", pts.GetAddressAsString("vtkPoints"), pts.GetMTime(), pts.GetNumberOfPoints())
+
+
+def update(algorithm, piece: int | None = None, n_pieces: int = 1):
+    """Update a vhm_viz filter and re-raise the Python error its execution stored.
+
+    VTK reports exceptions raised inside ``RequestData`` only as log messages; the
+    vhm_viz filters keep the exception in ``last_error``. This helper silences VTK's
+    duplicate messages and raises that exception.
+
+    Parameters
+    ----------
+    algorithm : a vhm_viz filter
+    piece, n_pieces : int, optional
+        Update only this piece (``UpdatePiece(piece, n_pieces, 0)``).
+
+    Returns
+    -------
+    vtkDataObject
+        The filter's output.
+    """
+    previous = vtkObject.GetGlobalWarningDisplay()
+    vtkObject.GlobalWarningDisplayOff()
+    try:
+        algorithm.last_error = None
+        if piece is None:
+            algorithm.Update()
+        else:
+            algorithm.UpdatePiece(int(piece), int(n_pieces), 0)
+    finally:
+        vtkObject.SetGlobalWarningDisplay(previous)
+    if algorithm.last_error is not None:
+        raise algorithm.last_error
+    return algorithm.GetOutputDataObject(0)
+
+
+def _cage_from_polydata(pd):
+    from vhm_viz.cage import Cage
+
+    return Cage.from_pyvista(pd)
+
+
+def _same_cage(a, b) -> bool:
+    va, vb = np.asarray(a.vertices), np.asarray(b.vertices)
+    if va.shape != vb.shape or np.shape(a.faces) != np.shape(b.faces):
+        return False
+    if not np.array_equal(np.asarray(a.faces), np.asarray(b.faces)):
+        return False
+    diag = float(np.linalg.norm(va.max(0) - va.min(0))) or 1.0
+    return bool(np.abs(va - vb).max() <= _CAGE_TOL * diag)
+
+
+class DeformationSource(VTKPythonAlgorithmBase):
+    """Base class: input port 0 any dataset, optional port 1 the cage, one output.
+
+    Subclasses implement ``RequestData``; they call :meth:`_resolve` to obtain the current
+    ``(harmonic_map, deformer_or_None)`` and wrap their work in :meth:`_guard`.
+    """
+
+    def __init__(self, input_type: str = "vtkDataSet", output_type: str = "vtkDataSet"):
+        VTKPythonAlgorithmBase.__init__(
+            self, nInputPorts=2, inputType=input_type, nOutputPorts=1, outputType=output_type
+        )
+        self._input_type = input_type
+        self._deformer = None
+        self._user_deformer = None
+        self._scene = None
+        self._hmap = None
+        self._outside = "error"
+        self._solver: dict = {}
+        self._derived_key = None
+        self.last_error: Exception | None = None
+        self.outside_count = 0
+        #: Solve reports of solves run by the filter (scene or unsolved deformer).
+        self.solve_reports: list = []
+
+    # ------------------------------------------------------------------ pipeline ports
+    def FillInputPortInformation(self, port, info):
+        """Port 0: ``input_type``; port 1: an optional ``vtkPolyData`` cage."""
+        if port == 0:
+            info.Set(vtkAlgorithm.INPUT_REQUIRED_DATA_TYPE(), self._input_type)
+        else:
+            info.Set(vtkAlgorithm.INPUT_REQUIRED_DATA_TYPE(), "vtkPolyData")
+            info.Set(vtkAlgorithm.INPUT_IS_OPTIONAL(), 1)
+        return 1
+
+    def SetInputData(self, data) -> None:
+        """Set the data to deform (port 0) directly, without a pipeline connection."""
+        self.SetInputDataObject(0, data)
+
+    def SetCageData(self, cage) -> None:
+        """Connect a cage (``vtkPolyData``, PyVista PolyData or :class:`~vhm_viz.Cage`)."""
+        if not isinstance(cage, vtkPolyData) and hasattr(cage, "faces"):
+            import pyvista as pv
+
+            cage = pv.PolyData.from_regular_faces(
+                np.asarray(cage.vertices, dtype=np.float64), np.asarray(cage.faces)
+            )
+        self.SetInputDataObject(1, cage)
+
+    def SetCageConnection(self, port) -> None:
+        """Connect the cage from another algorithm's output port."""
+        self.SetInputConnection(1, port)
+
+    def _request_whole_cage(self, in_info) -> None:
+        if self.GetNumberOfInputConnections(1):
+            info = in_info[1].GetInformationObject(0)
+            info.Set(_SDDP.UPDATE_PIECE_NUMBER(), 0)
+            info.Set(_SDDP.UPDATE_NUMBER_OF_PIECES(), 1)
+            info.Set(_SDDP.UPDATE_NUMBER_OF_GHOST_LEVELS(), 0)
+
+    # ------------------------------------------------------------------ settings
+    def SetDeformer(self, deformer) -> None:
+        """Use this deformer (with constraints set); solved on first use if it never was."""
+        if deformer is not None and not hasattr(deformer, "bind"):
+            raise TypeError(f"SetDeformer needs a vhm_viz Deformer; got {type(deformer).__name__}")
+        self._user_deformer = deformer
+        self._deformer = deformer
+        self._scene = None
+        self._hmap = None
+        self._derived_key = None
+        self.Modified()
+
+    def GetDeformer(self):
+        """The deformer in use (the one set, or the one built from a scene / port-1 cage)."""
+        return self._deformer
+
+    def SetScene(self, scene) -> None:
+        """Use a scene (a :class:`~vhm_viz.scene.Scene` or the path of a scene file)."""
+        from vhm_viz.scene import Scene
+
+        if scene is not None and not isinstance(scene, Scene):
+            scene = Scene.load(scene)
+        self._scene = scene
+        self._user_deformer = None
+        self._deformer = None
+        self._hmap = None
+        self._derived_key = None
+        self.Modified()
+
+    def GetScene(self):
+        """The scene set with :meth:`SetScene` (or None)."""
+        return self._scene
+
+    def SetHarmonicMap(self, harmonic_map) -> None:
+        """Use a fixed harmonic map (no solver)."""
+        if harmonic_map is not None and not hasattr(harmonic_map, "evaluate"):
+            raise TypeError(
+                f"SetHarmonicMap needs a vhm_viz HarmonicMap; got {type(harmonic_map).__name__}"
+            )
+        self._hmap = harmonic_map
+        self._user_deformer = None
+        self._deformer = None
+        self._scene = None
+        self._derived_key = None
+        self.Modified()
+
+    def SetDeformation(self, deformation) -> None:
+        """Set a Deformer, HarmonicMap, Scene or scene-file path, whichever it is."""
+        if hasattr(deformation, "bind"):
+            self.SetDeformer(deformation)
+        elif hasattr(deformation, "jacobian") and hasattr(deformation, "coefficients"):
+            self.SetHarmonicMap(deformation)
+        else:
+            self.SetScene(deformation)
+
+    def SetOutsidePolicy(self, policy: str) -> None:
+        """``"error"`` (default; ``"raise"`` is accepted) or ``"passthrough"``.
+
+        Points outside the cage make the filter fail with an
+        :class:`~vhm_viz.OutsideCageError`, or stay where they are, flagged by the point
+        array ``vhm_outside``. Their count is :attr:`outside_count` in both cases.
+        """
+        policy = normalize_outside(policy)
+        if policy != self._outside:
+            self._outside = policy
+            self.Modified()
+
+    def GetOutsidePolicy(self) -> str:
+        """The outside policy."""
+        return self._outside
+
+    def SetSolverSettings(self, **settings) -> None:
+        """Keyword arguments for :meth:`Deformer.solve` used when the filter solves."""
+        self._solver = dict(settings)
+        self.Modified()
+
+    def UpdateTargets(self, targets=None, jacobians=None, *, solve: bool = True):
+        """Move the constraint targets of the current deformer (and re-solve).
+
+        Only the targets change, so the next update re-uses the cached binding.
+
+        Returns
+        -------
+        SolveReport or None
+        """
+        dfm = self._deformer or self._user_deformer
+        if dfm is None:
+            raise RuntimeError("UpdateTargets needs a deformer: call SetDeformer or SetScene")
+        dfm.update_targets(targets=targets, jacobians=jacobians)
+        report = None
+        if solve:
+            report = dfm.solve(**self._solve_kwargs())
+            self.solve_reports.append(report)
+        self.Modified()
+        return report
+
+    # ------------------------------------------------------------------ resolution
+    def _solve_kwargs(self) -> dict:
+        kw = {"init": "previous"}
+        if self._scene is not None:
+            kw.update(self._scene.solve_kwargs())
+        kw.update(self._solver)
+        kw.pop("steps", None)
+        return kw
+
+    def _port1_cage(self, in_info):
+        if not self.GetNumberOfInputConnections(1):
+            return None, None
+        pd = vtkPolyData.GetData(in_info[1])
+        if pd is None or pd.GetNumberOfPoints() == 0:
+            return None, None
+        key = (geometry_key(pd), pd.GetPolys().GetMTime() if pd.GetPolys() else None)
+        return pd, key
+
+    def _resolve(self, in_info, data=None):
+        """Return ``(harmonic_map, deformer_or_None)`` for the current settings and inputs."""
+        pd, cage_key = self._port1_cage(in_info)
+        if self._hmap is not None:
+            if pd is not None and not _same_cage(_cage_from_polydata(pd), self._hmap.cage):
+                raise ValueError(
+                    "the cage on input port 1 differs from the harmonic map's cage; a fixed "
+                    "harmonic map cannot be moved to another cage (use a Deformer or a scene)"
+                )
+            return self._hmap, None
+        if self._user_deformer is not None:
+            base = self._user_deformer
+            key = ("deformer", id(base), cage_key)
+            if key != self._derived_key:
+                dfm = base
+                if pd is not None:
+                    cage = _cage_from_polydata(pd)
+                    if not _same_cage(cage, base.cage):
+                        dfm = _rebuild_deformer(base, cage)
+                self._deformer = dfm
+                self._derived_key = key
+        elif self._scene is not None:
+            key = (
+                "scene",
+                id(self._scene),
+                cage_key,
+                geometry_key(data) if self._scene.needs_data else None,
+            )
+            if key != self._derived_key:
+                cage = _cage_from_polydata(pd) if pd is not None else None
+                mesh = None
+                if self._scene.needs_data and data is not None:
+                    import pyvista as pv
+
+                    mesh = pv.wrap(data)
+                self._deformer = self._scene.build(data=mesh, cage=cage)
+                self._derived_key = key
+                self.solve_reports.extend(self._scene.solve(self._deformer, **self._solver))
+        else:
+            raise RuntimeError(
+                "no deformation set on the filter: call SetDeformer, SetScene or SetHarmonicMap"
+            )
+        dfm = self._deformer
+        if dfm.last_report is None:
+            self.solve_reports.append(dfm.solve(**self._solve_kwargs()))
+        return dfm.harmonic_map, dfm
+
+    # ------------------------------------------------------------------ execution helpers
+    def _progress(self, lo: float, hi: float):
+        def cb(fraction, _message=""):
+            self.UpdateProgress(lo + (hi - lo) * float(fraction))
+
+        return cb
+
+    def _aborted(self) -> bool:
+        check = getattr(self, "CheckAbort", None)
+        if check is not None:
+            return bool(check())
+        return bool(self.GetAbortExecute())
+
+    def _guard(self, fn, *args) -> int:
+        """Run ``fn``; store an exception in :attr:`last_error` and report failure."""
+        self.last_error = None
+        try:
+            return int(fn(*args) or 1)
+        except AbortedError as exc:
+            self.last_error = exc
+            return 1
+        except Exception as exc:  # noqa: BLE001 -- handed back by update()
+            self.last_error = exc
+            return 0
+
+
+def _rebuild_deformer(base, cage):
+    """A new deformer on ``cage`` with ``base``'s anchors, constraints, mode and alpha."""
+    from vhm_viz.core.deformer import Deformer
+
+    dfm = Deformer(
+        cage,
+        base.anchors,
+        mode=base.mode,
+        alpha=base.alpha,
+        anderson_window=base.anderson_window,
+    )
+    c = base.constraints
+    kw = {"positions": c["positions"], "targets": c["targets"]}
+    if len(c["jacobian_points"]):
+        kw.update(jacobian_points=c["jacobian_points"], jacobians=c["jacobians"])
+    dfm.set_constraints(**kw)
+    return dfm
+
+
+def as_vtk(obj):
+    """The VTK object behind a PyVista dataset (or the object itself)."""
+    return obj.VTKObject if isinstance(obj, dsa.VTKObjectWrapper) else obj
+
+
+def output_of(out_info, cls=vtkDataObject):
+    """The output data object of an output information vector."""
+    return (
+        cls.GetData(out_info, 0)
+        if cls is not vtkDataObject
+        else vtkDataObject.GetData(out_info.GetInformationObject(0))
+    )

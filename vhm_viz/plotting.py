@@ -1,0 +1,366 @@
+"""Figures of deformation quality, off-screen capable (PNG export).
+
+* :func:`jacobian_slice` + :func:`figure4` -- the paper's Figure 4: a planar slice through
+  the *rest* shape, mapped into the deformed shape, coloured by the Jacobian determinant
+  and by the condition number, side by side with colour bars (a PyVista ``Plotter``).
+* :func:`figure12` -- the paper's Figure 12: histogram of condition numbers (a matplotlib
+  ``Figure``), optionally comparing several deformations.
+* :func:`energy_plot` -- energy against iteration (the paper's Figure 7).
+
+Every function takes ``filename`` to save a PNG and returns the Plotter/Figure. Matplotlib
+figures are created without pyplot (no GUI backend needed).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+__all__ = ["jacobian_slice", "figure4", "figure12", "energy_plot", "default_slice_normal"]
+
+_AXES = np.eye(3)
+
+
+def default_slice_normal(points, deformed) -> np.ndarray:
+    """The coordinate axis along which the points move least (RMS displacement).
+
+    For a bend this is the normal of the bending plane, so the slice shows the bend.
+    """
+    d = np.asarray(deformed) - np.asarray(points)
+    rms = np.sqrt(np.mean(d**2, axis=0)) if len(d) else np.zeros(3)
+    return _AXES[int(np.argmin(rms))].copy()
+
+
+def _surface(ds):
+    """Polygonal surface of a dataset (VTK's dataset surface filter, no warnings)."""
+    import pyvista as pv
+    from vtkmodules.vtkFiltersGeometry import vtkDataSetSurfaceFilter
+
+    f = vtkDataSetSurfaceFilter()
+    f.SetInputData(ds)
+    f.Update()
+    return pv.wrap(f.GetOutput())
+
+
+def _plane_grid(bounds, normal, origin, resolution):
+    import pyvista as pv
+
+    lo, hi = np.asarray(bounds[0::2]), np.asarray(bounds[1::2])
+    axis = int(np.argmax(np.abs(normal)))
+    u, v = [a for a in range(3) if a != axis]
+    size = hi - lo
+    pad = 0.02 * size
+    nu = max(2, int(resolution))
+    nv = max(2, int(round(nu * size[v] / max(size[u], 1e-12))))
+    if size[v] > size[u]:
+        nv = max(2, int(resolution))
+        nu = max(2, int(round(nv * size[u] / max(size[v], 1e-12))))
+    dims = [1, 1, 1]
+    dims[u], dims[v] = nu, nv
+    spacing = [1.0, 1.0, 1.0]
+    spacing[u] = (size[u] + 2 * pad[u]) / (nu - 1)
+    spacing[v] = (size[v] + 2 * pad[v]) / (nv - 1)
+    org = lo - pad
+    org[axis] = origin[axis]
+    return pv.ImageData(dimensions=dims, spacing=spacing, origin=org).cast_to_unstructured_grid()
+
+
+def jacobian_slice(mesh, harmonic_map, *, normal=None, origin=None, resolution: int = 160):
+    """A planar slice of the rest shape, mapped by the deformation, with Jacobian arrays.
+
+    The slice is taken in the *rest* shape: for datasets with 3D cells (tet meshes,
+    volumes) with :meth:`pyvista.DataSet.slice`; for a closed surface, a regular grid on
+    the plane keeps the points inside the surface; for anything else (point clouds, open
+    surfaces) the grid keeps the points inside the cage. Its points are then mapped by
+    ``harmonic_map`` (points outside the cage are dropped) and the closed-form Jacobian at
+    the rest points gives ``jacobian_determinant`` and ``condition_number``.
+
+    Parameters
+    ----------
+    mesh : pyvista.DataSet
+        The rest shape.
+    harmonic_map : HarmonicMap
+        E.g. ``deformer.harmonic_map``.
+    normal : (3,) array_like, optional
+        Slice normal; default :func:`default_slice_normal` of the mesh points.
+    origin : (3,) array_like, optional
+        A point of the plane; default the mesh's centre.
+    resolution : int
+        Grid points along the longer side (surface / point-cloud input).
+
+    Returns
+    -------
+    pyvista.DataSet
+        The deformed slice, with point arrays ``jacobian_determinant``,
+        ``condition_number`` and ``rest_points``.
+    """
+    import pyvista as pv
+
+    from vhm_viz.core.metrics import condition_number, jacobian_determinant
+
+    mesh = pv.wrap(mesh)
+    pts = np.asarray(mesh.points, dtype=np.float64)
+    if origin is None:
+        origin = np.asarray(mesh.center, dtype=np.float64)
+    origin = np.asarray(origin, dtype=np.float64)
+    if normal is None:
+        sample = pts[:: max(1, len(pts) // 4000)]
+        normal = default_slice_normal(sample, harmonic_map.map(sample, outside="passthrough"))
+    normal = np.asarray(normal, dtype=np.float64)
+    normal = normal / np.linalg.norm(normal)
+    has_3d_cells = isinstance(mesh, (pv.ImageData, pv.RectilinearGrid, pv.StructuredGrid)) or (
+        isinstance(mesh, pv.UnstructuredGrid) and mesh.n_cells and mesh.get_cell(0).dimension == 3
+    )
+    if has_3d_cells:
+        sl = mesh.slice(normal=normal, origin=origin)
+    else:
+        grid = _plane_grid(mesh.bounds, normal, origin, resolution)
+        closed = (
+            isinstance(mesh, pv.PolyData)
+            and mesh.n_cells > 0
+            and mesh.GetNumberOfPolys() > 0
+            and mesh.n_open_edges == 0
+        )
+        if closed:
+            grid = grid.compute_implicit_distance(mesh)
+            d = np.asarray(grid.point_data["implicit_distance"])
+            sl = grid.threshold(
+                (float(d.min()) - 1.0, 0.0), scalars="implicit_distance", all_scalars=True
+            )
+        else:
+            inside = harmonic_map.inside(np.asarray(grid.points))
+            grid.point_data["inside"] = inside.astype(np.float64)
+            sl = grid.threshold((0.5, 1.5), scalars="inside", all_scalars=True)
+        sl = _surface(sl)
+    if sl.n_points == 0:
+        raise ValueError("the slice plane does not cut the shape (empty slice)")
+    rest = np.asarray(sl.points, dtype=np.float64)
+    keep = harmonic_map.inside(rest)
+    if not keep.all():
+        sl = _surface(sl.extract_points(keep, adjacent_cells=False))
+        rest = np.asarray(sl.points, dtype=np.float64)
+    f, jac, _ = harmonic_map.evaluate(rest, order=1, outside="passthrough")
+    out = sl.copy()
+    out.points = f
+    out.point_data["rest_points"] = rest
+    out.point_data["jacobian_determinant"] = jacobian_determinant(jac)
+    out.point_data["condition_number"] = condition_number(jac)
+    out.field_data["slice_normal"] = normal
+    return out
+
+
+def figure4(
+    deformed_slice,
+    *,
+    deformed_surface=None,
+    window_size=(1600, 700),
+    det_range=None,
+    cond_range=None,
+    filename=None,
+    off_screen: bool = True,
+    title: str | None = None,
+):
+    """The paper's Figure 4: the slice coloured by det J (left) and cond J (right).
+
+    Parameters
+    ----------
+    deformed_slice : pyvista.DataSet
+        From :func:`jacobian_slice`.
+    deformed_surface : pyvista.DataSet, optional
+        Drawn as a faint silhouette in both views.
+    window_size : (int, int)
+        Pixels (width, height) of the PNG.
+    det_range, cond_range : (float, float), optional
+        Colour ranges; default ``[min(0.5, lo), max(1.5, hi)]`` centred on 1 for the
+        determinant (diverging map) and ``[1, max(2, p99)]`` for the condition number.
+    filename : str or path-like, optional
+        Save a PNG there.
+    off_screen : bool
+        Render off-screen (no window).
+    title : str, optional
+
+    Returns
+    -------
+    pyvista.Plotter
+    """
+    import pyvista as pv
+
+    det = np.asarray(deformed_slice.point_data["jacobian_determinant"])
+    cond = np.asarray(deformed_slice.point_data["condition_number"])
+    if det_range is None:
+        half = max(0.5, float(np.nanmax(np.abs(det - 1.0))) if det.size else 0.5)
+        det_range = (1.0 - half, 1.0 + half)
+    if cond_range is None:
+        finite = cond[np.isfinite(cond)]
+        top = float(np.percentile(finite, 99)) if finite.size else 2.0
+        cond_range = (1.0, max(2.0, top))
+    normal = np.asarray(
+        deformed_slice.field_data.get("slice_normal", [0.0, 1.0, 0.0]), dtype=np.float64
+    ).ravel()[:3]
+    pl = pv.Plotter(
+        shape=(1, 2), off_screen=off_screen, window_size=list(window_size), border=False
+    )
+    pl.set_background("white")
+    views = (
+        ("jacobian_determinant", "det J", "coolwarm", det_range),
+        ("condition_number", "cond J", "viridis", cond_range),
+    )
+    for col, (name, label, cmap, clim) in enumerate(views):
+        pl.subplot(0, col)
+        pl.add_mesh(
+            deformed_slice.copy(),
+            scalars=name,
+            cmap=cmap,
+            clim=clim,
+            show_edges=False,
+            scalar_bar_args={
+                "title": label,
+                "vertical": False,
+                "color": "black",
+                "position_x": 0.2,
+                "position_y": 0.04,
+                "width": 0.6,
+                "height": 0.08,
+                "title_font_size": 22,
+                "label_font_size": 18,
+                "fmt": "%.2f",
+            },
+            lighting=False,
+        )
+        if deformed_surface is not None:
+            pl.add_mesh(deformed_surface, color="lightgrey", opacity=0.15, lighting=False)
+        pl.add_text(label if title is None else f"{title}: {label}", font_size=12, color="black")
+        pl.camera_position = _view_along(deformed_slice, normal)
+        pl.reset_camera()
+        pl.camera.zoom(1.1)
+    if filename is not None:
+        pl.screenshot(os.fspath(filename))
+    return pl
+
+
+def _view_along(mesh, normal):
+    c = np.asarray(mesh.center)
+    d = float(np.linalg.norm(np.asarray(mesh.bounds[1::2]) - np.asarray(mesh.bounds[0::2])))
+    up = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    return [tuple(c + 2.5 * max(d, 1e-9) * normal), tuple(c), tuple(up)]
+
+
+def figure12(
+    condition_numbers,
+    *,
+    bins: int = 60,
+    value_range=None,
+    filename=None,
+    figsize=(6.4, 4.0),
+    dpi: int = 100,
+    title: str = "Condition number of J",
+):
+    """The paper's Figure 12: histogram(s) of condition numbers.
+
+    Parameters
+    ----------
+    condition_numbers : array_like or dict of label -> array_like
+        One or several sets (e.g. ``{"rigid": c1, "similar": c2}``).
+    bins : int
+    value_range : (float, float), optional
+        Default ``[1, 99th percentile]`` over all sets.
+    filename : str or path-like, optional
+        Save a PNG there.
+    figsize, dpi
+        Figure size in inches and resolution (pixels = ``figsize * dpi``).
+    title : str
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib.figure import Figure
+
+    sets = condition_numbers if isinstance(condition_numbers, dict) else {"": condition_numbers}
+    data = {k: np.asarray(v, dtype=np.float64).ravel() for k, v in sets.items()}
+    data = {k: v[np.isfinite(v)] for k, v in data.items()}
+    allv = np.concatenate([v for v in data.values()] or [np.ones(1)])
+    if value_range is None:
+        top = float(np.percentile(allv, 99)) if allv.size else 2.0
+        value_range = (1.0, max(top, 1.0 + 1e-3))
+    fig = Figure(figsize=figsize, dpi=dpi)
+    ax = fig.add_subplot(1, 1, 1)
+    colors = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple"]
+    for i, (label, vals) in enumerate(data.items()):
+        ax.hist(
+            vals,
+            bins=bins,
+            range=value_range,
+            alpha=0.6 if len(data) > 1 else 0.9,
+            color=colors[i % len(colors)],
+            label=label or None,
+            weights=np.full(vals.size, 100.0 / max(vals.size, 1)),
+        )
+    ax.set_xlabel("condition number  s_max / s_min")
+    ax.set_ylabel("% of points")
+    ax.set_title(title)
+    if len(data) > 1 or next(iter(data)):
+        ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    if filename is not None:
+        fig.savefig(os.fspath(filename), dpi=dpi)
+    return fig
+
+
+def _energy_series(item):
+    """Energy array of a SolveReport, a list of them (concatenated) or an array."""
+    if hasattr(item, "energy"):
+        return np.asarray(item.energy, dtype=np.float64)
+    if isinstance(item, (list, tuple)) and item and hasattr(item[0], "energy"):
+        parts = [np.asarray(r.energy, dtype=np.float64) for r in item]
+        return np.concatenate([parts[0]] + [p[1:] for p in parts[1:]])
+    return np.asarray(item, dtype=np.float64).ravel()
+
+
+def energy_plot(
+    reports,
+    *,
+    filename=None,
+    figsize=(6.4, 4.0),
+    dpi: int = 100,
+    log: bool = True,
+    title: str = "Energy vs. iteration",
+):
+    """Energy against iteration (the paper's Figure 7).
+
+    Parameters
+    ----------
+    reports : SolveReport, list of SolveReport, array, or dict of label -> any of these
+        A list of reports (ramped solves) is drawn as one continuous curve.
+    filename : str or path-like, optional
+    figsize, dpi
+    log : bool
+        Logarithmic energy axis.
+    title : str
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib.figure import Figure
+
+    sets = reports if isinstance(reports, dict) else {"": reports}
+    fig = Figure(figsize=figsize, dpi=dpi)
+    ax = fig.add_subplot(1, 1, 1)
+    for label, item in sets.items():
+        e = _energy_series(item)
+        ax.plot(np.arange(len(e)), e, label=label or None, lw=1.8)
+    if log:
+        ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("energy E")
+    ax.set_title(title)
+    if len(sets) > 1 or next(iter(sets)):
+        ax.legend()
+    ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    if filename is not None:
+        fig.savefig(os.fspath(filename), dpi=dpi)
+    return fig

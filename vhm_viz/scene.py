@@ -1,0 +1,601 @@
+"""Versioned JSON scene files: cage, anchors, constraints, mode, alpha, solver settings.
+
+A scene describes one deformation completely, so it can be saved, shared and re-run from
+the command line (``vhm-viz deform INPUT --scene SCENE``) or in ParaView. Format,
+version 1::
+
+    {
+      "format": "vhm_viz.scene",
+      "version": 1,
+      "cage": "cage.obj"                         # a path (relative to the scene file), or
+              | {"path": "cage.obj"}             # the same, or
+              | {"vertices": [[x, y, z], ...], "faces": [[i, j, k], ...]}   # inline, or
+              | "auto" | {"auto": {"max_faces": 300, ...}},  # vhm_viz.auto_cage of the data
+      "anchors": [[x, y, z], ...]                # explicit, or
+                 | {"auto": 24}                  # vhm_viz.auto_anchors, or
+                 | {"polylines": "lines.off", "count": 24}   # OFF polylines, or
+                 | {"skeleton": "hand.tgf", "count": 24},    # libigl TGF skeleton
+      "constraints": {
+        "positions": [[x, y, z], ...], "targets": [[x, y, z], ...],
+        "jacobian_points": [[x, y, z], ...], "jacobians": [[[..3..], [..3..], [..3..]], ...]
+      },
+      "mode": "rigid" | "similar",
+      "alpha": 0.01,
+      "solver": {"max_iterations": 1000, "tolerance": 1e-6, "init": "identity",
+                 "steps": 1, "anderson_window": 6}
+    }
+
+Jacobians are user-facing, ``J[i][j] = d f_i / d x_j``. ``jacobian_points``/``jacobians``,
+``mode``, ``alpha`` and ``solver`` (and each solver key) are optional; saving writes every
+field with its value, so ``Scene.load(path).save(other)`` writes a normalised file and
+``Scene.from_dict(s.to_dict()) == s`` exactly (floats are written with full precision).
+Unknown fields, unknown versions and malformed values raise :class:`SceneError`, whose
+message names the offending field (``constraints.targets[3]``).
+"""
+
+from __future__ import annotations
+
+import copy
+import inspect
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vhm_viz.atomic import write_text_atomic
+
+__all__ = ["Scene", "SceneError", "SCENE_FORMAT", "SCENE_VERSION", "DEFAULT_SOLVER"]
+
+SCENE_FORMAT = "vhm_viz.scene"
+SCENE_VERSION = 1
+DEFAULT_SOLVER = {
+    "max_iterations": 1000,
+    "tolerance": 1e-6,
+    "init": "identity",
+    "steps": 1,
+    "anderson_window": 6,
+}
+_TOP_FIELDS = {"format", "version", "cage", "anchors", "constraints", "mode", "alpha", "solver"}
+_CONSTRAINT_FIELDS = ("positions", "targets", "jacobian_points", "jacobians")
+
+
+class SceneError(ValueError):
+    """A malformed scene; ``field`` names the offending field (dotted path)."""
+
+    def __init__(self, field_name: str, message: str, source: str | None = None):
+        self.field = field_name
+        self.message = message
+        where = f"{source}: " if source else ""
+        what = (
+            f"scene {field_name}" if field_name.startswith("(") else (f"scene field '{field_name}'")
+        )
+        super().__init__(f"{where}{what}: {message}")
+
+
+# ----------------------------------------------------------------------------------------
+# validation helpers
+# ----------------------------------------------------------------------------------------
+
+
+def _number(value, name: str, *, positive: bool = False, integer: bool = False):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SceneError(name, f"expected a number, got {json.dumps(value)[:40]}")
+    if not math.isfinite(value):
+        raise SceneError(name, f"expected a finite number, got {value}")
+    if integer:
+        if isinstance(value, float) and not value.is_integer():
+            raise SceneError(name, f"expected an integer, got {value}")
+        value = int(value)
+    if positive and value <= 0:
+        raise SceneError(name, f"must be positive, got {value}")
+    return value
+
+
+def _matrix(value, name: str, shape: tuple[int, ...], *, integer: bool = False) -> np.ndarray:
+    """Nested lists -> array of ``shape`` (first dimension free when -1)."""
+    if not isinstance(value, list):
+        raise SceneError(name, f"expected a list, got {type(value).__name__}")
+    if shape[1:]:
+        rows = [
+            _matrix(v, f"{name}[{i}]", (shape[1],) + shape[2:], integer=integer)
+            for i, v in enumerate(value)
+        ]
+        if shape[0] >= 0 and len(rows) != shape[0]:
+            raise SceneError(name, f"expected {shape[0]} rows, got {len(rows)}")
+        inner = (shape[1],) + shape[2:] if shape[1] >= 0 else (0,)
+        return np.array(rows, dtype=np.int64 if integer else np.float64).reshape(
+            (len(rows), *inner)
+        )
+    if shape[0] >= 0 and len(value) != shape[0]:
+        raise SceneError(name, f"expected {shape[0]} numbers, got {len(value)}")
+    nums = [_number(v, f"{name}[{i}]", integer=integer) for i, v in enumerate(value)]
+    return np.array(nums, dtype=np.int64 if integer else np.float64)
+
+
+def _points(value, name: str) -> np.ndarray:
+    return _matrix(value, name, (-1, 3)).reshape(-1, 3)
+
+
+def _tolist(a: np.ndarray):
+    return np.asarray(a).tolist()
+
+
+def _path_text(value, name: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise SceneError(name, "expected a non-empty path string")
+    return value
+
+
+# ----------------------------------------------------------------------------------------
+# the scene
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class Scene:
+    """A deformation scene (see the module documentation for the JSON format).
+
+    Attributes
+    ----------
+    cage : dict
+        ``{"path": str}``, ``{"vertices": (n, 3) array, "faces": (m, 3) array}`` or
+        ``{"auto": dict_of_auto_cage_options}``.
+    anchors : dict
+        ``{"points": (d, 3) array}``, ``{"auto": d}``, ``{"polylines": path, "count": d}``
+        or ``{"skeleton": path, "count": d}``.
+    constraints : dict
+        ``positions``, ``targets`` (r, 3); ``jacobian_points`` (s, 3), ``jacobians``
+        (s, 3, 3) -- float64 arrays.
+    mode : str
+    alpha : float
+    solver : dict
+        ``max_iterations``, ``tolerance``, ``init``, ``steps``, ``anderson_window``.
+    base_dir : Path or None
+        Directory relative paths are resolved against (the scene file's); not saved.
+    """
+
+    cage: dict
+    anchors: dict
+    constraints: dict
+    mode: str = "rigid"
+    alpha: float = 0.01
+    solver: dict = field(default_factory=lambda: dict(DEFAULT_SOLVER))
+    base_dir: Path | None = None
+
+    # ------------------------------------------------------------------ (de)serialise
+    @classmethod
+    def from_dict(
+        cls, data: Any, *, source: str | None = None, base_dir: str | os.PathLike | None = None
+    ) -> Scene:
+        """Validate a parsed JSON object and build the scene.
+
+        Raises
+        ------
+        SceneError
+            Naming the offending field.
+        """
+        try:
+            return cls._from_dict(data, base_dir)
+        except SceneError as exc:
+            if source is None:
+                raise
+            raise SceneError(exc.field, exc.message, source) from None
+
+    @classmethod
+    def _from_dict(cls, data, base_dir) -> Scene:
+        if not isinstance(data, dict):
+            raise SceneError("(top level)", f"expected a JSON object, got {type(data).__name__}")
+        fmt = data.get("format")
+        if fmt != SCENE_FORMAT:
+            raise SceneError("format", f"expected {SCENE_FORMAT!r}, got {json.dumps(fmt)}")
+        if "version" not in data:
+            raise SceneError("version", "missing")
+        version = data["version"]
+        if isinstance(version, bool) or not isinstance(version, int):
+            raise SceneError("version", f"expected an integer, got {json.dumps(version)}")
+        if version != SCENE_VERSION:
+            raise SceneError(
+                "version",
+                f"unsupported version {version} (this vhm_viz reads version {SCENE_VERSION})",
+            )
+        unknown = sorted(set(data) - _TOP_FIELDS)
+        if unknown:
+            raise SceneError(unknown[0], "unknown field")
+        for required in ("cage", "anchors", "constraints"):
+            if required not in data:
+                raise SceneError(required, "missing")
+        scene = cls(
+            cage=_parse_cage(data["cage"]),
+            anchors=_parse_anchors(data["anchors"]),
+            constraints=_parse_constraints(data["constraints"]),
+            mode=_parse_mode(data.get("mode", "rigid")),
+            alpha=float(_number(data.get("alpha", 0.01), "alpha", positive=True)),
+            solver=_parse_solver(data.get("solver", {})),
+            base_dir=Path(base_dir) if base_dir is not None else None,
+        )
+        return scene
+
+    def to_dict(self) -> dict:
+        """The JSON object (every field written, normalised)."""
+        cage: Any
+        if "path" in self.cage:
+            cage = {"path": self.cage["path"]}
+        elif "auto" in self.cage:
+            cage = {"auto": copy.deepcopy(self.cage["auto"])}
+        else:
+            cage = {
+                "vertices": _tolist(self.cage["vertices"]),
+                "faces": _tolist(self.cage["faces"]),
+            }
+        if "points" in self.anchors:
+            anchors: Any = _tolist(self.anchors["points"])
+        else:
+            anchors = copy.deepcopy(self.anchors)
+        c = self.constraints
+        return {
+            "format": SCENE_FORMAT,
+            "version": SCENE_VERSION,
+            "cage": cage,
+            "anchors": anchors,
+            "constraints": {k: _tolist(c[k]) for k in _CONSTRAINT_FIELDS},
+            "mode": self.mode,
+            "alpha": self.alpha,
+            "solver": dict(self.solver),
+        }
+
+    @classmethod
+    def loads(cls, text: str, *, source: str | None = None, base_dir=None) -> Scene:
+        """Parse a scene from JSON text."""
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise SceneError("(json)", f"not valid JSON: {exc}", source) from None
+        return cls.from_dict(data, source=source, base_dir=base_dir)
+
+    def dumps(self) -> str:
+        """JSON text (indented, floats at full precision)."""
+        return json.dumps(self.to_dict(), indent=1) + "\n"
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Scene:
+        """Read a scene file; relative paths in it resolve against its directory.
+
+        Raises
+        ------
+        FileNotFoundError
+        SceneError
+        """
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"no such scene file: {p}")
+        return cls.loads(p.read_text(encoding="utf-8"), source=str(p), base_dir=p.parent)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the scene atomically (temporary file in the same directory, then rename)."""
+        p = Path(path)
+        write_atomic_text(p, self.dumps())
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Scene):
+            return NotImplemented
+        return json.dumps(self.to_dict(), sort_keys=True) == json.dumps(
+            other.to_dict(), sort_keys=True
+        )
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_deformer(
+        cls, deformer, *, cage_path: str | None = None, solver: dict | None = None
+    ) -> Scene:
+        """The scene of an existing deformer (inline cage unless ``cage_path`` is given)."""
+        c = deformer.constraints
+        cage = (
+            {"path": cage_path}
+            if cage_path is not None
+            else {
+                "vertices": np.array(deformer.cage.vertices, dtype=np.float64),
+                "faces": np.array(deformer.cage.faces, dtype=np.int64),
+            }
+        )
+        settings = dict(DEFAULT_SOLVER)
+        settings["anderson_window"] = int(deformer.anderson_window)
+        settings.update(solver or {})
+        return cls(
+            cage=cage,
+            anchors={"points": np.array(deformer.anchors, dtype=np.float64)},
+            constraints={
+                "positions": np.array(c["positions"], dtype=np.float64).reshape(-1, 3),
+                "targets": np.array(c["targets"], dtype=np.float64).reshape(-1, 3),
+                "jacobian_points": np.array(c["jacobian_points"], dtype=np.float64).reshape(-1, 3),
+                "jacobians": np.array(c["jacobians"], dtype=np.float64).reshape(-1, 3, 3),
+            },
+            mode=deformer.mode,
+            alpha=float(deformer.alpha),
+            solver=_parse_solver(settings),
+        )
+
+    @property
+    def needs_data(self) -> bool:
+        """Whether building needs the data to deform (automatic cage or anchors)."""
+        return "auto" in self.cage or "auto" in self.anchors
+
+    def _resolve_path(self, text: str) -> Path:
+        p = Path(text).expanduser()
+        if not p.is_absolute() and self.base_dir is not None:
+            p = self.base_dir / p
+        return p
+
+    def build_cage(self, data=None):
+        """The scene's cage (a :class:`vhm_viz.Cage`); ``data`` is needed for ``"auto"``."""
+        from vhm_viz.cage import Cage
+
+        if "path" in self.cage:
+            return Cage.from_file(self._resolve_path(self.cage["path"]))
+        if "auto" in self.cage:
+            if data is None:
+                raise SceneError("cage", '"auto" needs the data to deform')
+            from vhm_viz.autocage import auto_cage
+
+            return auto_cage(data, **self.cage["auto"])
+        return Cage(self.cage["vertices"], self.cage["faces"])
+
+    def build_anchors(self, cage, data=None) -> np.ndarray:
+        """The anchor points (d, 3)."""
+        a = self.anchors
+        if "points" in a:
+            return np.array(a["points"], dtype=np.float64)
+        if "auto" in a:
+            if data is None:
+                raise SceneError("anchors", '"auto" needs the data to deform')
+            return _call_auto_anchors(data, int(a["auto"]), cage)
+        from vhm_viz.core.anchors import anchors_from_polylines
+
+        if "polylines" in a:
+            from vhm_viz.io import read_polylines
+
+            pts, edges = read_polylines(self._resolve_path(a["polylines"]))
+        else:
+            from vhm_viz.io import read_tgf
+
+            pts, edges = read_tgf(self._resolve_path(a["skeleton"]))
+        return anchors_from_polylines(pts, edges, int(a["count"]))
+
+    def build(self, data=None, cage=None):
+        """A :class:`~vhm_viz.Deformer` with the scene's constraints (not solved).
+
+        Parameters
+        ----------
+        data : pyvista.DataSet, optional
+            The data to deform (needed for automatic cages and anchors).
+        cage : Cage, optional
+            Use this cage instead of the scene's (e.g. the cage on a filter's port 1).
+        """
+        from vhm_viz.core.deformer import Deformer
+
+        if cage is None:
+            cage = self.build_cage(data)
+        anchors = self.build_anchors(cage, data)
+        dfm = Deformer(
+            cage,
+            anchors,
+            mode=self.mode,
+            alpha=self.alpha,
+            anderson_window=int(self.solver["anderson_window"]),
+        )
+        c = self.constraints
+        kw = {"positions": c["positions"], "targets": c["targets"]}
+        if len(c["jacobian_points"]):
+            kw.update(jacobian_points=c["jacobian_points"], jacobians=c["jacobians"])
+        dfm.set_constraints(**kw)
+        return dfm
+
+    def solve_kwargs(self) -> dict:
+        """Keyword arguments of :meth:`Deformer.solve` from the solver settings (no steps)."""
+        return {
+            "max_iterations": int(self.solver["max_iterations"]),
+            "tolerance": float(self.solver["tolerance"]),
+        }
+
+    def solve(self, deformer, progress=None, **overrides) -> list:
+        """Solve ``deformer`` with the scene's settings, ramping over ``steps`` solves.
+
+        With ``steps > 1``, the targets go from the rest positions (and identity
+        Jacobians) to the scene's targets in ``steps`` warm-started solves (positions
+        linearly, Jacobian rotations by angle), which avoids the symmetric saddle of large
+        twists.
+
+        Parameters
+        ----------
+        deformer : Deformer
+            Built by :meth:`build`.
+        progress : callable(fraction, message), optional
+            Called after each step.
+        **overrides
+            ``max_iterations``, ``tolerance``, ``init``, ``steps``.
+
+        Returns
+        -------
+        list of SolveReport
+        """
+        settings = dict(self.solver)
+        settings.update(overrides)
+        steps = max(1, int(settings["steps"]))
+        init = settings["init"]
+        c = self.constraints
+        reports = []
+        for k in range(1, steps + 1):
+            s = k / steps
+            if steps > 1:
+                targets = c["positions"] + s * (c["targets"] - c["positions"])
+                jac = np.array([_interpolate_jacobian(j, s) for j in c["jacobians"]])
+                deformer.update_targets(targets=targets, jacobians=jac if len(jac) else None)
+            reports.append(
+                deformer.solve(
+                    max_iterations=int(settings["max_iterations"]),
+                    tolerance=float(settings["tolerance"]),
+                    init=init if k == 1 else "previous",
+                )
+            )
+            if progress is not None:
+                progress(k / steps, "solving")
+        return reports
+
+
+# ----------------------------------------------------------------------------------------
+# field parsers
+# ----------------------------------------------------------------------------------------
+
+
+def _parse_cage(value) -> dict:
+    if value == "auto":
+        return {"auto": {}}
+    if isinstance(value, str):
+        return {"path": _path_text(value, "cage")}
+    if not isinstance(value, dict):
+        raise SceneError("cage", 'expected a path, "auto" or an object')
+    keys = set(value)
+    if keys == {"path"}:
+        return {"path": _path_text(value["path"], "cage.path")}
+    if keys == {"auto"}:
+        opts = value["auto"]
+        if not isinstance(opts, dict):
+            raise SceneError("cage.auto", "expected an object of auto_cage options")
+        return {"auto": copy.deepcopy(opts)}
+    if keys == {"vertices", "faces"}:
+        v = _points(value["vertices"], "cage.vertices")
+        f = _matrix(value["faces"], "cage.faces", (-1, 3), integer=True).reshape(-1, 3)
+        if len(v) < 4:
+            raise SceneError("cage.vertices", f"a cage needs at least 4 vertices, got {len(v)}")
+        if len(f) < 4:
+            raise SceneError("cage.faces", f"a cage needs at least 4 faces, got {len(f)}")
+        bad = np.nonzero((f < 0).any(axis=1) | (f >= len(v)).any(axis=1))[0]
+        if bad.size:
+            raise SceneError(f"cage.faces[{bad[0]}]", f"vertex index out of range [0, {len(v)})")
+        return {"vertices": v, "faces": f}
+    extra = sorted(keys - {"path", "auto", "vertices", "faces"})
+    if extra:
+        raise SceneError(f"cage.{extra[0]}", "unknown field")
+    raise SceneError("cage", "expected one of {path}, {auto}, {vertices, faces}")
+
+
+def _parse_anchors(value) -> dict:
+    if isinstance(value, list):
+        pts = _points(value, "anchors")
+        if len(pts) == 0:
+            raise SceneError("anchors", "no anchor points")
+        return {"points": pts}
+    if not isinstance(value, dict):
+        raise SceneError("anchors", "expected a list of points or an object")
+    keys = set(value)
+    if keys == {"auto"}:
+        return {"auto": _number(value["auto"], "anchors.auto", positive=True, integer=True)}
+    for kind in ("polylines", "skeleton"):
+        if keys == {kind, "count"}:
+            return {
+                kind: _path_text(value[kind], f"anchors.{kind}"),
+                "count": _number(value["count"], "anchors.count", positive=True, integer=True),
+            }
+    extra = sorted(keys - {"auto", "polylines", "skeleton", "count"})
+    if extra:
+        raise SceneError(f"anchors.{extra[0]}", "unknown field")
+    raise SceneError("anchors", "expected {auto}, {polylines, count} or {skeleton, count}")
+
+
+def _parse_constraints(value) -> dict:
+    if not isinstance(value, dict):
+        raise SceneError("constraints", "expected an object")
+    extra = sorted(set(value) - set(_CONSTRAINT_FIELDS))
+    if extra:
+        raise SceneError(f"constraints.{extra[0]}", "unknown field")
+    for required in ("positions", "targets"):
+        if required not in value:
+            raise SceneError(f"constraints.{required}", "missing")
+    pos = _points(value["positions"], "constraints.positions")
+    tgt = _points(value["targets"], "constraints.targets")
+    if len(pos) == 0:
+        raise SceneError("constraints.positions", "at least one position constraint is needed")
+    if len(tgt) != len(pos):
+        raise SceneError("constraints.targets", f"{len(tgt)} targets for {len(pos)} positions")
+    jp = _points(value.get("jacobian_points", []), "constraints.jacobian_points")
+    jac = _matrix(value.get("jacobians", []), "constraints.jacobians", (-1, 3, 3))
+    jac = jac.reshape(-1, 3, 3)
+    if len(jac) != len(jp):
+        raise SceneError(
+            "constraints.jacobians", f"{len(jac)} jacobians for {len(jp)} jacobian_points"
+        )
+    return {"positions": pos, "targets": tgt, "jacobian_points": jp, "jacobians": jac}
+
+
+def _parse_mode(value) -> str:
+    if value not in ("rigid", "similar"):
+        raise SceneError("mode", f'expected "rigid" or "similar", got {json.dumps(value)}')
+    return value
+
+
+def _parse_solver(value) -> dict:
+    if not isinstance(value, dict):
+        raise SceneError("solver", "expected an object")
+    extra = sorted(set(value) - set(DEFAULT_SOLVER))
+    if extra:
+        raise SceneError(f"solver.{extra[0]}", "unknown field")
+    out = dict(DEFAULT_SOLVER)
+    out.update(value)
+    out["max_iterations"] = _number(out["max_iterations"], "solver.max_iterations", integer=True)
+    if out["max_iterations"] < 0:
+        raise SceneError("solver.max_iterations", "must be >= 0")
+    out["tolerance"] = float(_number(out["tolerance"], "solver.tolerance", positive=True))
+    if out["init"] not in ("identity", "previous"):
+        raise SceneError(
+            "solver.init", f'expected "identity" or "previous", got {json.dumps(out["init"])}'
+        )
+    out["steps"] = _number(out["steps"], "solver.steps", positive=True, integer=True)
+    out["anderson_window"] = _number(out["anderson_window"], "solver.anderson_window", integer=True)
+    if out["anderson_window"] < 0:
+        raise SceneError("solver.anderson_window", "must be >= 0")
+    return {k: out[k] for k in DEFAULT_SOLVER}
+
+
+# ----------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------
+
+
+def _interpolate_jacobian(j: np.ndarray, s: float) -> np.ndarray:
+    """Interpolate ``I -> j = scale * R`` by rotation angle and scale."""
+    from scipy.spatial.transform import Rotation
+
+    scale = np.cbrt(np.linalg.det(j))
+    rot = Rotation.from_matrix(j / scale)
+    return (1 + s * (scale - 1)) * Rotation.from_rotvec(s * rot.as_rotvec()).as_matrix()
+
+
+def _call_auto_anchors(data, count: int, cage) -> np.ndarray:
+    """Call :func:`vhm_viz.autoanchors.auto_anchors` whatever its keyword names are."""
+    from vhm_viz.autoanchors import auto_anchors
+
+    params = inspect.signature(auto_anchors).parameters
+    kwargs = {}
+    for name in ("count", "n_anchors", "d", "n"):
+        if name in params:
+            kwargs[name] = count
+            break
+    else:
+        positional = [p for p in params.values() if p.kind == p.POSITIONAL_OR_KEYWORD]
+        if len(positional) < 2:
+            raise SceneError("anchors.auto", "vhm_viz.auto_anchors takes no anchor count")
+        kwargs[positional[1].name] = count
+    if "cage" in params:
+        kwargs["cage"] = cage
+    result = auto_anchors(data, **kwargs)
+    if isinstance(result, tuple):
+        result = result[0]
+    return np.asarray(getattr(result, "anchors", result), dtype=np.float64).reshape(-1, 3)
+
+
+def write_atomic_text(path: Path, text: str) -> None:
+    """Write text to ``path`` atomically (see :mod:`vhm_viz.atomic`)."""
+    write_text_atomic(path, text)
