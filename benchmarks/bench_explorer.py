@@ -1,0 +1,196 @@
+"""Frame time of the Qt explorer while dragging one constraint (solve + deform + render).
+
+For the 43k and 173k Armadillo (``cage_500f.obj``, 50 anchors), the explorer window is
+opened under a real X display (a private Xvfb is started when ``DISPLAY`` is unset; VTK
+renders with Mesa's software OpenGL there), a few position constraints hold the feet and
+one on the head is dragged along a circle through the sphere widget's callback
+(:meth:`ExplorerWindow.on_handle_moved`, the code path of a mouse drag). Each frame is a
+warm-started solve (the explorer's drag settings: at most 200 iterations, tolerance 1e-6),
+the deformation of every vertex in place and a synchronous render of a 1024 x 768 window.
+
+Prints a Markdown table of per-frame medians with the 10th-90th percentile spread.
+
+Run: ``python benchmarks/bench_explorer.py [--frames 60] [--sizes 43k 173k]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import data, print_table
+
+MODELS = {"43k": "armadillo_43k.obj", "173k": "armadillo_173k.ply"}
+
+
+def ensure_display():
+    """Use $DISPLAY, or start a private Xvfb (returned, to be terminated)."""
+    if os.environ.get("DISPLAY"):
+        os.environ.setdefault("QT_QPA_PLATFORM", "xcb")
+        return None
+    exe = shutil.which("Xvfb")
+    if exe is None:
+        raise SystemExit("no DISPLAY and no Xvfb (apt-get install xvfb)")
+    for num in range(150, 170):
+        if Path(f"/tmp/.X{num}-lock").exists():
+            continue
+        proc = subprocess.Popen(
+            [exe, f":{num}", "-screen", "0", "1280x1024x24", "-nolisten", "tcp"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for _ in range(100):
+            if Path(f"/tmp/.X11-unix/X{num}").exists():
+                os.environ["DISPLAY"] = f":{num}"
+                os.environ["QT_QPA_PLATFORM"] = "xcb"
+                return proc
+            time.sleep(0.05)
+        proc.kill()
+    raise SystemExit("could not start Xvfb")
+
+
+def pct(values, q):
+    return float(np.percentile(np.asarray(values), q))
+
+
+def fmt(values) -> str:
+    ms = 1e3 * np.asarray(values)
+    return f"{statistics.median(ms):.1f} ({pct(ms, 10):.1f}-{pct(ms, 90):.1f})"
+
+
+def run_model(win, size: str, frames: int, n_anchors: int) -> dict:
+    from vhm_viz.app.controller import ExplorerController
+
+    ctrl = ExplorerController()
+    t0 = time.perf_counter()
+    ctrl.load_file(data("armadillo", MODELS[size]))
+    ctrl.load_cage(data("armadillo", "cage_500f.obj"))
+    ctrl.set_anchors(ctrl.auto_anchors(n_anchors))
+    p = ctrl.rest_points
+    c = p.mean(axis=0)
+    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
+    axis = vt[0] if (p - c).dot(vt[0]).max() > -(p - c).dot(vt[0]).min() else -vt[0]
+    t = (p - c) @ axis
+    feet = np.argsort(t)[:3]  # three points at one end of the principal axis: held
+    head = int(np.argmax(t))  # the other end: dragged
+    for i in feet:
+        ctrl.add_position_constraint(p[i], p[i])
+    k = ctrl.add_position_constraint(p[head], p[head])
+    t_load = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    ctrl.prepare()
+    t_bind = time.perf_counter() - t0
+    ctrl.solve(init="identity")
+    ctrl.deform()
+    win.ctrl.__dict__.update(ctrl.__dict__)
+    win.rebuild_scene(reset_camera=True)
+    win.plotter.render()
+    from PySide6.QtWidgets import QApplication
+
+    QApplication.processEvents()
+    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+    start = ctrl.positions[k].target.copy()
+    u = np.cross(axis, [1.0, 0, 0])
+    if np.linalg.norm(u) < 0.1:
+        u = np.cross(axis, [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    win.frame_times.clear()
+    timings = []
+    for f in range(frames + 5):
+        ang = 2 * np.pi * f / frames
+        goal = start + 0.15 * diag * (np.cos(ang) - 1) * u + 0.15 * diag * np.sin(ang) * v
+        win.on_handle_moved(k, goal)  # the sphere widget's callback
+        QApplication.processEvents()
+        if f >= 5:  # warm-up frames excluded
+            timings.append(win.last_frame)
+    if win.errors:
+        raise SystemExit(f"explorer errors: {win.errors}")
+    return {
+        "size": size,
+        "points": ctrl.display.n_points,
+        "anchors": len(ctrl.anchors),
+        "load": t_load,
+        "bind": t_bind,
+        "solve": [t.solve for t in timings],
+        "deform": [t.deform for t in timings],
+        "render": [t.render + t.analysis for t in timings],
+        "total": [t.total for t in timings],
+        "iterations": [t.iterations for t in timings],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--sizes", nargs="+", default=list(MODELS), choices=list(MODELS))
+    ap.add_argument("--anchors", type=int, default=50)
+    args = ap.parse_args()
+    xvfb = ensure_display()
+    try:
+        from PySide6.QtWidgets import QApplication
+        from threadpoolctl import threadpool_limits
+
+        from vhm_viz.app.main_window import ExplorerWindow
+
+        threadpool_limits(limits=1, user_api="blas")  # as the app does
+        app = QApplication.instance() or QApplication(sys.argv[:1])
+        win = ExplorerWindow(dialogs=False)
+        win.resize(1024, 768)
+        win.show()
+        app.processEvents()
+        import vtk
+
+        info = win.plotter.ren_win.ReportCapabilities().splitlines()
+        renderer = next((s.split(":", 1)[1].strip() for s in info if "OpenGL renderer" in s), "?")
+        rows = []
+        for size in args.sizes:
+            r = run_model(win, size, args.frames, args.anchors)
+            med = statistics.median(r["total"])
+            rows.append(
+                [
+                    f"Armadillo {size} ({r['points']:,} pts)",
+                    str(r["anchors"]),
+                    f"{r['bind']:.1f} s",
+                    fmt(r["solve"]),
+                    fmt(r["deform"]),
+                    fmt(r["render"]),
+                    fmt(r["total"]),
+                    f"{1 / med:.1f}",
+                    f"{statistics.median(r['iterations']):.0f}",
+                ]
+            )
+        print(
+            f"\nExplorer drag frame time ({args.frames} frames, window 1024x768, "
+            f"renderer: {renderer}, VTK {vtk.vtkVersion.GetVTKVersion()}, "
+            f"{os.cpu_count()} CPUs; ms: median (10th-90th percentile))\n"
+        )
+        print_table(
+            [
+                "model",
+                "anchors",
+                "bind",
+                "solve ms",
+                "deform ms",
+                "render ms",
+                "frame ms",
+                "fps",
+                "iterations",
+            ],
+            rows,
+        )
+        win.close()
+    finally:
+        if xvfb is not None:
+            xvfb.terminate()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,417 @@
+"""The Qt explorer under a real X display (Xvfb), driven through its own code paths.
+
+A session fixture starts ``Xvfb`` when no display is set and makes Qt use it (``xcb``),
+overriding ``.ci/run``'s ``QT_QPA_PLATFORM=offscreen`` for this module only.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import data_path
+
+pytest.importorskip("PySide6")
+pytest.importorskip("pyvistaqt")
+pytest.importorskip("pytestqt")
+
+pytestmark = pytest.mark.gui
+
+RES = 8  # bar resolution of the tests (1,410 surface points: fast bindings)
+
+
+def _start_xvfb():
+    exe = shutil.which("Xvfb")
+    if exe is None:
+        return None, None
+    for num in range(99, 120):
+        if Path(f"/tmp/.X{num}-lock").exists():
+            continue
+        proc = subprocess.Popen(
+            # -terminate: the server exits when the test process (its last client) does,
+            # so Qt never sees its display vanish while the QApplication is alive
+            [exe, f":{num}", "-screen", "0", "1280x1024x24", "-nolisten", "tcp", "-terminate"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for _ in range(100):
+            if Path(f"/tmp/.X11-unix/X{num}").exists():
+                return proc, f":{num}"
+            if proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        proc.kill()
+    return None, None
+
+
+@pytest.fixture(scope="session", autouse=True)
+def xvfb_display():
+    """A real X display for Qt and VTK: the current one, or a fresh Xvfb."""
+    from PySide6.QtWidgets import QApplication
+
+    old = {k: os.environ.get(k) for k in ("DISPLAY", "QT_QPA_PLATFORM")}
+    proc = None
+    if QApplication.instance() is None:
+        if not os.environ.get("DISPLAY"):
+            proc, display = _start_xvfb()
+            if proc is None:
+                pytest.skip("no X display and Xvfb not found (apt-get install xvfb)")
+            os.environ["DISPLAY"] = display
+        os.environ["QT_QPA_PLATFORM"] = "xcb"
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):  # as the app does (vhm_viz.app.run)
+        yield os.environ.get("DISPLAY")
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+    if proc is not None and QApplication.instance() is None:
+        proc.terminate()  # never connected: nothing will make it exit by itself
+
+
+@pytest.fixture
+def window(qtbot):
+    from vhm_viz.app.main_window import ExplorerWindow
+
+    win = ExplorerWindow(dialogs=False)
+    qtbot.addWidget(win)
+    win.resize(1000, 700)
+    win.show()
+    qtbot.waitExposed(win)
+    yield win
+    win.runner.wait(60000)
+    win.close()
+
+
+def _open_bar(win, kind="bend-90", apply=True):
+    assert win.open_bar(kind, resolution=RES, apply=apply)
+    win.wait_idle()
+    assert win.last_error is None, win.last_error
+    assert win.ctrl.ready
+    return win.ctrl
+
+
+def _direct_points(ctrl, mode=None):
+    """Independent reference: a fresh Deformer solved to convergence from the identity."""
+    from vhm_viz.core.deformer import Deformer
+
+    dfm = Deformer(ctrl.cage, ctrl.anchors, mode=mode or ctrl.mode, alpha=ctrl.alpha)
+    dfm.set_constraints(**ctrl.constraint_arrays())
+    rep = dfm.solve(max_iterations=5000, tolerance=1e-9, init="identity")
+    assert rep.converged
+    return dfm.harmonic_map.map(ctrl.rest_points)
+
+
+def test_qt_uses_the_x_display(xvfb_display, qapp):
+    assert xvfb_display
+    assert qapp.platformName() in ("xcb", "offscreen")
+    if os.environ.get("QT_QPA_PLATFORM") == "xcb":
+        assert qapp.platformName() == "xcb"
+
+
+def test_bar_click_constraint_and_drag_match_direct_solve(window):
+    win = window
+    ctrl = _open_bar(win, "bend-90")
+    p = win.plotter
+    # the scene shows the shape (deformed), cage, anchors and one handle per position target
+    assert "shape" in win._actors and "cage" in win._actors and "anchors" in win._actors
+    assert "jacobians" in win._actors
+    assert len(win._handles) == len(ctrl.positions) == 6
+    assert not np.allclose(ctrl.deformed_points, ctrl.rest_points)
+
+    # click on the shape in "add position" mode: a vertex on the y = -0.5 face mid-way up
+    p.view_xz()  # camera on -y, looking at the y = -0.5 face
+    p.render()
+    rest = ctrl.rest_points
+    k = int(np.argmin(np.linalg.norm(rest - [0.0, -0.5, 2.5], axis=1)))
+    world = ctrl.deformed_points[k].copy()
+    win.set_interaction_mode("position")
+    x, y = win.display_coordinates(world)
+    assert win.click_at_display(x, y)
+    win.wait_idle()
+    assert win.last_error is None, win.last_error
+    assert len(ctrl.positions) == 7 and len(win._handles) == 7
+    new = ctrl.positions[-1]
+    cell = 5.0 / (5 * RES)
+    assert np.linalg.norm(new.point - rest[k]) < 1.5 * cell  # rest point under the cursor
+    assert np.linalg.norm(new.target - world) < 1.5 * cell
+    # adding a constraint at the current image does not move the shape
+    before = ctrl.deformed_points.copy()
+    np.testing.assert_allclose(before, _direct_points(ctrl), atol=2e-4)
+
+    # drag its handle through the sphere widget's callback
+    win.set_interaction_mode("view")
+    widget = win._handles[-1]
+    goal = new.target + np.array([0.3, -0.2, 0.1])
+    widget.SetCenter(*goal)
+    widget.InvokeEvent("InteractionEvent")
+    widget.InvokeEvent("EndInteractionEvent")
+    assert win.last_error is None, win.last_error
+    np.testing.assert_allclose(ctrl.positions[-1].target, goal)
+    after = ctrl.deformed_points
+    assert np.abs(after - before).max() > 0.05
+    np.testing.assert_allclose(after, _direct_points(ctrl), atol=5e-4)
+    # the constraint holds and the frame time is shown
+    img = ctrl.deformer.harmonic_map.map(new.point[None])[0]
+    np.testing.assert_allclose(img, goal, atol=1e-6)
+    assert "ms" in win.frame_label.text() and win.last_frame.total > 0
+    # the display dataset was updated in place: the same actor and dataset
+    assert win._actors["shape"].mapper.dataset is ctrl.display
+
+
+def test_mode_switch_and_alpha(window):
+    win = window
+    ctrl = _open_bar(win, "bulge")
+    rigid = ctrl.deformed_points.copy()
+    np.testing.assert_allclose(rigid, _direct_points(ctrl, "rigid"), atol=5e-4)
+    win.constraints_panel.mode.setCurrentText("similar")  # the UI path
+    win.wait_idle()
+    assert ctrl.mode == "similar" and ctrl.deformer.mode == "similar"
+    similar = ctrl.deformed_points.copy()
+    assert np.abs(similar - rigid).max() > 1e-3
+    np.testing.assert_allclose(similar, _direct_points(ctrl, "similar"), atol=5e-4)
+    # alpha: the slider rebuilds the deformer in the background
+    win.set_alpha(0.001)
+    win.wait_idle()
+    assert ctrl.ready and ctrl.deformer.alpha == pytest.approx(0.001)
+    np.testing.assert_allclose(ctrl.deformed_points, _direct_points(ctrl), atol=5e-4)
+
+
+def test_jacobian_constraint_numeric_edit_and_delete(window):
+    win = window
+    ctrl = _open_bar(win, "bend-90", apply=False)  # bottom held only
+    win.plotter.view_xz()
+    win.plotter.render()
+    k = int(np.argmin(np.linalg.norm(ctrl.rest_points - [0.0, -0.5, 4.0], axis=1)))
+    win.set_interaction_mode("jacobian")
+    assert win.click_at_display(*win.display_coordinates(ctrl.deformed_points[k]))
+    win.wait_idle()
+    assert len(ctrl.jacobians) == 1 and win.last_error is None
+    np.testing.assert_allclose(ctrl.jacobians[0].matrix, np.eye(3), atol=1e-6)
+    # numeric editing in the side panel: rotate 40 degrees about y, scale 1.2
+    table = win.constraints_panel.table
+    row = len(ctrl.positions)
+    assert table.item(row, 0).text() == "J 0"
+    table.item(row, 2).setText("40")
+    table.item(row, 4).setText("1.2")
+    win.wait_idle()
+    assert ctrl.jacobians[0].scale == pytest.approx(1.2)
+    assert ctrl.jacobians[0].angles[1] == pytest.approx(40)
+    J = ctrl.deformer.harmonic_map.jacobian(ctrl.jacobians[0].point[None])[0]
+    np.testing.assert_allclose(J, ctrl.jacobians[0].matrix, atol=1e-6)
+    np.testing.assert_allclose(ctrl.deformed_points, _direct_points(ctrl), atol=5e-4)
+    # a bad number is refused with a message, nothing changes
+    table.item(row, 4).setText("-1")
+    assert win.last_error is not None and ctrl.jacobians[0].scale == pytest.approx(1.2)
+    win.last_error = None
+    # delete it: back to the rest shape (only the bottom is held)
+    win.delete_constraint("jacobian", 0)
+    win.wait_idle()
+    assert not ctrl.jacobians
+    np.testing.assert_allclose(ctrl.deformed_points, ctrl.rest_points, atol=1e-4)
+
+
+def test_save_and_reload_scene(window, tmp_path):
+    win = window
+    ctrl = _open_bar(win, "bend-u")
+    win.set_mode("similar")
+    i = ctrl.add_position_constraint(ctrl.rest_points[50])
+    win.after_edit(structure=False)
+    win.wait_idle()
+    w = win._handles[i]
+    w.SetCenter(*(ctrl.positions[i].target + [0.1, 0.1, 0.0]))
+    w.InvokeEvent("InteractionEvent")
+    w.InvokeEvent("EndInteractionEvent")  # release: solved to convergence
+    expected = ctrl.deformed_points.copy()
+    path = tmp_path / "scene.json"
+    win.save_scene(str(path))
+    assert path.exists()
+    from vhm_viz.scene import Scene  # the shared scene format (vhm-viz deform --scene)
+
+    scene = Scene.load(path)
+    assert scene.mode == "similar" and len(scene.constraints["positions"]) == 7
+    win.open_bar("twist", resolution=RES)  # something else in between
+    win.wait_idle()
+    assert not np.allclose(ctrl.deformed_points[: len(expected)], expected, atol=1e-2)
+    assert win.load_scene(str(path))
+    win.wait_idle()
+    assert win.last_error is None, win.last_error
+    assert win.ctrl.mode == "similar" and len(win.ctrl.positions) == 7
+    np.testing.assert_allclose(win.ctrl.deformed_points, expected, atol=1e-6)
+    # the reloaded solve started at the saved solution
+    assert win.ctrl.last_report.iterations < 20
+    # export the deformed data and read it back
+    import pyvista as pv
+
+    out = tmp_path / "deformed.vtp"
+    win.export(str(out))
+    np.testing.assert_allclose(pv.read(out).points, expected, atol=1e-6)
+
+
+def test_screenshot_shows_shape_and_slice(window, tmp_path):
+    win = window
+    ctrl = _open_bar(win, "bulge")
+    win.show_cage_action.setChecked(False)
+    win._toggle_cage(False)
+    b = ctrl.cage.bounds
+    win.show_slice(True, origin=0.5 * (b[0] + b[1]), normal=(0.0, -1.0, 0.0))
+    assert win.last_error is None, win.last_error
+    assert win.slice is not None and win.slice.n_points > 50
+    # slice values are closed-form Jacobian determinants of the map at the slice samples
+    dets = win.slice.mesh.point_data["measure"]
+    ref = np.linalg.det(ctrl.deformer.harmonic_map.jacobian(win.slice.rest_points))
+    np.testing.assert_allclose(dets, ref, rtol=1e-6, atol=1e-8)
+    assert "foldovers" in win.analysis_metrics and np.isfinite(win.analysis_metrics["E_rigid"])
+    win.plotter.view_xz()
+    win.plotter.reset_camera()
+    path = tmp_path / "explorer.png"
+    img = win.screenshot(str(path))
+    if os.environ.get("VHM_KEEP_SCREENSHOT"):
+        shutil.copy(path, os.environ["VHM_KEEP_SCREENSHOT"])
+    assert path.exists() and img is not None
+    img = np.asarray(img)[..., :3].astype(int)
+    assert img.std() > 5  # not blank
+    # shape: light grey-beige (0.85, 0.85, 0.80) shaded; slice: saturated jet colours
+    img = img[: int(0.8 * img.shape[0])]  # above the scalar bar
+    r, g, bl = img[..., 0], img[..., 1], img[..., 2]
+    greyish = (np.abs(r - g) < 12) & (r - bl > 3) & (r > 60) & (r < 250)
+    saturated = (img.max(axis=2) - img.min(axis=2)) > 120
+    assert greyish.sum() > 2000, greyish.sum()
+    assert saturated.sum() > 1000, saturated.sum()
+    # condition number colouring switches the measure in place
+    win.analysis_panel.measure.setCurrentText("condition_number")
+    assert win.measure == "condition_number"
+    assert np.all(win.slice.mesh.point_data["measure"] >= 1 - 1e-9)
+
+
+def test_errors_are_messages_and_the_app_survives(window, tmp_path):
+    win = window
+    ctrl = _open_bar(win, "bend-90")
+    before = ctrl.deformed_points.copy()
+    cage_before = ctrl.cage
+    # unreadable data file
+    bad = tmp_path / "garbage.vtp"
+    bad.write_text("this is not a VTK file")
+    win.open_file(str(bad))
+    win.wait_idle()
+    assert win.last_error and "garbage.vtp" in win.last_error
+    win.open_file(str(tmp_path / "missing.obj"))
+    win.wait_idle()
+    assert "missing.obj" in win.last_error
+    assert win.ctrl.display is not None and np.allclose(win.ctrl.deformed_points, before)
+    # a cage file that is not a valid cage (self-intersecting)
+    win.last_error = None
+    win.load_cage(str(data_path("bad_cages", "selfintersecting_armadillo_cage.obj")))
+    assert win.last_error and "CageError" in win.last_error
+    # a valid cage that does not enclose the shape
+    win.last_error = None
+    small = tmp_path / "small_cage.obj"
+    from tests.conftest import box_cage
+
+    cv, cf = box_cage((-0.2, -0.2, 1.0), (0.2, 0.2, 2.0))
+    with open(small, "w") as fh:
+        fh.writelines(f"v {x} {y} {z}\n" for x, y, z in cv)
+        fh.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in cf)
+    win.load_cage(str(small))
+    assert win.last_error and "does not enclose" in win.last_error
+    assert win.ctrl.cage is cage_before
+    # a constraint outside the cage is refused
+    win.last_error = None
+    with pytest.raises(Exception, match="outside the cage"):
+        win.ctrl.add_position_constraint([50.0, 0, 0])
+    # impossible constraints (same point, two targets): a message; deleting one recovers
+    c0 = win.ctrl.positions[0]
+    win.ctrl.add_position_constraint(c0.point, target=c0.target + 1.0)
+    win.after_edit(structure=False)
+    win.wait_idle()
+    assert win.last_error and "ConstraintError" in win.last_error
+    win.delete_constraint("position", len(win.ctrl.positions) - 1)
+    win.wait_idle()
+    assert win.ctrl.ready
+    # the app still works: a drag deforms the shape
+    win.last_error = None
+    w = win._handles[-1]
+    w.SetCenter(*(win.ctrl.positions[-1].target + [0.2, 0, 0]))
+    w.InvokeEvent("InteractionEvent")
+    assert win.last_error is None
+    assert np.abs(win.ctrl.deformed_points - before).max() > 0.05
+
+
+def test_cancel_releases_the_ui(window):
+    import threading
+
+    win = window
+    _open_bar(win, "bend-90")
+    release = threading.Event()
+
+    def slow(progress, cancelled):
+        for k in range(200):
+            if cancelled():
+                from vhm_viz.app.controller import Cancelled
+
+                raise Cancelled()
+            progress(k / 200, "working")
+            release.wait(0.01)
+        return "done"
+
+    results = []
+    assert win.run_job("slow", slow, results.append)
+    assert win.busy and win.progress.isVisible() is True
+    win.cancel_job()
+    assert not win.busy and not win.progress.isVisible()
+    win.runner.wait(5000)
+    assert results == []
+
+
+def test_cli_explore_registered():
+    from vhm_viz.cli import build_parser
+
+    args = build_parser().parse_args(["explore", "mesh.obj", "--scene", "s.json"])
+    assert args.command == "explore" and args.file == "mesh.obj" and args.scene == "s.json"
+
+
+def test_open_file_generate_cage_anchors_and_drag(window):
+    """The file path: open a mesh, generate a cage and anchors in the background, click, drag."""
+    win = window
+    assert win.open_file(str(data_path("bar", "bar_dense.obj")))
+    win.wait_idle()
+    assert win.last_error is None, win.last_error
+    ctrl = win.ctrl
+    assert ctrl.display.n_points == 6146 and ctrl.cage is None
+    win.generate_cage(max_faces=120)
+    assert win.busy  # runs in the worker, with a progress bar
+    win.wait_idle()
+    assert win.last_error is None, win.last_error
+    assert ctrl.cage is not None and ctrl.cage.n_faces <= 120
+    assert ctrl.cage.contains(ctrl.rest_points).all()
+    win.generate_anchors(count=12)
+    win.wait_idle()
+    assert win.last_error is None, win.last_error
+    assert len(ctrl.anchors) > 0 and ctrl.cage.contains(ctrl.anchors).all()
+    # two clicks: hold one end, grab the other (bar along y in [-1, 4.74])
+    win.set_interaction_mode("position")
+    win.plotter.view_xy()
+    win.plotter.render()
+    p = ctrl.rest_points
+    for goal in ([0.0, -0.9, 1.0], [0.0, 4.6, 1.0]):
+        k = int(np.argmin(np.linalg.norm(p - goal, axis=1)))
+        assert win.click_at_display(*win.display_coordinates(ctrl.deformed_points[k]))
+        win.wait_idle()
+        assert win.last_error is None, win.last_error
+    assert len(ctrl.positions) == 2 and ctrl.ready
+    np.testing.assert_allclose(ctrl.deformed_points, p, atol=1e-6)  # nothing moved yet
+    w = win._handles[1]
+    w.SetCenter(*(ctrl.positions[1].target + [1.0, 0.0, 0.0]))
+    w.InvokeEvent("InteractionEvent")
+    w.InvokeEvent("EndInteractionEvent")
+    assert win.last_error is None, win.last_error
+    assert np.abs(ctrl.deformed_points - p).max() > 0.5
+    np.testing.assert_allclose(ctrl.deformed_points, _direct_points(ctrl), atol=5e-4)

@@ -1,0 +1,131 @@
+"""Analysis helpers of the explorer (no Qt): the Jacobian slice and marker images.
+
+The slice is a planar grid in **rest space** (inside the cage and, for closed surfaces,
+inside the shape), bound to the deformer; each frame it is mapped through the harmonic map
+and coloured by a closed-form Jacobian measure (``Binding.jacobians``), as in the paper's
+Figure 4: the material cross-section, shown deformed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["SliceProbe", "MEASURE_RANGES", "measure_values"]
+
+# default colour ranges of the measures (det: 1 = volume preserved, <= 0 foldover)
+MEASURE_RANGES = {"determinant": (0.0, 2.0), "condition_number": (1.0, 3.0)}
+
+
+def measure_values(jacobians: np.ndarray, measure: str) -> np.ndarray:
+    """Per-point ``determinant`` or ``condition_number`` of (N, 3, 3) Jacobians."""
+    from vhm_viz.core import metrics as M
+
+    if measure == "determinant":
+        return M.jacobian_determinant(jacobians)
+    if measure == "condition_number":
+        return M.condition_number(jacobians)
+    raise ValueError(f"unknown measure {measure!r} (determinant, condition_number)")
+
+
+def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    n = np.asarray(normal, float)
+    n = n / np.linalg.norm(n)
+    a = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(n, a)
+    u /= np.linalg.norm(u)
+    return n, u, np.cross(n, u)
+
+
+class SliceProbe:
+    """A planar slice of the rest shape, bound to a deformer.
+
+    Parameters
+    ----------
+    controller : ExplorerController
+        Must be :attr:`~ExplorerController.ready`.
+    origin, normal : (3,) array_like
+        The plane (rest space).
+    resolution : int
+        Samples per side of the square grid (side = cage bounding-box diagonal).
+
+    Attributes
+    ----------
+    mesh : pyvista.PolyData
+        Quads between kept samples; points are the deformed samples (updated in place by
+        :meth:`update`), point data ``"measure"``.
+    """
+
+    def __init__(self, controller, origin, normal, resolution: int = 60):
+        import pyvista as pv
+
+        cage = controller.cage
+        n, u, v = _plane_basis(normal)
+        o = np.asarray(origin, float)
+        half = 0.5 * float(np.linalg.norm(cage.bounds[1] - cage.bounds[0]))
+        r = int(resolution)
+        s = np.linspace(-half, half, r)
+        ss, tt = np.meshgrid(s, s, indexing="ij")
+        pts = o + ss.reshape(-1, 1) * u + tt.reshape(-1, 1) * v
+        lo, hi = cage.bounds[0], cage.bounds[1]
+        keep = np.all((pts >= lo) & (pts <= hi), axis=1)
+        idx = np.nonzero(keep)[0]
+        if idx.size:
+            keep[idx] = cage.contains(pts[idx])
+        keep &= self._inside_shape(controller, pts)
+        grid = np.arange(r * r).reshape(r, r)
+        a, b = grid[:-1, :-1].ravel(), grid[1:, :-1].ravel()
+        c, d = grid[1:, 1:].ravel(), grid[:-1, 1:].ravel()
+        quads = np.column_stack([a, b, c, d])
+        quads = quads[keep[quads].all(axis=1)]
+        used = np.unique(quads)
+        remap = -np.ones(r * r, dtype=np.int64)
+        remap[used] = np.arange(used.size)
+        self.rest_points = pts[used]
+        self.normal, self.origin = n, o
+        faces = np.column_stack([np.full(len(quads), 4), remap[quads]]).ravel()
+        self.mesh = pv.PolyData(self.rest_points.copy(), faces if len(quads) else None)
+        self.mesh.point_data["measure"] = np.zeros(len(used))
+        self.binding = None
+        if used.size:
+            self.binding = controller.deformer.bind(self.rest_points, outside="passthrough")
+        self.jacobians = np.broadcast_to(np.eye(3), (used.size, 3, 3))
+
+    @staticmethod
+    def _inside_shape(controller, pts: np.ndarray) -> np.ndarray:
+        """Samples inside a closed surface (all samples for other data)."""
+        import pyvista as pv
+
+        surf = controller.rest
+        if not isinstance(surf, pv.PolyData) or surf.GetNumberOfPolys() == 0:
+            return np.ones(len(pts), bool)
+        try:
+            probe = pv.PolyData(pts)
+            sel = probe.select_interior_points(surf, check_surface=True)
+            return np.asarray(sel.point_data["selected_points"], bool)
+        except (RuntimeError, ValueError, AttributeError):
+            return np.ones(len(pts), bool)  # not closed: keep the cage section
+
+    @property
+    def n_points(self) -> int:
+        """Number of slice samples."""
+        return len(self.rest_points)
+
+    def update(self, measure: str = "determinant") -> np.ndarray:
+        """Deform the slice and recompute the measure; returns the measure values."""
+        if self.binding is None:
+            return np.zeros(0)
+        pts = np.asarray(self.mesh.points)
+        self.binding.deform(out=pts)
+        self.mesh.GetPoints().Modified()
+        self.jacobians = self.binding.jacobians()
+        vals = measure_values(self.jacobians, measure)
+        self.mesh.point_data["measure"][:] = vals
+        self.mesh.point_data.Modified()
+        self.mesh.GetPointData().GetArray("measure").Modified()
+        return vals
+
+    def foldovers(self) -> int:
+        """Slice samples with ``det J <= 0``."""
+        from vhm_viz.core.metrics import foldover_count
+
+        return foldover_count(np.asarray(self.jacobians)) if self.n_points else 0

@@ -1,0 +1,957 @@
+"""UI-free state of the explorer: data, cage, anchors, constraints, deformer and binding.
+
+:class:`ExplorerController` holds everything the main window shows and every operation the
+user can trigger, without importing Qt, so that it can be driven and tested directly. The
+window (:mod:`vhm_viz.app.main_window`) only translates events into calls on it and
+re-renders.
+
+Life cycle
+----------
+* The *rest* dataset (:attr:`ExplorerController.rest`) is what was loaded; the *display*
+  dataset (:attr:`ExplorerController.display`) is a float64 copy whose points are rewritten
+  **in place** by :meth:`ExplorerController.deform` (the renderer keeps the same actor).
+* Editing the cage, anchors or alpha marks the deformer stale; adding or removing
+  constraints marks the constraint layout stale; both are rebuilt by
+  :meth:`ExplorerController.prepare`, the only expensive call (basis evaluation at every
+  point of the shape, in chunks with progress and cancellation). Moving a target or changing
+  a Jacobian's angles or scale only calls ``Deformer.update_targets`` (no refactorisation),
+  so :meth:`ExplorerController.drag` (update + warm-started solve + deform) is cheap.
+* Constraint points live in rest space; targets in deformed space. A position constraint
+  added at a point starts with the point's current image as target (the shape does not
+  jump); a Jacobian constraint starts at the closest similarity to the current Jacobian.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from vhm_viz.core.errors import CageError, ConstraintError
+
+__all__ = [
+    "ExplorerController",
+    "PositionConstraint",
+    "JacobianConstraint",
+    "FrameTiming",
+    "Cancelled",
+    "SCENE_VERSION",
+]
+
+SCENE_VERSION = 1
+# points per binding chunk (progress / cancellation granularity of prepare())
+CHUNK = 16384
+
+ProgressFn = Callable[[float, str], None]
+
+
+class Cancelled(Exception):
+    """Raised inside a long operation when the user cancelled it."""
+
+
+def _noop_progress(fraction: float, message: str) -> None:
+    return None
+
+
+# ----------------------------------------------------------------------------------------
+# Constraints
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class PositionConstraint:
+    """``f(point) = target``; ``point`` in rest space, ``target`` in deformed space (3,)."""
+
+    point: np.ndarray
+    target: np.ndarray
+
+    def to_json(self) -> dict:
+        """JSON-serialisable form."""
+        return {"point": self.point.tolist(), "target": self.target.tolist()}
+
+
+@dataclass
+class JacobianConstraint:
+    """``J_f(point) = scale * R(angles)``.
+
+    ``angles`` are extrinsic x, y, z rotation angles in degrees (scipy's ``"xyz"`` Euler
+    convention); ``scale`` is a positive factor.
+    """
+
+    point: np.ndarray
+    angles: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    scale: float = 1.0
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(3, 3) target Jacobian ``J[i, j] = d f_i / d x_j``."""
+        from scipy.spatial.transform import Rotation
+
+        return float(self.scale) * Rotation.from_euler("xyz", self.angles, degrees=True).as_matrix()
+
+    @classmethod
+    def from_matrix(cls, point, matrix) -> JacobianConstraint:
+        """Closest similarity ``s R`` to a Jacobian (polar decomposition)."""
+        from scipy.spatial.transform import Rotation
+
+        u, s, vt = np.linalg.svd(np.asarray(matrix, dtype=float))
+        r = u @ vt
+        if np.linalg.det(r) < 0:
+            u[:, -1] *= -1
+            r = u @ vt
+        scale = float(np.mean(s))
+        with warnings.catch_warnings():  # gimbal lock: the angles still reproduce r
+            warnings.simplefilter("ignore", UserWarning)
+            angles = Rotation.from_matrix(r).as_euler("xyz", degrees=True)
+        return cls(np.asarray(point, float).copy(), np.asarray(angles, float), scale)
+
+    def to_json(self) -> dict:
+        """JSON-serialisable form."""
+        return {"point": self.point.tolist(), "angles": self.angles.tolist(), "scale": self.scale}
+
+
+@dataclass
+class FrameTiming:
+    """Seconds spent in one interactive update (render time is filled in by the window)."""
+
+    solve: float = 0.0
+    deform: float = 0.0
+    analysis: float = 0.0
+    render: float = 0.0
+    iterations: int = 0
+
+    @property
+    def total(self) -> float:
+        """Sum of all parts (s)."""
+        return self.solve + self.deform + self.analysis + self.render
+
+
+# ----------------------------------------------------------------------------------------
+# Chunked binding (progress + cancellation while binding large shapes)
+# ----------------------------------------------------------------------------------------
+
+
+class ChunkedBinding:
+    """A shape bound to a deformer in chunks of :data:`CHUNK` points.
+
+    Each chunk is a :class:`vhm_viz.core.deformer.Binding`; splitting lets :meth:`refresh`
+    report progress and stop between chunks.
+    """
+
+    def __init__(self, deformer, points: np.ndarray, progress: ProgressFn, check: Callable):
+        self.points = points
+        self.parts = []
+        n = len(points)
+        for s in range(0, max(n, 1), CHUNK):
+            check()
+            progress(s / max(n, 1), f"binding points {s}/{n}")
+            self.parts.append(
+                (s, deformer.bind(points[s : s + CHUNK], outside="passthrough", dtype=np.float32))
+            )
+
+    def refresh(self, progress: ProgressFn, check: Callable) -> None:
+        """Recompute the chunks' ``F`` after a constraint layout change."""
+        n = len(self.points)
+        for s, b in self.parts:
+            check()
+            progress(s / max(n, 1), f"re-binding points {s}/{n}")
+            b.F  # noqa: B018 - property access triggers the (chunked) refresh
+
+    def deform(self, out: np.ndarray) -> np.ndarray:
+        for s, b in self.parts:
+            b.deform(out=out[s : s + len(b.points)])
+        return out
+
+
+# ----------------------------------------------------------------------------------------
+# Adapters to modules written elsewhere (switchable later)
+# ----------------------------------------------------------------------------------------
+
+
+def read_dataset(path) -> object:
+    """Read any dataset PyVista reads (meshes, tet meshes, point clouds, volumes)."""
+    import pyvista as pv
+
+    path = Path(path)
+    if not path.exists():
+        raise OSError(f"{path}: no such file")
+    try:
+        with warnings.catch_warnings():
+            # pyvista reports VTK reader errors as warnings: make them errors
+            warnings.simplefilter("error", UserWarning)
+            data = pv.read(str(path))
+    except Exception as exc:  # VTK/meshio raise many types
+        raise ValueError(f"{path.name}: cannot read ({exc})") from exc
+    if isinstance(data, pv.MultiBlock):
+        data = data.combine().extract_geometry() if data.n_blocks else None
+    if data is None or data.n_points == 0:
+        raise ValueError(f"{path.name}: no points")
+    return data
+
+
+def _auto_anchors(data, cage, count: int) -> np.ndarray:
+    try:
+        from vhm_viz.autoanchors import auto_anchors
+    except ImportError:
+        auto_anchors = None
+    if auto_anchors is not None:
+        res = auto_anchors(data, cage, count)
+        return np.asarray(getattr(res, "anchors", res), dtype=float).reshape(-1, 3)
+    # fallback: the principal axis of the points, trimmed to the inner 80%
+    from vhm_viz.core.anchors import anchors_from_polylines
+
+    p = np.asarray(data.points, dtype=float)
+    c = p.mean(axis=0)
+    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
+    t = (p - c) @ vt[0]
+    lo, hi = np.quantile(t, [0.1, 0.9])
+    line = np.array([c + lo * vt[0], c + hi * vt[0]])
+    anchors = anchors_from_polylines(line, np.array([[0, 1]]), count)
+    return anchors[cage.contains(anchors)]
+
+
+# ----------------------------------------------------------------------------------------
+# The controller
+# ----------------------------------------------------------------------------------------
+
+
+class ExplorerController:
+    """Everything the explorer shows and does, without Qt.
+
+    Attributes
+    ----------
+    rest : pyvista.DataSet or None
+        The loaded dataset (never modified).
+    display : pyvista.DataSet or None
+        A copy with float64 points, deformed in place.
+    source : dict
+        Where the data came from: ``{"path": ...}`` or ``{"bar": kind, "resolution": r}``.
+    cage : vhm_viz.Cage or None
+    anchors : (d, 3) ndarray
+    positions : list of PositionConstraint
+    jacobians : list of JacobianConstraint
+    mode : {"rigid", "similar"}
+    alpha : float
+    max_iterations, tolerance : solver settings of :meth:`drag` and :meth:`solve`.
+    last_report : SolveReport or None
+    """
+
+    def __init__(self) -> None:
+        self.rest = None
+        self.display = None
+        self.source: dict = {}
+        self.cage = None
+        self.anchors = np.zeros((0, 3))
+        self.positions: list[PositionConstraint] = []
+        self.jacobians: list[JacobianConstraint] = []
+        self.mode = "rigid"
+        self.alpha = 0.01
+        self.max_iterations = 200
+        self.tolerance = 1e-6
+        self.deformer = None
+        self.binding: ChunkedBinding | None = None
+        self.last_report = None
+        self._deformer_stale = True
+        self._layout_stale = True
+        self._targets_stale = False
+        self._rest_points = np.zeros((0, 3))
+        # local matrices to start the next solve from (a loaded scene's solution)
+        self._initial_rotations = None
+
+    # ------------------------------------------------------------------ data
+    @property
+    def has_data(self) -> bool:
+        """Whether a dataset is loaded."""
+        return self.rest is not None
+
+    @property
+    def ready(self) -> bool:
+        """Whether :meth:`drag` can run without :meth:`prepare` (nothing stale)."""
+        return (
+            self.deformer is not None
+            and self.binding is not None
+            and not self._deformer_stale
+            and not self._layout_stale
+        )
+
+    @property
+    def can_solve(self) -> bool:
+        """Data, cage, anchors and at least one position constraint are present."""
+        return (
+            self.rest is not None
+            and self.cage is not None
+            and len(self.anchors) > 0
+            and len(self.positions) > 0
+        )
+
+    def _set_data(self, data, source: dict) -> None:
+        import pyvista as pv
+
+        if isinstance(data, pv.ImageData | pv.RectilinearGrid):
+            data = data.cast_to_structured_grid()
+        display = data.copy(deep=True)
+        display.points = np.asarray(display.points, dtype=np.float64)
+        self.rest = data
+        self.display = display
+        self._rest_points = np.array(display.points, dtype=np.float64)
+        self.source = source
+        self.cage = None
+        self.anchors = np.zeros((0, 3))
+        self.positions = []
+        self.jacobians = []
+        self.deformer = None
+        self.binding = None
+        self.last_report = None
+        self._initial_rotations = None
+        self._deformer_stale = True
+        self._layout_stale = True
+
+    def load_file(self, path) -> None:
+        """Load any dataset PyVista reads. On error the current state is kept.
+
+        Raises
+        ------
+        OSError, ValueError
+            Missing or unreadable file (message names the file).
+        """
+        data = read_dataset(path)
+        self._set_data(data, {"path": str(Path(path).resolve())})
+
+    def load_bar(self, kind: str = "bend-u", resolution: int = 39, apply: bool = True) -> None:
+        """Load a bundled bar scenario: shape, cage, anchors and (optionally) constraints."""
+        from vhm_viz.examples import bar
+
+        sc = bar(kind, mode=self.mode, alpha=self.alpha, resolution=resolution)
+        self._set_data(sc.surface, {"bar": kind, "resolution": int(resolution)})
+        self.cage = sc.cage
+        self.anchors = np.array(sc.anchors, dtype=float)
+        if apply:
+            c = sc.constraints
+            self.positions = [
+                PositionConstraint(np.array(p), np.array(t))
+                for p, t in zip(c["positions"], c["targets"], strict=True)
+            ]
+            self.jacobians = [
+                JacobianConstraint.from_matrix(p, j)
+                for p, j in zip(c["jacobian_points"], c["jacobians"], strict=True)
+            ]
+        else:
+            # hold the bottom cap so that dragging has something to pull against
+            self.positions = [
+                PositionConstraint(np.array(p), np.array(p))
+                for p in sc.constraints["positions"][:5]
+            ]
+        # the scenario's deformer has this cage, anchors, mode and alpha: reuse it
+        self.deformer = sc.deformer
+        self._deformer_stale = False
+        self._layout_stale = not apply
+        self._targets_stale = True
+
+    @property
+    def rest_points(self) -> np.ndarray:
+        """(P, 3) float64 rest positions of the display dataset's points."""
+        return self._rest_points
+
+    @property
+    def deformed_points(self) -> np.ndarray:
+        """(P, 3) view of the display dataset's (deformed) points."""
+        return np.asarray(self.display.points)
+
+    # ------------------------------------------------------------------ cage
+    def set_cage(self, cage) -> None:
+        """Use a cage; it must enclose every point of the data.
+
+        Raises
+        ------
+        CageError
+            Points of the data outside the cage (count and indices in the message).
+        """
+        if self.rest is not None:
+            inside = cage.contains(self._rest_points)
+            if not inside.all():
+                from vhm_viz.core.errors import describe_indices
+
+                bad = np.nonzero(~inside)[0]
+                raise CageError(
+                    f"the cage does not enclose the shape: {bad.size} of {len(inside)} points "
+                    f"are outside (indices {describe_indices(bad)})"
+                )
+        self.cage = cage
+        self.anchors = (
+            self.anchors[cage.contains(self.anchors)] if len(self.anchors) else self.anchors
+        )
+        self._drop_outside_constraints()
+        self._deformer_stale = True
+
+    def load_cage(self, path) -> None:
+        """Read, validate and use a cage file (OBJ, OFF, PLY, STL, VTP, VTK)."""
+        from vhm_viz.cage import Cage
+
+        try:
+            cage = Cage.from_file(path)
+        except CageError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise CageError(f"{Path(path).name}: {exc}") from exc
+        self.set_cage(cage)
+
+    def auto_cage(self, max_faces: int = 500, progress: ProgressFn = _noop_progress):
+        """Generate a cage around the data (:func:`vhm_viz.autocage.auto_cage`); not applied.
+
+        Returns the cage; call :meth:`set_cage` with it (on the UI thread).
+        """
+        from vhm_viz.autocage import auto_cage
+
+        if self.rest is None:
+            raise ValueError("load data first")
+        progress(0.05, "generating cage")
+        return auto_cage(self.rest, max_faces=int(max_faces))
+
+    def _drop_outside_constraints(self) -> None:
+        if self.cage is None:
+            return
+        if self.positions:
+            keep = self.cage.contains(np.array([c.point for c in self.positions]))
+            self.positions = [c for c, k in zip(self.positions, keep, strict=True) if k]
+        if self.jacobians:
+            keep = self.cage.contains(np.array([c.point for c in self.jacobians]))
+            self.jacobians = [c for c, k in zip(self.jacobians, keep, strict=True) if k]
+
+    # ------------------------------------------------------------------ anchors
+    def set_anchors(self, anchors) -> None:
+        """Use these anchor points (must lie inside the cage)."""
+        a = np.asarray(anchors, dtype=float).reshape(-1, 3)
+        if self.cage is not None and len(a):
+            inside = self.cage.contains(a)
+            if not inside.all():
+                from vhm_viz.core.errors import describe_indices
+
+                raise ValueError(
+                    f"anchors {describe_indices(np.nonzero(~inside)[0])} are outside the cage"
+                )
+        self.anchors = a
+        self._deformer_stale = True
+
+    def load_anchors(self, path, count: int = 50) -> None:
+        """Anchors from rigidity lines: ``.tgf`` skeleton, OFF polylines or any VTK polyline."""
+        from vhm_viz.core.anchors import anchors_from_polylines
+
+        path = Path(path)
+        suffix = path.suffix.lower()
+        if suffix == ".tgf":
+            from vhm_viz.io import read_tgf
+
+            pts, edges = read_tgf(path)
+        elif suffix == ".off":
+            from vhm_viz.io import read_polylines
+
+            pts, edges = read_polylines(path)
+        else:
+            mesh = read_dataset(path)
+            lines = mesh.lines if hasattr(mesh, "lines") else np.zeros(0, int)
+            if not len(lines):
+                raise ValueError(f"{path.name}: no polylines")
+            edges, i = [], 0
+            while i < len(lines):
+                k = lines[i]
+                ids = lines[i + 1 : i + 1 + k]
+                edges.extend(zip(ids[:-1], ids[1:], strict=True))
+                i += k + 1
+            pts, edges = np.asarray(mesh.points, float), np.asarray(edges, int)
+        self.set_anchors(anchors_from_polylines(pts, edges, int(count)))
+
+    def auto_anchors(self, count: int = 50) -> np.ndarray:
+        """Compute ``count`` anchors automatically (not applied; see :meth:`set_anchors`)."""
+        if self.rest is None or self.cage is None:
+            raise ValueError("load data and a cage first")
+        return _auto_anchors(self.rest, self.cage, int(count))
+
+    def add_anchor(self, point) -> int:
+        """Add an anchor at a rest-space point; returns its index."""
+        p = np.asarray(point, dtype=float).reshape(1, 3)
+        if self.cage is not None and not self.cage.contains(p)[0]:
+            raise ValueError("the anchor is outside the cage")
+        self.anchors = np.vstack([self.anchors, p])
+        self._deformer_stale = True
+        return len(self.anchors) - 1
+
+    def remove_anchor(self, index: int) -> None:
+        """Remove anchor ``index``."""
+        if not 0 <= index < len(self.anchors):
+            raise IndexError(f"anchor {index} does not exist ({len(self.anchors)} anchors)")
+        self.anchors = np.delete(self.anchors, index, axis=0)
+        self._deformer_stale = True
+
+    def nearest_anchor(self, point) -> int | None:
+        """Index of the anchor closest to a rest-space point (None without anchors)."""
+        if not len(self.anchors):
+            return None
+        return int(np.argmin(np.linalg.norm(self.anchors - np.asarray(point), axis=1)))
+
+    # ------------------------------------------------------------------ constraints
+    def image_of(self, point) -> np.ndarray:
+        """Current image ``f(point)`` of a rest-space point (identity before any solve)."""
+        p = np.asarray(point, dtype=float).reshape(1, 3)
+        if self.deformer is None or self.last_report is None:
+            return p[0].copy()
+        return self.deformer.harmonic_map.map(p)[0]
+
+    def jacobian_of(self, point) -> np.ndarray:
+        """Current Jacobian at a rest-space point (identity before any solve)."""
+        p = np.asarray(point, dtype=float).reshape(1, 3)
+        if self.deformer is None or self.last_report is None:
+            return np.eye(3)
+        return self.deformer.harmonic_map.jacobian(p)[0]
+
+    def _check_constraint_point(self, p: np.ndarray) -> None:
+        if self.cage is None:
+            raise ValueError("load or generate a cage first")
+        if not self.cage.contains(p.reshape(1, 3))[0]:
+            raise ConstraintError(f"the point {np.round(p, 4).tolist()} is outside the cage")
+
+    def add_position_constraint(self, point, target=None) -> int:
+        """Add ``f(point) = target`` (default: the point's current image); returns its index."""
+        p = np.asarray(point, dtype=float).reshape(3)
+        self._check_constraint_point(p)
+        t = self.image_of(p) if target is None else np.asarray(target, float).reshape(3)
+        self.positions.append(PositionConstraint(p.copy(), t.copy()))
+        self._layout_stale = True
+        return len(self.positions) - 1
+
+    def add_jacobian_constraint(self, point, angles=None, scale=None) -> int:
+        """Add a Jacobian constraint (default: the closest similarity to the current one)."""
+        p = np.asarray(point, dtype=float).reshape(3)
+        self._check_constraint_point(p)
+        c = JacobianConstraint.from_matrix(p, self.jacobian_of(p))
+        if angles is not None:
+            c.angles = np.asarray(angles, float).reshape(3)
+        if scale is not None:
+            c.scale = float(scale)
+        if not c.scale > 0:
+            raise ConstraintError(f"the Jacobian scale must be positive; got {c.scale}")
+        self.jacobians.append(c)
+        self._layout_stale = True
+        return len(self.jacobians) - 1
+
+    def remove_constraint(self, kind: str, index: int) -> None:
+        """Remove position (``kind="position"``) or Jacobian (``"jacobian"``) constraint."""
+        items = self.positions if kind == "position" else self.jacobians
+        if not 0 <= index < len(items):
+            raise IndexError(f"{kind} constraint {index} does not exist ({len(items)})")
+        del items[index]
+        self._layout_stale = True
+
+    def set_target(self, index: int, target) -> None:
+        """Move the target of position constraint ``index`` (no refactorisation)."""
+        t = np.asarray(target, dtype=float).reshape(3)
+        if not np.isfinite(t).all():
+            raise ValueError("target must be finite")
+        self.positions[index].target = t.copy()
+        self._targets_stale = True
+
+    def set_jacobian(self, index: int, angles=None, scale=None) -> None:
+        """Change the angles (degrees) and/or scale of Jacobian constraint ``index``."""
+        c = self.jacobians[index]
+        if scale is not None:
+            if not float(scale) > 0:
+                raise ConstraintError(f"Jacobian constraint {index}: scale must be positive")
+            c.scale = float(scale)
+        if angles is not None:
+            c.angles = np.asarray(angles, float).reshape(3)
+        self._targets_stale = True
+
+    def set_point(self, kind: str, index: int, point) -> None:
+        """Move the rest-space point of a constraint (changes the layout)."""
+        p = np.asarray(point, dtype=float).reshape(3)
+        self._check_constraint_point(p)
+        (self.positions if kind == "position" else self.jacobians)[index].point = p.copy()
+        self._layout_stale = True
+
+    def constraint_arrays(self) -> dict:
+        """The constraints in :meth:`Deformer.set_constraints` form."""
+        pos = np.array([c.point for c in self.positions]).reshape(-1, 3)
+        tgt = np.array([c.target for c in self.positions]).reshape(-1, 3)
+        out = {"positions": pos, "targets": tgt}
+        if self.jacobians:
+            out["jacobian_points"] = np.array([c.point for c in self.jacobians])
+            out["jacobians"] = np.array([c.matrix for c in self.jacobians])
+        return out
+
+    # ------------------------------------------------------------------ settings
+    def set_mode(self, mode: str) -> None:
+        """Rigid or similar (no refactorisation; re-solve to see the effect)."""
+        if mode not in ("rigid", "similar"):
+            raise ValueError(f"mode must be 'rigid' or 'similar'; got {mode!r}")
+        self.mode = mode
+        if self.deformer is not None:
+            self.deformer.mode = mode
+
+    def set_alpha(self, alpha: float) -> None:
+        """Stiffness (changes lambda: the deformer is rebuilt by the next :meth:`prepare`)."""
+        alpha = float(alpha)
+        if not (np.isfinite(alpha) and alpha > 0):
+            raise ValueError(f"alpha must be positive; got {alpha}")
+        if alpha != self.alpha:
+            self.alpha = alpha
+            self._deformer_stale = True
+
+    # ------------------------------------------------------------------ pipeline
+    def prepare(self, progress: ProgressFn = _noop_progress, cancelled=lambda: False) -> None:
+        """Build what is stale: deformer, constraint layout, shape binding.
+
+        Safe to run in a worker thread while the UI does not modify the controller.
+
+        Raises
+        ------
+        Cancelled
+            ``cancelled()`` became true (state stays stale, nothing half-built is kept).
+        OutsideCageError, ConstraintError, ValueError
+            Invalid anchors or constraints (the message names them).
+        """
+        from vhm_viz.core.deformer import Deformer
+
+        def check():
+            if cancelled():
+                raise Cancelled("cancelled")
+
+        if not self.can_solve:
+            missing = [
+                name
+                for name, ok in (
+                    ("data", self.rest is not None),
+                    ("a cage", self.cage is not None),
+                    ("anchors", len(self.anchors) > 0),
+                    ("a position constraint", len(self.positions) > 0),
+                )
+                if not ok
+            ]
+            raise ConstraintError("cannot deform yet: missing " + ", ".join(missing))
+        deformer, binding = self.deformer, self.binding
+        rebuilt = False
+        if self._deformer_stale or deformer is None:
+            progress(0.0, "building the deformer")
+            deformer = Deformer(self.cage, self.anchors, mode=self.mode, alpha=self.alpha)
+            binding = None
+            rebuilt = True
+        check()
+        if rebuilt or self._layout_stale:
+            progress(0.02, "factorising the constraints")
+            deformer.set_constraints(**self.constraint_arrays())
+        check()
+        if binding is None:
+            binding = ChunkedBinding(deformer, self._rest_points, progress, check)
+        else:
+            binding.refresh(progress, check)
+        if self.last_report is not None and not rebuilt and self.deformer is deformer:
+            pass  # keep the warm start of the previous solution
+        self.deformer, self.binding = deformer, binding
+        self._deformer_stale = self._layout_stale = False
+        self._targets_stale = False
+        progress(1.0, "ready")
+
+    def _push_targets(self) -> None:
+        arr = self.constraint_arrays()
+        self.deformer.update_targets(targets=arr["targets"], jacobians=arr.get("jacobians"))
+        self._targets_stale = False
+
+    def solve(self, init="previous", max_iterations: int | None = None, tolerance=None):
+        """Warm-started solve of the current constraints; the shape is not deformed yet.
+
+        ``max_iterations`` and ``tolerance`` default to :attr:`max_iterations` and
+        :attr:`tolerance` (the drag settings).
+        """
+        if not self.ready:
+            self.prepare()
+        if self._targets_stale:
+            self._push_targets()
+        self.deformer.mode = self.mode
+        if self._initial_rotations is not None:
+            init, self._initial_rotations = self._initial_rotations, None
+        rep = self.deformer.solve(
+            max_iterations=self.max_iterations if max_iterations is None else max_iterations,
+            tolerance=self.tolerance if tolerance is None else float(tolerance),
+            init=init,
+        )
+        self.last_report = rep
+        return rep
+
+    def deform(self) -> np.ndarray:
+        """Write the deformed points into :attr:`display` in place and return them."""
+        pts = self.display.points
+        out = np.asarray(pts)
+        if out.dtype != np.float64 or not out.flags.c_contiguous:
+            raise RuntimeError("display points must be contiguous float64")
+        self.binding.deform(out=out)
+        self.display.GetPoints().Modified()
+        return out
+
+    def drag(self, index: int, target) -> FrameTiming:
+        """One interactive frame: move target ``index``, warm-started solve, deform."""
+        t0 = time.perf_counter()
+        self.set_target(index, target)
+        rep = self.solve()
+        t1 = time.perf_counter()
+        self.deform()
+        t2 = time.perf_counter()
+        return FrameTiming(solve=t1 - t0, deform=t2 - t1, iterations=rep.iterations)
+
+    def reset(self) -> None:
+        """Show the rest shape (targets kept)."""
+        if self.display is not None:
+            np.asarray(self.display.points)[:] = self._rest_points
+            self.display.GetPoints().Modified()
+
+    # ------------------------------------------------------------------ analysis
+    def metrics(self) -> dict:
+        """E_rigid and E_volume of triangle surfaces (NaN otherwise), last energy."""
+        from vhm_viz.core import metrics as M
+
+        out = {"E_rigid": float("nan"), "E_volume": float("nan")}
+        tris = self.triangles()
+        if tris is not None and len(tris):
+            d = self.deformed_points
+            out["E_rigid"] = float(M.rigidity_distortion(self._rest_points, d, tris))
+            try:
+                out["E_volume"] = float(M.volume_change(self._rest_points, d, tris))
+            except ValueError:
+                pass
+        if self.last_report is not None:
+            out["energy"] = self.last_report.final_energy
+            out["iterations"] = self.last_report.iterations
+        return out
+
+    def triangles(self) -> np.ndarray | None:
+        """(m, 3) triangles of a polygonal surface made only of triangles, else None."""
+        import pyvista as pv
+
+        d = self.display
+        if not isinstance(d, pv.PolyData) or d.GetNumberOfPolys() == 0:
+            return None
+        if not d.is_all_triangles:
+            return None
+        return np.asarray(d.regular_faces)
+
+    # ------------------------------------------------------------------ export / scenes
+    def export(self, path) -> None:
+        """Write the deformed dataset (format from the suffix, default the input's)."""
+        path = Path(path)
+        if self.display is None:
+            raise ValueError("nothing loaded")
+        if not path.suffix:
+            src = self.source.get("path")
+            path = path.with_suffix(Path(src).suffix if src else ".vtp")
+        data = self.display.copy(deep=True)
+        for name in [n for n in data.point_data.keys() if n.startswith("_")]:
+            del data.point_data[name]  # display helpers (e.g. the slice clipping distance)
+        try:
+            data.save(str(path))
+        except Exception as exc:  # unsupported suffix for this dataset type
+            try:
+                import meshio  # noqa: F401
+
+                pv_wrap = __import__("pyvista")
+                pv_wrap.save_meshio(str(path), data)
+            except Exception:
+                raise ValueError(f"cannot write {path.name}: {exc}") from exc
+
+    def scene_dict(self) -> dict:
+        """JSON-serialisable description of the scene (data reference, cage, anchors, ...)."""
+        cage = None
+        if self.cage is not None:
+            cage = {
+                "vertices": np.asarray(self.cage.vertices).tolist(),
+                "faces": np.asarray(self.cage.faces).tolist(),
+            }
+        return {
+            "vhm_viz_scene": SCENE_VERSION,
+            "data": self.source,
+            "cage": cage,
+            "anchors": self.anchors.tolist(),
+            "positions": [c.to_json() for c in self.positions],
+            "jacobians": [c.to_json() for c in self.jacobians],
+            "mode": self.mode,
+            "alpha": self.alpha,
+            "solver": {"max_iterations": self.max_iterations, "tolerance": self.tolerance},
+            # the anchors' local matrices of the current solution: warm start on reload
+            "rotations": (
+                self.deformer.rotations_at_anchors.tolist()
+                if self.deformer is not None and self.last_report is not None and self.ready
+                else None
+            ),
+        }
+
+    @staticmethod
+    def sidecar_path(path) -> Path:
+        """``scene.json`` -> ``scene.explorer.json`` (data reference and warm start)."""
+        path = Path(path)
+        return path.with_name(path.stem + ".explorer.json")
+
+    def save_scene(self, path) -> None:
+        """Write the scene.
+
+        The deformation goes to ``path`` in the shared scene format of
+        :mod:`vhm_viz.scene` (usable by ``vhm-viz deform``); what only the explorer needs
+        (the data file or bar scenario, the anchors' local matrices for a warm start) goes
+        to :meth:`sidecar_path`. Without :mod:`vhm_viz.scene`, one JSON file holds both.
+        """
+        path = Path(path)
+        d = self.scene_dict()
+        if "path" in d["data"]:
+            try:
+                d["data"] = {"path": os.path.relpath(d["data"]["path"], path.parent.resolve())}
+            except ValueError:  # other drive
+                pass
+        try:
+            from vhm_viz.scene import Scene
+        except ImportError:
+            path.write_text(json.dumps(d, indent=1))
+            return
+        if d["cage"] is None or not self.positions:
+            raise ValueError("nothing to save yet: a scene needs a cage and a position constraint")
+        arr = self.constraint_arrays()
+        scene = Scene.from_dict(
+            {
+                "format": "vhm_viz.scene",
+                "version": 1,
+                "cage": d["cage"],
+                "anchors": d["anchors"],
+                "constraints": {
+                    "positions": arr["positions"].tolist(),
+                    "targets": arr["targets"].tolist(),
+                    "jacobian_points": arr.get("jacobian_points", np.zeros((0, 3))).tolist(),
+                    "jacobians": arr.get("jacobians", np.zeros((0, 3, 3))).tolist(),
+                },
+                "mode": self.mode,
+                "alpha": self.alpha,
+                "solver": {"max_iterations": self.max_iterations, "tolerance": self.tolerance},
+            }
+        )
+        scene.save(path)
+        side = {"vhm_viz_explorer": SCENE_VERSION, "data": d["data"], "rotations": d["rotations"]}
+        self.sidecar_path(path).write_text(json.dumps(side, indent=1))
+
+    def load_scene(self, path, data_from: ExplorerController | None = None) -> None:
+        """Load a scene (shared format plus sidecar, or the explorer's single file).
+
+        A shared-format scene without a sidecar applies to the data already loaded (in
+        ``data_from``, default this controller). The state is replaced only on success.
+        """
+        path = Path(path)
+        current = self if data_from is None else data_from
+        try:
+            d = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{path.name}: not a scene file ({exc})") from exc
+        if isinstance(d, dict) and d.get("format") == "vhm_viz.scene":
+            return self._load_shared_scene(path, current)
+        if not isinstance(d, dict) or "vhm_viz_scene" not in d:
+            raise ValueError(f"{path.name}: not a vhm_viz scene (missing 'format')")
+        from vhm_viz.cage import Cage
+
+        new = ExplorerController()
+        new.max_iterations, new.tolerance = self.max_iterations, self.tolerance
+        new.mode, new.alpha = d.get("mode", "rigid"), float(d.get("alpha", 0.01))
+        new._load_data_ref(d.get("data", {}), path, current)
+        if d.get("cage"):
+            new.set_cage(Cage(d["cage"]["vertices"], d["cage"]["faces"]))
+        new.set_anchors(d.get("anchors", []))
+        new.positions = [
+            PositionConstraint(np.array(c["point"], float), np.array(c["target"], float))
+            for c in d.get("positions", [])
+        ]
+        new.jacobians = [
+            JacobianConstraint(
+                np.array(c["point"], float), np.array(c["angles"], float), float(c["scale"])
+            )
+            for c in d.get("jacobians", [])
+        ]
+        new._finish_scene(d.get("rotations"))
+        self.__dict__.update(new.__dict__)
+
+    def _load_shared_scene(self, path: Path, current) -> None:
+        from vhm_viz.scene import Scene
+
+        scene = Scene.load(path)
+        side_path = self.sidecar_path(path)
+        side = {}
+        if side_path.exists():
+            try:
+                side = json.loads(side_path.read_text())
+            except (OSError, json.JSONDecodeError) as exc:
+                raise ValueError(f"{side_path.name}: unreadable ({exc})") from exc
+        new = ExplorerController()
+        new.mode, new.alpha = scene.mode, float(scene.alpha)
+        new.max_iterations = int(scene.solver["max_iterations"])
+        new.tolerance = float(scene.solver["tolerance"])
+        new._load_data_ref(side.get("data", {}), path, current)
+        cage = scene.build_cage(new.rest)
+        new.set_cage(cage)
+        new.set_anchors(scene.build_anchors(cage, new.rest))
+        c = scene.constraints
+        new.positions = [
+            PositionConstraint(np.array(p, float), np.array(t, float))
+            for p, t in zip(c["positions"], c["targets"], strict=True)
+        ]
+        new.jacobians = [
+            JacobianConstraint.from_matrix(p, j)
+            for p, j in zip(c["jacobian_points"], c["jacobians"], strict=True)
+        ]
+        new._finish_scene(side.get("rotations"))
+        self.__dict__.update(new.__dict__)
+
+    def _load_data_ref(self, src: dict, scene_path: Path, current) -> None:
+        """Load the data a scene names, or take the current controller's."""
+        if "bar" in src:
+            self.load_bar(src["bar"], resolution=int(src.get("resolution", 39)), apply=False)
+            self.positions = []
+            self._layout_stale = True
+        elif "path" in src:
+            p = Path(src["path"])
+            if not p.is_absolute():
+                p = (scene_path.parent / p).resolve()
+            self.load_file(p)
+        elif current is not None and current.rest is not None:
+            self._set_data(current.rest, dict(current.source))
+        else:
+            raise ValueError(f"{scene_path.name}: the scene names no data: open the data first")
+
+    def _finish_scene(self, rotations) -> None:
+        self._layout_stale = True
+        if rotations is not None and np.shape(rotations) == (len(self.anchors), 3, 3):
+            self._initial_rotations = np.asarray(rotations, dtype=float)
+
+    # ------------------------------------------------------------------ picking
+    def rest_point_from_cell(self, cell_id: int, world_point) -> np.ndarray:
+        """Rest-space point of a pick on the *deformed* display dataset.
+
+        The picked point's interpolation weights in the deformed cell are applied to the
+        cell's rest points (exact for linear cells); vertex-only cells give the vertex.
+        """
+        import vtk
+
+        x = np.asarray(world_point, dtype=float).reshape(3)
+        if cell_id is None or cell_id < 0:
+            i = int(np.argmin(np.linalg.norm(self.deformed_points - x, axis=1)))
+            return self._rest_points[i].copy()
+        cell = self.display.GetCell(int(cell_id))
+        n = cell.GetNumberOfPoints()
+        ids = np.array([cell.GetPointId(k) for k in range(n)])
+        if n == 1:
+            return self._rest_points[ids[0]].copy()
+        closest = [0.0, 0.0, 0.0]
+        sub = vtk.reference(0)
+        pc = [0.0, 0.0, 0.0]
+        d2 = vtk.reference(0.0)
+        w = [0.0] * n
+        cell.EvaluatePosition(list(x), closest, sub, pc, d2, w)
+        w = np.asarray(w, dtype=float)
+        if not np.isfinite(w).all() or abs(w.sum() - 1) > 1e-6:
+            i = ids[int(np.argmin(np.linalg.norm(self.deformed_points[ids] - x, axis=1)))]
+            return self._rest_points[i].copy()
+        return w @ self._rest_points[ids]

@@ -1,0 +1,1033 @@
+"""The explorer's main window: a pyvistaqt ``QtInteractor`` inside a ``QMainWindow``.
+
+All state lives in :class:`~vhm_viz.app.controller.ExplorerController`; this module maps
+menus, clicks and widget callbacks onto it, runs long work in :mod:`vhm_viz.app.workers`,
+and updates the scene **in place** (the shape's points are rewritten, actors are never
+re-added while dragging).
+
+Interaction modes (toolbar): *View* (camera; drag the orange handles to move position
+targets), *Add position*, *Add Jacobian*, *Add anchor*, *Remove anchor* (left click on the
+shape). Every click goes through :meth:`ExplorerWindow.click_at_display`, which tests call
+directly.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+from PySide6.QtCore import Qt, QTimer
+from PySide6.QtGui import QAction, QActionGroup, QKeySequence
+from PySide6.QtWidgets import (
+    QDockWidget,
+    QFileDialog,
+    QInputDialog,
+    QLabel,
+    QMainWindow,
+    QMessageBox,
+    QProgressBar,
+    QPushButton,
+)
+
+from vhm_viz.app.controller import ExplorerController
+from vhm_viz.app.panels import AnalysisPanel, ConstraintPanel
+from vhm_viz.app.workers import JobRunner
+
+__all__ = ["ExplorerWindow", "MODES"]
+
+MODES = ("view", "position", "jacobian", "anchor+", "anchor-")
+_MODE_LABELS = {
+    "view": "View / drag handles",
+    "position": "Add position constraint",
+    "jacobian": "Add Jacobian constraint",
+    "anchor+": "Add anchor",
+    "anchor-": "Remove anchor",
+}
+SHAPE_COLOR = (0.85, 0.85, 0.80)
+# iteration cap of the solves outside a drag (load, edits, handle release): to convergence
+SETTLE_ITERATIONS = 5000
+# and its tolerance (the solver's fixed-point estimate is optimistic at small alpha)
+SETTLE_TOLERANCE = 1e-8
+HANDLE_COLOR = "orange"
+ANCHOR_COLOR = "green"
+JACOBIAN_COLOR = "magenta"
+# data formats offered in the open dialog (anything pyvista.read accepts works)
+_OPEN_FILTER = (
+    "Data (*.obj *.ply *.stl *.vtp *.vtk *.vtu *.vti *.vts *.off *.mesh *.msh *.mhd *.nii "
+    "*.nii.gz *.slc *.xyz *.pts *.las);;All files (*)"
+)
+
+
+def _cage_mesh(cage):
+    """Triangle PolyData of a (core or public) cage."""
+    import pyvista as pv
+
+    return pv.PolyData.from_regular_faces(np.array(cage.vertices), np.array(cage.faces))
+
+
+def guarded(fn):
+    """Slot decorator: any exception becomes an error message, never a crash."""
+
+    @functools.wraps(fn)
+    def wrapper(self, *args, **kwargs):
+        try:
+            return fn(self, *args, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - the UI must survive everything
+            self.report_error(f"{type(exc).__name__}: {exc}", traceback.format_exc())
+            return None
+
+    return wrapper
+
+
+class ExplorerWindow(QMainWindow):
+    """Main window of ``vhm-viz explore``.
+
+    Parameters
+    ----------
+    controller : ExplorerController, optional
+    off_screen : bool
+        Render off screen (tests without a window manager still use a real display).
+    dialogs : bool
+        Show error dialogs (tests set False and read :attr:`last_error`).
+    """
+
+    def __init__(
+        self,
+        controller: ExplorerController | None = None,
+        *,
+        off_screen=False,
+        dialogs: bool = True,
+    ):
+        super().__init__()
+        from pyvistaqt import QtInteractor
+
+        self.setWindowTitle("vhm_viz explorer")
+        self.resize(1280, 860)
+        self.ctrl = controller or ExplorerController()
+        self.dialogs = dialogs
+        self.last_error: str | None = None
+        self.errors: list[str] = []
+        self.interaction_mode = "view"
+        self.measure = "determinant"
+        self.live_slice = False
+        self.last_frame = None
+        self.frame_times: list[float] = []
+        self.slice = None
+        self._slice_plane = None  # (origin, normal) in rest space
+        self._actors: dict[str, object] = {}
+        self._handles: list = []
+        self._marker_binding = None
+        self._open_dialogs: list = []
+        self._fill_pending = False
+        self._clipper = None
+        self._shape_data = None
+
+        # no multi-sampling: with software OpenGL it doubles the frame time
+        self.plotter = QtInteractor(self, off_screen=off_screen, auto_update=False, multi_samples=1)
+        self.plotter.set_background("white")
+        self.setCentralWidget(self.plotter.interactor)
+        self.runner = JobRunner(self)
+        self._build_docks()
+        self._build_menus()
+        self._build_status()
+        self.runner.progressed.connect(self._on_progress)
+        self.runner.started.connect(self._on_job_started)
+        self.runner.finished.connect(self._on_job_finished)
+        self.plotter.iren.add_observer("LeftButtonPressEvent", self._on_left_press)
+
+    # ================================================================== construction
+    def _build_docks(self) -> None:
+        self.constraints_panel = ConstraintPanel()
+        dock = QDockWidget("Constraints", self)
+        dock.setWidget(self.constraints_panel)
+        self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, dock)
+        self.analysis_panel = AnalysisPanel()
+        adock = QDockWidget("Analysis", self)
+        adock.setWidget(self.analysis_panel)
+        self.addDockWidget(Qt.DockWidgetArea.RightDockWidgetArea, adock)
+        self.analysis_dock = adock
+        cp, ap = self.constraints_panel, self.analysis_panel
+        cp.mode_changed.connect(self.set_mode)
+        cp.alpha_changed.connect(self.set_alpha)
+        cp.iterations.valueChanged.connect(lambda v: setattr(self.ctrl, "max_iterations", int(v)))
+        cp.target_edited.connect(self.edit_target)
+        cp.jacobian_edited.connect(self.edit_jacobian)
+        cp.delete_requested.connect(self.delete_constraint)
+        ap.slice_toggled.connect(self.show_slice)
+        ap.measure_changed.connect(self.set_measure)
+        ap.live_toggled.connect(lambda on: setattr(self, "live_slice", bool(on)))
+        ap.clip_toggled.connect(self._on_clip_toggled)
+
+    def _action(self, menu, text, slot, shortcut=None, checkable=False):
+        act = QAction(text, self)
+        if shortcut:
+            act.setShortcut(QKeySequence(shortcut))
+        act.setCheckable(checkable)
+        act.triggered.connect(slot)
+        menu.addAction(act)
+        return act
+
+    def _build_menus(self) -> None:
+        mb = self.menuBar()
+        f = mb.addMenu("&File")
+        self._action(f, "&Open data...", lambda: self.open_file(), "Ctrl+O")
+        bars = f.addMenu("Bar scenario")
+        from vhm_viz.examples import BAR_KINDS
+
+        for kind in BAR_KINDS:
+            self._action(bars, kind, functools.partial(self.open_bar, kind))
+        self._action(
+            bars, "bar, bottom held (free play)", lambda: self.open_bar("bend-u", apply=False)
+        )
+        f.addSeparator()
+        self._action(f, "Open &scene...", lambda: self.load_scene(), "Ctrl+L")
+        self._action(f, "Save scene...", lambda: self.save_scene(), "Ctrl+S")
+        self._action(f, "&Export deformed data...", lambda: self.export(), "Ctrl+E")
+        self._action(f, "Screens&hot...", lambda: self.screenshot(), "Ctrl+P")
+        f.addSeparator()
+        self._action(f, "&Quit", self.close, "Ctrl+Q")
+
+        c = mb.addMenu("&Cage")
+        self._action(c, "&Load cage...", lambda: self.load_cage())
+        self._action(c, "&Generate cage...", lambda: self.generate_cage())
+        self.show_cage_action = self._action(c, "Show cage", self._toggle_cage, checkable=True)
+        self.show_cage_action.setChecked(True)
+
+        a = mb.addMenu("&Anchors")
+        self._action(a, "&Load rigidity lines...", lambda: self.load_anchors())
+        self._action(a, "&Compute automatically...", lambda: self.generate_anchors())
+        self._action(a, "Clear", self.clear_anchors)
+
+        s = mb.addMenu("&Solve")
+        self._action(s, "Solve to convergence", self.full_solve, "F5")
+        self._action(s, "Reset camera", lambda: self.plotter.reset_camera(), "R")
+
+        tb = self.addToolBar("Interaction")
+        group = QActionGroup(self)
+        self.mode_actions = {}
+        for mode in MODES:
+            act = QAction(_MODE_LABELS[mode], self)
+            act.setCheckable(True)
+            act.triggered.connect(functools.partial(self.set_interaction_mode, mode))
+            group.addAction(act)
+            tb.addAction(act)
+            self.mode_actions[mode] = act
+        self.mode_actions["view"].setChecked(True)
+
+    def _build_status(self) -> None:
+        sb = self.statusBar()
+        self.frame_label = QLabel("")
+        self.progress = QProgressBar()
+        self.progress.setMaximumWidth(220)
+        self.progress.setRange(0, 1000)
+        self.progress.hide()
+        self.cancel_button = QPushButton("Cancel")
+        self.cancel_button.hide()
+        self.cancel_button.clicked.connect(self.cancel_job)
+        sb.addPermanentWidget(self.frame_label)
+        sb.addPermanentWidget(self.progress)
+        sb.addPermanentWidget(self.cancel_button)
+
+    # ================================================================== messages / jobs
+    def report_error(self, message: str, details: str = "") -> None:
+        """Show an error (status bar and, unless disabled, a non-modal dialog)."""
+        self.last_error = message
+        self.errors.append(message)
+        self.statusBar().showMessage(message, 15000)
+        if self.dialogs:
+            box = QMessageBox(QMessageBox.Icon.Warning, "vhm_viz", message, parent=self)
+            if details:
+                box.setDetailedText(details)
+            box.setModal(False)
+            box.finished.connect(lambda *_: self._open_dialogs.remove(box))
+            self._open_dialogs.append(box)
+            box.show()
+
+    def status(self, message: str, ms: int = 5000) -> None:
+        """Show a transient status-bar message."""
+        self.statusBar().showMessage(message, ms)
+
+    @property
+    def busy(self) -> bool:
+        """Whether a background job runs (edits are refused meanwhile)."""
+        return self.runner.busy
+
+    def run_job(self, name, fn, on_success, on_cancel=None) -> bool:
+        """Run ``fn(progress=, cancelled=)`` in the background; ``on_success(result)`` after."""
+        if self.runner.busy:
+            self.status(f"busy ({self.runner.job.name}); cancel it first")
+            return False
+
+        def on_error(msg, tb):
+            self.report_error(msg, tb)
+
+        return self.runner.start(
+            name, fn, self._guard_cb(on_success), on_error, self._guard_cb(on_cancel)
+        )
+
+    def _guard_cb(self, cb):
+        if cb is None:
+            return None
+
+        def wrapped(*args):
+            try:
+                cb(*args)
+            except Exception as exc:  # noqa: BLE001
+                self.report_error(f"{type(exc).__name__}: {exc}", traceback.format_exc())
+
+        return wrapped
+
+    def cancel_job(self) -> None:
+        """Cancel the running background job (its result is discarded)."""
+        if self.runner.busy:
+            name = self.runner.job.name
+            self.runner.cancel()
+            self.status(f"{name}: cancelled")
+
+    def _on_job_started(self, name: str) -> None:
+        self.progress.setValue(0)
+        self.progress.setFormat(name)
+        self.progress.show()
+        self.cancel_button.show()
+
+    def _on_progress(self, fraction: float, message: str) -> None:
+        self.progress.setValue(int(1000 * min(max(fraction, 0.0), 1.0)))
+        self.progress.setFormat(message)
+
+    def _on_job_finished(self, name: str) -> None:
+        self.progress.hide()
+        self.cancel_button.hide()
+
+    def wait_idle(self, timeout_s: float = 120.0) -> None:
+        """Process events until no job runs (tests and scripts)."""
+        from PySide6.QtWidgets import QApplication
+
+        t0 = time.perf_counter()
+        while self.runner.busy and time.perf_counter() - t0 < timeout_s:
+            QApplication.processEvents()
+            time.sleep(0.005)
+        QApplication.processEvents()
+
+    # ================================================================== loading
+    def _adopt(self, new: ExplorerController) -> None:
+        self.ctrl.__dict__.update(new.__dict__)
+        if self.slice is not None:
+            self.show_slice(False)
+            self.analysis_panel.show_slice.setChecked(False)
+        self.slice = None
+        self._marker_binding = None
+        self.rebuild_scene(reset_camera=True)
+
+    def _load_job(self, name: str, load):
+        mode, alpha = self.ctrl.mode, self.ctrl.alpha
+
+        def job(progress, cancelled):
+            new = ExplorerController()
+            new.mode, new.alpha = mode, alpha
+            new.max_iterations = self.ctrl.max_iterations
+            progress(0.0, f"{name}: reading")
+            load(new)
+            if new.can_solve:
+                new.prepare(progress, cancelled)
+                new.solve(
+                    init="identity", max_iterations=SETTLE_ITERATIONS, tolerance=SETTLE_TOLERANCE
+                )
+                new.deform()
+            return new
+
+        return self.run_job(name, job, self._adopt)
+
+    @guarded
+    def open_file(self, path: str | None = None) -> bool:
+        """Open any dataset PyVista reads (dialog when ``path`` is None)."""
+        if path is None:
+            path, _ = QFileDialog.getOpenFileName(self, "Open data", "", _OPEN_FILTER)
+            if not path:
+                return False
+        return self._load_job(f"open {Path(path).name}", lambda c: c.load_file(path))
+
+    @guarded
+    def open_bar(self, kind: str = "bend-u", resolution: int = 39, apply: bool = True) -> bool:
+        """Open a bundled bar scenario (solved, with its constraints)."""
+        return self._load_job(f"bar {kind}", lambda c: c.load_bar(kind, resolution, apply))
+
+    @guarded
+    def load_scene(self, path: str | None = None) -> bool:
+        """Open a scene file (dialog when ``path`` is None)."""
+        if path is None:
+            path, _ = QFileDialog.getOpenFileName(self, "Open scene", "", "Scenes (*.json)")
+            if not path:
+                return False
+        current = self.ctrl
+        return self._load_job(
+            f"scene {Path(path).name}", lambda c: c.load_scene(path, data_from=current)
+        )
+
+    @guarded
+    def save_scene(self, path: str | None = None) -> None:
+        """Save the scene (dialog when ``path`` is None)."""
+        if path is None:
+            path, _ = QFileDialog.getSaveFileName(
+                self, "Save scene", "scene.json", "Scenes (*.json)"
+            )
+            if not path:
+                return
+        self.ctrl.save_scene(path)
+        self.status(f"scene saved to {path}")
+
+    @guarded
+    def export(self, path: str | None = None) -> None:
+        """Write the deformed data (dialog when ``path`` is None; default: input format)."""
+        if self.ctrl.display is None:
+            raise ValueError("nothing to export: open data first")
+        if path is None:
+            src = self.ctrl.source.get("path")
+            default = Path(src).stem + "_deformed" + Path(src).suffix if src else "deformed.vtp"
+            path, _ = QFileDialog.getSaveFileName(self, "Export deformed data", default)
+            if not path:
+                return
+        self.ctrl.export(path)
+        self.status(f"exported {path}")
+
+    @guarded
+    def screenshot(self, path: str | None = None):
+        """Save (or, with ``path=False``, return) an image of the 3D view."""
+        if path is None:
+            path, _ = QFileDialog.getSaveFileName(
+                self, "Screenshot", "screenshot.png", "PNG (*.png)"
+            )
+            if not path:
+                return None
+        self.plotter.render()
+        img = self.plotter.screenshot(None if path is False else path, return_img=True)
+        if path:
+            self.status(f"screenshot saved to {path}")
+        return img
+
+    # ================================================================== cage / anchors
+    @guarded
+    def load_cage(self, path: str | None = None) -> None:
+        """Load a cage file; invalid or non-enclosing cages are reported, not applied."""
+        if path is None:
+            path, _ = QFileDialog.getOpenFileName(
+                self, "Load cage", "", "Cages (*.obj *.off *.ply *.stl *.vtp *.vtk)"
+            )
+            if not path:
+                return
+        if self.ctrl.rest is None:
+            raise ValueError("open data before loading a cage")
+        self.ctrl.load_cage(path)
+        self.status(f"cage {Path(path).name}: {self.ctrl.cage.n_faces} faces")
+        self.after_edit(structure=True)
+
+    @guarded
+    def generate_cage(self, max_faces: int | None = None) -> None:
+        """Generate a cage in the background (progress, cancel)."""
+        if self.ctrl.rest is None:
+            raise ValueError("open data before generating a cage")
+        if max_faces is None:
+            max_faces, ok = QInputDialog.getInt(self, "Generate cage", "Max faces", 500, 12, 5000)
+            if not ok:
+                return
+        ctrl = self.ctrl
+
+        def job(progress, cancelled):
+            return ctrl.auto_cage(max_faces, progress)
+
+        def done(cage):
+            self.ctrl.set_cage(cage)
+            self.status(f"generated cage: {cage.n_faces} faces")
+            self.after_edit(structure=True)
+
+        self.run_job("generate cage", job, done)
+
+    @guarded
+    def load_anchors(self, path: str | None = None, count: int | None = None) -> None:
+        """Anchors from rigidity lines (``.tgf``, OFF polylines, VTK polylines)."""
+        if path is None:
+            path, _ = QFileDialog.getOpenFileName(
+                self, "Load rigidity lines", "", "Rigidity lines (*.tgf *.off *.vtp *.vtk);;All (*)"
+            )
+            if not path:
+                return
+        if count is None:
+            count, ok = QInputDialog.getInt(self, "Anchors", "Number of anchors", 50, 1, 5000)
+            if not ok:
+                return
+        self.ctrl.load_anchors(path, count)
+        self.after_edit(structure=True)
+
+    @guarded
+    def generate_anchors(self, count: int | None = None) -> None:
+        """Compute anchors automatically in the background."""
+        if count is None:
+            count, ok = QInputDialog.getInt(self, "Anchors", "Number of anchors", 50, 1, 5000)
+            if not ok:
+                return
+        ctrl = self.ctrl
+
+        def job(progress, cancelled):
+            progress(0.1, "computing anchors")
+            return ctrl.auto_anchors(count)
+
+        def done(anchors):
+            self.ctrl.set_anchors(anchors)
+            self.status(f"{len(anchors)} anchors")
+            self.after_edit(structure=True)
+
+        self.run_job("anchors", job, done)
+
+    @guarded
+    def clear_anchors(self) -> None:
+        """Remove all anchors."""
+        self.ctrl.set_anchors(np.zeros((0, 3)))
+        self.after_edit(structure=True)
+
+    # ================================================================== settings
+    @guarded
+    def set_mode(self, mode: str) -> None:
+        """Rigid / similar; re-solves warm-started."""
+        self.ctrl.set_mode(mode)
+        self.constraints_panel.set_mode(mode)
+        if self.ctrl.ready:
+            self.solve_and_show()
+
+    @guarded
+    def set_alpha(self, alpha: float) -> None:
+        """Stiffness alpha (rebuilds the deformer in the background)."""
+        self.ctrl.set_alpha(alpha)
+        self.constraints_panel.set_alpha(alpha)
+        self.after_edit(structure=False)
+
+    def set_interaction_mode(self, mode: str) -> None:
+        """Choose what a left click on the shape does (see :data:`MODES`)."""
+        if mode not in MODES:
+            raise ValueError(f"unknown interaction mode {mode!r}")
+        self.interaction_mode = mode
+        self.mode_actions[mode].setChecked(True)
+        self.status(_MODE_LABELS[mode])
+
+    def set_measure(self, measure: str) -> None:
+        """Colour the slice by ``determinant`` or ``condition_number``."""
+        self.measure = measure
+        self.update_analysis()
+
+    # ================================================================== editing
+    @guarded
+    def edit_target(self, index: int, target) -> None:
+        """Numeric edit of a position target (from the side panel)."""
+        if index < 0 or target is None:
+            self.refresh_panels()
+            raise ValueError("not a number")
+        if not np.isfinite(target).all():
+            self.refresh_panels()
+            raise ValueError("target values must be numbers")
+        self.ctrl.set_target(index, target)
+        self._move_handle(index, target)
+        self.solve_and_show()
+
+    @guarded
+    def edit_jacobian(self, index: int, angles, scale: float) -> None:
+        """Numeric edit of a Jacobian constraint's angles (degrees) and scale."""
+        if not (np.isfinite(angles).all() and np.isfinite(scale)):
+            self.refresh_panels()
+            raise ValueError("angles and scale must be numbers")
+        try:
+            self.ctrl.set_jacobian(index, angles, scale)
+        except Exception:
+            self.refresh_panels()
+            raise
+        self.solve_and_show()
+
+    @guarded
+    def delete_constraint(self, kind: str, index: int) -> None:
+        """Delete a constraint (the last position constraint is kept)."""
+        if kind == "position" and len(self.ctrl.positions) == 1:
+            raise ValueError(
+                "the last position constraint cannot be deleted (it fixes the translation)"
+            )
+        self.ctrl.remove_constraint(kind, index)
+        self.after_edit(structure=False)
+
+    def after_edit(self, structure: bool) -> None:
+        """Rebuild what the edit made stale (in the background), then solve and show."""
+        self.refresh_panels()
+        self.rebuild_scene(reset_camera=False, solve=False)
+        if not self.ctrl.can_solve:
+            return
+        if self.ctrl.ready:
+            self.solve_and_show()
+            return
+        ctrl = self.ctrl
+
+        def job(progress, cancelled):
+            ctrl.prepare(progress, cancelled)
+            return None
+
+        def done(_):
+            self.slice = None
+            self._marker_binding = None
+            self.solve_and_show()
+
+        self.run_job("binding", job, done)
+
+    # ================================================================== picking
+    def _on_left_press(self, obj, event) -> None:
+        if self.interaction_mode == "view":
+            return
+        x, y = self.plotter.iren.interactor.GetEventPosition()
+        self.click_at_display(x, y)
+
+    @guarded
+    def click_at_display(self, x: int, y: int) -> bool:
+        """Pick the shape at display pixel ``(x, y)`` and act per the interaction mode.
+
+        This is the click path (the left-button observer calls it). Returns whether the
+        shape was hit.
+        """
+        import vtk
+
+        actor = self._actors.get("shape")
+        if actor is None:
+            return False
+        picker = vtk.vtkCellPicker()
+        picker.SetTolerance(0.0005)
+        picker.PickFromListOn()
+        picker.AddPickList(actor)
+        if not picker.Pick(x, y, 0, self.plotter.renderer):
+            self.status("no shape under the cursor")
+            return False
+        self.handle_pick(picker.GetCellId(), np.array(picker.GetPickPosition()))
+        return True
+
+    def display_coordinates(self, world_point) -> tuple[int, int]:
+        """Display pixel of a world point (for scripted clicks)."""
+        ren = self.plotter.renderer
+        ren.SetWorldPoint(*np.asarray(world_point, float), 1.0)
+        ren.WorldToDisplay()
+        x, y, _ = ren.GetDisplayPoint()
+        return int(round(x)), int(round(y))
+
+    @guarded
+    def handle_pick(self, cell_id: int, world_point) -> None:
+        """Act on a picked point of the deformed shape (see :data:`MODES`)."""
+        if self.busy:
+            self.status("busy: wait or cancel the running job")
+            return
+        mode = self.interaction_mode
+        rest = self.ctrl.rest_point_from_cell(cell_id, world_point)
+        if mode == "position":
+            i = self.ctrl.add_position_constraint(rest, target=np.asarray(world_point, float))
+            self.status(f"position constraint {i} added")
+        elif mode == "jacobian":
+            i = self.ctrl.add_jacobian_constraint(rest)
+            self.status(f"Jacobian constraint {i} added")
+        elif mode == "anchor+":
+            i = self.ctrl.add_anchor(rest)
+            self.status(f"anchor {i} added")
+        elif mode == "anchor-":
+            i = self.ctrl.nearest_anchor(rest)
+            if i is None:
+                self.status("no anchors to remove")
+                return
+            self.ctrl.remove_anchor(i)
+            self.status(f"anchor {i} removed")
+        else:
+            return
+        self.after_edit(structure=mode.startswith("anchor"))
+
+    # ================================================================== drag
+    def on_handle_moved(self, index: int, center) -> None:
+        """Sphere-widget callback (``interaction_event="always"``): one live frame."""
+        if self.busy or not self.ctrl.ready:
+            return
+        try:
+            t = self.ctrl.drag(index, np.asarray(center, float))
+            t0 = time.perf_counter()
+            self._update_markers()
+            if self.live_slice and self.slice is not None:
+                self.update_analysis(full=False)
+            t.analysis = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            self.plotter.ren_win.Render()
+            t.render = time.perf_counter() - t0
+        except Exception as exc:  # noqa: BLE001
+            self.report_error(f"{type(exc).__name__}: {exc}", traceback.format_exc())
+            return
+        self._show_frame(t)
+
+    def on_handle_released(self, *args) -> None:
+        """End of a drag: solve to convergence, refresh the analysis and the table."""
+        if self.busy or not self.ctrl.ready:
+            return
+        self.solve_and_show(rebuild=False)
+
+    def _show_frame(self, t) -> None:
+        self.last_frame = t
+        self.frame_times.append(t.total)
+        fps = 1.0 / t.total if t.total > 0 else float("inf")
+        self.frame_label.setText(
+            f"frame {1e3 * t.total:.1f} ms ({fps:.0f} fps): solve {1e3 * t.solve:.1f}, "
+            f"deform {1e3 * t.deform:.1f}, render {1e3 * t.render:.1f} ms, {t.iterations} it"
+        )
+
+    @guarded
+    def solve_and_show(self, rebuild: bool = True) -> None:
+        """Warm-started solve to convergence, deform in place, update the scene and panels.
+
+        ``rebuild=False`` keeps the actors and handles (only moves the markers).
+        """
+        t0 = time.perf_counter()
+        rep = self.ctrl.solve(
+            max_iterations=max(self.ctrl.max_iterations, SETTLE_ITERATIONS),
+            tolerance=min(self.ctrl.tolerance, SETTLE_TOLERANCE),
+        )
+        t1 = time.perf_counter()
+        self.ctrl.deform()
+        t2 = time.perf_counter()
+        if rebuild:
+            self.rebuild_scene(reset_camera=False, solve=False)
+        else:
+            self._update_markers()
+            self.refresh_panels()
+        self.update_analysis()
+        t3 = time.perf_counter()
+        self.plotter.render()
+        from vhm_viz.app.controller import FrameTiming
+
+        self._show_frame(
+            FrameTiming(
+                solve=t1 - t0,
+                deform=t2 - t1,
+                analysis=t3 - t2,
+                render=time.perf_counter() - t3,
+                iterations=rep.iterations,
+            )
+        )
+        if not rep.converged:
+            self.status(f"solver stopped after {rep.iterations} iterations (not converged)")
+
+    @guarded
+    def full_solve(self) -> None:
+        """Solve to convergence (builds what is stale first)."""
+        if not self.ctrl.ready:
+            self.after_edit(structure=True)
+            return
+        self.solve_and_show()
+
+    # ================================================================== scene
+    def _remove(self, name: str) -> None:
+        actor = self._actors.pop(name, None)
+        if actor is not None:
+            self.plotter.remove_actor(actor, render=False)
+
+    def rebuild_scene(self, reset_camera: bool = False, solve: bool = False) -> None:
+        """(Re)create the actors after a structural change (not used while dragging)."""
+        import pyvista as pv
+
+        ctrl = self.ctrl
+        p = self.plotter
+        if ctrl.display is None:
+            return
+        shape = self._actors.get("shape")
+        if shape is None or self._shape_data is not ctrl.display:
+            self._remove("shape")
+            self._clipper = None
+            self._shape_data = ctrl.display
+            style = (
+                "points"
+                if ctrl.display.n_cells == ctrl.display.n_points
+                and isinstance(ctrl.display, pv.PolyData)
+                and ctrl.display.GetNumberOfPolys() == 0
+                else "surface"
+            )
+            self._actors["shape"] = p.add_mesh(
+                ctrl.display,
+                color=SHAPE_COLOR,
+                style=style,
+                point_size=3,
+                name="shape",
+                scalars=None,
+                render=False,
+                reset_camera=False,
+            )
+        self._remove("cage")
+        if ctrl.cage is not None:
+            self._actors["cage"] = p.add_mesh(
+                _cage_mesh(ctrl.cage),
+                style="wireframe",
+                color="steelblue",
+                line_width=1,
+                opacity=0.5,
+                name="cage",
+                render=False,
+                reset_camera=False,
+                pickable=False,
+            )
+            self._actors["cage"].SetVisibility(self.show_cage_action.isChecked())
+        self._rebuild_markers()
+        self._rebuild_handles()
+        self.refresh_panels()
+        if reset_camera:
+            p.reset_camera()
+            self.status(self._summary())
+
+    def _summary(self) -> str:
+        c = self.ctrl
+        src = c.source.get("path") or f"bar {c.source.get('bar')}"
+        n = c.display.n_points if c.display is not None else 0
+        cage = f"{c.cage.n_faces}-face cage" if c.cage is not None else "no cage"
+        return f"{Path(str(src)).name}: {n} points, {cage}, {len(c.anchors)} anchors"
+
+    def _rebuild_markers(self) -> None:
+        import pyvista as pv
+
+        for name in ("anchors", "jacobians"):
+            self._remove(name)
+        self._marker_binding = None
+        ctrl = self.ctrl
+        diag = ctrl.cage.diagonal if ctrl.cage is not None else 1.0
+        self._marker_radius = 0.012 * diag
+        anchors = self._marker_images(ctrl.anchors, "anchors")
+        if len(anchors):
+            self._anchor_mesh = pv.PolyData(anchors)
+            self._actors["anchors"] = self.plotter.add_mesh(
+                self._anchor_mesh,
+                color=ANCHOR_COLOR,
+                point_size=10,
+                render_points_as_spheres=True,
+                name="anchors",
+                render=False,
+                reset_camera=False,
+                pickable=False,
+            )
+        jpts = np.array([c.point for c in ctrl.jacobians]).reshape(-1, 3)
+        if len(jpts):
+            self._jac_mesh = pv.PolyData(self._marker_images(jpts, "jacobians"))
+            self._actors["jacobians"] = self.plotter.add_mesh(
+                self._jac_mesh,
+                color=JACOBIAN_COLOR,
+                point_size=14,
+                render_points_as_spheres=True,
+                name="jacobians",
+                render=False,
+                reset_camera=False,
+                pickable=False,
+            )
+
+    def _marker_images(self, points: np.ndarray, what: str) -> np.ndarray:
+        ctrl = self.ctrl
+        if len(points) == 0 or not ctrl.ready or ctrl.last_report is None:
+            return np.asarray(points, float).reshape(-1, 3)
+        return ctrl.deformer.harmonic_map.map(points)
+
+    def _update_markers(self) -> None:
+        """Move anchor and Jacobian markers to their images (cheap, in place)."""
+        ctrl = self.ctrl
+        if not ctrl.ready:
+            return
+        if self._marker_binding is None:
+            pts = np.vstack(
+                [ctrl.anchors, np.array([c.point for c in ctrl.jacobians]).reshape(-1, 3)]
+            )
+            self._marker_binding = (
+                ctrl.deformer.bind(pts, outside="passthrough") if len(pts) else None
+            )
+        if self._marker_binding is None:
+            return
+        img = self._marker_binding.deform()
+        na = len(ctrl.anchors)
+        if "anchors" in self._actors:
+            np.asarray(self._anchor_mesh.points)[:] = img[:na]
+            self._anchor_mesh.GetPoints().Modified()
+        if "jacobians" in self._actors:
+            np.asarray(self._jac_mesh.points)[:] = img[na:]
+            self._jac_mesh.GetPoints().Modified()
+
+    def _rebuild_handles(self) -> None:
+        p = self.plotter
+        p.clear_sphere_widgets()
+        self._handles = []
+        if not self.ctrl.ready:
+            return
+        radius = getattr(self, "_marker_radius", 0.02)
+        for i, c in enumerate(self.ctrl.positions):
+            w = p.add_sphere_widget(
+                functools.partial(self._handle_cb, i),
+                center=tuple(c.target),
+                radius=radius,
+                color=HANDLE_COLOR,
+                interaction_event="always",
+                test_callback=False,
+            )
+            w.AddObserver("EndInteractionEvent", self.on_handle_released)
+            self._handles.append(w)
+
+    def _handle_cb(self, index: int, center, *args) -> None:
+        self.on_handle_moved(index, center)
+
+    def _move_handle(self, index: int, target) -> None:
+        if index < len(self._handles):
+            self._handles[index].SetCenter(*np.asarray(target, float))
+
+    def _toggle_cage(self, on: bool) -> None:
+        if "cage" in self._actors:
+            self._actors["cage"].SetVisibility(bool(on))
+            self.plotter.render()
+
+    def refresh_panels(self) -> None:
+        """Refill the constraint table (deferred: may be called from the table's signals)."""
+        if not self._fill_pending:
+            self._fill_pending = True
+            QTimer.singleShot(0, self._fill_panels)
+
+    def _fill_panels(self) -> None:
+        self._fill_pending = False
+        self.constraints_panel.fill(self.ctrl.positions, self.ctrl.jacobians)
+        self.constraints_panel.set_mode(self.ctrl.mode)
+        self.constraints_panel.set_alpha(self.ctrl.alpha)
+
+    # ================================================================== analysis
+    @guarded
+    def show_slice(self, on: bool = True, origin=None, normal=None) -> None:
+        """Show the Jacobian slice (plane widget in rest space) or hide it."""
+        p = self.plotter
+        if not on:
+            self._clip_shape(False)
+            p.clear_plane_widgets()
+            self._remove("slice")
+            self.slice = None
+            self._slice_plane = None
+            p.render()
+            return
+        if not self.ctrl.ready:
+            raise ValueError("the slice needs a solved deformation (add constraints first)")
+        b = self.ctrl.cage.bounds
+        origin = np.asarray(origin if origin is not None else 0.5 * (b[0] + b[1]), float)
+        if normal is None:  # face the camera: the cut opens the shape towards the viewer
+            cam = p.camera
+            normal = np.subtract(cam.position, cam.focal_point)
+        normal = np.asarray(normal, float)
+        self._slice_plane = (origin, normal)
+        p.clear_plane_widgets()
+        p.add_plane_widget(
+            self._plane_moved,
+            normal=normal,
+            origin=origin,
+            bounds=np.ravel(np.column_stack([b[0], b[1]])),
+            interaction_event="end",
+            color="gray",
+            outline_opacity=0.3,
+        )
+        if not self.analysis_panel.show_slice.isChecked():
+            self.analysis_panel.show_slice.blockSignals(True)
+            self.analysis_panel.show_slice.setChecked(True)
+            self.analysis_panel.show_slice.blockSignals(False)
+        self._make_slice()
+
+    def _clip_shape(self, on: bool) -> None:
+        """Cut the shape open along the slice plane (rest space) so the slice is visible.
+
+        A ``vtkClipDataSet`` on the rest-space signed distance, between the (in place
+        deformed) display dataset and the shape's mapper: it re-runs on each render.
+        """
+        import vtk
+
+        actor = self._actors.get("shape")
+        if actor is None:
+            return
+        mapper = actor.GetMapper()
+        display = self.ctrl.display
+        if not on or self._slice_plane is None:
+            if self._clipper is not None:
+                mapper.SetInputData(display)
+                self._clipper = None
+            return
+        origin, normal = self._slice_plane
+        n = np.asarray(normal, float) / np.linalg.norm(normal)
+        display.point_data["_rest_side"] = (self.ctrl.rest_points - origin) @ n
+        clip = vtk.vtkClipDataSet()
+        clip.SetInputData(display)
+        clip.SetInputArrayToProcess(
+            0, 0, 0, vtk.vtkDataObject.FIELD_ASSOCIATION_POINTS, "_rest_side"
+        )
+        clip.SetValue(0.0)
+        clip.InsideOutOn()  # keep the side behind the plane (the normal points away from it)
+        mapper.SetInputConnection(clip.GetOutputPort())
+        mapper.ScalarVisibilityOff()
+        self._clipper = clip
+
+    def _on_clip_toggled(self, on: bool) -> None:
+        self._clip_shape(bool(on) and self.slice is not None)
+        self.plotter.render()
+
+    def _plane_moved(self, normal, origin) -> None:
+        self._slice_plane = (np.asarray(origin, float), np.asarray(normal, float))
+        try:
+            self._make_slice()
+        except Exception as exc:  # noqa: BLE001
+            self.report_error(f"slice: {exc}", traceback.format_exc())
+
+    def _make_slice(self) -> None:
+        from vhm_viz.app.analysis import MEASURE_RANGES, SliceProbe
+
+        self._remove("slice")
+        self.slice = None
+        if self._slice_plane is None or not self.ctrl.ready:
+            return
+        res = int(self.analysis_panel.resolution.value())
+        self.slice = SliceProbe(self.ctrl, *self._slice_plane, resolution=res)
+        self._clip_shape(self.analysis_panel.clip.isChecked())
+        self.slice.update(self.measure)
+        if self.slice.n_points and self.slice.mesh.n_cells:
+            self._actors["slice"] = self.plotter.add_mesh(
+                self.slice.mesh,
+                scalars="measure",
+                cmap="jet",
+                clim=MEASURE_RANGES[self.measure],
+                name="slice",
+                render=False,
+                reset_camera=False,
+                pickable=False,
+                scalar_bar_args={"title": self.measure},
+            )
+        self.update_analysis()
+
+    def update_analysis(self, full: bool = True) -> None:
+        """Recompute the slice colours, histogram, energy plot and metrics."""
+        from vhm_viz.app.analysis import MEASURE_RANGES
+
+        ap = self.analysis_panel
+        m: dict = {}
+        if self.slice is not None and self.ctrl.ready:
+            vals = self.slice.update(self.measure)
+            actor = self._actors.get("slice")
+            if actor is not None:
+                actor.mapper.scalar_range = MEASURE_RANGES[self.measure]
+            ap.histogram.title = f"Histogram of {self.measure} (slice, {len(vals)} samples)"
+            ap.histogram.set_histogram(vals, marker=0.0 if self.measure == "determinant" else 1.0)
+            m["foldovers"] = self.slice.foldovers()
+        if not full:
+            return
+        rep = self.ctrl.last_report
+        if rep is not None:
+            ap.energy.set_lines([rep.energy, rep.rigidity, rep.smoothness], logy=True)
+        if self.ctrl.ready and self.ctrl.last_report is not None:
+            m.update(self.ctrl.metrics())
+            if "foldovers" not in m:
+                from vhm_viz.core.metrics import foldover_count
+
+                m["foldovers"] = foldover_count(self.ctrl.deformer.jacobians_at_anchors)
+        ap.show_metrics(m)
+        self.analysis_metrics = m
+
+    # ================================================================== shutdown
+    def closeEvent(self, event) -> None:  # noqa: N802, D102 - Qt override
+        if self.runner.busy:
+            self.runner.cancel()
+        self.runner.wait(5000)
+        self.plotter.close()
+        super().closeEvent(event)
