@@ -358,6 +358,9 @@ def _sym5(h: np.ndarray) -> np.ndarray:
 # numba kernels
 # --------------------------------------------------------------------------------------
 _BLOCK = 16  # points per parallel work item (amortises the scratch allocations)
+# An edge counts as "near" when R - |d| < _NEAR_EDGE |d| (p within ~1% of its length from the
+# edge's interior): only then is the solid angle rewritten around it (see _solid_angle_terms).
+_NEAR_EDGE = 1e-4
 
 
 @numba.njit(cache=True, parallel=True, fastmath=False, error_model="numpy")
@@ -393,6 +396,7 @@ def _basis_kernel(
         edot = np.empty(ne)  # e_i . e_j
         ec = np.empty(ne)
         ect = np.empty(ne)
+        enear = np.empty(ne, dtype=np.bool_)  # p is next to this edge's interior
         jv = np.empty((3, 3))
         cv = np.empty(3)
         Q = np.empty((3, 3))
@@ -429,6 +433,7 @@ def _basis_kernel(
                     small = 2.0 * (cx * cx + cy * cy + cz * cz) / denom if denom > 0.0 else 0.0
                 else:
                     small = 2.0 * (le[i] * le[j] + uw) / big
+                enear[q] = small < _NEAR_EDGE * dl
                 if small <= 0.0:
                     degen = True
                     ec[q] = 0.0
@@ -448,51 +453,65 @@ def _basis_kernel(
                     jv[v, 1] = s * ecr[q, 1]
                     jv[v, 2] = s * ecr[q, 2]
                     cv[v] = ec[q]
-                # Solid angle, written around the face's nearest edge (largest C) so that
-                # the denominator does not cancel next to that edge (see _solid_angle_den).
-                la = 0
-                if cv[1] > cv[la]:
-                    la = 1
-                if cv[2] > cv[la]:
-                    la = 2
-                # ... unless p is next to a vertex rather than an edge: pivot on that vertex
-                lmin = 0
-                if le[F[t, 1]] < le[F[t, lmin]]:
-                    lmin = 1
-                if le[F[t, 2]] < le[F[t, lmin]]:
-                    lmin = 2
-                qn = face_edges[t, la]
-                cn2 = ecr[qn, 0] ** 2 + ecr[qn, 1] ** 2 + ecr[qn, 2] ** 2
-                lm = le[F[t, lmin]]
-                if lm * lm * edge_len[qn] * edge_len[qn] <= 4.0 * cn2:
-                    la = lmin
-                ia = F[t, la]
-                ib = F[t, (la + 1) % 3]
-                ic = F[t, (la + 2) % 3]
-                q = face_edges[t, la]
-                # det = e_a . (e_b x e_c) = -e_a . Jv_a
-                det = -(e[ia, 0] * jv[la, 0] + e[ia, 1] * jv[la, 1] + e[ia, 2] * jv[la, 2])
-                lb = le[ib]
-                lc = le[ic]
-                bc = edot[q]
-                if bc < 0.0:
-                    c2 = ecr[q, 0] ** 2 + ecr[q, 1] ** 2 + ecr[q, 2] ** 2
-                    t1 = c2 / (lb * lc - bc)
+                if not (
+                    enear[face_edges[t, 0]] or enear[face_edges[t, 1]] or enear[face_edges[t, 2]]
+                ):
+                    # away from the edges the plain solid-angle formula is accurate
+                    i1 = F[t, 1]
+                    i2 = F[t, 2]
+                    det = -(e[i0, 0] * jv[0, 0] + e[i0, 1] * jv[0, 1] + e[i0, 2] * jv[0, 2])
+                    den = (
+                        le[i0] * le[i1] * le[i2]
+                        + edot[face_edges[t, 2]] * le[i2]
+                        + edot[face_edges[t, 1]] * le[i1]
+                        + edot[face_edges[t, 0]] * le[i0]
+                    )
                 else:
-                    t1 = lb * lc + bc
-                ssum = lb + lc
-                sx = e[ib, 0] + e[ic, 0]
-                sy = e[ib, 1] + e[ic, 1]
-                sz = e[ic, 2] + e[ib, 2]
-                # Dv = x_c - x_b = -d_a
-                dvx = -D[t, la, 0]
-                dvy = -D[t, la, 1]
-                dvz = -D[t, la, 2]
-                dlt = (dvx * sx + dvy * sy + dvz * sz) / ssum if ssum > 0.0 else 0.0
-                vx = 0.5 * ssum * sx - 0.5 * dlt * dvx
-                vy = 0.5 * ssum * sy - 0.5 * dlt * dvy
-                vz = 0.5 * ssum * sz - 0.5 * dlt * dvz
-                den = le[ia] * t1 + (e[ia, 0] * vx + e[ia, 1] * vy + e[ia, 2] * vz)
+                    # Solid angle, written around the face's nearest edge (largest C) so that
+                    # the denominator does not cancel next to that edge (see _solid_angle_den).
+                    la = 0
+                    if cv[1] > cv[la]:
+                        la = 1
+                    if cv[2] > cv[la]:
+                        la = 2
+                    # ... unless p is next to a vertex rather than an edge: pivot on that vertex
+                    lmin = 0
+                    if le[F[t, 1]] < le[F[t, lmin]]:
+                        lmin = 1
+                    if le[F[t, 2]] < le[F[t, lmin]]:
+                        lmin = 2
+                    qn = face_edges[t, la]
+                    cn2 = ecr[qn, 0] ** 2 + ecr[qn, 1] ** 2 + ecr[qn, 2] ** 2
+                    lm = le[F[t, lmin]]
+                    if lm * lm * edge_len[qn] * edge_len[qn] <= 4.0 * cn2:
+                        la = lmin
+                    ia = F[t, la]
+                    ib = F[t, (la + 1) % 3]
+                    ic = F[t, (la + 2) % 3]
+                    q = face_edges[t, la]
+                    # det = e_a . (e_b x e_c) = -e_a . Jv_a
+                    det = -(e[ia, 0] * jv[la, 0] + e[ia, 1] * jv[la, 1] + e[ia, 2] * jv[la, 2])
+                    lb = le[ib]
+                    lc = le[ic]
+                    bc = edot[q]
+                    if bc < 0.0:
+                        c2 = ecr[q, 0] ** 2 + ecr[q, 1] ** 2 + ecr[q, 2] ** 2
+                        t1 = c2 / (lb * lc - bc)
+                    else:
+                        t1 = lb * lc + bc
+                    ssum = lb + lc
+                    sx = e[ib, 0] + e[ic, 0]
+                    sy = e[ib, 1] + e[ic, 1]
+                    sz = e[ic, 2] + e[ib, 2]
+                    # Dv = x_c - x_b = -d_a
+                    dvx = -D[t, la, 0]
+                    dvy = -D[t, la, 1]
+                    dvz = -D[t, la, 2]
+                    dlt = (dvx * sx + dvy * sy + dvz * sz) / ssum if ssum > 0.0 else 0.0
+                    vx = 0.5 * ssum * sx - 0.5 * dlt * dvx
+                    vy = 0.5 * ssum * sy - 0.5 * dlt * dvy
+                    vz = 0.5 * ssum * sz - 0.5 * dlt * dvz
+                    den = le[ia] * t1 + (e[ia, 0] * vx + e[ia, 1] * vy + e[ia, 2] * vz)
                 hdist = e[i0, 0] * nx + e[i0, 1] * ny + e[i0, 2] * nz
                 if host[k] == t:
                     w = 0.5
