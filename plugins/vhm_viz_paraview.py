@@ -19,7 +19,7 @@ from paraview.util.vtkAlgorithm import (
 )
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkDataSet, vtkPolyData
 
-from vhm_viz.filters import HarmonicDeformationFilter, output_type_for
+from vhm_viz.filters import HarmonicDeformationFilter
 
 
 @smproxy.filter(name="VHMHarmonicDeformation", label="VHM Harmonic Deformation")
@@ -74,19 +74,8 @@ class VHMHarmonicDeformation(VTKPythonAlgorithmBase):
         self._arrays = [bool(displacement), bool(determinant), bool(condition)]
         self.Modified()
 
-    def RequestDataObject(self, request, in_info, out_info):
-        inp = vtkDataObject.GetData(in_info[0], 0)
-        if inp is None:
-            return 0
-        out = vtkDataObject.GetData(out_info, 0)
-        wanted = output_type_for(inp.GetClassName())
-        if out is None or out.GetClassName() != wanted:
-            import vtkmodules.all as vtk_all
-
-            out_info.GetInformationObject(0).Set(
-                vtkDataObject.DATA_OBJECT(), getattr(vtk_all, wanted)()
-            )
-        return 1
+    # the same output-type rules as the filter it wraps (vtkWarpVector's)
+    RequestDataObject = HarmonicDeformationFilter.RequestDataObject
 
     def RequestData(self, request, in_info, out_info):
         inp = vtkDataSet.GetData(in_info[0], 0)

@@ -2,7 +2,8 @@
 
 Each subcommand lives in its own module of this package exposing
 ``add_parser(subparsers)`` (registers the subcommand) and ``run(args) -> int``.
-Every error is reported as one line on stderr with a non-zero exit status.
+Subcommands simply raise; :func:`main` reports every error as one line on stderr
+with a non-zero exit status.
 """
 
 from __future__ import annotations
@@ -51,9 +52,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("vhm-viz: interrupted", file=sys.stderr)
         return 130
-    except (ValueError, OSError, RuntimeError) as exc:
-        print(f"vhm-viz {args.command}: error: {exc}", file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001 - every error is one line and a non-zero exit
+        print(f"vhm-viz {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 1
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one line: its message's first line, or its type name."""
+    text = str(exc).strip() or type(exc).__name__
+    return text.splitlines()[0]
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz.atomic import save_dataset_atomic
+from vhm_viz.cli import one_line
 
 #: Input formats accepted by ``deform``/``analyze`` (readers: PyVista, meshio fallback).
 INPUT_SUFFIXES = (
@@ -34,7 +35,7 @@ OUTPUT_SUFFIXES = {
 }
 
 
-class CLIError(Exception):
+class CLIError(ValueError):
     """An error reported as one line (the message) with a non-zero exit status."""
 
 
@@ -135,7 +136,7 @@ def read_dataset(path: Path):
     try:
         mesh = pv.read(os.fspath(path))
     except Exception as exc:  # noqa: BLE001 -- any reader failure is one line
-        raise CLIError(f"cannot read {path}: {_first_line(exc)}") from exc
+        raise CLIError(f"cannot read {path}: {one_line(exc)}") from exc
     if isinstance(mesh, pv.MultiBlock):
         raise CLIError(f"{path} holds several datasets (a MultiBlock); give one dataset")
     if mesh is None or mesh.n_points == 0:
@@ -165,16 +166,6 @@ def outside_message(exc, n_points: int, source) -> str:
         f"{describe_indices(np.asarray(idx))}): the cage must enclose the data, or pass "
         "--outside passthrough to leave them in place"
     )
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip() or type(exc).__name__
-    return text.splitlines()[0]
-
-
-def one_line(exc: BaseException) -> str:
-    """An exception as one line (its type name when the message is empty)."""
-    return _first_line(exc)
 
 
 def load_scene(path: str):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -17,7 +16,6 @@ from vhm_viz.cli._util import (
     check_input,
     load_scene,
     observe_progress,
-    one_line,
     outside_message,
     quiet_vtk,
     read_dataset,
@@ -68,16 +66,7 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``analyze``; returns the exit status."""
     quiet_vtk()
-    try:
-        print(analyze(args))
-    except CLIError as exc:
-        print(f"vhm-viz analyze: error: {exc}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, SystemExit):
-        raise
-    except Exception as exc:  # noqa: BLE001 -- every error is one line
-        print(f"vhm-viz analyze: error: {one_line(exc)}", file=sys.stderr)
-        return 1
+    print(analyze(args))
     return 0
 
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -26,7 +25,6 @@ from vhm_viz.cli._util import (
     CLIError,
     Progress,
     observe_progress,
-    one_line,
     quiet_vtk,
     write_atomic,
 )
@@ -65,17 +63,8 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the demo; returns the exit status."""
     quiet_vtk()
-    try:
-        for line in demo(args):
-            print(line)
-    except CLIError as exc:
-        print(f"vhm-viz demo: error: {exc}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, SystemExit):
-        raise
-    except Exception as exc:  # noqa: BLE001 -- every error is one line
-        print(f"vhm-viz demo: error: {one_line(exc)}", file=sys.stderr)
-        return 1
+    for line in demo(args):
+        print(line)
     return 0
 
 

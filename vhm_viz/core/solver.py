@@ -191,16 +191,24 @@ def _polar_block(M, out, similar):  # pragma: no cover - compiled
         for j in range(3):
             out[i, j] = ui0 * V[j, 0] + ui1 * V[j, 1] + ui2 * V[j, 2]
     if similar:
-        tr = 0.0
-        for i in range(3):
-            for j in range(3):
-                tr += out[i, j] * M[i, j]
-        s = tr / 3.0
-        if s < 0.0:
-            s = 0.0
-        for i in range(3):
-            for j in range(3):
-                out[i, j] *= s
+        _scale_to_similarity(M, out)
+
+
+@numba.njit(cache=True, inline="always")
+def _scale_to_similarity(M, out):  # pragma: no cover - compiled
+    """Scale the rotation ``out`` to the closest similarity ``s R`` of ``M``.
+
+    ``s = tr(R^T M) / 3`` is the mean of the signed singular values of ``M`` (the paper's
+    As-Similar-As-Possible local step), clamped at 0.
+    """
+    tr = 0.0
+    for i in range(3):
+        for j in range(3):
+            tr += out[i, j] * M[i, j]
+    s = max(tr / 3.0, 0.0)
+    for i in range(3):
+        for j in range(3):
+            out[i, j] *= s
 
 
 @numba.njit(cache=True, inline="always")
@@ -294,16 +302,7 @@ def _project_one(M, out, similar):  # pragma: no cover - compiled
     if not _newton_polar(M, out):
         _polar_block(M, out, False)
     if similar:
-        tr = 0.0
-        for i in range(3):
-            for j in range(3):
-                tr += out[i, j] * M[i, j]
-        s = tr / 3.0
-        if s < 0.0:
-            s = 0.0
-        for i in range(3):
-            for j in range(3):
-                out[i, j] *= s
+        _scale_to_similarity(M, out)
 
 
 @numba.njit(cache=True)
