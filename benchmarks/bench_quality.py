@@ -195,13 +195,16 @@ def main() -> None:
                 ]
             )
     if not args.skip_arap:
-        import pytetwild
+        import pyvista as pv
+
+        from vhm_viz.tetra import tetrahedralize
 
         p, t = examples.bar_surface()
         t0 = time.perf_counter()
-        tv, tt = pytetwild.tetrahedralize(p, t.astype(np.int32), edge_length_fac=args.edge_fac)
-        tv = np.asarray(tv, dtype=np.float64)
-        tt = np.asarray(tt, dtype=np.int64)
+        faces = np.column_stack([np.full(len(t), 3), t]).ravel()
+        grid = tetrahedralize(pv.PolyData(p, faces), edge_length_fac=args.edge_fac)
+        tv = np.asarray(grid.points, dtype=np.float64)
+        tt = np.asarray(grid.cells_dict[pv.CellType.TETRA], dtype=np.int64)
         if _tet_volume(tv, tt[:1]) < 0:
             tt = tt[:, [0, 2, 1, 3]]
         t_tet = time.perf_counter() - t0
