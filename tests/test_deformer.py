@@ -176,7 +176,7 @@ def test_random_init_converges_to_identity_solution(bent):
             np.testing.assert_allclose(dfm.coefficients, z_id, atol=1e-6 * np.abs(z_id).max())
         else:
             assert e > 10 * e_id  # a distinct (twisted) local minimum, not a near miss
-    assert same >= len(seeds) // 2
+    assert same >= 3 * len(seeds) // 4
     # the same seed gives the same result (reproducible)
     a = dfm.solve(init="random", seed=3, tolerance=1e-10).energy[-1]
     b = dfm.solve(init="random", seed=3, tolerance=1e-10).energy[-1]

@@ -652,7 +652,11 @@ class Deformer:
             measure): ``|T(u) - u| / (1 - rho)``, with ``rho`` the observed contraction rate.
         init : {"previous", "identity", "random"} or (d, 3, 3) array_like
             Starting local matrices: the last solution (identity before the first solve),
-            identities, random 3x3 matrices (paper Figure 7; ``seed`` seeds them), or given.
+            identities, random 3x3 matrices (paper Figure 7; entries uniform in [0, 1),
+            seeded by ``seed``), or given. The problem is not convex: a random start can end
+            in another local minimum (on the bar, a full turn of twist about its axis).
+            Uniform entries reach the identity-init solution far more often than Gaussian
+            ones (bend-90: 19 of 20 seeds vs 10 of 20; bend-u: 16 vs 11).
         seed : int or numpy Generator, optional
             For ``init="random"``.
         anderson_window : int, optional
@@ -673,7 +677,7 @@ class Deformer:
                 u0 = _stack_T(np.broadcast_to(np.eye(3), (d, 3, 3)).copy())
             else:
                 rng = np.random.default_rng(seed)
-                u0 = rng.standard_normal((3 * d, 3))
+                u0 = rng.random((3 * d, 3))
             init_name = init
         else:
             u0 = _stack_T(_as_matrix_array(init, "init"))
