@@ -35,12 +35,17 @@ from scipy.spatial import cKDTree
 
 from vhm_viz.core import voxel as vx
 from vhm_viz.core.basis import winding_number
+from vhm_viz.core.cage import self_intersections
 from vhm_viz.core.errors import CageError
 from vhm_viz.core.meshcheck import edge_problems
 from vhm_viz.core.proximity import NearDistance, grid_signed_distance
 from vhm_viz.core.simplify import simplify
 
 __all__ = ["auto_cage", "AutoCageReport", "InputSamples", "collect_samples"]
+
+#: more self-intersecting face pairs than this in the simplified offset surface (before
+#: the push-out) means the offset is too small for the shape's gaps: skip the retries
+_MAX_CROSSINGS = 12
 
 
 # ---------------------------------------------------------------------------------------
@@ -522,8 +527,10 @@ def _push_out(V, F, points, min_clear, radius, rounds=25):
 
     Each point closer than ``min_clear`` (or outside) pushes the three vertices of its
     nearest face along their normals, far enough to move that face's plane by the
-    missing distance (plus 20%). Returns the new vertices and the signed distances
-    (``inf`` beyond ``radius``).
+    missing distance (plus 20%), but at most ``min_clear`` per round: small steps with
+    normals recomputed in between do not fold concave regions onto themselves (larger
+    steps made the CT head's cage self-intersect). Returns the new vertices and the
+    signed distances (``inf`` beyond ``radius``).
     """
     V = V.copy()
     previous = None
@@ -545,7 +552,7 @@ def _push_out(V, F, points, min_clear, radius, rounds=25):
             vk = F[fv, k]
             cos = np.einsum("ij,ij->i", vn[vk], fn[fv])
             np.maximum.at(need, vk, deficit / np.maximum(cos, 0.25))
-        V = V + vn * np.minimum(need, 4 * min_clear)[:, None]
+        V = V + vn * np.minimum(need, min_clear)[:, None]
     sd, _ = _near_sd(V, F, points, radius)
     return V, sd
 
@@ -579,21 +586,34 @@ def _offset_cage(samples, lo, hi, offset, max_faces, resolution, min_clear, note
         break
     else:
         raise RuntimeError("quadric decimation keeps producing non-manifold surfaces")
-    for _ in range(2):
-        V2, F2 = simplify(V1, F1, target, outside=True)
+    # simplification is cheap (compiled), so several variants are tried before the caller
+    # falls back to a larger offset: fewer faces, then a stricter normal-turn limit
+    # (flatter, less folded surfaces push out more cleanly)
+    attempts = ((1.0, 0.2), (0.9, 0.2), (1.0, 0.5), (0.8, 0.5))
+    for frac, turn in attempts:
+        V2, F2 = simplify(V1, F1, int(target * frac), outside=True, max_normal_turn=turn)
         if len(F2) > max_faces:
-            raise RuntimeError(f"simplification stopped at {len(F2)} faces (> {max_faces})")
+            notes.append(f"simplification stopped at {len(F2)} faces (> {max_faces}); retrying")
+            continue
         F2, ncomp = _orient_outward(V2, F2)
+        crossing = len(self_intersections(V2, F2))
+        if crossing > _MAX_CROSSINGS:
+            # branches closer than the face size at this offset (fingers): fewer faces or
+            # a stricter simplification do not help, a larger offset does
+            raise RuntimeError(
+                f"the simplified offset surface self-intersects ({crossing} face pairs)"
+            )
         V3, sd = _push_out(V2, F2, samples.points, min_clear, radius)
         if (np.isfinite(sd) & (sd > -min_clear * 0.999)).any():
-            notes.append("push-out did not restore the clearance; retrying with fewer faces")
-            target = int(target * 0.9)
+            notes.append(
+                f"push-out did not restore the clearance ({len(F2)} faces, normal turn "
+                f"{turn}); retrying"
+            )
             continue
         try:
             cage = _make_cage(V3, F2)
         except CageError as exc:
-            notes.append(f"offset cage rejected ({exc}); retrying with fewer faces")
-            target = int(target * 0.9)
+            notes.append(f"offset cage rejected ({exc}); retrying")
             continue
         return grid, V3, F2, sd, ncomp, cage
     raise RuntimeError("could not simplify the offset surface into a valid cage")
