@@ -3,14 +3,21 @@
 For the 43k and 173k Armadillo (``cage_500f.obj``, 50 anchors), the explorer window is
 opened under a real X display (a private Xvfb is started when ``DISPLAY`` is unset; VTK
 renders with Mesa's software OpenGL there), a few position constraints hold the feet and
-one on the head is dragged along a circle through the sphere widget's callback
-(:meth:`ExplorerWindow.on_handle_moved`, the code path of a mouse drag). Each frame is a
+one on the head is dragged along a circle through the sphere widget's code path (its
+``InteractionEvent`` callback, then the interactor's render, as a mouse move). Each frame is a
 warm-started solve (the explorer's drag settings: at most 200 iterations, tolerance 1e-6),
-the deformation of every vertex in place and a synchronous render of a 1024 x 768 window.
+the deformation in place and a synchronous render of a 1024 x 768 window.
+
+Level of detail: above ``ExplorerController.lod_points`` points the explorer deforms and
+renders a decimated proxy while dragging (``--proxy-triangles``; ``--no-lod`` drags the
+full mesh). The "drag mesh" column says what was rendered; "release" is the frame at the
+end of the drag (solve to convergence, full deformation and render of the full mesh) and
+the time until the deferred shape metrics (E_rigid, E_volume) are shown too; "proxy" the
+time to decimate and bind the proxy (part of "bind").
 
 Prints a Markdown table of per-frame medians with the 10th-90th percentile spread.
 
-Run: ``python benchmarks/bench_explorer.py [--frames 60] [--sizes 43k 173k]``
+Run: ``python benchmarks/bench_explorer.py [--frames 60] [--sizes 43k 173k] [--no-lod]``
 """
 
 from __future__ import annotations
@@ -65,10 +72,11 @@ def fmt(values) -> str:
     return f"{statistics.median(ms):.1f} ({pct(ms, 10):.1f}-{pct(ms, 90):.1f})"
 
 
-def run_model(win, size: str, frames: int, n_anchors: int) -> dict:
+def run_model(win, size: str, frames: int, n_anchors: int, lod: bool, triangles: int) -> dict:
     from vhm_viz.app.controller import ExplorerController
 
     ctrl = ExplorerController()
+    ctrl.lod, ctrl.proxy_triangles = lod, triangles
     t0 = time.perf_counter()
     ctrl.load_file(data("armadillo", MODELS[size]))
     ctrl.load_cage(data("armadillo", "cage_500f.obj"))
@@ -85,8 +93,10 @@ def run_model(win, size: str, frames: int, n_anchors: int) -> dict:
     k = ctrl.add_position_constraint(p[head], p[head])
     t_load = time.perf_counter() - t0
     t0 = time.perf_counter()
-    ctrl.prepare()
+    t_proxy = []
+    ctrl.prepare(lambda f, msg: t_proxy.append(time.perf_counter()) if "proxy" in msg else None)
     t_bind = time.perf_counter() - t0
+    t_proxy = time.perf_counter() - t_proxy[0] if t_proxy else 0.0
     ctrl.solve(init="identity")
     ctrl.deform()
     win.ctrl.__dict__.update(ctrl.__dict__)
@@ -107,18 +117,37 @@ def run_model(win, size: str, frames: int, n_anchors: int) -> dict:
     for f in range(frames + 5):
         ang = 2 * np.pi * f / frames
         goal = start + 0.15 * diag * (np.cos(ang) - 1) * u + 0.15 * diag * np.sin(ang) * v
-        win.on_handle_moved(k, goal)  # the sphere widget's callback
+        # what vtkSphereWidget does on a mouse move: its InteractionEvent callback, then a
+        # render (the callback leaves rendering to it: one render per frame)
+        win._handles[k].SetCenter(*goal)
+        win._handle_cb(k, goal)
+        win.plotter.iren.interactor.Render()
         QApplication.processEvents()
         if f >= 5:  # warm-up frames excluded
             timings.append(win.last_frame)
+    drag_mesh = win.lod_label.text()
+    release, settled = [], []
+    for _ in range(3):
+        win.on_handle_moved(k, goal)
+        t0 = time.perf_counter()
+        win.on_handle_released()
+        release.append(win.last_frame.total)
+        QApplication.processEvents()  # the deferred shape metrics
+        settled.append(time.perf_counter() - t0)
     if win.errors:
         raise SystemExit(f"explorer errors: {win.errors}")
+    if win.showing_proxy:
+        raise SystemExit("the proxy is still shown after the release")
     return {
         "size": size,
         "points": ctrl.display.n_points,
         "anchors": len(ctrl.anchors),
         "load": t_load,
         "bind": t_bind,
+        "proxy": t_proxy,
+        "drag_mesh": drag_mesh.replace("drag ", ""),
+        "release": release,
+        "settled": settled,
         "solve": [t.solve for t in timings],
         "deform": [t.deform for t in timings],
         "render": [t.render + t.analysis for t in timings],
@@ -132,6 +161,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--sizes", nargs="+", default=list(MODELS), choices=list(MODELS))
     ap.add_argument("--anchors", type=int, default=50)
+    ap.add_argument("--no-lod", action="store_true", help="drag the full mesh (no proxy)")
+    ap.add_argument("--proxy-triangles", type=int, default=None)
     args = ap.parse_args()
     xvfb = ensure_display()
     try:
@@ -150,39 +181,50 @@ def main() -> None:
 
         info = win.plotter.ren_win.ReportCapabilities().splitlines()
         renderer = next((s.split(":", 1)[1].strip() for s in info if "OpenGL renderer" in s), "?")
+        from vhm_viz.app.controller import PROXY_TRIANGLES
+
+        triangles = args.proxy_triangles or PROXY_TRIANGLES
         rows = []
         for size in args.sizes:
-            r = run_model(win, size, args.frames, args.anchors)
+            r = run_model(win, size, args.frames, args.anchors, not args.no_lod, triangles)
             med = statistics.median(r["total"])
             rows.append(
                 [
                     f"Armadillo {size} ({r['points']:,} pts)",
                     str(r["anchors"]),
-                    f"{r['bind']:.1f} s",
+                    f"{r['bind']:.1f} s ({r['proxy']:.1f} s)",
+                    r["drag_mesh"],
                     fmt(r["solve"]),
                     fmt(r["deform"]),
                     fmt(r["render"]),
                     fmt(r["total"]),
                     f"{1 / med:.1f}",
                     f"{statistics.median(r['iterations']):.0f}",
+                    f"{1e3 * statistics.median(r['release']):.0f} / "
+                    f"{1e3 * statistics.median(r['settled']):.0f}",
                 ]
             )
+        load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
         print(
             f"\nExplorer drag frame time ({args.frames} frames, window 1024x768, "
             f"renderer: {renderer}, VTK {vtk.vtkVersion.GetVTKVersion()}, "
-            f"{os.cpu_count()} CPUs; ms: median (10th-90th percentile))\n"
+            f"{os.cpu_count()} CPUs, load average {load:.1f} at the end; "
+            f"level of detail {'off' if args.no_lod else f'on, proxy {triangles} triangles'}; "
+            "ms: median (10th-90th percentile))\n"
         )
         print_table(
             [
                 "model",
                 "anchors",
-                "bind",
+                "bind (proxy)",
+                "drag mesh",
                 "solve ms",
                 "deform ms",
                 "render ms",
                 "frame ms",
                 "fps",
                 "iterations",
+                "release ms (shown / metrics)",
             ],
             rows,
         )

@@ -415,3 +415,90 @@ def test_open_file_generate_cage_anchors_and_drag(window):
     assert win.last_error is None, win.last_error
     assert np.abs(ctrl.deformed_points - p).max() > 0.5
     np.testing.assert_allclose(ctrl.deformed_points, _direct_points(ctrl), atol=5e-4)
+
+
+def test_drag_shows_the_proxy_and_release_the_full_mesh(window, qtbot):
+    """Level of detail: the decimated proxy while dragging, the full shape after release."""
+    win = window
+    win.ctrl.lod_points, win.ctrl.proxy_triangles = 500, 400  # the bar (1,410 points) is "large"
+    ctrl = _open_bar(win, "bend-90")
+    assert ctrl.uses_proxy and "proxy" in win._actors
+    proxy = ctrl.proxy
+    assert 0 < proxy.n_cells <= 450 and proxy.n_cells < ctrl.display.n_cells
+    assert not win.showing_proxy and "full mesh" in win.lod_label.text()
+    before = ctrl.deformed_points.copy()
+    # one drag frame through the sphere widget's callback: only the proxy moves
+    w = win._handles[0]
+    goal = ctrl.positions[0].target + np.array([0.2, -0.1, 0.1])
+    w.SetCenter(*goal)
+    renders = []
+    obs = win.plotter.ren_win.AddObserver("EndEvent", lambda *a: renders.append(1))
+    w.InvokeEvent("InteractionEvent")
+    assert win.last_error is None, win.last_error
+    assert not renders  # the callback leaves the render to the widget (one per frame)
+    win.plotter.iren.interactor.Render()  # what vtkSphereWidget does after its callback
+    win.plotter.ren_win.RemoveObserver(obs)
+    assert len(renders) == 1 and win.last_frame.render > 0 and "ms" in win.frame_label.text()
+    assert win.last_frame.mesh == "proxy" and win.showing_proxy and ctrl.full_stale
+    assert "drag proxy" in win.lod_label.text()
+    assert win._actors["proxy"].GetVisibility() and not win._actors["shape"].GetVisibility()
+    np.testing.assert_array_equal(ctrl.deformed_points, before)  # the full shape waits
+    # the proxy shows the map of its rest points at the drag solution (float32 binding)
+    expected = ctrl.deformer.harmonic_map.map(ctrl._proxy_rest)
+    np.testing.assert_allclose(proxy.points, expected, atol=1e-5)
+    # release: full shape, solved to convergence, equal to a direct Deformer solve
+    w.InvokeEvent("EndInteractionEvent")
+    assert win.last_error is None, win.last_error
+    assert not win.showing_proxy and not ctrl.full_stale and win.last_frame.mesh == "full"
+    assert "full mesh" in win.lod_label.text()
+    assert win._actors["shape"].GetVisibility() and not win._actors["proxy"].GetVisibility()
+    assert np.abs(ctrl.deformed_points - before).max() > 0.05
+    np.testing.assert_allclose(ctrl.deformed_points, _direct_points(ctrl), atol=5e-4)
+    # a handle resting without release: the full shape replaces the proxy after a moment
+    w.SetCenter(*(goal + [0.05, 0.0, 0.0]))
+    w.InvokeEvent("InteractionEvent")
+    assert win.showing_proxy
+    qtbot.waitUntil(lambda: not win.showing_proxy, timeout=5000)
+    np.testing.assert_allclose(
+        ctrl.deformed_points, ctrl.deformer.harmonic_map.map(ctrl.rest_points), atol=1e-5
+    )
+    # without level of detail the drag deforms the full shape
+    ctrl.lod = False
+    w.InvokeEvent("InteractionEvent")
+    assert win.last_frame.mesh == "full" and not win.showing_proxy
+
+
+def test_make_proxy_surfaces_volumes_and_points():
+    import pyvista as pv
+
+    from vhm_viz.app.controller import make_proxy
+
+    sphere = pv.Sphere(theta_resolution=60, phi_resolution=60)  # 6,844 triangles
+    p = make_proxy(sphere, 1000)
+    assert p.is_all_triangles and 900 <= p.n_cells <= 1000
+    assert p.points.dtype == np.float64
+    r = np.linalg.norm(p.points, axis=1)  # decimation keeps the points near the surface
+    assert np.abs(r - 0.5).max() < 0.02
+    tets = pv.ImageData(dimensions=(12, 12, 12)).cast_to_unstructured_grid().triangulate()
+    p = make_proxy(tets, 300)
+    assert p.n_cells <= 300 and p.GetNumberOfPolys() == p.n_cells
+    np.testing.assert_allclose(p.bounds, tets.bounds, atol=1e-9)  # the outer surface
+    cloud = pv.PolyData(np.random.default_rng(0).random((5000, 3)))
+    p = make_proxy(cloud, 1000)
+    assert p.n_points == 500 and p.GetNumberOfPolys() == 0
+    np.testing.assert_array_equal(p.points, cloud.points[::10])
+
+
+def test_display_drops_the_rest_normals(tmp_path):
+    """Rest-pose normals would shade the deformed shape wrongly: the display has none."""
+    import pyvista as pv
+
+    from vhm_viz.app.controller import ExplorerController
+
+    path = tmp_path / "sphere.vtp"
+    pv.Sphere().compute_normals().save(path)
+    ctrl = ExplorerController()
+    ctrl.load_file(path)
+    assert "Normals" in ctrl.rest.point_data
+    assert "Normals" not in ctrl.display.point_data
+    assert ctrl.display.point_data.active_normals_name is None

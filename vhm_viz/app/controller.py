@@ -16,6 +16,12 @@ Life cycle
   point of the shape, in chunks with progress and cancellation). Moving a target or changing
   a Jacobian's angles or scale only calls ``Deformer.update_targets`` (no refactorisation),
   so :meth:`ExplorerController.drag` (update + warm-started solve + deform) is cheap.
+* Level of detail: a shape with more than :attr:`ExplorerController.lod_points` points
+  gets a *proxy* (:attr:`ExplorerController.proxy`, a decimated triangle surface of about
+  :attr:`ExplorerController.proxy_triangles` triangles, or a subset of a point cloud) with
+  its own float32 binding, built by :meth:`ExplorerController.prepare`. While dragging only
+  the proxy is deformed (:meth:`ExplorerController.drag`; :attr:`full_stale` is then true);
+  :meth:`ExplorerController.deform` (on release) deforms the full shape.
 * Constraint points live in rest space; targets in deformed space. A position constraint
   added at a point starts with the point's current image as target (the shape does not
   jump); a Jacobian constraint starts at the closest similarity to the current Jacobian.
@@ -42,11 +48,16 @@ __all__ = [
     "FrameTiming",
     "Cancelled",
     "SCENE_VERSION",
+    "make_proxy",
 ]
 
 SCENE_VERSION = 1
 # points per binding chunk (progress / cancellation granularity of prepare())
 CHUNK = 16384
+# level of detail: shapes with more points than this are dragged as a decimated proxy
+LOD_POINTS = 30000
+# triangles of the proxy (software OpenGL renders ~10k triangles well within a frame)
+PROXY_TRIANGLES = 12000
 
 ProgressFn = Callable[[float, str], None]
 
@@ -125,6 +136,7 @@ class FrameTiming:
     analysis: float = 0.0
     render: float = 0.0
     iterations: int = 0
+    mesh: str = "full"  # what was deformed: "full" shape or its "proxy"
 
     @property
     def total(self) -> float:
@@ -216,6 +228,48 @@ def _auto_anchors(data, cage, count: int) -> np.ndarray:
     return anchors[cage.contains(anchors)]
 
 
+def make_proxy(data, triangles: int = PROXY_TRIANGLES):
+    """A light stand-in of ``data`` to deform and render while dragging.
+
+    Parameters
+    ----------
+    data : pyvista.DataSet
+        The shape (rest space).
+    triangles : int
+        Target size: triangles of a decimated surface, or twice the points of a point subset.
+
+    Returns
+    -------
+    pyvista.PolyData
+        Float64 points. Surfaces (polygons, or the outer surface of volumetric cells) are
+        triangulated and reduced by quadric decimation (``vtkQuadricDecimation``); point
+        clouds and line sets become a regular subset of their points (vertex cells).
+    """
+    import pyvista as pv
+
+    if isinstance(data, pv.PolyData) and data.GetNumberOfPolys() == 0:
+        surf = None
+    elif isinstance(data, pv.PolyData):
+        surf = data
+    else:
+        surf = data.extract_surface(algorithm="dataset_surface")
+        if surf.GetNumberOfPolys() == 0:
+            surf = None
+    if surf is None:  # points (and lines): a regular subset of the points
+        n = data.n_points
+        step = max(1, int(np.ceil(n / max(triangles // 2, 1))))
+        pts = np.asarray(data.points, dtype=np.float64)[::step]
+        proxy = pv.PolyData(np.ascontiguousarray(pts))
+    else:
+        surf = pv.PolyData(surf.points, surf.faces) if surf.n_points else surf
+        surf = surf.triangulate().clean()
+        if surf.n_cells > triangles:
+            surf = surf.decimate(1.0 - triangles / surf.n_cells)
+        proxy = pv.PolyData(np.asarray(surf.points, dtype=np.float64), surf.faces)
+    proxy.points = np.ascontiguousarray(proxy.points, dtype=np.float64)
+    return proxy
+
+
 # ----------------------------------------------------------------------------------------
 # The controller
 # ----------------------------------------------------------------------------------------
@@ -240,6 +294,15 @@ class ExplorerController:
     alpha : float
     max_iterations, tolerance : solver settings of :meth:`drag` and :meth:`solve`.
     last_report : SolveReport or None
+    lod : bool
+        Drag a proxy when the shape has more than ``lod_points`` points (read by
+        :meth:`prepare`, which builds the proxy, and by :meth:`drag`).
+    lod_points, proxy_triangles : int
+        Level-of-detail threshold and proxy size (see :func:`make_proxy`).
+    proxy : pyvista.PolyData or None
+        The proxy (deformed in place by :meth:`drag`), built by :meth:`prepare`.
+    full_stale : bool
+        The display dataset lags behind the solution (dragging showed the proxy).
     """
 
     def __init__(self) -> None:
@@ -257,6 +320,13 @@ class ExplorerController:
         self.deformer = None
         self.binding: ChunkedBinding | None = None
         self.last_report = None
+        self.lod = True
+        self.lod_points = LOD_POINTS
+        self.proxy_triangles = PROXY_TRIANGLES
+        self.proxy = None
+        self.proxy_binding: ChunkedBinding | None = None
+        self._proxy_rest = np.zeros((0, 3))
+        self.full_stale = False
         self._deformer_stale = True
         self._layout_stale = True
         self._targets_stale = False
@@ -297,6 +367,11 @@ class ExplorerController:
             data = data.cast_to_structured_grid()
         display = data.copy(deep=True)
         display.points = np.asarray(display.points, dtype=np.float64)
+        # the rest pose's normals would shade (and export) the deformed shape wrongly: drop
+        # them; the renderer then shades each triangle by its deformed geometry
+        for name in {"Normals", display.point_data.active_normals_name} - {None}:
+            if name in display.point_data:
+                del display.point_data[name]
         self.rest = data
         self.display = display
         self._rest_points = np.array(display.points, dtype=np.float64)
@@ -307,6 +382,9 @@ class ExplorerController:
         self.jacobians = []
         self.deformer = None
         self.binding = None
+        self.proxy = None
+        self.proxy_binding = None
+        self.full_stale = False
         self.last_report = None
         self._initial_rotations = None
         self._deformer_stale = True
@@ -648,12 +726,39 @@ class ExplorerController:
             binding = ChunkedBinding(deformer, self._rest_points, progress, check)
         else:
             binding.refresh(progress, check)
-        if self.last_report is not None and not rebuilt and self.deformer is deformer:
-            pass  # keep the warm start of the previous solution
+        proxy, proxy_binding = self._prepare_proxy(deformer, rebuilt, progress, check)
         self.deformer, self.binding = deformer, binding
+        self.proxy, self.proxy_binding = proxy, proxy_binding
         self._deformer_stale = self._layout_stale = False
         self._targets_stale = False
         progress(1.0, "ready")
+
+    @property
+    def uses_proxy(self) -> bool:
+        """Whether :meth:`drag` deforms the proxy instead of the full shape."""
+        return bool(self.lod) and self.proxy_binding is not None
+
+    def copy_lod_settings(self, other: ExplorerController) -> None:
+        """Take ``lod``, ``lod_points`` and ``proxy_triangles`` from another controller."""
+        self.lod, self.lod_points = other.lod, other.lod_points
+        self.proxy_triangles = other.proxy_triangles
+
+    def _prepare_proxy(self, deformer, rebuilt: bool, progress, check):
+        """Build or refresh the level-of-detail proxy and its binding (see :func:`make_proxy`)."""
+        proxy, pb = self.proxy, self.proxy_binding
+        if not self.lod or self.display is None or self.display.n_points <= self.lod_points:
+            return None, None
+        if proxy is None:
+            progress(0.9, "building the drag proxy")
+            proxy = make_proxy(self.rest, self.proxy_triangles)
+            self._proxy_rest = np.array(proxy.points, dtype=np.float64)
+            pb = None
+        check()
+        if pb is None or rebuilt:
+            pb = ChunkedBinding(deformer, self._proxy_rest, _noop_progress, check)
+        else:
+            pb.refresh(_noop_progress, check)
+        return proxy, pb
 
     def _push_targets(self) -> None:
         arr = self.constraint_arrays()
@@ -689,23 +794,54 @@ class ExplorerController:
             raise RuntimeError("display points must be contiguous float64")
         self.binding.deform(out=out)
         self.display.GetPoints().Modified()
+        self.full_stale = False
         return out
 
-    def drag(self, index: int, target) -> FrameTiming:
-        """One interactive frame: move target ``index``, warm-started solve, deform."""
+    def deform_proxy(self) -> np.ndarray:
+        """Write the deformed points into :attr:`proxy` in place (the full shape lags)."""
+        out = np.asarray(self.proxy.points)
+        self.proxy_binding.deform(out=out)
+        self.proxy.GetPoints().Modified()
+        self.full_stale = True
+        return out
+
+    def _catch_up(self) -> None:
+        """Deform the full shape if a drag left it behind the solution (proxy shown)."""
+        if self.full_stale and self.ready:
+            self.deform()
+
+    def drag(self, index: int, target, lod: bool | None = None) -> FrameTiming:
+        """One interactive frame: move target ``index``, warm-started solve, deform.
+
+        With ``lod`` (default :attr:`uses_proxy`) only the proxy is deformed; call
+        :meth:`deform` when the drag ends.
+        """
         t0 = time.perf_counter()
         self.set_target(index, target)
         rep = self.solve()
         t1 = time.perf_counter()
-        self.deform()
+        proxy = self.uses_proxy if lod is None else bool(lod) and self.uses_proxy
+        if proxy:
+            self.deform_proxy()
+        else:
+            self.deform()
         t2 = time.perf_counter()
-        return FrameTiming(solve=t1 - t0, deform=t2 - t1, iterations=rep.iterations)
+        return FrameTiming(
+            solve=t1 - t0,
+            deform=t2 - t1,
+            iterations=rep.iterations,
+            mesh="proxy" if proxy else "full",
+        )
 
     def reset(self) -> None:
         """Show the rest shape (targets kept)."""
         if self.display is not None:
             np.asarray(self.display.points)[:] = self._rest_points
             self.display.GetPoints().Modified()
+        if self.proxy is not None:
+            np.asarray(self.proxy.points)[:] = self._proxy_rest
+            self.proxy.GetPoints().Modified()
+        self.full_stale = False
 
     # ------------------------------------------------------------------ analysis
     def metrics(self) -> dict:
@@ -713,6 +849,7 @@ class ExplorerController:
         from vhm_viz.core import metrics as M
 
         out = {"E_rigid": float("nan"), "E_volume": float("nan")}
+        self._catch_up()
         tris = self.triangles()
         if tris is not None and len(tris):
             d = self.deformed_points
@@ -743,6 +880,7 @@ class ExplorerController:
         path = Path(path)
         if self.display is None:
             raise ValueError("nothing loaded")
+        self._catch_up()
         if not path.suffix:
             src = self.source.get("path")
             path = path.with_suffix(Path(src).suffix if src else ".vtp")
@@ -856,6 +994,7 @@ class ExplorerController:
 
         new = ExplorerController()
         new.max_iterations, new.tolerance = self.max_iterations, self.tolerance
+        new.copy_lod_settings(self)
         new.mode, new.alpha = d.get("mode", "rigid"), float(d.get("alpha", 0.01))
         new._load_data_ref(d.get("data", {}), path, current)
         if d.get("cage"):
@@ -886,6 +1025,7 @@ class ExplorerController:
             except (OSError, json.JSONDecodeError) as exc:
                 raise ValueError(f"{side_path.name}: unreadable ({exc})") from exc
         new = ExplorerController()
+        new.copy_lod_settings(self)
         new.mode, new.alpha = scene.mode, float(scene.alpha)
         new.max_iterations = int(scene.solver["max_iterations"])
         new.tolerance = float(scene.solver["tolerance"])

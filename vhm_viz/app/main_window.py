@@ -9,6 +9,11 @@ Interaction modes (toolbar): *View* (camera; drag the orange handles to move pos
 targets), *Add position*, *Add Jacobian*, *Add anchor*, *Remove anchor* (left click on the
 shape). Every click goes through :meth:`ExplorerWindow.click_at_display`, which tests call
 directly.
+
+Level of detail: for large shapes the controller keeps a decimated *proxy*
+(:attr:`ExplorerController.proxy`). While a handle is dragged the proxy is deformed and
+shown instead of the shape; on release (or after :data:`REFINE_DELAY_MS` without motion)
+the full shape is deformed and shown again. The status bar says which one is displayed.
 """
 
 from __future__ import annotations
@@ -51,7 +56,10 @@ SHAPE_COLOR = (0.85, 0.85, 0.80)
 SETTLE_ITERATIONS = 5000
 # and its tolerance (the solver's fixed-point estimate is optimistic at small alpha)
 SETTLE_TOLERANCE = 1e-8
+# the full shape replaces the drag proxy after this long without handle motion (ms)
+REFINE_DELAY_MS = 400
 HANDLE_COLOR = "orange"
+CAGE_COLOR = (0.62, 0.74, 0.86)  # steel blue at half opacity on white
 ANCHOR_COLOR = "green"
 JACOBIAN_COLOR = "magenta"
 # data formats offered in the open dialog (anything pyvista.read accepts works)
@@ -102,6 +110,7 @@ class ExplorerWindow(QMainWindow):
         dialogs: bool = True,
     ):
         super().__init__()
+        import pyvista as pv
         from pyvistaqt import QtInteractor
 
         self.setWindowTitle("vhm_viz explorer")
@@ -124,9 +133,27 @@ class ExplorerWindow(QMainWindow):
         self._fill_pending = False
         self._clipper = None
         self._shape_data = None
+        self._proxy_clipper = None
+        self._proxy_data = None
+        self.showing_proxy = False
+        # full-resolution refinement once the handle rests (restarted by every drag frame)
+        self._refine_timer = QTimer(self)
+        self._refine_timer.setSingleShot(True)
+        self._refine_timer.setInterval(REFINE_DELAY_MS)
+        self._refine_timer.timeout.connect(self._refine)
+        # shape metrics after a solve: computed when the event loop is idle
+        self._pending_metrics: dict | None = None
+        self._metrics_timer = QTimer(self)
+        self._metrics_timer.setSingleShot(True)
+        self._metrics_timer.setInterval(0)
+        self._metrics_timer.timeout.connect(self._deferred_metrics)
 
-        # no multi-sampling: with software OpenGL it doubles the frame time
-        self.plotter = QtInteractor(self, off_screen=off_screen, auto_update=False, multi_samples=1)
+        # software OpenGL (llvmpipe) costs: no multi-sampling (doubles the frame time), one
+        # headlight instead of pyvista's five-light kit (a third of the shape's render time)
+        self.plotter = QtInteractor(
+            self, off_screen=off_screen, auto_update=False, multi_samples=1, lighting="none"
+        )
+        self.plotter.add_light(pv.Light(light_type="headlight"))
         self.plotter.set_background("white")
         self.setCentralWidget(self.plotter.interactor)
         self.runner = JobRunner(self)
@@ -137,6 +164,11 @@ class ExplorerWindow(QMainWindow):
         self.runner.started.connect(self._on_job_started)
         self.runner.finished.connect(self._on_job_finished)
         self.plotter.iren.add_observer("LeftButtonPressEvent", self._on_left_press)
+        # drag frames rendered by the sphere widget are timed by these observers
+        self._pending_frame = None
+        self._render_t0: float | None = None
+        self.plotter.ren_win.AddObserver("StartEvent", self._on_render_start)
+        self.plotter.ren_win.AddObserver("EndEvent", self._on_render_end)
 
     # ================================================================== construction
     def _build_docks(self) -> None:
@@ -220,6 +252,7 @@ class ExplorerWindow(QMainWindow):
     def _build_status(self) -> None:
         sb = self.statusBar()
         self.frame_label = QLabel("")
+        self.lod_label = QLabel("")  # which mesh is displayed: full shape or drag proxy
         self.progress = QProgressBar()
         self.progress.setMaximumWidth(220)
         self.progress.setRange(0, 1000)
@@ -227,6 +260,7 @@ class ExplorerWindow(QMainWindow):
         self.cancel_button = QPushButton("Cancel")
         self.cancel_button.hide()
         self.cancel_button.clicked.connect(self.cancel_job)
+        sb.addPermanentWidget(self.lod_label)
         sb.addPermanentWidget(self.frame_label)
         sb.addPermanentWidget(self.progress)
         sb.addPermanentWidget(self.cancel_button)
@@ -326,6 +360,7 @@ class ExplorerWindow(QMainWindow):
 
         def job(progress, cancelled):
             new = ExplorerController()
+            new.copy_lod_settings(self.ctrl)
             new.mode, new.alpha = mode, alpha
             new.max_iterations = self.ctrl.max_iterations
             progress(0.0, f"{name}: reading")
@@ -640,17 +675,31 @@ class ExplorerWindow(QMainWindow):
         self.after_edit(structure=mode.startswith("anchor"))
 
     # ================================================================== drag
-    def on_handle_moved(self, index: int, center) -> None:
-        """Sphere-widget callback (``interaction_event="always"``): one live frame."""
+    def on_handle_moved(self, index: int, center, render: bool = True) -> None:
+        """One live frame: move target ``index`` to ``center``, solve, deform, render.
+
+        ``render=False`` is the sphere widget's path (:meth:`_handle_cb`): the widget renders
+        right after its ``InteractionEvent`` callback, so rendering here too would draw
+        every frame twice; that render's time completes :attr:`last_frame` instead.
+        """
+        self._pending_frame = None
         if self.busy or not self.ctrl.ready:
             return
         try:
             t = self.ctrl.drag(index, np.asarray(center, float))
             t0 = time.perf_counter()
+            if t.mesh == "proxy" and self._proxy_data is not self.ctrl.proxy:
+                self._rebuild_proxy()  # a proxy built since the last scene rebuild
+            self._show_proxy(t.mesh == "proxy")
+            if self.showing_proxy:
+                self._refine_timer.start()
             self._update_markers()
             if self.live_slice and self.slice is not None:
                 self.update_analysis(full=False)
             t.analysis = time.perf_counter() - t0
+            if not render:
+                self.last_frame = self._pending_frame = t  # completed by _on_render_end
+                return
             t0 = time.perf_counter()
             self.plotter.ren_win.Render()
             t.render = time.perf_counter() - t0
@@ -659,11 +708,53 @@ class ExplorerWindow(QMainWindow):
             return
         self._show_frame(t)
 
+    def _on_render_start(self, *args) -> None:
+        self._render_t0 = time.perf_counter()
+
+    def _on_render_end(self, *args) -> None:
+        """Complete a drag frame rendered by the sphere widget (see :meth:`on_handle_moved`)."""
+        t, self._pending_frame = self._pending_frame, None
+        if t is not None and self._render_t0 is not None:
+            t.render = time.perf_counter() - self._render_t0
+            self._show_frame(t)
+
     def on_handle_released(self, *args) -> None:
         """End of a drag: solve to convergence, refresh the analysis and the table."""
+        self._refine_timer.stop()
         if self.busy or not self.ctrl.ready:
             return
         self.solve_and_show(rebuild=False)
+
+    def _refine(self) -> None:
+        """The handle rests: show the full shape at the current (drag) solution."""
+        if self.busy or not self.ctrl.ready or not self.showing_proxy:
+            return
+        try:
+            self.ctrl.deform()
+            self._show_proxy(False)
+            self.plotter.render()
+        except Exception as exc:  # noqa: BLE001
+            self.report_error(f"{type(exc).__name__}: {exc}", traceback.format_exc())
+
+    def _show_proxy(self, on: bool) -> None:
+        """Display the drag proxy (``on``) or the full shape; say which in the status bar."""
+        shape, proxy = self._actors.get("shape"), self._actors.get("proxy")
+        on = bool(on) and proxy is not None and self._proxy_data is self.ctrl.proxy
+        if shape is not None:
+            shape.SetVisibility(not on)
+        if proxy is not None:
+            proxy.SetVisibility(on)
+        self.showing_proxy = on
+        self.lod_label.setText(self._lod_text(on))  # QLabel ignores an unchanged text
+
+    def _lod_text(self, proxy: bool) -> str:
+        d = self.ctrl.proxy if proxy else self.ctrl.display
+        if d is None:
+            return ""
+        points = d.n_cells == d.n_points
+        n = d.n_points if points else d.n_cells
+        what = "drag proxy" if proxy else "full mesh"
+        return f"{what} {n:,} {'points' if points else 'cells'}"
 
     def _show_frame(self, t) -> None:
         self.last_frame = t
@@ -686,6 +777,8 @@ class ExplorerWindow(QMainWindow):
             tolerance=min(self.ctrl.tolerance, SETTLE_TOLERANCE),
         )
         t1 = time.perf_counter()
+        self._refine_timer.stop()
+        self._pending_frame = None
         self.ctrl.deform()
         t2 = time.perf_counter()
         if rebuild:
@@ -693,7 +786,8 @@ class ExplorerWindow(QMainWindow):
         else:
             self._update_markers()
             self.refresh_panels()
-        self.update_analysis()
+        self._show_proxy(False)
+        self.update_analysis(defer_metrics=True)
         t3 = time.perf_counter()
         self.plotter.render()
         from vhm_viz.app.controller import FrameTiming
@@ -754,14 +848,14 @@ class ExplorerWindow(QMainWindow):
                 render=False,
                 reset_camera=False,
             )
+        self._rebuild_proxy()
         self._remove("cage")
         if ctrl.cage is not None:
             self._actors["cage"] = p.add_mesh(
                 _cage_mesh(ctrl.cage),
                 style="wireframe",
-                color="steelblue",
+                color=CAGE_COLOR,  # opaque: translucency adds a costly compositing pass
                 line_width=1,
-                opacity=0.5,
                 name="cage",
                 render=False,
                 reset_camera=False,
@@ -774,6 +868,32 @@ class ExplorerWindow(QMainWindow):
         if reset_camera:
             p.reset_camera()
             self.status(self._summary())
+
+    def _rebuild_proxy(self) -> None:
+        """Add the (hidden) drag proxy's actor when the controller has a new proxy."""
+        proxy = self.ctrl.proxy
+        if proxy is self._proxy_data and (proxy is None or "proxy" in self._actors):
+            return
+        self._remove("proxy")
+        self._proxy_clipper = None
+        self._proxy_data = proxy
+        self._show_proxy(False)
+        if proxy is None:
+            return
+        self._actors["proxy"] = self.plotter.add_mesh(
+            proxy,
+            color=SHAPE_COLOR,
+            style="surface" if proxy.n_cells != proxy.n_points else "points",
+            point_size=3,
+            name="proxy",
+            scalars=None,
+            render=False,
+            reset_camera=False,
+            pickable=False,
+        )
+        self._actors["proxy"].SetVisibility(False)
+        if self._clipper is not None:
+            self._clip_proxy(True)
 
     def _summary(self) -> str:
         c = self.ctrl
@@ -867,7 +987,7 @@ class ExplorerWindow(QMainWindow):
             self._handles.append(w)
 
     def _handle_cb(self, index: int, center, *args) -> None:
-        self.on_handle_moved(index, center)
+        self.on_handle_moved(index, center, render=False)  # the widget renders next
 
     def _move_handle(self, index: int, target) -> None:
         if index < len(self._handles):
@@ -934,8 +1054,6 @@ class ExplorerWindow(QMainWindow):
         A ``vtkClipDataSet`` on the rest-space signed distance, between the (in place
         deformed) display dataset and the shape's mapper: it re-runs on each render.
         """
-        import vtk
-
         actor = self._actors.get("shape")
         if actor is None:
             return
@@ -945,12 +1063,20 @@ class ExplorerWindow(QMainWindow):
             if self._clipper is not None:
                 mapper.SetInputData(display)
                 self._clipper = None
+            self._clip_proxy(False)
             return
+        self._clipper = self._clip_mapper(mapper, display, self.ctrl.rest_points)
+        self._clip_proxy(True)
+
+    def _clip_mapper(self, mapper, data, rest_points: np.ndarray):
+        """Feed ``mapper`` the part of ``data`` behind the slice plane (rest space)."""
+        import vtk
+
         origin, normal = self._slice_plane
         n = np.asarray(normal, float) / np.linalg.norm(normal)
-        display.point_data["_rest_side"] = (self.ctrl.rest_points - origin) @ n
+        data.point_data["_rest_side"] = (rest_points - origin) @ n
         clip = vtk.vtkClipDataSet()
-        clip.SetInputData(display)
+        clip.SetInputData(data)
         clip.SetInputArrayToProcess(
             0, 0, 0, vtk.vtkDataObject.FIELD_ASSOCIATION_POINTS, "_rest_side"
         )
@@ -958,7 +1084,18 @@ class ExplorerWindow(QMainWindow):
         clip.InsideOutOn()  # keep the side behind the plane (the normal points away from it)
         mapper.SetInputConnection(clip.GetOutputPort())
         mapper.ScalarVisibilityOff()
-        self._clipper = clip
+        return clip
+
+    def _clip_proxy(self, on: bool) -> None:
+        """Cut the drag proxy like the shape (see :meth:`_clip_shape`)."""
+        actor, proxy = self._actors.get("proxy"), self.ctrl.proxy
+        if actor is None or proxy is None or proxy is not self._proxy_data:
+            return
+        if on and self._slice_plane is not None:
+            self._proxy_clipper = self._clip_mapper(actor.GetMapper(), proxy, self.ctrl._proxy_rest)
+        elif self._proxy_clipper is not None:
+            actor.GetMapper().SetInputData(proxy)
+            self._proxy_clipper = None
 
     def _on_clip_toggled(self, on: bool) -> None:
         self._clip_shape(bool(on) and self.slice is not None)
@@ -996,8 +1133,13 @@ class ExplorerWindow(QMainWindow):
             )
         self.update_analysis()
 
-    def update_analysis(self, full: bool = True) -> None:
-        """Recompute the slice colours, histogram, energy plot and metrics."""
+    def update_analysis(self, full: bool = True, defer_metrics: bool = False) -> None:
+        """Recompute the slice colours, histogram, energy plot and metrics.
+
+        ``full=False``: the slice only (live slice while dragging). ``defer_metrics``: the
+        shape metrics (E_rigid, E_volume: a pass over every triangle, ~0.4 s at 346k
+        triangles) are computed once the event loop is idle, after the frame is shown.
+        """
         from vhm_viz.app.analysis import MEASURE_RANGES
 
         ap = self.analysis_panel
@@ -1015,6 +1157,25 @@ class ExplorerWindow(QMainWindow):
         rep = self.ctrl.last_report
         if rep is not None:
             ap.energy.set_lines([rep.energy, rep.rigidity, rep.smoothness], logy=True)
+        if defer_metrics:
+            self._pending_metrics = m
+            self._metrics_timer.start()
+            return
+        self._metrics_timer.stop()
+        self._finish_metrics(m)
+
+    def _deferred_metrics(self) -> None:
+        # not while a drag runs (the proxy is shown): the next release schedules them again
+        if self._pending_metrics is None or self.showing_proxy or self.ctrl.full_stale:
+            return
+        m, self._pending_metrics = self._pending_metrics, None
+        try:
+            self._finish_metrics(m)
+        except Exception as exc:  # noqa: BLE001
+            self.report_error(f"metrics: {exc}", traceback.format_exc())
+
+    def _finish_metrics(self, m: dict) -> None:
+        ap = self.analysis_panel
         if self.ctrl.ready and self.ctrl.last_report is not None:
             m.update(self.ctrl.metrics())
             if "foldovers" not in m:
