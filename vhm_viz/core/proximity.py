@@ -8,6 +8,7 @@ cage needs: the clearance and the points that violate it all lie near the cage.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -190,19 +191,8 @@ def near_signed_distance(vertices, faces, points, radius: float, tree: cKDTree |
 # compiled version: a uniform grid of faces, one thread per point
 # ---------------------------------------------------------------------------------------
 
-try:  # numba is a hard dependency of the project, but keep the module importable without
-    import numba as _nb
-except ImportError:  # pragma: no cover
-    _nb = None
 
-
-def _njit(**kw):
-    if _nb is None:  # pragma: no cover
-        return lambda f: f
-    return _nb.njit(**kw)
-
-
-@_njit(cache=True)
+@numba.njit(cache=True)
 def _fill_cells(lo, hi, origin, cs, dims, count_only, start, out):
     m = lo.shape[0]
     total = 0
@@ -226,10 +216,10 @@ def _fill_cells(lo, hi, origin, cs, dims, count_only, start, out):
     return total
 
 
-@_njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True)
 def _grid_query(P, V, F, fn, en, vn, start, faces_in_cell, origin, cs, dims, radius, out_sd, out_f):
     n = P.shape[0]
-    for ip in _nb.prange(n):
+    for ip in numba.prange(n):
         px, py, pz = P[ip, 0], P[ip, 1], P[ip, 2]
         out_sd[ip] = np.inf
         out_f[ip] = -1

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import heapq
 
+import numba
 import numpy as np
 
 __all__ = ["simplify"]
@@ -70,7 +71,7 @@ def simplify(
     vertices : (n', 3) float64
     faces : (m', 3) int64
     """
-    if backend == "python" or _nb is None:
+    if backend == "python":
         return _simplify_python(vertices, faces, target_faces, max_normal_turn, outside)
     if backend != "numba":
         raise ValueError(f"simplify: unknown backend {backend!r} (numba, python)")
@@ -238,19 +239,8 @@ def _simplify_python(vertices, faces, target_faces, max_normal_turn, outside):
 # table, marker arrays for the set operations, Cramer's rule for the 3x3 optimum
 # ---------------------------------------------------------------------------------------
 
-try:  # numba is a hard dependency of the project, but keep the module importable without
-    import numba as _nb
-except ImportError:  # pragma: no cover
-    _nb = None
 
-
-def _njit(**kw):
-    if _nb is None:  # pragma: no cover
-        return lambda f: f
-    return _nb.njit(**kw)
-
-
-@_njit(cache=True)
+@numba.njit(cache=True)
 def _vf_remove(vf, cnt, v, f):
     for s in range(cnt[v]):
         if vf[v, s] == f:
@@ -259,7 +249,7 @@ def _vf_remove(vf, cnt, v, f):
             return
 
 
-@_njit(cache=True)
+@numba.njit(cache=True)
 def _gather_vertices(vf, cnt, F, v, mark, token, out):
     """Neighbours of ``v`` (distinct vertices of its faces, ``v`` excluded); how many."""
     k = 0
@@ -274,7 +264,7 @@ def _gather_vertices(vf, cnt, F, v, mark, token, out):
     return k
 
 
-@_njit(cache=True)
+@numba.njit(cache=True)
 def _star(vf, cnt, u, v, fmark, token, out):
     """Distinct faces around ``u`` or ``v`` (each face once); returns how many."""
     k = 0
@@ -288,7 +278,7 @@ def _star(vf, cnt, u, v, fmark, token, out):
     return k
 
 
-@_njit(cache=True)
+@numba.njit(cache=True)
 def _cost(q, p):
     c = q[3, 3]
     for i in range(3):
@@ -298,7 +288,7 @@ def _cost(q, p):
     return c
 
 
-@_njit(cache=True)
+@numba.njit(cache=True)
 def _best_position(u, v, V, F, Q, vf, cnt, outside, fmark, token, star, nn, off):
     q = Q[u] + Q[v]
     a = q[:3, :3]
@@ -383,7 +373,7 @@ def _best_position(u, v, V, F, Q, vf, cnt, outside, fmark, token, star, nn, off)
     return best, cands[bi].copy()
 
 
-@_njit(cache=True)
+@numba.njit(cache=True)
 def _simplify_nb(V, F, Q, target_faces, max_normal_turn, outside, init_cap):
     n = V.shape[0]
     m = F.shape[0]

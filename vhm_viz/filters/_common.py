@@ -171,6 +171,18 @@ class DeformationSource(VTKPythonAlgorithmBase):
         """Connect the cage from another algorithm's output port."""
         self.SetInputConnection(1, port)
 
+    def RequestUpdateExtent(self, request, in_info, out_info):
+        """Forward the piece request on port 0; ask for the whole cage on port 1."""
+        self._request_whole_cage(in_info)
+        return 1
+
+    def RequestData(self, request, in_info, out_info):
+        """Run the filter's ``_execute``; errors end up in :attr:`last_error` (see ``update``)."""
+        return self._guard(self._execute, in_info, out_info)
+
+    def _execute(self, in_info, out_info):  # pragma: no cover - every filter defines it
+        raise NotImplementedError
+
     def _request_whole_cage(self, in_info) -> None:
         if self.GetNumberOfInputConnections(1):
             info = in_info[1].GetInformationObject(0)

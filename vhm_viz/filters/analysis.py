@@ -56,15 +56,6 @@ class JacobianAnalysisFilter(DeformationSource):
             out_info.GetInformationObject(0).Set(vtkDataObject.DATA_OBJECT(), inp.NewInstance())
         return 1
 
-    def RequestUpdateExtent(self, request, in_info, out_info):
-        """Whole cage in every piece."""
-        self._request_whole_cage(in_info)
-        return 1
-
-    def RequestData(self, request, in_info, out_info):
-        """Evaluate the Jacobians and add the arrays."""
-        return self._guard(self._execute, in_info, out_info)
-
     def _execute(self, in_info, out_info):
         inp = vtkDataSet.GetData(in_info[0], 0)
         out = vtkDataObject.GetData(out_info, 0)

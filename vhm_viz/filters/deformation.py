@@ -179,15 +179,6 @@ class HarmonicDeformationFilter(DeformationSource):
             out_info.GetInformationObject(0).Set(vtkDataObject.DATA_OBJECT(), out)
         return 1
 
-    def RequestUpdateExtent(self, request, in_info, out_info):
-        """Forward the piece request on port 0; ask for the whole cage on port 1."""
-        self._request_whole_cage(in_info)
-        return 1
-
-    def RequestData(self, request, in_info, out_info):
-        """Deform the input; errors end up in :attr:`last_error` (see ``update``)."""
-        return self._guard(self._execute, in_info, out_info)
-
     # ------------------------------------------------------------------ the work
     def _piece_input(self, inp, in_info, out_info):
         """Structured input delivered whole while a piece is wanted: crop to the piece.

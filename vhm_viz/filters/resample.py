@@ -152,10 +152,6 @@ class HarmonicResampleFilter(DeformationSource):
         self._request_whole_cage(in_info)
         return 1
 
-    def RequestData(self, request, in_info, out_info):
-        """Pull back the requested output extent."""
-        return self._guard(self._execute, in_info, out_info)
-
     def _execute(self, in_info, out_info):
         img = vtkImageData.GetData(in_info[0], 0)
         out = vtkImageData.GetData(out_info, 0)
