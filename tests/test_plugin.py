@@ -72,12 +72,17 @@ def test_plugin_deforms_with_a_scene_file(plugin, tmp_path):
     assert "jacobian_determinant" in out.point_data
 
 
+# pytest-qt (loaded for the explorer's tests) would otherwise turn the exception VTK prints
+# through sys.excepthook into a test error
+@pytest.mark.qt_no_exception_capture
 def test_plugin_without_scene_reports_it(plugin, capfd, caplog):
     flt = plugin.VHMHarmonicDeformation()
     flt.SetInputDataObject(0, pv.PolyData(np.zeros((3, 3))))
-    # VTK prints the Python exception raised in RequestData from C (ParaView shows it in its
-    # Output Messages; pytest cannot capture it) and marks the request failed
+    # VTK reports a Python exception raised in RequestData (ParaView shows it in its Output
+    # Messages) and marks the request failed instead of raising; where the report lands
+    # depends on the exception hook and log observers in place
     flt.Update()
     captured = capfd.readouterr()
-    assert "Failure when calling method" in captured.out + captured.err + caplog.text
+    text = captured.out + captured.err + caplog.text
+    assert "set the SceneFile property" in text or "Failure when calling method" in text
     assert flt.GetOutputDataObject(0).GetNumberOfPoints() == 0

@@ -53,7 +53,7 @@ _MODE_LABELS = {
 }
 SHAPE_COLOR = (0.85, 0.85, 0.80)
 # iteration cap of the solves outside a drag (load, edits, handle release): to convergence
-SETTLE_ITERATIONS = 5000
+SETTLE_ITERATIONS = 50000
 # and its tolerance (the solver's fixed-point estimate is optimistic at small alpha)
 SETTLE_TOLERANCE = 1e-8
 # the full shape replaces the drag proxy after this long without handle motion (ms)
