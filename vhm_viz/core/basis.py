@@ -36,6 +36,7 @@ the per-vertex distances and per-edge logarithms between neighbouring faces.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -114,6 +115,15 @@ def _prepare_cage(vertices: np.ndarray, faces: np.ndarray) -> _CageData:
         raise ValueError(
             f"cage vertices must be (n, 3) and faces (m, 3); got {v.shape} and {f.shape}"
         )
+    # Maps and bindings evaluate the same cage chunk after chunk: keyed on the arrays'
+    # contents, the edge table, normals and shells (~1.5 ms for 500 faces) are built once.
+    return _prepare_cage_cached(v.shape, v.tobytes(), f.shape, f.tobytes())
+
+
+@functools.lru_cache(maxsize=8)
+def _prepare_cage_cached(vshape, vbytes, fshape, fbytes) -> _CageData:
+    v = np.frombuffer(vbytes, dtype=np.float64).reshape(vshape)
+    f = np.frombuffer(fbytes, dtype=np.int64).reshape(fshape)
     normals, areas = face_normals_and_areas(v, f)
     x = v[f]  # (m, 3 corners, 3)
     d = np.stack([x[:, (i + 1) % 3] - x[:, (i + 2) % 3] for i in range(3)], axis=1)
