@@ -96,7 +96,10 @@ def test_exact_rigid_or_similar_motion_is_reproduced(cage, anchors, mode, scale)
     assert rep.converged
     z_exact = np.vstack([cage.vertices @ A.T + T, cage.face_normals @ A.T])
     np.testing.assert_allclose(dfm.coefficients, z_exact, atol=1e-8 * scale)
-    assert rep.energy[-1] < 1e-16
+    # The solver's running energy is an expanded quadratic form whose terms cancel: it is
+    # exact only to ~1e-14 of the starting energy (it read 3e-15 or 3e-25 depending on BLAS
+    # threads). The direct evaluation from the basis rows is a sum of squares: ~0 here.
+    assert rep.energy[-1] <= 1e-13 * rep.energy[0]
     assert dfm.energy()[0] < 1e-16
     np.testing.assert_allclose(dfm.jacobians_at_anchors, np.broadcast_to(A, (6, 3, 3)), atol=1e-9)
 
@@ -188,6 +191,27 @@ def test_previous_init_warm_start_is_fast(bent):
     dfm, _ = bent
     rep = dfm.solve(init="previous", tolerance=1e-10)
     assert rep.converged and rep.iterations <= 20
+
+
+def test_convergence_does_not_hinge_on_rounding():
+    """Starts that differ by 1e-13 all converge within the default 1000 iterations.
+
+    Anderson acceleration is sensitive to rounding: with a window of 6, 4 of 12 such
+    bend-u starts (and the twist after a change of BLAS threads) stalled at a linear rate
+    past 1000 iterations. The default window of 10 brings them all in.
+    """
+    from vhm_viz import examples
+
+    sc = examples.bar("bend-u")
+    dfm = sc.deformer
+    rng = np.random.default_rng(5)
+    iterations = []
+    for _ in range(8):
+        start = np.eye(3) + 1e-13 * rng.standard_normal((dfm.n_anchors, 3, 3))
+        rep = dfm.solve(init=start, tolerance=1e-8)
+        assert rep.converged
+        iterations.append(rep.iterations)
+    assert max(iterations) <= 2 * min(iterations)
 
 
 def test_update_targets_equals_rebuild_and_does_not_refactorise(cage, anchors):

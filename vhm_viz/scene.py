@@ -22,7 +22,7 @@ version 1::
       "mode": "rigid" | "similar",
       "alpha": 0.01,
       "solver": {"max_iterations": 1000, "tolerance": 1e-6, "init": "identity",
-                 "steps": 1, "anderson_window": 6}
+                 "steps": 1, "anderson_window": 10}
     }
 
 Jacobians are user-facing, ``J[i][j] = d f_i / d x_j``. ``jacobian_points``/``jacobians``,
@@ -57,7 +57,7 @@ DEFAULT_SOLVER = {
     "tolerance": 1e-6,
     "init": "identity",
     "steps": 1,
-    "anderson_window": 6,
+    "anderson_window": 10,
 }
 _TOP_FIELDS = {"format", "version", "cage", "anchors", "constraints", "mode", "alpha", "solver"}
 _CONSTRAINT_FIELDS = ("positions", "targets", "jacobian_points", "jacobians")

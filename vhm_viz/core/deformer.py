@@ -34,7 +34,7 @@ Design (all documented choices in one place):
 * **Translation.** It lies in the null space of both the Jacobian and the Hessian rows, so
   at least one position constraint is required (:class:`ConstraintError` otherwise).
 * **Solver.** Local/global iteration on the anchors' local matrices, Anderson-accelerated
-  (window 6) with an energy safeguard, so the energy never increases (see
+  (window 10) with an energy safeguard, so the energy never increases (see
   :mod:`vhm_viz.core.solver`). Stopping rule: the estimated distance to the fixed point,
   ``|T(u) - u| / (1 - rho)`` (RMS per anchor, ``rho`` the observed contraction rate), below
   ``tolerance``; the paper's "change of R_global" rule stops far too early at the slow
@@ -222,6 +222,8 @@ class Deformer:
         uses the interior limit there.
     anderson_window : int
         Anderson acceleration window (0 for the plain local/global iteration of the paper).
+        The default 10 is the smallest that converged reliably on the bar scenarios: with 6,
+        bend-u missed 1000 iterations for 4 of 12 starts that differed by 1e-13.
 
     Raises
     ------
@@ -240,7 +242,7 @@ class Deformer:
         alpha: float = 0.01,
         smoothness_samples=None,
         smoothness_host_faces=None,
-        anderson_window: int = 6,
+        anderson_window: int = 10,
     ):
         self.cage = cage
         self._V = np.ascontiguousarray(cage.vertices, dtype=np.float64)
