@@ -1,0 +1,300 @@
+"""Point-vectorised kernel for basis values and gradients (the common, far-from-cage case).
+
+:mod:`vhm_viz.core.basis` evaluates one point at a time, with branches for every way a
+point can sit next to the cage. Most points of a shape are not next to any cage edge, and
+for them the plain formulas are exact to rounding. This kernel evaluates such points in
+groups of ``LANES``: every loop runs over the lanes of a group, without branches, so LLVM
+turns it into SIMD code, and the transcendental functions come from
+:mod:`vhm_viz.core.vecmath` instead of the C library (which would stop vectorisation).
+
+A point is *flagged* (and left for the careful per-point kernel) when it is near a cage
+edge, in the sense of the per-point kernel's pivot rule (``R - |d| < near_edge * |d|``), on
+it, or has a host face. A point exactly in a face's plane and inside the triangle gets the
+interior limit with a select, as in the per-point kernel, so the two kernels agree to a few
+ulp wherever both apply; the tests check it.
+
+Making LLVM vectorise these loops took some care, and the rules are easy to break:
+
+* Scratch arrays are flat, ``LANES`` per row, indexed with **unsigned** offsets
+  (``np.uint64``): numba adds a negative-index fix-up to signed indices, which turns
+  ``base + j`` into a gather instead of a contiguous load.
+* Row offsets are compile-time multiples of ``LANES`` from a common base, so that LLVM sees
+  the rows read from one cage vertex as a single block: the loop then needs few enough
+  run-time alias checks (at most 8) to be vectorised at all.
+* Loop trip counts are run-time values: a constant 16 gets a loop fully unrolled, and the
+  unrolled body is not vectorised.
+* A loop writes into one array at one base only (several rows of one array, at unrelated
+  offsets, count as a possible dependence), so results go through a small buffer.
+* The per-face helpers are inlined at numba level: a call passes every array as a dozen
+  scalars, more work than a 16-lane loop.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from vhm_viz.core import vecmath
+
+# Points per group. LLVM vectorises the lane loops 4 wide (AVX2) here, so 16 lanes are four
+# vector iterations; 8 lanes measured 2.5x slower (loop overhead), 32 no faster. The scratch
+# per group is (4 n + n_edges + n + m) * 16 * 8 bytes, about 0.3 MB for a 500-face cage.
+LANES = 16
+# Groups per parallel work item: amortises the scratch allocation over 256 points.
+_GROUPS_PER_ITEM = 16
+_INV_TWO_PI = 1.0 / (2.0 * math.pi)
+
+
+_JIT = dict(cache=True, error_model="numpy", boundscheck=False)
+_INLINE = dict(_JIT, inline="always")
+_U = np.uint64
+_S = _U(LANES)  # row length of the flat scratch arrays, as an unsigned offset
+
+
+@numba.njit(**_INLINE)
+def _vectors_to_vertices(pts, V, E, L):  # pragma: no cover - compiled
+    """Rows ``x, y, z, |e|`` of ``e = x_a - p`` for every cage vertex ``a``: ``E[4a + c]``."""
+    S = _S
+    for a in range(V.shape[0]):
+        vx = V[a, 0]
+        vy = V[a, 1]
+        vz = V[a, 2]
+        base = _U(a) * _U(4) * S
+        for j in range(_U(L)):
+            x = vx - pts[j]
+            y = vy - pts[S + j]
+            z = vz - pts[_U(2) * S + j]
+            E[base + j] = x
+            E[base + S + j] = y
+            E[base + _U(2) * S + j] = z
+            E[base + _U(3) * S + j] = math.sqrt(x * x + y * y + z * z)
+
+
+@numba.njit(**_INLINE)
+def _corner(E, base, j):  # pragma: no cover - compiled
+    """Lane ``j`` of the rows ``x, y, z, |e|`` of one cage vertex starting at ``base``."""
+    S = _S
+    return E[base + j], E[base + S + j], E[base + _U(2) * S + j], E[base + _U(3) * S + j]
+
+
+@numba.njit(**_INLINE)
+def _edge_logs(E, edges, edge_len, inv_4pi_len, near_edge, ce, near, L):  # pragma: no cover
+    """Per edge and lane: ``C = log(1 + 2|d| / (R - |d|)) / (4 pi |d|)``; flags near edges.
+
+    ``near[j]`` becomes nonzero when lane ``j`` is near (or on) some edge; its ``C`` values
+    are then placeholders.
+    """
+    S = _S
+    for q in range(edges.shape[0]):
+        bi = _U(edges[q, 0]) * _U(4) * S
+        bj = _U(edges[q, 1]) * _U(4) * S
+        dl = edge_len[q]
+        c4 = inv_4pi_len[q]
+        limit = near_edge * dl
+        out = _U(q) * S
+        for j in range(_U(L)):
+            ux, uy, uz, li = _corner(E, bi, j)
+            wx, wy, wz, lj = _corner(E, bj, j)
+            cx = uy * wz - uz * wy
+            cy = uz * wx - ux * wz
+            cz = ux * wy - uy * wx
+            uw = ux * wx + uy * wy + uz * wz
+            lilj = li * lj
+            big = li + lj + dl
+            # R - |d| = num / den without cancellation (see basis._edge_terms_numpy)
+            neg = uw <= 0.0
+            num = 2.0 * (cx * cx + cy * cy + cz * cz) if neg else 2.0 * (lilj + uw)
+            den = (lilj - uw) * big if neg else big
+            ok = (num > 0.0) & (num >= limit * den)  # also False on a vertex (0 / 0)
+            near[j] += 0.0 if ok else 1.0
+            ce[out + j] = vecmath.log1p(2.0 * dl * den / num if ok else 1.0) * c4
+
+
+@numba.njit(**_INLINE)
+def _face_values(E, ce, b0, b1, b2, q0, q1, q2, n_t, NxD_t, ia, buf, L):  # pragma: no cover
+    """One face, every lane: ``psi_t``, the three ``phi`` increments and ``P`` into ``buf``.
+
+    ``b*`` are the flat offsets of the face's corners in ``E``, ``q*`` those of the edges
+    opposite them in ``ce``; ``buf`` rows: psi, phi increments of corners 0-2, P (x, y, z).
+    """
+    S = _S
+    nx, ny, nz = n_t[0], n_t[1], n_t[2]
+    m0x, m0y, m0z = NxD_t[0, 0], NxD_t[0, 1], NxD_t[0, 2]
+    m1x, m1y, m1z = NxD_t[1, 0], NxD_t[1, 1], NxD_t[1, 2]
+    m2x, m2y, m2z = NxD_t[2, 0], NxD_t[2, 1], NxD_t[2, 2]
+    for j in range(_U(L)):
+        x0, y0, z0, l0 = _corner(E, b0, j)
+        x1, y1, z1, l1 = _corner(E, b1, j)
+        x2, y2, z2, l2 = _corner(E, b2, j)
+        # Jv_v = e_{v+2} x e_{v+1}
+        j0x = y2 * z1 - z2 * y1
+        j0y = z2 * x1 - x2 * z1
+        j0z = x2 * y1 - y2 * x1
+        j1x = y0 * z2 - z0 * y2
+        j1y = z0 * x2 - x0 * z2
+        j1z = x0 * y2 - y0 * x2
+        j2x = y1 * z0 - z1 * y0
+        j2y = z1 * x0 - x1 * z0
+        j2z = x1 * y0 - y1 * x0
+        det = -(x0 * j0x + y0 * j0y + z0 * j0z)
+        den = (
+            l0 * l1 * l2
+            + (x0 * x1 + y0 * y1 + z0 * z1) * l2
+            + (x0 * x2 + y0 * y2 + z0 * z2) * l1
+            + (x1 * x2 + y1 * y2 + z1 * z2) * l0
+        )
+        w = vecmath.atan2(det, den) * _INV_TWO_PI
+        # exactly in the plane, inside the triangle: the interior limit
+        w = 0.5 if (det == 0.0) & (den < 0.0) else w
+        hd = x0 * nx + y0 * ny + z0 * nz
+        c0 = ce[q0 + j]
+        c1 = ce[q1 + j]
+        c2 = ce[q2 + j]
+        qx = -w * nx + c0 * m0x + c1 * m1x + c2 * m2x
+        qy = -w * ny + c0 * m0y + c1 * m1y + c2 * m2y
+        qz = -w * nz + c0 * m0z + c1 * m1z + c2 * m2z
+        buf[j] = (
+            -w * hd
+            - c0 * (j0x * nx + j0y * ny + j0z * nz)
+            - c1 * (j1x * nx + j1y * ny + j1z * nz)
+            - c2 * (j2x * nx + j2y * ny + j2z * nz)
+        )
+        buf[S + j] = (qx * j0x + qy * j0y + qz * j0z) * ia
+        buf[_U(2) * S + j] = (qx * j1x + qy * j1y + qz * j1z) * ia
+        buf[_U(3) * S + j] = (qx * j2x + qy * j2y + qz * j2z) * ia
+        buf[_U(4) * S + j] = qx
+        buf[_U(5) * S + j] = qy
+        buf[_U(6) * S + j] = qz
+
+
+@numba.njit(**_INLINE)
+def _scatter(dst, dst_off, buf, buf_row, scale, add, L):  # pragma: no cover - compiled
+    """``dst[dst_off + j] (+)= scale * buf[buf_row * LANES + j]``."""
+    src = _U(buf_row) * _S
+    if add:
+        for j in range(_U(L)):
+            dst[dst_off + j] += scale * buf[src + j]
+    else:
+        for j in range(_U(L)):
+            dst[dst_off + j] = scale * buf[src + j]
+
+
+@numba.njit(**_INLINE)
+def _face_terms(E, ce, F, N, inv_twice_area, D, NxD, face_edges, order, acc, accg, buf, L):
+    """Add every face's contribution to the basis values (and gradients), lane by lane.
+
+    ``acc`` holds ``n + m`` rows (vertex functions, then faces) and ``accg`` three such
+    blocks (x, y, z derivatives). Each face's results go to ``buf`` first and are then added
+    to ``acc`` one row at a time (see the module notes).
+    """  # pragma: no cover - compiled
+    S = _S
+    n = _U(E.shape[0]) // (_U(4) * S)
+    nm = n + _U(F.shape[0])
+    for t in range(F.shape[0]):
+        ia = inv_twice_area[t]
+        col = (n + _U(t)) * S
+        r0 = _U(F[t, 0])
+        r1 = _U(F[t, 1])
+        r2 = _U(F[t, 2])
+        _face_values(
+            E,
+            ce,
+            r0 * _U(4) * S,
+            r1 * _U(4) * S,
+            r2 * _U(4) * S,
+            _U(face_edges[t, 0]) * S,
+            _U(face_edges[t, 1]) * S,
+            _U(face_edges[t, 2]) * S,
+            N[t],
+            NxD[t],
+            ia,
+            buf,
+            L,
+        )
+        _scatter(acc, col, buf, 0, 1.0, False, L)
+        _scatter(acc, r0 * S, buf, 1, 1.0, True, L)
+        _scatter(acc, r1 * S, buf, 2, 1.0, True, L)
+        _scatter(acc, r2 * S, buf, 3, 1.0, True, L)
+        if order >= 1:
+            # grad psi_t = -P ;  grad phi_v += (P x d_v) / 2A, one axis per loop
+            for c in range(3):
+                block = _U(c) * nm * S
+                _scatter(accg, block + col, buf, 4 + c, -1.0, False, L)
+                for v in range(3):
+                    row = _U(F[t, v]) * S + block
+                    c1 = (c + 1) % 3
+                    c2 = (c + 2) % 3
+                    # (P x d)_c = P_{c+1} d_{c+2} - P_{c+2} d_{c+1}
+                    _scatter(accg, row, buf, 4 + c1, D[t, v, c2] * ia, True, L)
+                    _scatter(accg, row, buf, 4 + c2, -D[t, v, c1] * ia, True, L)
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def lanes_kernel(
+    points,
+    V,
+    F,
+    N,
+    inv_twice_area,
+    D,
+    NxD,
+    edges,
+    edge_len,
+    inv_4pi_len,
+    face_edges,
+    host,
+    near_edge,
+    order,
+    values,
+    gradients,
+    flagged,
+):  # pragma: no cover - compiled
+    """Values (``order`` 0) or values and gradients (``order`` 1) of the basis.
+
+    Arrays as in :func:`vhm_viz.core.basis._basis_kernel`; ``flagged[k]`` is set for points
+    this kernel does not handle (near or on a cage edge or vertex, or with a host face):
+    their rows of ``values``/``gradients`` hold placeholders and must be recomputed by the
+    per-point kernel.
+    """
+    L = LANES
+    npts = points.shape[0]
+    n = V.shape[0]
+    m = F.shape[0]
+    nm = n + m
+    ngroups = (npts + L - 1) // L
+    nitems = (ngroups + _GROUPS_PER_ITEM - 1) // _GROUPS_PER_ITEM
+    for item in numba.prange(nitems):
+        pts = np.empty(3 * L)
+        near = np.empty(L)
+        E = np.empty(4 * n * L)
+        ce = np.empty(edges.shape[0] * L)
+        acc = np.empty(nm * L)
+        accg = np.empty(3 * nm * L if order >= 1 else 0)
+        buf = np.empty(7 * L)
+        for grp in range(item * _GROUPS_PER_ITEM, min(ngroups, (item + 1) * _GROUPS_PER_ITEM)):
+            k0 = grp * L
+            for j in range(L):
+                k = min(k0 + j, npts - 1)  # the last group repeats its last point
+                pts[j] = points[k, 0]
+                pts[L + j] = points[k, 1]
+                pts[2 * L + j] = points[k, 2]
+                near[j] = 0.0 if host[k] < 0 else 1.0
+            # the vertex rows accumulate over faces: start them at zero
+            acc[: n * L] = 0.0
+            if order >= 1:
+                for c in range(3):
+                    accg[c * nm * L : c * nm * L + n * L] = 0.0
+            _vectors_to_vertices(pts, V, E, L)
+            _edge_logs(E, edges, edge_len, inv_4pi_len, near_edge, ce, near, L)
+            _face_terms(E, ce, F, N, inv_twice_area, D, NxD, face_edges, order, acc, accg, buf, L)
+            for j in range(min(L, npts - k0)):
+                k = k0 + j
+                flagged[k] = near[j] > 0.0
+                for c in range(nm):
+                    values[k, c] = acc[c * L + j]
+                if order >= 1:
+                    for r in range(3):
+                        for c in range(nm):
+                            gradients[k, r, c] = accg[(r * nm + c) * L + j]
