@@ -77,6 +77,10 @@ def test_partition_of_unity_inside_zero_outside(name):
     assert np.allclose(evaluate_basis(outside, v, f).values[:, :n].sum(1), 0.0, atol=1e-12)
     assert np.allclose(winding_number(outside, v, f), 0.0, atol=1e-12)
     assert np.allclose(winding_number(inside, v, f), 1.0, atol=1e-12)
+    # the SIMD kernel (150 points: a padded last group) against the numpy reference
+    both = np.vstack([inside, outside])
+    ref = winding_number(both, v, f, backend="numpy")
+    assert np.abs(winding_number(both, v, f) - ref).max() <= 1e-13
 
 
 # --------------------------------------------------------------------------- quadrature

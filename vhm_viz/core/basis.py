@@ -48,7 +48,7 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
-from vhm_viz.core.basis_lanes import lanes_kernel
+from vhm_viz.core.basis_lanes import lanes_kernel, winding_kernel
 from vhm_viz.core.geometry import face_normals_and_areas
 
 HESSIAN_COMPONENTS = ("xx", "xy", "xz", "yy", "yz")
@@ -605,39 +605,6 @@ def _basis_kernel(
                         hessians[k, 4, col] += 0.5 * (h12 + h21) * inv2a
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
-def _winding_kernel(points, V, F, out):  # pragma: no cover - compiled
-    npts = points.shape[0]
-    n = V.shape[0]
-    m = F.shape[0]
-    nblocks = (npts + _BLOCK - 1) // _BLOCK
-    for blk in numba.prange(nblocks):
-        e = np.empty((n, 3))
-        le = np.empty(n)
-        for k in range(blk * _BLOCK, min(npts, (blk + 1) * _BLOCK)):
-            for a in range(n):
-                for r in range(3):
-                    e[a, r] = V[a, r] - points[k, r]
-                le[a] = math.sqrt(e[a, 0] ** 2 + e[a, 1] ** 2 + e[a, 2] ** 2)
-            total = 0.0
-            for t in range(m):
-                a, b, c = F[t, 0], F[t, 1], F[t, 2]
-                det = (
-                    e[a, 0] * (e[b, 1] * e[c, 2] - e[b, 2] * e[c, 1])
-                    + e[a, 1] * (e[b, 2] * e[c, 0] - e[b, 0] * e[c, 2])
-                    + e[a, 2] * (e[b, 0] * e[c, 1] - e[b, 1] * e[c, 0])
-                )
-                dab = e[a, 0] * e[b, 0] + e[a, 1] * e[b, 1] + e[a, 2] * e[b, 2]
-                dac = e[a, 0] * e[c, 0] + e[a, 1] * e[c, 1] + e[a, 2] * e[c, 2]
-                dbc = e[b, 0] * e[c, 0] + e[b, 1] * e[c, 1] + e[b, 2] * e[c, 2]
-                den = le[a] * le[b] * le[c] + dab * le[c] + dac * le[b] + dbc * le[a]
-                if det == 0.0 and den <= 0.0:
-                    total += 0.5 if den < 0.0 else 0.0
-                else:
-                    total += math.atan2(det, den) / (2.0 * math.pi)
-            out[k] = total
-
-
 # --------------------------------------------------------------------------------------
 # public API
 # --------------------------------------------------------------------------------------
@@ -874,7 +841,7 @@ def winding_number(points, vertices, faces, *, backend: str = "numba") -> np.nda
     if backend == "numba":
         out = np.zeros(p.shape[0])
         if p.shape[0]:
-            _winding_kernel(p, v, f, out)
+            winding_kernel(p, v, f, out)
         return out
     if backend != "numpy":
         raise ValueError(f"backend must be 'numba' or 'numpy'; got {backend!r}")

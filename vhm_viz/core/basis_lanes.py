@@ -80,6 +80,17 @@ def _corner(E, base, j):  # pragma: no cover - compiled
 
 
 @numba.njit(**_INLINE)
+def _solid_angle_den(x0, y0, z0, l0, x1, y1, z1, l1, x2, y2, z2, l2):  # pragma: no cover
+    """Denominator of the solid angle's ``atan2`` (Van Oosterom and Strackee) from corners."""
+    return (
+        l0 * l1 * l2
+        + (x0 * x1 + y0 * y1 + z0 * z1) * l2
+        + (x0 * x2 + y0 * y2 + z0 * z2) * l1
+        + (x1 * x2 + y1 * y2 + z1 * z2) * l0
+    )
+
+
+@numba.njit(**_INLINE)
 def _edge_logs(E, edges, edge_len, inv_4pi_len, near_edge, ce, near, L):  # pragma: no cover
     """Per edge and lane: ``C = log(1 + 2|d| / (R - |d|)) / (4 pi |d|)``; flags near edges.
 
@@ -139,12 +150,7 @@ def _face_values(E, ce, b0, b1, b2, q0, q1, q2, n_t, NxD_t, ia, buf, L):  # prag
         j2y = z1 * x0 - x1 * z0
         j2z = x1 * y0 - y1 * x0
         det = -(x0 * j0x + y0 * j0y + z0 * j0z)
-        den = (
-            l0 * l1 * l2
-            + (x0 * x1 + y0 * y1 + z0 * z1) * l2
-            + (x0 * x2 + y0 * y2 + z0 * z2) * l1
-            + (x1 * x2 + y1 * y2 + z1 * z2) * l0
-        )
+        den = _solid_angle_den(x0, y0, z0, l0, x1, y1, z1, l1, x2, y2, z2, l2)
         w = vecmath.atan2(det, den) * _INV_TWO_PI
         # exactly in the plane, inside the triangle: the interior limit
         w = 0.5 if (det == 0.0) & (den < 0.0) else w
@@ -298,3 +304,49 @@ def lanes_kernel(
                     for r in range(3):
                         for c in range(nm):
                             gradients[k, r, c] = accg[(r * nm + c) * L + j]
+
+
+@numba.njit(**_INLINE)
+def _add_solid_angles(E, b0, b1, b2, wsum, L):  # pragma: no cover - compiled
+    """``wsum[j] +=`` the signed solid angle / 4 pi of one face seen from lane ``j``."""
+    for j in range(_U(L)):
+        x0, y0, z0, l0 = _corner(E, b0, j)
+        x1, y1, z1, l1 = _corner(E, b1, j)
+        x2, y2, z2, l2 = _corner(E, b2, j)
+        det = x0 * (y1 * z2 - z1 * y2) + y0 * (z1 * x2 - x1 * z2) + z0 * (x1 * y2 - y1 * x2)
+        den = _solid_angle_den(x0, y0, z0, l0, x1, y1, z1, l1, x2, y2, z2, l2)
+        w = vecmath.atan2(det, den) * _INV_TWO_PI
+        # exactly in the plane: 1/2 inside the triangle, 0 on its edges and corners
+        in_plane = (det == 0.0) & (den <= 0.0)
+        wsum[j] += (0.5 if den < 0.0 else 0.0) if in_plane else w
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def winding_kernel(points, V, F, out):  # pragma: no cover - compiled
+    """Generalised winding number (sum of face solid angles / 4 pi) at every point."""
+    L = LANES
+    npts = points.shape[0]
+    n = V.shape[0]
+    S = _S
+    ngroups = (npts + L - 1) // L
+    nitems = (ngroups + _GROUPS_PER_ITEM - 1) // _GROUPS_PER_ITEM
+    for item in numba.prange(nitems):
+        pts = np.empty(3 * L)
+        E = np.empty(4 * n * L)
+        wsum = np.empty(L)
+        for grp in range(item * _GROUPS_PER_ITEM, min(ngroups, (item + 1) * _GROUPS_PER_ITEM)):
+            k0 = grp * L
+            for j in range(L):
+                k = min(k0 + j, npts - 1)
+                pts[j] = points[k, 0]
+                pts[L + j] = points[k, 1]
+                pts[2 * L + j] = points[k, 2]
+                wsum[j] = 0.0
+            _vectors_to_vertices(pts, V, E, L)
+            for t in range(F.shape[0]):
+                b0 = _U(F[t, 0]) * _U(4) * S
+                b1 = _U(F[t, 1]) * _U(4) * S
+                b2 = _U(F[t, 2]) * _U(4) * S
+                _add_solid_angles(E, b0, b1, b2, wsum, L)
+            for j in range(min(L, npts - k0)):
+                out[k0 + j] = wsum[j]
