@@ -406,8 +406,9 @@ def _evaluate(u, C_R, g, jzp, l_r, const_h, similar, G, T):  # pragma: no cover 
     return _energy(u, G, T, jzp, l_r, const_h)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, fastmath={"reassoc", "contract"})
 def _dot(a, b):  # pragma: no cover - compiled
+    """``a . b``; reassociation lets the reduction vectorise (Anderson's Gram rows)."""
     s = 0.0
     for i in range(a.shape[0]):
         s += a[i] * b[i]
