@@ -23,6 +23,7 @@ Run: ``python benchmarks/bench_explorer.py [--frames 60] [--sizes 43k 173k] [--n
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
 import shutil
 import statistics
@@ -35,6 +36,11 @@ import numpy as np
 from _common import data, print_table
 
 MODELS = {"43k": "armadillo_43k.obj", "173k": "armadillo_173k.ply"}
+
+
+def _stop(proc) -> None:
+    proc.terminate()
+    proc.wait(timeout=5)
 
 
 def ensure_display():
@@ -57,6 +63,11 @@ def ensure_display():
             if Path(f"/tmp/.X11-unix/X{num}").exists():
                 os.environ["DISPLAY"] = f":{num}"
                 os.environ["QT_QPA_PLATFORM"] = "xcb"
+                # Stop the server at exit, after Qt has closed its connection: atexit runs
+                # last-registered first, and PySide registers its clean-up when the
+                # QApplication is made, later than this. Terminating it from main() made
+                # Qt report a broken X connection on the way out.
+                atexit.register(_stop, proc)
                 return proc
             time.sleep(0.05)
         proc.kill()
@@ -229,9 +240,10 @@ def main() -> None:
             rows,
         )
         win.close()
-    finally:
+    except BaseException:
         if xvfb is not None:
-            xvfb.terminate()
+            _stop(xvfb)
+        raise
 
 
 if __name__ == "__main__":
