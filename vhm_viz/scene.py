@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from vhm_viz.atomic import write_text_atomic
+from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW
 
 __all__ = ["Scene", "SceneError", "SCENE_FORMAT", "SCENE_VERSION", "DEFAULT_SOLVER"]
 
@@ -57,7 +58,7 @@ DEFAULT_SOLVER = {
     "tolerance": 1e-6,
     "init": "identity",
     "steps": 1,
-    "anderson_window": 10,
+    "anderson_window": DEFAULT_ANDERSON_WINDOW,
 }
 _TOP_FIELDS = {"format", "version", "cage", "anchors", "constraints", "mode", "alpha", "solver"}
 _CONSTRAINT_FIELDS = ("positions", "targets", "jacobian_points", "jacobians")

@@ -63,7 +63,7 @@ import scipy.linalg as sla
 from vhm_viz.core.basis import evaluate_basis
 from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indices
 from vhm_viz.core.geometry import face_normals_and_areas
-from vhm_viz.core.solver import project_blocks, run_local_global
+from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW, project_blocks, run_local_global
 
 __all__ = ["Deformer", "Binding", "SolveReport", "default_smoothness_samples"]
 
@@ -221,9 +221,8 @@ class Deformer:
         For samples exactly on cage faces, the face index (-1 for others): the basis then
         uses the interior limit there.
     anderson_window : int
-        Anderson acceleration window (0 for the plain local/global iteration of the paper).
-        The default 10 is the smallest that converged reliably on the bar scenarios: with 6,
-        bend-u missed 1000 iterations for 4 of 12 starts that differed by 1e-13.
+        Anderson acceleration window (0 for the plain local/global iteration of the paper);
+        default :data:`~vhm_viz.core.solver.DEFAULT_ANDERSON_WINDOW` (10).
 
     Raises
     ------
@@ -242,7 +241,7 @@ class Deformer:
         alpha: float = 0.01,
         smoothness_samples=None,
         smoothness_host_faces=None,
-        anderson_window: int = 10,
+        anderson_window: int = DEFAULT_ANDERSON_WINDOW,
     ):
         self.cage = cage
         self._V = np.ascontiguousarray(cage.vertices, dtype=np.float64)

@@ -31,7 +31,12 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["project_blocks", "run_local_global"]
+__all__ = ["DEFAULT_ANDERSON_WINDOW", "project_blocks", "run_local_global"]
+
+#: Anderson window used unless the caller picks one (Deformer, scenes). 10 is the smallest
+#: that converged reliably on the bar scenarios: with 6, bend-u missed 1000 iterations for
+#: 4 of 12 starts that differed by 1e-13.
+DEFAULT_ANDERSON_WINDOW = 10
 
 
 # ----------------------------------------------------------------------------- 3x3 polar
