@@ -87,15 +87,15 @@ def cage_table(quick: bool, repeat: int) -> None:
 def beast_quality() -> None:
     import pyvista as pv
 
-    from vhm_viz.autoanchors import auto_anchors
     from vhm_viz.autocage import auto_cage
-    from vhm_viz.cage import Cage
+    from vhm_viz.autocage.anchors import auto_anchors
     from vhm_viz.core.deformer import Deformer
+    from vhm_viz.io import read_cage
 
     mesh = pv.read(data("beast", "beast.obj"))
     pts = np.asarray(mesh.points, dtype=np.float64)
     diag = float(np.linalg.norm(np.ptp(pts, axis=0)))
-    hand_cage = Cage.from_file(data("beast", "cage.obj"))
+    hand_cage = read_cage(data("beast", "cage.obj"))
     auto = auto_cage(mesh)
     anchors = auto_anchors(mesh, hand_cage, 40)
     anchors = anchors[auto.contains(anchors) & hand_cage.contains(anchors)]

@@ -23,8 +23,8 @@ FIRST_CALL = """
 import time, numpy as np, pyvista as pv, sys
 sys.path.insert(0, {bench!r})
 from _common import data
-from vhm_viz import Cage
-cage = Cage.from_file(data('armadillo', {cage!r}))
+from vhm_viz.io import read_cage
+cage = read_cage(data('armadillo', {cage!r}))
 pts = np.asarray(pv.read(data('armadillo', 'armadillo_173k.ply')).points, dtype=float)
 t0 = time.perf_counter()
 from vhm_viz.core.basis import evaluate_basis
@@ -54,13 +54,13 @@ def main() -> None:
     import numba
     import pyvista as pv
 
-    from vhm_viz import Cage
     from vhm_viz.core.basis import evaluate_basis
+    from vhm_viz.io import read_cage
 
     pts = np.asarray(pv.read(data("armadillo", "armadillo_173k.ply")).points, dtype=np.float64)
     print(f"numba threads: {numba.get_num_threads()}, points: {len(pts)}\n")
     rows = []
-    cage500 = Cage.from_file(data("armadillo", "cage_500f.obj"))
+    cage500 = read_cage(data("armadillo", "cage_500f.obj"))
     sub = pts[:: max(1, len(pts) // 20000)]
     for order, label, subset in (
         (0, "values", sub),
@@ -82,7 +82,7 @@ def main() -> None:
             ]
         )
     for cage_name in ("cage_216f.obj", "cage_500f.obj"):
-        cage = Cage.from_file(data("armadillo", cage_name))
+        cage = read_cage(data("armadillo", cage_name))
         first = first_call_seconds(cage_name)
         evaluate_basis(pts[:16], cage.vertices, cage.faces)
         times = timed(

@@ -109,7 +109,7 @@ def armadillo_anchors(count: int = 50, res: int = 56) -> np.ndarray:
 def precompute_and_deform(repeats: int, skip_armadillo: bool) -> tuple[list, list]:
     import pyvista as pv
 
-    from vhm_viz import Cage
+    from vhm_viz.io import read_cage
 
     pre_rows, def_rows = [], []
     cases = [("bar (33,464 v, 208 f, d=6)", "bar")]
@@ -121,7 +121,7 @@ def precompute_and_deform(repeats: int, skip_armadillo: bool) -> tuple[list, lis
             cage, anchors, pts = sc.cage, sc.anchors, sc.points
             cons = sc.constraints
         else:
-            cage = Cage.from_file(data("armadillo", "cage_500f.obj"))
+            cage = read_cage(data("armadillo", "cage_500f.obj"))
             pts = np.asarray(pv.read(data("armadillo", "armadillo_173k.ply")).points, dtype=float)
             t0 = time.perf_counter()
             anchors = armadillo_anchors(50)

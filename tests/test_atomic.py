@@ -6,13 +6,14 @@ import os
 
 import pytest
 
-from vhm_viz.atomic import atomic_path, write_text_atomic
+from vhm_viz.atomic import atomic_path
+from vhm_viz.io import write_text
 
 
 def test_written_file_has_umask_permissions(tmp_path):
     old = os.umask(0o022)
     try:
-        write_text_atomic(tmp_path / "a.json", "{}\n")
+        write_text(tmp_path / "a.json", "{}\n")
     finally:
         os.umask(old)
     assert (tmp_path / "a.json").read_text() == "{}\n"

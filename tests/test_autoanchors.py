@@ -8,7 +8,7 @@ from conftest import box_cage, data_path
 
 pv = pytest.importorskip("pyvista")
 
-from vhm_viz.autoanchors import auto_anchors  # noqa: E402
+from vhm_viz.autocage.anchors import auto_anchors  # noqa: E402
 from vhm_viz.core.basis import winding_number  # noqa: E402
 from vhm_viz.core.cage import Cage  # noqa: E402
 
@@ -31,9 +31,9 @@ def test_hand_anchors_inside_shape_and_cage():
     mesh = pv.read(data_path("hand", "hand.obj")).triangulate()
     v = np.asarray(mesh.points)
     f = np.asarray(mesh.faces).reshape(-1, 4)[:, 1:]
-    from vhm_viz.cage import Cage as FileCage
+    from vhm_viz.io import read_cage
 
-    cage = FileCage.from_file(data_path("hand", "cage.obj"))
+    cage = read_cage(data_path("hand", "cage.obj"))
     anchors, report = auto_anchors(mesh, cage, 40, return_report=True)
     assert anchors.shape == (40, 3)
     assert cage.contains(anchors).all()
@@ -48,7 +48,7 @@ def test_hand_anchors_inside_shape_and_cage():
 
 @pytest.mark.data
 def test_volume_anchors_inside_the_thresholded_region():
-    from vhm_viz.autocage import _otsu, auto_cage
+    from vhm_viz.autocage.cage import _otsu, auto_cage
 
     vol = pv.read(data_path("volumes", "headsq_64x64x93.vti"))
     cage = auto_cage(vol, threshold="otsu", max_faces=300)

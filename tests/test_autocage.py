@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from conftest import box_cage, data_path
 
-from vhm_viz.core import voxel as vx
+from vhm_viz.autocage import voxel as vx
+from vhm_viz.autocage.meshcheck import edge_problems
+from vhm_viz.autocage.proximity import NearDistance, grid_signed_distance
+from vhm_viz.autocage.simplify import simplify
 from vhm_viz.core.geometry import signed_volume
-from vhm_viz.core.meshcheck import edge_problems
-from vhm_viz.core.proximity import NearDistance, grid_signed_distance
-from vhm_viz.core.simplify import simplify
 
 pv = pytest.importorskip("pyvista")
 
@@ -181,7 +181,7 @@ def test_volume_threshold_region_and_bounding_box():
     vol = pv.read(data_path("volumes", "headsq_64x64x93.vti"))
     cage, report = auto_cage(vol, threshold="otsu", max_faces=400, return_report=True)
     vals = np.asarray(vol.active_scalars)
-    from vhm_viz.autocage import _otsu
+    from vhm_viz.autocage.cage import _otsu
 
     region = np.asarray(vol.points)[vals > _otsu(vals)]
     _check(cage, report, region, 400)
@@ -216,7 +216,7 @@ def test_two_bars_are_not_bridged(bars_cage):
 
 def test_moving_one_bar_barely_moves_the_other(bars_cage):
     deformer = pytest.importorskip("vhm_viz.core.deformer")
-    from vhm_viz.autoanchors import auto_anchors
+    from vhm_viz.autocage.anchors import auto_anchors
 
     v, f, (cage, _) = bars_cage
     half = len(v) // 2

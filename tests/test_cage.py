@@ -9,10 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vhm_viz.cage import Cage
-from vhm_viz.core.cage import Cage as CoreCage
-from vhm_viz.core.cage import self_intersections
+from vhm_viz.core.cage import Cage, self_intersections
 from vhm_viz.core.errors import CageError
+from vhm_viz.io import cage_from_dataset, cage_to_polydata, read_cage
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
@@ -34,7 +33,7 @@ def box(offset=(0.0, 0.0, 0.0), scale=1.0):
 
 def raises(v, f, match):
     with pytest.raises(CageError, match=match) as info:
-        CoreCage(v, f)
+        Cage(v, f)
     return info.value
 
 
@@ -53,7 +52,7 @@ def canonical(cage):
 
 def test_box_properties():
     v, f = box()
-    c = CoreCage(v, f)
+    c = Cage(v, f)
     assert c.n_vertices == 8 and c.n_faces == 12
     assert np.allclose(c.bounds, [[0, 0, 0], [1, 1, 1]])
     assert c.diagonal == pytest.approx(np.sqrt(3))
@@ -75,25 +74,25 @@ def test_box_properties():
         assert np.array_equal(vf[vi].indices, expected)
     assert np.array_equal(vf.sum(axis=0).A1, np.full(12, 3))
     assert len(c.edges) == 18
-    assert hash(c) == hash(CoreCage(v, f)) and c == CoreCage(v, f)
+    assert hash(c) == hash(Cage(v, f)) and c == Cage(v, f)
 
 
 def test_input_not_modified_and_copied():
     v, f = box()
-    c = CoreCage(v, f)
+    c = Cage(v, f)
     v[0] = 99
     assert c.vertices[0, 0] == 0
 
 
 def test_integral_float_faces_accepted():
     v, f = box()
-    assert CoreCage(v, f.astype(float)).n_faces == 12
+    assert Cage(v, f.astype(float)).n_faces == 12
 
 
 def test_inward_cage_is_flipped_with_warning():
     v, f = box()
     with pytest.warns(UserWarning, match="inward"):
-        c = CoreCage(v, f[:, [0, 2, 1]])
+        c = Cage(v, f[:, [0, 2, 1]])
     assert c.flipped
     assert np.array_equal(c.faces, f)
     assert c.volume > 0
@@ -105,7 +104,7 @@ def test_unreferenced_vertex_warns_and_is_kept():
     v, f = box()
     v = np.vstack([v, [0.5, 0.5, 0.5]])
     with pytest.warns(UserWarning, match=r"used by no face \(vertices 8\)"):
-        c = CoreCage(v, f)
+        c = Cage(v, f)
     assert c.n_vertices == 9
     assert c.vertex_faces[8].nnz == 0
 
@@ -113,11 +112,11 @@ def test_unreferenced_vertex_warns_and_is_kept():
 def test_two_disjoint_boxes_and_hollow_are_valid():
     v1, f1 = box()
     v2, f2 = box(offset=(3, 0, 0))
-    c = CoreCage(np.vstack([v1, v2]), np.vstack([f1, f2 + 8]))
+    c = Cage(np.vstack([v1, v2]), np.vstack([f1, f2 + 8]))
     assert c.volume == pytest.approx(2)
     # hollow: inner box oriented inward
     v3, f3 = box(offset=(0.25, 0.25, 0.25), scale=0.5)
-    c = CoreCage(np.vstack([v1, v3]), np.vstack([f1, f3[:, [0, 2, 1]] + 8]))
+    c = Cage(np.vstack([v1, v3]), np.vstack([f1, f3[:, [0, 2, 1]] + 8]))
     assert c.volume == pytest.approx(1 - 0.125)
     assert np.array_equal(c.contains([[0.1, 0.1, 0.1], [0.5, 0.5, 0.5]]), [True, False])
 
@@ -128,7 +127,7 @@ def test_boxes_pinched_at_a_vertex_are_accepted():
     v2, f2 = box(offset=(1, 1, 1))
     remap = np.arange(8) + 7
     remap[0] = 6
-    c = CoreCage(np.vstack([v1, v2[1:]]), np.vstack([f1, remap[f2]]))
+    c = Cage(np.vstack([v1, v2[1:]]), np.vstack([f1, remap[f2]]))
     assert c.n_vertices == 15 and c.volume == pytest.approx(2)
 
 
@@ -291,9 +290,9 @@ def _sphere(nsub):
 def test_self_intersection_speed_and_no_false_positive():
     for nsub, limit in [(2, 0.2), (4, 3.0)]:  # 320 and 5120 faces
         v, f = _sphere(nsub)
-        CoreCage(v, f)  # warm up
+        Cage(v, f)  # warm up
         t = time.perf_counter()
-        c = CoreCage(v, f)
+        c = Cage(v, f)
         assert time.perf_counter() - t < limit
         assert not c.flipped
 
@@ -302,7 +301,7 @@ def test_self_intersection_speed_and_no_false_positive():
 
 
 def test_contains_near_faces():
-    c = CoreCage(*box())
+    c = Cage(*box())
     eps = 1e-9
     rng = np.random.default_rng(0)
     pts_in, pts_out = [], []
@@ -340,7 +339,7 @@ def _pv_box():
 def test_from_file_round_trip_pyvista(tmp_path, ext):
     path = tmp_path / f"box.{ext}"
     _pv_box().save(str(path))
-    c = Cage.from_file(path)
+    c = read_cage(path)
     ref = Cage(BOX_V, BOX_F)
     assert isinstance(c, Cage)
     assert c.n_faces == 12 and c.n_vertices == 8
@@ -357,14 +356,14 @@ def test_from_file_off_by_hand(tmp_path):
     lines += [" ".join(map(str, p)) for p in BOX_V]
     lines += ["3 " + " ".join(map(str, t)) for t in BOX_F]
     path.write_text("\n".join(lines) + "\n")
-    c = Cage.from_file(path)
+    c = read_cage(path)
     assert np.array_equal(c.faces, BOX_F) and np.allclose(c.vertices, BOX_V)
     # quads in OFF as well
     lines = ["OFF", f"{len(BOX_V)} {len(BOX_Q)} 0"]
     lines += [" ".join(map(str, p)) for p in BOX_V]
     lines += ["4 " + " ".join(map(str, q)) for q in BOX_Q]
     path.write_text("\n".join(lines) + "\n")
-    assert canonical(Cage.from_file(path)) == canonical(Cage(BOX_V, BOX_F))
+    assert canonical(read_cage(path)) == canonical(Cage(BOX_V, BOX_F))
 
 
 def test_from_file_quad_and_mixed_obj(tmp_path):
@@ -375,7 +374,7 @@ def test_from_file_quad_and_mixed_obj(tmp_path):
     lines += ["f " + " ".join(str(i + 1) for i in t) for t in BOX_F[[4, 10]]]
     lines += ["f " + " ".join(str(i - 8) for i in t) for t in BOX_F[[5, 11]]]
     path.write_text("\n".join(lines) + "\n")
-    c = Cage.from_file(path)
+    c = read_cage(path)
     assert c.n_faces == 12
     assert canonical(c) == canonical(Cage(BOX_V, BOX_F))
 
@@ -384,33 +383,33 @@ def test_from_pyvista_and_to_pyvista():
     import pyvista as pv
 
     cube = pv.Cube()  # quads
-    c = Cage.from_pyvista(cube)
+    c = cage_from_dataset(cube)
     assert c.n_faces == 12 and c.volume == pytest.approx(1.0)
-    mesh = c.to_pyvista()
+    mesh = pv.wrap(cage_to_polydata(c))
     assert isinstance(mesh, pv.PolyData)
     assert np.array_equal(mesh.regular_faces, c.faces)
     assert np.allclose(mesh.points, c.vertices)
     assert np.allclose(mesh.cell_data["Normals"], c.face_normals)
-    assert Cage.from_pyvista(mesh) == c
+    assert cage_from_dataset(mesh) == c
     # an unstructured grid of polygons keeps its point order
     grid = pv.UnstructuredGrid({pv.CellType.TRIANGLE: BOX_F}, BOX_V)
-    assert Cage.from_pyvista(grid) == Cage(BOX_V, BOX_F)
+    assert cage_from_dataset(grid) == Cage(BOX_V, BOX_F)
 
 
 def test_from_file_errors(tmp_path):
     with pytest.raises(FileNotFoundError):
-        Cage.from_file(tmp_path / "missing.obj")
+        read_cage(tmp_path / "missing.obj")
     bad = tmp_path / "x.xyz"
     bad.write_text("1 2 3\n")
     with pytest.raises(CageError, match="unsupported"):
-        Cage.from_file(bad)
+        read_cage(bad)
 
 
 def test_public_name():
     import vhm_viz
 
     assert vhm_viz.Cage is Cage
-    assert issubclass(vhm_viz.Cage, CoreCage)
+    assert issubclass(vhm_viz.Cage, Cage)
 
 
 # ---------------------------------------------------------------------------- data files
@@ -431,7 +430,7 @@ GOOD = [
 def test_good_cages(name):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        c = Cage.from_file(DATA / name)
+        c = read_cage(DATA / name)
     assert not c.flipped and c.volume > 0
     centre = c.face_centroids - 1e-6 * c.diagonal * c.face_normals
     assert c.contains(centre).all()
@@ -440,7 +439,7 @@ def test_good_cages(name):
 @needs_data
 @pytest.mark.data
 def test_good_cage_speed():
-    c = Cage.from_file(DATA / "armadillo/cage_500f.obj")
+    c = read_cage(DATA / "armadillo/cage_500f.obj")
     t = time.perf_counter()
     Cage(c.vertices, c.faces)
     assert time.perf_counter() - t < 0.2
@@ -450,7 +449,7 @@ def test_good_cage_speed():
 @pytest.mark.data
 def test_bad_cage_open():
     with pytest.raises(CageError, match="not closed: 8 boundary edges") as info:
-        Cage.from_file(DATA / "bad_cages/open_selfintersecting_elephant_cage.obj")
+        read_cage(DATA / "bad_cages/open_selfintersecting_elephant_cage.obj")
     assert info.value.indices.shape == (8, 2)
 
 
@@ -458,7 +457,7 @@ def test_bad_cage_open():
 @pytest.mark.data
 def test_bad_cage_non_manifold():
     with pytest.raises(CageError, match="non-manifold: 5 edges") as info:
-        Cage.from_file(DATA / "bad_cages/nonmanifold_peter_cage.obj")
+        read_cage(DATA / "bad_cages/nonmanifold_peter_cage.obj")
     assert info.value.indices.shape == (5, 2)
 
 
@@ -468,10 +467,10 @@ def test_bad_cage_self_intersecting():
     # The data README says 23; an independent brute-force segment/triangle crossing test
     # finds the same 27 pairs as we do: 19 vertex-disjoint + 8 sharing one vertex.
     with pytest.raises(CageError, match="self-intersects: 27 pairs") as info:
-        Cage.from_file(DATA / "bad_cages/selfintersecting_armadillo_cage.obj")
+        read_cage(DATA / "bad_cages/selfintersecting_armadillo_cage.obj")
     pairs = info.value.indices
     assert pairs.shape == (27, 2)
-    c = Cage.from_file(
+    c = read_cage(
         DATA / "bad_cages/selfintersecting_armadillo_cage.obj", check_self_intersection=False
     )
     shared = [len(set(c.faces[a]) & set(c.faces[b])) for a, b in pairs]
@@ -483,7 +482,7 @@ def test_bad_cage_self_intersecting():
 def test_partial_cage():
     import pyvista as pv
 
-    c = Cage.from_file(DATA / "bad_cages/partial_armadillo_cage.obj")
+    c = read_cage(DATA / "bad_cages/partial_armadillo_cage.obj")
     pts = pv.read(DATA / "bad_cages/armadillo_252v_for_partial_cage.obj").points
     outside = ~c.contains(pts)
     assert 0.02 < outside.mean() < 0.08

@@ -9,8 +9,8 @@ import pytest
 
 pv = pytest.importorskip("pyvista")
 
-from vhm_viz import Cage  # noqa: E402
 from vhm_viz.cli import main  # noqa: E402
+from vhm_viz.io import read_cage  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +23,7 @@ def capsule(tmp_path_factory):
 def test_cage_then_anchors(capsule, tmp_path, capsys):
     cage_path = tmp_path / "cage.obj"
     assert main(["cage", str(capsule), "-o", str(cage_path), "--max-faces", "200"]) == 0
-    cage = Cage.from_file(cage_path)  # validates: closed, manifold, outward, no intersections
+    cage = read_cage(cage_path)  # validates: closed, manifold, outward, no intersections
     assert cage.n_faces <= 200
     pts = np.asarray(pv.read(capsule).points)
     assert cage.contains(pts).all()

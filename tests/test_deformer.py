@@ -465,7 +465,7 @@ def test_lambda_follows_paper_rule(cage, anchors):
 
 
 def test_parallel_deform_kernel_matches_numpy(bent, monkeypatch):
-    import vhm_viz.core.deformer as mod
+    import vhm_viz.core.binding as mod
 
     dfm, _ = bent
     pts = np.array([[0.0, 0.0, 1.0], [5.0, 0.0, 0.0], [0.2, -0.1, 3.3], [0.1, 0.1, 4.9]])

@@ -24,6 +24,7 @@ from vhm_viz.filters import (  # noqa: E402
     output_type_for,
     update,
 )
+from vhm_viz.io import cage_to_polydata  # noqa: E402
 
 SDDP = vtkStreamingDemandDrivenPipeline
 
@@ -47,6 +48,28 @@ def _expected_normals(jac, n):
     # independent formula: cof(J) n = det(J) J^{-T} n
     m = np.linalg.det(jac)[:, None] * np.einsum("kji,kj->ki", np.linalg.inv(jac), n)
     return m / np.linalg.norm(m, axis=1, keepdims=True)
+
+
+def _fd_jacobian(f, points, h=1e-5):
+    """Central finite differences of the positions: ``J[k, i, j] = d f_i / d x_j``."""
+    p = np.asarray(points, dtype=np.float64)
+    cols = []
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = h
+        cols.append((f(p + e) - f(p - e)) / (2 * h))
+    return np.stack(cols, axis=2)
+
+
+def _reference_measures(jac):
+    """det, s_max / s_min and the polar rotation's angle (degrees), by scipy, per Jacobian."""
+    from scipy.linalg import polar
+    from scipy.spatial.transform import Rotation
+
+    det = np.linalg.det(jac)
+    sv = np.linalg.svd(jac, compute_uv=False)
+    angle = np.array([Rotation.from_matrix(polar(j)[0]).magnitude() for j in jac])
+    return det, sv[:, 0] / sv[:, 2], np.degrees(angle)
 
 
 def _datasets():
@@ -114,6 +137,32 @@ def test_filter_matches_harmonic_map(kind):
     np.testing.assert_array_equal(mesh.points, rest)
 
 
+@pytest.mark.parametrize("kind", list(_datasets()))
+def test_filter_reproduces_an_affine_map_exactly(kind):
+    """Green coordinates reproduce affine maps: the filter output is ``A p + T`` itself."""
+    from scipy.spatial.transform import Rotation
+
+    mesh, _ = _datasets()[kind]
+    cage = _cage_around(mesh.bounds)
+    A = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix() @ np.diag([1.3, 0.8, 1.1])
+    T = np.array([0.25, -0.1, 0.4])
+    flt = _filter(mesh, HarmonicMap.affine(cage, A, T))
+    flt.SetComputeDisplacement(True)
+    flt.SetComputeJacobianDeterminant(True)
+    flt.SetComputeConditionNumber(True)
+    out = pv.wrap(update(flt))
+    rest = np.asarray(mesh.points)
+    np.testing.assert_allclose(out.points, rest @ A.T + T, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(out.point_data["displacement"], rest @ A.T + T - rest, atol=1e-10)
+    np.testing.assert_allclose(out.point_data["jacobian_determinant"], 1.3 * 0.8 * 1.1, rtol=1e-9)
+    np.testing.assert_allclose(out.point_data["condition_number"], 1.3 / 0.8, rtol=1e-9)
+    if "Normals" in mesh.point_data:
+        n = np.asarray(mesh.point_data["Normals"])
+        m = n @ np.linalg.inv(A)  # cof(A) n is parallel to A^-T n
+        m /= np.linalg.norm(m, axis=1, keepdims=True)
+        np.testing.assert_allclose(out.point_data["Normals"], m, atol=1e-10)
+
+
 def test_filter_on_hand_tets():
     path = data_path("hand_tet", "hand.mesh")
     mesh = pv.read(path)
@@ -150,12 +199,21 @@ def test_cell_normals_are_deformed():
 # ------------------------------------------------------------------ outside the cage
 
 
-def test_outside_points_error_and_passthrough():
+def _sphere_in_small_box():
+    """A sphere partly outside an axis-aligned box cage, and which points are inside,
+    decided by the box's own inequalities (no winding number)."""
     mesh = pv.Sphere(radius=0.5)
-    cage = _cage_around((-0.42, 0.42, -0.42, 0.42, -0.42, 0.42), margin=0.0, divisions=1)
-    hm = _random_map(cage)
-    inside = hm.inside(np.asarray(mesh.points))
+    half = 0.42
+    cage = _cage_around((-half, half, -half, half, -half, half), margin=0.0, divisions=1)
+    p = np.asarray(mesh.points)
+    assert np.abs(np.abs(p) - half).min() > 1e-6  # no point on the box
+    inside = (np.abs(p) < half).all(axis=1)
     assert 0 < inside.sum() < mesh.n_points
+    return mesh, _random_map(cage), inside
+
+
+def test_outside_points_error_and_passthrough():
+    mesh, hm, inside = _sphere_in_small_box()
     flt = _filter(mesh, hm)
     with pytest.raises(OutsideCageError) as err:
         update(flt)
@@ -167,6 +225,48 @@ def test_outside_points_error_and_passthrough():
     np.testing.assert_array_equal(out.points[~inside], mesh.points[~inside])
     np.testing.assert_allclose(out.points[inside], hm.map(mesh.points[inside]), atol=1e-12)
     assert int(out.field_data["vhm_outside_count"][0]) == flt.outside_count
+
+
+@pytest.mark.filterwarnings("ignore:invalid value encountered in det:RuntimeWarning")
+def test_outside_points_nan_policy():
+    mesh, hm, inside = _sphere_in_small_box()
+    flt = _filter(mesh, hm, outside="nan")
+    flt.SetComputeDisplacement(True)
+    flt.SetComputeJacobianDeterminant(True)
+    out = pv.wrap(update(flt))
+    flags = np.asarray(out.point_data["vhm_outside"])
+    assert flags.dtype == np.uint8
+    np.testing.assert_array_equal(flags, (~inside).astype(np.uint8))
+    assert flt.outside_count == int((~inside).sum())
+    assert int(out.field_data["vhm_outside_count"][0]) == int((~inside).sum())
+    pts = np.asarray(out.points)
+    assert np.isnan(pts[~inside]).all()
+    np.testing.assert_allclose(pts[inside], hm.map(mesh.points[inside]), atol=1e-12)
+    det = np.asarray(out.point_data["jacobian_determinant"])
+    assert np.isnan(det[~inside]).all()
+    np.testing.assert_allclose(
+        det[inside], np.linalg.det(hm.jacobian(mesh.points[inside])), rtol=1e-10
+    )
+    assert np.isnan(np.asarray(out.point_data["displacement"])[~inside]).all()
+    # the input is untouched
+    assert np.isfinite(mesh.points).all()
+
+
+@pytest.mark.parametrize("which", ["deformation_condition", "analysis"])
+def test_outside_nan_policy_with_svd_measures(which):
+    mesh, hm, inside = _sphere_in_small_box()
+    if which == "analysis":
+        flt = _analysis(mesh, hm)
+        flt.SetOutsidePolicy("nan")
+    else:
+        flt = _filter(mesh, hm, outside="nan")
+        flt.SetComputeConditionNumber(True)
+    out = pv.wrap(update(flt))
+    cond = np.asarray(out.point_data["condition_number"])
+    assert np.isnan(cond[~inside]).all()
+    sv = np.linalg.svd(hm.jacobian(mesh.points[inside]), compute_uv=False)
+    np.testing.assert_allclose(cond[inside], sv[:, 0] / sv[:, 2], rtol=1e-10)
+    np.testing.assert_array_equal(out.point_data["vhm_outside"], (~inside).astype(np.uint8))
 
 
 # ------------------------------------------------------------------ caching
@@ -231,8 +331,17 @@ def test_harmonic_map_rejects_other_cage():
     flt.SetCageData(_cage_around(mesh.bounds, margin=0.3))
     with pytest.raises(ValueError, match="port 1"):
         update(flt)
-    flt.SetCageData(hm.cage)  # the same cage is fine
-    update(flt)
+    flt.SetCageData(hm.cage)  # the same cage is fine, and is the map's cage
+    np.testing.assert_allclose(pv.wrap(update(flt)).points, hm.map(mesh.points), atol=1e-12)
+    # so is a copy moved by far less than the tolerance (1e-9 of the diagonal) ...
+    near = Cage(hm.cage.vertices + 1e-12 * hm.cage.diagonal, hm.cage.faces)
+    flt.SetCageData(near)
+    np.testing.assert_allclose(pv.wrap(update(flt)).points, hm.map(mesh.points), atol=1e-12)
+    # ... but not one moved by more
+    far = Cage(hm.cage.vertices + 1e-6 * hm.cage.diagonal, hm.cage.faces)
+    flt.SetCageData(far)
+    with pytest.raises(ValueError, match="port 1"):
+        update(flt)
 
 
 # ------------------------------------------------------------------ pieces
@@ -245,7 +354,7 @@ class _CageSource(VTKPythonAlgorithmBase):
         VTKPythonAlgorithmBase.__init__(
             self, nInputPorts=0, nOutputPorts=1, outputType="vtkPolyData"
         )
-        self.cage = cage.to_pyvista()
+        self.cage = pv.wrap(cage_to_polydata(cage))
         self.requests = []
 
     def RequestData(self, request, in_info, out_info):
@@ -438,17 +547,18 @@ def test_analysis_arrays_equal_metrics():
     assert isinstance(out, pv.PolyData)
     np.testing.assert_array_equal(out.points, mesh.points)  # rest geometry
     np.testing.assert_array_equal(out.point_data["keep"], mesh.point_data["keep"])
+    # the closed form against finite differences of the mapped positions
+    fd = _fd_jacobian(hm.map, mesh.points)
+    np.testing.assert_allclose(hm.jacobian(mesh.points), fd, atol=1e-7)
+    det, cond, angle = _reference_measures(fd)
+    assert det.min() > 0 and np.ptp(det) > 0.05 and angle.max() > 1.0  # a real deformation
+    np.testing.assert_allclose(out.point_data["jacobian_determinant"], det, rtol=1e-8)
+    np.testing.assert_allclose(out.point_data["condition_number"], cond, rtol=1e-8)
+    np.testing.assert_allclose(out.point_data["rotation_angle"], angle, atol=1e-6)
+    np.testing.assert_array_equal(out.point_data["foldover"], np.zeros(mesh.n_points))
+    # and bit-for-bit the library's measures of the closed-form Jacobian
     m = jacobian_measures(hm.jacobian(mesh.points))
     np.testing.assert_allclose(out.point_data["jacobian_determinant"], m["determinant"], rtol=1e-12)
-    np.testing.assert_allclose(
-        out.point_data["condition_number"], m["condition_number"], rtol=1e-12
-    )
-    np.testing.assert_allclose(
-        out.point_data["rotation_angle"], np.degrees(m["rotation_angle"]), atol=1e-9
-    )
-    np.testing.assert_array_equal(
-        out.point_data["foldover"], (m["determinant"] <= 0).astype(np.uint8)
-    )
 
 
 def test_analysis_identity_map_and_foldover():
@@ -478,8 +588,13 @@ def test_analysis_with_deformer_matches_binding():
     dfm.update_targets(targets=positions + [[0, 0, 0], [0.15, 0.05, 0.0]])
     dfm.solve()
     out = pv.wrap(update(_analysis(mesh, dfm)))
-    m = jacobian_measures(dfm.harmonic_map.jacobian(mesh.points))
-    np.testing.assert_allclose(out.point_data["jacobian_determinant"], m["determinant"], rtol=1e-8)
+    # finite differences of the deformer's own deformation of nearby points
+    fd = _fd_jacobian(lambda p: dfm.bind(p).deform(), mesh.points)
+    det, cond, angle = _reference_measures(fd)
+    assert np.abs(det - 1).max() > 0.01  # not the identity
+    np.testing.assert_allclose(out.point_data["jacobian_determinant"], det, rtol=1e-8)
+    np.testing.assert_allclose(out.point_data["condition_number"], cond, rtol=1e-8)
+    np.testing.assert_allclose(out.point_data["rotation_angle"], angle, atol=1e-6)
 
 
 # ------------------------------------------------------------------ accessor and errors
@@ -492,11 +607,14 @@ def test_accessor_deform_and_analyze():
     hm = _random_map(_cage_around(mesh.bounds))
     out = mesh.vhm.deform(hm, determinant=True)
     np.testing.assert_allclose(out.points, hm.map(mesh.points), atol=1e-12)
-    assert "jacobian_determinant" in out.point_data
+    det, cond, angle = _reference_measures(_fd_jacobian(hm.map, mesh.points))
+    np.testing.assert_allclose(out.point_data["jacobian_determinant"], det, rtol=1e-8)
     ana = mesh.vhm.analyze(hm)
-    assert set(("jacobian_determinant", "condition_number", "rotation_angle", "foldover")) <= set(
-        ana.point_data.keys()
-    )
+    np.testing.assert_array_equal(ana.points, mesh.points)
+    np.testing.assert_allclose(ana.point_data["jacobian_determinant"], det, rtol=1e-8)
+    np.testing.assert_allclose(ana.point_data["condition_number"], cond, rtol=1e-8)
+    np.testing.assert_allclose(ana.point_data["rotation_angle"], angle, atol=1e-6)
+    np.testing.assert_array_equal(ana.point_data["foldover"], (det <= 0).astype(np.uint8))
     with pytest.raises(TypeError, match="ImageData"):
         mesh.vhm.resample(hm)
 
@@ -538,45 +656,58 @@ def test_no_deformation_set_is_a_clear_error():
         update(flt)
 
 
+def _progress_trace(flt):
+    seen = []
+    flt.AddObserver("ProgressEvent", lambda obj, ev: seen.append(obj.GetProgress()))
+    out = pv.wrap(update(flt))
+    return np.array(out.points), seen
+
+
+def test_memory_budget_sets_the_chunks_not_the_result():
+    from vhm_viz.core.basis import chunk_rows
+
+    mesh = pv.Sphere(radius=0.45, theta_resolution=30, phi_resolution=30)
+    dfm, positions = _small_deformer(mesh.bounds)
+    dfm.update_targets(targets=positions + [[0, 0, 0], [0.1, 0.05, 0.0]])
+    dfm.solve()
+    n_cols = dfm.cage.n_vertices + dfm.cage.n_faces  # basis functions evaluated per point
+    budget = 64 * n_cols * 8 * 2  # 64 points per chunk of F (order 0)
+    assert chunk_rows(n_cols, 0, budget) == 64
+    whole, seen_whole = _progress_trace(_filter(mesh, dfm))
+    flt = _filter(mesh, dfm)
+    flt.SetMemoryBudget(budget)
+    chunked, seen = _progress_trace(flt)
+    # one progress report per chunk while binding (between 0.05 and 0.6), plus the fixed ones
+    binding = [p for p in seen if 0.05 < p <= 0.6 + 1e-12]
+    assert len(binding) == -(-mesh.n_points // 64)
+    assert len(seen) > len(seen_whole)
+    np.testing.assert_allclose(chunked, whole, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(whole, dfm.harmonic_map.map(mesh.points), atol=1e-12)
+    with pytest.raises(ValueError, match="positive"):
+        flt.SetMemoryBudget(0)
+
+
 def test_progress_events_and_abort():
     mesh = pv.Sphere(radius=0.45, theta_resolution=30, phi_resolution=30)
     dfm, _ = _small_deformer(mesh.bounds)
     flt = _filter(mesh, dfm)
-    flt.SetChunkSize(100)
-    seen = []
-    flt.AddObserver("ProgressEvent", lambda obj, ev: seen.append(obj.GetProgress()))
-    update(flt)
+    flt.SetMemoryBudget(100 * 1000)  # a few dozen points per chunk
+    _, seen = _progress_trace(flt)
     assert len(seen) >= 5 and seen[-1] == 1.0
     assert all(b >= a for a, b in zip(seen, seen[1:], strict=False))
 
     flt2 = _filter(mesh.copy(), dfm)
-    flt2.SetChunkSize(100)
+    flt2.SetMemoryBudget(100 * 1000)
+    chunks = []
 
     def abort(obj, ev):
+        chunks.append(obj.GetProgress())
         if obj.GetProgress() > 0.2:
             obj.SetAbortExecute(1)
 
     flt2.AddObserver("ProgressEvent", abort)
     with pytest.raises(RuntimeError, match="abort"):
         update(flt2)
-
-
-def test_paraview_plugin_is_valid_python():
-    import ast
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "plugins" / "vhm_viz_paraview.py"
-    tree = ast.parse(path.read_text(), filename=str(path))
-    compile(tree, str(path), "exec")
-    classes = [n for n in tree.body if isinstance(n, ast.ClassDef)]
-    assert [c.name for c in classes] == ["VHMHarmonicDeformation"]
-    decorators = ast.unparse(classes[0].decorator_list[0])
-    assert "smproxy.filter" in decorators
-    imported = {
-        a.name
-        for n in ast.walk(tree)
-        if isinstance(n, ast.ImportFrom)
-        for a in n.names
-        if n.module == "vhm_viz.filters"
-    }
-    assert "HarmonicDeformationFilter" in imported  # run for real in test_plugin.py
+    # stopped during the binding (progress 0.05 to 0.6), then VTK's closing 1.0
+    assert chunks[-1] == 1.0 and 0.2 < max(chunks[:-1]) < 0.6
+    assert len(chunks) < len(seen)

@@ -3,20 +3,30 @@
 ParaView is not installable here; its ``paraview.util.vtkAlgorithm`` module provides VTK's own
 ``VTKPythonAlgorithmBase`` plus ``smproxy``/``smproperty``/``smdomain``/``smhint`` decorators
 that only attach XML for the proxy. Stubbing the decorators as no-ops runs the plugin's
-pipeline code unchanged.
+pipeline code unchanged: the plugin file is loaded as a module and its filter class is driven
+through a real VTK pipeline (a ``vtkOBJReader`` on a real model), then compared with the
+Python API on the same scene file.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
+import json
+import shutil
 import sys
 import types
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import data_path
 
 pv = pytest.importorskip("pyvista")
+
+from vtkmodules.util import numpy_support as ns  # noqa: E402
+from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow  # noqa: E402
+from vtkmodules.vtkIOGeometry import vtkOBJReader  # noqa: E402
 
 PLUGIN = Path(__file__).resolve().parents[1] / "plugins" / "vhm_viz_paraview.py"
 
@@ -46,43 +56,175 @@ def plugin(monkeypatch):
     return module
 
 
-def test_plugin_deforms_with_a_scene_file(plugin, tmp_path):
+@contextlib.contextmanager
+def _python_errors(monkeypatch):
+    """Collect the Python exceptions VTK reports from a Python algorithm's RequestData.
+
+    VTK prints such an exception with ``PyErr_Print`` (so through ``sys.excepthook``) after
+    logging "Failure when calling method". PyVista routes VTK's output window to Python
+    logging, and that Python callback swallows the pending exception; a plain string output
+    window (no Python callback) lets it through, as in ParaView.
+    """
+    errors: list[BaseException] = []
+    monkeypatch.setattr(sys, "excepthook", lambda tp, value, tb: errors.append(value))
+    previous = vtkOutputWindow.GetInstance()
+    window = vtkStringOutputWindow()
+    vtkOutputWindow.SetInstance(window)
+    try:
+        yield errors
+    finally:
+        vtkOutputWindow.SetInstance(previous)
+
+
+# ------------------------------------------------------------------------------- real data
+
+
+def _hand_scene(tmp_path) -> Path:
+    """A scene file for the hand: its cage and rigidity polylines next to it (relative
+    paths), the wrist held, the index tip moved and the palm's Jacobian fixed."""
+    from vhm_viz.io import read_polylines
+
+    for name in ("cage.obj", "polylines.off"):
+        shutil.copy(data_path("hand", name), tmp_path / name)
+    pts, _ = read_polylines(tmp_path / "polylines.off")
+    low = pts[np.argsort(pts[:, 2])[:3]]  # the wrist end of the medial axis
+    tip = pts[np.argmax(pts[:, 2])]
+    positions = np.vstack([low, tip])
+    targets = np.vstack([low, tip + [1.5, -0.5, -2.0]])
+    scene = {
+        "format": "vhm_viz.scene",
+        "version": 1,
+        "cage": "cage.obj",
+        "anchors": {"polylines": "polylines.off", "count": 24},
+        "constraints": {
+            "positions": positions.tolist(),
+            "targets": targets.tolist(),
+            "jacobian_points": [low[0].tolist()],
+            "jacobians": [np.eye(3).tolist()],
+        },
+        "solver": {"tolerance": 1e-9, "max_iterations": 3000},
+    }
+    path = tmp_path / "hand.json"
+    path.write_text(json.dumps(scene))
+    return path
+
+
+def _obj_reader(path):
+    reader = vtkOBJReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    return reader
+
+
+def test_plugin_deforms_real_data_like_the_python_api(plugin, tmp_path):
+    from vhm_viz.scene import Scene
+
+    scene_path = _hand_scene(tmp_path)
+    reader = _obj_reader(data_path("hand", "hand.obj"))
+    rest = ns.vtk_to_numpy(reader.GetOutput().GetPoints().GetData()).astype(np.float64)
+    assert len(rest) > 3000
+
+    flt = plugin.VHMHarmonicDeformation()
+    flt.SetSceneFile(str(scene_path))
+    flt.SetOutputArrays(1, 1, 1)
+    flt.SetInputConnection(0, reader.GetOutputPort())
+    flt.Update()
+    out = pv.wrap(flt.GetOutputDataObject(0))
+
+    # the reference: the Python API on the same file, evaluated at the reader's points
+    scene = Scene.load(scene_path)
+    dfm = scene.build()
+    (report,) = scene.solve(dfm)
+    assert report.converged
+    binding = dfm.bind(rest)
+    expected = binding.deform()
+    jac = binding.jacobians()
+    diag = float(np.linalg.norm(rest.max(0) - rest.min(0)))
+
+    assert isinstance(out, pv.PolyData)
+    assert out.n_points == len(rest) and out.n_cells == reader.GetOutput().GetNumberOfCells()
+    np.testing.assert_allclose(out.points, expected, rtol=0, atol=1e-9 * diag)
+    # a real deformation, not the identity: the tip moved by about its target offset
+    assert np.abs(expected - rest).max() > 0.05 * diag
+    np.testing.assert_allclose(
+        out.point_data["displacement"], expected - rest, rtol=0, atol=1e-9 * diag
+    )
+    np.testing.assert_allclose(
+        out.point_data["jacobian_determinant"], np.linalg.det(jac), rtol=1e-8
+    )
+    sv = np.linalg.svd(jac, compute_uv=False)
+    np.testing.assert_allclose(out.point_data["condition_number"], sv[:, 0] / sv[:, 2], rtol=1e-8)
+    # the constraint is met through the plugin too
+    c = scene.constraints
+    moved = dfm.harmonic_map.map(c["positions"])
+    np.testing.assert_allclose(moved, c["targets"], atol=1e-6 * diag)
+
+
+@pytest.mark.qt_no_exception_capture
+def test_plugin_outside_points_fail_or_pass_through(plugin, tmp_path, monkeypatch):
+    from vhm_viz.io import read_cage
+
+    scene_path = _hand_scene(tmp_path)
+    cage = read_cage(tmp_path / "cage.obj")
+    hand = _obj_reader(data_path("hand", "hand.obj")).GetOutput()
+    rest = ns.vtk_to_numpy(hand.GetPoints().GetData()).astype(np.float64)
+    far = cage.bounds[1] + 1.0  # outside the cage's bounding box
+    cloud = pv.PolyData(np.vstack([rest[:200], far]))
+    flt = plugin.VHMHarmonicDeformation()
+    flt.SetSceneFile(str(scene_path))
+    flt.SetInputDataObject(0, cloud)
+    with _python_errors(monkeypatch) as errors:
+        flt.Update()
+    assert len(errors) == 1 and "outside the cage" in str(errors[0])
+    assert "200" in str(errors[0])  # names the offending point
+    assert flt.GetOutputDataObject(0).GetNumberOfPoints() == 0
+
+    flt.SetPassThroughOutside(1)
+    flt.Update()
+    out = pv.wrap(flt.GetOutputDataObject(0))
+    flags = np.asarray(out.point_data["vhm_outside"])
+    assert flags.dtype == np.uint8
+    np.testing.assert_array_equal(flags, (~cage.contains(cloud.points)).astype(np.uint8))
+    np.testing.assert_array_equal(out.points[200], far)
+
+
+# pytest-qt (loaded for the explorer's tests) would otherwise turn the exception VTK prints
+# through sys.excepthook into a test error
+@pytest.mark.qt_no_exception_capture
+def test_plugin_without_scene_fails_clearly_and_leaves_no_stale_output(
+    plugin, tmp_path, monkeypatch
+):
     from vhm_viz import examples
     from vhm_viz.scene import Scene
 
     scenario = examples.bar("bend-90")
     scene_path = tmp_path / "bend90.json"
     Scene.from_deformer(scenario.deformer).save(scene_path)
-    # the reference: the same scene built and solved directly
-    scene = Scene.load(scene_path)
-    dfm = scene.build()
-    scene.solve(dfm)
-    surface = pv.PolyData(scenario.points[::7].copy())  # a point cloud inside the cage
-    expected = dfm.harmonic_map.map(surface.points)
+    cloud = pv.PolyData(scenario.points[::25].copy())
 
     flt = plugin.VHMHarmonicDeformation()
+    flt.SetInputDataObject(0, cloud)
+    with _python_errors(monkeypatch) as errors:
+        flt.Update()
+    assert len(errors) == 1 and isinstance(errors[0], RuntimeError)
+    assert "set the SceneFile property" in str(errors[0])
+    assert flt.GetOutputDataObject(0).GetNumberOfPoints() == 0
+
+    # a successful update, then the scene is cleared: the old result must not linger
     flt.SetSceneFile(str(scene_path))
-    flt.SetOutputArrays(1, 1, 0)
-    flt.SetInputDataObject(0, surface)
     flt.Update()
-    out = pv.wrap(flt.GetOutputDataObject(0))
-    assert isinstance(out, pv.PolyData) and out.n_points == surface.n_points
-    np.testing.assert_allclose(out.points, expected, atol=1e-9)
-    np.testing.assert_allclose(out.point_data["displacement"], expected - surface.points, atol=1e-9)
-    assert "jacobian_determinant" in out.point_data
+    assert flt.GetOutputDataObject(0).GetNumberOfPoints() == cloud.n_points
+    assert not np.allclose(pv.wrap(flt.GetOutputDataObject(0)).points, cloud.points, atol=1e-3)
+    flt.SetSceneFile("")
+    with _python_errors(monkeypatch) as errors:
+        flt.Update()
+    assert len(errors) == 1 and "set the SceneFile property" in str(errors[0])
+    assert flt.GetOutputDataObject(0).GetNumberOfPoints() == 0
 
-
-# pytest-qt (loaded for the explorer's tests) would otherwise turn the exception VTK prints
-# through sys.excepthook into a test error
-@pytest.mark.qt_no_exception_capture
-def test_plugin_without_scene_reports_it(plugin, capfd, caplog):
-    flt = plugin.VHMHarmonicDeformation()
-    flt.SetInputDataObject(0, pv.PolyData(np.zeros((3, 3))))
-    # VTK reports a Python exception raised in RequestData (ParaView shows it in its Output
-    # Messages) and marks the request failed instead of raising; where the report lands
-    # depends on the exception hook and log observers in place
-    flt.Update()
-    captured = capfd.readouterr()
-    text = captured.out + captured.err + caplog.text
-    assert "set the SceneFile property" in text or "Failure when calling method" in text
+    # a missing scene file names the file
+    flt.SetSceneFile(str(tmp_path / "missing.json"))
+    with _python_errors(monkeypatch) as errors:
+        flt.Update()
+    assert len(errors) == 1 and isinstance(errors[0], FileNotFoundError)
+    assert "missing.json" in str(errors[0])
     assert flt.GetOutputDataObject(0).GetNumberOfPoints() == 0

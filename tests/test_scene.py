@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import json
-import sys
-import types
+import re
 
 import numpy as np
 import pytest
@@ -12,6 +11,7 @@ from conftest import box_cage
 
 from vhm_viz import Cage
 from vhm_viz.core.deformer import Deformer
+from vhm_viz.io import write_cage
 from vhm_viz.scene import SCENE_FORMAT, Scene, SceneError
 
 
@@ -86,7 +86,7 @@ def test_built_deformer_reproduces_the_original(tmp_path):
 
 def test_cage_path_relative_to_scene_file(tmp_path):
     v, f = box_cage((-1, -1, -1), (1, 1, 1), 1)
-    Cage(v, f).save(tmp_path / "cage.obj")
+    write_cage(tmp_path / "cage.obj", Cage(v, f))
     sub = tmp_path / "scenes"
     sub.mkdir()
     d = _minimal(
@@ -213,44 +213,130 @@ def test_missing_fields_and_bad_json(tmp_path):
         Scene.load(p)
 
 
-def test_auto_cage_and_auto_anchors_call_the_helpers(monkeypatch):
+def _small_bar():
+    """A real, small closed surface: the bundled bar (1 x 1 x 5) at a coarse resolution."""
     pv = pytest.importorskip("pyvista")
-    import vhm_viz.autocage
+    from vhm_viz.examples import bar_surface
 
-    calls = {}
-    v, f = box_cage((-1, -1, -1), (1, 1, 1), 2)
+    v, f = bar_surface(6)
+    return pv.PolyData.from_regular_faces(v, f)
 
-    def fake_auto_cage(data, **kwargs):
-        calls["cage"] = (data, kwargs)
-        return Cage(v, f)
 
-    def fake_auto_anchors(data, count, cage=None):
-        calls["anchors"] = (data, count, cage)
-        return np.column_stack([np.zeros(count), np.zeros(count), np.linspace(-0.5, 0.5, count)])
-
-    monkeypatch.setattr(vhm_viz.autocage, "auto_cage", fake_auto_cage)
-    fake_module = types.ModuleType("vhm_viz.autoanchors")
-    fake_module.auto_anchors = fake_auto_anchors
-    monkeypatch.setitem(sys.modules, "vhm_viz.autoanchors", fake_module)
-
+def test_auto_cage_and_auto_anchors_build_a_working_deformer():
+    mesh = _small_bar()
+    points = np.asarray(mesh.points)
+    positions = np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 4.9]])
+    targets = np.array([[0.0, 0.0, 0.1], [1.5, 0.0, 4.5]])
+    foot = [[0.0, 0.0, 0.3]]
     scene = Scene.from_dict(
         _minimal(
-            cage={"auto": {"max_faces": 100}},
-            anchors={"auto": 5},
-            constraints={"positions": [[0, 0, 0]], "targets": [[0, 0, 0.1]]},
+            cage={"auto": {"max_faces": 80}},
+            anchors={"auto": 6},
+            constraints={
+                "positions": positions.tolist(),
+                "targets": targets.tolist(),
+                "jacobian_points": foot,
+                "jacobians": [np.eye(3).tolist()],
+            },
+            solver={"max_iterations": 5000},
         )
     )
     assert scene.needs_data
-    assert scene.to_dict()["cage"] == {"auto": {"max_faces": 100}}
-    assert scene.to_dict()["anchors"] == {"auto": 5}
+    assert scene.to_dict()["cage"] == {"auto": {"max_faces": 80}}
+    assert scene.to_dict()["anchors"] == {"auto": 6}
     with pytest.raises(SceneError, match="'cage'.*needs the data"):
         scene.build()
-    mesh = pv.Sphere(radius=0.7)
     dfm = scene.build(data=mesh)
-    assert calls["cage"][0] is mesh and calls["cage"][1] == {"max_faces": 100}
-    assert calls["anchors"][1] == 5 and calls["anchors"][2] is dfm.cage
-    assert dfm.n_anchors == 5
+    cage = dfm.cage
+    # the automatic cage encloses the data with at most max_faces faces (the default
+    # max_faces, 500, gives 500 faces on this bar: the option was passed through)
+    assert 12 <= cage.n_faces <= 80
+    assert cage.contains(points).all()
+    # 6 anchors, inside the cage and inside the bar itself
+    assert dfm.n_anchors == 6 and dfm.anchors.shape == (6, 3)
+    assert cage.contains(dfm.anchors).all()
+    assert (np.abs(dfm.anchors[:, :2]) < 0.5).all()
+    assert ((dfm.anchors[:, 2] > 0) & (dfm.anchors[:, 2] < 5)).all()
+    (report,) = scene.solve(dfm)
+    assert report.converged
+    hm = dfm.harmonic_map
+    np.testing.assert_allclose(hm.map(positions), targets, atol=1e-8 * cage.diagonal)
+    np.testing.assert_allclose(hm.jacobian(foot)[0], np.eye(3), atol=1e-8)
+    moved = hm.map(points)
+    assert np.abs(moved - points).max() > 0.3  # the top really moved
     assert Scene.from_dict(_minimal(cage="auto")).cage == {"auto": {}}
+
+
+def test_anchors_from_a_json_file_and_cage_from_an_obj(tmp_path):
+    from vhm_viz.io import write_anchors
+
+    dfm0 = _deformer()
+    write_cage(tmp_path / "cage.obj", dfm0.cage)
+    anchors = dfm0.anchors + np.array([0.1 / 3, -0.2 / 7, 0.0])  # not short decimals
+    write_anchors(tmp_path / "anchors.json", anchors, resolution=96)
+    written = json.loads((tmp_path / "anchors.json").read_text())
+    assert written["count"] == len(anchors) and written["resolution"] == 96
+    c = dfm0.constraints
+    d = _minimal(
+        cage="cage.obj",
+        anchors="anchors.json",
+        constraints={k: np.asarray(v).tolist() for k, v in c.items()},
+        mode="similar",
+        alpha=0.02,
+    )
+    (tmp_path / "s.json").write_text(json.dumps(d))
+    scene = Scene.load(tmp_path / "s.json")
+    assert scene.to_dict()["anchors"] == "anchors.json"
+    assert scene.to_dict()["cage"] == {"path": "cage.obj"}
+    assert not scene.needs_data
+    assert sorted(p.name for p in scene.referenced_files()) == ["anchors.json", "cage.obj"]
+    dfm = scene.build()
+    # the files' values, bit for bit (OBJ written with 17 significant digits)
+    np.testing.assert_array_equal(dfm.anchors, anchors)
+    np.testing.assert_array_equal(dfm.cage.vertices, dfm0.cage.vertices)
+    np.testing.assert_array_equal(dfm.cage.faces, dfm0.cage.faces)
+    # and the deformation is the one built from the arrays directly
+    ref = Deformer(dfm0.cage, anchors, mode="similar", alpha=0.02)
+    ref.set_constraints(**c)
+    ref.solve(init="identity")
+    scene.solve(dfm)
+    pts = np.random.default_rng(1).uniform(-0.4, 0.4, (30, 3))
+    np.testing.assert_allclose(dfm.harmonic_map.map(pts), ref.harmonic_map.map(pts), atol=1e-12)
+    # a missing file is named
+    (tmp_path / "anchors.json").unlink()
+    with pytest.raises(FileNotFoundError, match="anchors.json"):
+        scene.build()
+
+
+def test_saved_scene_is_compact_one_point_per_line(tmp_path):
+    dfm = _deformer()
+    scene = Scene.from_deformer(dfm)
+    path = tmp_path / "s.json"
+    scene.save(path)
+    text = path.read_text()
+    lines = text.splitlines()
+    # every cage vertex, anchor and constraint point is one line "[x, y, z]" (full precision)
+    for p in np.vstack([dfm.cage.vertices, dfm.anchors, dfm.constraints["targets"]]):
+        row = "[" + ", ".join(json.dumps(float(x)) for x in p) + "]"
+        assert any(line.strip().rstrip(",") == row for line in lines), row
+    face = "[" + ", ".join(str(int(i)) for i in dfm.cage.faces[5]) + "]"
+    assert any(line.strip().rstrip(",") == face for line in lines)
+    # one line per point, face and matrix row; a few dozen lines of structure around them
+    c = dfm.constraints
+    rows = (
+        dfm.cage.n_vertices
+        + dfm.cage.n_faces
+        + dfm.n_anchors
+        + 2 * len(c["positions"])
+        + len(c["jacobian_points"])
+        + 3 * len(c["jacobians"])
+    )
+    list_lines = [line for line in lines if re.fullmatch(r"\s*\[[^\[\]{}]*\],?", line)]
+    assert len(list_lines) == rows
+    assert len(lines) < rows + 40
+    assert 3 * len(lines) < len(json.dumps(scene.to_dict(), indent=1).splitlines())
+    assert json.loads(text) == scene.to_dict()
+    assert Scene.load(path) == scene
 
 
 def test_filter_with_scene_file(tmp_path):

@@ -12,7 +12,11 @@ __version__ = "0.1.0"
 
 # public name -> module that defines it
 _LAZY = {
-    "Cage": "vhm_viz.cage",
+    "Cage": "vhm_viz.core.cage",
+    "read_cage": "vhm_viz.io",
+    "write_cage": "vhm_viz.io",
+    "read_dataset": "vhm_viz.io",
+    "read_anchors": "vhm_viz.io",
     "CageError": "vhm_viz.core.errors",
     "OutsideCageError": "vhm_viz.core.errors",
     "ConstraintError": "vhm_viz.core.errors",
@@ -22,7 +26,7 @@ _LAZY = {
     "read_polylines": "vhm_viz.io",
     "read_tgf": "vhm_viz.io",
     "auto_cage": "vhm_viz.autocage",
-    "auto_anchors": "vhm_viz.autoanchors",
+    "auto_anchors": "vhm_viz.autocage",
     "tetrahedralize": "vhm_viz.tetra",
 }
 _SUBMODULES = {"metrics", "examples", "filters", "plotting", "scene", "core", "io"}

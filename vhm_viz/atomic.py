@@ -1,5 +1,7 @@
 """Atomic output files: write to a temporary file beside the target, then rename.
 
+The writers in :mod:`vhm_viz.io` use :func:`atomic_path`; this module is only the mechanism.
+
 A crash or an error never leaves a half-written output, and an existing file is only
 replaced once the new one is complete. The result gets ordinary permissions (``0o666``
 less the process umask), not the private ``0o600`` of a temporary file.
@@ -48,15 +50,3 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
-
-
-def write_text_atomic(path: str | os.PathLike, text: str) -> None:
-    """Write UTF-8 text to ``path`` atomically."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
-
-
-def save_dataset_atomic(mesh, path: str | os.PathLike) -> None:
-    """Save a PyVista dataset to ``path`` atomically (format from the extension)."""
-    with atomic_path(path) as tmp:
-        mesh.save(tmp)

@@ -137,6 +137,9 @@ class BarScenario:
         ``positions``, ``targets``, ``jacobian_points``, ``jacobians`` (user-facing ``J``).
     deformer : Deformer
         With the constraints set (not yet solved).
+    scene : Scene
+        The scenario as a :class:`~vhm_viz.scene.Scene` (inline cage and anchors), which
+        built :attr:`deformer` and ramps its solves.
     """
 
     kind: str
@@ -146,6 +149,7 @@ class BarScenario:
     anchors: np.ndarray
     constraints: dict
     deformer: object
+    scene: object
     _surface: object = field(default=None, repr=False)
 
     @property
@@ -169,32 +173,13 @@ class BarScenario:
         """
         if steps is None:
             steps = 6 if self.kind == "twist" else 1
-        dfm = self.deformer
-        c = self.constraints
-        reports = []
-        init = kwargs.pop("init", "identity")
-        for k in range(1, steps + 1):
-            s = k / steps
-            targets = c["positions"] + s * (c["targets"] - c["positions"])
-            jac = np.stack([_interpolate_jacobian(j, s) for j in c["jacobians"]])
-            dfm.update_targets(targets=targets, jacobians=jac)
-            reports.append(dfm.solve(init=init if k == 1 else "previous", **kwargs))
-        return reports
+        return self.scene.solve(self.deformer, steps=steps, **kwargs)
 
     def deformed_points(self, binding=None) -> np.ndarray:
         """The deformed surface points for the deformer's current solution."""
         if binding is None:
             return self.deformer.harmonic_map.map(self.points)
         return binding.deform()
-
-
-def _interpolate_jacobian(j: np.ndarray, s: float) -> np.ndarray:
-    """Interpolate ``I -> j = scale * R`` by rotation angle and scale."""
-    from scipy.spatial.transform import Rotation
-
-    scale = np.cbrt(np.linalg.det(j))
-    rot = Rotation.from_matrix(j / scale)
-    return (1 + s * (scale - 1)) * Rotation.from_rotvec(s * rot.as_rotvec()).as_matrix()
 
 
 def bar(
@@ -226,7 +211,7 @@ def bar(
     BarScenario
     """
     from vhm_viz.core.anchors import anchors_from_polylines
-    from vhm_viz.core.deformer import Deformer
+    from vhm_viz.scene import Scene
 
     if kind not in BAR_KINDS:
         raise ValueError(f"kind must be one of {BAR_KINDS}; got {kind!r}")
@@ -260,6 +245,12 @@ def bar(
         "jacobian_points": np.array(jac_points),
         "jacobians": np.array(jacobians),
     }
-    dfm = Deformer(cage, anchors, mode=mode, alpha=alpha)
-    dfm.set_constraints(**constraints)
-    return BarScenario(kind, points, tris, cage, anchors, constraints, dfm)
+    scene = Scene(
+        cage={"vertices": np.array(cage.vertices), "faces": np.array(cage.faces)},
+        anchors={"points": np.array(anchors, dtype=np.float64)},
+        constraints=constraints,
+        mode=mode,
+        alpha=alpha,
+    )
+    dfm = scene.build(cage=cage)
+    return BarScenario(kind, points, tris, cage, anchors, constraints, dfm, scene)

@@ -12,6 +12,7 @@ version 1::
               | {"vertices": [[x, y, z], ...], "faces": [[i, j, k], ...]}   # inline, or
               | "auto" | {"auto": {"max_faces": 300, ...}},  # vhm_viz.auto_cage of the data
       "anchors": [[x, y, z], ...]                # explicit, or
+                 | "anchors.json"                # a file `vhm-viz anchors` writes, or
                  | {"auto": 24}                  # vhm_viz.auto_anchors, or
                  | {"polylines": "lines.off", "count": 24}   # OFF polylines, or
                  | {"skeleton": "hand.tgf", "count": 24},    # libigl TGF skeleton
@@ -22,12 +23,24 @@ version 1::
       "mode": "rigid" | "similar",
       "alpha": 0.01,
       "solver": {"max_iterations": 1000, "tolerance": 1e-6, "init": "identity",
-                 "steps": 1, "anderson_window": 10}
+                 "steps": 1, "anderson_window": 10},
+      "data": "model.vtp" | {"bar": "bend-u", "resolution": 39},   # optional
+      "solution": {"rotations": [[[..3..], [..3..], [..3..]], ...],   # optional
+                   "contraction": 0.97}
     }
 
+``data`` names the dataset the scene was made for (a path relative to the scene file, or a
+bundled bar scenario); the explorer re-opens it, the command line takes its input
+explicitly. ``solution`` holds the anchors' local matrices of a solved state (one per
+anchor) and the contraction rate the solver measured when it reached it; ``"init":
+"solution"`` starts the solver there, so a scene saved after interactive editing reproduces
+the same local minimum of the (non-convex) problem -- and, when the stored state still meets
+the stopping rule, the same result to rounding (see :meth:`Deformer.solve`).
+
 Jacobians are user-facing, ``J[i][j] = d f_i / d x_j``. ``jacobian_points``/``jacobians``,
-``mode``, ``alpha`` and ``solver`` (and each solver key) are optional; saving writes every
-field with its value, so ``Scene.load(path).save(other)`` writes a normalised file and
+``mode``, ``alpha``, ``solver`` (and each solver key), ``data`` and ``solution`` are
+optional; saving writes every field with its value (one point per line), so
+``Scene.load(path).save(other)`` writes a normalised file and
 ``Scene.from_dict(s.to_dict()) == s`` exactly (floats are written with full precision).
 Unknown fields, unknown versions and malformed values raise :class:`SceneError`, whose
 message names the offending field (``constraints.targets[3]``).
@@ -36,7 +49,6 @@ message names the offending field (``constraints.targets[3]``).
 from __future__ import annotations
 
 import copy
-import inspect
 import json
 import math
 import os
@@ -46,7 +58,6 @@ from typing import Any
 
 import numpy as np
 
-from vhm_viz.atomic import write_text_atomic
 from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW
 
 __all__ = ["Scene", "SceneError", "SCENE_FORMAT", "SCENE_VERSION", "DEFAULT_SOLVER"]
@@ -60,7 +71,18 @@ DEFAULT_SOLVER = {
     "steps": 1,
     "anderson_window": DEFAULT_ANDERSON_WINDOW,
 }
-_TOP_FIELDS = {"format", "version", "cage", "anchors", "constraints", "mode", "alpha", "solver"}
+_TOP_FIELDS = {
+    "format",
+    "version",
+    "cage",
+    "anchors",
+    "constraints",
+    "mode",
+    "alpha",
+    "solver",
+    "data",
+    "solution",
+}
 _CONSTRAINT_FIELDS = ("positions", "targets", "jacobian_points", "jacobians")
 
 
@@ -146,8 +168,8 @@ class Scene:
         ``{"path": str}``, ``{"vertices": (n, 3) array, "faces": (m, 3) array}`` or
         ``{"auto": dict_of_auto_cage_options}``.
     anchors : dict
-        ``{"points": (d, 3) array}``, ``{"auto": d}``, ``{"polylines": path, "count": d}``
-        or ``{"skeleton": path, "count": d}``.
+        ``{"points": (d, 3) array}``, ``{"path": anchors_json}``, ``{"auto": d}``,
+        ``{"polylines": path, "count": d}`` or ``{"skeleton": path, "count": d}``.
     constraints : dict
         ``positions``, ``targets`` (r, 3); ``jacobian_points`` (s, 3), ``jacobians``
         (s, 3, 3) -- float64 arrays.
@@ -155,8 +177,17 @@ class Scene:
     alpha : float
     solver : dict
         ``max_iterations``, ``tolerance``, ``init``, ``steps``, ``anderson_window``.
+    data : dict or None
+        ``{"path": str}`` or ``{"bar": kind, "resolution": int}``.
+    solution : (d, 3, 3) ndarray or None
+        The anchors' local matrices of a solved state.
+    solution_contraction : float or None
+        The solver's contraction-rate estimate for that state.
     base_dir : Path or None
         Directory relative paths are resolved against (the scene file's); not saved.
+    notes : list of str
+        What loading had to do that the user should know (an old file converted); not
+        saved.
     """
 
     cage: dict
@@ -165,7 +196,11 @@ class Scene:
     mode: str = "rigid"
     alpha: float = 0.01
     solver: dict = field(default_factory=lambda: dict(DEFAULT_SOLVER))
+    data: dict | None = None
+    solution: np.ndarray | None = None
+    solution_contraction: float | None = None
     base_dir: Path | None = None
+    notes: list = field(default_factory=list)
 
     # ------------------------------------------------------------------ (de)serialise
     @classmethod
@@ -190,6 +225,13 @@ class Scene:
     def _from_dict(cls, data, base_dir) -> Scene:
         if not isinstance(data, dict):
             raise SceneError("(top level)", f"expected a JSON object, got {type(data).__name__}")
+        if "vhm_viz_scene" in data and "format" not in data:
+            scene = cls._from_dict(_convert_explorer_v1(data), base_dir)
+            scene.notes.append(
+                "converted from the explorer's old scene format; save the scene to write it "
+                "in the current format"
+            )
+            return scene
         fmt = data.get("format")
         if fmt != SCENE_FORMAT:
             raise SceneError("format", f"expected {SCENE_FORMAT!r}, got {json.dumps(fmt)}")
@@ -216,8 +258,19 @@ class Scene:
             mode=_parse_mode(data.get("mode", "rigid")),
             alpha=float(_number(data.get("alpha", 0.01), "alpha", positive=True)),
             solver=_parse_solver(data.get("solver", {})),
+            data=_parse_data(data.get("data")),
+            solution=_parse_solution(data.get("solution")),
+            solution_contraction=_parse_contraction(data.get("solution")),
             base_dir=Path(base_dir) if base_dir is not None else None,
         )
+        if scene.solver["init"] == "solution":
+            if scene.solution is None:
+                raise SceneError("solver.init", '"solution" needs the scene\'s "solution" field')
+            if "points" in scene.anchors and len(scene.solution) != len(scene.anchors["points"]):
+                raise SceneError(
+                    "solution.rotations",
+                    f"{len(scene.solution)} matrices for {len(scene.anchors['points'])} anchors",
+                )
         return scene
 
     def to_dict(self) -> dict:
@@ -234,10 +287,12 @@ class Scene:
             }
         if "points" in self.anchors:
             anchors: Any = _tolist(self.anchors["points"])
+        elif "path" in self.anchors:
+            anchors = self.anchors["path"]
         else:
             anchors = copy.deepcopy(self.anchors)
         c = self.constraints
-        return {
+        out = {
             "format": SCENE_FORMAT,
             "version": SCENE_VERSION,
             "cage": cage,
@@ -247,6 +302,13 @@ class Scene:
             "alpha": self.alpha,
             "solver": dict(self.solver),
         }
+        if self.data is not None:
+            out["data"] = self.data["path"] if "path" in self.data else dict(self.data)
+        if self.solution is not None:
+            out["solution"] = {"rotations": _tolist(self.solution)}
+            if self.solution_contraction is not None:
+                out["solution"]["contraction"] = float(self.solution_contraction)
+        return out
 
     @classmethod
     def loads(cls, text: str, *, source: str | None = None, base_dir=None) -> Scene:
@@ -258,8 +320,10 @@ class Scene:
         return cls.from_dict(data, source=source, base_dir=base_dir)
 
     def dumps(self) -> str:
-        """JSON text (indented, floats at full precision)."""
-        return json.dumps(self.to_dict(), indent=1) + "\n"
+        """JSON text (one point per line, floats at full precision)."""
+        from vhm_viz.io import json_text
+
+        return json_text(self.to_dict())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Scene:
@@ -273,12 +337,41 @@ class Scene:
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"no such scene file: {p}")
-        return cls.loads(p.read_text(encoding="utf-8"), source=str(p), base_dir=p.parent)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise SceneError("(json)", "not a text file", str(p)) from None
+        scene = cls.loads(text, source=str(p), base_dir=p.parent)
+        # earlier explorers kept the data reference and the solution in a sidecar file
+        sidecar = p.with_name(p.stem + ".explorer.json")
+        if sidecar.is_file() and scene.data is None and scene.solution is None:
+            scene._merge_sidecar(sidecar)
+        return scene
+
+    def _merge_sidecar(self, sidecar: Path) -> None:
+        try:
+            side = json.loads(sidecar.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise SceneError("(sidecar)", f"{sidecar.name} is unreadable ({exc})") from None
+        if not isinstance(side, dict):
+            return
+        try:
+            self.data = _parse_data(_data_ref_v1(side.get("data")))
+            rotations = side.get("rotations")
+            if rotations is not None:
+                self.solution = _parse_solution({"rotations": rotations})
+        except SceneError as exc:
+            raise SceneError(f"(sidecar) {exc.field}", exc.message, str(sidecar)) from None
+        self.notes.append(
+            f"read the data reference and solution from the old sidecar {sidecar.name}; "
+            "save the scene to keep them in one file"
+        )
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the scene atomically (temporary file in the same directory, then rename)."""
-        p = Path(path)
-        write_atomic_text(p, self.dumps())
+        from vhm_viz.io import write_text
+
+        write_text(path, self.dumps())
 
     def __eq__(self, other) -> bool:
         if not isinstance(other, Scene):
@@ -319,6 +412,18 @@ class Scene:
             solver=_parse_solver(settings),
         )
 
+    def referenced_files(self) -> list[Path]:
+        """Every file the scene reads (cage, anchors, rigidity lines, data), resolved."""
+        paths = []
+        if "path" in self.cage:
+            paths.append(self._resolve_path(self.cage["path"]))
+        for key in ("path", "polylines", "skeleton"):
+            if key in self.anchors:
+                paths.append(self._resolve_path(self.anchors[key]))
+        if self.data is not None and "path" in self.data:
+            paths.append(self._resolve_path(self.data["path"]))
+        return paths
+
     @property
     def needs_data(self) -> bool:
         """Whether building needs the data to deform (automatic cage or anchors)."""
@@ -332,10 +437,11 @@ class Scene:
 
     def build_cage(self, data=None):
         """The scene's cage (a :class:`vhm_viz.Cage`); ``data`` is needed for ``"auto"``."""
-        from vhm_viz.cage import Cage
+        from vhm_viz.core.cage import Cage
+        from vhm_viz.io import read_cage
 
         if "path" in self.cage:
-            return Cage.from_file(self._resolve_path(self.cage["path"]))
+            return read_cage(self._resolve_path(self.cage["path"]))
         if "auto" in self.cage:
             if data is None:
                 raise SceneError("cage", '"auto" needs the data to deform')
@@ -349,10 +455,16 @@ class Scene:
         a = self.anchors
         if "points" in a:
             return np.array(a["points"], dtype=np.float64)
+        if "path" in a:
+            from vhm_viz.io import read_anchors
+
+            return read_anchors(self._resolve_path(a["path"]))
         if "auto" in a:
             if data is None:
                 raise SceneError("anchors", '"auto" needs the data to deform')
-            return _call_auto_anchors(data, int(a["auto"]), cage)
+            from vhm_viz.autocage import auto_anchors
+
+            return auto_anchors(data, cage, int(a["auto"]))
         from vhm_viz.core.anchors import anchors_from_polylines
 
         if "polylines" in a:
@@ -387,12 +499,16 @@ class Scene:
             alpha=self.alpha,
             anderson_window=int(self.solver["anderson_window"]),
         )
+        dfm.set_constraints(**self.constraint_arguments())
+        return dfm
+
+    def constraint_arguments(self) -> dict:
+        """The constraints as keyword arguments of :meth:`Deformer.set_constraints`."""
         c = self.constraints
         kw = {"positions": c["positions"], "targets": c["targets"]}
         if len(c["jacobian_points"]):
             kw.update(jacobian_points=c["jacobian_points"], jacobians=c["jacobians"])
-        dfm.set_constraints(**kw)
-        return dfm
+        return kw
 
     def solve_kwargs(self) -> dict:
         """Keyword arguments of :meth:`Deformer.solve` from the solver settings (no steps)."""
@@ -416,16 +532,26 @@ class Scene:
         progress : callable(fraction, message), optional
             Called after each step.
         **overrides
-            ``max_iterations``, ``tolerance``, ``init``, ``steps``.
+            Any of the solver settings (``max_iterations``, ``tolerance``, ``init`` -- also
+            a (d, 3, 3) array of starting local matrices --, ``steps``,
+            ``anderson_window``).
 
         Returns
         -------
         list of SolveReport
         """
+        unknown = sorted(set(overrides) - set(DEFAULT_SOLVER))
+        if unknown:
+            raise TypeError(f"unknown solver setting {unknown[0]!r}; use {sorted(DEFAULT_SOLVER)}")
         settings = dict(self.solver)
         settings.update(overrides)
         steps = max(1, int(settings["steps"]))
         init = settings["init"]
+        contraction = None
+        if isinstance(init, str) and init == "solution":
+            if self.solution is None or len(self.solution) != deformer.n_anchors:
+                raise SceneError("solution", "no stored solution for these anchors")
+            init, contraction = self.solution, self.solution_contraction
         c = self.constraints
         reports = []
         for k in range(1, steps + 1):
@@ -439,6 +565,8 @@ class Scene:
                     max_iterations=int(settings["max_iterations"]),
                     tolerance=float(settings["tolerance"]),
                     init=init if k == 1 else "previous",
+                    anderson_window=int(settings["anderson_window"]),
+                    contraction=contraction if k == 1 and steps == 1 else None,
                 )
             )
             if progress is not None:
@@ -484,6 +612,8 @@ def _parse_cage(value) -> dict:
 
 
 def _parse_anchors(value) -> dict:
+    if isinstance(value, str):
+        return {"path": _path_text(value, "anchors")}
     if isinstance(value, list):
         pts = _points(value, "anchors")
         if len(pts) == 0:
@@ -492,6 +622,8 @@ def _parse_anchors(value) -> dict:
     if not isinstance(value, dict):
         raise SceneError("anchors", "expected a list of points or an object")
     keys = set(value)
+    if keys == {"path"}:
+        return {"path": _path_text(value["path"], "anchors.path")}
     if keys == {"auto"}:
         return {"auto": _number(value["auto"], "anchors.auto", positive=True, integer=True)}
     for kind in ("polylines", "skeleton"):
@@ -500,10 +632,10 @@ def _parse_anchors(value) -> dict:
                 kind: _path_text(value[kind], f"anchors.{kind}"),
                 "count": _number(value["count"], "anchors.count", positive=True, integer=True),
             }
-    extra = sorted(keys - {"auto", "polylines", "skeleton", "count"})
+    extra = sorted(keys - {"path", "auto", "polylines", "skeleton", "count"})
     if extra:
         raise SceneError(f"anchors.{extra[0]}", "unknown field")
-    raise SceneError("anchors", "expected {auto}, {polylines, count} or {skeleton, count}")
+    raise SceneError("anchors", "expected {path}, {auto}, {polylines, count} or {skeleton, count}")
 
 
 def _parse_constraints(value) -> dict:
@@ -549,9 +681,10 @@ def _parse_solver(value) -> dict:
     if out["max_iterations"] < 0:
         raise SceneError("solver.max_iterations", "must be >= 0")
     out["tolerance"] = float(_number(out["tolerance"], "solver.tolerance", positive=True))
-    if out["init"] not in ("identity", "previous"):
+    if out["init"] not in ("identity", "previous", "solution"):
         raise SceneError(
-            "solver.init", f'expected "identity" or "previous", got {json.dumps(out["init"])}'
+            "solver.init",
+            f'expected "identity", "previous" or "solution", got {json.dumps(out["init"])}',
         )
     out["steps"] = _number(out["steps"], "solver.steps", positive=True, integer=True)
     out["anderson_window"] = _number(out["anderson_window"], "solver.anderson_window", integer=True)
@@ -560,9 +693,96 @@ def _parse_solver(value) -> dict:
     return {k: out[k] for k in DEFAULT_SOLVER}
 
 
+def _parse_data(value) -> dict | None:
+    if value is None:
+        return None
+    if isinstance(value, str):
+        return {"path": _path_text(value, "data")}
+    if isinstance(value, dict) and set(value) <= {"bar", "resolution"} and "bar" in value:
+        if not isinstance(value["bar"], str):
+            raise SceneError("data.bar", "expected the name of a bar scenario")
+        res = _number(value.get("resolution", 39), "data.resolution", positive=True, integer=True)
+        return {"bar": value["bar"], "resolution": res}
+    raise SceneError("data", 'expected a path or {"bar": kind, "resolution": n}')
+
+
+def _parse_solution(value) -> np.ndarray | None:
+    if value is None:
+        return None
+    keys = set(value) if isinstance(value, dict) else set()
+    if not {"rotations"} <= keys <= {"rotations", "contraction"}:
+        raise SceneError("solution", 'expected {"rotations": [[[..3..], ...], ...]}')
+    return _matrix(value["rotations"], "solution.rotations", (-1, 3, 3)).reshape(-1, 3, 3)
+
+
+def _parse_contraction(value) -> float | None:
+    if not isinstance(value, dict) or value.get("contraction") is None:
+        return None
+    rho = float(_number(value["contraction"], "solution.contraction"))
+    if not 0 <= rho < 1:
+        raise SceneError("solution.contraction", f"must be in [0, 1), got {rho}")
+    return rho
+
+
 # ----------------------------------------------------------------------------------------
 # helpers
 # ----------------------------------------------------------------------------------------
+
+
+def _data_ref_v1(src):
+    """The old explorer's data reference (``{"path": p}`` or a bar) in this format's terms."""
+    if not isinstance(src, dict) or not src:
+        return None
+    if "path" in src:
+        return src["path"]
+    return src
+
+
+def _convert_explorer_v1(d: dict) -> dict:
+    """The explorer's old single-file scene (``{"vhm_viz_scene": 1, ...}``) as this format."""
+    from scipy.spatial.transform import Rotation
+
+    if d.get("vhm_viz_scene") != 1:
+        version = d.get("vhm_viz_scene")
+        raise SceneError("vhm_viz_scene", f"unsupported explorer scene version {version}")
+    if not d.get("cage"):
+        raise SceneError("cage", "the explorer scene has no cage")
+    try:
+        positions = [c["point"] for c in d.get("positions", [])]
+        targets = [c["target"] for c in d.get("positions", [])]
+        jac_points = [c["point"] for c in d.get("jacobians", [])]
+        jacobians = [
+            (
+                float(c["scale"])
+                * Rotation.from_euler("xyz", c["angles"], degrees=True).as_matrix()
+            ).tolist()
+            for c in d.get("jacobians", [])
+        ]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SceneError("positions", f"malformed explorer constraint ({exc})") from None
+    solver = {k: v for k, v in (d.get("solver") or {}).items() if k in DEFAULT_SOLVER}
+    out = {
+        "format": SCENE_FORMAT,
+        "version": SCENE_VERSION,
+        "cage": d["cage"],
+        "anchors": d.get("anchors", []),
+        "constraints": {
+            "positions": positions,
+            "targets": targets,
+            "jacobian_points": jac_points,
+            "jacobians": jacobians,
+        },
+        "mode": d.get("mode", "rigid"),
+        "alpha": d.get("alpha", 0.01),
+        "solver": solver,
+    }
+    data = _data_ref_v1(d.get("data"))
+    if data is not None:
+        out["data"] = data
+    if d.get("rotations") is not None:
+        out["solution"] = {"rotations": d["rotations"]}
+        out["solver"]["init"] = "solution"
+    return out
 
 
 def _interpolate_jacobian(j: np.ndarray, s: float) -> np.ndarray:
@@ -572,31 +792,3 @@ def _interpolate_jacobian(j: np.ndarray, s: float) -> np.ndarray:
     scale = np.cbrt(np.linalg.det(j))
     rot = Rotation.from_matrix(j / scale)
     return (1 + s * (scale - 1)) * Rotation.from_rotvec(s * rot.as_rotvec()).as_matrix()
-
-
-def _call_auto_anchors(data, count: int, cage) -> np.ndarray:
-    """Call :func:`vhm_viz.autoanchors.auto_anchors` whatever its keyword names are."""
-    from vhm_viz.autoanchors import auto_anchors
-
-    params = inspect.signature(auto_anchors).parameters
-    kwargs = {}
-    for name in ("count", "n_anchors", "d", "n"):
-        if name in params:
-            kwargs[name] = count
-            break
-    else:
-        positional = [p for p in params.values() if p.kind == p.POSITIONAL_OR_KEYWORD]
-        if len(positional) < 2:
-            raise SceneError("anchors.auto", "vhm_viz.auto_anchors takes no anchor count")
-        kwargs[positional[1].name] = count
-    if "cage" in params:
-        kwargs["cage"] = cage
-    result = auto_anchors(data, **kwargs)
-    if isinstance(result, tuple):
-        result = result[0]
-    return np.asarray(getattr(result, "anchors", result), dtype=np.float64).reshape(-1, 3)
-
-
-def write_atomic_text(path: Path, text: str) -> None:
-    """Write text to ``path`` atomically (see :mod:`vhm_viz.atomic`)."""
-    write_text_atomic(path, text)

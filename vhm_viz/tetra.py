@@ -113,7 +113,9 @@ def _as_surface(surface):
         f = np.asarray(surface[1], dtype=np.int64)
         return pv.PolyData.from_regular_faces(v, f)
     if not isinstance(surface, pv.DataSet):
-        surface = pv.read(surface)
+        from vhm_viz.io import read_dataset
+
+        surface = read_dataset(surface)
     if not isinstance(surface, pv.PolyData):
         surface = surface.extract_surface()
     return surface

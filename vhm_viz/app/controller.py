@@ -29,7 +29,6 @@ Life cycle
 
 from __future__ import annotations
 
-import json
 import os
 import time
 import warnings
@@ -39,7 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.core.errors import CageError, ConstraintError
+from vhm_viz.core.errors import AbortedError, CageError, ConstraintError
+from vhm_viz.io import read_dataset, write_dataset
+from vhm_viz.scene import DEFAULT_SOLVER, Scene
 
 __all__ = [
     "ExplorerController",
@@ -47,13 +48,14 @@ __all__ = [
     "JacobianConstraint",
     "FrameTiming",
     "Cancelled",
-    "SCENE_VERSION",
+    "SETTLE_SOLVER",
     "make_proxy",
 ]
 
-SCENE_VERSION = 1
-# points per binding chunk (progress / cancellation granularity of prepare())
-CHUNK = 16384
+# Solver settings of the explorer's full solves (on release, after loading): the solver's
+# fixed-point estimate is optimistic at small alpha, so settle tighter than the scene
+# default. They are saved with the scene, so `vhm-viz deform` reproduces the explorer.
+SETTLE_SOLVER = dict(DEFAULT_SOLVER, max_iterations=50000, tolerance=1e-8)
 # level of detail: shapes with more points than this are dragged as a decimated proxy
 LOD_POINTS = 30000
 # triangles of the proxy (software OpenGL renders ~10k triangles well within a frame)
@@ -145,87 +147,8 @@ class FrameTiming:
 
 
 # ----------------------------------------------------------------------------------------
-# Chunked binding (progress + cancellation while binding large shapes)
+# Level of detail
 # ----------------------------------------------------------------------------------------
-
-
-class ChunkedBinding:
-    """A shape bound to a deformer in chunks of :data:`CHUNK` points.
-
-    Each chunk is a :class:`vhm_viz.core.deformer.Binding`; splitting lets :meth:`refresh`
-    report progress and stop between chunks.
-    """
-
-    def __init__(self, deformer, points: np.ndarray, progress: ProgressFn, check: Callable):
-        self.points = points
-        self.parts = []
-        n = len(points)
-        for s in range(0, max(n, 1), CHUNK):
-            check()
-            progress(s / max(n, 1), f"binding points {s}/{n}")
-            self.parts.append(
-                (s, deformer.bind(points[s : s + CHUNK], outside="passthrough", dtype=np.float32))
-            )
-
-    def refresh(self, progress: ProgressFn, check: Callable) -> None:
-        """Recompute the chunks' ``F`` after a constraint layout change."""
-        n = len(self.points)
-        for s, b in self.parts:
-            check()
-            progress(s / max(n, 1), f"re-binding points {s}/{n}")
-            b.F  # noqa: B018 - property access triggers the (chunked) refresh
-
-    def deform(self, out: np.ndarray) -> np.ndarray:
-        for s, b in self.parts:
-            b.deform(out=out[s : s + len(b.points)])
-        return out
-
-
-# ----------------------------------------------------------------------------------------
-# Adapters to modules written elsewhere (switchable later)
-# ----------------------------------------------------------------------------------------
-
-
-def read_dataset(path) -> object:
-    """Read any dataset PyVista reads (meshes, tet meshes, point clouds, volumes)."""
-    import pyvista as pv
-
-    path = Path(path)
-    if not path.exists():
-        raise OSError(f"{path}: no such file")
-    try:
-        with warnings.catch_warnings():
-            # pyvista reports VTK reader errors as warnings: make them errors
-            warnings.simplefilter("error", UserWarning)
-            data = pv.read(str(path))
-    except Exception as exc:  # VTK/meshio raise many types
-        raise ValueError(f"{path.name}: cannot read ({exc})") from exc
-    if isinstance(data, pv.MultiBlock):
-        data = data.combine().extract_geometry() if data.n_blocks else None
-    if data is None or data.n_points == 0:
-        raise ValueError(f"{path.name}: no points")
-    return data
-
-
-def _auto_anchors(data, cage, count: int) -> np.ndarray:
-    try:
-        from vhm_viz.autoanchors import auto_anchors
-    except ImportError:
-        auto_anchors = None
-    if auto_anchors is not None:
-        res = auto_anchors(data, cage, count)
-        return np.asarray(getattr(res, "anchors", res), dtype=float).reshape(-1, 3)
-    # fallback: the principal axis of the points, trimmed to the inner 80%
-    from vhm_viz.core.anchors import anchors_from_polylines
-
-    p = np.asarray(data.points, dtype=float)
-    c = p.mean(axis=0)
-    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
-    t = (p - c) @ vt[0]
-    lo, hi = np.quantile(t, [0.1, 0.9])
-    line = np.array([c + lo * vt[0], c + hi * vt[0]])
-    anchors = anchors_from_polylines(line, np.array([[0, 1]]), count)
-    return anchors[cage.contains(anchors)]
 
 
 def make_proxy(data, triangles: int = PROXY_TRIANGLES):
@@ -292,7 +215,11 @@ class ExplorerController:
     jacobians : list of JacobianConstraint
     mode : {"rigid", "similar"}
     alpha : float
-    max_iterations, tolerance : solver settings of :meth:`drag` and :meth:`solve`.
+    max_iterations, tolerance : the interactive solve's cap and tolerance (:meth:`drag`,
+        and :meth:`solve` unless told otherwise).
+    solver : dict
+        The scene's solver settings (:data:`vhm_viz.scene.DEFAULT_SOLVER` keys), used by
+        :meth:`settle` and saved with the scene (:data:`SETTLE_SOLVER` by default).
     last_report : SolveReport or None
     lod : bool
         Drag a proxy when the shape has more than ``lod_points`` points (read by
@@ -317,14 +244,15 @@ class ExplorerController:
         self.alpha = 0.01
         self.max_iterations = 200
         self.tolerance = 1e-6
+        self.solver = dict(SETTLE_SOLVER)
         self.deformer = None
-        self.binding: ChunkedBinding | None = None
+        self.binding = None
         self.last_report = None
         self.lod = True
         self.lod_points = LOD_POINTS
         self.proxy_triangles = PROXY_TRIANGLES
         self.proxy = None
-        self.proxy_binding: ChunkedBinding | None = None
+        self.proxy_binding = None
         self._proxy_rest = np.zeros((0, 3))
         self.full_stale = False
         self._deformer_stale = True
@@ -333,6 +261,9 @@ class ExplorerController:
         self._rest_points = np.zeros((0, 3))
         # local matrices to start the next solve from (a loaded scene's solution)
         self._initial_rotations = None
+        self._initial_contraction = None
+        #: Messages for the user from the last load (e.g. an old scene file converted).
+        self.notes: list[str] = []
 
     # ------------------------------------------------------------------ data
     @property
@@ -387,6 +318,7 @@ class ExplorerController:
         self.full_stale = False
         self.last_report = None
         self._initial_rotations = None
+        self._initial_contraction = None
         self._deformer_stale = True
         self._layout_stale = True
 
@@ -469,10 +401,10 @@ class ExplorerController:
 
     def load_cage(self, path) -> None:
         """Read, validate and use a cage file (OBJ, OFF, PLY, STL, VTP, VTK)."""
-        from vhm_viz.cage import Cage
+        from vhm_viz.io import read_cage
 
         try:
-            cage = Cage.from_file(path)
+            cage = read_cage(path)
         except CageError:
             raise
         except (OSError, ValueError) as exc:
@@ -517,38 +449,27 @@ class ExplorerController:
         self._deformer_stale = True
 
     def load_anchors(self, path, count: int = 50) -> None:
-        """Anchors from rigidity lines: ``.tgf`` skeleton, OFF polylines or any VTK polyline."""
+        """Anchors from a file: the JSON ``vhm-viz anchors`` writes, or rigidity lines.
+
+        Rigidity lines (``.tgf`` skeleton, OFF polylines, any VTK polyline dataset) get
+        ``count`` anchors spread along them (:func:`vhm_viz.anchors_from_polylines`).
+        """
         from vhm_viz.core.anchors import anchors_from_polylines
+        from vhm_viz.io import read_anchors, read_rigidity_lines
 
-        path = Path(path)
-        suffix = path.suffix.lower()
-        if suffix == ".tgf":
-            from vhm_viz.io import read_tgf
-
-            pts, edges = read_tgf(path)
-        elif suffix == ".off":
-            from vhm_viz.io import read_polylines
-
-            pts, edges = read_polylines(path)
-        else:
-            mesh = read_dataset(path)
-            lines = mesh.lines if hasattr(mesh, "lines") else np.zeros(0, int)
-            if not len(lines):
-                raise ValueError(f"{path.name}: no polylines")
-            edges, i = [], 0
-            while i < len(lines):
-                k = lines[i]
-                ids = lines[i + 1 : i + 1 + k]
-                edges.extend(zip(ids[:-1], ids[1:], strict=True))
-                i += k + 1
-            pts, edges = np.asarray(mesh.points, float), np.asarray(edges, int)
+        if Path(path).suffix.lower() == ".json":
+            self.set_anchors(read_anchors(path))
+            return
+        pts, edges = read_rigidity_lines(path)
         self.set_anchors(anchors_from_polylines(pts, edges, int(count)))
 
     def auto_anchors(self, count: int = 50) -> np.ndarray:
         """Compute ``count`` anchors automatically (not applied; see :meth:`set_anchors`)."""
+        from vhm_viz.autocage import auto_anchors
+
         if self.rest is None or self.cage is None:
             raise ValueError("load data and a cage first")
-        return _auto_anchors(self.rest, self.cage, int(count))
+        return np.asarray(auto_anchors(self.rest, self.cage, int(count)), dtype=float)
 
     def add_anchor(self, point) -> int:
         """Add an anchor at a rest-space point; returns its index."""
@@ -692,8 +613,6 @@ class ExplorerController:
         OutsideCageError, ConstraintError, ValueError
             Invalid anchors or constraints (the message names them).
         """
-        from vhm_viz.core.deformer import Deformer
-
         def check():
             if cancelled():
                 raise Cancelled("cancelled")
@@ -712,21 +631,27 @@ class ExplorerController:
             raise ConstraintError("cannot deform yet: missing " + ", ".join(missing))
         deformer, binding = self.deformer, self.binding
         rebuilt = False
-        if self._deformer_stale or deformer is None:
-            progress(0.0, "building the deformer")
-            deformer = Deformer(self.cage, self.anchors, mode=self.mode, alpha=self.alpha)
-            binding = None
-            rebuilt = True
-        check()
-        if rebuilt or self._layout_stale:
-            progress(0.02, "factorising the constraints")
-            deformer.set_constraints(**self.constraint_arrays())
-        check()
-        if binding is None:
-            binding = ChunkedBinding(deformer, self._rest_points, progress, check)
-        else:
-            binding.refresh(progress, check)
-        proxy, proxy_binding = self._prepare_proxy(deformer, rebuilt, progress, check)
+        scene = self.scene()
+        try:
+            if self._deformer_stale or deformer is None:
+                progress(0.0, "building the deformer")
+                deformer = scene.build(cage=self.cage)  # also factorises the constraints
+                binding = None
+                rebuilt = True
+            elif self._layout_stale:
+                progress(0.02, "factorising the constraints")
+                deformer.set_constraints(**scene.constraint_arguments())
+            check()
+            if binding is None:
+                # float64: the full shape is what gets exported (the drag proxy is float32)
+                binding = deformer.bind(
+                    self._rest_points, outside="passthrough", progress=progress, abort=cancelled
+                )
+            else:
+                binding.refresh(progress, cancelled)
+            proxy, proxy_binding = self._prepare_proxy(deformer, rebuilt, cancelled)
+        except AbortedError as exc:
+            raise Cancelled("cancelled") from exc
         self.deformer, self.binding = deformer, binding
         self.proxy, self.proxy_binding = proxy, proxy_binding
         self._deformer_stale = self._layout_stale = False
@@ -743,21 +668,26 @@ class ExplorerController:
         self.lod, self.lod_points = other.lod, other.lod_points
         self.proxy_triangles = other.proxy_triangles
 
-    def _prepare_proxy(self, deformer, rebuilt: bool, progress, check):
+    @property
+    def proxy_rest_points(self) -> np.ndarray:
+        """(Q, 3) rest positions of the drag proxy's points (empty without a proxy)."""
+        return self._proxy_rest
+
+    def _prepare_proxy(self, deformer, rebuilt: bool, cancelled):
         """Build or refresh the level-of-detail proxy and its binding (see :func:`make_proxy`)."""
         proxy, pb = self.proxy, self.proxy_binding
         if not self.lod or self.display is None or self.display.n_points <= self.lod_points:
             return None, None
         if proxy is None:
-            progress(0.9, "building the drag proxy")
             proxy = make_proxy(self.rest, self.proxy_triangles)
             self._proxy_rest = np.array(proxy.points, dtype=np.float64)
             pb = None
-        check()
         if pb is None or rebuilt:
-            pb = ChunkedBinding(deformer, self._proxy_rest, _noop_progress, check)
+            pb = deformer.bind(
+                self._proxy_rest, outside="passthrough", dtype=np.float32, abort=cancelled
+            )
         else:
-            pb.refresh(_noop_progress, check)
+            pb.refresh(abort=cancelled)
         return proxy, pb
 
     def _push_targets(self) -> None:
@@ -776,15 +706,26 @@ class ExplorerController:
         if self._targets_stale:
             self._push_targets()
         self.deformer.mode = self.mode
+        contraction = None
         if self._initial_rotations is not None:
             init, self._initial_rotations = self._initial_rotations, None
+            contraction, self._initial_contraction = self._initial_contraction, None
         rep = self.deformer.solve(
             max_iterations=self.max_iterations if max_iterations is None else max_iterations,
             tolerance=self.tolerance if tolerance is None else float(tolerance),
             init=init,
+            contraction=contraction,
         )
         self.last_report = rep
         return rep
+
+    def settle(self, init="previous"):
+        """Solve to convergence with the scene's settings (:attr:`solver`)."""
+        return self.solve(
+            init=init,
+            max_iterations=int(self.solver["max_iterations"]),
+            tolerance=float(self.solver["tolerance"]),
+        )
 
     def deform(self) -> np.ndarray:
         """Write the deformed points into :attr:`display` in place and return them."""
@@ -888,165 +829,126 @@ class ExplorerController:
         for name in [n for n in data.point_data.keys() if n.startswith("_")]:
             del data.point_data[name]  # display helpers (e.g. the slice clipping distance)
         try:
-            data.save(str(path))
-        except Exception as exc:  # unsupported suffix for this dataset type
-            try:
-                import meshio  # noqa: F401
+            write_dataset(path, data)
+        except (ValueError, TypeError) as exc:  # a suffix VTK cannot write this type to
+            raise ValueError(f"cannot write {path.name}: {exc}") from exc
 
-                pv_wrap = __import__("pyvista")
-                pv_wrap.save_meshio(str(path), data)
-            except Exception:
-                raise ValueError(f"cannot write {path.name}: {exc}") from exc
+    def scene(self, relative_to=None) -> Scene:
+        """The deformation being edited, as a :class:`~vhm_viz.scene.Scene`.
 
-    def scene_dict(self) -> dict:
-        """JSON-serialisable description of the scene (data reference, cage, anchors, ...)."""
-        cage = None
-        if self.cage is not None:
-            cage = {
-                "vertices": np.asarray(self.cage.vertices).tolist(),
-                "faces": np.asarray(self.cage.faces).tolist(),
-            }
-        return {
-            "vhm_viz_scene": SCENE_VERSION,
-            "data": self.source,
-            "cage": cage,
-            "anchors": self.anchors.tolist(),
-            "positions": [c.to_json() for c in self.positions],
-            "jacobians": [c.to_json() for c in self.jacobians],
-            "mode": self.mode,
-            "alpha": self.alpha,
-            "solver": {"max_iterations": self.max_iterations, "tolerance": self.tolerance},
-            # the anchors' local matrices of the current solution: warm start on reload
-            "rotations": (
-                self.deformer.rotations_at_anchors.tolist()
-                if self.deformer is not None and self.last_report is not None and self.ready
-                else None
-            ),
-        }
+        Parameters
+        ----------
+        relative_to : path-like, optional
+            Directory that the data path is written relative to (the scene file's).
 
-    @staticmethod
-    def sidecar_path(path) -> Path:
-        """``scene.json`` -> ``scene.explorer.json`` (data reference and warm start)."""
-        path = Path(path)
-        return path.with_name(path.stem + ".explorer.json")
+        Raises
+        ------
+        ValueError
+            Without a cage, anchors or a position constraint (a scene needs them).
+        """
+        if self.cage is None or not len(self.anchors) or not self.positions:
+            raise ValueError(
+                "nothing to describe yet: a scene needs a cage, anchors and a position constraint"
+            )
+        arr = self.constraint_arrays()
+        data = None
+        if "path" in self.source:
+            path = self.source["path"]
+            if relative_to is not None:
+                try:
+                    path = os.path.relpath(path, Path(relative_to).resolve())
+                except ValueError:  # another drive
+                    pass
+            data = {"path": path}
+        elif "bar" in self.source:
+            data = dict(self.source)
+        solver, solution, contraction = dict(self.solver), None, None
+        if self.ready and self.last_report is not None and self.last_report.converged:
+            # the solved state: the command line starts there and reproduces it
+            solution = np.array(self.deformer.rotations_at_anchors)
+            rho = self.last_report.contraction
+            contraction = float(rho) if np.isfinite(rho) else None
+            solver["init"] = "solution"
+        elif solver["init"] == "solution":
+            solver["init"] = "identity"
+        return Scene(
+            cage={
+                "vertices": np.array(self.cage.vertices, dtype=np.float64),
+                "faces": np.array(self.cage.faces, dtype=np.int64),
+            },
+            anchors={"points": np.array(self.anchors, dtype=np.float64)},
+            constraints={
+                "positions": arr["positions"],
+                "targets": arr["targets"],
+                "jacobian_points": arr.get("jacobian_points", np.zeros((0, 3))),
+                "jacobians": arr.get("jacobians", np.zeros((0, 3, 3))),
+            },
+            mode=self.mode,
+            alpha=float(self.alpha),
+            solver=solver,
+            data=data,
+            solution=solution,
+            solution_contraction=contraction,
+        )
 
     def save_scene(self, path) -> None:
-        """Write the scene.
+        """Write the scene (:mod:`vhm_viz.scene`'s format, the one ``vhm-viz deform`` reads).
 
-        The deformation goes to ``path`` in the shared scene format of
-        :mod:`vhm_viz.scene` (usable by ``vhm-viz deform``); what only the explorer needs
-        (the data file or bar scenario, the anchors' local matrices for a warm start) goes
-        to :meth:`sidecar_path`. Without :mod:`vhm_viz.scene`, one JSON file holds both.
+        The data the scene was made for is referenced relative to the scene file, and a
+        converged solution is stored with ``"init": "solution"``.
         """
         path = Path(path)
-        d = self.scene_dict()
-        if "path" in d["data"]:
-            try:
-                d["data"] = {"path": os.path.relpath(d["data"]["path"], path.parent.resolve())}
-            except ValueError:  # other drive
-                pass
-        try:
-            from vhm_viz.scene import Scene
-        except ImportError:
-            path.write_text(json.dumps(d, indent=1))
-            return
-        if d["cage"] is None or not self.positions:
-            raise ValueError("nothing to save yet: a scene needs a cage and a position constraint")
-        arr = self.constraint_arrays()
-        scene = Scene.from_dict(
-            {
-                "format": "vhm_viz.scene",
-                "version": 1,
-                "cage": d["cage"],
-                "anchors": d["anchors"],
-                "constraints": {
-                    "positions": arr["positions"].tolist(),
-                    "targets": arr["targets"].tolist(),
-                    "jacobian_points": arr.get("jacobian_points", np.zeros((0, 3))).tolist(),
-                    "jacobians": arr.get("jacobians", np.zeros((0, 3, 3))).tolist(),
-                },
-                "mode": self.mode,
-                "alpha": self.alpha,
-                "solver": {"max_iterations": self.max_iterations, "tolerance": self.tolerance},
-            }
-        )
-        scene.save(path)
-        side = {"vhm_viz_explorer": SCENE_VERSION, "data": d["data"], "rotations": d["rotations"]}
-        self.sidecar_path(path).write_text(json.dumps(side, indent=1))
+        self.scene(relative_to=path.parent).save(path)
 
-    def load_scene(self, path, data_from: ExplorerController | None = None) -> None:
-        """Load a scene (shared format plus sidecar, or the explorer's single file).
+    def load_scene(self, path, data_from: ExplorerController | None = None) -> list[str]:
+        """Load a scene; the state is replaced only on success.
 
-        A shared-format scene without a sidecar applies to the data already loaded (in
-        ``data_from``, default this controller). The state is replaced only on success.
+        A scene that names no data applies to the data already loaded (in ``data_from``,
+        default this controller).
+
+        Returns
+        -------
+        list of str
+            Notes for the user (e.g. that an old explorer file was converted).
         """
         path = Path(path)
         current = self if data_from is None else data_from
-        try:
-            d = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{path.name}: not a scene file ({exc})") from exc
-        if isinstance(d, dict) and d.get("format") == "vhm_viz.scene":
-            return self._load_shared_scene(path, current)
-        if not isinstance(d, dict) or "vhm_viz_scene" not in d:
-            raise ValueError(f"{path.name}: not a vhm_viz scene (missing 'format')")
-        from vhm_viz.cage import Cage
-
-        new = ExplorerController()
-        new.max_iterations, new.tolerance = self.max_iterations, self.tolerance
-        new.copy_lod_settings(self)
-        new.mode, new.alpha = d.get("mode", "rigid"), float(d.get("alpha", 0.01))
-        new._load_data_ref(d.get("data", {}), path, current)
-        if d.get("cage"):
-            new.set_cage(Cage(d["cage"]["vertices"], d["cage"]["faces"]))
-        new.set_anchors(d.get("anchors", []))
-        new.positions = [
-            PositionConstraint(np.array(c["point"], float), np.array(c["target"], float))
-            for c in d.get("positions", [])
-        ]
-        new.jacobians = [
-            JacobianConstraint(
-                np.array(c["point"], float), np.array(c["angles"], float), float(c["scale"])
-            )
-            for c in d.get("jacobians", [])
-        ]
-        new._finish_scene(d.get("rotations"))
-        self.__dict__.update(new.__dict__)
-
-    def _load_shared_scene(self, path: Path, current) -> None:
-        from vhm_viz.scene import Scene
-
         scene = Scene.load(path)
-        side_path = self.sidecar_path(path)
-        side = {}
-        if side_path.exists():
-            try:
-                side = json.loads(side_path.read_text())
-            except (OSError, json.JSONDecodeError) as exc:
-                raise ValueError(f"{side_path.name}: unreadable ({exc})") from exc
         new = ExplorerController()
         new.copy_lod_settings(self)
+        new.max_iterations, new.tolerance = self.max_iterations, self.tolerance
         new.mode, new.alpha = scene.mode, float(scene.alpha)
-        new.max_iterations = int(scene.solver["max_iterations"])
-        new.tolerance = float(scene.solver["tolerance"])
-        new._load_data_ref(side.get("data", {}), path, current)
+        new.solver = dict(scene.solver)
+        new._load_data_ref(scene.data, path, current)
         cage = scene.build_cage(new.rest)
         new.set_cage(cage)
         new.set_anchors(scene.build_anchors(cage, new.rest))
-        c = scene.constraints
+        args = scene.constraint_arguments()
         new.positions = [
             PositionConstraint(np.array(p, float), np.array(t, float))
-            for p, t in zip(c["positions"], c["targets"], strict=True)
+            for p, t in zip(args["positions"], args["targets"], strict=True)
         ]
         new.jacobians = [
             JacobianConstraint.from_matrix(p, j)
-            for p, j in zip(c["jacobian_points"], c["jacobians"], strict=True)
+            for p, j in zip(
+                args.get("jacobian_points", ()), args.get("jacobians", ()), strict=True
+            )
         ]
-        new._finish_scene(side.get("rotations"))
-        self.__dict__.update(new.__dict__)
+        new._layout_stale = True
+        if scene.solution is not None and scene.solution.shape == (len(new.anchors), 3, 3):
+            new._initial_rotations = np.array(scene.solution)
+            new._initial_contraction = scene.solution_contraction
+        new.notes = list(scene.notes)
+        self.adopt(new)
+        return list(scene.notes)
 
-    def _load_data_ref(self, src: dict, scene_path: Path, current) -> None:
+    def adopt(self, other: ExplorerController) -> None:
+        """Take over another controller's whole state (built in a worker thread)."""
+        self.__dict__.update(other.__dict__)
+
+    def _load_data_ref(self, src: dict | None, scene_path: Path, current) -> None:
         """Load the data a scene names, or take the current controller's."""
+        src = src or {}
         if "bar" in src:
             self.load_bar(src["bar"], resolution=int(src.get("resolution", 39)), apply=False)
             self.positions = []
@@ -1060,11 +962,6 @@ class ExplorerController:
             self._set_data(current.rest, dict(current.source))
         else:
             raise ValueError(f"{scene_path.name}: the scene names no data: open the data first")
-
-    def _finish_scene(self, rotations) -> None:
-        self._layout_stale = True
-        if rotations is not None and np.shape(rotations) == (len(self.anchors), 3, 3):
-            self._initial_rotations = np.asarray(rotations, dtype=float)
 
     # ------------------------------------------------------------------ picking
     def rest_point_from_cell(self, cell_id: int, world_point) -> np.ndarray:

@@ -52,10 +52,6 @@ _MODE_LABELS = {
     "anchor-": "Remove anchor",
 }
 SHAPE_COLOR = (0.85, 0.85, 0.80)
-# iteration cap of the solves outside a drag (load, edits, handle release): to convergence
-SETTLE_ITERATIONS = 50000
-# and its tolerance (the solver's fixed-point estimate is optimistic at small alpha)
-SETTLE_TOLERANCE = 1e-8
 # the full shape replaces the drag proxy after this long without handle motion (ms)
 REFINE_DELAY_MS = 400
 HANDLE_COLOR = "orange"
@@ -347,7 +343,10 @@ class ExplorerWindow(QMainWindow):
 
     # ================================================================== loading
     def _adopt(self, new: ExplorerController) -> None:
-        self.ctrl.__dict__.update(new.__dict__)
+        self.ctrl.adopt(new)
+        if self.ctrl.notes:
+            self.status("; ".join(self.ctrl.notes), 15000)
+            self.ctrl.notes = []
         if self.slice is not None:
             self.show_slice(False)
             self.analysis_panel.show_slice.setChecked(False)
@@ -367,9 +366,7 @@ class ExplorerWindow(QMainWindow):
             load(new)
             if new.can_solve:
                 new.prepare(progress, cancelled)
-                new.solve(
-                    init="identity", max_iterations=SETTLE_ITERATIONS, tolerance=SETTLE_TOLERANCE
-                )
+                new.settle(init="identity")
                 new.deform()
             return new
 
@@ -772,10 +769,7 @@ class ExplorerWindow(QMainWindow):
         ``rebuild=False`` keeps the actors and handles (only moves the markers).
         """
         t0 = time.perf_counter()
-        rep = self.ctrl.solve(
-            max_iterations=max(self.ctrl.max_iterations, SETTLE_ITERATIONS),
-            tolerance=min(self.ctrl.tolerance, SETTLE_TOLERANCE),
-        )
+        rep = self.ctrl.settle()
         t1 = time.perf_counter()
         self._refine_timer.stop()
         self._pending_frame = None
@@ -1092,7 +1086,8 @@ class ExplorerWindow(QMainWindow):
         if actor is None or proxy is None or proxy is not self._proxy_data:
             return
         if on and self._slice_plane is not None:
-            self._proxy_clipper = self._clip_mapper(actor.GetMapper(), proxy, self.ctrl._proxy_rest)
+            rest = self.ctrl.proxy_rest_points
+            self._proxy_clipper = self._clip_mapper(actor.GetMapper(), proxy, rest)
         elif self._proxy_clipper is not None:
             actor.GetMapper().SetInputData(proxy)
             self._proxy_clipper = None

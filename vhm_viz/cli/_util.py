@@ -9,23 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.atomic import save_dataset_atomic
 from vhm_viz.cli import one_line
+from vhm_viz.io import DATASET_SUFFIXES, suffix_of
 
-#: Input formats accepted by ``deform``/``analyze`` (readers: PyVista, meshio fallback).
-INPUT_SUFFIXES = (
-    ".vtu",
-    ".vtp",
-    ".vti",
-    ".vts",
-    ".vtr",
-    ".vtk",
-    ".ply",
-    ".obj",
-    ".stl",
-    ".mesh",
-    ".off",
-)
 #: Output formats per output dataset type.
 OUTPUT_SUFFIXES = {
     "PolyData": (".vtp", ".vtk", ".ply", ".obj", ".stl"),
@@ -105,53 +91,56 @@ def observe_progress(algorithm, progress: Progress) -> None:
     algorithm.AddObserver("ProgressEvent", lambda obj, _ev: progress(obj.GetProgress()))
 
 
-def check_input(path: str) -> Path:
+def check_input(path: str, suffixes=DATASET_SUFFIXES) -> Path:
     """The input path; :class:`CLIError` when missing or of an unknown type."""
     p = Path(path)
     if not p.exists():
         raise CLIError(f"input file not found: {p}")
     if not p.is_file():
         raise CLIError(f"input is not a file: {p}")
-    if p.suffix.lower() not in INPUT_SUFFIXES:
+    if suffix_of(p) not in suffixes:
         raise CLIError(
-            f"unsupported input type {p.suffix!r} ({p}); use one of {', '.join(INPUT_SUFFIXES)}"
+            f"unsupported input type {suffix_of(p) or '(none)'!r} ({p}); use one of "
+            f"{', '.join(suffixes)}"
         )
     return p
 
 
 def same_file(a: Path, b: Path) -> bool:
-    """Whether two paths name the same file (existing or not)."""
+    """Whether two paths name the same file: same inode (hard links), or same real path."""
+    a, b = Path(a), Path(b)
     try:
         if a.exists() and b.exists():
             return os.path.samefile(a, b)
     except OSError:
         pass
-    return a.resolve() == b.resolve()
+    return os.path.realpath(a) == os.path.realpath(b)
 
 
-def read_dataset(path: Path):
-    """Read a dataset with PyVista (meshio for formats VTK lacks)."""
-    import pyvista as pv
+def check_output(output: str, suffixes, inputs=()) -> Path:
+    """The output path: a known suffix, an existing directory, and none of ``inputs``.
 
-    try:
-        mesh = pv.read(os.fspath(path))
-    except Exception as exc:  # noqa: BLE001 -- any reader failure is one line
-        raise CLIError(f"cannot read {path}: {one_line(exc)}") from exc
-    if isinstance(mesh, pv.MultiBlock):
-        raise CLIError(f"{path} holds several datasets (a MultiBlock); give one dataset")
-    if mesh is None or mesh.n_points == 0:
-        raise CLIError(f"{path} contains no points (empty or not a valid {path.suffix} file)")
-    if mesh.n_cells and isinstance(mesh, pv.UnstructuredGrid):
-        types = set(np.unique(np.asarray(mesh.celltypes)).tolist())
-        polygonal = {int(pv.CellType.TRIANGLE), int(pv.CellType.QUAD), int(pv.CellType.POLYGON)}
-        if types <= polygonal:  # OBJ/OFF read through meshio: make it a surface again
-            mesh = pv.PolyData(np.asarray(mesh.points), faces=np.asarray(mesh.cells))
-    return mesh
-
-
-def write_atomic(mesh, path: Path) -> None:
-    """Save a PyVista dataset atomically (see :mod:`vhm_viz.atomic`)."""
-    save_dataset_atomic(mesh, path)
+    Parameters
+    ----------
+    output : str
+        The ``-o`` argument.
+    suffixes : sequence of str
+        Accepted suffixes (``.nii.gz`` counts as one).
+    inputs : iterable of path-like
+        Every file the command reads (data, scene, cage, ...): the output must be none of
+        them, whatever path or hard link names it.
+    """
+    out = Path(output)
+    if out.is_dir():
+        raise CLIError(f"output {out} is a directory; give a file name")
+    if suffix_of(out) not in suffixes:
+        raise CLIError(f"output {out} must end with one of {', '.join(suffixes)}")
+    for src in inputs:
+        if src is not None and same_file(Path(src), out):
+            raise CLIError(f"refusing to overwrite the input file {src}; choose another -o")
+    if not out.resolve().parent.is_dir():
+        raise CLIError(f"output directory does not exist: {out.parent}")
+    return out
 
 
 def outside_message(exc, n_points: int, source) -> str:

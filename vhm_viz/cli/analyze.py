@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -18,11 +17,11 @@ from vhm_viz.cli._util import (
     observe_progress,
     outside_message,
     quiet_vtk,
-    read_dataset,
     same_file,
     surface_metrics,
 )
 from vhm_viz.core.errors import OutsideCageError
+from vhm_viz.io import json_text, read_dataset, write_text
 
 #: Files written by ``analyze`` into the output directory.
 FILES = {
@@ -103,11 +102,12 @@ def analyze(args: argparse.Namespace) -> str:
 
     from vhm_viz import plotting
     from vhm_viz.filters import HarmonicDeformationFilter, JacobianAnalysisFilter, update
-    from vhm_viz.scene import write_atomic_text
 
     src = check_input(args.input)
     out_dir = Path(args.output)
-    if same_file(src, out_dir) or (out_dir.exists() and not out_dir.is_dir()):
+    if any(same_file(p, out_dir) for p in (src, Path(args.scene))) or (
+        out_dir.exists() and not out_dir.is_dir()
+    ):
         raise CLIError(f"output {out_dir} must be a directory (not the input or a file)")
     normal = _parse_normal(args.normal)
     scene = load_scene(args.scene)
@@ -168,7 +168,7 @@ def analyze(args: argparse.Namespace) -> str:
             "condition_number": _stats(slice_.point_data["condition_number"]),
         },
     }
-    write_atomic_text(out_dir / FILES["metrics"], json.dumps(metrics, indent=1) + "\n")
+    write_text(out_dir / FILES["metrics"], json_text(metrics))
     seconds = time.perf_counter() - t0
     summary = [f"analyzed {mesh.n_points} points"]
     if "E_rigid" in metrics:

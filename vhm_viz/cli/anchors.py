@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from pathlib import Path
 
-from vhm_viz.cli.cage import check_paths, write_text_atomic
+from vhm_viz.cli._util import check_input, check_output
 
 
 def add_parser(subparsers) -> None:
@@ -33,36 +31,34 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``anchors``; returns the exit status."""
-    from vhm_viz.autoanchors import auto_anchors
-    from vhm_viz.cage import Cage
+    from vhm_viz.autocage import auto_anchors
+    from vhm_viz.io import CAGE_SUFFIXES, read_cage, read_dataset, write_anchors
 
-    src, dst = check_paths(args.input, args.output, (".json",))
-    cage_path = Path(args.cage)
-    if not cage_path.exists():
-        raise ValueError(f"cage file not found: {cage_path}")
-    if dst.resolve() == cage_path.resolve():
-        raise ValueError(f"output {dst} is the cage file; refusing to overwrite it")
+    src = check_input(args.input)
+    cage_path = check_input(args.cage, CAGE_SUFFIXES)
+    dst = check_output(args.output, (".json",), inputs=[src, cage_path])
     threshold = args.threshold
     if threshold is not None and threshold.lower() != "otsu":
-        threshold = float(threshold)
-    cage = Cage.from_file(cage_path)
+        try:
+            threshold = float(threshold)
+        except ValueError as exc:
+            raise ValueError(f"--threshold must be a number or 'otsu', got {threshold!r}") from exc
     anchors, report = auto_anchors(
-        src,
-        cage,
+        read_dataset(src),
+        read_cage(cage_path),
         args.count,
         resolution=args.resolution,
         threshold=threshold,
         return_report=True,
     )
-    payload = {
-        "anchors": anchors.tolist(),
-        "count": int(report.count),
-        "min_pairwise_distance": report.min_pairwise_distance,
-        "min_depth": report.min_depth,
-        "input": str(src),
-        "cage": str(cage_path),
-    }
-    write_text_atomic(json.dumps(payload, indent=1) + "\n", dst)
+    write_anchors(
+        dst,
+        anchors,
+        min_pairwise_distance=report.min_pairwise_distance,
+        min_depth=report.min_depth,
+        input=str(src),
+        cage=str(cage_path),
+    )
     if not args.quiet:
         print(f"{dst}: {report}", file=sys.stdout)
     return 0

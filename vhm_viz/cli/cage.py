@@ -3,43 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-from pathlib import Path
 
-import numpy as np
-
-from vhm_viz import atomic
-
-
-def write_text_atomic(text: str, path: Path) -> None:
-    """Write ``text`` to ``path`` atomically (see :mod:`vhm_viz.atomic`)."""
-    atomic.write_text_atomic(path, text)
-
-
-def obj_text(vertices: np.ndarray, faces: np.ndarray, comment: str = "") -> str:
-    """Wavefront OBJ text of a triangle mesh (1-based indices)."""
-    lines = [f"# {line}" for line in comment.splitlines()]
-    lines += [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in np.asarray(vertices)]
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in np.asarray(faces)]
-    return "\n".join(lines) + "\n"
-
-
-def check_paths(input_path: str, output: str, suffixes: tuple[str, ...]) -> tuple[Path, Path]:
-    """Validate the input (exists) and output (suffix, not the input) paths."""
-    src = Path(input_path)
-    dst = Path(output)
-    if not src.exists():
-        raise ValueError(f"input file not found: {src}")
-    if dst.suffix.lower() not in suffixes:
-        raise ValueError(f"output {dst} must end with one of {', '.join(suffixes)}")
-    if dst.exists() and src.exists() and os.path.samefile(src, dst):
-        raise ValueError(f"output {dst} is the input file; refusing to overwrite it")
-    if dst.resolve() == src.resolve():
-        raise ValueError(f"output {dst} is the input file; refusing to overwrite it")
-    if not dst.resolve().parent.is_dir():
-        raise ValueError(f"output directory does not exist: {dst.parent}")
-    return src, dst
+from vhm_viz.cli._util import check_input, check_output
 
 
 def add_parser(subparsers) -> None:
@@ -81,8 +47,10 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``cage``; returns the exit status."""
     from vhm_viz.autocage import auto_cage
+    from vhm_viz.io import read_dataset, write_cage
 
-    src, dst = check_paths(args.input, args.output, (".obj",))
+    src = check_input(args.input)
+    dst = check_output(args.output, (".obj",), inputs=[src])
     threshold = args.threshold
     if threshold is not None and threshold.lower() != "otsu":
         try:
@@ -90,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise ValueError(f"--threshold must be a number or 'otsu', got {threshold!r}") from exc
     cage, report = auto_cage(
-        src,
+        read_dataset(src),
         offset=args.offset,
         max_faces=args.max_faces,
         resolution=args.resolution,
@@ -98,9 +66,7 @@ def run(args: argparse.Namespace) -> int:
         threshold=threshold,
         return_report=True,
     )
-    write_text_atomic(
-        obj_text(cage.vertices, cage.faces, f"vhm-viz cage of {src.name}\n{report}"), dst
-    )
+    write_cage(dst, cage, comment=f"vhm-viz cage of {src.name}\n{report}")
     if not args.quiet:
         print(f"{dst}: {report}", file=sys.stdout)
     return 0

@@ -7,22 +7,22 @@ import time
 from pathlib import Path
 
 from vhm_viz.cli._util import (
-    INPUT_SUFFIXES,
     OUTPUT_SUFFIXES,
     CLIError,
     Progress,
     build_and_solve,
     check_input,
+    check_output,
     load_scene,
     observe_progress,
     outside_message,
     quiet_vtk,
-    read_dataset,
-    same_file,
     surface_metrics,
-    write_atomic,
 )
 from vhm_viz.core.errors import OutsideCageError
+from vhm_viz.io import DATASET_SUFFIXES, read_dataset, write_dataset
+
+ALL_OUTPUT_SUFFIXES = tuple(sorted({s for v in OUTPUT_SUFFIXES.values() for s in v}))
 
 
 def add_parser(subparsers) -> None:
@@ -34,7 +34,7 @@ def add_parser(subparsers) -> None:
         "write OUTPUT. Surfaces stay surfaces, tet meshes stay tet meshes; a volume (.vti) "
         "written to .vti is resampled onto a regular grid (pull-back through the inverse "
         "map), to .vts it becomes a warped structured grid. Prints one summary line.",
-        epilog=f"input types: {' '.join(INPUT_SUFFIXES)}. Example: vhm-viz deform bar.vtp "
+        epilog=f"input types: {' '.join(DATASET_SUFFIXES)}. Example: vhm-viz deform bar.vtp "
         "--scene bar.json -o bent.vtp",
     )
     p.add_argument("input", metavar="INPUT", help="dataset to deform")
@@ -89,13 +89,11 @@ def deform(args: argparse.Namespace) -> str:
     from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
 
     src = check_input(args.input)
-    out = Path(args.output)
-    if same_file(src, out):
-        raise CLIError(f"refusing to overwrite the input file {src}; choose another -o")
-    if out.is_dir():
-        raise CLIError(f"output {out} is a directory; give a file name")
     arrays = _parse_arrays(args.arrays)
     scene = load_scene(args.scene)
+    # never write onto the data, the scene or any file the scene names
+    check_output(args.output, ALL_OUTPUT_SUFFIXES, [src, args.scene, *scene.referenced_files()])
+    out = Path(args.output)
     mesh = read_dataset(src)
     resample = isinstance(mesh, pv.ImageData) and out.suffix.lower() == ".vti"
     out_type = "ImageData" if resample else _output_type(mesh)
@@ -104,8 +102,6 @@ def deform(args: argparse.Namespace) -> str:
             f"cannot write a {out_type} to {out.suffix!r}; use "
             f"{', '.join(OUTPUT_SUFFIXES[out_type])}"
         )
-    if not out.parent.exists():
-        raise CLIError(f"output directory does not exist: {out.parent}")
 
     t0 = time.perf_counter()
     dfm, reports = build_and_solve(scene, mesh, quiet=args.quiet)
@@ -129,7 +125,7 @@ def deform(args: argparse.Namespace) -> str:
     except OutsideCageError as exc:
         raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
     bar.finish()
-    write_atomic(result, out)
+    write_dataset(out, result)
     seconds = time.perf_counter() - t0
 
     iterations = sum(r.iterations for r in reports)

@@ -15,7 +15,6 @@ the scene file and a metrics summary into the output directory.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -26,8 +25,8 @@ from vhm_viz.cli._util import (
     Progress,
     observe_progress,
     quiet_vtk,
-    write_atomic,
 )
+from vhm_viz.io import json_text, write_dataset, write_text
 
 
 def add_parser(subparsers) -> None:
@@ -102,7 +101,7 @@ def demo(args: argparse.Namespace):
     from vhm_viz.core.metrics import jacobian_measures, rigidity_distortion, volume_change
     from vhm_viz.examples import bar, bar_surface
     from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
-    from vhm_viz.scene import Scene, write_atomic_text
+    from vhm_viz.scene import Scene
 
     out = Path(args.output)
     if out.exists() and not out.is_dir():
@@ -114,7 +113,7 @@ def demo(args: argparse.Namespace):
 
     def save(mesh, name, what):
         path = out / name
-        write_atomic(mesh, path)
+        write_dataset(path, mesh)
         written.append((what, path))
 
     # 1. the scenario and its solve ------------------------------------------------------
@@ -220,7 +219,7 @@ def demo(args: argparse.Namespace):
         * float(np.prod(resampled.spacing))
         / (mass0 * float(np.prod(vol.spacing))),
     }
-    write_atomic_text(out / "metrics.json", json.dumps(metrics, indent=1) + "\n")
+    write_text(out / "metrics.json", json_text(metrics))
     written.append(("metrics", out / "metrics.json"))
 
     seconds = time.perf_counter() - t_start

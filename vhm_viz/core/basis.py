@@ -4,7 +4,7 @@ The harmonic map of a closed, outward-oriented triangle cage (vertices ``x_v``, 
 is ``f(p) = sum_v a_v phi_v(p) + sum_t b_t psi_t(p)`` (paper Section 2.1). ``phi_v`` is the
 double-layer potential of the hat function of vertex ``v`` and ``psi_t`` the (positive)
 single-layer potential of face ``t``; both have closed forms (Urago 2000, as in the paper's
-Appendix A; the conventions are those of ``shared/docs/math-notes.md``).
+Appendix A).
 
 Layout of every result, for ``N`` points, ``n`` cage vertices and ``m`` faces (``n + m``
 columns, vertex functions first):
@@ -17,7 +17,7 @@ columns, vertex functions first):
 Boundary behaviour (documented and tested):
 
 * Points arbitrarily close to the cage are accurate: ``R - |d|`` of the edge terms is
-  computed without cancellation (math notes, trap 2).
+  computed without cancellation (see ``_edge_terms_numpy``).
 * Points exactly on a face interior get the **interior limit** (the host face's solid angle
   counts as +1/2). It is detected when the point is exactly in the face's plane, or forced by
   ``host_faces`` -- use that for samples generated on faces, whose rounding puts them on
@@ -817,6 +817,56 @@ def _fix_edge_and_vertex_points(p, cd: _CageData, rows, values, gradients, hessi
             gradients[k] = np.nan
         if hessians is not None:
             hessians[k] = np.nan
+
+
+#: Tolerance on the winding number for "inside the cage". Points on the cage surface have
+#: winding number exactly 1/2 and count as inside; the winding number jumps from 0 to 1
+#: across the surface (it does not pass through 1/2), so points even 1e-9 off the surface
+#: are classified correctly.
+WINDING_TOLERANCE = 1e-8
+#: Working memory one chunk of basis evaluation may use (bytes), unless the caller says.
+DEFAULT_MEMORY_BUDGET = 64 * 2**20
+
+
+def inside_cage(winding: np.ndarray) -> np.ndarray:
+    """The one inside test: ``winding >= 1/2 - WINDING_TOLERANCE``.
+
+    Parameters
+    ----------
+    winding : (N,) float64
+        Winding numbers (:func:`winding_number`, or the sum of the ``phi`` columns).
+
+    Returns
+    -------
+    (N,) bool
+    """
+    return np.asarray(winding) >= 0.5 - WINDING_TOLERANCE
+
+
+def chunk_rows(n_columns: int, order: int = 0, memory_budget: int | None = None) -> int:
+    """Points per chunk so that one chunk's basis arrays fit in ``memory_budget`` bytes.
+
+    A chunk holds the values (``n_columns`` per point), gradients (3 x) and Hessians (5 x)
+    up to ``order``, each once more for the product with the caller's coefficients.
+
+    Parameters
+    ----------
+    n_columns : int
+        Basis functions (cage vertices plus faces).
+    order : {0, 1, 2}
+    memory_budget : int, optional
+        Bytes; default :data:`DEFAULT_MEMORY_BUDGET`.
+
+    Returns
+    -------
+    int
+        At least 16 (one SIMD group of the kernel).
+    """
+    budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else int(memory_budget)
+    if budget <= 0:
+        raise ValueError(f"memory_budget must be a positive number of bytes; got {budget}")
+    per_point = (1 + 3 * (order >= 1) + 5 * (order >= 2)) * max(int(n_columns), 1) * 8 * 2
+    return max(16, budget // per_point)
 
 
 def winding_number(points, vertices, faces, *, backend: str = "numba") -> np.ndarray:

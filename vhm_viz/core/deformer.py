@@ -38,17 +38,15 @@ Design (all documented choices in one place):
   :mod:`vhm_viz.core.solver`). Stopping rule: the estimated distance to the fixed point,
   ``|T(u) - u| / (1 - rho)`` (RMS per anchor, ``rho`` the observed contraction rate), below
   ``tolerance``; the paper's "change of R_global" rule stops far too early at the slow
-  contraction of alpha = 0.01 (math notes, "Convergence").
+  contraction of alpha = 0.01 (the contraction rate approaches 1 as alpha shrinks).
 * **The solution** is ``z = B [h; R_local]`` with ``R_local`` the final local matrices (the
   minimiser of the global step; energy-consistent), not the unprojected ``R_global`` of the
   paper's eq. (8); the difference vanishes at convergence.
 * **A 180 degree twist from the identity** sits on a symmetric saddle; use ``init="previous"``
   while ramping the target over a few steps (see :func:`vhm_viz.examples.bar`).
 
-Bindings (:meth:`Deformer.bind`) precompute ``F = D_points B`` so that deforming a shape is
-one matrix product (paper eq. 8). They store it relative to the rest pose,
-``x = p + F ([h; R] - [h_rest; I])``, which keeps float32 storage accurate (the product is
-small when the deformation is).
+Bindings (:meth:`Deformer.bind`, :mod:`vhm_viz.core.binding`) precompute ``F = D_points B``
+so that deforming a shape is one matrix product (paper eq. 8).
 """
 
 from __future__ import annotations
@@ -56,28 +54,24 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 import scipy.linalg as sla
 
-from vhm_viz.core.basis import evaluate_basis
+from vhm_viz.core.basis import evaluate_basis, inside_cage
+from vhm_viz.core.binding import Binding
 from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indices
 from vhm_viz.core.geometry import face_normals_and_areas
 from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW, project_blocks, run_local_global
 
-__all__ = ["Deformer", "Binding", "SolveReport", "default_smoothness_samples"]
+__all__ = ["Deformer", "SolveReport", "default_smoothness_samples"]
 
 _MODES = ("rigid", "similar")
 _INITS = ("previous", "identity", "random")
-# Winding-number tolerance for "inside" (points on the cage surface have 1/2).
-_WN_TOL = 1e-8
 # Relative rank tolerance of the constraint and least-squares factorisations.
 _RANK_TOL = 1e-10
 # Barycentric coordinates of the default smoothness samples (3-point quadrature rule).
 _SAMPLE_BARY = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
 _SAMPLE_INSET = 1e-3
-# Bindings with fewer F entries than this deform with numpy instead of the parallel kernel.
-_SMALL_F = 2_000_000
 
 
 def _blocks_T(a: np.ndarray) -> np.ndarray:
@@ -168,6 +162,9 @@ class SolveReport:
         Anderson-extrapolated iterates rejected by the energy safeguard.
     init : str
         The initialisation used.
+    contraction : float
+        The last estimate of the iteration's contraction rate ``rho`` (NaN when fewer than
+        three iterates were seen); stored with a saved solution (see ``Deformer.solve``).
     """
 
     iterations: int
@@ -179,6 +176,7 @@ class SolveReport:
     seconds: float
     rejected_steps: int = 0
     init: str = "previous"
+    contraction: float = float("nan")
     extra: dict = field(default_factory=dict)
 
     @property
@@ -283,7 +281,7 @@ class Deformer:
         evs = evaluate_basis(w, self._V, self._Fc, order=2, host_faces=host)
         wn = evs.values[:, : self._n].sum(axis=1)
         on_face = np.zeros(len(w), bool) if host is None else np.asarray(host).ravel() >= 0
-        out = (wn < 0.5 - _WN_TOL) & ~on_face
+        out = ~inside_cage(wn) & ~on_face
         if out.any():
             idx = np.nonzero(out)[0]
             raise OutsideCageError(
@@ -406,7 +404,7 @@ class Deformer:
     # ------------------------------------------------------------------ helpers
     def _check_inside(self, values: np.ndarray, what: str) -> None:
         wn = values[:, : self._n].sum(axis=1)
-        out = ~(wn >= 0.5 - _WN_TOL)
+        out = ~inside_cage(wn)
         if out.any():
             idx = np.nonzero(out)[0]
             raise OutsideCageError(
@@ -640,6 +638,7 @@ class Deformer:
         init="previous",
         seed=None,
         anderson_window: int | None = None,
+        contraction: float | None = None,
     ) -> SolveReport:
         """Run the local/global iteration (Anderson-accelerated) to convergence.
 
@@ -662,6 +661,11 @@ class Deformer:
             For ``init="random"``.
         anderson_window : int, optional
             Overrides the deformer's window for this call (0: plain iteration).
+        contraction : float, optional
+            With a given ``init`` that is a stored solution: the contraction rate measured
+            when it was computed (:attr:`SolveReport.contraction`). The stopping rule is
+            then checked on the first residual, and a solution that meets it is returned
+            unchanged (0 iterations).
 
         Returns
         -------
@@ -694,7 +698,10 @@ class Deformer:
         window = self.anderson_window if anderson_window is None else int(anderson_window)
         hist = np.zeros((max_iterations + 2, 4))
         t0 = time.perf_counter()
-        u, G, iters, converged, nrec, rejected = run_local_global(
+        rho0 = -1.0 if contraction is None else float(contraction)
+        if not (rho0 < 0 or 0 <= rho0 < 1):
+            raise ValueError(f"contraction must be in [0, 1); got {contraction}")
+        u, G, iters, converged, nrec, rejected, rho = run_local_global(
             self._C_R,
             self._g,
             self._jzp,
@@ -706,6 +713,7 @@ class Deformer:
             tolerance,
             window,
             hist,
+            rho0,
         )
         seconds = time.perf_counter() - t0
         self._u = u
@@ -721,6 +729,7 @@ class Deformer:
             seconds=seconds,
             rejected_steps=int(rejected),
             init=init_name,
+            contraction=float(rho) if rho >= 0 else float("nan"),
         )
         self._last_report = rep
         return rep
@@ -748,7 +757,14 @@ class Deformer:
 
     # ------------------------------------------------------------------ binding
     def bind(
-        self, points, *, outside: str = "raise", dtype=np.float64, chunk_size: int = 8192
+        self,
+        points,
+        *,
+        outside: str = "error",
+        dtype=np.float64,
+        memory_budget: int | None = None,
+        progress=None,
+        abort=None,
     ) -> Binding:
         """Precompute ``F = D_points B`` for fast repeated deformation of a point set.
 
@@ -756,234 +772,35 @@ class Deformer:
         ----------
         points : (P, 3) array_like
             The shape's points (mesh vertices, voxel centres, ...).
-        outside : {"raise", "passthrough"}
+        outside : {"error", "passthrough", "nan"}
             Points outside the cage: raise :class:`OutsideCageError` listing them (default),
-            or leave them unchanged by every deformation (their rows of ``F`` are not stored).
+            leave them unchanged, or make them NaN (see :mod:`vhm_viz.core.binding`).
         dtype : numpy dtype
-            ``float64`` (default) or ``float32`` storage of ``F`` (half the memory and
-            bandwidth; ``F`` acts on the change from the rest pose, so the rounding error
-            stays far below 1e-6 of the bounding-box diagonal for the bundled scenarios --
-            measured in ``benchmarks/bench_solver.py``).
-        chunk_size : int
-            Points per basis evaluation.
+            ``float64`` (default) or ``float32`` storage of ``F``.
+        memory_budget : int, optional
+            Bytes of basis arrays per chunk of the precomputation.
+        progress : callable(fraction, message), optional
+        abort : callable() -> bool, optional
+            Checked between chunks.
 
         Returns
         -------
         Binding
         """
         self._require_constraints()
-        return Binding(self, points, outside=outside, dtype=dtype, chunk_size=chunk_size)
+        return Binding(
+            self,
+            points,
+            outside=outside,
+            dtype=dtype,
+            memory_budget=memory_budget,
+            progress=progress,
+            abort=abort,
+        )
 
     def __repr__(self) -> str:
         return (
             f"Deformer(mode={self._mode!r}, anchors={self.n_anchors}, cage=({self._n} vertices, "
             f"{self._m} faces), samples={len(self._samples)}, lambda={self.lambda_:.4g}, "
             f"constraints={self.n_constraints})"
-        )
-
-
-@numba.njit(parallel=True, fastmath=True, cache=True)
-def _apply_rows(F, dwt, p, rows, out):  # pragma: no cover - compiled
-    """out[rows[i]] = p[rows[i]] + F[i] @ dw, with float64 accumulation.
-
-    A dedicated kernel: numpy's matmul of a tall (P, K) by a (K, 3) matrix runs at a
-    fraction of the memory bandwidth, while this product is purely bandwidth-bound.
-    """
-    for i in numba.prange(F.shape[0]):
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        for k in range(F.shape[1]):
-            f = F[i, k]
-            s0 += f * dwt[0, k]
-            s1 += f * dwt[1, k]
-            s2 += f * dwt[2, k]
-        r = rows[i]
-        out[r, 0] = p[r, 0] + s0
-        out[r, 1] = p[r, 1] + s1
-        out[r, 2] = p[r, 2] + s2
-
-
-class Binding:
-    """A point set bound to a :class:`Deformer`: deformation is one matrix product.
-
-    Created by :meth:`Deformer.bind`. ``deform()`` returns ``p + F (w - w_rest)`` with
-    ``w = [h; R_local]`` the deformer's current variables (paper eq. 8, written relative to
-    the rest pose ``w_rest = [h_rest; I]`` whose image is the identity). If the deformer's
-    constraint *points* change, ``F`` is recomputed on the next call.
-
-    Attributes
-    ----------
-    points : (P, 3) float64
-        The bound points.
-    inside : (P,) bool
-        Which points are inside the cage (the others pass through unchanged).
-    """
-
-    def __init__(
-        self, deformer: Deformer, points, *, outside="raise", dtype=np.float64, chunk_size=8192
-    ):
-        if outside not in ("raise", "passthrough"):
-            raise ValueError(f"outside must be 'raise' or 'passthrough'; got {outside!r}")
-        dtype = np.dtype(dtype)
-        if dtype not in (np.float32, np.float64):
-            raise ValueError(f"dtype must be float32 or float64; got {dtype}")
-        self.deformer = deformer
-        self.points = _as_point_array(points, "points", allow_empty=True).copy()
-        self.points.flags.writeable = False
-        self.dtype = dtype
-        self.chunk_size = int(chunk_size)
-        self.outside = outside
-        from vhm_viz.core.basis import winding_number
-
-        wn = winding_number(self.points, deformer._V, deformer._Fc)
-        self.inside = wn >= 0.5 - _WN_TOL
-        if not self.inside.all() and outside == "raise":
-            bad = np.nonzero(~self.inside)[0]
-            raise OutsideCageError(
-                f"{bad.size} of {len(self.points)} points are outside the cage (indices "
-                f"{describe_indices(bad)}); pass outside='passthrough' to leave them unchanged",
-                bad,
-            )
-        self._idx = np.nonzero(self.inside)[0]
-        self._all_inside = bool(self.inside.all())
-        self._F = None
-        self._FG = None
-        self._version = None
-        self._compute_F()
-
-    # -- precomputation
-    def _compute_F(self) -> None:
-        dfm = self.deformer
-        B = dfm._B
-        P = self._idx.size
-        F = np.empty((P, B.shape[1]), dtype=self.dtype)
-        pts = self.points[self._idx]
-        for s in range(0, P, self.chunk_size):
-            ev = evaluate_basis(pts[s : s + self.chunk_size], dfm._V, dfm._Fc, order=0)
-            F[s : s + self.chunk_size] = ev.values @ B
-        self._F = F
-        self._FG = None
-        self._version = dfm._layout_version
-
-    def _compute_FG(self) -> None:
-        dfm = self.deformer
-        B = dfm._B
-        P = self._idx.size
-        FG = np.empty((P, 3, B.shape[1]), dtype=self.dtype)
-        pts = self.points[self._idx]
-        for s in range(0, P, self.chunk_size):
-            ev = evaluate_basis(pts[s : s + self.chunk_size], dfm._V, dfm._Fc, order=1)
-            FG[s : s + self.chunk_size] = ev.gradients @ B
-        bad = ~np.isfinite(FG).all(axis=(1, 2))
-        if bad.any():
-            raise ValueError(
-                f"bound points {describe_indices(self._idx[bad])} lie on a cage edge or vertex: "
-                "the Jacobian is undefined there"
-            )
-        self._FG = FG.reshape(3 * P, B.shape[1])
-
-    def _refresh(self) -> None:
-        if self._version != self.deformer._layout_version:
-            self._compute_F()
-
-    def _delta_w(self) -> np.ndarray:
-        dfm = self.deformer
-        w = dfm.stacked_variables
-        w_rest = np.vstack(
-            [dfm._h_rest, _stack_T(np.broadcast_to(np.eye(3), (dfm.n_anchors, 3, 3)))]
-        )
-        return w - w_rest
-
-    @property
-    def nbytes(self) -> int:
-        """Memory of the stored ``F`` (and of the Jacobian binding, once computed)."""
-        return int(self._F.nbytes + (0 if self._FG is None else self._FG.nbytes))
-
-    @property
-    def F(self) -> np.ndarray:
-        """(P_inside, c + 3d) ``D_points B`` (read-only view)."""
-        self._refresh()
-        v = self._F.view()
-        v.flags.writeable = False
-        return v
-
-    # -- evaluation
-    def deform(self, out=None) -> np.ndarray:
-        """Deformed positions of the bound points, (P, 3) float64.
-
-        Parameters
-        ----------
-        out : (P, 3) float64 ndarray, optional
-            Written in place and returned.
-        """
-        self._refresh()
-        dwt = np.ascontiguousarray(self._delta_w().T, dtype=np.float64)
-        if out is None:
-            out = np.empty((len(self.points), 3))
-        elif out.shape != self.points.shape or out.dtype != np.float64:
-            raise ValueError(f"out must be a float64 array of shape {self.points.shape}")
-        if not self._all_inside:
-            out[:] = self.points
-        if self._F.size < _SMALL_F:
-            # small products: numpy avoids waking the kernel's thread pool
-            if self._all_inside:
-                np.add(self.points, self._F @ dwt.T.astype(self.dtype), out=out)
-            else:
-                out[self._idx] += self._F @ dwt.T.astype(self.dtype)
-        elif self._idx.size:
-            _apply_rows(self._F, dwt, self.points, self._idx, out)
-        return out
-
-    def jacobians(self) -> np.ndarray:
-        """Jacobians ``J[k, i, j] = d f_i / d x_j`` at the bound points, (P, 3, 3).
-
-        The first call precomputes the gradient binding (three times the memory of ``F``);
-        points passed through have ``J = I``.
-        """
-        self._refresh()
-        if self._FG is None:
-            self._compute_FG()
-        dw = self._delta_w().astype(self.dtype)
-        P = len(self.points)
-        jt = np.broadcast_to(np.eye(3), (P, 3, 3)).copy()
-        jt[self._idx] += (self._FG @ dw).reshape(-1, 3, 3)
-        return np.ascontiguousarray(np.swapaxes(jt, 1, 2))
-
-    def deform_normals(self, normals, *, normalize: bool = True) -> np.ndarray:
-        """Deform normals through the Jacobian: ``n' = cof(J) n`` (paper eq. 6).
-
-        ``cof(J) n = (J t1) x (J t2)`` for any tangent pair with ``t1 x t2 = n``, i.e. the
-        normal of the deformed tangent plane.
-
-        Parameters
-        ----------
-        normals : (P, 3) array_like
-            One normal per bound point.
-        normalize : bool
-            Return unit normals (default) or the raw ``cof(J) n`` (scaled by area change).
-
-        Returns
-        -------
-        (P, 3) float64
-        """
-        n = _as_point_array(normals, "normals", allow_empty=True)
-        if n.shape != self.points.shape:
-            raise ValueError(f"normals must have shape {self.points.shape}; got {n.shape}")
-        J = self.jacobians()
-        c0, c1, c2 = J[:, :, 0], J[:, :, 1], J[:, :, 2]
-        out = (
-            n[:, 0:1] * np.cross(c1, c2)
-            + n[:, 1:2] * np.cross(c2, c0)
-            + n[:, 2:3] * np.cross(c0, c1)
-        )
-        if normalize:
-            ln = np.linalg.norm(out, axis=1, keepdims=True)
-            out = np.divide(out, ln, out=np.zeros_like(out), where=ln > 0)
-        return out
-
-    def __repr__(self) -> str:
-        return (
-            f"Binding(points={len(self.points)}, inside={self._idx.size}, dtype={self.dtype}, "
-            f"F={self.nbytes / 1e6:.1f} MB)"
         )

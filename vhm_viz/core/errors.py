@@ -61,3 +61,7 @@ def describe_indices(indices, limit: int = 10) -> str:
     if len(idx) > limit:
         shown += f", ... ({len(idx)} in all)"
     return shown
+
+
+class AbortedError(RuntimeError):
+    """Long work stopped because its abort callback said so (e.g. VTK's AbortExecute)."""

@@ -1,4 +1,4 @@
-"""Small triangle-mesh geometry helpers shared by the cage, basis and metrics."""
+"""Small triangle-mesh geometry helpers shared by the cage, basis, metrics and readers."""
 
 from __future__ import annotations
 
@@ -51,3 +51,95 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     f = np.asarray(faces, dtype=np.int64)
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def _newell_normal(p: np.ndarray) -> np.ndarray:
+    q = np.roll(p, -1, axis=0)
+    return np.array(
+        [
+            np.sum((p[:, 1] - q[:, 1]) * (p[:, 2] + q[:, 2])),
+            np.sum((p[:, 2] - q[:, 2]) * (p[:, 0] + q[:, 0])),
+            np.sum((p[:, 0] - q[:, 0]) * (p[:, 1] + q[:, 1])),
+        ]
+    )
+
+
+def _triangulate_polygon(points: np.ndarray, poly: np.ndarray) -> list[tuple[int, int, int]]:
+    """Triangles of one polygon (vertex ids ``poly``), keeping its orientation."""
+    k = len(poly)
+    if k == 3:
+        return [(int(poly[0]), int(poly[1]), int(poly[2]))]
+    p = points[poly]
+    normal = _newell_normal(p)
+    fan = [(0, i, i + 1) for i in range(1, k - 1)]
+    if all(np.dot(np.cross(p[b] - p[a], p[c] - p[a]), normal) > 0 for a, b, c in fan):
+        return [(int(poly[a]), int(poly[b]), int(poly[c])) for a, b, c in fan]
+    # ear clipping in the plane of the Newell normal
+    nn = np.linalg.norm(normal)
+    if nn == 0:
+        return [(int(poly[a]), int(poly[b]), int(poly[c])) for a, b, c in fan]
+    normal = normal / nn
+    u = np.cross(normal, [1.0, 0.0, 0.0])
+    if np.linalg.norm(u) < 0.1:
+        u = np.cross(normal, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(normal, u)
+    xy = np.stack([(p - p[0]) @ u, (p - p[0]) @ w], axis=1)
+
+    def cross2(a, b, c):
+        return (xy[b, 0] - xy[a, 0]) * (xy[c, 1] - xy[a, 1]) - (xy[b, 1] - xy[a, 1]) * (
+            xy[c, 0] - xy[a, 0]
+        )
+
+    remaining = list(range(k))
+    tris = []
+    while len(remaining) > 3:
+        r = len(remaining)
+        for i in range(r):
+            a, b, c = remaining[i - 1], remaining[i], remaining[(i + 1) % r]
+            if cross2(a, b, c) <= 0:
+                continue  # reflex corner
+            if any(
+                cross2(a, b, d) >= 0 and cross2(b, c, d) >= 0 and cross2(c, a, d) >= 0
+                for d in remaining
+                if d not in (a, b, c)
+            ):
+                continue  # another corner inside the ear
+            tris.append((a, b, c))
+            remaining.pop(i)
+            break
+        else:  # no ear (self-overlapping polygon): give up and fan the rest
+            tris.extend((remaining[0], remaining[j], remaining[j + 1]) for j in range(1, r - 1))
+            remaining = remaining[:3]
+            break
+    if len(remaining) == 3 and len(tris) < k - 2:
+        tris.append(tuple(remaining))
+    return [(int(poly[a]), int(poly[b]), int(poly[c])) for a, b, c in tris]
+
+
+def triangulate_polygons(points: np.ndarray, polygons) -> np.ndarray:
+    """Triangles of a set of polygons, keeping each polygon's orientation.
+
+    A convex polygon becomes a fan from its first corner; a non-convex one is ear-clipped
+    in the plane of its Newell normal, so every format's quads and polygons give the same
+    triangles.
+
+    Parameters
+    ----------
+    points : (n, 3) float64
+        Vertex positions.
+    polygons : sequence of int arrays
+        Vertex ids of each polygon; records with fewer than 3 ids (points, polylines)
+        are skipped.
+
+    Returns
+    -------
+    (m, 3) int64
+    """
+    tris: list[tuple[int, int, int]] = []
+    for poly in polygons:
+        poly = np.asarray(poly, dtype=np.int64)
+        if len(poly) < 3:
+            continue  # points / polyline records
+        tris.extend(_triangulate_polygon(points, poly))
+    return np.asarray(tris, dtype=np.int64).reshape(-1, 3)

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from vhm_viz.core.basis import _as_points, evaluate_basis, hessian5_to_full, winding_number
+from vhm_viz.core.basis import (
+    _as_points,
+    chunk_rows,
+    evaluate_basis,
+    hessian5_to_full,
+    inside_cage,
+    winding_number,
+)
+from vhm_viz.core.binding import check_outside_policy
 from vhm_viz.core.errors import OutsideCageError, describe_indices
 from vhm_viz.core.geometry import face_normals_and_areas
-
-_OUTSIDE_POLICIES = ("raise", "passthrough", "nan")
-# Points per chunk when applying a map: bounds the basis temporaries to
-# chunk * (n + m) * 9 * 8 bytes (about 60 MB for a 750-column cage at order 2).
-DEFAULT_CHUNK = 1024
 
 
 class HarmonicMap:
@@ -118,11 +121,11 @@ class HarmonicMap:
 
     # ---------------------------------------------------------------- evaluation
     def inside(self, points) -> np.ndarray:
-        """Boolean mask of the points inside the cage (winding number > 1/2)."""
-        return winding_number(points, self.cage.vertices, self.cage.faces) > 0.5
+        """Boolean mask of the points inside the cage (:func:`~vhm_viz.core.basis.inside_cage`)."""
+        return inside_cage(winding_number(points, self.cage.vertices, self.cage.faces))
 
     def evaluate(
-        self, points, *, order: int = 0, outside: str = "raise", chunk_size: int = DEFAULT_CHUNK
+        self, points, *, order: int = 0, outside: str = "error", memory_budget: int | None = None
     ):
         """Map values and, on request, Jacobians and Hessians, in one pass over the basis.
 
@@ -131,11 +134,11 @@ class HarmonicMap:
         points : (N, 3) array_like
         order : {0, 1, 2}
             Highest derivative wanted.
-        outside : {"raise", "passthrough", "nan"}
+        outside : {"error", "passthrough", "nan"}
             Points outside the cage: raise :class:`OutsideCageError` naming them; leave
             them where they are (identity value, Jacobian I, Hessian 0); or fill with NaN.
-        chunk_size : int
-            Points per basis evaluation (memory stays ``O(chunk_size * (n + m))``).
+        memory_budget : int, optional
+            Bytes of basis arrays per chunk (:func:`~vhm_viz.core.basis.chunk_rows`).
 
         Returns
         -------
@@ -143,8 +146,7 @@ class HarmonicMap:
         J : (N, 3, 3) ndarray or None
         H : (N, 3, 3, 3) ndarray or None
         """
-        if outside not in _OUTSIDE_POLICIES:
-            raise ValueError(f"outside must be one of {_OUTSIDE_POLICIES}; got {outside!r}")
+        check_outside_policy(outside)
         p = _as_points(points)
         npts, n = len(p), len(self.cage.vertices)
         f = p.copy()
@@ -152,13 +154,14 @@ class HarmonicMap:
         hess = np.zeros((npts, 3, 3, 3)) if order >= 2 else None
         inside = np.ones(npts, dtype=bool)
         z = self._z
+        chunk_size = chunk_rows(len(z), order, memory_budget)
         for s in range(0, npts, chunk_size):
             rows = slice(s, s + chunk_size)
             b = evaluate_basis(p[rows], self.cage.vertices, self.cage.faces, order=order)
             # the winding number is the sum of the phi columns: no separate pass needed
-            ins = b.values[:, :n].sum(axis=1) > 0.5
+            ins = inside_cage(b.values[:, :n].sum(axis=1))
             inside[rows] = ins
-            if not ins.all() and outside == "raise":
+            if not ins.all() and outside == "error":
                 self._raise_outside(p, s, ins)
             f[rows] = np.where(ins[:, None], b.values @ z, p[rows])
             if order >= 1:
@@ -190,15 +193,15 @@ class HarmonicMap:
             bad,
         )
 
-    def map(self, points, *, outside: str = "raise") -> np.ndarray:
+    def map(self, points, *, outside: str = "error") -> np.ndarray:
         """Deformed positions ``f(p)``, shape (N, 3). See :meth:`evaluate` for ``outside``."""
         return self.evaluate(points, order=0, outside=outside)[0]
 
-    def jacobian(self, points, *, outside: str = "raise") -> np.ndarray:
+    def jacobian(self, points, *, outside: str = "error") -> np.ndarray:
         """Jacobians ``J[k, i, j] = d f_i / d x_j``, shape (N, 3, 3)."""
         return self.evaluate(points, order=1, outside=outside)[1]
 
-    def hessian(self, points, *, outside: str = "raise") -> np.ndarray:
+    def hessian(self, points, *, outside: str = "error") -> np.ndarray:
         """Hessians ``H[k, i, j, l] = d^2 f_i / d x_j d x_l``, shape (N, 3, 3, 3)."""
         return self.evaluate(points, order=2, outside=outside)[2]
 

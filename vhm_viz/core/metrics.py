@@ -189,10 +189,28 @@ def _jacobians(jacobians) -> np.ndarray:
     return j
 
 
+def _svd(j: np.ndarray, compute_uv: bool = True):
+    """SVD of each finite matrix; NaN factors for matrices with a NaN or inf entry.
+
+    Points outside the cage get NaN Jacobians under the ``"nan"`` outside policy, and
+    LAPACK refuses a batch with any of them ("SVD did not converge").
+    """
+    ok = np.isfinite(j).all(axis=(1, 2))
+    if ok.all():
+        return np.linalg.svd(j, compute_uv=compute_uv)
+    s = np.full((len(j), 3), np.nan)
+    if not compute_uv:
+        s[ok] = np.linalg.svd(j[ok], compute_uv=False)
+        return s
+    u = np.full((len(j), 3, 3), np.nan)
+    vt = np.full((len(j), 3, 3), np.nan)
+    u[ok], s[ok], vt[ok] = np.linalg.svd(j[ok])
+    return u, s, vt
+
+
 def singular_values(jacobians) -> np.ndarray:
-    """Singular values of each Jacobian, descending: shape (N, 3)."""
-    j = _jacobians(jacobians)
-    return np.linalg.svd(j, compute_uv=False)
+    """Singular values of each Jacobian, descending: shape (N, 3) (NaN for non-finite J)."""
+    return _svd(_jacobians(jacobians), compute_uv=False)
 
 
 def jacobian_determinant(jacobians) -> np.ndarray:
@@ -208,6 +226,7 @@ def condition_number(jacobians) -> np.ndarray:
 
 def _cond(s: np.ndarray) -> np.ndarray:
     out = np.full(len(s), np.inf)
+    out[np.isnan(s[:, 2])] = np.nan
     ok = s[:, 2] > 0
     out[ok] = s[ok, 0] / s[ok, 2]
     return out
@@ -220,7 +239,7 @@ def stretch(jacobians) -> np.ndarray:
 
 def _polar_rotation(j: np.ndarray) -> np.ndarray:
     """Closest proper rotation ``U diag(1, 1, det(U V^T)) V^T`` of each matrix."""
-    u, _, vt = np.linalg.svd(j)
+    u, _, vt = _svd(j)
     sign = np.sign(np.linalg.det(u @ vt))
     sign[sign == 0] = 1.0
     u = u.copy()
@@ -267,7 +286,7 @@ def jacobian_measures(jacobians) -> dict:
         (N,); and ``foldovers`` (int, count of ``det <= 0``).
     """
     j = _jacobians(jacobians)
-    u, s, vt = np.linalg.svd(j)
+    u, s, vt = _svd(j)
     det = np.linalg.det(j)
     sign = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
     u = u.copy()

@@ -433,6 +433,7 @@ def run_local_global(
     tolerance,
     window,
     hist,
+    rho0=-1.0,
 ):  # pragma: no cover - compiled
     """Iterate the local/global map from ``u0`` (Anderson-accelerated when ``window > 0``).
 
@@ -451,6 +452,12 @@ def run_local_global(
         Anderson window (0: plain local/global).
     hist : (max_iterations + 2, 4) float64
         Receives ``(total, rigid, smooth, residual)`` per recorded iterate.
+    rho0 : float
+        Contraction rate measured when ``u0`` was computed (a stored solution), or negative
+        when unknown. The stopping rule needs a rate, which the residual history gives only
+        from the third iterate on; with ``rho0`` a stored solution that meets the rule is
+        accepted as it is (no iteration, ``u0`` returned unchanged), so re-solving a saved
+        scene reproduces its result to rounding.
 
     Returns
     -------
@@ -460,6 +467,7 @@ def run_local_global(
     converged : bool
     n_records : int  rows of ``hist`` filled
     n_rejected : int  rejected accelerated steps
+    rho : float  the last contraction-rate estimate (``rho0`` if none was measured)
     """
     rows = u0.shape[0]
     n9 = rows * 3
@@ -491,6 +499,7 @@ def run_local_global(
     it = 0
     nrec = 0
     scale = math.sqrt(max(d, 1))
+    rho_last = rho0
     while True:
         ss = 0.0
         for i in range(n9):
@@ -513,7 +522,11 @@ def run_local_global(
             else:
                 rho = 0.0
             rho = min(max(rho, 0.0), 0.9999)
+            rho_last = rho
             if res / (1.0 - rho) <= tolerance:
+                converged = True
+        elif rho0 >= 0.0:
+            if res / (1.0 - min(rho0, 0.9999)) <= tolerance:
                 converged = True
         elif res <= 1e-3 * tolerance:
             converged = True
@@ -590,6 +603,10 @@ def run_local_global(
                 u[:, :] = T
                 e_tot, e_rig, e_sm, noise = _evaluate(u, C_R, g, jzp, l_r, const_h, similar, G, T)
         it += 1
+    if converged and it == 0 and rho0 >= 0.0:
+        # a stored solution accepted as it is: it already is a projection (the final plain
+        # step of the solve that produced it), and z = B [h; u0] is its result
+        return u.copy(), G.copy(), 0, converged, nrec, n_rejected, rho_last
     # final plain step, so that the returned local matrices are exact projections and the
     # last recorded energy is that of the returned solution z = B [h; u]
     u[:, :] = T
@@ -603,4 +620,4 @@ def run_local_global(
     hist[nrec, 2] = e_sm
     hist[nrec, 3] = math.sqrt(ss) / scale
     nrec += 1
-    return u.copy(), G.copy(), it + 1, converged, nrec, n_rejected
+    return u.copy(), G.copy(), it + 1, converged, nrec, n_rejected, rho_last

@@ -19,14 +19,14 @@ its source), so the filters stream and run piece-wise.
 from __future__ import annotations
 
 import numpy as np
-from vtkmodules.numpy_interface import dataset_adapter as dsa
 from vtkmodules.util import numpy_support as ns
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkObject
-from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
-from vhm_viz.filters._binding import AbortedError, normalize_outside
+from vhm_viz.core.binding import bind_map, check_outside_policy
+from vhm_viz.core.errors import AbortedError
 
 __all__ = ["DeformationSource", "update", "numpy_points", "geometry_key"]
 
@@ -104,9 +104,9 @@ def update(algorithm, piece: int | None = None, n_pieces: int = 1):
 
 
 def _cage_from_polydata(pd):
-    from vhm_viz.cage import Cage
+    from vhm_viz.io import cage_from_dataset
 
-    return Cage.from_pyvista(pd)
+    return cage_from_dataset(pd)
 
 
 def _same_cage(a, b) -> bool:
@@ -138,8 +138,14 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self._outside = "error"
         self._solver: dict = {}
         self._derived_key = None
+        self._memory_budget = None
+        self._binding = None
+        self._binding_key = None
         self.last_error: Exception | None = None
+        #: Points outside the cage in the last update (with a policy that lets them through).
         self.outside_count = 0
+        #: Number of times the binding was (re)built.
+        self.bind_count = 0
         #: Solve reports of solves run by the filter (scene or unsolved deformer).
         self.solve_reports: list = []
 
@@ -159,12 +165,10 @@ class DeformationSource(VTKPythonAlgorithmBase):
 
     def SetCageData(self, cage) -> None:
         """Connect a cage (``vtkPolyData``, PyVista PolyData or :class:`~vhm_viz.Cage`)."""
-        if not isinstance(cage, vtkPolyData) and hasattr(cage, "faces"):
-            import pyvista as pv
+        if not isinstance(cage, vtkPolyData) and hasattr(cage, "face_normals"):
+            from vhm_viz.io import cage_to_polydata
 
-            cage = pv.PolyData.from_regular_faces(
-                np.asarray(cage.vertices, dtype=np.float64), np.asarray(cage.faces)
-            )
+            cage = cage_to_polydata(cage)
         self.SetInputDataObject(1, cage)
 
     def SetCageConnection(self, port) -> None:
@@ -246,13 +250,14 @@ class DeformationSource(VTKPythonAlgorithmBase):
             self.SetScene(deformation)
 
     def SetOutsidePolicy(self, policy: str) -> None:
-        """``"error"`` (default; ``"raise"`` is accepted) or ``"passthrough"``.
+        """``"error"`` (default), ``"passthrough"`` or ``"nan"``.
 
-        Points outside the cage make the filter fail with an
-        :class:`~vhm_viz.OutsideCageError`, or stay where they are, flagged by the point
-        array ``vhm_outside``. Their count is :attr:`outside_count` in both cases.
+        Points outside the cage make the update fail with an
+        :class:`~vhm_viz.OutsideCageError` naming them; or they stay where they are
+        (``"passthrough"``) or become NaN (``"nan"``), flagged by the point array
+        ``vhm_outside`` and counted in :attr:`outside_count`.
         """
-        policy = normalize_outside(policy)
+        policy = check_outside_policy(policy)
         if policy != self._outside:
             self._outside = policy
             self.Modified()
@@ -260,6 +265,19 @@ class DeformationSource(VTKPythonAlgorithmBase):
     def GetOutsidePolicy(self) -> str:
         """The outside policy."""
         return self._outside
+
+    def SetMemoryBudget(self, nbytes: int | None) -> None:
+        """Bytes of basis arrays per chunk while binding (None: the core's default).
+
+        Smaller budgets mean more, smaller chunks (finer progress and abort), never a
+        different result.
+        """
+        if nbytes is not None and not int(nbytes) > 0:
+            raise ValueError(f"memory budget must be a positive number of bytes; got {nbytes}")
+        nbytes = None if nbytes is None else int(nbytes)
+        if nbytes != self._memory_budget:
+            self._memory_budget = nbytes
+            self.Modified()
 
     def SetSolverSettings(self, **settings) -> None:
         """Keyword arguments for :meth:`Deformer.solve` used when the filter solves."""
@@ -322,7 +340,9 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 if pd is not None:
                     cage = _cage_from_polydata(pd)
                     if not _same_cage(cage, base.cage):
-                        dfm = _rebuild_deformer(base, cage)
+                        from vhm_viz.scene import Scene
+
+                        dfm = Scene.from_deformer(base).build(cage=cage)
                 self._deformer = dfm
                 self._derived_key = key
         elif self._scene is not None:
@@ -352,6 +372,39 @@ class DeformationSource(VTKPythonAlgorithmBase):
         return dfm.harmonic_map, dfm
 
     # ------------------------------------------------------------------ execution helpers
+    def _bind(self, hm, dfm, data, points, lo: float, hi: float):
+        """The binding of ``points``, kept while the deformer's layout and the geometry hold.
+
+        With a fixed harmonic map (``dfm`` None) nothing is precomputed; with a deformer the
+        binding is rebuilt only when its constraint layout (``n_factorizations``), the
+        geometry of ``data``, the outside policy or the memory budget change, so moving
+        targets (:meth:`UpdateTargets`) re-uses it.
+        """
+        if dfm is None:
+            binding = bind_map(hm, points, outside=self._outside, memory_budget=self._memory_budget)
+        else:
+            key = (
+                id(dfm),
+                dfm.n_factorizations,
+                geometry_key(data),
+                self._outside,
+                self._memory_budget,
+            )
+            if key != self._binding_key or self._binding is None:
+                self._binding = None  # free the old F before computing the new one
+                self._binding = dfm.bind(
+                    points,
+                    outside=self._outside,
+                    memory_budget=self._memory_budget,
+                    progress=self._progress(lo, hi),
+                    abort=self._aborted,
+                )
+                self._binding_key = key
+                self.bind_count += 1
+            binding = self._binding
+        self.outside_count = binding.n_outside
+        return binding
+
     def _progress(self, lo: float, hi: float):
         def cb(fraction, _message=""):
             self.UpdateProgress(lo + (hi - lo) * float(fraction))
@@ -375,36 +428,3 @@ class DeformationSource(VTKPythonAlgorithmBase):
         except Exception as exc:  # noqa: BLE001 -- handed back by update()
             self.last_error = exc
             return 0
-
-
-def _rebuild_deformer(base, cage):
-    """A new deformer on ``cage`` with ``base``'s anchors, constraints, mode and alpha."""
-    from vhm_viz.core.deformer import Deformer
-
-    dfm = Deformer(
-        cage,
-        base.anchors,
-        mode=base.mode,
-        alpha=base.alpha,
-        anderson_window=base.anderson_window,
-    )
-    c = base.constraints
-    kw = {"positions": c["positions"], "targets": c["targets"]}
-    if len(c["jacobian_points"]):
-        kw.update(jacobian_points=c["jacobian_points"], jacobians=c["jacobians"])
-    dfm.set_constraints(**kw)
-    return dfm
-
-
-def as_vtk(obj):
-    """The VTK object behind a PyVista dataset (or the object itself)."""
-    return obj.VTKObject if isinstance(obj, dsa.VTKObjectWrapper) else obj
-
-
-def output_of(out_info, cls=vtkDataObject):
-    """The output data object of an output information vector."""
-    return (
-        cls.GetData(out_info, 0)
-        if cls is not vtkDataObject
-        else vtkDataObject.GetData(out_info.GetInformationObject(0))
-    )

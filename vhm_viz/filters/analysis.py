@@ -7,8 +7,7 @@ from vtkmodules.util import numpy_support as ns
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkDataSet
 
 from vhm_viz.core.metrics import jacobian_measures
-from vhm_viz.filters._binding import ChunkedBinding, MapEvaluator
-from vhm_viz.filters._common import DeformationSource, geometry_key, numpy_points
+from vhm_viz.filters._common import DeformationSource, numpy_points
 
 __all__ = ["JacobianAnalysisFilter", "ANALYSIS_ARRAYS"]
 
@@ -43,8 +42,6 @@ class JacobianAnalysisFilter(DeformationSource):
 
     def __init__(self):
         super().__init__(input_type="vtkDataSet", output_type="vtkDataSet")
-        self._cache_key = None
-        self._binding = None
 
     def RequestDataObject(self, request, in_info, out_info):
         """The output has the input's type."""
@@ -62,21 +59,7 @@ class JacobianAnalysisFilter(DeformationSource):
         hm, dfm = self._resolve(in_info, inp)
         out.ShallowCopy(inp)
         pts = numpy_points(inp)
-        key = (id(dfm), getattr(dfm, "n_factorizations", None), geometry_key(inp), self._outside)
-        if dfm is None:
-            ev = MapEvaluator(hm, pts, outside=self._outside, abort=self._aborted)
-        elif key == self._cache_key and self._binding is not None:
-            ev = self._binding
-        else:
-            ev = ChunkedBinding(
-                dfm,
-                pts,
-                outside=self._outside,
-                progress=self._progress(0.0, 0.5),
-                abort=self._aborted,
-            )
-            self._binding, self._cache_key = ev, key
-        self.outside_count = ev.n_outside
+        ev = self._bind(hm, dfm, inp, pts, 0.0, 0.5)
         jac = ev.jacobians(progress=self._progress(0.5, 0.95), abort=self._aborted)
         pd = out.GetPointData()
         if len(pts):
@@ -85,7 +68,7 @@ class JacobianAnalysisFilter(DeformationSource):
             _add(pd, "condition_number", m["condition_number"])
             _add(pd, "rotation_angle", np.degrees(m["rotation_angle"]))
             _add(pd, "foldover", (m["determinant"] <= 0).astype(np.uint8))
-        if self._outside == "passthrough":
+        if self._outside != "error":
             _add(pd, "vhm_outside", ev.outside.astype(np.uint8))
         self.UpdateProgress(1.0)
         return 1

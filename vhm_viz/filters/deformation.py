@@ -18,9 +18,9 @@ from vtkmodules.vtkCommonExecutionModel import (
 )
 from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearGridToPointSet
 
+from vhm_viz.core.binding import cofactor_normals
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
-from vhm_viz.filters._binding import ChunkedBinding, MapEvaluator, cofactor_normals
-from vhm_viz.filters._common import DeformationSource, geometry_key, numpy_points
+from vhm_viz.filters._common import DeformationSource, numpy_points
 
 __all__ = ["HarmonicDeformationFilter", "output_type_for"]
 
@@ -130,11 +130,6 @@ class HarmonicDeformationFilter(DeformationSource):
         self._determinant = False
         self._condition = False
         self._deform_normals = True
-        self._chunk = 16384
-        self._cache_key = None
-        self._binding = None
-        #: Number of times the binding was (re)built.
-        self.bind_count = 0
 
     # ------------------------------------------------------------------ options
     def SetComputeDisplacement(self, value: bool) -> None:
@@ -155,11 +150,6 @@ class HarmonicDeformationFilter(DeformationSource):
     def SetDeformNormals(self, value: bool) -> None:
         """Deform point/cell normals through the Jacobian (default True)."""
         self._deform_normals = bool(value)
-        self.Modified()
-
-    def SetChunkSize(self, value: int) -> None:
-        """Points per binding chunk (progress granularity)."""
-        self._chunk = max(1, int(value))
         self.Modified()
 
     # ------------------------------------------------------------------ pipeline
@@ -214,38 +204,7 @@ class HarmonicDeformationFilter(DeformationSource):
         src = _as_point_set(inp)
         out.ShallowCopy(src)
         points = numpy_points(src)
-
-        key = (
-            id(dfm),
-            getattr(dfm, "n_factorizations", None),
-            geometry_key(inp),
-            self._outside,
-            self._chunk,
-        )
-        if dfm is None:
-            ev = MapEvaluator(
-                hm,
-                points,
-                outside=self._outside,
-                chunk_size=self._chunk,
-                progress=self._progress(0.05, 0.6),
-                abort=self._aborted,
-            )
-        elif key == self._cache_key and self._binding is not None:
-            ev = self._binding
-        else:
-            self._binding = None
-            ev = ChunkedBinding(
-                dfm,
-                points,
-                outside=self._outside,
-                chunk_size=self._chunk,
-                progress=self._progress(0.05, 0.6),
-                abort=self._aborted,
-            )
-            self._binding, self._cache_key = ev, key
-            self.bind_count += 1
-        self.outside_count = ev.n_outside
+        ev = self._bind(hm, dfm, inp, points, 0.05, 0.6)
         deformed = ev.deform()
         self.UpdateProgress(0.65)
 
@@ -274,7 +233,7 @@ class HarmonicDeformationFilter(DeformationSource):
             _set_array(cd, cnormals.GetName() or "Normals", cofactor_normals(jc, n), normals=True)
         if self._displacement:
             _set_array(pd, "displacement", deformed - points)
-        if self._outside == "passthrough":
+        if self._outside != "error":
             _set_array(pd, "vhm_outside", ev.outside.astype(np.uint8))
         count = ns.numpy_to_vtk(np.array([self.outside_count], dtype=np.int64), deep=1)
         count.SetName("vhm_outside_count")

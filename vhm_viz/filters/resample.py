@@ -9,8 +9,8 @@ from vtkmodules.util import numpy_support as ns
 from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
+from vhm_viz.core.inverse import ImageGeometry, forward_lattice, pull_back, trilinear
 from vhm_viz.filters._common import DeformationSource
-from vhm_viz.filters._inverse import ImageGeometry, forward_lattice, pull_back, trilinear
 
 __all__ = ["HarmonicResampleFilter", "image_geometry"]
 
@@ -37,7 +37,7 @@ class HarmonicResampleFilter(DeformationSource):
     by Newton iterations with the closed-form Jacobian, started from a forward-deformed
     lattice of the input grid; every point array of the input is then sampled at ``x``
     by trilinear interpolation (integer arrays are rounded back to their type). See
-    :mod:`vhm_viz.filters._inverse`.
+    :mod:`vhm_viz.core.inverse`.
 
     **Fill value.** Voxels without a pre-image -- it would lie outside the cage or
     outside the input volume (extended by half a voxel, where the nearest boundary values

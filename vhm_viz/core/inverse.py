@@ -26,7 +26,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 from scipy.spatial import cKDTree
 
-from vhm_viz.filters._binding import AbortedError
+from vhm_viz.core.errors import AbortedError
 
 __all__ = ["ImageGeometry", "inverse_map", "forward_lattice", "trilinear", "pull_back"]
 
@@ -141,7 +141,6 @@ def inverse_map(
     *,
     tolerance: float,
     max_iterations: int = 30,
-    chunk_size: int = 8192,
     progress=None,
     abort=None,
 ):
@@ -157,8 +156,6 @@ def inverse_map(
     tolerance : float
         Stop when ``|f(x) - y| <= tolerance`` (world units).
     max_iterations : int
-    chunk_size : int
-        Points per evaluation (progress granularity).
     progress : callable(fraction, message), optional
     abort : callable() -> bool, optional
 
@@ -183,12 +180,7 @@ def inverse_map(
             break
         if abort is not None and abort():
             raise AbortedError("aborted")
-        f = np.empty((active.size, 3))
-        jac = np.empty((active.size, 3, 3))
-        for s in range(0, active.size, chunk_size):
-            rows = active[s : s + chunk_size]
-            fv, jv, _ = harmonic_map.evaluate(x[rows], order=1, outside="nan")
-            f[s : s + chunk_size], jac[s : s + chunk_size] = fv, jv
+        f, jac, _ = harmonic_map.evaluate(x[active], order=1, outside="nan")
         r = f - y[active]
         norm = np.linalg.norm(r, axis=1)
         conv = norm <= tolerance

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from vhm_viz.autocage import collect_samples
-from vhm_viz.core import voxel as vx
+from vhm_viz.autocage import voxel as vx
+from vhm_viz.autocage.cage import collect_samples
 
 __all__ = ["auto_anchors", "AnchorReport"]
 
@@ -79,17 +79,17 @@ def _medial(depth: np.ndarray, interior: np.ndarray) -> np.ndarray:
 
 
 def _as_cage(cage):
-    from vhm_viz.cage import Cage
-    from vhm_viz.core.cage import Cage as CoreCage
+    from vhm_viz import io
+    from vhm_viz.core.cage import Cage
 
-    if isinstance(cage, CoreCage):
+    if isinstance(cage, Cage):
         return cage
     if isinstance(cage, (str, os.PathLike)):
-        return Cage.from_file(cage)
+        return io.read_cage(cage)
     if isinstance(cage, tuple) and len(cage) == 2:
         return Cage(*cage)
-    if hasattr(cage, "points") and hasattr(cage, "faces"):
-        return Cage.from_pyvista(cage)
+    if hasattr(cage, "GetPoints"):
+        return io.cage_from_dataset(cage)
     raise ValueError(f"auto_anchors: cannot use {type(cage).__name__} as a cage")
 
 
@@ -160,7 +160,7 @@ def auto_anchors(
             allp.append(vx.sample_triangles(samples.tri_vertices, samples.tri_faces, 0.5 * h))
         surface = vx.splat(grid, np.concatenate(allp))
         if samples.kind in ("points",) and samples.spacing is None:
-            from vhm_viz.autocage import _point_spacing
+            from vhm_viz.autocage.cage import _point_spacing
 
             samples.spacing = _point_spacing(pts)
         if samples.spacing is not None:

@@ -33,13 +33,13 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from vhm_viz.core import voxel as vx
+from vhm_viz.autocage import voxel as vx
+from vhm_viz.autocage.meshcheck import edge_problems
+from vhm_viz.autocage.proximity import NearDistance, grid_signed_distance
+from vhm_viz.autocage.simplify import simplify
 from vhm_viz.core.basis import winding_number
 from vhm_viz.core.cage import self_intersections
 from vhm_viz.core.errors import CageError
-from vhm_viz.core.meshcheck import edge_problems
-from vhm_viz.core.proximity import NearDistance, grid_signed_distance
-from vhm_viz.core.simplify import simplify
 
 __all__ = ["auto_cage", "AutoCageReport", "InputSamples", "collect_samples"]
 
@@ -75,27 +75,6 @@ class InputSamples:
     tri_faces: np.ndarray | None = None
     kind: str = "points"
     spacing: float | None = None
-
-
-def _read_path(path):
-    import pyvista as pv
-
-    path = os.fspath(path)
-    if not os.path.exists(path):
-        raise ValueError(f"no such file: {path}")
-    ext = os.path.splitext(path)[1].lower()
-    if ext in (".npy",):
-        return np.load(path)
-    if ext in (".xyz", ".txt", ".csv"):
-        return np.loadtxt(path, delimiter="," if ext == ".csv" else None, ndmin=2)[:, :3]
-    if ext == ".mesh":
-        import meshio
-
-        return pv.from_meshio(meshio.read(path))
-    data = pv.read(path)
-    if isinstance(data, pv.MultiBlock):
-        data = data.combine()
-    return data
 
 
 def _otsu(values: np.ndarray) -> float:
@@ -169,7 +148,9 @@ def collect_samples(data, *, threshold=None, scalars=None, what="auto_cage") -> 
         an unsupported type or a threshold that selects nothing.
     """
     if isinstance(data, (str, os.PathLike)):
-        data = _read_path(data)
+        from vhm_viz.io import read_dataset
+
+        data = read_dataset(data)
     if isinstance(data, tuple) and len(data) == 2:
         verts = _check_points(data[0], what)
         faces = np.asarray(data[1])
@@ -561,7 +542,7 @@ def _offset_cage(samples, lo, hi, offset, max_faces, resolution, min_clear, note
     """(grid, vertices, faces, signed distances, components, Cage) of the offset method.
 
     VTK's quadric decimation takes the offset surface down to a few times ``max_faces``
-    (fast, still manifold there), :func:`vhm_viz.core.simplify.simplify` finishes with
+    (fast, still manifold there), :func:`vhm_viz.autocage.simplify.simplify` finishes with
     link-condition-checked collapses, then the cage is pushed out where needed.
     """
     grid, iso = _offset_surface(samples, lo, hi, offset, resolution)
@@ -798,7 +779,7 @@ def auto_cage(
 
 def _make_cage(V, F, check_self_intersection=True):
     """A validated :class:`vhm_viz.Cage` from arrays (raises CageError)."""
-    from vhm_viz.cage import Cage
+    from vhm_viz.core.cage import Cage
 
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)  # an inward or unreferenced cage is a bug
