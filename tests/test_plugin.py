@@ -188,6 +188,34 @@ def test_plugin_outside_points_fail_or_pass_through(plugin, tmp_path, monkeypatc
     np.testing.assert_array_equal(out.points[200], far)
 
 
+def test_plugin_deforms_a_point_cloud_with_a_scene_file(plugin, tmp_path):
+    from vhm_viz import examples
+    from vhm_viz.scene import Scene
+
+    scenario = examples.bar("bend-90")
+    scene_path = tmp_path / "bend90.json"
+    Scene.from_deformer(scenario.deformer).save(scene_path)
+    # the reference: the same scene built and solved directly
+    scene = Scene.load(scene_path)
+    dfm = scene.build()
+    scene.solve(dfm)
+    surface = pv.PolyData(scenario.points[::7].copy())  # a point cloud inside the cage
+    expected, jac, _ = dfm.harmonic_map.evaluate(surface.points, order=1)
+
+    flt = plugin.VHMHarmonicDeformation()
+    flt.SetSceneFile(str(scene_path))
+    flt.SetOutputArrays(1, 1, 0)
+    flt.SetInputDataObject(0, surface)
+    flt.Update()
+    out = pv.wrap(flt.GetOutputDataObject(0))
+    assert isinstance(out, pv.PolyData) and out.n_points == surface.n_points
+    np.testing.assert_allclose(out.points, expected, atol=1e-9)
+    np.testing.assert_allclose(out.point_data["displacement"], expected - surface.points, atol=1e-9)
+    det = np.asarray(out.point_data["jacobian_determinant"])
+    np.testing.assert_allclose(det, np.linalg.det(jac), rtol=1e-9)
+    assert "condition_number" not in out.point_data  # not asked for
+
+
 # pytest-qt (loaded for the explorer's tests) would otherwise turn the exception VTK prints
 # through sys.excepthook into a test error
 @pytest.mark.qt_no_exception_capture
