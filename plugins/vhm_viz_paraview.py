@@ -1,100 +1,151 @@
-"""ParaView plugin: the vhm_viz harmonic deformation as a filter (Filters > vhm_viz).
+"""ParaView plugin: vhm_viz's harmonic deformation, Jacobian analysis and resampling.
 
-Load it with Tools > Manage Plugins > Load New (ParaView 5.10+, whose Python can import the
-installed ``vhm_viz`` package, e.g. ``pvpython -m pip install vhm_viz`` or PYTHONPATH).
-Modelled on meshio's ParaView plugin: the filter is a thin wrapper that delegates all the
-work to :class:`vhm_viz.filters.HarmonicDeformationFilter`.
+Set up ParaView's Python with ``eval "$(bash plugins/paraview-env.sh)"`` from the project
+root; ParaView then loads this file from ``PV_PLUGIN_PATH`` (or load it with Tools > Manage
+Plugins). The filters appear under Filters > vhm_viz and in ``paraview.simple`` as
+``VHMHarmonicDeformation``, ``VHMJacobianAnalysis`` and ``VHMResampleToImage``.
 
-Inputs: the data to deform (any dataset) and, optionally, the cage (polydata). Properties:
-the scene file (JSON, see ``vhm_viz.scene``), the outside-the-cage policy and the optional
-output arrays.
+Modelled on meshio's ParaView plugin, this file only declares proxies and properties: each
+filter *is* the corresponding :mod:`vhm_viz.filters` algorithm (same pipeline contract:
+the whole cage is requested on every rank, pieces and extents are honoured), with
+:meth:`SetParallelReporting` on, so that under ``mpiexec`` the ranks agree on errors, every
+error is one line in ParaView's output window, and a failed update leaves no stale output.
 """
 
-from paraview.util.vtkAlgorithm import (
-    VTKPythonAlgorithmBase,
-    smdomain,
-    smhint,
-    smproperty,
-    smproxy,
+from paraview.util.vtkAlgorithm import smdomain, smhint, smproperty, smproxy
+
+from vhm_viz.filters import (
+    HarmonicDeformationFilter,
+    HarmonicResampleFilter,
+    JacobianAnalysisFilter,
 )
-from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkDataSet, vtkPolyData
+from vhm_viz.filters._common import DeformationSource
 
-from vhm_viz.filters import HarmonicDeformationFilter
+_SCENE_HELP = (
+    "A vhm_viz scene (JSON): cage, anchors, constraints, mode, solver settings. Write one "
+    "with the vhm_viz explorer, vhm_viz.scene.Scene.save or by hand (see the README). The "
+    "file is read again when it changes."
+)
+_CAGE_HELP = (
+    "Optional: the cage as a closed triangle surface. When connected it replaces the "
+    "scene's cage (the deformer is rebuilt on it). Every rank receives all of it."
+)
+_OUTSIDE_XML = (
+    '<IntVectorProperty name="OutsidePolicy" command="SetOutsidePolicyIndex" '
+    'number_of_elements="1" default_values="0">'
+    '<EnumerationDomain name="enum">'
+    '<Entry value="0" text="Error"/><Entry value="1" text="Pass through"/>'
+    '<Entry value="2" text="NaN"/></EnumerationDomain>'
+    "<Documentation>Points outside the cage: fail naming them (Error), leave them in place "
+    "(Pass through) or make them NaN; the last two flag them in the point array "
+    "vhm_outside.</Documentation></IntVectorProperty>"
+)
+_OUTSIDE = ("error", "passthrough", "nan")
 
 
-@smproxy.filter(name="VHMHarmonicDeformation", label="VHM Harmonic Deformation")
-@smhint.xml('<ShowInMenu category="vhm_viz" />')
-@smproperty.input(name="Cage", port_index=1)
-@smdomain.datatype(dataTypes=["vtkPolyData"], composite_data_supported=False)
-@smproperty.input(name="Input", port_index=0)
-@smdomain.datatype(dataTypes=["vtkDataSet"], composite_data_supported=False)
-class VHMHarmonicDeformation(VTKPythonAlgorithmBase):
-    def __init__(self):
-        VTKPythonAlgorithmBase.__init__(
-            self, nInputPorts=2, nOutputPorts=1, outputType="vtkDataSet"
-        )
-        self._scene_file = ""
-        self._outside = "error"
-        self._arrays = [False, False, False]
-        self._inner = HarmonicDeformationFilter()
+def _filter(name, label, data_type):
+    """The proxy declaration: menu entry, Input (of ``data_type``) and optional Cage ports."""
 
-    def FillInputPortInformation(self, port, info):
-        if port == 1:
-            info.Set(self.INPUT_REQUIRED_DATA_TYPE(), "vtkPolyData")
-            info.Set(self.INPUT_IS_OPTIONAL(), 1)
-        else:
-            info.Set(self.INPUT_REQUIRED_DATA_TYPE(), "vtkDataSet")
-        return 1
+    def declare(cls):
+        for decorate in reversed(
+            [
+                smproxy.filter(name=name, label=label),
+                smhint.xml('<ShowInMenu category="vhm_viz" />'),
+                smproperty.input(name="Cage", port_index=1),
+                smdomain.datatype(dataTypes=["vtkPolyData"], composite_data_supported=False),
+                smdomain.xml(f"<Documentation>{_CAGE_HELP}</Documentation>"),
+                smproperty.input(name="Input", port_index=0),
+                smdomain.datatype(dataTypes=[data_type], composite_data_supported=False),
+            ]
+        ):
+            cls = decorate(cls)
+        return cls
 
-    @smproperty.stringvector(name="SceneFile", number_of_elements=1)
+    return declare
+
+
+def _scene_and_outside(cls):
+    """SceneFile and OutsidePolicy properties on ``cls`` itself (ParaView reads only a
+    class's own attributes, so a shared base class cannot carry them)."""
+
+    @smproperty.stringvector(name="SceneFile", default_values="", number_of_elements=1)
     @smdomain.filelist()
     @smhint.filechooser(extensions="json", file_description="vhm_viz scene files")
+    @smdomain.xml(f"<Documentation>{_SCENE_HELP}</Documentation>")
     def SetSceneFile(self, name):
-        if name != self._scene_file:
-            self._scene_file = name
-            self.Modified()
+        DeformationSource.SetSceneFile(self, name)
 
-    @smproperty.xml(
-        '<IntVectorProperty name="PassThroughOutside" command="SetPassThroughOutside" '
-        'number_of_elements="1" default_values="0"><BooleanDomain name="bool"/>'
-        "<Documentation>Leave points outside the cage in place (flagged vhm_outside) "
-        "instead of failing.</Documentation></IntVectorProperty>"
-    )
-    def SetPassThroughOutside(self, value):
-        self._outside = "passthrough" if value else "error"
-        self.Modified()
+    @smproperty.xml(_OUTSIDE_XML)
+    def SetOutsidePolicyIndex(self, index):
+        self.SetOutsidePolicy(_OUTSIDE[int(index)])
+
+    cls.SetSceneFile = SetSceneFile
+    cls.SetOutsidePolicyIndex = SetOutsidePolicyIndex
+    return cls
+
+
+class _ParaViewReporting:
+    """Errors as one line in ParaView's output window, agreed across MPI ranks."""
+
+    label = ""
+
+    def __init__(self):
+        super().__init__()
+        self.SetParallelReporting(True)
+
+    def _label(self):
+        return self.label
+
+
+@_filter("VHMHarmonicDeformation", "VHM Harmonic Deformation", "vtkDataSet")
+@_scene_and_outside
+class VHMHarmonicDeformation(_ParaViewReporting, HarmonicDeformationFilter):
+    """Deform any dataset with a scene's variational harmonic map (vtkWarpVector's types)."""
+
+    label = "VHM Harmonic Deformation"
 
     @smproperty.xml(
         '<IntVectorProperty name="OutputArrays" command="SetOutputArrays" '
         'number_of_elements="3" default_values="0 0 0">'
-        "<Documentation>Add displacement, jacobian_determinant, condition_number."
-        "</Documentation></IntVectorProperty>"
+        '<BooleanDomain name="bool"/>'
+        "<Documentation>Extra point arrays, in order: displacement (vectors f(p) - p), "
+        "jacobian_determinant (local volume ratio det J), condition_number "
+        "(s_max / s_min of J).</Documentation></IntVectorProperty>"
     )
     def SetOutputArrays(self, displacement, determinant, condition):
-        self._arrays = [bool(displacement), bool(determinant), bool(condition)]
-        self.Modified()
+        self.SetComputeDisplacement(bool(displacement))
+        self.SetComputeJacobianDeterminant(bool(determinant))
+        self.SetComputeConditionNumber(bool(condition))
 
-    # the same output-type rules as the filter it wraps (vtkWarpVector's)
-    RequestDataObject = HarmonicDeformationFilter.RequestDataObject
 
-    def RequestData(self, request, in_info, out_info):
-        inp = vtkDataSet.GetData(in_info[0], 0)
-        cage = vtkPolyData.GetData(in_info[1], 0) if self.GetNumberOfInputConnections(1) else None
-        if not self._scene_file:
-            raise RuntimeError("VHM Harmonic Deformation: set the SceneFile property")
-        inner = self._inner
-        if inner.GetScene() is None or getattr(self, "_loaded", None) != self._scene_file:
-            inner.SetScene(self._scene_file)
-            self._loaded = self._scene_file
-        inner.SetInputData(inp)
-        if cage is not None:
-            inner.SetCageData(cage)
-        inner.SetOutsidePolicy(self._outside)
-        inner.SetComputeDisplacement(self._arrays[0])
-        inner.SetComputeJacobianDeterminant(self._arrays[1])
-        inner.SetComputeConditionNumber(self._arrays[2])
-        from vhm_viz.filters import update
+@_filter("VHMJacobianAnalysis", "VHM Jacobian Analysis", "vtkDataSet")
+@_scene_and_outside
+class VHMJacobianAnalysis(_ParaViewReporting, JacobianAnalysisFilter):
+    """det J, cond J, rotation angle and foldovers of a scene's map on the rest data."""
 
-        result = update(inner)
-        vtkDataObject.GetData(out_info, 0).ShallowCopy(result)
-        return 1
+    label = "VHM Jacobian Analysis"
+
+
+@_filter("VHMResampleToImage", "VHM Resample To Image", "vtkImageData")
+@_scene_and_outside
+class VHMResampleToImage(_ParaViewReporting, HarmonicResampleFilter):
+    """The deformed volume resampled on a regular grid (pull-back through the inverse map)."""
+
+    label = "VHM Resample To Image"
+
+    @smproperty.doublevector(name="Tolerance", default_values=0.05)
+    @smdomain.doublerange(min=1e-6, max=1.0)
+    @smdomain.xml(
+        "<Documentation>Largest allowed position error of a pulled-back voxel, in voxels of "
+        "the input spacing.</Documentation>"
+    )
+    def SetToleranceVoxels(self, value):
+        self.SetTolerance(float(value))
+
+    @smproperty.doublevector(name="FillValue", default_values=0.0)
+    @smdomain.xml(
+        "<Documentation>Value of output voxels without a pre-image (they also get 0 in "
+        "vtkValidPointMask).</Documentation>"
+    )
+    def SetFillValueProperty(self, value):
+        self.SetFillValue(float(value))

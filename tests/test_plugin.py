@@ -57,23 +57,25 @@ def plugin(monkeypatch):
 
 
 @contextlib.contextmanager
-def _python_errors(monkeypatch):
-    """Collect the Python exceptions VTK reports from a Python algorithm's RequestData.
+def _messages(monkeypatch):
+    """Collect what the plugin shows in VTK's output window (ParaView's Output Messages).
 
-    VTK prints such an exception with ``PyErr_Print`` (so through ``sys.excepthook``) after
-    logging "Failure when calling method". PyVista routes VTK's output window to Python
-    logging, and that Python callback swallows the pending exception; a plain string output
-    window (no Python callback) lets it through, as in ParaView.
+    The plugin reports an error as one line there and leaves an empty output; an exception
+    escaping RequestData would instead reach ``sys.excepthook`` (VTK's ``PyErr_Print``), so
+    those are collected too: there must be none.
     """
-    errors: list[BaseException] = []
-    monkeypatch.setattr(sys, "excepthook", lambda tp, value, tb: errors.append(value))
+    escaped: list[BaseException] = []
+    monkeypatch.setattr(sys, "excepthook", lambda tp, value, tb: escaped.append(value))
     previous = vtkOutputWindow.GetInstance()
     window = vtkStringOutputWindow()
     vtkOutputWindow.SetInstance(window)
+    lines: list[str] = []
     try:
-        yield errors
+        yield lines
     finally:
         vtkOutputWindow.SetInstance(previous)
+        lines.extend(line for line in window.GetOutput().splitlines() if line.strip())
+        assert escaped == [], f"an exception escaped RequestData: {escaped}"
 
 
 # ------------------------------------------------------------------------------- real data
@@ -173,13 +175,13 @@ def test_plugin_outside_points_fail_or_pass_through(plugin, tmp_path, monkeypatc
     flt = plugin.VHMHarmonicDeformation()
     flt.SetSceneFile(str(scene_path))
     flt.SetInputDataObject(0, cloud)
-    with _python_errors(monkeypatch) as errors:
+    with _messages(monkeypatch) as lines:
         flt.Update()
-    assert len(errors) == 1 and "outside the cage" in str(errors[0])
-    assert "200" in str(errors[0])  # names the offending point
+    assert len(lines) == 1 and "VHM Harmonic Deformation: " in lines[0], lines
+    assert "outside the cage" in lines[0] and "200" in lines[0]  # names the point
     assert flt.GetOutputDataObject(0).GetNumberOfPoints() == 0
 
-    flt.SetPassThroughOutside(1)
+    flt.SetOutsidePolicyIndex(1)  # "Pass through"
     flt.Update()
     out = pv.wrap(flt.GetOutputDataObject(0))
     flags = np.asarray(out.point_data["vhm_outside"])
@@ -232,10 +234,9 @@ def test_plugin_without_scene_fails_clearly_and_leaves_no_stale_output(
 
     flt = plugin.VHMHarmonicDeformation()
     flt.SetInputDataObject(0, cloud)
-    with _python_errors(monkeypatch) as errors:
+    with _messages(monkeypatch) as lines:
         flt.Update()
-    assert len(errors) == 1 and isinstance(errors[0], RuntimeError)
-    assert "set the SceneFile property" in str(errors[0])
+    assert lines == ["VHM Harmonic Deformation: set SceneFile (a vhm_viz scene JSON)"]
     assert flt.GetOutputDataObject(0).GetNumberOfPoints() == 0
 
     # a successful update, then the scene is cleared: the old result must not linger
@@ -244,15 +245,14 @@ def test_plugin_without_scene_fails_clearly_and_leaves_no_stale_output(
     assert flt.GetOutputDataObject(0).GetNumberOfPoints() == cloud.n_points
     assert not np.allclose(pv.wrap(flt.GetOutputDataObject(0)).points, cloud.points, atol=1e-3)
     flt.SetSceneFile("")
-    with _python_errors(monkeypatch) as errors:
+    with _messages(monkeypatch) as lines:
         flt.Update()
-    assert len(errors) == 1 and "set the SceneFile property" in str(errors[0])
+    assert lines == ["VHM Harmonic Deformation: set SceneFile (a vhm_viz scene JSON)"]
     assert flt.GetOutputDataObject(0).GetNumberOfPoints() == 0
 
     # a missing scene file names the file
     flt.SetSceneFile(str(tmp_path / "missing.json"))
-    with _python_errors(monkeypatch) as errors:
+    with _messages(monkeypatch) as lines:
         flt.Update()
-    assert len(errors) == 1 and isinstance(errors[0], FileNotFoundError)
-    assert "missing.json" in str(errors[0])
+    assert len(lines) == 1 and "no such scene file" in lines[0] and "missing.json" in lines[0]
     assert flt.GetOutputDataObject(0).GetNumberOfPoints() == 0

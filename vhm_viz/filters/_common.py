@@ -22,11 +22,12 @@ import numpy as np
 from vtkmodules.util import numpy_support as ns
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkObject
-from vtkmodules.vtkCommonDataModel import vtkPolyData
+from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from vhm_viz.core.binding import bind_map, check_outside_policy
 from vhm_viz.core.errors import AbortedError
+from vhm_viz.filters import _parallel
 
 __all__ = ["DeformationSource", "update", "numpy_points", "geometry_key"]
 
@@ -141,6 +142,9 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self._memory_budget = None
         self._binding = None
         self._binding_key = None
+        self._scene_file = ""
+        self._scene_stamp = None
+        self._parallel_reporting = False
         self.last_error: Exception | None = None
         #: Points outside the cage in the last update (with a policy that lets them through).
         self.outside_count = 0
@@ -181,8 +185,69 @@ class DeformationSource(VTKPythonAlgorithmBase):
         return 1
 
     def RequestData(self, request, in_info, out_info):
-        """Run the filter's ``_execute``; errors end up in :attr:`last_error` (see ``update``)."""
-        return self._guard(self._execute, in_info, out_info)
+        """Run the filter's ``_execute``; errors end up in :attr:`last_error` (see ``update``).
+
+        With :meth:`SetParallelReporting` (ParaView), the ranks first agree that the cage
+        reached all of them, and afterwards that all of them succeeded; an error is shown
+        once per failing rank as one line in VTK's output window and leaves an empty output
+        on every rank (no stale data, no traceback).
+        """
+        if not self._parallel_reporting:
+            return self._guard(self._execute, in_info, out_info)
+        self.last_error = None
+        try:
+            self._check_cage_on_every_rank(in_info)
+        except Exception as exc:  # noqa: BLE001 -- reported below, like any other error
+            self.last_error = exc
+        if self.last_error is None:
+            self._guard(self._execute, in_info, out_info)
+        failed_here = self.last_error is not None and not isinstance(
+            self.last_error, AbortedError
+        )
+        everyone_ok = _parallel.all_ranks(not failed_here)
+        everyone_failed = not _parallel.any_rank(not failed_here)
+        # the same mistake everywhere (no scene, a bad file) is said once, by rank 0
+        if failed_here and (not everyone_failed or _parallel.rank() == 0):
+            self._report(self.last_error)
+        if not everyone_ok:
+            out = out_info.GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
+            if out is not None:
+                out.Initialize()
+        return 1
+
+    def SetParallelReporting(self, value: bool) -> None:
+        """Report errors in VTK's output window and agree on them across MPI ranks.
+
+        For ParaView (its plugin sets this), where every rank runs every update: then the
+        filter may meet the other ranks in collective operations at fixed points of
+        ``RequestData``. Leave it off in scripts whose ranks do not update together.
+        """
+        self._parallel_reporting = bool(value)
+        self.Modified()
+
+    def _report(self, error: Exception) -> None:
+        from vtkmodules.vtkCommonCore import vtkOutputWindow
+
+        text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        where = f" (rank {_parallel.rank()})" if _parallel.process_count() > 1 else ""
+        vtkOutputWindow.GetInstance().DisplayErrorText(f"{self._label()}{where}: {text}\n")
+
+    def _label(self) -> str:
+        return type(self).__name__
+
+    def _check_cage_on_every_rank(self, in_info) -> None:
+        """A cage on port 1 must reach every rank whole; never fall back silently."""
+        n = 0
+        if self.GetNumberOfInputConnections(1):
+            pd = vtkPolyData.GetData(in_info[1])
+            n = 0 if pd is None else pd.GetNumberOfPoints()
+        lo, hi = _parallel.min_max_over_ranks(n)
+        if self.GetNumberOfInputConnections(1) and lo != hi:
+            raise RuntimeError(
+                f"the Cage input reached the ranks with {lo} to {hi} points: every rank needs "
+                "the whole cage (read it with a reader that every rank runs, and do not "
+                "distribute it)"
+            )
 
     def _execute(self, in_info, out_info):  # pragma: no cover - every filter defines it
         raise NotImplementedError
@@ -202,6 +267,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self._user_deformer = deformer
         self._deformer = deformer
         self._scene = None
+        self._scene_file, self._scene_stamp = "", None
         self._hmap = None
         self._derived_key = None
         self.Modified()
@@ -217,6 +283,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         if scene is not None and not isinstance(scene, Scene):
             scene = Scene.load(scene)
         self._scene = scene
+        self._scene_file, self._scene_stamp = "", None
         self._user_deformer = None
         self._deformer = None
         self._hmap = None
@@ -226,6 +293,44 @@ class DeformationSource(VTKPythonAlgorithmBase):
     def GetScene(self):
         """The scene set with :meth:`SetScene` (or None)."""
         return self._scene
+
+    def SetSceneFile(self, path: str) -> None:
+        """Use the scene in a JSON file; re-read when the file changes ("" for none).
+
+        The ParaView property: the file is read at the next update, and again whenever its
+        modification time or size change, so editing the scene and re-applying works.
+        """
+        path = "" if path is None else str(path)
+        if path != self._scene_file:
+            # the file replaces any deformation set before (and "" leaves none: no stale
+            # result from the previous scene)
+            self._scene = self._user_deformer = self._deformer = self._hmap = None
+            self._derived_key = None
+            self._scene_file = path
+            self._scene_stamp = None
+            self.Modified()
+
+    def GetSceneFile(self) -> str:
+        """The scene file set with :meth:`SetSceneFile` ("" for none)."""
+        return self._scene_file
+
+    def _load_scene_file(self) -> None:
+        import os
+
+        from vhm_viz.scene import Scene
+
+        if not self._scene_file:
+            return
+        try:
+            st = os.stat(self._scene_file)
+        except OSError:
+            raise FileNotFoundError(f"no such scene file: {self._scene_file}") from None
+        stamp = (self._scene_file, st.st_mtime_ns, st.st_size)
+        if stamp != self._scene_stamp:
+            self._scene = Scene.load(self._scene_file)
+            self._user_deformer = self._deformer = self._hmap = None
+            self._derived_key = None
+            self._scene_stamp = stamp
 
     def SetHarmonicMap(self, harmonic_map) -> None:
         """Use a fixed harmonic map (no solver)."""
@@ -237,6 +342,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self._user_deformer = None
         self._deformer = None
         self._scene = None
+        self._scene_file, self._scene_stamp = "", None
         self._derived_key = None
         self.Modified()
 
@@ -318,13 +424,17 @@ class DeformationSource(VTKPythonAlgorithmBase):
             return None, None
         pd = vtkPolyData.GetData(in_info[1])
         if pd is None or pd.GetNumberOfPoints() == 0:
-            return None, None
+            raise ValueError(
+                "the Cage input (port 1) is connected but empty: connect a closed triangle "
+                "surface, or disconnect it to use the scene's own cage"
+            )
         key = (geometry_key(pd), pd.GetPolys().GetMTime() if pd.GetPolys() else None)
         return pd, key
 
     def _resolve(self, in_info, data=None):
         """Return ``(harmonic_map, deformer_or_None)`` for the current settings and inputs."""
         pd, cage_key = self._port1_cage(in_info)
+        self._load_scene_file()
         if self._hmap is not None:
             if pd is not None and not _same_cage(_cage_from_polydata(pd), self._hmap.cage):
                 raise ValueError(
@@ -355,16 +465,25 @@ class DeformationSource(VTKPythonAlgorithmBase):
             if key != self._derived_key:
                 cage = _cage_from_polydata(pd) if pd is not None else None
                 mesh = None
-                if self._scene.needs_data and data is not None:
+                if self._scene.needs_data and pd is None:
+                    if _parallel.process_count() > 1:
+                        raise RuntimeError(
+                            "the scene's automatic cage or anchors would be computed from "
+                            "each rank's own piece of the data: compute them once with "
+                            "'vhm-viz cage' / 'vhm-viz anchors' and name the files in the scene"
+                        )
                     import pyvista as pv
 
                     mesh = pv.wrap(data)
                 self._deformer = self._scene.build(data=mesh, cage=cage)
                 self._derived_key = key
                 self.solve_reports.extend(self._scene.solve(self._deformer, **self._solver))
+        elif self._parallel_reporting:
+            raise RuntimeError("set SceneFile (a vhm_viz scene JSON)")
         else:
             raise RuntimeError(
-                "no deformation set on the filter: call SetDeformer, SetScene or SetHarmonicMap"
+                "no deformation set on the filter: call SetDeformer, SetScene, SetSceneFile "
+                "or SetHarmonicMap"
             )
         dfm = self._deformer
         if dfm.last_report is None:

@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# Make Debian's ParaView (pvpython, pvbatch, mpiexec -n N pvbatch) load the vhm_viz plugin.
+#
+#   eval "$(bash plugins/paraview-env.sh)"      # from the project root
+#
+# Installs what is missing, quietly and only once:
+#   * paraview, python3-paraview, openmpi-bin from apt when pvpython is absent;
+#   * numba + llvmlite built for ParaView's Python and numpy, with --no-deps into
+#     .paraview-site/ (a pip install with dependencies would pull a vtk wheel, and pvpython
+#     then crashes on two VTKs); the project itself is used in place (PYTHONPATH);
+#   * a sitecustomize.py shim: ParaView 5.11's plugin loader calls inspect.getargspec,
+#     which Python 3.11 removed.
+# Then prints the export lines; everything else goes to stderr.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+site="${VHM_PARAVIEW_SITE:-$root/.paraview-site}"
+say() { echo "paraview-env: $*" >&2; }
+
+if ! command -v pvpython >/dev/null 2>&1 || ! command -v mpiexec >/dev/null 2>&1; then
+    say "installing paraview, python3-paraview, openmpi-bin (apt)"
+    sudo_cmd=""
+    [ "$(id -u)" -eq 0 ] || sudo_cmd="sudo"
+    $sudo_cmd apt-get update -qq >&2
+    DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends \
+        paraview python3-paraview openmpi-bin >&2
+fi
+
+# ParaView's Python is the system one: ask it for its version and numpy
+read -r pyver npver < <(pvpython -c 'import sys, numpy; print(f"{sys.version_info[0]}.{sys.version_info[1]}", numpy.__version__)' 2>/dev/null | tail -n 1)
+mkdir -p "$site"
+if ! PYTHONPATH="$site" pvpython -c 'import numba' >/dev/null 2>&1; then
+    case "$npver" in
+        1.2[2-6].*) numba_pins="numba==0.58.1 llvmlite==0.41.1" ;;
+        *) say "no known numba for ParaView's numpy $npver"; exit 1 ;;
+    esac
+    pip_python=""
+    for cand in "$root/.venv/bin/python" python3; do
+        if "$cand" -m pip --version >/dev/null 2>&1; then pip_python="$cand"; break; fi
+    done
+    [ -n "$pip_python" ] || { say "no pip found (make the .venv first: bash .ci/setup)"; exit 1; }
+    say "installing $numba_pins for Python $pyver into $site"
+    log="$(mktemp)"
+    # shellcheck disable=SC2086
+    if ! PIP_ROOT_USER_ACTION=ignore "$pip_python" -m pip install -q --no-deps \
+        --disable-pip-version-check --only-binary=:all: --python-version "$pyver" \
+        --implementation cp --platform manylinux2014_x86_64 --target "$site" --upgrade \
+        $numba_pins >"$log" 2>&1; then
+        cat "$log" >&2; rm -f "$log"; exit 1
+    fi
+    rm -f "$log"
+fi
+cat > "$site/sitecustomize.py" <<'PY'
+# Written by plugins/paraview-env.sh: ParaView 5.11's Python plugin loader calls
+# inspect.getargspec, removed in Python 3.11; getfullargspec has the same .args.
+import inspect
+
+if not hasattr(inspect, "getargspec"):
+    inspect.getargspec = inspect.getfullargspec
+PY
+
+echo "export PYTHONPATH=\"$root:$site\${PYTHONPATH:+:\$PYTHONPATH}\""
+echo "export PV_PLUGIN_PATH=\"$root/plugins\${PV_PLUGIN_PATH:+:\$PV_PLUGIN_PATH}\""
+# ParaView's numba is another version than a virtual environment's: sharing one cache
+# directory would make each invalidate the other's compiled code on every run
+echo "export NUMBA_CACHE_DIR=\"$site/numba_cache\""
+if [ "$(id -u)" -eq 0 ]; then  # Open MPI refuses root unless told
+    echo "export OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1"
+fi

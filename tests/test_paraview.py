@@ -1,0 +1,201 @@
+"""The ParaView plugin in Debian's real ParaView: pvpython, pvbatch and mpiexec -n 2 pvbatch.
+
+Each test runs ``tests/paraview/run_filter.py`` in ParaView (set up by
+``plugins/paraview-env.sh``), gathers the result through ParaView's parallel XML writers
+(each rank writes its piece) and compares it, point by point through the ``vhm_id`` array,
+with the serial run and with the Python API (Scene -> Deformer -> Binding).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import DATA, data_path
+
+pv = pytest.importorskip("pyvista")
+
+ROOT = Path(__file__).resolve().parents[1]
+RUN = ROOT / "tests" / "paraview" / "run_filter.py"
+# both sides solve to this tolerance, so that BLAS differences between ParaView's numpy and
+# ours cannot explain a gap (at 1e-11 the solution is still 5e-9 of the diagonal away)
+TIGHT = {"tolerance": 1e-13, "max_iterations": 100000}
+
+
+@pytest.fixture(scope="session")
+def paraview_env():
+    """Environment in which pvpython/pvbatch load the plugin (plugins/paraview-env.sh)."""
+    if shutil.which("pvpython") is None and os.environ.get("CI") != "true":
+        pytest.skip("ParaView is not installed (bash plugins/paraview-env.sh installs it)")
+    out = subprocess.run(
+        ["bash", str(ROOT / "plugins" / "paraview-env.sh")],
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
+    assert out.returncode == 0, out.stderr
+    env = dict(os.environ)
+    env.pop("PYTHONPATH", None)  # ParaView's Python must not see our virtual environment
+    for line in out.stdout.splitlines():
+        assert line.startswith("export "), line
+        cmd = f"{line}; env -0"
+        dump = subprocess.run(["bash", "-c", cmd], capture_output=True, env=env, check=True)
+        env = dict(kv.split("=", 1) for kv in dump.stdout.decode().split("\0") if "=" in kv)
+    return env
+
+
+def _run(env, config: dict, tmp_path: Path, ranks: int = 1, name="cfg") -> str:
+    path = tmp_path / f"{name}{ranks}.json"
+    path.write_text(json.dumps(config))
+    cmd = ["pvbatch", str(RUN), str(path)]
+    if ranks > 1:
+        cmd = ["mpiexec", "-n", str(ranks), *cmd]
+        # one thread per rank, and idle ranks yield the core: on a 2-core machine a rank
+        # that busy-waits in a collective (or spawns numba/BLAS threads) starves the other
+        env = {**env, "OMPI_MCA_mpi_yield_when_idle": "1", "NUMBA_NUM_THREADS": "1",
+               "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    log = done.stdout + done.stderr
+    assert done.returncode == 0, log
+    return log
+
+
+def _points_by_id(path: Path, n: int) -> np.ndarray:
+    """Output points ordered by the input point ids; every id must be present."""
+    mesh = pv.read(path)
+    ids = np.asarray(mesh.point_data["vhm_id"])
+    out = np.full((n, 3), np.nan)
+    out[ids] = np.asarray(mesh.points)
+    assert np.isfinite(out).all(), "some input points are missing from the output"
+    # a point written by two ranks (a shared boundary) must be the same on both
+    np.testing.assert_array_equal(out[ids], np.asarray(mesh.points))
+    return out
+
+
+@pytest.fixture(scope="session")
+def armadillo_scene(tmp_path_factory):
+    """A bend of the 43k Armadillo with its 216-face cage and anchors from a file."""
+    from vhm_viz.autocage import auto_anchors
+    from vhm_viz.io import read_cage, read_dataset, write_anchors
+    from vhm_viz.scene import Scene
+
+    tmp = tmp_path_factory.mktemp("pv_armadillo")
+    mesh = read_dataset(data_path("armadillo", "armadillo_43k.obj"))
+    cage_path = data_path("armadillo", "cage_216f.obj")
+    cage = read_cage(cage_path)
+    write_anchors(tmp / "anchors.json", auto_anchors(mesh, cage, 24))
+    p = np.asarray(mesh.points)
+    feet = p[np.argsort(p[:, 1])[:3]]
+    top = p[np.argmax(p[:, 1])]
+    positions = np.vstack([feet, top])
+    targets = positions.copy()
+    targets[-1, 0] += 0.1 * np.ptp(p[:, 0])
+    scene = {
+        "format": "vhm_viz.scene",
+        "version": 1,
+        "cage": str(cage_path),
+        "anchors": "anchors.json",
+        "constraints": {"positions": positions.tolist(), "targets": targets.tolist()},
+        "solver": TIGHT,
+    }
+    (tmp / "scene.json").write_text(json.dumps(scene))
+    sc = Scene.load(tmp / "scene.json")
+    dfm = sc.build()
+    assert sc.solve(dfm)[-1].converged
+    return tmp / "scene.json", p, dfm.bind(p).deform()
+
+
+def test_pvpython_loads_the_three_filters(paraview_env, tmp_path):
+    script = tmp_path / "names.py"
+    script.write_text(
+        "import paraview.simple as s\n"
+        "print(sorted(n for n in dir(s) if n.startswith('VHM')))\n"
+        "f = s.VHMHarmonicDeformation(Input=s.Sphere())\n"
+        "print('SceneFile default:', repr(f.SceneFile))\n"
+    )
+    out = subprocess.run(
+        ["pvpython", str(script)], capture_output=True, text=True, env=paraview_env, timeout=300
+    )
+    assert out.returncode == 0, out.stderr
+    assert "['VHMHarmonicDeformation', 'VHMJacobianAnalysis', 'VHMResampleToImage']" in out.stdout
+    assert "SceneFile default: ''" in out.stdout
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
+def test_surface_two_ranks_equal_serial_equal_python(paraview_env, armadillo_scene, tmp_path):
+    scene, rest, expected = armadillo_scene
+    config = {
+        "input": str(data_path("armadillo", "armadillo_43k.obj")),
+        "filter": "VHMHarmonicDeformation",
+        "scene": str(scene),
+        "cage": str(data_path("armadillo", "cage_216f.obj")),  # on the Cage port
+        "redistribute": True,
+    }
+    _run(paraview_env, {**config, "output": str(tmp_path / "serial.pvtu")}, tmp_path)
+    log = _run(paraview_env, {**config, "output": str(tmp_path / "mpi.pvtu")}, tmp_path, ranks=2)
+    assert "on 2 rank(s)" in log
+    # each rank wrote its own piece
+    assert len(list((tmp_path / "mpi").glob("*.vtu"))) == 2
+    serial = _points_by_id(tmp_path / "serial.vtu", len(rest))
+    mpi = _points_by_id(tmp_path / "mpi.pvtu", len(rest))
+    diag = np.linalg.norm(np.ptp(expected, axis=0))
+    assert np.abs(expected - rest).max() > 0.05 * diag  # a real bend was compared
+    assert np.abs(mpi - serial).max() <= 1e-9 * diag
+    assert np.abs(serial - expected).max() <= 1e-9 * diag
+
+
+def test_no_scene_file_one_message_no_output(paraview_env, tmp_path):
+    config = {
+        "input": str(ROOT / "tests" / "paraview" / "run_filter.py"),  # replaced below
+        "filter": "VHMHarmonicDeformation",
+        "scene": None,
+        "ids": False,
+    }
+    sphere = tmp_path / "sphere.vtp"
+    pv.Sphere().save(sphere)
+    config["input"] = str(sphere)
+    for ranks in (1, 2):
+        log = _run(paraview_env, config, tmp_path, ranks=ranks, name="noscene")
+        assert log.count("set SceneFile (a vhm_viz scene JSON)") == 1, log
+        assert "Traceback" not in log
+        assert "vhm-paraview-points: 0" in log
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
+def test_cage_missing_on_a_rank_is_an_error_not_a_seam(paraview_env, armadillo_scene, tmp_path):
+    scene, _, _ = armadillo_scene
+    config = {
+        "input": str(data_path("armadillo", "armadillo_43k.obj")),
+        "filter": "VHMHarmonicDeformation",
+        "scene": str(scene),
+        "cage": str(data_path("armadillo", "cage_216f.obj")),
+        "cage_on_rank_0_only": True,  # what a reader that runs on rank 0 only would give
+        "redistribute": True,
+    }
+    log = _run(paraview_env, config, tmp_path, ranks=2)
+    assert "the Cage input reached the ranks with 0 to 110 points" in log
+    assert "vhm-paraview-points: 0" in log  # no half-deformed output
+    assert "Traceback" not in log
+
+
+def test_automatic_cage_is_refused_under_mpi(paraview_env, tmp_path):
+    sphere = tmp_path / "sphere.vtp"
+    pv.Sphere(radius=0.5).save(sphere)
+    scene = {
+        "format": "vhm_viz.scene",
+        "version": 1,
+        "cage": "auto",
+        "anchors": {"auto": 4},
+        "constraints": {"positions": [[0, 0, 0.45]], "targets": [[0, 0, 0.5]]},
+    }
+    (tmp_path / "auto.json").write_text(json.dumps(scene))
+    config = {"input": str(sphere), "filter": "VHMHarmonicDeformation",
+              "scene": str(tmp_path / "auto.json"), "redistribute": True}  # fmt: skip
+    log = _run(paraview_env, config, tmp_path, ranks=2)
+    assert "compute them once with 'vhm-viz cage' / 'vhm-viz anchors'" in log
+    assert "vhm-paraview-points: 0" in log
