@@ -41,6 +41,7 @@ _OUTSIDE_XML = (
     "vhm_outside.</Documentation></IntVectorProperty>"
 )
 _OUTSIDE = ("error", "passthrough", "nan")
+_OPTIONAL_ARRAYS = ("displacement", "jacobian_determinant", "condition_number")
 
 
 def _filter(name, label, data_type):
@@ -104,18 +105,30 @@ class VHMHarmonicDeformation(_ParaViewReporting, HarmonicDeformationFilter):
 
     label = "VHM Harmonic Deformation"
 
-    @smproperty.xml(
-        '<IntVectorProperty name="OutputArrays" command="SetOutputArrays" '
-        'number_of_elements="3" default_values="0 0 0">'
-        '<BooleanDomain name="bool"/>'
-        "<Documentation>Extra point arrays, in order: displacement (vectors f(p) - p), "
+    def __init__(self):
+        super().__init__()
+        from vtkmodules.vtkCommonCore import vtkDataArraySelection
+
+        # a checklist in ParaView's panel: the optional point arrays, all off by default
+        self._arrays = vtkDataArraySelection()
+        for name in _OPTIONAL_ARRAYS:
+            self._arrays.AddArray(name, False)
+        self._arrays.AddObserver("ModifiedEvent", lambda *_: self._apply_array_selection())
+
+    def _apply_array_selection(self):
+        on = self._arrays.ArrayIsEnabled
+        self.SetComputeDisplacement(bool(on("displacement")))
+        self.SetComputeJacobianDeterminant(bool(on("jacobian_determinant")))
+        self.SetComputeConditionNumber(bool(on("condition_number")))
+
+    @smproperty.dataarrayselection(name="OutputArrays")
+    @smdomain.xml(
+        "<Documentation>Extra point arrays: displacement (vectors f(p) - p), "
         "jacobian_determinant (local volume ratio det J), condition_number "
-        "(s_max / s_min of J).</Documentation></IntVectorProperty>"
+        "(s_max / s_min of J).</Documentation>"
     )
-    def SetOutputArrays(self, displacement, determinant, condition):
-        self.SetComputeDisplacement(bool(displacement))
-        self.SetComputeJacobianDeterminant(bool(determinant))
-        self.SetComputeConditionNumber(bool(condition))
+    def GetOutputArrays(self):
+        return self._arrays
 
 
 @_filter("VHMJacobianAnalysis", "VHM Jacobian Analysis", "vtkDataSet")

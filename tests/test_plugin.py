@@ -128,7 +128,8 @@ def test_plugin_deforms_real_data_like_the_python_api(plugin, tmp_path):
 
     flt = plugin.VHMHarmonicDeformation()
     flt.SetSceneFile(str(scene_path))
-    flt.SetOutputArrays(1, 1, 1)
+    for name in ("displacement", "jacobian_determinant", "condition_number"):
+        flt.GetOutputArrays().EnableArray(name)  # the OutputArrays checklist
     flt.SetInputConnection(0, reader.GetOutputPort())
     flt.Update()
     out = pv.wrap(flt.GetOutputDataObject(0))
@@ -206,7 +207,8 @@ def test_plugin_deforms_a_point_cloud_with_a_scene_file(plugin, tmp_path):
 
     flt = plugin.VHMHarmonicDeformation()
     flt.SetSceneFile(str(scene_path))
-    flt.SetOutputArrays(1, 1, 0)
+    flt.GetOutputArrays().EnableArray("displacement")
+    flt.GetOutputArrays().EnableArray("jacobian_determinant")
     flt.SetInputDataObject(0, surface)
     flt.Update()
     out = pv.wrap(flt.GetOutputDataObject(0))
