@@ -11,7 +11,9 @@ head = pvs.XMLImageDataReader(
     registrationName="headsq_64x64x93.vti",
     FileName=["../shared/data/volumes/headsq_64x64x93.vti"],
 )
-cage = pvs.WavefrontOBJReader(registrationName="head_cage.obj", FileName="docs/examples/head_cage.obj")
+cage = pvs.WavefrontOBJReader(
+    registrationName="head_cage.obj", FileName="docs/examples/head_cage.obj"
+)
 bent = pvs.VHMHarmonicDeformation(registrationName="VHMHarmonicDeformation1", Input=head, Cage=cage)
 bent.SceneFile = "docs/examples/head_scene.json"
 bent.OutputArrays = ["jacobian_determinant"]
