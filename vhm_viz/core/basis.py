@@ -50,6 +50,7 @@ import scipy.sparse as sp
 
 from vhm_viz.core.basis_lanes import lanes_kernel, winding_kernel
 from vhm_viz.core.geometry import face_normals_and_areas
+from vhm_viz.core.limits import check_setting
 
 HESSIAN_COMPONENTS = ("xx", "xy", "xz", "yy", "yz")
 _FOUR_PI = 4.0 * math.pi
@@ -653,7 +654,7 @@ def evaluate_basis(
     backend : {"numba", "numpy"}
         The compiled kernels (default) or the plain numpy reference.
     chunk_size : int, optional
-        Points per chunk for the numpy reference (bounds its temporaries, which are
+        Points per chunk (in [1, 1e7]) for the numpy reference (bounds its temporaries, which are
         ``O(chunk_size * m)``). The numba kernels need no temporaries beyond the output
         (and ~0.3 MB of scratch per thread).
 
@@ -680,7 +681,7 @@ def evaluate_basis(
     if backend == "numba":
         values, gradients, hessians, degenerate = _evaluate_numba(p, cd, order, host)
     elif backend == "numpy":
-        chunk = int(chunk_size or _NUMPY_CHUNK)
+        chunk = _NUMPY_CHUNK if chunk_size is None else check_setting("chunk_size", chunk_size)
         parts = [
             _basis_numpy_chunk(
                 p[s : s + chunk], cd, order, None if host is None else host[s : s + chunk]
@@ -855,16 +856,16 @@ def chunk_rows(n_columns: int, order: int = 0, memory_budget: int | None = None)
         Basis functions (cage vertices plus faces).
     order : {0, 1, 2}
     memory_budget : int, optional
-        Bytes; default :data:`DEFAULT_MEMORY_BUDGET`.
+        Bytes, in [1, 2**40]; default :data:`DEFAULT_MEMORY_BUDGET`.
 
     Returns
     -------
     int
         At least 16 (one SIMD group of the kernel).
     """
-    budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else int(memory_budget)
-    if budget <= 0:
-        raise ValueError(f"memory_budget must be a positive number of bytes; got {budget}")
+    budget = DEFAULT_MEMORY_BUDGET
+    if memory_budget is not None:
+        budget = check_setting("memory_budget", memory_budget)
     per_point = (1 + 3 * (order >= 1) + 5 * (order >= 2)) * max(int(n_columns), 1) * 8 * 2
     return max(16, budget // per_point)
 

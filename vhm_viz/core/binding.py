@@ -33,6 +33,7 @@ import numpy as np
 
 from vhm_viz.core.basis import chunk_rows, evaluate_basis, inside_cage, winding_number
 from vhm_viz.core.errors import AbortedError, OutsideCageError, describe_indices
+from vhm_viz.core.limits import check_setting
 
 __all__ = [
     "OUTSIDE_POLICIES",
@@ -176,8 +177,8 @@ class _BoundPoints:
         self.outside_policy = check_outside_policy(outside)
         self.points = _as_points(points).copy()
         self.points.flags.writeable = False
-        if memory_budget is not None and not memory_budget > 0:
-            raise ValueError(f"memory_budget must be a positive byte count; got {memory_budget}")
+        if memory_budget is not None:
+            memory_budget = check_setting("memory_budget", memory_budget)
         self.memory_budget = memory_budget
         #: (P,) bool: points outside the cage.
         self.outside = outside_mask(self.points, vertices, faces, self.outside_policy)
@@ -251,7 +252,8 @@ class Binding(_BoundPoints):
         the rounding error stays far below 1e-6 of the bounding-box diagonal because ``F``
         acts on the change from the rest pose -- ``benchmarks/bench_solver.py`` measures it).
     memory_budget : int, optional
-        Bytes of basis arrays per chunk (:func:`~vhm_viz.core.basis.chunk_rows`).
+        Bytes of basis arrays per chunk (:func:`~vhm_viz.core.basis.chunk_rows`), in
+        [1, 2**40].
     progress : callable(fraction, message), optional
         Called after each chunk of the precomputation.
     abort : callable() -> bool, optional

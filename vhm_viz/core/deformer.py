@@ -61,6 +61,7 @@ from vhm_viz.core.basis import evaluate_basis, inside_cage
 from vhm_viz.core.binding import Binding
 from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indices
 from vhm_viz.core.geometry import face_normals_and_areas
+from vhm_viz.core.limits import check_setting
 from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW, project_blocks, run_local_global
 
 __all__ = ["Deformer", "SolveReport", "default_smoothness_samples"]
@@ -212,22 +213,26 @@ class Deformer:
         (rotations times a scalar: singular values replaced by their mean, paper Figure 12).
         Can be changed later through :attr:`mode` without refactorising.
     alpha : float
-        Stiffness; ``lambda = alpha * d * ||J_anchors||_inf / ||H_samples||_inf``.
+        Stiffness in [1e-4, 100] (:mod:`vhm_viz.core.limits`); ``lambda = alpha * d *
+        ||J_anchors||_inf / ||H_samples||_inf``, with the norms taken in units of the cage's
+        bounding-box diagonal (see the module documentation).
     smoothness_samples : (k, 3) array_like, optional
         Points where the Hessian is penalised. Default: :func:`default_smoothness_samples`.
     smoothness_host_faces : (k,) array_like of int, optional
         For samples exactly on cage faces, the face index (-1 for others): the basis then
         uses the interior limit there.
     anderson_window : int
-        Anderson acceleration window (0 for the plain local/global iteration of the paper);
-        default :data:`~vhm_viz.core.solver.DEFAULT_ANDERSON_WINDOW` (10).
+        Anderson acceleration window in [0, 100] (0 for the plain local/global iteration of
+        the paper); default :data:`~vhm_viz.core.solver.DEFAULT_ANDERSON_WINDOW` (10).
 
     Raises
     ------
     OutsideCageError
         Anchors (or smoothness samples) outside the cage, listed by index.
+    SettingError
+        ``alpha`` or ``anderson_window`` of the wrong type or out of range.
     ValueError
-        Bad shapes, non-finite values, unknown mode, non-positive alpha.
+        Bad shapes, non-finite values, unknown mode.
     """
 
     def __init__(
@@ -251,13 +256,8 @@ class Deformer:
             normals, _ = face_normals_and_areas(self._V, self._Fc)
         self._normals = np.asarray(normals, dtype=np.float64)
         self.mode = mode
-        alpha = float(alpha)
-        if not (np.isfinite(alpha) and alpha > 0):
-            raise ValueError(f"alpha must be a positive number; got {alpha!r}")
-        self.alpha = alpha
-        self.anderson_window = int(anderson_window)
-        if self.anderson_window < 0:
-            raise ValueError("anderson_window must be >= 0")
+        self.alpha = check_setting("alpha", alpha)
+        self.anderson_window = check_setting("anderson_window", anderson_window)
         self.n_factorizations = 0
         self._layout_version = 0
 
@@ -645,11 +645,13 @@ class Deformer:
         Parameters
         ----------
         max_iterations : int
-            Iteration cap.
+            Iteration cap, in [1, 1e6]: :attr:`SolveReport.iterations` never exceeds it
+            (the final plain step that makes the local matrices exact projections counts).
         tolerance : float
-            Estimated distance of the anchors' local matrices to the fixed point (RMS per
-            anchor, Frobenius norm; Jacobians are dimensionless, so this is a relative
-            measure): ``|T(u) - u| / (1 - rho)``, with ``rho`` the observed contraction rate.
+            In (0, 0.1]: the estimated distance of the anchors' local matrices to the fixed
+            point (RMS per anchor, Frobenius norm; Jacobians are dimensionless, so this is a
+            relative measure): ``|T(u) - u| / (1 - rho)``, with ``rho`` the observed
+            contraction rate.
         init : {"previous", "identity", "random"} or (d, 3, 3) array_like
             Starting local matrices: the last solution (identity before the first solve),
             identities, random 3x3 matrices (paper Figure 7; entries uniform in [0, 1),
@@ -660,16 +662,21 @@ class Deformer:
         seed : int or numpy Generator, optional
             For ``init="random"``.
         anderson_window : int, optional
-            Overrides the deformer's window for this call (0: plain iteration).
+            Overrides the deformer's window for this call (0: plain iteration), in [0, 100].
         contraction : float, optional
             With a given ``init`` that is a stored solution: the contraction rate measured
             when it was computed (:attr:`SolveReport.contraction`). The stopping rule is
             then checked on the first residual, and a solution that meets it is returned
-            unchanged (0 iterations).
+            unchanged (0 iterations). In [0, 1).
 
         Returns
         -------
         SolveReport
+
+        Raises
+        ------
+        SettingError
+            A setting of the wrong type or outside its range (:mod:`vhm_viz.core.limits`).
         """
         self._require_constraints()
         d = self.n_anchors
@@ -689,18 +696,14 @@ class Deformer:
             if u0.shape != (3 * d, 3):
                 raise ValueError(f"init must have shape ({d}, 3, 3)")
             init_name = "given"
-        max_iterations = int(max_iterations)
-        if max_iterations < 0:
-            raise ValueError("max_iterations must be >= 0")
-        tolerance = float(tolerance)
-        if not tolerance > 0:
-            raise ValueError("tolerance must be positive")
-        window = self.anderson_window if anderson_window is None else int(anderson_window)
+        max_iterations = check_setting("max_iterations", max_iterations)
+        tolerance = check_setting("tolerance", tolerance)
+        window = self.anderson_window
+        if anderson_window is not None:
+            window = check_setting("anderson_window", anderson_window)
+        rho0 = -1.0 if contraction is None else check_setting("contraction", contraction)
         hist = np.zeros((max_iterations + 2, 4))
         t0 = time.perf_counter()
-        rho0 = -1.0 if contraction is None else float(contraction)
-        if not (rho0 < 0 or 0 <= rho0 < 1):
-            raise ValueError(f"contraction must be in [0, 1); got {contraction}")
         u, G, iters, converged, nrec, rejected, rho = run_local_global(
             self._C_R,
             self._g,
