@@ -70,4 +70,28 @@ def run(args) -> int:
         win.wait_idle()
     if args.scene:  # applies to FILE unless the scene's sidecar names its data
         win.load_scene(args.scene)
-    return int(app.exec())
+    return _exec_until_interrupted(app, win)
+
+
+def _exec_until_interrupted(app, win) -> int:
+    """Run the event loop; SIGINT/SIGTERM stop it with status 130/143 after jobs stop.
+
+    Python runs signal handlers only between its own instructions, which a Qt event loop
+    waiting in C++ never executes: a timer gives it the chance every 200 ms. Running jobs
+    see the signal through their ``cancelled()`` and stop at their next chunk.
+    """
+    from PySide6.QtCore import QTimer
+
+    from vhm_viz import interrupts
+
+    def on_signal(signum: int) -> None:
+        QTimer.singleShot(0, lambda: app.exit(128 + signum))
+
+    with interrupts.handled(on_signal=on_signal):
+        tick = QTimer()
+        tick.timeout.connect(lambda: None)
+        tick.start(200)
+        status = int(app.exec())
+        tick.stop()
+        win.runner.wait()
+    return status

@@ -10,6 +10,7 @@ from vhm_viz.cli._util import (
     OUTPUT_SUFFIXES,
     CLIError,
     Progress,
+    add_convergence_argument,
     build_and_solve,
     check_input,
     check_output,
@@ -34,7 +35,8 @@ def add_parser(subparsers) -> None:
         "write OUTPUT. Surfaces stay surfaces, tet meshes stay tet meshes; a volume (.vti) "
         "written to .vti is resampled onto a regular grid (pull-back through the inverse "
         "map), to .vts it becomes a warped structured grid. Prints one summary line.",
-        epilog=f"input types: {' '.join(DATASET_SUFFIXES)}. Example: vhm-viz deform bar.vtp "
+        epilog=f"input types: {' '.join(DATASET_SUFFIXES)}, or a DICOM folder. Example: "
+        "vhm-viz deform bar.vtp "
         "--scene bar.json -o bent.vtp",
     )
     p.add_argument("input", metavar="INPUT", help="dataset to deform")
@@ -62,6 +64,7 @@ def add_parser(subparsers) -> None:
         default=0.0,
         help="volume resampling: value of voxels without a pre-image (default 0)",
     )
+    add_convergence_argument(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -104,7 +107,9 @@ def deform(args: argparse.Namespace) -> str:
         )
 
     t0 = time.perf_counter()
-    dfm, reports = build_and_solve(scene, mesh, quiet=args.quiet)
+    dfm, reports = build_and_solve(
+        scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
+    )
     if resample:
         flt = HarmonicResampleFilter()
         flt.SetFillValue(args.fill_value)
