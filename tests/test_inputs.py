@@ -18,19 +18,16 @@ import pytest
 
 pv = pytest.importorskip("pyvista")
 
-from conftest import box_cage, data_path  # noqa: E402
+from conftest import box_cage, data_path, subprocess_env  # noqa: E402
 
 from vhm_viz import examples  # noqa: E402
 from vhm_viz.cli import main  # noqa: E402
 from vhm_viz.io import ReadError, read_dataset, write_cage  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 def run_cli(*args) -> subprocess.CompletedProcess:
     """``python -m vhm_viz.cli ARGS`` in a real process (a crash shows as its status)."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env = subprocess_env()
     return subprocess.run(
         [sys.executable, "-m", "vhm_viz.cli", *map(str, args)],
         capture_output=True,

@@ -19,16 +19,16 @@ import pytest
 
 pv = pytest.importorskip("pyvista")
 
+from conftest import subprocess_env  # noqa: E402
+
 from vhm_viz import examples  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 OLD = b"the previous output, which an interrupt must leave alone\n"
 
 
 def cli(*args) -> subprocess.Popen:
     """``python -m vhm_viz.cli ARGS`` with this checkout first on the path."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env = subprocess_env()
     return subprocess.Popen(
         [sys.executable, "-m", "vhm_viz.cli", *map(str, args)],
         stdout=subprocess.PIPE,
@@ -194,8 +194,7 @@ def test_ctrl_c_inside_a_vtk_callback_reaches_the_python_caller(work):
     KeyboardInterrupt escapes an observer, and swallows other exceptions; a real process
     runs this, so the old behaviour cannot take the test session down with it.
     """
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env = subprocess_env()
     res = subprocess.run(
         [sys.executable, "-c", CTRL_C_IN_A_CALLBACK, str(work / "cloud.npy")],
         capture_output=True,

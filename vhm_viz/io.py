@@ -278,6 +278,7 @@ def _read_vtk_isolated(p: Path, suffix: str):
 
             faulthandler.disable()  # a crash here is expected and reported by the parent
             os.close(read_end)
+            _limit_memory(p)
             try:
                 payload = ("ok", _read_vtk(p, suffix))
             except BaseException as exc:  # noqa: BLE001 - everything goes back as text
@@ -310,6 +311,23 @@ def _read_vtk_isolated(p: Path, suffix: str):
     if kind == "error":
         raise ReadError(f"{p}: cannot read ({value})")
     return value
+
+
+def _limit_memory(p: Path) -> None:
+    """Cap the reading child's address space: a corrupt count cannot exhaust the machine.
+
+    What it may add to what the process already maps: 2 GiB, or 64 times the file
+    (folder) size when that is more -- far above any real reader's needs.
+    """
+    try:
+        import resource
+
+        size = sum(f.stat().st_size for f in p.iterdir()) if p.is_dir() else p.stat().st_size
+        with open("/proc/self/statm") as fh:
+            mapped = int(fh.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+        resource.setrlimit(resource.RLIMIT_AS, (mapped + max(2 << 30, 64 * size),) * 2)
+    except (ImportError, OSError, ValueError):  # pragma: no cover - not Linux
+        pass
 
 
 def _read_vtk(p: Path, suffix: str):
@@ -1011,30 +1029,33 @@ def read_cage(path, **kwargs) -> Cage:
     if not p.is_file():
         raise FileNotFoundError(f"no such cage file: {p}")
     suffix = suffix_of(p)
-    if suffix == ".obj":
-        points, polys = _read_obj(p)
-        return Cage(points, triangulate_polygons(points, polys), **kwargs)
-    if suffix == ".off":
-        try:
+    if suffix not in CAGE_SUFFIXES:
+        raise CageError(
+            f"unsupported cage file type {suffix!r} ({p}); use {', '.join(CAGE_SUFFIXES)}"
+        )
+    try:
+        if suffix == ".obj":
+            points, polys = _read_obj(p)
+        elif suffix == ".off":
             points, polys = _read_off(p)
-        except ReadError as exc:
-            raise CageError(str(exc)) from None
-        return Cage(points, triangulate_polygons(points, polys), **kwargs)
-    if suffix in CAGE_SUFFIXES:
-        try:
+        else:
             _check_format(p, suffix)
             mesh = _read_vtk_isolated(p, suffix)
             _check_dataset(mesh, p)
-        except ReadError as exc:
-            raise CageError(str(exc)) from None
-        except Exception as exc:  # noqa: BLE001
-            raise CageError(f"{p}: cannot read ({_first_line(exc)})") from exc
-        if suffix == ".stl":
             points, polys = _polygons_of(mesh)
-            points, tris = _merge_exact_duplicates(points, triangulate_polygons(points, polys))
-            return Cage(points, tris, **kwargs)
-        return cage_from_dataset(mesh, **kwargs)
-    raise CageError(f"unsupported cage file type {suffix!r} ({p}); use {', '.join(CAGE_SUFFIXES)}")
+    except ReadError as exc:
+        raise CageError(str(exc)) from None
+    except CageError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise CageError(f"{p}: cannot read ({_first_line(exc)})") from exc
+    tris = triangulate_polygons(points, polys)
+    if suffix == ".stl":
+        points, tris = _merge_exact_duplicates(points, tris)
+    try:
+        return Cage(points, tris, **kwargs)
+    except CageError as exc:  # name the file: a scene may read several
+        raise CageError(f"{p.name}: {exc}", exc.indices) from None
 
 
 def cage_from_dataset(data, **kwargs) -> Cage:

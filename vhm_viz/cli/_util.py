@@ -229,7 +229,17 @@ def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False
 
 
 def surface_metrics(rest, deformed) -> dict:
-    """``E_rigid`` and ``E_volume`` where defined (triangle surfaces / solid meshes)."""
+    """``E_rigid`` and ``E_volume`` where defined (triangle surfaces / solid meshes).
+
+    A measure the data does not allow (all triangles degenerate, zero volume) is left out.
+    """
+    try:
+        return _surface_metrics(rest, deformed)
+    except (ValueError, ZeroDivisionError, FloatingPointError):
+        return {}
+
+
+def _surface_metrics(rest, deformed) -> dict:
     import pyvista as pv
 
     from vhm_viz.core.metrics import rigidity_distortion, volume_change

@@ -130,9 +130,14 @@ def deform(args: argparse.Namespace) -> str:
     except OutsideCageError as exc:
         raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
     bar.finish()
+    # everything that can fail happens before the write: an error never follows an output
+    summary = _summary(mesh, result, reports, flt, resample)
     write_dataset(out, result)
     seconds = time.perf_counter() - t0
+    return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {out}"
 
+
+def _summary(mesh, result, reports, flt, resample: bool) -> list[str]:
     iterations = sum(r.iterations for r in reports)
     parts = [f"deformed {mesh.n_points} points ({type(mesh).__name__})"]
     parts.append(f"{iterations} iterations" + ("" if reports[-1].converged else " (not converged)"))
@@ -144,8 +149,7 @@ def deform(args: argparse.Namespace) -> str:
         if "E_volume" in metrics:
             parts.append(f"E_volume {metrics['E_volume']:.4f}")
         parts.append(f"{flt.outside_count} points outside the cage")
-    parts.append(f"{seconds:.1f} s")
-    return ", ".join(parts) + f" -> {out}"
+    return parts
 
 
 def _output_type(mesh) -> str:
