@@ -178,7 +178,8 @@ def _outward_shells(v: np.ndarray, f: np.ndarray, edges: np.ndarray) -> tuple:
     if len(shell_ids) < 2:
         return ()
     face_label = labels[f[:, 0]]
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    centred = v - v.mean(axis=0)  # cones from the centroid: origin-free (geometry.signed_volume)
+    a, b, c = centred[f[:, 0]], centred[f[:, 1]], centred[f[:, 2]]
     vol = np.einsum("ij,ij->i", a, np.cross(b, c))
     shells = []
     for k in shell_ids:

@@ -22,8 +22,10 @@ Design (all documented choices in one place):
   interior limit of the basis is used.
 * **lambda** follows the paper: ``lambda = alpha * d * ||J_anchors||_inf / ||H_samples||_inf``
   (infinity norms = largest absolute row sum of the stacked basis rows), ``alpha = 0.01``
-  by default. It depends on the sample layout (centroid samples roughly halve
-  ``||H||_inf``) and grows with ``d``; quality is flat for alpha in [0.001, 0.01].
+  by default, with the norms taken in units of the cage's bounding-box diagonal so that
+  lambda does not depend on the length unit (:func:`_smoothness_weight`). It depends on the
+  sample layout (centroid samples roughly halve ``||H||_inf``) and grows with ``d``;
+  quality is flat for alpha in [0.001, 0.01].
 * **Hard constraints by elimination.** With ``K = [D_q; G_t]`` (``c = r + 3 s`` rows,
   rows normalised) and a pivoted QR ``K^T P = Q R``, every solution is
   ``z = P_h h + Q_2 y``; the rank of ``R`` detects dependent constraints and names them.
@@ -138,6 +140,41 @@ def default_smoothness_samples(vertices, faces, inset: float = _SAMPLE_INSET) ->
     pts = np.einsum("sb,fbc->fsc", _SAMPLE_BARY, v[f])
     pts -= (inset * diag) * normals[:, None, :]
     return pts.reshape(-1, 3)
+
+
+def _smoothness_weight(alpha, d, Jhat, Hhat, n, vertices) -> float:
+    """``lambda = alpha d ||J||_inf / ||H||_inf`` (paper Section 3), free of the length unit.
+
+    The paper's norms mix units: the rows of ``J`` hold ``grad phi`` (1/length) next to
+    ``grad psi`` (dimensionless), those of ``H`` ``1/length^2`` next to ``1/length``, so the
+    same shape in millimetres got another lambda than in metres (a 1.3e-3-diagonal change
+    of the result). They are taken here with lengths in units of the cage's bounding-box
+    diagonal ``L`` -- the paper's formula for the cage scaled to a unit diagonal -- and
+    lambda is scaled back by ``L``, so lambda scales with the cage and the minimiser is
+    equivariant under scaling and translation.
+
+    Parameters
+    ----------
+    alpha : float
+    d : int
+        Number of anchors.
+    Jhat : (3 d, n + m) float64
+        Basis gradient rows at the anchors.
+    Hhat : (5 k, n + m) float64
+        Basis Hessian rows at the smoothness samples.
+    n : int
+        Number of cage vertices (the ``phi`` columns come first).
+    vertices : (n, 3) float64
+
+    Returns
+    -------
+    float
+        lambda, in units of length (``lambda * H z`` is dimensionless like ``J z``).
+    """
+    L = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    jn = (np.abs(Jhat[:, :n]).sum(axis=1) * L + np.abs(Jhat[:, n:]).sum(axis=1)).max()
+    hn = (np.abs(Hhat[:, :n]).sum(axis=1) * L**2 + np.abs(Hhat[:, n:]).sum(axis=1) * L).max()
+    return float(L * alpha * d * jn / hn)
 
 
 @dataclass
@@ -301,9 +338,7 @@ class Deformer:
             )
         self._Hhat = np.ascontiguousarray(evs.hessians.reshape(5 * len(w), self._N))
 
-        jn = np.abs(self._Jhat).sum(axis=1).max()
-        hn = np.abs(self._Hhat).sum(axis=1).max()
-        self.lambda_ = float(alpha * d * jn / hn)
+        self.lambda_ = _smoothness_weight(self.alpha, d, self._Jhat, self._Hhat, self._n, self._V)
 
         # QR of A = [J; lambda H], once per anchor layout
         A = np.vstack([self._Jhat, self.lambda_ * self._Hhat])
@@ -312,6 +347,8 @@ class Deformer:
         self._RA = r  # (N, N)
         self._W = np.ascontiguousarray(q[: 3 * d].T)  # (N, 3d) = Q_A^T [I; 0]
         self._z_identity = np.vstack([self._V, self._normals])
+        #: Reference point of the solver's arithmetic (see :meth:`_local_h`).
+        self._centre = 0.5 * (self._V.min(axis=0) + self._V.max(axis=0))
 
         self._u = _stack_T(np.broadcast_to(np.eye(3), (d, 3, 3)).copy())
         self._G = None
@@ -368,7 +405,9 @@ class Deformer:
         """Current ``z`` (n+m, 3) for the current targets and local matrices."""
         self._require_constraints()
         if self._z is None:
-            self._z = self._B @ self.stacked_variables
+            z = self._B @ np.vstack([self._local_h(self._h), self._u])
+            z[: self._n] += self._centre  # back from the cage's centre (see _local_h)
+            self._z = z
         return self._z
 
     @property
@@ -419,7 +458,10 @@ class Deformer:
             )
 
     @staticmethod
-    def _check_duplicates(points: np.ndarray, targets: np.ndarray, what: str, tol: float) -> None:
+    def _check_duplicates(
+        points: np.ndarray, targets: np.ndarray, what: str, tol: float, target_tol: float
+    ) -> None:
+        """Constraint points closer than ``tol`` (lengths scale with the cage)."""
         if len(points) < 2:
             return
         from scipy.spatial import cKDTree
@@ -427,7 +469,7 @@ class Deformer:
         pairs = cKDTree(points).query_pairs(tol, output_type="ndarray")
         if len(pairs):
             i, j = (int(v) for v in pairs[0])
-            differ = not np.allclose(targets[i], targets[j], rtol=0, atol=1e-12)
+            differ = not np.allclose(targets[i], targets[j], rtol=0, atol=target_tol)
             raise ConstraintError(
                 f"{what} {i} and {j} are at the same point "
                 + (
@@ -499,8 +541,8 @@ class Deformer:
                 f"rows = {c} >= n + m = {self._N} coefficients per component"
             )
         diag = float(np.linalg.norm(self._V.max(0) - self._V.min(0)))
-        self._check_duplicates(q, f, "position constraints", 1e-12 * diag)
-        self._check_duplicates(t, g.reshape(-1, 9), "Jacobian constraints", 1e-12 * diag)
+        self._check_duplicates(q, f, "position constraints", 1e-12 * diag, 1e-12 * diag)
+        self._check_duplicates(t, g.reshape(-1, 9), "Jacobian constraints", 1e-12 * diag, 1e-12)
 
         evq = evaluate_basis(q, self._V, self._Fc, order=0)
         self._check_inside(evq.values, "position constraints")
@@ -583,14 +625,28 @@ class Deformer:
         self._KH = (self.lambda_**2) * (HB.T @ HP)  # (c + 3d, c)
         self._z = None
 
+    def _local_h(self, h: np.ndarray) -> np.ndarray:
+        """Targets relative to the cage's centre (position rows; Jacobian rows unchanged).
+
+        The solver's energy is a quadratic form in the targets whose terms cancel to the
+        energy: with targets 1e7 from the origin those terms were ~1e14 times larger than
+        the energy and the rounding defeated the solver. The problem moved to the cage's
+        centre is the same problem (basis rows only see differences), so everything the
+        solver needs is computed from these.
+        """
+        local = np.array(h, dtype=np.float64)
+        local[: self._r] -= self._centre
+        return local
+
     def _set_h(self, h: np.ndarray) -> None:
         c = self._c
         self._h = np.ascontiguousarray(h, dtype=np.float64)
-        self._g = np.ascontiguousarray(self._C_h @ self._h)
-        self._jzp = np.ascontiguousarray(self._JP @ self._h)
-        L = self._KH @ self._h
+        local = self._local_h(self._h)
+        self._g = np.ascontiguousarray(self._C_h @ local)
+        self._jzp = np.ascontiguousarray(self._JP @ local)
+        L = self._KH @ local
         self._l_r = np.ascontiguousarray(L[c:])
-        self._const_h = float(np.sum(L[:c] * self._h))
+        self._const_h = float(np.sum(L[:c] * local))
         self._z = None
 
     def update_targets(self, targets=None, jacobians=None):
@@ -752,6 +808,8 @@ class Deformer:
         (total, rigidity, smoothness)
         """
         z = self.coefficients if z is None else np.asarray(z, dtype=np.float64)
+        z = z.copy()
+        z[: self._n] -= self._centre  # the rows sum to 0 on a translation: cancel it first
         G = self._Jhat @ z
         T = project_blocks(G, similar=self._mode == "similar")
         rig = float(np.sum((G - T) ** 2))
