@@ -11,7 +11,6 @@ import warnings
 
 import numpy as np
 import pytest
-
 from conftest import data_path
 
 from vhm_viz import examples
