@@ -205,7 +205,7 @@ def test_fuzz_deform_never_crashes_never_writes_inputs(tmp_path):
     outcomes = {"written": 0, "refused": 0}
     for case in cases:
         r = results[case["name"]]
-        lines = r["stderr"].splitlines()
+        lines = [ln for ln in r["stderr"].splitlines() if not ln.startswith("vhm-viz: note: ")]
         if r["status"] == 0:
             assert r["output_points"], case["name"]  # a valid output, readable again
             assert not lines, (case["name"], lines)

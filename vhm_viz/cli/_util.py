@@ -212,6 +212,9 @@ def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False
     from vhm_viz.cli import NotConverged
 
     dfm = scene.build(data=mesh)
+    # what loading had to change is said, one line each (old scene format, cage repairs)
+    for note in [*scene.notes, *(f"cage repaired: {r}" for r in dfm.cage.repairs)]:
+        print(f"vhm-viz: note: {note}", file=sys.stderr)
     bar = Progress("solving", enabled=not quiet)
     reports = scene.solve(dfm, progress=bar)
     bar.finish()
