@@ -901,24 +901,25 @@ class Cage:
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         return np.asarray(winding_number(p, self._vertices, self._faces), dtype=np.float64)
 
-    def contains(self, points, tol: float = 1e-8) -> np.ndarray:
-        """Whether points lie inside the cage (winding number ``>= 0.5 - tol``).
+    def contains(self, points) -> np.ndarray:
+        """Whether points lie inside the cage or on its surface.
 
-        Points on the cage surface (winding number 1/2) count as inside; ``tol`` absorbs
-        rounding there. Points even ``1e-9`` off the surface are classified correctly: the
-        winding number jumps from 0 to 1 across the surface, it does not pass through 1/2.
+        The one inside test (:func:`~vhm_viz.core.basis.classify_inside`): winding number
+        at least 1/2, or within rounding of the surface (points computed on a face land a
+        few ulps to either side of it).
 
         Parameters
         ----------
         points : (k, 3) or (3,) array_like of float
-        tol : float
-            Tolerance on the winding number (not a distance).
 
         Returns
         -------
         (k,) bool array
         """
-        return self.winding_number(points) >= 0.5 - tol
+        from .basis import classify_inside
+
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        return classify_inside(p, self._vertices, self._faces)[0]
 
     # --- misc
     def __repr__(self) -> str:

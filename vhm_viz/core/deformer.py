@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
-from vhm_viz.core.basis import evaluate_basis, inside_cage
+from vhm_viz.core.basis import evaluate_basis, evaluate_inside, inside_cage
 from vhm_viz.core.binding import Binding
 from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indices
 from vhm_viz.core.geometry import face_normals_and_areas
@@ -301,8 +301,7 @@ class Deformer:
         a = _as_point_array(anchors, "anchors")
         self._anchors = a
         d = len(a)
-        ev = evaluate_basis(a, self._V, self._Fc, order=1)
-        self._check_inside(ev.values, "anchors")
+        ev = self._evaluate_inside(a, 1, "anchors")
         if not np.isfinite(ev.gradients).all():
             bad = np.nonzero(~np.isfinite(ev.gradients).all(axis=(1, 2)))[0]
             raise ValueError(f"anchors {describe_indices(bad)} lie on a cage edge or vertex")
@@ -441,14 +440,15 @@ class Deformer:
         return self._last_report
 
     # ------------------------------------------------------------------ helpers
-    def _check_inside(self, values: np.ndarray, what: str) -> None:
-        wn = values[:, : self._n].sum(axis=1)
-        out = ~inside_cage(wn)
-        if out.any():
-            idx = np.nonzero(out)[0]
+    def _evaluate_inside(self, points: np.ndarray, order: int, what: str):
+        """The basis at points that must lie inside the cage (or on it: interior limit)."""
+        ev, inside = evaluate_inside(points, self._V, self._Fc, order=order)
+        if not inside.all():
+            idx = np.nonzero(~inside)[0]
             raise OutsideCageError(
                 f"{idx.size} {what} outside the cage (indices {describe_indices(idx)})", idx
             )
+        return ev
 
     def _require_constraints(self) -> None:
         if not self._has_constraints:
@@ -544,12 +544,10 @@ class Deformer:
         self._check_duplicates(q, f, "position constraints", 1e-12 * diag, 1e-12 * diag)
         self._check_duplicates(t, g.reshape(-1, 9), "Jacobian constraints", 1e-12 * diag, 1e-12)
 
-        evq = evaluate_basis(q, self._V, self._Fc, order=0)
-        self._check_inside(evq.values, "position constraints")
+        evq = self._evaluate_inside(q, 0, "position constraints")
         rows = [evq.values]
         if s:
-            evt = evaluate_basis(t, self._V, self._Fc, order=1)
-            self._check_inside(evt.values, "Jacobian constraint points")
+            evt = self._evaluate_inside(t, 1, "Jacobian constraint points")
             if not np.isfinite(evt.gradients).all():
                 bad = np.nonzero(~np.isfinite(evt.gradients).all(axis=(1, 2)))[0]
                 raise ValueError(
