@@ -207,3 +207,54 @@ def test_ctrl_c_inside_a_vtk_callback_reaches_the_python_caller(work):
     # the interrupted update did not leave a stale output behind: the next one recomputes
     err = float(res.stdout.split("re-run error ")[1])
     assert err < 1e-9
+
+
+def _handles(pid: int, signum: int) -> bool:
+    """Whether process ``pid`` has installed a handler for ``signum`` (Linux /proc)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    caught = int(next(ln for ln in status.splitlines() if ln.startswith("SigCgt:")).split()[1], 16)
+    return bool(caught >> (signum - 1) & 1)
+
+
+@pytest.mark.gui
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc")
+@pytest.mark.parametrize("command", [["-m", "vhm_viz.app"], ["-m", "vhm_viz.cli", "explore"]])
+def test_explorer_ends_with_143_on_sigterm(command):
+    pytest.importorskip("pyvistaqt")
+    env = subprocess_env()
+    env.setdefault("QT_QPA_PLATFORM", "offscreen")
+    proc = subprocess.Popen([sys.executable, *command, "--bar", "bend-u"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)  # fmt: skip
+    deadline = time.monotonic() + 300
+    while not _handles(proc.pid, signal.SIGTERM):  # the explorer took over SIGTERM
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()[-2000:]
+        time.sleep(0.05)
+    time.sleep(1.0)  # let it get on with opening the bar (the signal may come at any time)
+    os.kill(proc.pid, signal.SIGTERM)
+    status, err = finish(proc, timeout=120)
+    # before: killed by the signal (status -15), jobs and files abandoned mid-way
+    assert status == 143, err[-2000:]
+
+
+@pytest.mark.gui
+def test_explorer_jobs_see_the_signal_as_a_cancel(qtbot):
+    pytest.importorskip("PySide6")
+    from vhm_viz import interrupts
+    from vhm_viz.app.controller import Cancelled
+    from vhm_viz.app.workers import JobRunner
+
+    runner = JobRunner()
+    seen = []
+
+    def job(progress, cancelled):
+        while not cancelled():  # a binding checks this between chunks
+            time.sleep(0.01)
+        raise Cancelled("cancelled")
+
+    with interrupts.handled(on_signal=seen.append):
+        runner.start("spin", job, lambda r: seen.append("done"), lambda m, tb: seen.append(m),
+                     lambda: seen.append("cancelled"))  # fmt: skip
+        os.kill(os.getpid(), signal.SIGTERM)
+        qtbot.waitUntil(lambda: "cancelled" in seen, timeout=30_000)
+        runner.wait()
+    assert seen == [signal.SIGTERM, "cancelled"]

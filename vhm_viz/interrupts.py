@@ -91,11 +91,23 @@ def handled(
     on_signal : callable(signum), optional
         Called instead of raising (the explorer quits its event loop this way).
 
-    Nested uses keep the outermost handlers. Outside the main thread (where Python cannot
-    install signal handlers) the block runs unchanged.
+    Nested uses keep the outermost handlers (and the signals they catch); an ``on_signal``
+    given to a nested use replaces the outer behaviour inside the block (``vhm-viz
+    explore`` runs the explorer's event loop inside the command line's handling). Outside
+    the main thread (where Python cannot install signal handlers) the block runs
+    unchanged.
     """
-    if _state["depth"] or threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread():
         yield
+        return
+    if _state["depth"]:
+        outer = _state["on_signal"]
+        if on_signal is not None:
+            _state["on_signal"] = on_signal
+        try:
+            yield
+        finally:
+            _state["on_signal"] = outer
         return
     previous = {s: signal.getsignal(s) for s in signals}
     _state.update(pending=None, raised=False, defer=0, on_signal=on_signal)
