@@ -113,3 +113,13 @@ def _distance_to_triangles(points, vertices, faces):
     from scipy.spatial import cKDTree
 
     return cKDTree(samples).query(points)[0]
+
+
+def subprocess_env() -> dict:
+    """The environment for a child Python process that must import this checkout."""
+    import os
+
+    root = str(Path(__file__).resolve().parents[1])
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([root, env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    return env

@@ -477,9 +477,12 @@ def test_lambda_follows_paper_rule(cage, anchors):
     a = _deformer(cage, anchors, alpha=0.01)
     b = _deformer(cage, anchors, alpha=0.02)
     assert b.lambda_ == pytest.approx(2 * a.lambda_)
-    J = a._Jhat
-    H = a._Hhat
-    expected = 0.01 * 6 * np.abs(J).sum(1).max() / np.abs(H).sum(1).max()
+    # the paper's rule for the cage scaled to a unit bounding-box diagonal, scaled back
+    L = cage.diagonal
+    n = cage.n_vertices
+    J = np.hstack([a._Jhat[:, :n] * L, a._Jhat[:, n:]])
+    H = np.hstack([a._Hhat[:, :n] * L**2, a._Hhat[:, n:] * L])
+    expected = L * 0.01 * 6 * np.abs(J).sum(1).max() / np.abs(H).sum(1).max()
     assert a.lambda_ == pytest.approx(expected)
 
 

@@ -1,25 +1,38 @@
-"""Atomic output files: write to a temporary file beside the target, then rename.
+"""Atomic output files: write to a temporary beside the target, then rename.
 
-The writers in :mod:`vhm_viz.io` use :func:`atomic_path`; this module is only the mechanism.
+The writers in :mod:`vhm_viz.io` use :func:`atomic_path` (one file) and
+:func:`atomic_directory` (several files that belong together, such as the report of
+``vhm-viz analyze``); this module is only the mechanism.
 
-A crash or an error never leaves a half-written output, and an existing file is only
-replaced once the new one is complete. The result gets ordinary permissions (``0o666``
-less the process umask), not the private ``0o600`` of a temporary file.
+An error, a crash or an interrupt never leaves a half-written output or a temporary file,
+and an existing file is only replaced once the new one is complete: temporaries are
+created and renamed inside :func:`vhm_viz.interrupts.deferred`, and an interrupt received
+before the rename stops it. The result gets ordinary permissions (``0o666`` less the
+process umask), not the private ``0o600`` of a temporary file.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+
+from vhm_viz import interrupts
 
 
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def _directory_of(path: Path) -> Path:
+    directory = path.parent if str(path.parent) else Path(".")
+    directory.mkdir(parents=True, exist_ok=True)
+    return directory
 
 
 @contextlib.contextmanager
@@ -38,15 +51,58 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         the extension (PyVista, meshio) work unchanged.
     """
     path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    directory.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=directory)
-    os.close(fd)
+    directory = _directory_of(path)
+    tmp = None
     try:
-        yield Path(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+        with interrupts.deferred():  # own the temporary before an interrupt can strike
+            fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=directory)
+            os.close(fd)
+            tmp = Path(name)
+        yield tmp
+        with interrupts.deferred():
+            interrupts.check()  # an interrupt received (even one VTK swallowed): no rename
+            os.chmod(tmp, 0o666 & ~_umask())
+            os.replace(tmp, path)
+            tmp = None
+    finally:
+        if tmp is not None:
+            with interrupts.deferred(), contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+
+
+@contextlib.contextmanager
+def atomic_directory(directory: str | os.PathLike) -> Iterator[Path]:
+    """Yield a staging folder inside ``directory``; on success move its files there.
+
+    Everything written into the staging folder appears in ``directory`` only when the block
+    ends without an error or interrupt; otherwise ``directory`` keeps its previous files,
+    byte for byte, and the staging folder is removed.
+
+    Parameters
+    ----------
+    directory : path-like
+        Created if needed.
+
+    Yields
+    ------
+    Path
+        The staging folder (hidden, in ``directory``, so the renames stay on one file
+        system).
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    stage = None
+    try:
+        with interrupts.deferred():
+            stage = Path(tempfile.mkdtemp(prefix=".vhm-staging.", dir=directory))
+        yield stage
+        with interrupts.deferred():
+            interrupts.check()
+            mode = 0o666 & ~_umask()
+            for item in sorted(stage.iterdir()):
+                os.chmod(item, mode)
+                os.replace(item, directory / item.name)
+    finally:
+        if stage is not None:
+            with interrupts.deferred():
+                shutil.rmtree(stage, ignore_errors=True)

@@ -43,7 +43,12 @@ optional; saving writes every field with its value (one point per line), so
 ``Scene.load(path).save(other)`` writes a normalised file and
 ``Scene.from_dict(s.to_dict()) == s`` exactly (floats are written with full precision).
 Unknown fields, unknown versions and malformed values raise :class:`SceneError`, whose
-message names the offending field (``constraints.targets[3]``).
+message names the offending field (``constraints.targets[3]``). Numeric settings must lie in
+their documented ranges (:mod:`vhm_viz.core.limits`): ``alpha`` in [1e-4, 100],
+``solver.max_iterations`` an integer in [1, 1e6], ``solver.tolerance`` in (0, 0.1],
+``solver.steps`` in [1, 1000], ``solver.anderson_window`` in [0, 100], anchor counts in
+[1, 1e5], ``data.resolution`` in [1, 200], ``solution.contraction`` in [0, 1); the error
+names the field and the range.
 """
 
 from __future__ import annotations
@@ -116,6 +121,17 @@ def _number(value, name: str, *, positive: bool = False, integer: bool = False):
     if positive and value <= 0:
         raise SceneError(name, f"must be positive, got {value}")
     return value
+
+
+def _setting(kind: str, value, name: str):
+    """A numeric setting checked against its documented range (:mod:`vhm_viz.core.limits`)."""
+    from vhm_viz.core.errors import SettingError
+    from vhm_viz.core.limits import check_setting
+
+    try:
+        return check_setting(kind, value, name)
+    except SettingError as exc:
+        raise SceneError(name, exc.detail) from None
 
 
 def _matrix(value, name: str, shape: tuple[int, ...], *, integer: bool = False) -> np.ndarray:
@@ -256,7 +272,7 @@ class Scene:
             anchors=_parse_anchors(data["anchors"]),
             constraints=_parse_constraints(data["constraints"]),
             mode=_parse_mode(data.get("mode", "rigid")),
-            alpha=float(_number(data.get("alpha", 0.01), "alpha", positive=True)),
+            alpha=_setting("alpha", data.get("alpha", 0.01), "alpha"),
             solver=_parse_solver(data.get("solver", {})),
             data=_parse_data(data.get("data")),
             solution=_parse_solution(data.get("solution")),
@@ -545,8 +561,9 @@ class Scene:
             raise TypeError(f"unknown solver setting {unknown[0]!r}; use {sorted(DEFAULT_SOLVER)}")
         settings = dict(self.solver)
         settings.update(overrides)
-        steps = max(1, int(settings["steps"]))
         init = settings["init"]
+        settings = _parse_solver({**settings, "init": "identity"}) | {"init": init}
+        steps = settings["steps"]
         contraction = None
         if isinstance(init, str) and init == "solution":
             if self.solution is None or len(self.solution) != deformer.n_anchors:
@@ -562,10 +579,10 @@ class Scene:
                 deformer.update_targets(targets=targets, jacobians=jac if len(jac) else None)
             reports.append(
                 deformer.solve(
-                    max_iterations=int(settings["max_iterations"]),
-                    tolerance=float(settings["tolerance"]),
+                    max_iterations=settings["max_iterations"],
+                    tolerance=settings["tolerance"],
                     init=init if k == 1 else "previous",
-                    anderson_window=int(settings["anderson_window"]),
+                    anderson_window=settings["anderson_window"],
                     contraction=contraction if k == 1 and steps == 1 else None,
                 )
             )
@@ -625,12 +642,12 @@ def _parse_anchors(value) -> dict:
     if keys == {"path"}:
         return {"path": _path_text(value["path"], "anchors.path")}
     if keys == {"auto"}:
-        return {"auto": _number(value["auto"], "anchors.auto", positive=True, integer=True)}
+        return {"auto": _setting("anchor_count", value["auto"], "anchors.auto")}
     for kind in ("polylines", "skeleton"):
         if keys == {kind, "count"}:
             return {
                 kind: _path_text(value[kind], f"anchors.{kind}"),
-                "count": _number(value["count"], "anchors.count", positive=True, integer=True),
+                "count": _setting("anchor_count", value["count"], "anchors.count"),
             }
     extra = sorted(keys - {"path", "auto", "polylines", "skeleton", "count"})
     if extra:
@@ -677,19 +694,13 @@ def _parse_solver(value) -> dict:
         raise SceneError(f"solver.{extra[0]}", "unknown field")
     out = dict(DEFAULT_SOLVER)
     out.update(value)
-    out["max_iterations"] = _number(out["max_iterations"], "solver.max_iterations", integer=True)
-    if out["max_iterations"] < 0:
-        raise SceneError("solver.max_iterations", "must be >= 0")
-    out["tolerance"] = float(_number(out["tolerance"], "solver.tolerance", positive=True))
+    for key in ("max_iterations", "tolerance", "steps", "anderson_window"):
+        out[key] = _setting(key, out[key], f"solver.{key}")
     if out["init"] not in ("identity", "previous", "solution"):
         raise SceneError(
             "solver.init",
             f'expected "identity", "previous" or "solution", got {json.dumps(out["init"])}',
         )
-    out["steps"] = _number(out["steps"], "solver.steps", positive=True, integer=True)
-    out["anderson_window"] = _number(out["anderson_window"], "solver.anderson_window", integer=True)
-    if out["anderson_window"] < 0:
-        raise SceneError("solver.anderson_window", "must be >= 0")
     return {k: out[k] for k in DEFAULT_SOLVER}
 
 
@@ -701,7 +712,7 @@ def _parse_data(value) -> dict | None:
     if isinstance(value, dict) and set(value) <= {"bar", "resolution"} and "bar" in value:
         if not isinstance(value["bar"], str):
             raise SceneError("data.bar", "expected the name of a bar scenario")
-        res = _number(value.get("resolution", 39), "data.resolution", positive=True, integer=True)
+        res = _setting("resolution", value.get("resolution", 39), "data.resolution")
         return {"bar": value["bar"], "resolution": res}
     raise SceneError("data", 'expected a path or {"bar": kind, "resolution": n}')
 
@@ -718,10 +729,7 @@ def _parse_solution(value) -> np.ndarray | None:
 def _parse_contraction(value) -> float | None:
     if not isinstance(value, dict) or value.get("contraction") is None:
         return None
-    rho = float(_number(value["contraction"], "solution.contraction"))
-    if not 0 <= rho < 1:
-        raise SceneError("solution.contraction", f"must be in [0, 1), got {rho}")
-    return rho
+    return _setting("contraction", value["contraction"], "solution.contraction")
 
 
 # ----------------------------------------------------------------------------------------

@@ -42,13 +42,18 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    """Start Qt, open what ``args`` names, run the event loop; returns the exit status."""
+    """Start Qt, open what ``args`` names, run the event loop; returns the exit status.
+
+    0 when the window is closed, 130/143 after SIGINT/SIGTERM.
+    """
     import os
     import sys
 
+    from PySide6.QtCore import QTimer
     from PySide6.QtWidgets import QApplication
     from threadpoolctl import threadpool_limits
 
+    from vhm_viz import interrupts
     from vhm_viz.app.main_window import ExplorerWindow
 
     # The explorer's linear algebra is small (QR of a few hundred columns, products with
@@ -58,16 +63,34 @@ def run(args) -> int:
     threadpool_limits(limits=int(os.environ.get("VHM_BLAS_THREADS", "1")), user_api="blas")
 
     app = QApplication.instance() or QApplication(sys.argv[:1])
-    win = ExplorerWindow()
-    win.show()
-    if args.file:
-        win.open_file(args.file)
-        win.wait_idle()
-        if args.cage:
-            win.load_cage(args.cage)
-    elif args.bar:
-        win.open_bar(args.bar)
-        win.wait_idle()
-    if args.scene:  # applies to FILE unless the scene's sidecar names its data
-        win.load_scene(args.scene)
-    return int(app.exec())
+
+    def on_signal(signum: int) -> None:
+        # leave the event loop (now, or as soon as it runs) with 128 + the signal number
+        QTimer.singleShot(0, lambda: app.exit(128 + signum))
+
+    # SIGINT/SIGTERM from here on: jobs see cancelled() and stop at their next chunk, the
+    # window closes, the status is 130/143
+    with interrupts.handled(on_signal=on_signal):
+        win = ExplorerWindow()
+        win.show()
+        if args.file:
+            win.open_file(args.file)
+            win.wait_idle()
+            if args.cage:
+                win.load_cage(args.cage)
+        elif args.bar:
+            win.open_bar(args.bar)
+            win.wait_idle()
+        if args.scene:  # applies to FILE unless the scene's sidecar names its data
+            win.load_scene(args.scene)
+        # Python runs signal handlers only between its own instructions, which a Qt event
+        # loop waiting in C++ never executes: a timer gives it the chance every 200 ms
+        tick = QTimer()
+        tick.timeout.connect(lambda: None)
+        tick.start(200)
+        # a signal during start-up may have asked the loop to exit before it ran
+        signum = interrupts.pending()
+        status = 128 + signum if signum is not None else int(app.exec())
+        tick.stop()
+        win.runner.wait()
+    return status

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz.core.errors import AbortedError, CageError, ConstraintError
-from vhm_viz.io import read_dataset, write_dataset
+from vhm_viz.io import read_dataset, refuse_inputs, write_dataset
 from vhm_viz.scene import DEFAULT_SOLVER, Scene
 
 __all__ = [
@@ -236,6 +236,8 @@ class ExplorerController:
         self.rest = None
         self.display = None
         self.source: dict = {}
+        #: Files read since the data was loaded (data, cage, anchors): never written.
+        self.input_files: list[Path] = []
         self.cage = None
         self.anchors = np.zeros((0, 3))
         self.positions: list[PositionConstraint] = []
@@ -307,6 +309,7 @@ class ExplorerController:
         self.display = display
         self._rest_points = np.array(display.points, dtype=np.float64)
         self.source = source
+        self.input_files = [Path(source["path"])] if "path" in source else []
         self.cage = None
         self.anchors = np.zeros((0, 3))
         self.positions = []
@@ -410,6 +413,7 @@ class ExplorerController:
         except (OSError, ValueError) as exc:
             raise CageError(f"{Path(path).name}: {exc}") from exc
         self.set_cage(cage)
+        self.input_files.append(Path(path))
 
     def auto_cage(self, max_faces: int = 500, progress: ProgressFn = _noop_progress):
         """Generate a cage around the data (:func:`vhm_viz.autocage.auto_cage`); not applied.
@@ -459,9 +463,10 @@ class ExplorerController:
 
         if Path(path).suffix.lower() == ".json":
             self.set_anchors(read_anchors(path))
-            return
-        pts, edges = read_rigidity_lines(path)
-        self.set_anchors(anchors_from_polylines(pts, edges, int(count)))
+        else:
+            pts, edges = read_rigidity_lines(path)
+            self.set_anchors(anchors_from_polylines(pts, edges, int(count)))
+        self.input_files.append(Path(path))
 
     def auto_anchors(self, count: int = 50) -> np.ndarray:
         """Compute ``count`` anchors automatically (not applied; see :meth:`set_anchors`)."""
@@ -834,6 +839,7 @@ class ExplorerController:
         if not path.suffix:
             src = self.source.get("path")
             path = path.with_suffix(Path(src).suffix if src else ".vtp")
+        refuse_inputs(path, self.input_files)
         data = self.display.copy(deep=True)
         if self.ready and self.last_report is not None:
             data.points = self.deformer.harmonic_map.map(self._rest_points, outside="passthrough")
@@ -909,6 +915,7 @@ class ExplorerController:
         converged solution is stored with ``"init": "solution"``.
         """
         path = Path(path)
+        refuse_inputs(path, self.input_files)
         self.scene(relative_to=path.parent).save(path)
 
     def load_scene(self, path, data_from: ExplorerController | None = None) -> list[str]:

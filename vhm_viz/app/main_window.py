@@ -452,7 +452,11 @@ class ExplorerWindow(QMainWindow):
         if self.ctrl.rest is None:
             raise ValueError("open data before loading a cage")
         self.ctrl.load_cage(path)
-        self.status(f"cage {Path(path).name}: {self.ctrl.cage.n_faces} faces")
+        repaired = self.ctrl.cage.repairs
+        self.status(
+            f"cage {Path(path).name}: {self.ctrl.cage.n_faces} faces"
+            + (f"; repaired {len(repaired)} slivers: {'; '.join(repaired)}" if repaired else "")
+        )
         self.after_edit(structure=True)
 
     @guarded

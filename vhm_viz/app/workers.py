@@ -2,7 +2,9 @@
 
 A job function receives two keyword arguments, ``progress(fraction, message)`` and
 ``cancelled() -> bool``; it reports progress through the first and should stop (raise
-:class:`~vhm_viz.app.controller.Cancelled`) when the second turns true. Functions that
+:class:`~vhm_viz.app.controller.Cancelled`) when the second turns true -- after
+:meth:`Job.cancel`, or once the explorer received SIGINT or SIGTERM
+(:func:`vhm_viz.interrupts.pending`). Functions that
 cannot stop early (e.g. a library call) are *abandoned* on cancel: their result is
 discarded when they finish and the UI is released immediately.
 """
@@ -14,6 +16,7 @@ from collections.abc import Callable
 
 from PySide6.QtCore import QObject, QThread, Signal
 
+from vhm_viz import interrupts
 from vhm_viz.app.controller import Cancelled
 
 __all__ = ["Job", "JobRunner"]
@@ -58,7 +61,7 @@ class Job(QThread):
         try:
             result = self.fn(
                 progress=lambda f, m: self.progressed.emit(float(f), str(m)),
-                cancelled=lambda: self._cancel,
+                cancelled=lambda: self._cancel or interrupts.pending() is not None,
             )
         except Cancelled:
             self.was_cancelled.emit()

@@ -4,6 +4,18 @@ Each subcommand lives in its own module of this package exposing
 ``add_parser(subparsers)`` (registers the subcommand) and ``run(args) -> int``.
 Subcommands simply raise; :func:`main` reports every error as one line on stderr
 with a non-zero exit status.
+
+Exit statuses:
+
+===  ===========================================================================
+0    success
+1    an error (one line on stderr naming the problem); no output was written
+2    bad command-line arguments (argparse's usage message)
+3    the solver did not converge within ``solver.max_iterations``; no output was
+     written (``--allow-unconverged`` writes it anyway and exits 0)
+130  interrupted by SIGINT (Ctrl-C); 143: by SIGTERM. Previous outputs are left
+     byte-identical and no temporary file remains
+===  ===========================================================================
 """
 
 from __future__ import annotations
@@ -11,6 +23,8 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+
+from vhm_viz import interrupts
 
 # subcommand name -> module in this package; order is the order shown in --help
 _COMMANDS = {
@@ -40,6 +54,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Exit status of a solve that stopped at its iteration cap (see the module documentation).
+EXIT_NOT_CONVERGED = 3
+
+
+class NotConverged(RuntimeError):
+    """The solver stopped at ``solver.max_iterations``; exit :data:`EXIT_NOT_CONVERGED`."""
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the process exit status."""
     parser = build_parser()
@@ -47,14 +69,19 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
-    try:
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        print("vhm-viz: interrupted", file=sys.stderr)
-        return 130
-    except Exception as exc:  # noqa: BLE001 - every error is one line and a non-zero exit
-        print(f"vhm-viz {args.command}: error: {one_line(exc)}", file=sys.stderr)
-        return 1
+    with interrupts.handled():
+        try:
+            return int(args.func(args) or 0)
+        except (interrupts.Interrupted, KeyboardInterrupt) as exc:
+            status = getattr(exc, "exit_status", 130)
+            print(f"vhm-viz {args.command}: {exc or 'interrupted by SIGINT'}", file=sys.stderr)
+            return status
+        except NotConverged as exc:
+            print(f"vhm-viz {args.command}: {one_line(exc)}", file=sys.stderr)
+            return EXIT_NOT_CONVERGED
+        except Exception as exc:  # noqa: BLE001 - every error is one line and a non-zero exit
+            print(f"vhm-viz {args.command}: error: {one_line(exc)}", file=sys.stderr)
+            return 1
 
 
 def one_line(exc: BaseException) -> str:

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from vhm_viz import interrupts
 from vhm_viz.cli import one_line
-from vhm_viz.io import DATASET_SUFFIXES, suffix_of
+from vhm_viz.io import DATASET_SUFFIXES, OverwriteError, refuse_inputs, suffix_of
 
 #: Output formats per output dataset type.
 OUTPUT_SUFFIXES = {
@@ -47,7 +47,7 @@ class Progress:
         self._done = False
 
     def __call__(self, fraction: float, _message: str = "") -> None:
-        if not self.enabled or self._done:
+        if not self.enabled or self._done or interrupts.pending() is not None:
             return
         pct = int(round(100 * min(max(float(fraction), 0.0), 1.0)))
         if pct == self._last or (pct < 100 and pct - self._last < 2):
@@ -62,7 +62,7 @@ class Progress:
 
     def finish(self) -> None:
         """End the line (with the elapsed time)."""
-        if not self.enabled or self._done:
+        if not self.enabled or self._done or interrupts.pending() is not None:
             return
         self._done = True
         if self._last < 100:
@@ -87,15 +87,30 @@ def quiet_vtk() -> None:
 
 
 def observe_progress(algorithm, progress: Progress) -> None:
-    """Forward a VTK algorithm's ``ProgressEvent`` to a :class:`Progress`."""
-    algorithm.AddObserver("ProgressEvent", lambda obj, _ev: progress(obj.GetProgress()))
+    """Forward a VTK algorithm's ``ProgressEvent`` to a :class:`Progress`.
+
+    An interrupt arriving meanwhile is only recorded: raised inside VTK's callback it would
+    be printed and lost; the filter stops at its next chunk and ``update`` raises it.
+    """
+
+    def forward(obj, _event) -> None:
+        with interrupts.deferred(raise_at_end=False):
+            progress(obj.GetProgress())
+
+    algorithm.AddObserver("ProgressEvent", forward)
 
 
 def check_input(path: str, suffixes=DATASET_SUFFIXES) -> Path:
-    """The input path; :class:`CLIError` when missing or of an unknown type."""
+    """The input path; :class:`CLIError` when missing or of an unknown type.
+
+    With the dataset suffixes, a folder is accepted too (a DICOM series, read by
+    :func:`vhm_viz.io.read_dataset`).
+    """
     p = Path(path)
     if not p.exists():
         raise CLIError(f"input file not found: {p}")
+    if p.is_dir() and suffixes is DATASET_SUFFIXES:
+        return p
     if not p.is_file():
         raise CLIError(f"input is not a file: {p}")
     if suffix_of(p) not in suffixes:
@@ -104,17 +119,6 @@ def check_input(path: str, suffixes=DATASET_SUFFIXES) -> Path:
             f"{', '.join(suffixes)}"
         )
     return p
-
-
-def same_file(a: Path, b: Path) -> bool:
-    """Whether two paths name the same file: same inode (hard links), or same real path."""
-    a, b = Path(a), Path(b)
-    try:
-        if a.exists() and b.exists():
-            return os.path.samefile(a, b)
-    except OSError:
-        pass
-    return os.path.realpath(a) == os.path.realpath(b)
 
 
 def check_output(output: str, suffixes, inputs=()) -> Path:
@@ -133,14 +137,33 @@ def check_output(output: str, suffixes, inputs=()) -> Path:
     out = Path(output)
     if out.is_dir():
         raise CLIError(f"output {out} is a directory; give a file name")
+    _refuse_inputs(out, inputs)
     if suffix_of(out) not in suffixes:
         raise CLIError(f"output {out} must end with one of {', '.join(suffixes)}")
-    for src in inputs:
-        if src is not None and same_file(Path(src), out):
-            raise CLIError(f"refusing to overwrite the input file {src}; choose another -o")
     if not out.resolve().parent.is_dir():
         raise CLIError(f"output directory does not exist: {out.parent}")
     return out
+
+
+def check_output_directory(output: str, names, inputs=()) -> Path:
+    """The ``-o`` directory (created later if missing), refused if it is an input.
+
+    Neither it nor any of the files ``names`` that the command writes into it may be one
+    of ``inputs`` (see :func:`check_output`).
+    """
+    out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"output {out} must be a directory (it is a file)")
+    for path in (out, *(out / name for name in names)):
+        _refuse_inputs(path, inputs)
+    return out
+
+
+def _refuse_inputs(path: Path, inputs) -> None:
+    try:
+        refuse_inputs(path, inputs)
+    except OverwriteError as exc:
+        raise CLIError(f"{exc} (-o)") from None
 
 
 def outside_message(exc, n_points: int, source) -> str:
@@ -167,17 +190,59 @@ def load_scene(path: str):
     return Scene.load(p)
 
 
-def build_and_solve(scene, mesh, *, quiet: bool):
-    """Build the scene's deformer (auto cage/anchors from ``mesh``) and solve it."""
+def add_convergence_argument(parser) -> None:
+    """``--allow-unconverged`` (see :func:`build_and_solve`)."""
+    parser.add_argument(
+        "--allow-unconverged",
+        action="store_true",
+        help="write the result even when the solver stops at solver.max_iterations "
+        "before converging (otherwise: exit status 3, nothing written)",
+    )
+
+
+def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False):
+    """Build the scene's deformer (auto cage/anchors from ``mesh``) and solve it.
+
+    Raises
+    ------
+    NotConverged
+        The (last) solve stopped at ``solver.max_iterations`` and ``allow_unconverged``
+        is false.
+    """
+    from vhm_viz.cli import NotConverged
+
     dfm = scene.build(data=mesh)
+    # what loading had to change is said, one line each (old scene format, cage repairs)
+    for note in [*scene.notes, *(f"cage repaired: {r}" for r in dfm.cage.repairs)]:
+        print(f"vhm-viz: note: {note}", file=sys.stderr)
     bar = Progress("solving", enabled=not quiet)
     reports = scene.solve(dfm, progress=bar)
     bar.finish()
+    last = reports[-1]
+    if not last.converged and not allow_unconverged:
+        rho = last.contraction if np.isfinite(last.contraction) else 0.0
+        raise NotConverged(
+            f"not converged: the solver stopped at solver.max_iterations = "
+            f"{scene.solver['max_iterations']} with the estimated distance to the solution "
+            f"{last.residuals[-1] / (1 - rho):.3g} above solver.tolerance = "
+            f"{scene.solver['tolerance']:g}; nothing written (raise max_iterations, or pass "
+            "--allow-unconverged)"
+        )
     return dfm, reports
 
 
 def surface_metrics(rest, deformed) -> dict:
-    """``E_rigid`` and ``E_volume`` where defined (triangle surfaces / solid meshes)."""
+    """``E_rigid`` and ``E_volume`` where defined (triangle surfaces / solid meshes).
+
+    A measure the data does not allow (all triangles degenerate, zero volume) is left out.
+    """
+    try:
+        return _surface_metrics(rest, deformed)
+    except (ValueError, ZeroDivisionError, FloatingPointError):
+        return {}
+
+
+def _surface_metrics(rest, deformed) -> dict:
     import pyvista as pv
 
     from vhm_viz.core.metrics import rigidity_distortion, volume_change

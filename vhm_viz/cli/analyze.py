@@ -4,24 +4,24 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 
 from vhm_viz.cli._util import (
     CLIError,
     Progress,
+    add_convergence_argument,
     build_and_solve,
     check_input,
+    check_output_directory,
     load_scene,
     observe_progress,
     outside_message,
     quiet_vtk,
-    same_file,
     surface_metrics,
 )
 from vhm_viz.core.errors import OutsideCageError
-from vhm_viz.io import json_text, read_dataset, write_text
+from vhm_viz.io import atomic_outputs, json_text, read_dataset, write_text
 
 #: Files written by ``analyze`` into the output directory.
 FILES = {
@@ -58,6 +58,7 @@ def add_parser(subparsers) -> None:
         default=None,
         help="slice normal as x,y,z (default: the axis of least displacement)",
     )
+    add_convergence_argument(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -104,18 +105,18 @@ def analyze(args: argparse.Namespace) -> str:
     from vhm_viz.filters import HarmonicDeformationFilter, JacobianAnalysisFilter, update
 
     src = check_input(args.input)
-    out_dir = Path(args.output)
-    if any(same_file(p, out_dir) for p in (src, Path(args.scene))) or (
-        out_dir.exists() and not out_dir.is_dir()
-    ):
-        raise CLIError(f"output {out_dir} must be a directory (not the input or a file)")
     normal = _parse_normal(args.normal)
     scene = load_scene(args.scene)
+    # never write onto the data, the scene or any file the scene names
+    out_dir = check_output_directory(
+        args.output, FILES.values(), [src, args.scene, *scene.referenced_files()]
+    )
     mesh = read_dataset(src)
-    out_dir.mkdir(parents=True, exist_ok=True)
 
     t0 = time.perf_counter()
-    dfm, reports = build_and_solve(scene, mesh, quiet=args.quiet)
+    dfm, reports = build_and_solve(
+        scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
+    )
     hm = dfm.harmonic_map
     ana = JacobianAnalysisFilter()
     ana.SetInputData(mesh)
@@ -143,10 +144,6 @@ def analyze(args: argparse.Namespace) -> str:
 
     surf = deformed if isinstance(deformed, pv.PolyData) else None
     slice_ = plotting.jacobian_slice(mesh, hm, normal=normal)
-    pl = plotting.figure4(slice_, deformed_surface=surf, filename=out_dir / FILES["figure4"])
-    pl.close()
-    plotting.figure12({scene.mode: cond}, filename=out_dir / FILES["figure12"])
-    plotting.energy_plot(reports, filename=out_dir / FILES["energy"])
 
     metrics = {
         "input": str(src),
@@ -168,7 +165,13 @@ def analyze(args: argparse.Namespace) -> str:
             "condition_number": _stats(slice_.point_data["condition_number"]),
         },
     }
-    write_text(out_dir / FILES["metrics"], json_text(metrics))
+    # the report is one unit: its files appear together, or the old ones stay untouched
+    with atomic_outputs(out_dir) as stage:
+        pl = plotting.figure4(slice_, deformed_surface=surf, filename=stage / FILES["figure4"])
+        pl.close()
+        plotting.figure12({scene.mode: cond}, filename=stage / FILES["figure12"])
+        plotting.energy_plot(reports, filename=stage / FILES["energy"])
+        write_text(stage / FILES["metrics"], json_text(metrics))
     seconds = time.perf_counter() - t0
     summary = [f"analyzed {mesh.n_points} points"]
     if "E_rigid" in metrics:

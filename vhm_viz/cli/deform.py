@@ -10,6 +10,7 @@ from vhm_viz.cli._util import (
     OUTPUT_SUFFIXES,
     CLIError,
     Progress,
+    add_convergence_argument,
     build_and_solve,
     check_input,
     check_output,
@@ -34,7 +35,8 @@ def add_parser(subparsers) -> None:
         "write OUTPUT. Surfaces stay surfaces, tet meshes stay tet meshes; a volume (.vti) "
         "written to .vti is resampled onto a regular grid (pull-back through the inverse "
         "map), to .vts it becomes a warped structured grid. Prints one summary line.",
-        epilog=f"input types: {' '.join(DATASET_SUFFIXES)}. Example: vhm-viz deform bar.vtp "
+        epilog=f"input types: {' '.join(DATASET_SUFFIXES)}, or a DICOM folder. Example: "
+        "vhm-viz deform bar.vtp "
         "--scene bar.json -o bent.vtp",
     )
     p.add_argument("input", metavar="INPUT", help="dataset to deform")
@@ -62,6 +64,7 @@ def add_parser(subparsers) -> None:
         default=0.0,
         help="volume resampling: value of voxels without a pre-image (default 0)",
     )
+    add_convergence_argument(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -104,7 +107,9 @@ def deform(args: argparse.Namespace) -> str:
         )
 
     t0 = time.perf_counter()
-    dfm, reports = build_and_solve(scene, mesh, quiet=args.quiet)
+    dfm, reports = build_and_solve(
+        scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
+    )
     if resample:
         flt = HarmonicResampleFilter()
         flt.SetFillValue(args.fill_value)
@@ -125,9 +130,14 @@ def deform(args: argparse.Namespace) -> str:
     except OutsideCageError as exc:
         raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
     bar.finish()
+    # everything that can fail happens before the write: an error never follows an output
+    summary = _summary(mesh, result, reports, flt, resample)
     write_dataset(out, result)
     seconds = time.perf_counter() - t0
+    return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {out}"
 
+
+def _summary(mesh, result, reports, flt, resample: bool) -> list[str]:
     iterations = sum(r.iterations for r in reports)
     parts = [f"deformed {mesh.n_points} points ({type(mesh).__name__})"]
     parts.append(f"{iterations} iterations" + ("" if reports[-1].converged else " (not converged)"))
@@ -139,8 +149,7 @@ def deform(args: argparse.Namespace) -> str:
         if "E_volume" in metrics:
             parts.append(f"E_volume {metrics['E_volume']:.4f}")
         parts.append(f"{flt.outside_count} points outside the cage")
-    parts.append(f"{seconds:.1f} s")
-    return ", ".join(parts) + f" -> {out}"
+    return parts
 
 
 def _output_type(mesh) -> str:

@@ -50,6 +50,7 @@ import scipy.sparse as sp
 
 from vhm_viz.core.basis_lanes import lanes_kernel, winding_kernel
 from vhm_viz.core.geometry import face_normals_and_areas
+from vhm_viz.core.limits import check_setting
 
 HESSIAN_COMPONENTS = ("xx", "xy", "xz", "yy", "yz")
 _FOUR_PI = 4.0 * math.pi
@@ -177,7 +178,8 @@ def _outward_shells(v: np.ndarray, f: np.ndarray, edges: np.ndarray) -> tuple:
     if len(shell_ids) < 2:
         return ()
     face_label = labels[f[:, 0]]
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    centred = v - v.mean(axis=0)  # cones from the centroid: origin-free (geometry.signed_volume)
+    a, b, c = centred[f[:, 0]], centred[f[:, 1]], centred[f[:, 2]]
     vol = np.einsum("ij,ij->i", a, np.cross(b, c))
     shells = []
     for k in shell_ids:
@@ -202,12 +204,57 @@ def _separate_shells(cd: _CageData, values, gradients, hessians) -> None:
 
 
 # --------------------------------------------------------------------------------------
+# exact arithmetic for the cross product next to an edge
+# --------------------------------------------------------------------------------------
+# Next to the interior of edge (b, c) the vectors e_b = x_b - p and e_c = x_c - p point in
+# nearly opposite directions, and e_b x e_c (length ~ distance x edge length) cancels: with
+# e_b and e_c rounded (error ~ eps |e|), its relative error is ~ eps |e| / distance, 1e-4 at
+# 1e-12 of the diagonal, and every term built on it (R - |d|, the solid angle) inherits it.
+# Computed from the exact differences (Knuth's two-sum: x - p = hi + lo) with exact
+# products (Dekker's split), the cross product is correct to a few ulps at any distance.
+_SPLIT = 134217729.0  # 2**27 + 1
+
+
+def _two_diff_np(a, b):
+    """``a - b = s + err`` exactly (Knuth)."""
+    s = a - b
+    bb = s - a
+    return s, (a - (s - bb)) - (b + bb)
+
+
+def _two_prod_np(a, b):
+    """``a * b = p + err`` exactly (Dekker; no fused multiply-add needed)."""
+    p = a * b
+    ca, cb = _SPLIT * a, _SPLIT * b
+    ah, bh = ca - (ca - a), cb - (cb - b)
+    al, bl = a - ah, b - bh
+    return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+def _cross_exact_np(xu, xw, p):
+    """``(xu - p) x (xw - p)`` to a few ulps of the result, for stacks ``(..., 3)``."""
+    uh, ul = _two_diff_np(xu, p)
+    wh, wl = _two_diff_np(xw, p)
+    out = []
+    for i, j in ((1, 2), (2, 0), (0, 1)):
+        p1, e1 = _two_prod_np(uh[..., i], wh[..., j])
+        p2, e2 = _two_prod_np(uh[..., j], wh[..., i])
+        d, ed = _two_diff_np(p1, p2)
+        tail = uh[..., i] * wl[..., j] + ul[..., i] * wh[..., j]
+        tail -= uh[..., j] * wl[..., i] + ul[..., j] * wh[..., i]
+        out.append(d + (ed + (e1 - e2) + tail))
+    return np.stack(out, axis=-1)
+
+
+# --------------------------------------------------------------------------------------
 # numpy reference (face by face, no sharing between faces)
 # --------------------------------------------------------------------------------------
-def _edge_terms_numpy(u, q, lu, lq, dlen):
-    """``C`` and ``Ct`` of an edge with end vectors ``u``, ``q`` (cancellation-free)."""
+def _edge_terms_numpy(u, q, lu, lq, dlen, cr):
+    """``C`` and ``Ct`` of an edge with end vectors ``u``, ``q`` (cancellation-free).
+
+    ``cr`` is ``u x q``, computed exactly (:func:`_cross_exact_np`).
+    """
     uq = np.einsum("...i,...i->...", u, q)
-    cr = np.cross(u, q)
     cr2 = np.einsum("...i,...i->...", cr, cr)
     big = lu + lq + dlen
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -231,16 +278,19 @@ def _basis_numpy_chunk(p, cd: _CageData, order: int, host):
     dot = lambda a, b: np.einsum("...i,...i->...", a, b)  # noqa: E731
     C, Ct, Jv = [], [], []
     degenerate = np.zeros(npts, dtype=bool)
+    pp = np.broadcast_to(p[:, None, :], e[:, :, 0].shape)
     for v in range(3):
         u, q = e[:, :, (v + 1) % 3], e[:, :, (v + 2) % 3]
         lu, lq = le[:, :, (v + 1) % 3], le[:, :, (v + 2) % 3]
-        c, ct, on_edge = _edge_terms_numpy(u, q, lu, lq, np.linalg.norm(cd.d[:, v], axis=-1)[None])
+        cr = _cross_exact_np(x[None, :, (v + 1) % 3], x[None, :, (v + 2) % 3], pp)
+        dlen = np.linalg.norm(cd.d[:, v], axis=-1)[None]
+        c, ct, on_edge = _edge_terms_numpy(u, q, lu, lq, dlen, cr)
         degenerate |= on_edge.any(axis=1)
         C.append(c)
         Ct.append(ct)
-        Jv.append(np.cross(q, u))  # e_{v+2} x e_{v+1}
+        Jv.append(-cr)  # e_{v+2} x e_{v+1}
     near = _solid_angle_pivot(e, le, np.argmax(np.stack(C, -1), axis=-1), cd.d)
-    det, denom = _solid_angle_terms(e, le, near, cd.d)
+    det, denom = _solid_angle_terms(e, le, near, cd.d, np.stack(Jv, axis=2))
     w = np.arctan2(det, denom) / _TWO_PI
     in_plane = det == 0.0
     w = np.where(in_plane & (denom < 0.0), 0.5, w)  # exactly on the face: interior limit
@@ -315,15 +365,19 @@ def _solid_angle_pivot(e, le, opposite_nearest_edge, d):
     return np.where(le.min(-1) <= 2.0 * to_line, le.argmin(-1), a)
 
 
-def _solid_angle_terms(e, le, a, d):
+def _solid_angle_terms(e, le, a, d, jv):
     """Numerator and denominator of the solid-angle ``atan2``, written around edge (b, c).
 
-    ``den = l_a (l_b l_c + e_b.e_c) + e_a.(l_c e_b + l_b e_c)``. Next to edge (b, c) both
-    brackets cancel catastrophically; they are rewritten exactly as
-    ``l_b l_c + e_b.e_c = |e_b x e_c|^2 / (l_b l_c - e_b.e_c)`` and
-    ``l_c e_b + l_b e_c = (s/2)(e_b + e_c) - (delta/2)(e_c - e_b)`` with ``s = l_b + l_c``,
-    ``delta = l_c - l_b = (e_c - e_b).(e_b + e_c) / s``.
-    ``a`` holds, per (point, face), the local vertex opposite the edge to write around.
+    ``det = e_a . (e_b x e_c)``, ``den = l_a (l_b l_c + e_b.e_c) + e_a.(l_c e_b + l_b e_c)``.
+    Next to edge (b, c) both brackets cancel catastrophically; with the exact
+    ``cr = e_b x e_c`` they are rewritten exactly as
+    ``l_b l_c + e_b.e_c = |cr|^2 / (l_b l_c - e_b.e_c)`` and, with ``u`` the unit vector
+    along the edge, ``t_b = -e_b.u``, ``t_c = e_c.u`` (the foot of ``p`` along it),
+    ``l_c e_b + l_b e_c = u x cr + (l_c - t_c) e_b + (l_b - t_b) e_c`` (the triple product
+    ``u x (e_b x e_c) = (u.e_c) e_b - (u.e_b) e_c``), where ``l - t = r^2 / (l + t)`` with
+    ``r = |cr| / |d|`` the distance to the edge's line when ``t > 0``.
+    ``a`` holds, per (point, face), the local vertex opposite the edge to write around;
+    ``jv[..., v, :] = e_{v+2} x e_{v+1}`` (exact), so ``cr = -jv[..., a, :]``.
     """
     take = lambda arr, k: np.take_along_axis(arr, k[..., None, None], axis=2)[:, :, 0]  # noqa: E731
     ea, eb, ec = take(e, a), take(e, (a + 1) % 3), take(e, (a + 2) % 3)
@@ -331,18 +385,20 @@ def _solid_angle_terms(e, le, a, d):
     lb = np.take_along_axis(le, ((a + 1) % 3)[..., None], axis=2)[..., 0]
     lc = np.take_along_axis(le, ((a + 2) % 3)[..., None], axis=2)[..., 0]
     dot = lambda x, y: np.einsum("...i,...i->...", x, y)  # noqa: E731
-    cr = np.cross(eb, ec)
+    cr = -take(jv, a)
     det = dot(ea, cr)
     bc = dot(eb, ec)
+    dv = -take(np.broadcast_to(d[None], e.shape), a)  # x_c - x_b
     with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = np.where(bc < 0.0, dot(cr, cr) / (lb * lc - bc), lb * lc + bc)
-        s = lb + lc
-        ssum = eb + ec
-        dv = -np.take_along_axis(np.broadcast_to(d[None], e.shape), a[..., None, None], axis=2)[
-            :, :, 0
-        ]
-        delta = np.where(s > 0, dot(dv, ssum) / s, 0.0)
-    vec = 0.5 * s[..., None] * ssum - 0.5 * delta[..., None] * dv
+        cr2 = dot(cr, cr)
+        t1 = np.where(bc < 0.0, cr2 / (lb * lc - bc), lb * lc + bc)
+        dl = np.sqrt(dot(dv, dv))
+        u = dv / dl[..., None]
+        r2 = cr2 / (dl * dl)
+        tb, tc = -dot(eb, u), dot(ec, u)
+        gap_b = np.where(tb > 0.0, r2 / (lb + tb), lb - tb)
+        gap_c = np.where(tc > 0.0, r2 / (lc + tc), lc - tc)
+    vec = np.cross(u, cr) + gap_c[..., None] * eb + gap_b[..., None] * ec
     return det, la * t1 + dot(ea, vec)
 
 
@@ -376,6 +432,51 @@ _BLOCK = 16  # points per parallel work item (amortises the scratch allocations)
 # An edge counts as "near" when R - |d| < _NEAR_EDGE |d| (p within ~1% of its length from the
 # edge's interior): only then is the solid angle rewritten around it (see _solid_angle_terms).
 _NEAR_EDGE = 1e-4
+
+
+@numba.njit(cache=True, inline="always")
+def _two_diff(a, b):  # pragma: no cover - compiled
+    """``a - b = s + err`` exactly (see :func:`_two_diff_np`)."""
+    s = a - b
+    bb = s - a
+    return s, (a - (s - bb)) - (b + bb)
+
+
+@numba.njit(cache=True, inline="always")
+def _two_prod(a, b):  # pragma: no cover - compiled
+    """``a * b = p + err`` exactly (see :func:`_two_prod_np`)."""
+    p = a * b
+    ca = _SPLIT * a
+    cb = _SPLIT * b
+    ah = ca - (ca - a)
+    bh = cb - (cb - b)
+    al = a - ah
+    bl = b - bh
+    return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+@numba.njit(cache=True, inline="always")
+def _cross_component(ui, ul_i, uj, ul_j, wi, wl_i, wj, wl_j):  # pragma: no cover - compiled
+    """``u_i w_j - u_j w_i`` from exact splits ``u = uh + ul``, ``w = wh + wl``."""
+    p1, e1 = _two_prod(ui, wj)
+    p2, e2 = _two_prod(uj, wi)
+    d, ed = _two_diff(p1, p2)
+    tail = (ui * wl_j + ul_i * wj) - (uj * wl_i + ul_j * wi)
+    return d + (ed + (e1 - e2) + tail)
+
+
+@numba.njit(cache=True)
+def _cross_exact(V, i, j, px, py, pz, out):  # pragma: no cover - compiled
+    """``out = (V[i] - p) x (V[j] - p)`` to a few ulps (see :func:`_cross_exact_np`)."""
+    ux, uxl = _two_diff(V[i, 0], px)
+    uy, uyl = _two_diff(V[i, 1], py)
+    uz, uzl = _two_diff(V[i, 2], pz)
+    wx, wxl = _two_diff(V[j, 0], px)
+    wy, wyl = _two_diff(V[j, 1], py)
+    wz, wzl = _two_diff(V[j, 2], pz)
+    out[0] = _cross_component(uy, uyl, uz, uzl, wy, wyl, wz, wzl)
+    out[1] = _cross_component(uz, uzl, ux, uxl, wz, wzl, wx, wxl)
+    out[2] = _cross_component(ux, uxl, uy, uyl, wx, wxl, wy, wyl)
 
 
 @numba.njit(cache=True, parallel=True, fastmath=False, error_model="numpy")
@@ -446,6 +547,11 @@ def _basis_kernel(
                 if uw <= 0.0:
                     denom = (le[i] * le[j] - uw) * big
                     small = 2.0 * (cx * cx + cy * cy + cz * cz) / denom if denom > 0.0 else 0.0
+                    if small < _NEAR_EDGE * dl:
+                        # next to the edge's interior the cross product cancels: exactly
+                        _cross_exact(V, i, j, px, py, pz, ecr[q])
+                        cx, cy, cz = ecr[q, 0], ecr[q, 1], ecr[q, 2]
+                        small = 2.0 * (cx * cx + cy * cy + cz * cz) / denom if denom > 0.0 else 0.0
                 else:
                     small = 2.0 * (le[i] * le[j] + uw) / big
                 enear[q] = small < _NEAR_EDGE * dl
@@ -514,18 +620,21 @@ def _basis_kernel(
                         t1 = c2 / (lb * lc - bc)
                     else:
                         t1 = lb * lc + bc
-                    ssum = lb + lc
-                    sx = e[ib, 0] + e[ic, 0]
-                    sy = e[ib, 1] + e[ic, 1]
-                    sz = e[ic, 2] + e[ib, 2]
-                    # Dv = x_c - x_b = -d_a
-                    dvx = -D[t, la, 0]
-                    dvy = -D[t, la, 1]
-                    dvz = -D[t, la, 2]
-                    dlt = (dvx * sx + dvy * sy + dvz * sz) / ssum if ssum > 0.0 else 0.0
-                    vx = 0.5 * ssum * sx - 0.5 * dlt * dvx
-                    vy = 0.5 * ssum * sy - 0.5 * dlt * dvy
-                    vz = 0.5 * ssum * sz - 0.5 * dlt * dvz
+                    # l_c e_b + l_b e_c = u x cr + (l_c - t_c) e_b + (l_b - t_b) e_c, with u
+                    # along the edge and cr = e_b x e_c = -Jv_a (see _solid_angle_terms)
+                    crx, cry, crz = -jv[la, 0], -jv[la, 1], -jv[la, 2]
+                    inv_dl = 1.0 / edge_len[q]
+                    ux_ = -D[t, la, 0] * inv_dl  # x_c - x_b = -d_a
+                    uy_ = -D[t, la, 1] * inv_dl
+                    uz_ = -D[t, la, 2] * inv_dl
+                    r2 = (crx * crx + cry * cry + crz * crz) * inv_dl * inv_dl
+                    tb = -(e[ib, 0] * ux_ + e[ib, 1] * uy_ + e[ib, 2] * uz_)
+                    tc = e[ic, 0] * ux_ + e[ic, 1] * uy_ + e[ic, 2] * uz_
+                    gb = r2 / (lb + tb) if tb > 0.0 else lb - tb
+                    gc = r2 / (lc + tc) if tc > 0.0 else lc - tc
+                    vx = (uy_ * crz - uz_ * cry) + gc * e[ib, 0] + gb * e[ic, 0]
+                    vy = (uz_ * crx - ux_ * crz) + gc * e[ib, 1] + gb * e[ic, 1]
+                    vz = (ux_ * cry - uy_ * crx) + gc * e[ib, 2] + gb * e[ic, 2]
                     den = le[ia] * t1 + (e[ia, 0] * vx + e[ia, 1] * vy + e[ia, 2] * vz)
                 hdist = e[i0, 0] * nx + e[i0, 1] * ny + e[i0, 2] * nz
                 if host[k] == t:
@@ -653,7 +762,7 @@ def evaluate_basis(
     backend : {"numba", "numpy"}
         The compiled kernels (default) or the plain numpy reference.
     chunk_size : int, optional
-        Points per chunk for the numpy reference (bounds its temporaries, which are
+        Points per chunk (in [1, 1e7]) for the numpy reference (bounds its temporaries, which are
         ``O(chunk_size * m)``). The numba kernels need no temporaries beyond the output
         (and ~0.3 MB of scratch per thread).
 
@@ -680,7 +789,7 @@ def evaluate_basis(
     if backend == "numba":
         values, gradients, hessians, degenerate = _evaluate_numba(p, cd, order, host)
     elif backend == "numpy":
-        chunk = int(chunk_size or _NUMPY_CHUNK)
+        chunk = _NUMPY_CHUNK if chunk_size is None else check_setting("chunk_size", chunk_size)
         parts = [
             _basis_numpy_chunk(
                 p[s : s + chunk], cd, order, None if host is None else host[s : s + chunk]
@@ -828,8 +937,16 @@ WINDING_TOLERANCE = 1e-8
 DEFAULT_MEMORY_BUDGET = 64 * 2**20
 
 
+#: Points this close to the cage surface (relative to the bounding-box diagonal) are on it,
+#: whichever side rounding put them (see :func:`on_surface_tolerance`).
+ON_SURFACE_RTOL = 1e-12
+
+
 def inside_cage(winding: np.ndarray) -> np.ndarray:
-    """The one inside test: ``winding >= 1/2 - WINDING_TOLERANCE``.
+    """The winding-number half of the inside test: ``winding >= 1/2 - WINDING_TOLERANCE``.
+
+    Points that the winding number puts outside may still lie on the cage surface (within
+    rounding); :func:`classify_inside` is the whole test.
 
     Parameters
     ----------
@@ -841,6 +958,241 @@ def inside_cage(winding: np.ndarray) -> np.ndarray:
     (N,) bool
     """
     return np.asarray(winding) >= 0.5 - WINDING_TOLERANCE
+
+
+def on_surface_tolerance(vertices) -> float:
+    """Distance within which a point counts as on the cage surface (length units).
+
+    ``ON_SURFACE_RTOL`` times the bounding-box diagonal, plus 16 units in the last place of
+    the largest coordinate: a point computed on a face (barycentric combination of its
+    corners) lies a few ulps off the face's plane, on either side, wherever the cage is.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+    return ON_SURFACE_RTOL * diag + 16.0 * float(np.spacing(np.abs(v).max()))
+
+
+def surface_hosts(points, vertices, faces, tolerance: float | None = None) -> np.ndarray:
+    """For each point, a face within ``tolerance`` of it (-1 for none).
+
+    Of several faces within reach (a point on an edge or at a vertex) the lowest-numbered
+    one is the host: ties are resolved the same way whatever the rounding of distances.
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+    vertices, faces : cage arrays
+    tolerance : float, optional
+        Default :func:`on_surface_tolerance`.
+
+    Returns
+    -------
+    (N,) int64
+    """
+    p = _as_points(points)
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.ascontiguousarray(faces, dtype=np.int64)
+    tol = on_surface_tolerance(v) if tolerance is None else float(tolerance)
+    host = np.full(len(p), -1, dtype=np.int64)
+    if not len(p) or not len(f):
+        return host
+    lo, hi = v.min(axis=0) - tol, v.max(axis=0) + tol
+    near = np.nonzero(((p >= lo) & (p <= hi)).all(axis=1))[0]  # others are far outside
+    if near.size:
+        # faces bucketed in a grid over the cage's box: each point tests a few faces only
+        cells = int(np.clip(round(2 * len(f) ** (1 / 3)), 1, 64))
+        size = np.maximum((hi - lo) / cells, 1e-300)
+        tri = v[f]
+        first = np.clip(((tri.min(axis=1) - tol - lo) / size).astype(np.int64), 0, cells - 1)
+        last = np.clip(((tri.max(axis=1) + tol - lo) / size).astype(np.int64), 0, cells - 1)
+        start, members = _face_grid(first, last, cells)
+        cell = np.clip(((p[near] - lo) / size).astype(np.int64), 0, cells - 1)
+        out = np.full(near.size, -1, dtype=np.int64)
+        _surface_host_kernel(p[near], v, f, cell, start, members, cells, tol, out)
+        host[near] = out
+    return host
+
+
+def _face_grid(first, last, cells):
+    """CSR lists of the faces whose (grown) boxes overlap each grid cell."""
+    pairs = []
+    for t in range(len(first)):
+        ix, iy, iz = (np.arange(first[t, a], last[t, a] + 1) for a in range(3))
+        ids = (ix[:, None, None] * cells + iy[None, :, None]) * cells + iz[None, None, :]
+        pairs.append(np.column_stack([ids.ravel(), np.full(ids.size, t)]))
+    pairs = np.concatenate(pairs)
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]  # by cell, then face index
+    start = np.searchsorted(pairs[:, 0], np.arange(cells**3 + 1))
+    return start.astype(np.int64), np.ascontiguousarray(pairs[:, 1])
+
+
+@numba.njit(cache=True, parallel=True)
+def _surface_host_kernel(points, V, F, cell, start, members, cells, tol, host):  # pragma: no cover
+    tol2 = tol * tol
+    for k in numba.prange(points.shape[0]):
+        c = (cell[k, 0] * cells + cell[k, 1]) * cells + cell[k, 2]
+        found = -1
+        for s in range(start[c], start[c + 1]):
+            t = members[s]  # ascending: the lowest-numbered face within reach is the host
+            d2 = _point_triangle_distance2(points[k], V[F[t, 0]], V[F[t, 1]], V[F[t, 2]])
+            if d2 <= tol2:
+                found = t
+                break
+        host[k] = found
+
+
+@numba.njit(cache=True, inline="always")
+def _sub3(u, v):  # pragma: no cover - compiled
+    return (u[0] - v[0], u[1] - v[1], u[2] - v[2])
+
+
+@numba.njit(cache=True, inline="always")
+def _dot3(u, v):  # pragma: no cover - compiled
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+@numba.njit(cache=True, inline="always")
+def _off3(w, s, u):  # pragma: no cover - compiled
+    """``|w - s u|^2``."""
+    x, y, z = w[0] - s * u[0], w[1] - s * u[1], w[2] - s * u[2]
+    return x * x + y * y + z * z
+
+
+@numba.njit(cache=True, inline="always")
+def _point_triangle_distance2(p, a, b, c):  # pragma: no cover - compiled
+    """Squared distance from ``p`` to triangle ``abc``.
+
+    Ericson, Real-Time Collision Detection, 5.1.5 (the Voronoi regions of the corners,
+    edges and face); computed from differences so that it is accurate next to the face.
+    """
+    ab, ac = _sub3(b, a), _sub3(c, a)
+    ap, bp, cp = _sub3(p, a), _sub3(p, b), _sub3(p, c)
+    d1, d2, d3 = _dot3(ab, ap), _dot3(ac, ap), _dot3(ab, bp)
+    d4, d5, d6 = _dot3(ac, bp), _dot3(ab, cp), _dot3(ac, cp)
+    # the regions are disjoint: corners, then edges, then the face
+    if d1 <= 0.0 and d2 <= 0.0:
+        return _dot3(ap, ap)
+    if d3 >= 0.0 and d4 <= d3:
+        return _dot3(bp, bp)
+    if d6 >= 0.0 and d5 <= d6:
+        return _dot3(cp, cp)
+    if d1 * d4 - d3 * d2 <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        return _off3(ap, d1 / (d1 - d3), ab)
+    if d5 * d2 - d1 * d6 <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        return _off3(ap, d2 / (d2 - d6), ac)
+    if d3 * d6 - d5 * d4 <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
+        return _off3(bp, (d4 - d3) / ((d4 - d3) + (d5 - d6)), _sub3(c, b))
+    nx = ab[1] * ac[2] - ab[2] * ac[1]
+    ny = ab[2] * ac[0] - ab[0] * ac[2]
+    nz = ab[0] * ac[1] - ab[1] * ac[0]
+    h = ap[0] * nx + ap[1] * ny + ap[2] * nz
+    return h * h / (nx * nx + ny * ny + nz * nz)
+
+
+#: Points on the surface that rounding put outside are evaluated this many
+#: :func:`on_surface_tolerance` inside (see :func:`surface_points_inside`).
+_PULL_IN = 8.0
+
+
+def surface_points_inside(points, hosts, vertices, faces) -> np.ndarray:
+    """Where to evaluate points on the cage surface that rounding put outside.
+
+    Such a point (``hosts >= 0``, :func:`classify_inside`) is moved ``8 x``
+    :func:`on_surface_tolerance` inside, against the summed normals of the faces within
+    reach (one face; two or more next to an edge or a vertex, where one face's normal
+    could lead out through the other). The map is continuous up to the cage from inside,
+    so its value there is the interior limit to ~1e-11 of the diagonal times the size of
+    the Jacobian -- also next to edges and vertices, where the host face's own limit alone
+    would mix interior and exterior parts.
+
+    Returns
+    -------
+    (N, 3) float64
+        ``points`` with the host rows moved (a copy).
+    """
+    p = _as_points(points).copy()
+    rows = np.nonzero(np.asarray(hosts) >= 0)[0]
+    if rows.size:
+        v = np.ascontiguousarray(vertices, dtype=np.float64)
+        f = np.ascontiguousarray(faces, dtype=np.int64)
+        tol = on_surface_tolerance(v)
+        normals, _ = face_normals_and_areas(v, f)
+        direction = np.zeros((rows.size, 3))
+        _reach_normals(p[rows], v, f, normals, 2.0 * tol, direction)
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        p[rows] -= _PULL_IN * tol * direction
+    return p
+
+
+@numba.njit(cache=True, parallel=True)
+def _reach_normals(points, V, F, normals, reach, out):  # pragma: no cover - compiled
+    """Sum of the normals of the faces within ``reach`` of each point (few points)."""
+    r2 = reach * reach
+    for k in numba.prange(points.shape[0]):
+        for t in range(F.shape[0]):
+            if _point_triangle_distance2(points[k], V[F[t, 0]], V[F[t, 1]], V[F[t, 2]]) <= r2:
+                out[k, 0] += normals[t, 0]
+                out[k, 1] += normals[t, 1]
+                out[k, 2] += normals[t, 2]
+
+
+def evaluate_inside(points, vertices, faces, *, order: int = 0):
+    """:func:`evaluate_basis` together with the one inside test.
+
+    Points on the cage surface that rounding put outside are evaluated just inside
+    (:func:`surface_points_inside`), so the surface belongs to the inside consistently.
+
+    Returns
+    -------
+    basis : BasisEvaluation
+        Rows of points outside the cage hold the (meaningless) exterior values.
+    inside : (N,) bool
+    """
+    b = evaluate_basis(points, vertices, faces, order=order)
+    n = len(vertices)
+    inside, hosts = classify_inside(points, vertices, faces, b.values[:, :n].sum(axis=1))
+    on = np.nonzero(hosts >= 0)[0]
+    if on.size:
+        p = surface_points_inside(points, hosts, vertices, faces)[on]
+        again = evaluate_basis(p, vertices, faces, order=order)
+        for whole, part in zip(b, again, strict=True):
+            if whole is not None:
+                whole[on] = part
+    return b, inside
+
+
+def classify_inside(points, vertices, faces, winding=None) -> tuple[np.ndarray, np.ndarray]:
+    """The one inside test: inside the cage, or on its surface.
+
+    A point is inside when its winding number is at least 1/2 (:func:`inside_cage`), or
+    when it lies within :func:`on_surface_tolerance` of a face: points computed on the
+    cage surface land a few ulps to either side of it, and those the winding number puts
+    outside get a host face; they are evaluated just inside
+    (:func:`surface_points_inside`).
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+    vertices, faces : cage arrays
+    winding : (N,) array_like, optional
+        Winding numbers already computed (the sum of the ``phi`` columns).
+
+    Returns
+    -------
+    inside : (N,) bool
+    hosts : (N,) int64
+        The host face of points on the surface that the winding number put outside; -1
+        for every other point.
+    """
+    p = _as_points(points)
+    w = winding_number(p, vertices, faces) if winding is None else np.asarray(winding)
+    inside = inside_cage(w)
+    hosts = np.full(len(p), -1, dtype=np.int64)
+    out = np.nonzero(~inside)[0]
+    if out.size:
+        hosts[out] = surface_hosts(p[out], vertices, faces)
+        inside[out] = hosts[out] >= 0
+    return inside, hosts
 
 
 def chunk_rows(n_columns: int, order: int = 0, memory_budget: int | None = None) -> int:
@@ -855,16 +1207,16 @@ def chunk_rows(n_columns: int, order: int = 0, memory_budget: int | None = None)
         Basis functions (cage vertices plus faces).
     order : {0, 1, 2}
     memory_budget : int, optional
-        Bytes; default :data:`DEFAULT_MEMORY_BUDGET`.
+        Bytes, in [1, 2**40]; default :data:`DEFAULT_MEMORY_BUDGET`.
 
     Returns
     -------
     int
         At least 16 (one SIMD group of the kernel).
     """
-    budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else int(memory_budget)
-    if budget <= 0:
-        raise ValueError(f"memory_budget must be a positive number of bytes; got {budget}")
+    budget = DEFAULT_MEMORY_BUDGET
+    if memory_budget is not None:
+        budget = check_setting("memory_budget", memory_budget)
     per_point = (1 + 3 * (order >= 1) + 5 * (order >= 2)) * max(int(n_columns), 1) * 8 * 2
     return max(16, budget // per_point)
 

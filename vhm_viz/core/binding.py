@@ -2,7 +2,7 @@
 
 The one place where many points meet the cage basis. Every front end -- the VTK filters,
 the command line, the explorer, ParaView -- binds through here, so they share one outside
-policy, one inside test (:func:`~vhm_viz.core.basis.inside_cage`), one memory bound and
+policy, one inside test (:func:`~vhm_viz.core.basis.classify_inside`), one memory bound and
 one way to report progress and to stop.
 
 * :class:`Binding` (made by :meth:`Deformer.bind <vhm_viz.core.deformer.Deformer.bind>`)
@@ -31,8 +31,14 @@ from collections.abc import Callable
 import numba
 import numpy as np
 
-from vhm_viz.core.basis import chunk_rows, evaluate_basis, inside_cage, winding_number
+from vhm_viz.core.basis import (
+    chunk_rows,
+    classify_inside,
+    evaluate_basis,
+    surface_points_inside,
+)
 from vhm_viz.core.errors import AbortedError, OutsideCageError, describe_indices
+from vhm_viz.core.limits import check_setting
 
 __all__ = [
     "OUTSIDE_POLICIES",
@@ -94,18 +100,25 @@ def outside_mask(points, vertices, faces, policy: str = "error") -> np.ndarray:
     Returns
     -------
     (P,) bool
-        True where the point is outside (:func:`~vhm_viz.core.basis.inside_cage` false).
+        True where the point is outside (:func:`~vhm_viz.core.basis.classify_inside`:
+        points on the cage surface, on either side within rounding, are inside).
 
     Raises
     ------
     OutsideCageError
         With policy ``"error"`` when any point is outside (their indices listed).
     """
+    return _classify(points, vertices, faces, policy)[0]
+
+
+def _classify(points, vertices, faces, policy: str) -> tuple[np.ndarray, np.ndarray]:
+    """``outside`` mask and host faces (:func:`~vhm_viz.core.basis.classify_inside`)."""
     check_outside_policy(policy)
     p = _as_points(points)
     if len(p) == 0:
-        return np.zeros(0, bool)
-    out = ~inside_cage(winding_number(p, vertices, faces))
+        return np.zeros(0, bool), np.zeros(0, np.int64)
+    inside, hosts = classify_inside(p, vertices, faces)
+    out = ~inside
     if out.any() and policy == "error":
         bad = np.nonzero(out)[0]
         raise OutsideCageError(
@@ -114,7 +127,7 @@ def outside_mask(points, vertices, faces, policy: str = "error") -> np.ndarray:
             "unchanged",
             bad,
         )
-    return out
+    return out, hosts
 
 
 def cofactor_normals(jacobians: np.ndarray, normals, *, normalize: bool = True) -> np.ndarray:
@@ -176,13 +189,15 @@ class _BoundPoints:
         self.outside_policy = check_outside_policy(outside)
         self.points = _as_points(points).copy()
         self.points.flags.writeable = False
-        if memory_budget is not None and not memory_budget > 0:
-            raise ValueError(f"memory_budget must be a positive byte count; got {memory_budget}")
+        if memory_budget is not None:
+            memory_budget = check_setting("memory_budget", memory_budget)
         self.memory_budget = memory_budget
         #: (P,) bool: points outside the cage.
-        self.outside = outside_mask(self.points, vertices, faces, self.outside_policy)
+        self.outside, hosts = _classify(self.points, vertices, faces, self.outside_policy)
         self.outside.flags.writeable = False
         self._idx = np.nonzero(~self.outside)[0]
+        # points on the cage surface that rounding put outside are evaluated just inside
+        self._eval = surface_points_inside(self.points, hosts, vertices, faces)[self._idx]
 
     @property
     def n_outside(self) -> int:
@@ -251,7 +266,8 @@ class Binding(_BoundPoints):
         the rounding error stays far below 1e-6 of the bounding-box diagonal because ``F``
         acts on the change from the rest pose -- ``benchmarks/bench_solver.py`` measures it).
     memory_budget : int, optional
-        Bytes of basis arrays per chunk (:func:`~vhm_viz.core.basis.chunk_rows`).
+        Bytes of basis arrays per chunk (:func:`~vhm_viz.core.basis.chunk_rows`), in
+        [1, 2**40].
     progress : callable(fraction, message), optional
         Called after each chunk of the precomputation.
     abort : callable() -> bool, optional
@@ -298,7 +314,7 @@ class Binding(_BoundPoints):
         """``D B`` (order 0, (P, K)) or ``G B`` (order 1, (P, 3, K)) at the inside points."""
         dfm = self.deformer
         B = dfm._B
-        pts = self.points[self._idx]
+        pts = self._eval
         shape = (len(pts), B.shape[1]) if order == 0 else (len(pts), 3, B.shape[1])
         out = np.empty(shape, dtype=self.dtype)
         for s, e in self._chunks(order, B.shape[0]):
@@ -402,11 +418,11 @@ class MapBinding(_BoundPoints):
         self.map = harmonic_map
 
     def _run(self, order: int, progress, abort) -> np.ndarray:
-        cage, z = self.map.cage, self.map.coefficients
+        cage, z = self.map.cage, self.map._z_local  # origin-free (see HarmonicMap)
         n_cols = len(cage.vertices) + len(cage.faces)
         shape = (len(self.points), 3, 3) if order else (len(self.points), 3)
         out = np.empty(shape)
-        pts = self.points[self._idx]
+        pts = self._eval
         total = max(pts.shape[0], 1)
         for s, e in self._chunks(order, n_cols):
             _check_abort(abort)
@@ -415,7 +431,7 @@ class MapBinding(_BoundPoints):
             if order:
                 out[rows] = np.swapaxes(b.gradients @ z, 1, 2)
             else:
-                out[rows] = b.values @ z
+                out[rows] = self.map._offset + b.values @ z
             if progress is not None:
                 progress(e / total, "jacobians" if order else "mapping")
         self._fill_outside(out)

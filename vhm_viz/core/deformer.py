@@ -22,8 +22,10 @@ Design (all documented choices in one place):
   interior limit of the basis is used.
 * **lambda** follows the paper: ``lambda = alpha * d * ||J_anchors||_inf / ||H_samples||_inf``
   (infinity norms = largest absolute row sum of the stacked basis rows), ``alpha = 0.01``
-  by default. It depends on the sample layout (centroid samples roughly halve
-  ``||H||_inf``) and grows with ``d``; quality is flat for alpha in [0.001, 0.01].
+  by default, with the norms taken in units of the cage's bounding-box diagonal so that
+  lambda does not depend on the length unit (:func:`_smoothness_weight`). It depends on the
+  sample layout (centroid samples roughly halve ``||H||_inf``) and grows with ``d``;
+  quality is flat for alpha in [0.001, 0.01].
 * **Hard constraints by elimination.** With ``K = [D_q; G_t]`` (``c = r + 3 s`` rows,
   rows normalised) and a pivoted QR ``K^T P = Q R``, every solution is
   ``z = P_h h + Q_2 y``; the rank of ``R`` detects dependent constraints and names them.
@@ -57,10 +59,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
-from vhm_viz.core.basis import evaluate_basis, inside_cage
+from vhm_viz.core.basis import evaluate_basis, evaluate_inside, inside_cage
 from vhm_viz.core.binding import Binding
 from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indices
 from vhm_viz.core.geometry import face_normals_and_areas
+from vhm_viz.core.limits import check_setting
 from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW, project_blocks, run_local_global
 
 __all__ = ["Deformer", "SolveReport", "default_smoothness_samples"]
@@ -139,6 +142,41 @@ def default_smoothness_samples(vertices, faces, inset: float = _SAMPLE_INSET) ->
     return pts.reshape(-1, 3)
 
 
+def _smoothness_weight(alpha, d, Jhat, Hhat, n, vertices) -> float:
+    """``lambda = alpha d ||J||_inf / ||H||_inf`` (paper Section 3), free of the length unit.
+
+    The paper's norms mix units: the rows of ``J`` hold ``grad phi`` (1/length) next to
+    ``grad psi`` (dimensionless), those of ``H`` ``1/length^2`` next to ``1/length``, so the
+    same shape in millimetres got another lambda than in metres (a 1.3e-3-diagonal change
+    of the result). They are taken here with lengths in units of the cage's bounding-box
+    diagonal ``L`` -- the paper's formula for the cage scaled to a unit diagonal -- and
+    lambda is scaled back by ``L``, so lambda scales with the cage and the minimiser is
+    equivariant under scaling and translation.
+
+    Parameters
+    ----------
+    alpha : float
+    d : int
+        Number of anchors.
+    Jhat : (3 d, n + m) float64
+        Basis gradient rows at the anchors.
+    Hhat : (5 k, n + m) float64
+        Basis Hessian rows at the smoothness samples.
+    n : int
+        Number of cage vertices (the ``phi`` columns come first).
+    vertices : (n, 3) float64
+
+    Returns
+    -------
+    float
+        lambda, in units of length (``lambda * H z`` is dimensionless like ``J z``).
+    """
+    L = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    jn = (np.abs(Jhat[:, :n]).sum(axis=1) * L + np.abs(Jhat[:, n:]).sum(axis=1)).max()
+    hn = (np.abs(Hhat[:, :n]).sum(axis=1) * L**2 + np.abs(Hhat[:, n:]).sum(axis=1) * L).max()
+    return float(L * alpha * d * jn / hn)
+
+
 @dataclass
 class SolveReport:
     """Outcome of :meth:`Deformer.solve`.
@@ -212,22 +250,26 @@ class Deformer:
         (rotations times a scalar: singular values replaced by their mean, paper Figure 12).
         Can be changed later through :attr:`mode` without refactorising.
     alpha : float
-        Stiffness; ``lambda = alpha * d * ||J_anchors||_inf / ||H_samples||_inf``.
+        Stiffness in [1e-4, 100] (:mod:`vhm_viz.core.limits`); ``lambda = alpha * d *
+        ||J_anchors||_inf / ||H_samples||_inf``, with the norms taken in units of the cage's
+        bounding-box diagonal (see the module documentation).
     smoothness_samples : (k, 3) array_like, optional
         Points where the Hessian is penalised. Default: :func:`default_smoothness_samples`.
     smoothness_host_faces : (k,) array_like of int, optional
         For samples exactly on cage faces, the face index (-1 for others): the basis then
         uses the interior limit there.
     anderson_window : int
-        Anderson acceleration window (0 for the plain local/global iteration of the paper);
-        default :data:`~vhm_viz.core.solver.DEFAULT_ANDERSON_WINDOW` (10).
+        Anderson acceleration window in [0, 100] (0 for the plain local/global iteration of
+        the paper); default :data:`~vhm_viz.core.solver.DEFAULT_ANDERSON_WINDOW` (10).
 
     Raises
     ------
     OutsideCageError
         Anchors (or smoothness samples) outside the cage, listed by index.
+    SettingError
+        ``alpha`` or ``anderson_window`` of the wrong type or out of range.
     ValueError
-        Bad shapes, non-finite values, unknown mode, non-positive alpha.
+        Bad shapes, non-finite values, unknown mode.
     """
 
     def __init__(
@@ -251,21 +293,15 @@ class Deformer:
             normals, _ = face_normals_and_areas(self._V, self._Fc)
         self._normals = np.asarray(normals, dtype=np.float64)
         self.mode = mode
-        alpha = float(alpha)
-        if not (np.isfinite(alpha) and alpha > 0):
-            raise ValueError(f"alpha must be a positive number; got {alpha!r}")
-        self.alpha = alpha
-        self.anderson_window = int(anderson_window)
-        if self.anderson_window < 0:
-            raise ValueError("anderson_window must be >= 0")
+        self.alpha = check_setting("alpha", alpha)
+        self.anderson_window = check_setting("anderson_window", anderson_window)
         self.n_factorizations = 0
         self._layout_version = 0
 
         a = _as_point_array(anchors, "anchors")
         self._anchors = a
         d = len(a)
-        ev = evaluate_basis(a, self._V, self._Fc, order=1)
-        self._check_inside(ev.values, "anchors")
+        ev = self._evaluate_inside(a, 1, "anchors")
         if not np.isfinite(ev.gradients).all():
             bad = np.nonzero(~np.isfinite(ev.gradients).all(axis=(1, 2)))[0]
             raise ValueError(f"anchors {describe_indices(bad)} lie on a cage edge or vertex")
@@ -301,9 +337,7 @@ class Deformer:
             )
         self._Hhat = np.ascontiguousarray(evs.hessians.reshape(5 * len(w), self._N))
 
-        jn = np.abs(self._Jhat).sum(axis=1).max()
-        hn = np.abs(self._Hhat).sum(axis=1).max()
-        self.lambda_ = float(alpha * d * jn / hn)
+        self.lambda_ = _smoothness_weight(self.alpha, d, self._Jhat, self._Hhat, self._n, self._V)
 
         # QR of A = [J; lambda H], once per anchor layout
         A = np.vstack([self._Jhat, self.lambda_ * self._Hhat])
@@ -312,6 +346,8 @@ class Deformer:
         self._RA = r  # (N, N)
         self._W = np.ascontiguousarray(q[: 3 * d].T)  # (N, 3d) = Q_A^T [I; 0]
         self._z_identity = np.vstack([self._V, self._normals])
+        #: Reference point of the solver's arithmetic (see :meth:`_local_h`).
+        self._centre = 0.5 * (self._V.min(axis=0) + self._V.max(axis=0))
 
         self._u = _stack_T(np.broadcast_to(np.eye(3), (d, 3, 3)).copy())
         self._G = None
@@ -368,7 +404,9 @@ class Deformer:
         """Current ``z`` (n+m, 3) for the current targets and local matrices."""
         self._require_constraints()
         if self._z is None:
-            self._z = self._B @ self.stacked_variables
+            z = self._B @ np.vstack([self._local_h(self._h), self._u])
+            z[: self._n] += self._centre  # back from the cage's centre (see _local_h)
+            self._z = z
         return self._z
 
     @property
@@ -402,14 +440,15 @@ class Deformer:
         return self._last_report
 
     # ------------------------------------------------------------------ helpers
-    def _check_inside(self, values: np.ndarray, what: str) -> None:
-        wn = values[:, : self._n].sum(axis=1)
-        out = ~inside_cage(wn)
-        if out.any():
-            idx = np.nonzero(out)[0]
+    def _evaluate_inside(self, points: np.ndarray, order: int, what: str):
+        """The basis at points that must lie inside the cage (or on it: interior limit)."""
+        ev, inside = evaluate_inside(points, self._V, self._Fc, order=order)
+        if not inside.all():
+            idx = np.nonzero(~inside)[0]
             raise OutsideCageError(
                 f"{idx.size} {what} outside the cage (indices {describe_indices(idx)})", idx
             )
+        return ev
 
     def _require_constraints(self) -> None:
         if not self._has_constraints:
@@ -419,7 +458,10 @@ class Deformer:
             )
 
     @staticmethod
-    def _check_duplicates(points: np.ndarray, targets: np.ndarray, what: str, tol: float) -> None:
+    def _check_duplicates(
+        points: np.ndarray, targets: np.ndarray, what: str, tol: float, target_tol: float
+    ) -> None:
+        """Constraint points closer than ``tol`` (lengths scale with the cage)."""
         if len(points) < 2:
             return
         from scipy.spatial import cKDTree
@@ -427,7 +469,7 @@ class Deformer:
         pairs = cKDTree(points).query_pairs(tol, output_type="ndarray")
         if len(pairs):
             i, j = (int(v) for v in pairs[0])
-            differ = not np.allclose(targets[i], targets[j], rtol=0, atol=1e-12)
+            differ = not np.allclose(targets[i], targets[j], rtol=0, atol=target_tol)
             raise ConstraintError(
                 f"{what} {i} and {j} are at the same point "
                 + (
@@ -499,15 +541,13 @@ class Deformer:
                 f"rows = {c} >= n + m = {self._N} coefficients per component"
             )
         diag = float(np.linalg.norm(self._V.max(0) - self._V.min(0)))
-        self._check_duplicates(q, f, "position constraints", 1e-12 * diag)
-        self._check_duplicates(t, g.reshape(-1, 9), "Jacobian constraints", 1e-12 * diag)
+        self._check_duplicates(q, f, "position constraints", 1e-12 * diag, 1e-12 * diag)
+        self._check_duplicates(t, g.reshape(-1, 9), "Jacobian constraints", 1e-12 * diag, 1e-12)
 
-        evq = evaluate_basis(q, self._V, self._Fc, order=0)
-        self._check_inside(evq.values, "position constraints")
+        evq = self._evaluate_inside(q, 0, "position constraints")
         rows = [evq.values]
         if s:
-            evt = evaluate_basis(t, self._V, self._Fc, order=1)
-            self._check_inside(evt.values, "Jacobian constraint points")
+            evt = self._evaluate_inside(t, 1, "Jacobian constraint points")
             if not np.isfinite(evt.gradients).all():
                 bad = np.nonzero(~np.isfinite(evt.gradients).all(axis=(1, 2)))[0]
                 raise ValueError(
@@ -583,14 +623,28 @@ class Deformer:
         self._KH = (self.lambda_**2) * (HB.T @ HP)  # (c + 3d, c)
         self._z = None
 
+    def _local_h(self, h: np.ndarray) -> np.ndarray:
+        """Targets relative to the cage's centre (position rows; Jacobian rows unchanged).
+
+        The solver's energy is a quadratic form in the targets whose terms cancel to the
+        energy: with targets 1e7 from the origin those terms were ~1e14 times larger than
+        the energy and the rounding defeated the solver. The problem moved to the cage's
+        centre is the same problem (basis rows only see differences), so everything the
+        solver needs is computed from these.
+        """
+        local = np.array(h, dtype=np.float64)
+        local[: self._r] -= self._centre
+        return local
+
     def _set_h(self, h: np.ndarray) -> None:
         c = self._c
         self._h = np.ascontiguousarray(h, dtype=np.float64)
-        self._g = np.ascontiguousarray(self._C_h @ self._h)
-        self._jzp = np.ascontiguousarray(self._JP @ self._h)
-        L = self._KH @ self._h
+        local = self._local_h(self._h)
+        self._g = np.ascontiguousarray(self._C_h @ local)
+        self._jzp = np.ascontiguousarray(self._JP @ local)
+        L = self._KH @ local
         self._l_r = np.ascontiguousarray(L[c:])
-        self._const_h = float(np.sum(L[:c] * self._h))
+        self._const_h = float(np.sum(L[:c] * local))
         self._z = None
 
     def update_targets(self, targets=None, jacobians=None):
@@ -645,11 +699,13 @@ class Deformer:
         Parameters
         ----------
         max_iterations : int
-            Iteration cap.
+            Iteration cap, in [1, 1e6]: :attr:`SolveReport.iterations` never exceeds it
+            (the final plain step that makes the local matrices exact projections counts).
         tolerance : float
-            Estimated distance of the anchors' local matrices to the fixed point (RMS per
-            anchor, Frobenius norm; Jacobians are dimensionless, so this is a relative
-            measure): ``|T(u) - u| / (1 - rho)``, with ``rho`` the observed contraction rate.
+            In (0, 0.1]: the estimated distance of the anchors' local matrices to the fixed
+            point (RMS per anchor, Frobenius norm; Jacobians are dimensionless, so this is a
+            relative measure): ``|T(u) - u| / (1 - rho)``, with ``rho`` the observed
+            contraction rate.
         init : {"previous", "identity", "random"} or (d, 3, 3) array_like
             Starting local matrices: the last solution (identity before the first solve),
             identities, random 3x3 matrices (paper Figure 7; entries uniform in [0, 1),
@@ -660,16 +716,21 @@ class Deformer:
         seed : int or numpy Generator, optional
             For ``init="random"``.
         anderson_window : int, optional
-            Overrides the deformer's window for this call (0: plain iteration).
+            Overrides the deformer's window for this call (0: plain iteration), in [0, 100].
         contraction : float, optional
             With a given ``init`` that is a stored solution: the contraction rate measured
             when it was computed (:attr:`SolveReport.contraction`). The stopping rule is
             then checked on the first residual, and a solution that meets it is returned
-            unchanged (0 iterations).
+            unchanged (0 iterations). In [0, 1).
 
         Returns
         -------
         SolveReport
+
+        Raises
+        ------
+        SettingError
+            A setting of the wrong type or outside its range (:mod:`vhm_viz.core.limits`).
         """
         self._require_constraints()
         d = self.n_anchors
@@ -689,18 +750,14 @@ class Deformer:
             if u0.shape != (3 * d, 3):
                 raise ValueError(f"init must have shape ({d}, 3, 3)")
             init_name = "given"
-        max_iterations = int(max_iterations)
-        if max_iterations < 0:
-            raise ValueError("max_iterations must be >= 0")
-        tolerance = float(tolerance)
-        if not tolerance > 0:
-            raise ValueError("tolerance must be positive")
-        window = self.anderson_window if anderson_window is None else int(anderson_window)
+        max_iterations = check_setting("max_iterations", max_iterations)
+        tolerance = check_setting("tolerance", tolerance)
+        window = self.anderson_window
+        if anderson_window is not None:
+            window = check_setting("anderson_window", anderson_window)
+        rho0 = -1.0 if contraction is None else check_setting("contraction", contraction)
         hist = np.zeros((max_iterations + 2, 4))
         t0 = time.perf_counter()
-        rho0 = -1.0 if contraction is None else float(contraction)
-        if not (rho0 < 0 or 0 <= rho0 < 1):
-            raise ValueError(f"contraction must be in [0, 1); got {contraction}")
         u, G, iters, converged, nrec, rejected, rho = run_local_global(
             self._C_R,
             self._g,
@@ -749,6 +806,8 @@ class Deformer:
         (total, rigidity, smoothness)
         """
         z = self.coefficients if z is None else np.asarray(z, dtype=np.float64)
+        z = z.copy()
+        z[: self._n] -= self._centre  # the rows sum to 0 on a translation: cancel it first
         G = self._Jhat @ z
         T = project_blocks(G, similar=self._mode == "similar")
         rig = float(np.sum((G - T) ** 2))

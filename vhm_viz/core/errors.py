@@ -65,3 +65,21 @@ def describe_indices(indices, limit: int = 10) -> str:
 
 class AbortedError(RuntimeError):
     """Long work stopped because its abort callback said so (e.g. VTK's AbortExecute)."""
+
+
+class SettingError(ValueError):
+    """A setting of the wrong type or outside its documented range (``vhm_viz.core.limits``).
+
+    Parameters
+    ----------
+    field : str
+        The setting's name (``solver.max_iterations``).
+    detail : str
+        What is wrong, with the range (``must be an integer in [1, 1000000]; got 1e+12``);
+        the message is ``f"{field} {detail}"``.
+    """
+
+    def __init__(self, field: str, detail: str):
+        super().__init__(f"{field} {detail}")
+        self.field = field
+        self.detail = detail

@@ -46,9 +46,17 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     -------
     float
         Volume in length units cubed, by the divergence theorem.
+
+    Notes
+    -----
+    The cones are taken from the vertices' centroid, not from the origin: for a mesh far
+    from the origin the per-face terms would otherwise be huge and cancel (a cage moved by
+    1e6 came out with volume 148139 instead of 0.124, the wrong sign included).
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
+    if len(v):
+        v = v - v.mean(axis=0)
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 

@@ -445,6 +445,7 @@ def run_local_global(
         Initial local matrices.
     similar : bool
     max_iterations : int
+        At least 1; the returned count (final plain step included) never exceeds it.
     tolerance : float
         Stop when the estimated distance to the fixed point (RMS per anchor, Frobenius),
         ``|T(u) - u| / (1 - rho)`` with ``rho`` the observed contraction rate, is below it.
@@ -530,7 +531,9 @@ def run_local_global(
                 converged = True
         elif res <= 1e-3 * tolerance:
             converged = True
-        if converged or it >= max_iterations:
+        # the final plain step below is an iteration too: stop one early so that the
+        # count never exceeds the cap
+        if converged or it + 1 >= max_iterations:
             break
         # --- Anderson history update (ring buffer of differences, Gram matrix kept current)
         if window > 0:

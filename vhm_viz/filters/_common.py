@@ -18,6 +18,8 @@ its source), so the filters stream and run piece-wise.
 
 from __future__ import annotations
 
+import signal
+
 import numpy as np
 from vtkmodules.util import numpy_support as ns
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
@@ -25,8 +27,10 @@ from vtkmodules.vtkCommonCore import vtkObject
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
+from vhm_viz import interrupts
 from vhm_viz.core.binding import bind_map, check_outside_policy
 from vhm_viz.core.errors import AbortedError
+from vhm_viz.core.limits import check_setting
 from vhm_viz.filters import _parallel
 
 __all__ = ["DeformationSource", "update", "numpy_points", "geometry_key"]
@@ -91,14 +95,25 @@ def update(algorithm, piece: int | None = None, n_pieces: int = 1):
     """
     previous = vtkObject.GetGlobalWarningDisplay()
     vtkObject.GlobalWarningDisplayOff()
-    try:
-        algorithm.last_error = None
-        if piece is None:
-            algorithm.Update()
-        else:
-            algorithm.UpdatePiece(int(piece), int(n_pieces), 0)
-    finally:
-        vtkObject.SetGlobalWarningDisplay(previous)
+    # Ctrl-C inside VTK's pipeline: the filters stop between chunks and the interrupt is
+    # raised here, even when VTK's wrapper swallowed it inside a callback
+    with interrupts.handled(signals=(signal.SIGINT,)):
+        try:
+            algorithm.last_error = None
+            if piece is None:
+                algorithm.Update()
+            else:
+                algorithm.UpdatePiece(int(piece), int(n_pieces), 0)
+        finally:
+            vtkObject.SetGlobalWarningDisplay(previous)
+            if algorithm.last_error is not None or interrupts.pending() is not None:
+                algorithm.Modified()  # what it produced is no result: execute next time
+        try:
+            interrupts.check()
+        except interrupts.Interrupted as exc:
+            if exc.signum == signal.SIGINT:  # Ctrl-C: what Python callers expect
+                raise KeyboardInterrupt(str(exc)) from None
+            raise
     if algorithm.last_error is not None:
         raise algorithm.last_error
     return algorithm.GetOutputDataObject(0)
@@ -373,14 +388,13 @@ class DeformationSource(VTKPythonAlgorithmBase):
         return self._outside
 
     def SetMemoryBudget(self, nbytes: int | None) -> None:
-        """Bytes of basis arrays per chunk while binding (None: the core's default).
+        """Bytes of basis arrays per chunk while binding, in [1, 2**40] (None: the default).
 
         Smaller budgets mean more, smaller chunks (finer progress and abort), never a
         different result.
         """
-        if nbytes is not None and not int(nbytes) > 0:
-            raise ValueError(f"memory budget must be a positive number of bytes; got {nbytes}")
-        nbytes = None if nbytes is None else int(nbytes)
+        if nbytes is not None:
+            nbytes = check_setting("memory_budget", nbytes)
         if nbytes != self._memory_budget:
             self._memory_budget = nbytes
             self.Modified()
@@ -531,19 +545,24 @@ class DeformationSource(VTKPythonAlgorithmBase):
         return cb
 
     def _aborted(self) -> bool:
+        """VTK's abort contract (``AbortExecute``), or a pending SIGINT/SIGTERM."""
+        if interrupts.pending() is not None:
+            return True
         check = getattr(self, "CheckAbort", None)
         if check is not None:
             return bool(check())
         return bool(self.GetAbortExecute())
 
     def _guard(self, fn, *args) -> int:
-        """Run ``fn``; store an exception in :attr:`last_error` and report failure."""
+        """Run ``fn``; store an exception in :attr:`last_error` and report failure.
+
+        ``BaseException`` is caught too: VTK's Python wrapper would swallow a
+        ``KeyboardInterrupt`` raised in here and hand back the untouched output, which a
+        caller would then take for the result. :func:`update` re-raises it.
+        """
         self.last_error = None
         try:
             return int(fn(*args) or 1)
-        except AbortedError as exc:
+        except BaseException as exc:  # noqa: BLE001 -- handed back by update()
             self.last_error = exc
-            return 1
-        except Exception as exc:  # noqa: BLE001 -- handed back by update()
-            self.last_error = exc
-            return 0
+            return 1 if isinstance(exc, AbortedError) else 0

@@ -1,0 +1,378 @@
+"""Inputs are never written, malformed files never crash, every volume format is read.
+
+Issue 12, defects 2 (outputs onto inputs), 3 (malformed files) and 9 (volume formats).
+The crash cases run real processes: the command line, or the forked reader.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pv = pytest.importorskip("pyvista")
+
+from conftest import box_cage, data_path, subprocess_env  # noqa: E402
+
+from vhm_viz import examples  # noqa: E402
+from vhm_viz.cli import main  # noqa: E402
+from vhm_viz.io import ReadError, read_dataset, write_cage  # noqa: E402
+
+
+def run_cli(*args) -> subprocess.CompletedProcess:
+    """``python -m vhm_viz.cli ARGS`` in a real process (a crash shows as its status)."""
+    env = subprocess_env()
+    return subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
+
+
+def box_scene(folder: Path, lo, hi, name="scene.json", **extra) -> Path:
+    """A scene with a box cage around [lo, hi] (12 % margin) and the identity as target."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    pad = 0.12 * (hi - lo)
+    v, f = box_cage(lo - pad, hi + pad, divisions=2)
+    centre = 0.5 * (lo + hi)
+    anchors = centre + 0.2 * (hi - lo) * np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    scene = {
+        "format": "vhm_viz.scene",
+        "version": 1,
+        "cage": {"vertices": v.tolist(), "faces": f.tolist()},
+        "anchors": anchors.tolist(),
+        "constraints": {"positions": [centre.tolist()], "targets": [(centre + 0.01).tolist()]},
+        **extra,
+    }
+    path = folder / name
+    path.write_text(json.dumps(scene))
+    return path
+
+
+@pytest.fixture(scope="module")
+def bar_case(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("guard")
+    sc = examples.bar("bend-u", resolution=8)
+    sc.surface.save(folder / "bar.vtp")
+    write_cage(folder / "cage.obj", sc.cage)
+    (folder / "anchors.json").write_text(json.dumps({"anchors": sc.anchors.tolist()}))
+    d = sc.scene.to_dict()
+    d["cage"] = "cage.obj"
+    d["anchors"] = "anchors.json"
+    (folder / "scene.json").write_text(json.dumps(d))
+    return folder
+
+
+def _bytes(folder: Path) -> dict:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+# ------------------------------------------------------------------ defect 2: the guard
+def test_outputs_naming_an_input_are_refused(bar_case, tmp_path, capsys):
+    f = bar_case
+    before = _bytes(f)
+    deform = ["deform", str(f / "bar.vtp"), "-s", str(f / "scene.json"), "-q", "-o"]
+    # the cage the scene references, through a plain path and through a symbolic link
+    os.symlink(f / "cage.obj", tmp_path / "link.obj")
+    # the data through a hard link
+    os.link(f / "bar.vtp", tmp_path / "hard.vtp")
+    for target in (f / "cage.obj", tmp_path / "link.obj", tmp_path / "hard.vtp", f / "bar.vtp"):
+        assert main([*deform, str(target)]) == 1
+        err = capsys.readouterr().err
+        assert "refusing to overwrite the input file" in err and err.count("\n") == 1
+    # the scene file itself, under a VTK suffix
+    (tmp_path / "scene.vtk").write_bytes((f / "scene.json").read_bytes())
+    kept = (tmp_path / "scene.vtk").read_bytes()
+    assert main(["deform", str(f / "bar.vtp"), "-s", str(tmp_path / "scene.vtk"), "-q",
+                 "-o", str(tmp_path / "scene.vtk")]) == 1  # fmt: skip
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert (tmp_path / "scene.vtk").read_bytes() == kept
+    assert _bytes(f) == before
+
+
+def test_polylines_file_of_the_scene_is_refused(bar_case, tmp_path, capsys):
+    sc = examples.bar("bend-u", resolution=8)
+    centre = np.column_stack([np.zeros(11), np.zeros(11), np.linspace(0.3, 4.7, 11)])
+    lines = "OFF\n11 0 10\n" + "".join(f"{x} {y} {z}\n" for x, y, z in centre)
+    lines += "".join(f"2 {i} {i + 1}\n" for i in range(10))
+    (tmp_path / "lines.vtk").write_text(lines)  # an OFF file named .vtk: read by suffix? no
+    (tmp_path / "lines.off").write_text(lines)
+    d = sc.scene.to_dict()
+    d["anchors"] = {"polylines": "lines.off", "count": 6}
+    (tmp_path / "scene.json").write_text(json.dumps(d))
+    assert main(["deform", str(bar_case / "bar.vtp"), "-s", str(tmp_path / "scene.json"), "-q",
+                 "-o", str(tmp_path / "lines.off")]) == 1  # fmt: skip
+    assert "refusing to overwrite the input file" in capsys.readouterr().err
+    assert (tmp_path / "lines.off").read_text() == lines
+
+
+def test_analyze_never_writes_a_report_file_over_an_input(bar_case, tmp_path, capsys):
+    """The scene's anchors file sits in the report folder under a report file's name."""
+    report = tmp_path / "report"
+    report.mkdir()
+    sc = examples.bar("bend-u", resolution=8)
+    anchors = report / "metrics.json"
+    anchors.write_text(json.dumps({"anchors": sc.anchors.tolist()}))
+    kept = anchors.read_bytes()
+    d = sc.scene.to_dict()
+    d["anchors"] = "report/metrics.json"
+    (tmp_path / "scene.json").write_text(json.dumps(d))
+    rc = main(["analyze", str(bar_case / "bar.vtp"), "-s", str(tmp_path / "scene.json"), "-q",
+               "-o", str(report)])  # fmt: skip
+    # before: exit 0, the anchors file replaced by the metrics
+    assert rc == 1
+    assert "refusing to overwrite the input file" in capsys.readouterr().err
+    assert anchors.read_bytes() == kept and sorted(os.listdir(report)) == ["metrics.json"]
+
+
+def test_explorer_export_never_overwrites_what_it_read(bar_case, tmp_path):
+    from vhm_viz.app.controller import ExplorerController
+    from vhm_viz.io import OverwriteError
+
+    data = tmp_path / "bar.vtp"
+    data.write_bytes((bar_case / "bar.vtp").read_bytes())
+    kept = data.read_bytes()
+    ctrl = ExplorerController()
+    ctrl.load_file(data)
+    ctrl.load_cage(bar_case / "cage.obj")
+    with pytest.raises(OverwriteError, match="refusing to overwrite"):
+        ctrl.export(data)
+    with pytest.raises(OverwriteError):
+        ctrl.export(bar_case / "cage.obj")
+    assert data.read_bytes() == kept
+
+
+# ------------------------------------------------------------------ defect 3: malformed
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    """The bar surface in PLY (binary, ASCII) and legacy VTK (binary, ASCII), and a scene."""
+    folder = tmp_path_factory.mktemp("malformed")
+    mesh = pv.read(data_path("bar", "bar_dense.obj"))
+    mesh.point_data["s"] = np.arange(mesh.n_points, dtype=float)
+    mesh.save(folder / "bin.ply", binary=True)
+    mesh.save(folder / "ascii.ply", binary=False)
+    mesh.save(folder / "bin.vtk", binary=True)
+    mesh.save(folder / "ascii.vtk", binary=False)
+    box_scene(folder, mesh.bounds[0::2], mesh.bounds[1::2])
+    return folder
+
+
+def _truncate(src: Path, dst: Path, fraction: float) -> Path:
+    blob = src.read_bytes()
+    dst.write_bytes(blob[: int(len(blob) * fraction)])
+    return dst
+
+
+def test_truncated_binary_ply_is_an_error_not_a_crash(models, tmp_path):
+    bad = _truncate(models / "bin.ply", tmp_path / "cut.ply", 0.5)
+    res = run_cli("deform", bad, "-s", models / "scene.json", "-o", tmp_path / "o.vtp", "-q")
+    # before: segmentation fault, exit status 139
+    assert res.returncode == 1, res.stderr
+    assert res.stderr.count("\n") == 1 and "truncated" in res.stderr
+    assert not (tmp_path / "o.vtp").exists()
+
+
+@pytest.mark.parametrize("name", ["bin.ply", "ascii.ply", "bin.vtk", "ascii.vtk"])
+@pytest.mark.parametrize("fraction", [0.01, 0.2, 0.5, 0.9, 0.999])
+def test_truncated_files_are_refused_never_read_as_point_clouds(models, tmp_path, name, fraction):
+    bad = _truncate(models / name, tmp_path / f"cut{Path(name).suffix}", fraction)
+    # before: the legacy VTK reader returned the points (garbage past the cut) and no or
+    # some of the cells, and deform wrote the result with exit 0
+    with pytest.raises(ReadError, match="truncated|corrupt|cannot read"):
+        read_dataset(bad)
+
+
+def test_truncated_legacy_vtk_exits_1_through_the_command_line(models, tmp_path):
+    bad = _truncate(models / "ascii.vtk", tmp_path / "cut.vtk", 0.5)
+    res = run_cli("deform", bad, "-s", models / "scene.json", "-o", tmp_path / "o.vtp", "-q")
+    assert res.returncode == 1 and "truncated" in res.stderr, res.stderr
+    assert not (tmp_path / "o.vtp").exists()
+
+
+def test_ply_with_a_corrupt_vertex_index_is_refused(models, tmp_path):
+    mesh = pv.read(models / "bin.ply")
+    blob = bytearray((models / "bin.ply").read_bytes())
+    # last face's last index (int32, little endian) set to a vertex that does not exist
+    struct.pack_into("<i", blob, len(blob) - 4, mesh.n_points + 1000)
+    (tmp_path / "bad.ply").write_bytes(bytes(blob))
+    with pytest.raises(ReadError, match="refers to vertex"):
+        read_dataset(tmp_path / "bad.ply")
+
+
+def test_empty_off_is_one_clear_line_and_nothing_else(models, tmp_path):
+    (tmp_path / "empty.off").write_text("")
+    res = run_cli("deform", tmp_path / "empty.off", "-s", models / "scene.json",
+                  "-o", tmp_path / "o.vtp", "-q")  # fmt: skip
+    # before: meshio printed "Expected the first line to be `OFF`." and called sys.exit
+    assert res.returncode == 1
+    assert res.stdout == ""
+    assert res.stderr.count("\n") == 1 and "not an OFF file" in res.stderr
+
+
+def test_meshio_sys_exit_and_prints_become_one_error(tmp_path, capsys):
+    (tmp_path / "bad.mesh").write_text("MeshVersionFormatted 1\nDimension 3\nVertices\n12\n1 2")
+    with pytest.raises(ReadError, match="bad.mesh"):
+        read_dataset(tmp_path / "bad.mesh")
+    out, err = capsys.readouterr()
+    assert out == "" and err == ""
+
+
+def test_a_reader_that_crashes_takes_only_its_child_process(models, monkeypatch):
+    """If VTK crashes on a file the checks could not vet, that is an error message."""
+    import ctypes
+
+    import vhm_viz.io as io
+
+    monkeypatch.setattr(io, "_read_vtk", lambda p, suffix: ctypes.string_at(0))  # SIGSEGV
+    with pytest.raises(ReadError, match="crashed on this file .signal SIGSEGV."):
+        io._read_vtk_isolated(models / "bin.ply", ".ply")
+
+
+def test_volume_with_missing_voxels_is_refused(tmp_path):
+    raw = data_path("volumes", "HeadMRVolume.raw")
+    (tmp_path / "head.mhd").write_text(data_path("volumes", "HeadMRVolume.mhd").read_text())
+    (tmp_path / "HeadMRVolume.raw").write_bytes(raw.read_bytes()[:-100])
+    with pytest.raises(ReadError, match="truncated"):
+        read_dataset(tmp_path / "head.mhd")
+    nii = data_path("volumes", "avg152T1_RL_nifti.nii.gz").read_bytes()
+    (tmp_path / "cut.nii.gz").write_bytes(nii[: len(nii) // 2])
+    with pytest.raises(ReadError, match="truncated"):
+        read_dataset(tmp_path / "cut.nii.gz")
+
+
+# ------------------------------------------------------------------ defect 9: volumes
+def _write_mha(path: Path, vol: np.ndarray, spacing) -> None:
+    header = (
+        f"ObjectType = Image\nNDims = 3\nDimSize = {vol.shape[2]} {vol.shape[1]} {vol.shape[0]}\n"
+        f"ElementSpacing = {spacing[0]} {spacing[1]} {spacing[2]}\nElementType = MET_UCHAR\n"
+        "ElementByteOrderMSB = False\nElementDataFile = LOCAL\n"
+    )
+    path.write_bytes(header.encode() + vol.astype(np.uint8).tobytes())
+
+
+def _write_mhd(path: Path, vol: np.ndarray, spacing) -> None:
+    _write_mha(path.with_suffix(".mha"), vol, spacing)
+    text = path.with_suffix(".mha").read_bytes().split(b"ElementDataFile")[0].decode()
+    path.write_text(text + f"ElementDataFile = {path.stem}.raw\n")
+    path.with_suffix(".raw").write_bytes(vol.astype(np.uint8).tobytes())
+    path.with_suffix(".mha").unlink()
+
+
+def _write_nrrd(path: Path, vol: np.ndarray, spacing) -> None:
+    header = (
+        "NRRD0004\ntype: uint8\ndimension: 3\nkinds: domain domain domain\n"
+        f"sizes: {vol.shape[2]} {vol.shape[1]} {vol.shape[0]}\n"
+        f"spacings: {spacing[0]} {spacing[1]} {spacing[2]}\nencoding: raw\n\n"
+    )
+    path.write_bytes(header.encode() + vol.astype(np.uint8).tobytes())
+
+
+def _write_slc(path: Path, vol: np.ndarray, spacing) -> None:
+    nz, ny, nx = vol.shape
+    header = f"11111\n{nx} {ny} {nz} 8\n{spacing[0]} {spacing[1]} {spacing[2]}\n0 0 0 0\n1 1 X"
+    path.write_bytes(header.encode() + b"\0\0\0" + vol.astype(np.uint8).tobytes())
+
+
+def _write_nifti(path: Path, vol: np.ndarray, spacing) -> None:
+    img = pv.ImageData(dimensions=vol.shape[::-1], spacing=spacing)
+    img.point_data["v"] = vol.astype(np.uint8).ravel()
+    img.save(path)
+
+
+def _write_dicom(folder: Path, vol: np.ndarray, spacing) -> None:
+    """A DICOM series, one file per slice (implicit VR little endian, 16-bit pixels)."""
+    folder.mkdir()
+
+    def element(group, elem, value: bytes) -> bytes:
+        value += b" " * (len(value) % 2)
+        return struct.pack("<HHI", group, elem, len(value)) + value
+
+    syntax = b"1.2.840.10008.1.2\0"
+    meta = struct.pack("<HH2sH", 2, 0x10, b"UI", len(syntax)) + syntax
+    meta = struct.pack("<HH2sHI", 2, 0, b"UL", 4, len(meta)) + meta
+    ny, nx = vol.shape[1:]
+    for z, plane in enumerate(vol):
+        us = lambda v: struct.pack("<H", v)  # noqa: E731
+        body = b"".join([
+            element(0x08, 0x18, f"1.2.3.{z + 1}".encode()),
+            element(0x18, 0x50, str(spacing[2]).encode()),
+            element(0x20, 0x0E, b"1.2.3"),
+            element(0x20, 0x13, str(z + 1).encode()),
+            element(0x20, 0x32, f"0\\0\\{z * spacing[2]}".encode()),
+            element(0x20, 0x37, b"1\\0\\0\\0\\1\\0"),
+            element(0x28, 0x02, us(1)),
+            element(0x28, 0x10, us(ny)),
+            element(0x28, 0x11, us(nx)),
+            element(0x28, 0x30, f"{spacing[1]}\\{spacing[0]}".encode()),
+            element(0x28, 0x100, us(16)),
+            element(0x28, 0x101, us(16)),
+            element(0x28, 0x102, us(15)),
+            element(0x28, 0x103, us(0)),
+            element(0x7FE0, 0x10, plane.astype("<u2").tobytes()),
+        ])  # fmt: skip
+        (folder / f"slice{z:03d}.dcm").write_bytes(b"\0" * 128 + b"DICM" + meta + body)
+
+
+WRITERS = {
+    ".vti": lambda p, v, s: _write_nifti(p, v, s),
+    ".vtk": lambda p, v, s: _write_nifti(p, v, s),
+    ".mhd": _write_mhd,
+    ".mha": _write_mha,
+    ".nii": _write_nifti,
+    ".nii.gz": _write_nifti,
+    ".nrrd": _write_nrrd,
+    ".slc": _write_slc,
+    "dicom": _write_dicom,
+}
+
+
+@pytest.fixture(scope="module")
+def volume():
+    z, y, x = np.mgrid[0:9, 0:8, 0:7]
+    return ((x + 2 * y + 3 * z) % 256).astype(np.uint8), (0.5, 0.5, 0.7)
+
+
+@pytest.mark.parametrize("kind", list(WRITERS))
+def test_every_volume_format_is_deformed_by_the_command_line(volume, kind, tmp_path, capsys):
+    vol, spacing = volume
+    path = tmp_path / ("series" if kind == "dicom" else f"vol{kind}")
+    WRITERS[kind](path, vol, spacing)
+    img = read_dataset(path)
+    assert isinstance(img, pv.ImageData) and img.n_points == vol.size
+    values = np.asarray(img.point_data[img.array_names[0]]).ravel()
+    if kind == "dicom":  # VTK's DICOM reader turns the rows and the slice order over
+        values = values.reshape(vol.shape)[::-1, ::-1].ravel()
+    np.testing.assert_array_equal(values, vol.ravel())  # every voxel in its place
+    scene = box_scene(tmp_path, img.bounds[0::2], img.bounds[1::2])
+    # before: deform refused .mhd, .nii.gz and .slc ("unsupported input type"), every
+    # command refused a DICOM folder ("input is not a file")
+    assert main(["deform", str(path), "-s", str(scene), "-o", str(tmp_path / "o.vts"), "-q"]) == 0
+    out = pv.read(tmp_path / "o.vts")
+    assert out.n_points == vol.size
+    assert "deformed" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("kind", [".slc", "dicom", ".nii.gz"])
+def test_cage_and_anchors_commands_read_volumes_too(volume, kind, tmp_path):
+    vol, spacing = volume
+    path = tmp_path / ("series" if kind == "dicom" else f"vol{kind}")
+    WRITERS[kind](path, vol, spacing)
+    assert main(["cage", str(path), "-o", str(tmp_path / "cage.obj"), "-q"]) == 0
+    assert main(["anchors", str(path), "--cage", str(tmp_path / "cage.obj"), "-n", "4",
+                 "-o", str(tmp_path / "a.json"), "-q"]) == 0  # fmt: skip
+
+
+@pytest.mark.data
+def test_bundled_volumes_are_read(tmp_path):
+    for name in ("HeadMRVolume.mhd", "avg152T1_RL_nifti.nii.gz", "embryo.slc",
+                 "headsq_64x64x93.vti"):  # fmt: skip
+        img = read_dataset(data_path("volumes", name))
+        assert isinstance(img, pv.ImageData) and img.n_points > 100_000

@@ -1,0 +1,139 @@
+"""SIGINT and SIGTERM turned into a clean, prompt stop.
+
+While :func:`handled` is active (the command line, the explorer, :func:`vhm_viz.filters.update`)
+a SIGINT or SIGTERM is recorded (:func:`pending`) and raised as :class:`Interrupted` at the
+next Python instruction. Long work stops promptly because it runs in chunks: the core's
+bindings call their ``abort()`` callback between chunks and the VTK filters check their
+``AbortExecute`` flag (:meth:`~vhm_viz.filters.DeformationSource._aborted`), both of which
+also look at :func:`pending`. That matters because VTK's Python wrapper swallows an
+exception raised inside a callback (a progress observer, ``RequestData``): the recorded
+signal survives it, and :func:`check` raises it again afterwards.
+
+Only the first signal raises; later ones (a user pressing Ctrl-C twice) are recorded and
+otherwise ignored, so clean-up code (removing temporary files) is never cut short. Inside
+:func:`deferred` a signal is only recorded, and raised when the block ends: the atomic
+writers (:mod:`vhm_viz.atomic`) create and rename their temporaries there, so an
+interrupt leaves either the previous output or the complete new one, never a temporary.
+
+The exit status of an interrupted command is ``128 + signal number``: 130 for SIGINT,
+143 for SIGTERM (:attr:`Interrupted.exit_status`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from collections.abc import Callable, Iterator
+
+__all__ = ["Interrupted", "check", "deferred", "handled", "pending"]
+
+_state = {"pending": None, "raised": False, "defer": 0, "depth": 0, "on_signal": None}
+
+
+class Interrupted(BaseException):
+    """The process received SIGINT or SIGTERM.
+
+    A ``BaseException`` (so ``except Exception`` clauses let it through) but not a
+    ``KeyboardInterrupt``: VTK's Python wrapper ends the whole process, with exit status 1
+    and no clean-up, when a ``KeyboardInterrupt`` escapes one of its observers.
+    :func:`vhm_viz.filters.update` re-raises a SIGINT as ``KeyboardInterrupt`` for Python
+    callers.
+
+    Attributes
+    ----------
+    signum : int
+    exit_status : int
+        ``128 + signum``: 130 for SIGINT, 143 for SIGTERM.
+    """
+
+    def __init__(self, signum: int):
+        self.signum = int(signum)
+        self.exit_status = 128 + self.signum
+        super().__init__(f"interrupted by {signal.Signals(self.signum).name}")
+
+
+def pending() -> int | None:
+    """The signal received while :func:`handled` was active (None if none)."""
+    return _state["pending"]
+
+
+def check() -> None:
+    """Raise :class:`Interrupted` if a signal was received (even if already raised once)."""
+    signum = _state["pending"]
+    if signum is not None:
+        _state["raised"] = True
+        raise Interrupted(signum)
+
+
+def _handler(signum, _frame) -> None:
+    first = _state["pending"] is None
+    if first:
+        _state["pending"] = signum
+    if _state["on_signal"] is not None:
+        _state["on_signal"](signum)
+        return
+    if first and not _state["defer"] and not _state["raised"]:
+        _state["raised"] = True
+        raise Interrupted(signum)
+
+
+@contextlib.contextmanager
+def handled(
+    signals=(signal.SIGINT, signal.SIGTERM), on_signal: Callable[[int], None] | None = None
+) -> Iterator[None]:
+    """Handle ``signals`` for the duration of the block (see the module documentation).
+
+    Parameters
+    ----------
+    signals : sequence of int
+        Default SIGINT and SIGTERM.
+    on_signal : callable(signum), optional
+        Called instead of raising (the explorer quits its event loop this way).
+
+    Nested uses keep the outermost handlers (and the signals they catch); an ``on_signal``
+    given to a nested use replaces the outer behaviour inside the block (``vhm-viz
+    explore`` runs the explorer's event loop inside the command line's handling). Outside
+    the main thread (where Python cannot install signal handlers) the block runs
+    unchanged.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    if _state["depth"]:
+        outer = _state["on_signal"]
+        if on_signal is not None:
+            _state["on_signal"] = on_signal
+        try:
+            yield
+        finally:
+            _state["on_signal"] = outer
+        return
+    previous = {s: signal.getsignal(s) for s in signals}
+    _state.update(pending=None, raised=False, defer=0, on_signal=on_signal)
+    _state["depth"] = 1
+    try:
+        for s in signals:
+            signal.signal(s, _handler)
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+        _state.update(depth=0, on_signal=None, defer=0, pending=None, raised=False)
+
+
+@contextlib.contextmanager
+def deferred(raise_at_end: bool = True) -> Iterator[None]:
+    """Record signals without raising inside the block; raise the recorded one at its end.
+
+    With ``raise_at_end=False`` nothing is raised at the end either: for code that VTK
+    calls back (progress observers), where an exception would only be printed and lost;
+    the work then stops at its next :func:`check` or ``abort()`` test.
+    """
+    _state["defer"] += 1
+    try:
+        yield
+    finally:
+        _state["defer"] -= 1
+    if raise_at_end and not _state["defer"] and not _state["raised"]:
+        check()
