@@ -51,6 +51,7 @@ __all__ = [
     "write_text",
     "json_text",
     "suffix_of",
+    "cell_types",
 ]
 
 #: Dataset formats :func:`read_dataset` reads (VTK's readers, meshio for MEDIT/OFF, and
@@ -272,9 +273,7 @@ def read_cage(path, **kwargs) -> Cage:
             points, tris = _merge_exact_duplicates(points, triangulate_polygons(points, polys))
             return Cage(points, tris, **kwargs)
         return cage_from_dataset(mesh, **kwargs)
-    raise CageError(
-        f"unsupported cage file type {suffix!r} ({p}); use {', '.join(CAGE_SUFFIXES)}"
-    )
+    raise CageError(f"unsupported cage file type {suffix!r} ({p}); use {', '.join(CAGE_SUFFIXES)}")
 
 
 def cage_from_dataset(data, **kwargs) -> Cage:
@@ -354,7 +353,7 @@ def _polygons_of(data) -> tuple[np.ndarray, list[np.ndarray]]:
     from vtkmodules.vtkFiltersGeometry import vtkDataSetSurfaceFilter
 
     if data.IsA("vtkUnstructuredGrid") and data.GetNumberOfCells():
-        types = _cell_types(data)
+        types = cell_types(data)
         if np.isin(types, [VTK_TRIANGLE, VTK_QUAD, VTK_POLYGON]).all():
             return _points_of(data), _cell_lists(data.GetCells())
     if not data.IsA("vtkPolyData"):
@@ -370,7 +369,7 @@ def _polygons_of(data) -> tuple[np.ndarray, list[np.ndarray]]:
     return _points_of(data), _cell_lists(data.GetPolys())
 
 
-def _cell_types(grid) -> np.ndarray:
+def cell_types(grid) -> np.ndarray:
     """Cell type of every cell of an unstructured grid (VTK 9.2 to 9.6 spell it differently)."""
     from vtkmodules.util import numpy_support as ns
 
@@ -411,7 +410,6 @@ def _merge_exact_duplicates(points: np.ndarray, tris: np.ndarray) -> tuple[np.nd
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     return points[np.sort(first)], rank[inverse][tris]
-
 
 
 def _read_obj(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -462,7 +460,6 @@ def _read_off(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     if len(verts) != nv or len(polys) != nf:
         raise CageError(f"{path}: OFF header announces {nv} vertices / {nf} faces, file is short")
     return verts.reshape(-1, 3), polys
-
 
 
 # ----------------------------------------------------------------------------------------

@@ -613,6 +613,7 @@ class ExplorerController:
         OutsideCageError, ConstraintError, ValueError
             Invalid anchors or constraints (the message names them).
         """
+
         def check():
             if cancelled():
                 raise Cancelled("cancelled")
@@ -941,9 +942,7 @@ class ExplorerController:
         ]
         new.jacobians = [
             JacobianConstraint.from_matrix(p, j)
-            for p, j in zip(
-                args.get("jacobian_points", ()), args.get("jacobians", ()), strict=True
-            )
+            for p, j in zip(args.get("jacobian_points", ()), args.get("jacobians", ()), strict=True)
         ]
         new._layout_stale = True
         if scene.solution is not None and scene.solution.shape == (len(new.anchors), 3, 3):
