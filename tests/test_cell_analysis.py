@@ -27,7 +27,7 @@ from vhm_viz.filters import (  # noqa: E402
 
 
 def _signed_volumes(points, tets):
-    x = np.asarray(points)[tets]
+    x = np.asarray(points, dtype=np.float64)[tets]
     return np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]))
 
 
@@ -178,3 +178,24 @@ def test_deformation_filter_writes_the_same_cell_arrays(bar_tets):
     for name in ("cell_jacobian_determinant", "cell_condition_number", "cell_inverted"):
         assert np.allclose(bent.cell_data[name], analysed.cell_data[name])
     assert f.cell_summary == summary
+
+
+def test_accessor_analyze_and_certify(bar_tets):
+    import vhm_viz
+    import vhm_viz.accessor  # noqa: F401 -- registers mesh.vhm
+
+    points, tets = bar_tets
+    grid = _tet_grid(points, tets)
+    dfm = _solved("push", top_height=2.5)
+    out = grid.vhm.analyze(dfm)
+    inverted = int(np.count_nonzero(_signed_volumes(dfm.harmonic_map.map(points), tets) <= 0))
+    assert int(np.asarray(out.cell_data["cell_inverted"]).sum()) == inverted
+    assert int(out.field_data["vhm_cells_inverted"][0]) == inverted
+    assert int(out.field_data["vhm_cells_rest_inverted"][0]) == 0
+    cert = grid.vhm.certify(dfm)
+    assert cert.status == "not injective" and cert.region["kind"] == "tetrahedra"
+    # the same through the top-level API, and a dataset is refused by the core with advice
+    again = vhm_viz.certify_injectivity(dfm, vhm_viz.region_of(grid))
+    assert np.array_equal(again.witnesses, cert.witnesses)
+    with pytest.raises(TypeError, match="region_of"):
+        vhm_viz.certify_injectivity(dfm, grid)

@@ -360,8 +360,8 @@ def as_region(region, cage=None) -> Region:
         return Region.cage_interior(cage, default_margin(cage))
     if hasattr(region, "GetNumberOfCells") or hasattr(region, "n_cells"):
         raise TypeError(
-            "pass a dataset through vhm_viz.filters.region_of(dataset) (or use "
-            "mesh.vhm.certify); the numeric core takes a Region"
+            "the numeric core takes a Region: convert a dataset with "
+            "vhm_viz.region_of(dataset, cage), or call dataset.vhm.certify(deformer)"
         )
     arr = np.asarray(region, dtype=np.float64)
     if arr.shape == (2, 3):

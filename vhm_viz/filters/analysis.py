@@ -46,8 +46,9 @@ class JacobianAnalysisFilter(DeformationSource):
     ``cell_jacobian_determinant`` (volume ratio of the cell's linear tets, the smallest
     over them), ``cell_condition_number`` (the largest), ``cell_inverted`` (``uint8``, 1
     where the determinant is ``<= 0``) and ``cell_rest_inverted`` (``uint8``, cells stored
-    inverted at rest: not blamed on the deformation). :attr:`cell_summary` holds the counts
-    of the last update (None without 3D cells).
+    inverted at rest: not blamed on the deformation), with the counts in the field arrays
+    ``vhm_cells_inverted`` and ``vhm_cells_rest_inverted``. :attr:`cell_summary` holds all
+    the counts of the last update (None without 3D cells).
     """
 
     def __init__(self):

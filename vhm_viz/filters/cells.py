@@ -194,7 +194,20 @@ def cell_quality(ds, deformed_points) -> dict | None:
 
 
 def add_cell_arrays(data, quality: dict) -> None:
-    """Write :data:`CELL_ARRAYS` (and ``cell_rest_inverted``) into ``data``'s cell data."""
+    """Write :data:`CELL_ARRAYS` (and ``cell_rest_inverted``) into ``data``'s cell data.
+
+    The counts go to the field arrays ``vhm_cells_inverted`` and ``vhm_cells_rest_inverted``
+    (one value each), so they travel down a pipeline with the data.
+    """
+    fd = data.GetFieldData()
+    for name, key in (
+        ("vhm_cells_inverted", "inverted"),
+        ("vhm_cells_rest_inverted", "rest_inverted"),
+    ):
+        count = ns.numpy_to_vtk(np.array([quality["summary"][key]], dtype=np.int64), deep=1)
+        count.SetName(name)
+        fd.RemoveArray(name)
+        fd.AddArray(count)
     cd = data.GetCellData()
     det = quality["determinant"]
     arrays = {
