@@ -199,3 +199,35 @@ def test_accessor_analyze_and_certify(bar_tets):
     assert np.array_equal(again.witnesses, cert.witnesses)
     with pytest.raises(TypeError, match="region_of"):
         vhm_viz.certify_injectivity(dfm, grid)
+
+
+def test_region_of_each_kind_of_dataset():
+    from vhm_viz.core.certify import INSIDE, OUTSIDE
+    from vhm_viz.filters import region_of
+
+    bar = examples.bar("bend-u", resolution=8)
+    lo, hi = np.array([-0.5, -0.5, 0.0]), np.array([0.5, 0.5, 5.0])
+    rng = np.random.default_rng(3)
+    q = rng.uniform(lo - 0.2, hi + 0.2, (3000, 3))
+    truth = np.all((q >= lo) & (q <= hi), axis=1)
+    # a closed surface: its solid, exactly
+    solid = region_of(bar.surface)
+    assert solid.kind == "solid" and np.array_equal(solid.contains(q), truth)
+    half = np.full(3, 0.06)
+    state = solid.classify(q, half)
+    meets = np.all((q + half >= lo) & (q - half <= hi), axis=1)
+    within = np.all((q - half >= lo) & (q + half <= hi), axis=1)
+    assert not np.any(meets & (state == OUTSIDE)) and not np.any(~within & (state == INSIDE))
+    assert (state == INSIDE).any() and (state == OUTSIDE).any()
+    # a volume: the box of its points; a point cloud: the cage's interior
+    img = pv.ImageData(dimensions=(3, 3, 6), spacing=(0.5, 0.5, 1.0), origin=(-0.5, -0.5, 0))
+    box = region_of(img)
+    assert box.kind == "box" and np.allclose(box.lo, lo) and np.allclose(box.hi, hi)
+    cloud = region_of(pv.PolyData(bar.points[::50]), bar.cage)
+    assert cloud.kind == "cage" and cloud.description["margin"] > 0
+    with pytest.raises(ValueError, match="cage"):
+        region_of(pv.PolyData(bar.points[::50]))
+    # a tet mesh: its tetrahedra
+    points, tets = examples.bar_tets(3)
+    tet_region = region_of(_tet_grid(points, tets))
+    assert tet_region.kind == "tetrahedra" and np.array_equal(tet_region.contains(q), truth)

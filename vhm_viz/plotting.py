@@ -26,6 +26,7 @@ __all__ = [
     "figure12",
     "energy_plot",
     "injectivity_figure",
+    "mapped_boxes",
     "default_slice_normal",
 ]
 
@@ -376,10 +377,22 @@ def energy_plot(
     return fig
 
 
-def _mapped_boxes(boxes: np.ndarray, harmonic_map):
-    """Axis-aligned boxes (k, 2, 3) as hexahedra with their corners mapped (UnstructuredGrid)."""
+def mapped_boxes(boxes, harmonic_map):
+    """Axis-aligned boxes ``(lo, hi)`` as hexahedra with their corners mapped.
+
+    Parameters
+    ----------
+    boxes : (k, 2, 3) array_like
+        E.g. :attr:`InjectivityCertificate.undecided`.
+    harmonic_map : HarmonicMap
+
+    Returns
+    -------
+    pyvista.UnstructuredGrid
+    """
     import pyvista as pv
 
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 2, 3)
     lo, hi = boxes[:, 0], boxes[:, 1]
     # VTK hexahedron corner order: bottom face counter-clockwise, then the top face
     sel = np.array(
@@ -461,7 +474,7 @@ def injectivity_figure(
             gap = np.abs((boxes.mean(axis=1) - origin) @ normal)
             boxes = boxes[np.argsort(gap)[:max_cubes]]
         pl.add_mesh(
-            _mapped_boxes(boxes, harmonic_map),
+            mapped_boxes(boxes, harmonic_map),
             style="wireframe",
             color="darkorange",
             line_width=1,

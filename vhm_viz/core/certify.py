@@ -120,6 +120,9 @@ _PROBES = 32
 _DESCENT_STEPS = 3
 _FOUR_PI = 4.0 * math.pi
 
+#: Cube classes of :meth:`Region.classify`.
+OUTSIDE, MEETS, INSIDE = 0, 1, 2
+
 
 # --------------------------------------------------------------------------------------
 # regions
@@ -127,16 +130,21 @@ _FOUR_PI = 4.0 * math.pi
 class Region:
     """What to certify: a set of points, known through a conservative cube test.
 
-    A region has a bounding box (``lo``, ``hi``), a test :meth:`may_meet` that is true for
-    every cube that meets the region (it may also be true for some that do not: those are
-    certified needlessly, never skipped wrongly), and an exact membership test
-    :meth:`contains` (a witness must lie in the region). Build one with a class method:
+    A region has a bounding box (``lo``, ``hi``), a cube test :meth:`classify` (outside,
+    may meet, or entirely inside; conservative: a cube that meets the region is never said
+    to be outside, so some cubes are certified needlessly, none is skipped wrongly) and an
+    exact membership test :meth:`contains` (a witness must lie in the region). The children
+    of a cube entirely inside are entirely inside, so the octree tests only cubes near the
+    region's boundary. Build one with a class method:
 
     * :meth:`box` -- an axis-aligned box (an image's voxel box, a bar's solid);
     * :meth:`tetrahedra` -- the solid of a tet mesh (any mesh VTK triangulates into tets;
       :func:`vhm_viz.filters.region_of` converts datasets);
     * :meth:`balls` -- a union of balls (e.g. the voxels of a solid);
-    * :meth:`cage_interior` -- the space inside the cage farther than ``margin`` from it.
+    * :meth:`cage_interior` -- the space inside the cage farther than ``margin`` from it;
+
+    or give ``test(centres, half_extents) -> (k,) int8`` (:data:`OUTSIDE`, :data:`MEETS`,
+    :data:`INSIDE`; booleans mean outside / meets) and ``contains(points) -> (k,) bool``.
 
     Attributes
     ----------
@@ -159,8 +167,8 @@ class Region:
         self._contains = contains
         self.description = {"kind": kind, **description}
 
-    def may_meet(self, centres: np.ndarray, half_extents: np.ndarray) -> np.ndarray:
-        """Whether each axis-aligned cube may meet the region (conservative).
+    def classify(self, centres: np.ndarray, half_extents: np.ndarray) -> np.ndarray:
+        """Where each axis-aligned cube lies: :data:`OUTSIDE`, :data:`MEETS` or :data:`INSIDE`.
 
         Parameters
         ----------
@@ -170,16 +178,23 @@ class Region:
 
         Returns
         -------
-        (k,) bool
+        (k,) int8
+            Conservative: ``OUTSIDE`` only for cubes that do not meet the region,
+            ``INSIDE`` only for cubes that lie entirely in it.
         """
         c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
         e = np.asarray(half_extents, dtype=np.float64).reshape(3)
         in_box = np.all((c + e >= self.lo) & (c - e <= self.hi), axis=1)
-        if self._test is None or not in_box.any():
-            return in_box
-        out = np.zeros(len(c), dtype=bool)
-        out[in_box] = self._test(c[in_box], e)
+        out = in_box.astype(np.int8)  # MEETS where the boxes overlap
+        if self._test is None:
+            out[np.all((c - e >= self.lo) & (c + e <= self.hi), axis=1)] = INSIDE
+        elif in_box.any():
+            out[in_box] = np.asarray(self._test(c[in_box], e), dtype=np.int8)
         return out
+
+    def may_meet(self, centres: np.ndarray, half_extents: np.ndarray) -> np.ndarray:
+        """Whether each cube may meet the region: ``classify(...) != OUTSIDE``, (k,) bool."""
+        return self.classify(centres, half_extents) != OUTSIDE
 
     def contains(self, points) -> np.ndarray:
         """Whether each point lies in the region (closed set), shape (k,) bool."""
@@ -278,7 +293,9 @@ class Region:
             d = cage_distance(cubes, v, f)
             inside = inside_cage(winding_number(cubes, v, f))
             # inside: the ball reaches depth >= margin; outside: it crosses the cage by margin
-            return np.where(inside, d + r >= margin, r >= d + margin)
+            state = np.where(inside, d + r >= margin, r >= d + margin).astype(np.int8)
+            state[inside & (d - r >= margin)] = INSIDE  # the whole ball is deep enough
+            return state
 
         def contains(p):
             return inside_cage(winding_number(p, v, f)) & (cage_distance(p, v, f) >= margin)
@@ -892,7 +909,8 @@ def certify_injectivity(
     min_half = 1e-7 * max(region.diagonal, 1e-300)
 
     centres, half = _initial_cubes(region, initial_cubes)
-    centres = centres[region.may_meet(centres, half)]
+    state = region.classify(centres, half)
+    centres, state = centres[state != OUTSIDE], state[state != OUTSIDE]
     parent_det = np.zeros(len(centres))
     total_volume = max(len(centres), 1) * float(np.prod(2 * half))
     decided_volume = 0.0
@@ -904,11 +922,12 @@ def certify_injectivity(
 
     while len(centres):
         order = np.argsort(parent_det, kind="stable")  # near the lowest det J first
-        centres = centres[order]
+        centres, state = centres[order], state[order]
         r = float(np.linalg.norm(half))
         smallest = min(smallest, float(2.0 * half.max()))
         split: list[np.ndarray] = []
         split_det: list[np.ndarray] = []
+        split_state: list[np.ndarray] = []
         s = 0
         while s < len(centres):
             if abort is not None and abort():
@@ -919,9 +938,10 @@ def certify_injectivity(
                 # split, are the undecided boxes
                 undecided.append(_boxes(centres[s:], half))
                 undecided.extend(_boxes(rest, half) for rest in split)
-                split, split_det = [], []
+                split = []
                 break
             batch = centres[s : s + min(_BATCH, budget)]
+            batch_state = state[s : s + len(batch)]
             s += len(batch)
             cubes += len(batch)
             f, jac, hess = hm.evaluate(batch, order=2, outside="nan")
@@ -933,7 +953,8 @@ def certify_injectivity(
             negative = finite & (det <= 0.0)
             if negative.any():
                 # a witness must lie in the region (a cube's centre may not, near its edge)
-                negative[negative] = region.contains(batch[negative])
+                edge = negative & (batch_state != INSIDE)
+                negative[edge] = region.contains(batch[edge])
                 if negative.any():
                     wit_points.append(batch[negative])
                     wit_dets.append(det[negative])
@@ -976,18 +997,22 @@ def certify_injectivity(
                 else:
                     split.append(batch[rest])
                     split_det.append(np.where(np.isfinite(det[rest]), det[rest], np.inf))
+                    split_state.append(batch_state[rest])
             if progress is not None:
                 progress(min(decided_volume / total_volume, 1.0), f"{cubes} cubes")
         if wit_points:
             break
         if not split:
             break
-        parents = np.concatenate(split)
-        pdet = np.concatenate(split_det)
-        children, child_half = _children(parents, half)
-        keep = region.may_meet(children, child_half)
-        centres = children[keep]
-        parent_det = np.repeat(pdet, 8)[keep]
+        children, child_half = _children(np.concatenate(split), half)
+        # children of a cube inside the region are inside: only the others are tested
+        state = np.repeat(np.concatenate(split_state), 8)
+        edge = state != INSIDE
+        if edge.any():
+            state[edge] = region.classify(children[edge], child_half)
+        keep = state != OUTSIDE
+        centres, state = children[keep], state[keep]
+        parent_det = np.repeat(np.concatenate(split_det), 8)[keep]
         half = child_half
 
     seconds = time.perf_counter() - t0

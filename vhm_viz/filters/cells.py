@@ -12,7 +12,7 @@ those arrays:
 * :func:`cell_quality` -- the per-cell determinant and condition number of a deformation,
   plus the counts ``metrics.json`` reports.
 * :func:`region_of` -- the region to certify for a dataset: a volume's box, a mesh's
-  tetrahedra, a closed surface's solid (covered by voxels), or the cage's interior.
+  tetrahedra, a closed surface's solid, or the cage's interior.
 """
 
 from __future__ import annotations
@@ -223,14 +223,13 @@ def add_cell_arrays(data, quality: dict) -> None:
         cd.AddArray(arr)
 
 
-def region_of(ds, cage=None, *, voxels: int = 48):
+def region_of(ds, cage=None):
     """The region of a dataset to certify (:class:`vhm_viz.core.certify.Region`).
 
     * image, rectilinear and structured data: the box of their points;
     * meshes with 3D cells: their tetrahedra (:func:`cell_tetrahedra`);
-    * closed surfaces: the solid they bound, covered by the balls around voxels (about
-      ``voxels`` along the longest side) that lie inside or within a voxel's half
-      diagonal of the surface (together they cover every point of the solid);
+    * closed surfaces: the solid they bound (exact signed distances near the surface,
+      the generalised winding number elsewhere);
     * anything else (point clouds, open surfaces): the cage's interior farther than
       :func:`~vhm_viz.core.certify.default_margin` from the cage (needs ``cage``).
 
@@ -238,7 +237,6 @@ def region_of(ds, cage=None, *, voxels: int = 48):
     ----------
     ds : vtkDataSet or pyvista.DataSet
     cage : Cage, optional
-    voxels : int
 
     Returns
     -------
@@ -258,7 +256,7 @@ def region_of(ds, cage=None, *, voxels: int = 48):
     if isinstance(ds, pv.PolyData) and ds.n_cells and ds.GetNumberOfPolys():
         surf = ds.triangulate() if not ds.is_all_triangles else ds
         if surf.n_open_edges == 0:
-            return _solid_region(surf, voxels)
+            return _solid_region(surf)
     if cage is None:
         raise ValueError(
             "this dataset bounds no solid (a point cloud or an open surface): certify the "
@@ -267,26 +265,38 @@ def region_of(ds, cage=None, *, voxels: int = 48):
     return Region.cage_interior(cage, default_margin(cage))
 
 
-def _solid_region(surface, voxels: int):
-    """Balls about the voxels inside a closed surface or within half a diagonal of it."""
-    import pyvista as pv
+def _solid_region(surface):
+    """The solid a closed, consistently oriented triangle surface bounds.
 
-    from vhm_viz.core.certify import Region
+    Cubes near the surface are classified by exact signed distances (angle-weighted
+    pseudo-normals, :mod:`vhm_viz.autocage.proximity`); the few first-level cubes far
+    from it, and witnesses, by the surface's generalised winding number. Children of a
+    cube that straddles the surface lie within four of their radii of it, so the exact
+    distance covers every later test.
+    """
+    from vhm_viz.autocage.proximity import NearDistance, grid_signed_distance
+    from vhm_viz.core.basis import inside_cage, winding_number
+    from vhm_viz.core.certify import INSIDE, MEETS, OUTSIDE, Region
+
+    v = np.ascontiguousarray(surface.points, dtype=np.float64)
+    f = np.ascontiguousarray(np.asarray(surface.faces).reshape(-1, 4)[:, 1:], dtype=np.int64)
+    if signed_volume(v, f) < 0:
+        f = f[:, ::-1]  # inward-oriented: the signs below assume outward normals
+    near = NearDistance(v, f)
+
+    def inside(points):
+        return inside_cage(winding_number(points, v, f))
+
+    def test(centres, e):
+        r = float(np.linalg.norm(e))
+        sd, _ = grid_signed_distance(near, centres, 4.0 * r)
+        state = np.full(len(centres), MEETS, dtype=np.int8)
+        state[sd < -r] = INSIDE
+        state[np.isfinite(sd) & (sd > r)] = OUTSIDE
+        far = ~np.isfinite(sd)
+        if far.any():
+            state[far] = np.where(inside(centres[far]), INSIDE, OUTSIDE)
+        return state
 
     b = np.asarray(surface.bounds, dtype=np.float64)
-    lo, hi = b[0::2], b[1::2]
-    h = float((hi - lo).max()) / max(int(voxels), 1)
-    counts = np.maximum(1, np.ceil((hi - lo) / h).astype(int))
-    axes = [lo[a] + h * (np.arange(counts[a]) + 0.5) for a in range(3)]
-    centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    grid = pv.PolyData(centres).compute_implicit_distance(surface)
-    signed = np.asarray(grid.point_data["implicit_distance"])
-    faces = np.asarray(surface.faces).reshape(-1, 4)[:, 1:]
-    if signed_volume(np.asarray(surface.points), faces) < 0:
-        signed = -signed  # inward-oriented surface: VTK's sign is reversed
-    radius = 0.5 * h * np.sqrt(3.0)
-    keep = signed <= radius  # inside (negative) or close enough to reach the solid
-    region = Region.balls(centres[keep], radius)
-    region.kind = "solid"
-    region.description = {"kind": "solid", "voxels": int(keep.sum()), "voxel_size": h}
-    return region
+    return Region("solid", b[0::2], b[1::2], test, inside, {"triangles": int(len(f))})
