@@ -441,31 +441,45 @@ def _kernel_integrals(delta, area):  # pragma: no cover - compiled
     """Bounds (4) of ``int d^-5 dA`` and ``int d^-4 dA`` over an area at distance ``delta``.
 
     Written with ``x = A / (pi delta^2)`` so that small pieces lose no digits:
-    ``2 pi/3 delta^-3 (1 - (1 + x)^(-3/2))`` and ``pi delta^-2 x / (1 + x)``.
+    ``2 pi/3 delta^-3 (1 - (1 + x)^(-3/2))`` and ``pi delta^-2 x / (1 + x)``. Far pieces
+    (``x < 1e-3``) take ``A / delta^k``, an upper bound of both that costs no logarithm
+    and is within 0.15% of them there.
     """
-    x = area / (math.pi * delta * delta)
-    i5 = (2.0 * math.pi / 3.0) / (delta * delta * delta) * (-math.expm1(-1.5 * math.log1p(x)))
-    i4 = math.pi / (delta * delta) * (x / (1.0 + x))
+    d2 = delta * delta
+    x = area / (math.pi * d2)
+    if x < 1e-3:
+        i4 = area / (d2 * d2)
+        return i4 / delta, i4
+    i5 = (2.0 * math.pi / 3.0) / (d2 * delta) * (-math.expm1(-1.5 * math.log1p(x)))
+    i4 = math.pi / d2 * (x / (1.0 + x))
     return i5, i4
 
 
 @numba.njit(cache=True)
-def _face_integrals(px, py, pz, r, X, D, area, dist, near, sx, sd, sdepth, out):  # pragma: no cover
+def _face_integrals(
+    px, py, pz, r, X, D, area, diameter, dist, near, work, sx, sd, sdepth, out
+):  # pragma: no cover - compiled
     """Add one face's ``int |a'_i| d^-5`` (out[0:3]) and ``int d^-4`` (out[3]).
 
     ``X`` (3, 3) corners, ``D`` (3, 3) signed residual densities ``a'`` at the corners
-    (rows: corners), ``dist`` a lower bound of the face's distance to ``p``. The face is
+    (rows: corners), ``diameter`` its longest edge, ``dist`` a lower bound of its distance
+    to ``p``. The face is
     split into four while it is closer to the ball than ``_KAPPA`` times its diameter and
-    closer than ``near``; ``sx``, ``sd``, ``sdepth`` are the explicit stack. Returns False
-    when a piece touches the ball (no bound).
+    closer than ``near``; ``sx``, ``sd``, ``sdepth`` are the explicit stack and ``work``
+    (4, 3, 3) scratch (nothing is allocated per piece). Returns False when a piece touches
+    the ball (no bound).
     """
     top = 0
     sx[0] = X
     sd[0] = D
     sdepth[0] = 0
     while top >= 0:
-        Y = sx[top].copy()
-        E = sd[top].copy()
+        # the popped piece's slot is overwritten by its children: work on a copy
+        Y, E, M, Mq = work[0], work[1], work[2], work[3]
+        for i in range(3):
+            for c in range(3):
+                Y[i, c] = sx[top, i, c]
+                E[i, c] = sd[top, i, c]
         depth = sdepth[top]
         top -= 1
         if depth == 0:
@@ -478,17 +492,10 @@ def _face_integrals(px, py, pz, r, X, D, area, dist, near, sx, sd, sdepth, out):
         delta = d * (1.0 - 1e-12) - r
         if delta <= 0.0:
             return False
-        diam = 0.0
-        for i in range(3):
-            j = (i + 1) % 3
-            ex = Y[i, 0] - Y[j, 0]
-            ey = Y[i, 1] - Y[j, 1]
-            ez = Y[i, 2] - Y[j, 2]
-            diam = max(diam, math.sqrt(ex * ex + ey * ey + ez * ez))
+        # midpoint subdivision halves every edge: the pieces are similar to the face
+        diam = diameter / (2.0**depth)
         if diam > _KAPPA * delta and delta < near and depth < _MAX_FACE_DEPTH:
             # four children: the corner triangles and the middle one
-            M = np.empty((3, 3))
-            Mq = np.empty((3, 3))
             for i in range(3):
                 j = (i + 1) % 3
                 for c in range(3):
@@ -520,7 +527,7 @@ def _face_integrals(px, py, pz, r, X, D, area, dist, near, sx, sd, sdepth, out):
 
 
 @numba.njit(cache=True)
-def _fit_affine(px, py, pz, V, F, N, areas, a, b, dist, M, R, A, T):  # pragma: no cover
+def _fit_affine(px, py, pz, V, F, N, areas, a, b, dist, wv, M, R, A, T):  # pragma: no cover
     """The affine map subtracted in (3) for a ball at ``p``: a weighted least-squares fit.
 
     Minimises ``sum_v w_v |a_v - A x_v - T|^2 + sum_t w_t |b_t - A N_t|^2`` with the weights
@@ -528,30 +535,35 @@ def _fit_affine(px, py, pz, V, F, N, areas, a, b, dist, M, R, A, T):  # pragma: 
     the face's corners) and a quarter of ``area / (d^2 + area/pi)^2.5`` for the single
     layer (``d`` the face's distance to ``p``). Any affine map gives a valid bound; this
     one makes the residual densities small on the faces that dominate it, where the
-    tangent map at ``p`` would keep the whole curvature of the map.
+    tangent map at ``p`` would keep the whole curvature of the map. ``wv`` is scratch.
     """
     M[:, :] = 0.0
     R[:, :] = 0.0
-    row = np.empty(4)
+    wv[:] = 0.0
     for t in range(F.shape[0]):
         s = dist[t] * dist[t] + areas[t] / math.pi
-        wv = areas[t] / (s * s * s) / 3.0
+        w = areas[t] / (s * s * s) / 3.0
         for i in range(3):
-            v = F[t, i]
-            # coordinates relative to p keep the normal equations well conditioned
-            row[0], row[1], row[2], row[3] = V[v, 0] - px, V[v, 1] - py, V[v, 2] - pz, 1.0
-            for r in range(4):
-                for c in range(4):
-                    M[r, c] += wv * row[r] * row[c]
-                for c in range(3):
-                    R[r, c] += wv * row[r] * a[v, c]
+            wv[F[t, i]] += w
+        # the single layer's rows (N_t, 0)
         wb = 0.25 * areas[t] / (s * s * math.sqrt(s))
-        row[0], row[1], row[2], row[3] = N[t, 0], N[t, 1], N[t, 2], 0.0
         for r in range(3):
             for c in range(3):
-                M[r, c] += wb * row[r] * row[c]
+                M[r, c] += wb * N[t, r] * N[t, c]
+                R[r, c] += wb * N[t, r] * b[t, c]
+    for v in range(V.shape[0]):
+        w = wv[v]
+        if w == 0.0:
+            continue  # an unreferenced vertex
+        # rows (x_v - p, 1): coordinates relative to p keep the equations well conditioned
+        x0, x1, x2 = V[v, 0] - px, V[v, 1] - py, V[v, 2] - pz
+        row = (x0, x1, x2, 1.0)
+        for r in range(4):
+            wr = w * row[r]
+            for c in range(4):
+                M[r, c] += wr * row[c]
             for c in range(3):
-                R[r, c] += wb * row[r] * b[t, c]
+                R[r, c] += wr * a[v, c]
     X = np.linalg.solve(M, R)  # (4, 3): rows A^T, then the value at p
     for i in range(3):
         for j in range(3):
@@ -562,16 +574,17 @@ def _fit_affine(px, py, pz, V, F, N, areas, a, b, dist, M, R, A, T):  # pragma: 
 
 @numba.njit(cache=True, parallel=True)
 def _third_derivative_kernel(
-    centres, radii, fit, A_in, T_in, V, F, N, areas, fc, fr, a, b, out_m3, out_dist
+    centres, radii, fit, A_in, T_in, V, F, N, areas, fc, fr, diam, a, b, out_m3, out_dist
 ):  # pragma: no cover - compiled
     """Bound (3) of the third derivative on each ball, and the centre's distance to the cage.
 
     With ``fit`` the affine map subtracted is :func:`_fit_affine`'s, else ``A_in`` (k, 3, 3),
-    ``T_in`` (k, 3). ``fc``, ``fr``: face centroids and circumradii (faces far from ``p``
+    ``T_in`` (k, 3). ``fc``, ``fr``, ``diam``: face centroids, the radii of their
+    circumscribing balls about the centroids and longest edges (faces far from ``p``
     use ``|p - centroid| - radius``, a lower bound of their distance). ``out_m3`` gets
     ``sqrt(sum_i M3_i^2)`` (inf where the ball touches the cage); ``out_dist`` a lower bound
-    of the centre's distance to the cage (exact where it is below ``r`` plus twice the
-    faces' size).
+    of the centre's distance to the cage (exact where it is below ``r`` plus four times the
+    nearest faces' radius).
     """
     k_total = centres.shape[0]
     m = F.shape[0]
@@ -579,12 +592,17 @@ def _third_derivative_kernel(
         sx = np.empty((3 * _MAX_FACE_DEPTH + 4, 3, 3))
         sd = np.empty((3 * _MAX_FACE_DEPTH + 4, 3, 3))
         sdepth = np.empty(3 * _MAX_FACE_DEPTH + 4, dtype=np.int64)
+        work = np.empty((4, 3, 3))
         X = np.empty((3, 3))
         D = np.empty((3, 3))
         acc = np.zeros(4)
         sa = np.zeros(3)
         sb = np.zeros(3)
         dist = np.empty(m)
+        wv = np.empty(V.shape[0])
+        M = np.empty((4, 4))
+        R = np.empty((4, 3))
+        res = np.empty((V.shape[0], 3))
         A = np.empty((3, 3))
         T = np.empty(3)
         px, py, pz = centres[k, 0], centres[k, 1], centres[k, 2]
@@ -606,25 +624,27 @@ def _third_derivative_kernel(
             out_m3[k] = np.inf  # the ball touches the cage: the kernels are singular there
             continue
         if fit:
-            _fit_affine(px, py, pz, V, F, N, areas, a, b, dist, np.empty((4, 4)),
-                        np.empty((4, 3)), A, T)  # fmt: skip
+            _fit_affine(px, py, pz, V, F, N, areas, a, b, dist, wv, M, R, A, T)
         else:
             A[:, :] = A_in[k]
             T[:] = T_in[k]
+        # the residual double-layer density at the vertices, once per cube
+        for v in range(V.shape[0]):
+            for c in range(3):
+                res[v, c] = (
+                    a[v, c] - (A[c, 0] * V[v, 0] + A[c, 1] * V[v, 1] + A[c, 2] * V[v, 2]) - T[c]
+                )
         ok = True
         for t in range(m):
             for i in range(3):
                 v = F[t, i]
                 for c in range(3):
                     X[i, c] = V[v, c]
-                for c in range(3):
-                    D[i, c] = (
-                        a[v, c] - (A[c, 0] * V[v, 0] + A[c, 1] * V[v, 1] + A[c, 2] * V[v, 2]) - T[c]
-                    )
+                    D[i, c] = res[v, c]
             acc[:] = 0.0
             near = _NEAR * (dmin - r)
             if not _face_integrals(
-                px, py, pz, r, X, D, areas[t], dist[t], near, sx, sd, sdepth, acc
+                px, py, pz, r, X, D, areas[t], diam[t], dist[t], near, work, sx, sd, sdepth, acc
             ):
                 ok = False
                 break
@@ -662,8 +682,9 @@ def _cage_arrays(hm):
     corners = v[f]
     centroids = corners.mean(axis=1)
     radii = np.linalg.norm(corners - centroids[:, None], axis=2).max(axis=1)
+    edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
     return (
-        v, f, normals, areas, np.ascontiguousarray(centroids), radii,
+        v, f, normals, areas, np.ascontiguousarray(centroids), radii, edges,
         np.ascontiguousarray(z[:n]), np.ascontiguousarray(z[n:]),
     )  # fmt: skip
 
@@ -691,7 +712,7 @@ def third_derivative_bounds(harmonic_map, centres, radii, values=None, jacobians
     distance : (k,) float64
         Distance from each centre to the cage.
     """
-    v, f, normals, areas, fc, fr, a, b = _cage_arrays(harmonic_map)
+    v, f, normals, areas, fc, fr, diam, a, b = _cage_arrays(harmonic_map)
     p = np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3)
     r = np.ascontiguousarray(np.broadcast_to(np.asarray(radii, dtype=np.float64), (len(p),)))
     fit = jacobians is None
@@ -704,7 +725,9 @@ def third_derivative_bounds(harmonic_map, centres, radii, values=None, jacobians
     m3 = np.empty(len(p))
     dist = np.empty(len(p))
     if len(p):
-        _third_derivative_kernel(p, r, fit, jac, t, v, f, normals, areas, fc, fr, a, b, m3, dist)
+        _third_derivative_kernel(
+            p, r, fit, jac, t, v, f, normals, areas, fc, fr, diam, a, b, m3, dist
+        )
     return m3, dist
 
 
