@@ -75,9 +75,11 @@ exactly (value, Jacobian, Hessian in closed form): ``det J(p) <= 0`` is a witnes
 positive bound (2) certifies the cube; otherwise it is split into eight. Cubes whose ball
 touches the cage cannot be bounded (the kernels are singular on the cage) and are split
 too. Within a level, cubes are visited from the lowest ``det J`` of their parent up, and
-the lowest few are probed at the corner where the linear model of ``det J`` is smallest,
-which finds witnesses of folds long before the octree reaches them. The cost grows
-steeply as the region nears the cage (roughly as the gap to the power -3).
+from the lowest few a short descent of ``det J`` (its gradient is ``cof(J) : H``, Jacobi's
+formula, from the same exact evaluation) probes for a witness, which finds folds long
+before the octree reaches them. The children of cubes entirely inside the region skip the
+region test. Budget: ``max_cubes`` cubes examined; what is left then is undecided. The cost
+grows steeply as the region nears the cage (the bound grows like the gap to the power -3).
 """
 
 from __future__ import annotations
