@@ -29,6 +29,7 @@ from vhm_viz.cli._util import (
     surface_metrics,
 )
 from vhm_viz.core.errors import OutsideCageError
+from vhm_viz.core.metrics import finite_or_none
 from vhm_viz.io import json_text, read_dataset, write_dataset, write_text
 
 #: Files written by ``analyze`` into the output directory.
@@ -115,12 +116,6 @@ def _stats(values: np.ndarray) -> dict:
         "p01": float(np.percentile(v, 1)),
         "p99": float(np.percentile(v, 99)),
     }
-
-
-def _finite(value):
-    """A float for JSON: None for NaN or infinity (strict JSON has neither)."""
-    v = float(value)
-    return v if np.isfinite(v) else None
 
 
 def _parse_normal(text):
@@ -228,7 +223,7 @@ def analyze(args: argparse.Namespace) -> str:
     }
     if ana.cell_summary is not None:
         metrics["cells"] = {
-            k: _finite(v) if isinstance(v, float) else v for k, v in ana.cell_summary.items()
+            k: finite_or_none(v) if isinstance(v, float) else v for k, v in ana.cell_summary.items()
         }
     if certificate is not None:
         metrics["injectivity"] = certificate.to_json()

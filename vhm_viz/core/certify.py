@@ -93,6 +93,7 @@ import numpy as np
 
 from vhm_viz.core.errors import AbortedError
 from vhm_viz.core.geometry import face_normals_and_areas, triangle_distance
+from vhm_viz.core.metrics import finite_or_none
 
 __all__ = [
     "Region",
@@ -101,6 +102,11 @@ __all__ = [
     "jacobian_deviation_bounds",
     "third_derivative_bounds",
     "cage_distance",
+    "as_region",
+    "default_margin",
+    "OUTSIDE",
+    "MEETS",
+    "INSIDE",
 ]
 
 # Faces closer to the ball than KAPPA times their diameter are split (tightens (4)), if they
@@ -836,8 +842,8 @@ class InjectivityCertificate:
             "witness_determinants": np.asarray(self.witness_determinants, dtype=float).tolist(),
             "undecided": int(len(self.undecided)),
             "outside_cage": int(self.outside),
-            "min_det_sampled": float(self.min_det),
-            "smallest_cube": float(self.smallest_cube),
+            "min_det_sampled": finite_or_none(self.min_det),
+            "smallest_cube": finite_or_none(self.smallest_cube),
             "region": self.region,
             "max_cubes": int(self.max_cubes),
             "seconds": float(self.seconds),

@@ -38,6 +38,7 @@ __all__ = [
     "tetrahedron_gradients",
     "cell_measures",
     "cell_summary",
+    "finite_or_none",
 ]
 
 #: Rest tetrahedra with ``|det D_rest|`` below this times their longest edge cubed are
@@ -451,3 +452,9 @@ def cell_summary(measures: dict) -> dict:
         "degenerate": int(np.count_nonzero(measures["degenerate"])),
     }
     return out
+
+
+def finite_or_none(value):
+    """``float(value)``, or None for NaN and infinity (strict JSON has neither)."""
+    v = float(value)
+    return v if np.isfinite(v) else None
