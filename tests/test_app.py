@@ -508,3 +508,21 @@ def test_display_drops_the_rest_normals(tmp_path):
     assert "Normals" in ctrl.rest.point_data
     assert "Normals" not in ctrl.display.point_data
     assert ctrl.display.point_data.active_normals_name is None
+
+
+def test_certify_action_draws_witnesses_and_the_dock_shows_the_answer(window):
+    """Solve > Certify injectivity: runs in the background, draws, reports; a solve clears."""
+    win = window
+    ctrl = _open_bar(win, "push")
+    assert win.certify_action.text().replace("&", "") == "Certify injectivity"
+    win.certify_action.trigger()
+    assert win.busy
+    win.wait_idle()
+    assert win.last_error is None, win.last_error
+    assert ctrl.certificate.status == "not injective"
+    assert "witnesses" in win._actors and "undecided" not in win._actors
+    assert win.analysis_metrics["certificate"] == "not injective"
+    assert "certificate: not injective" in win.analysis_panel.metrics.text()
+    win.full_solve()
+    win.update_analysis()
+    assert ctrl.certificate is None and "witnesses" not in win._actors

@@ -28,6 +28,9 @@ _LAZY = {
     "auto_cage": "vhm_viz.autocage",
     "auto_anchors": "vhm_viz.autocage",
     "tetrahedralize": "vhm_viz.tetra",
+    "certify_injectivity": "vhm_viz.core.certify",
+    "Region": "vhm_viz.core.certify",
+    "region_of": "vhm_viz.filters.cells",
 }
 _SUBMODULES = {"metrics", "examples", "filters", "plotting", "scene", "core", "io"}
 

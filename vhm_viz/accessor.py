@@ -5,8 +5,10 @@ through the ``pyvista.accessors`` entry point (PyVista >= 0.48), so ``import vhm
 not even needed::
 
     deformed = mesh.vhm.deform(deformer)        # same type rules as vtkWarpVector
-    quality = mesh.vhm.analyze(deformer)        # det / cond / rotation / foldover arrays
+    quality = mesh.vhm.analyze(deformer)        # det / cond / rotation / foldover arrays,
+                                                # and cell arrays of tet meshes and volumes
     volume = image.vhm.resample(deformer)       # deformed volume on a regular grid
+    answer = mesh.vhm.certify(deformer)         # det J > 0 everywhere in the shape?
 
 ``deformation`` is a :class:`~vhm_viz.Deformer`, a :class:`~vhm_viz.HarmonicMap`, a
 :class:`~vhm_viz.scene.Scene` or the path of a scene file.
@@ -81,10 +83,14 @@ class VHMAccessor:
         return pv.wrap(update(f))
 
     def analyze(self, deformation, *, outside: str = "error", cage=None):
-        """The dataset with Jacobian quality point arrays (rest geometry).
+        """The dataset with Jacobian quality arrays (rest geometry).
 
-        Adds ``jacobian_determinant``, ``condition_number``, ``rotation_angle`` (degrees)
-        and ``foldover`` (see :class:`vhm_viz.filters.JacobianAnalysisFilter`).
+        Adds the point arrays ``jacobian_determinant``, ``condition_number``,
+        ``rotation_angle`` (degrees) and ``foldover``, and for datasets with 3D cells the
+        cell arrays ``cell_jacobian_determinant``, ``cell_condition_number``,
+        ``cell_inverted`` and ``cell_rest_inverted``, with their counts in the field arrays
+        ``vhm_cells_inverted`` and ``vhm_cells_rest_inverted`` (see
+        :class:`vhm_viz.filters.JacobianAnalysisFilter`).
         """
         from vhm_viz.filters import JacobianAnalysisFilter, update
 
@@ -92,6 +98,31 @@ class VHMAccessor:
         f.SetInputData(self._mesh)
         _configure(f, deformation, cage, outside)
         return pv.wrap(update(f))
+
+    def certify(self, deformation, *, max_cubes: int = 200_000, progress=None):
+        """Prove that the map folds nowhere in this shape, or find where it does.
+
+        The region is :func:`vhm_viz.region_of` of the dataset (a volume's box, a mesh's
+        tetrahedra, a closed surface's solid, or the cage's interior for point clouds);
+        see :func:`vhm_viz.certify_injectivity`.
+
+        Parameters
+        ----------
+        deformation : Deformer or HarmonicMap
+            A scene must be built and solved first (``Scene.build``, ``Scene.solve``).
+        max_cubes : int
+        progress : callable(fraction, message), optional
+
+        Returns
+        -------
+        InjectivityCertificate
+        """
+        from vhm_viz.core.certify import certify_injectivity
+        from vhm_viz.filters import region_of
+
+        hm = getattr(deformation, "harmonic_map", deformation)
+        region = region_of(self._mesh, getattr(hm, "cage", None))
+        return certify_injectivity(deformation, region, max_cubes=max_cubes, progress=progress)
 
     def resample(
         self, deformation, *, fill_value: float = 0.0, output: str = "deformed", cage=None

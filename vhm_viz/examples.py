@@ -13,6 +13,12 @@ centre line, the constraints of the chosen deformation and a ready :class:`~vhm_
 * ``"twist"``: same bottom; top centre fixed, Jacobian = rotation of 180 degrees about z.
 * ``"bulge"``: ``"bend-90"`` plus a Jacobian constraint ``1.3 x`` (rotation of 45 degrees
   about y) at the bar's middle (the paper's muscle bulge, Figure 3).
+* ``"push"`` (not one of :data:`BAR_KINDS`: a scenario that folds): same bottom; the top
+  centre pushed straight down to ``(0, 0, top_height)``, kept upright (Jacobian = identity).
+  A harmonic map cannot shorten the bar that much without folding next to the top face:
+  measured minimum of ``det J`` over the bar's solid, 0.13 at ``top_height`` 4.0, 0.014 at
+  3.666, -0.01 at 3.582 (between the vertices of :func:`bar_tets`: none of its tets
+  inverts), -0.13 at 2.5 (a clear fold). :mod:`vhm_viz.core.certify` is tested on these.
 
 A 180 degree twist started from the identity sits on a symmetric saddle of the energy, so
 :meth:`BarScenario.solve` ramps the Jacobian targets of ``"twist"`` (and, harmlessly, of the
@@ -25,9 +31,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["bar", "bar_surface", "bar_cage", "BarScenario", "BAR_KINDS", "rotation"]
+__all__ = [
+    "bar",
+    "bar_surface",
+    "bar_tets",
+    "bar_cage",
+    "BarScenario",
+    "BAR_KINDS",
+    "FOLD_KINDS",
+    "rotation",
+]
 
 BAR_KINDS = ("bend-u", "bend-90", "twist", "bulge")
+#: Scenarios made to fold (see ``"push"`` above); not drawn in the paper's figures.
+FOLD_KINDS = ("push",)
 BAR_LENGTH = 5.0
 BAR_WIDTH = 1.0
 # top-centre target of the bends: a half circle of the bar's length has diameter 2L/pi
@@ -104,6 +121,54 @@ def bar_surface(resolution: int = 39) -> tuple[np.ndarray, np.ndarray]:
     return _box_surface((-h, -h, 0.0), (h, h, BAR_LENGTH), (r, r, round(r * BAR_LENGTH)))
 
 
+def bar_tets(resolution: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Tetrahedral mesh of the 1 x 1 x 5 bar's solid, on a structured grid.
+
+    Each grid cube is split into six tetrahedra around its main diagonal (Kuhn's
+    subdivision, conforming between neighbouring cubes), all positively oriented.
+
+    Parameters
+    ----------
+    resolution : int
+        Grid cells per unit length (10: 30,000 tetrahedra, 6,171 vertices).
+
+    Returns
+    -------
+    points : (N, 3) float64
+    tets : (T, 4) int64
+        Positive volume (``det [x1 - x0, x2 - x0, x3 - x0] > 0``).
+    """
+    r = int(resolution)
+    if r < 1:
+        raise ValueError(f"resolution must be at least 1; got {resolution}")
+    h = BAR_WIDTH / 2
+    dims = (r + 1, r + 1, round(r * BAR_LENGTH) + 1)
+    axes = [
+        np.linspace(-h, h, dims[0]),
+        np.linspace(-h, h, dims[1]),
+        np.linspace(0, BAR_LENGTH, dims[2]),
+    ]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    ids = np.arange(points.shape[0]).reshape(dims)
+    i, j, k = (a.ravel() for a in np.meshgrid(*(np.arange(d - 1) for d in dims), indexing="ij"))
+    corner = {(a, b, c): ids[i + a, j + b, k + c] for a in (0, 1) for b in (0, 1) for c in (0, 1)}
+    tets = []
+    # the six monotone paths from corner (0,0,0) to (1,1,1), one tetrahedron each
+    for order in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        path = [(0, 0, 0)]
+        for axis in order:
+            step = list(path[-1])
+            step[axis] = 1
+            path.append(tuple(step))
+        tets.append(np.column_stack([corner[c] for c in path]))
+    tets = np.concatenate(tets)
+    x = points[tets]
+    vol = np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]))
+    flip = vol < 0
+    tets[flip] = tets[flip][:, [0, 2, 1, 3]]
+    return points, tets
+
+
 def bar_cage(divisions=(2, 2, 12)):
     """The bar's cage: a 1.3 x 1.3 x 5.4 box around it (z in [-0.2, 5.2]).
 
@@ -166,13 +231,14 @@ class BarScenario:
         """Solve, ramping the targets over ``steps`` warm-started solves.
 
         ``steps`` defaults to 6 for ``"twist"`` (a 180 degree twist from the identity sits on
-        a saddle) and 1 for the other kinds. Intermediate targets interpolate positions
+        a saddle), 8 for ``"push"`` (a continuation, so the fold is the one reached by
+        pushing) and 1 for the other kinds. Intermediate targets interpolate positions
         linearly and Jacobian rotations by angle (scale factors linearly). Extra keyword
         arguments go to :meth:`Deformer.solve`; the reports of all steps are returned (the
         last one describes the final solve).
         """
         if steps is None:
-            steps = 6 if self.kind == "twist" else 1
+            steps = {"twist": 6, "push": 8}.get(self.kind, 1)
         return self.scene.solve(self.deformer, steps=steps, **kwargs)
 
     def deformed_points(self, binding=None) -> np.ndarray:
@@ -190,12 +256,13 @@ def bar(
     n_anchors: int = 6,
     resolution: int = 39,
     cage_divisions=(2, 2, 12),
+    top_height: float = 2.5,
 ) -> BarScenario:
     """The bar scenario of the given kind, with a ready :class:`~vhm_viz.Deformer`.
 
     Parameters
     ----------
-    kind : {"bend-u", "bend-90", "twist", "bulge"}
+    kind : {"bend-u", "bend-90", "twist", "bulge", "push"}
     mode : {"rigid", "similar"}
     alpha : float
         Deformer stiffness.
@@ -205,6 +272,8 @@ def bar(
         Surface grid cells per unit length (39: 33,464 vertices).
     cage_divisions : (int, int, int)
         Cage cells along x, y, z (default 208 triangles).
+    top_height : float
+        ``"push"`` only: where the top centre goes, ``(0, 0, top_height)``.
 
     Returns
     -------
@@ -213,8 +282,8 @@ def bar(
     from vhm_viz.core.anchors import anchors_from_polylines
     from vhm_viz.scene import Scene
 
-    if kind not in BAR_KINDS:
-        raise ValueError(f"kind must be one of {BAR_KINDS}; got {kind!r}")
+    if kind not in BAR_KINDS + FOLD_KINDS:
+        raise ValueError(f"kind must be one of {BAR_KINDS + FOLD_KINDS}; got {kind!r}")
     points, tris = bar_surface(resolution)
     cage = bar_cage(cage_divisions)
     anchors = anchors_from_polylines(
@@ -230,6 +299,8 @@ def bar(
         top_target, top_jac = np.array([[_BEND_REACH, 0.0, 0.0]]), rotation("y", 180)
     elif kind in ("bend-90", "bulge"):
         top_target, top_jac = np.array([[_BEND_REACH, 0.0, _BEND_REACH]]), rotation("y", 90)
+    elif kind == "push":
+        top_target, top_jac = np.array([[0.0, 0.0, float(top_height)]]), np.eye(3)
     else:  # twist
         top_target, top_jac = top.copy(), rotation("z", 180)
     positions = np.vstack([bottom, top])

@@ -59,6 +59,7 @@ __all__ = [
     "OverwriteError",
     "json_text",
     "suffix_of",
+    "cell_types",
 ]
 
 #: Dataset formats :func:`read_dataset` reads (VTK's readers, meshio for MEDIT/OFF, and
@@ -1135,7 +1136,7 @@ def _polygons_of(data) -> tuple[np.ndarray, list[np.ndarray]]:
     from vtkmodules.vtkFiltersGeometry import vtkDataSetSurfaceFilter
 
     if data.IsA("vtkUnstructuredGrid") and data.GetNumberOfCells():
-        types = _cell_types(data)
+        types = cell_types(data)
         if np.isin(types, [VTK_TRIANGLE, VTK_QUAD, VTK_POLYGON]).all():
             return _points_of(data), _cell_lists(data.GetCells())
     if not data.IsA("vtkPolyData"):
@@ -1151,7 +1152,7 @@ def _polygons_of(data) -> tuple[np.ndarray, list[np.ndarray]]:
     return _points_of(data), _cell_lists(data.GetPolys())
 
 
-def _cell_types(grid) -> np.ndarray:
+def cell_types(grid) -> np.ndarray:
     """Cell type of every cell of an unstructured grid (VTK 9.2 to 9.6 spell it differently)."""
     from vtkmodules.util import numpy_support as ns
 

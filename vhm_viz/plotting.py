@@ -6,6 +6,9 @@
 * :func:`figure12` -- the paper's Figure 12: histogram of condition numbers (a matplotlib
   ``Figure``), optionally comparing several deformations.
 * :func:`energy_plot` -- energy against iteration (the paper's Figure 7).
+* :func:`injectivity_figure` -- the answer of :func:`vhm_viz.certify_injectivity` on the
+  Figure 4 slice: witnesses of folds and the cubes left undecided, mapped into the
+  deformed shape.
 
 Every function takes ``filename`` to save a PNG and returns the Plotter/Figure. Matplotlib
 figures are created without pyplot (no GUI backend needed).
@@ -17,7 +20,15 @@ import os
 
 import numpy as np
 
-__all__ = ["jacobian_slice", "figure4", "figure12", "energy_plot", "default_slice_normal"]
+__all__ = [
+    "jacobian_slice",
+    "figure4",
+    "figure12",
+    "energy_plot",
+    "injectivity_figure",
+    "mapped_boxes",
+    "default_slice_normal",
+]
 
 _AXES = np.eye(3)
 
@@ -364,3 +375,124 @@ def energy_plot(
     if filename is not None:
         fig.savefig(os.fspath(filename), dpi=dpi)
     return fig
+
+
+def mapped_boxes(boxes, harmonic_map):
+    """Axis-aligned boxes ``(lo, hi)`` as hexahedra with their corners mapped.
+
+    Parameters
+    ----------
+    boxes : (k, 2, 3) array_like
+        E.g. :attr:`InjectivityCertificate.undecided`.
+    harmonic_map : HarmonicMap
+
+    Returns
+    -------
+    pyvista.UnstructuredGrid
+    """
+    import pyvista as pv
+
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 2, 3)
+    lo, hi = boxes[:, 0], boxes[:, 1]
+    # VTK hexahedron corner order: bottom face counter-clockwise, then the top face
+    sel = np.array(
+        [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]]
+    )
+    corners = np.where(sel[None].astype(bool), hi[:, None], lo[:, None]).reshape(-1, 3)
+    mapped = harmonic_map.map(corners, outside="passthrough")
+    k = len(boxes)
+    cells = np.hstack([np.full((k, 1), 8), np.arange(8 * k).reshape(k, 8)]).ravel()
+    return pv.UnstructuredGrid(cells, np.full(k, pv.CellType.HEXAHEDRON), mapped)
+
+
+def injectivity_figure(
+    deformed_slice,
+    certificate,
+    harmonic_map,
+    *,
+    deformed_surface=None,
+    window_size=(1000, 800),
+    max_cubes: int = 20000,
+    filename=None,
+    off_screen: bool = True,
+):
+    """The injectivity certificate on the Figure 4 slice, in the deformed shape.
+
+    The slice is coloured by ``det J`` (blue to red, white at 1; values ``<= 0`` are the
+    darkest blue); witnesses (points with ``det J <= 0``) are red spheres and the cubes left
+    undecided are orange wireframes, both mapped by the deformation. The title states the
+    answer: certified, not injective, or undecided.
+
+    Parameters
+    ----------
+    deformed_slice : pyvista.DataSet
+        From :func:`jacobian_slice`.
+    certificate : InjectivityCertificate
+        From :func:`vhm_viz.certify_injectivity`.
+    harmonic_map : HarmonicMap
+        The map certified (maps the witnesses and cubes).
+    deformed_surface : pyvista.DataSet, optional
+        The deformed data; its surface is drawn as a faint silhouette.
+    window_size : (int, int)
+    max_cubes : int
+        Undecided cubes drawn at most (those nearest the slice plane).
+    filename : str or path-like, optional
+        Save a PNG there.
+    off_screen : bool
+
+    Returns
+    -------
+    pyvista.Plotter
+    """
+    import pyvista as pv
+
+    det = np.asarray(deformed_slice.point_data["jacobian_determinant"])
+    half = max(1.0, float(np.nanmax(np.abs(det - 1.0))) if det.size else 1.0)
+    normal = np.asarray(
+        deformed_slice.field_data.get("slice_normal", [0.0, 1.0, 0.0]), dtype=np.float64
+    ).ravel()[:3]
+    pl = pv.Plotter(off_screen=off_screen, window_size=list(window_size))
+    pl.set_background("white")
+    pl.add_mesh(
+        deformed_slice.copy(),
+        scalars="jacobian_determinant",
+        cmap="coolwarm",
+        clim=(1.0 - half, 1.0 + half),
+        lighting=False,
+        scalar_bar_args={"title": "det J", "color": "black", "fmt": "%.2f", "vertical": False},
+    )
+    if deformed_surface is not None:
+        outline = deformed_surface
+        if not isinstance(outline, pv.PolyData):
+            outline = _surface(outline)
+        pl.add_mesh(outline, color="lightgrey", opacity=0.15, lighting=False)
+    boxes = np.asarray(certificate.undecided, dtype=np.float64).reshape(-1, 2, 3)
+    if len(boxes):
+        if len(boxes) > max_cubes:
+            rest = np.asarray(deformed_slice.point_data["rest_points"])
+            origin = rest.mean(axis=0)
+            gap = np.abs((boxes.mean(axis=1) - origin) @ normal)
+            boxes = boxes[np.argsort(gap)[:max_cubes]]
+        pl.add_mesh(
+            mapped_boxes(boxes, harmonic_map),
+            style="wireframe",
+            color="darkorange",
+            line_width=1,
+            lighting=False,
+            label="undecided",
+        )
+    witnesses = np.asarray(certificate.witnesses, dtype=np.float64).reshape(-1, 3)
+    if len(witnesses):
+        pl.add_mesh(
+            pv.PolyData(harmonic_map.map(witnesses, outside="passthrough")),
+            color="red",
+            point_size=14,
+            render_points_as_spheres=True,
+            label="witness (det J <= 0)",
+        )
+    pl.add_text(certificate.summary(), font_size=10, color="black")
+    pl.camera_position = _view_along(deformed_slice, normal)
+    pl.reset_camera()
+    if filename is not None:
+        pl.screenshot(os.fspath(filename))
+    return pl

@@ -25,6 +25,11 @@ Life cycle
 * Constraint points live in rest space; targets in deformed space. A position constraint
   added at a point starts with the point's current image as target (the shape does not
   jump); a Jacobian constraint starts at the closest similarity to the current Jacobian.
+* Analysis: :meth:`ExplorerController.metrics` counts the inverted cells of data with 3D
+  cells (from the displayed, float32-bound positions; ``vhm-viz analyze`` and the export
+  evaluate in float64), and :meth:`ExplorerController.certify` proves the current map
+  injective over the shape or finds witnesses (:func:`vhm_viz.certify_injectivity`); the
+  certificate is dropped by the next solve, since it belongs to one solution.
 """
 
 from __future__ import annotations
@@ -230,6 +235,8 @@ class ExplorerController:
         The proxy (deformed in place by :meth:`drag`), built by :meth:`prepare`.
     full_stale : bool
         The display dataset lags behind the solution (dragging showed the proxy).
+    certificate : InjectivityCertificate or None
+        The last :meth:`certify` answer, while the solution it certified is shown.
     """
 
     def __init__(self) -> None:
@@ -266,6 +273,8 @@ class ExplorerController:
         self._initial_contraction = None
         #: Messages for the user from the last load (e.g. an old scene file converted).
         self.notes: list[str] = []
+        self.certificate = None
+        self._certified_map = None
 
     # ------------------------------------------------------------------ data
     @property
@@ -320,6 +329,7 @@ class ExplorerController:
         self.proxy_binding = None
         self.full_stale = False
         self.last_report = None
+        self.certificate = None
         self._initial_rotations = None
         self._initial_contraction = None
         self._deformer_stale = True
@@ -618,6 +628,7 @@ class ExplorerController:
         OutsideCageError, ConstraintError, ValueError
             Invalid anchors or constraints (the message names them).
         """
+
         def check():
             if cancelled():
                 raise Cancelled("cancelled")
@@ -714,6 +725,7 @@ class ExplorerController:
             self.prepare()
         if self._targets_stale:
             self._push_targets()
+        self.certificate = None  # it certified the previous solution
         self.deformer.mode = self.mode
         contraction = None
         if self._initial_rotations is not None:
@@ -811,7 +823,79 @@ class ExplorerController:
         if self.last_report is not None:
             out["energy"] = self.last_report.final_energy
             out["iterations"] = self.last_report.iterations
+        if self.rest is not None and self.display is not None:
+            from vhm_viz.filters import cell_quality
+
+            quality = cell_quality(self.rest, self.deformed_points)
+            if quality is not None:
+                out["inverted_cells"] = quality["summary"]["inverted"]
+                out["cells"] = quality["summary"]["cells"]
+        if self.certificate is not None:
+            out["certificate"] = self.certificate.status
         return out
+
+    def certify(
+        self,
+        max_cubes: int = 200_000,
+        progress: ProgressFn = _noop_progress,
+        cancelled=lambda: False,
+    ):
+        """Certify the current map injective over the shape, or find witnesses of folds.
+
+        The region is :func:`vhm_viz.filters.region_of` of the loaded data (a tet mesh's
+        tetrahedra, a closed surface's solid, a volume's box, or the cage's interior for a
+        point cloud). Safe to run in a worker thread while the UI does not modify the
+        controller; the answer is kept in :attr:`certificate` until the next solve.
+
+        Returns
+        -------
+        InjectivityCertificate
+
+        Raises
+        ------
+        ConstraintError
+            Nothing solved yet.
+        Cancelled
+            ``cancelled()`` became true.
+        """
+        from vhm_viz.core.certify import certify_injectivity
+        from vhm_viz.filters import region_of
+
+        if not self.ready or self.last_report is None:
+            raise ConstraintError("solve before certifying (nothing is deformed yet)")
+        hm = self.deformer.harmonic_map
+        region = region_of(self.rest, self.cage)
+        try:
+            cert = certify_injectivity(
+                hm, region, max_cubes=max_cubes, progress=progress, abort=cancelled
+            )
+        except AbortedError as exc:
+            raise Cancelled("cancelled") from exc
+        self.certificate, self._certified_map = cert, hm
+        return cert
+
+    def certificate_geometry(self):
+        """What to draw of :attr:`certificate`, in deformed space.
+
+        Returns
+        -------
+        witnesses : (w, 3) ndarray
+            Images of the witnesses (``det J <= 0`` there).
+        undecided : pyvista.UnstructuredGrid or None
+            The undecided cubes as hexahedra with mapped corners.
+        """
+        if self.certificate is None:
+            return np.zeros((0, 3)), None
+        from vhm_viz.plotting import mapped_boxes
+
+        hm, cert = self._certified_map, self.certificate
+        witnesses = (
+            hm.map(cert.witnesses, outside="passthrough")
+            if len(cert.witnesses)
+            else np.zeros((0, 3))
+        )
+        cubes = mapped_boxes(cert.undecided, hm) if len(cert.undecided) else None
+        return witnesses, cubes
 
     def triangles(self) -> np.ndarray | None:
         """(m, 3) triangles of a polygonal surface made only of triangles, else None."""
@@ -948,9 +1032,7 @@ class ExplorerController:
         ]
         new.jacobians = [
             JacobianConstraint.from_matrix(p, j)
-            for p, j in zip(
-                args.get("jacobian_points", ()), args.get("jacobians", ()), strict=True
-            )
+            for p, j in zip(args.get("jacobian_points", ()), args.get("jacobians", ()), strict=True)
         ]
         new._layout_stale = True
         if scene.solution is not None and scene.solution.shape == (len(new.anchors), 3, 3):

@@ -231,6 +231,7 @@ class ExplorerWindow(QMainWindow):
 
         s = mb.addMenu("&Solve")
         self._action(s, "Solve to convergence", self.full_solve, "F5")
+        self.certify_action = self._action(s, "&Certify injectivity", lambda: self.certify(), "F6")
         self._action(s, "Reset camera", lambda: self.plotter.reset_camera(), "R")
 
         tb = self.addToolBar("Interaction")
@@ -803,6 +804,45 @@ class ExplorerWindow(QMainWindow):
             self.status(f"solver stopped after {rep.iterations} iterations (not converged)")
 
     @guarded
+    def certify(self, max_cubes: int = 200_000) -> None:
+        """Certify the shown deformation over the shape in the background, then draw it.
+
+        Witnesses (``det J <= 0``) are drawn as red spheres, undecided cubes as orange
+        wireframes, both in deformed space; the analysis dock shows the answer.
+        """
+        ctrl = self.ctrl
+
+        def job(progress, cancelled):
+            return ctrl.certify(max_cubes, progress, cancelled)
+
+        def done(cert):
+            self._show_certificate()
+            self.update_analysis()
+            self.plotter.render()
+            self.status(cert.summary(), 15000)
+
+        self.run_job("certify", job, done)
+
+    def _show_certificate(self) -> None:
+        """Draw (or remove) the current certificate's witnesses and undecided cubes."""
+        import pyvista as pv
+
+        for name in ("witnesses", "undecided"):
+            self._remove(name)
+        witnesses, cubes = self.ctrl.certificate_geometry()
+        if len(witnesses):
+            self._actors["witnesses"] = self.plotter.add_mesh(
+                pv.PolyData(witnesses), color="red", point_size=16,
+                render_points_as_spheres=True, name="witnesses", render=False,
+                reset_camera=False, pickable=False,
+            )  # fmt: skip
+        if cubes is not None:
+            self._actors["undecided"] = self.plotter.add_mesh(
+                cubes, style="wireframe", color="darkorange", name="undecided", render=False,
+                reset_camera=False, pickable=False,
+            )  # fmt: skip
+
+    @guarded
     def full_solve(self) -> None:
         """Solve to convergence (builds what is stale first)."""
         if not self.ctrl.ready:
@@ -1174,6 +1214,10 @@ class ExplorerWindow(QMainWindow):
             self.report_error(f"metrics: {exc}", traceback.format_exc())
 
     def _finish_metrics(self, m: dict) -> None:
+        if self.ctrl.certificate is None and (
+            "witnesses" in self._actors or "undecided" in self._actors
+        ):
+            self._show_certificate()  # the solution changed: the old answer is gone
         ap = self.analysis_panel
         if self.ctrl.ready and self.ctrl.last_report is not None:
             m.update(self.ctrl.metrics())

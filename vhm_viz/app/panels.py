@@ -345,12 +345,14 @@ class AnalysisPanel(QWidget):
         lay.addWidget(self.metrics)
 
     def show_metrics(self, m: dict) -> None:
-        """Show E_rigid, E_volume, foldovers, energy and iterations."""
+        """Show E_rigid, E_volume, foldovers, inverted cells, certificate, energy, iterations."""
         parts = []
         for key, fmt in (
             ("E_rigid", "{:.4g}"),
             ("E_volume", "{:.4g}"),
             ("foldovers", "{:d}"),
+            ("inverted_cells", "{:d}"),
+            ("certificate", "{}"),
             ("energy", "{:.4g}"),
             ("iterations", "{:d}"),
         ):

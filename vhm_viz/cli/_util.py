@@ -260,3 +260,73 @@ def _surface_metrics(rest, deformed) -> dict:
         if v0 > 0:
             out["E_volume"] = abs(float(deformed.volume) - v0) / v0
     return out
+
+
+#: Points at which ``vhm-viz deform`` samples ``det J`` for its fold warning (evenly spread).
+FOLD_SAMPLES = 20000
+
+
+def _where(points: np.ndarray, values: np.ndarray) -> str:
+    """``worst -0.12 at (x, y, z), within [lo]-[hi]`` for the bad points (rest positions)."""
+    k = int(np.argmin(values))
+    fmt = lambda p: "(" + ", ".join(f"{c:.4g}" for c in p) + ")"  # noqa: E731
+    text = f"worst {values[k]:.3g} at {fmt(points[k])}"
+    if len(points) > 1:
+        text += f", within {fmt(points.min(0))}-{fmt(points.max(0))}"
+    return text
+
+
+def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:
+    """One warning line when a deformation folds the data, naming how many and where.
+
+    Parameters
+    ----------
+    rest : pyvista.DataSet
+        The rest data (positions in the message are rest positions).
+    harmonic_map : HarmonicMap
+    cells : dict, optional
+        :func:`vhm_viz.filters.cell_quality` of the output (3D cells only).
+    point_det : (N,) array_like, optional
+        ``det J`` at every point, when already computed; else it is sampled exactly at up
+        to :data:`FOLD_SAMPLES` points.
+
+    Returns
+    -------
+    str or None
+        None when no cell is inverted and no sampled ``det J`` is ``<= 0``.
+    """
+    import pyvista as pv
+
+    parts = []
+    if cells is not None and cells["summary"]["inverted"]:
+        det = np.asarray(cells["determinant"])
+        bad = np.nonzero(det <= 0)[0]
+        centres = np.asarray(pv.wrap(rest).extract_cells(bad).cell_centers().points)
+        parts.append(
+            f"{bad.size} of {cells['summary']['cells']} cells inverted "
+            f"(cell det <= 0; {_where(centres, det[bad])})"
+        )
+    points = np.asarray(rest.points, dtype=np.float64)
+    if point_det is None:
+        idx = np.unique(np.linspace(0, len(points) - 1, min(len(points), FOLD_SAMPLES)).astype(int))
+        jac = harmonic_map.evaluate(points[idx], order=1, outside="nan")[1]
+        ok = np.isfinite(jac).all(axis=(1, 2))
+        idx, det = idx[ok], np.linalg.det(jac[ok])
+        what = f"{idx.size} sampled points"
+    else:
+        det = np.asarray(point_det, dtype=np.float64)
+        idx = np.nonzero(np.isfinite(det))[0]
+        det = det[idx]
+        what = f"{idx.size} points"
+    bad = det <= 0
+    if bad.any():
+        parts.append(
+            f"det J <= 0 at {int(bad.sum())} of {what} ({_where(points[idx][bad], det[bad])})"
+        )
+    if not parts:
+        return None
+    return (
+        "warning: the deformation folds the data: "
+        + "; ".join(parts)
+        + " (rest positions; vhm-viz analyze --certify checks every point)"
+    )

@@ -1,4 +1,12 @@
-"""``vhm-viz analyze``: quality figures and metrics of a deformation."""
+"""``vhm-viz analyze``: quality figures, metrics and the analysed dataset of a deformation.
+
+Writes into the output directory the paper's Figure 4 and 12 plots, the energy curve,
+``metrics.json`` and the analysed dataset (``analysis.vtu`` / ``.vtp`` / ``.vti`` / ...: the
+rest shape with the point arrays of the Jacobian, the cell arrays of the deformed cells and
+the point vectors ``displacement``). With ``--certify`` it also proves (or refutes) that the
+map has no foldover anywhere in the shape (:func:`vhm_viz.certify_injectivity`), adding
+``"injectivity"`` to the metrics and ``injectivity.png``.
+"""
 
 from __future__ import annotations
 
@@ -21,7 +29,8 @@ from vhm_viz.cli._util import (
     surface_metrics,
 )
 from vhm_viz.core.errors import OutsideCageError
-from vhm_viz.io import atomic_outputs, json_text, read_dataset, write_text
+from vhm_viz.core.metrics import finite_or_none
+from vhm_viz.io import atomic_outputs, json_text, read_dataset, write_dataset, write_text
 
 #: Files written by ``analyze`` into the output directory.
 FILES = {
@@ -29,6 +38,15 @@ FILES = {
     "figure12": "figure12_condition_histogram.png",
     "energy": "energy.png",
     "metrics": "metrics.json",
+    "injectivity": "injectivity.png",
+}
+#: Name of the analysed dataset per dataset type (VTK's XML format of that type).
+ANALYSIS_FILES = {
+    "PolyData": "analysis.vtp",
+    "UnstructuredGrid": "analysis.vtu",
+    "ImageData": "analysis.vti",
+    "StructuredGrid": "analysis.vts",
+    "RectilinearGrid": "analysis.vtr",
 }
 
 
@@ -39,8 +57,11 @@ def add_parser(subparsers) -> None:
         help="figures and metrics of a deformation (Figure 4 slices, Figure 12 histogram)",
         description="Solve SCENE for INPUT and write into DIR: the paper's Figure 4 (a slice "
         "coloured by det J and by cond J), Figure 12 (condition-number histogram), the "
-        "energy-vs-iteration plot, and metrics.json (E_rigid and E_volume where the data "
-        "has a surface, det/cond statistics, foldovers).",
+        "energy-vs-iteration plot, metrics.json (E_rigid and E_volume where the data "
+        "has a surface, det/cond statistics, foldovers, and for meshes with 3D cells the "
+        "inverted cells) and the analysed dataset (analysis.vtu/.vtp/.vti) with its point "
+        "and cell arrays. --certify proves that the map folds nowhere in the shape, or "
+        "finds where it does.",
     )
     p.add_argument("input", metavar="INPUT", help="rest-pose dataset")
     p.add_argument("--scene", "-s", required=True, metavar="SCENE", help="scene file (JSON)")
@@ -59,6 +80,19 @@ def add_parser(subparsers) -> None:
         help="slice normal as x,y,z (default: the axis of least displacement)",
     )
     add_convergence_argument(p)
+    p.add_argument(
+        "--certify",
+        action="store_true",
+        help="certify local injectivity over the shape (det J > 0 everywhere, not only at "
+        "samples): adds 'injectivity' to metrics.json and injectivity.png",
+    )
+    p.add_argument(
+        "--max-cubes",
+        type=int,
+        default=200_000,
+        metavar="N",
+        help="--certify: cubes examined at most before answering 'undecided' (default 200000)",
+    )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -106,10 +140,14 @@ def analyze(args: argparse.Namespace) -> str:
 
     src = check_input(args.input)
     normal = _parse_normal(args.normal)
+    if args.max_cubes < 1:
+        raise CLIError(f"--max-cubes must be at least 1; got {args.max_cubes}")
     scene = load_scene(args.scene)
     # never write onto the data, the scene or any file the scene names
     out_dir = check_output_directory(
-        args.output, FILES.values(), [src, args.scene, *scene.referenced_files()]
+        args.output,
+        [*FILES.values(), *ANALYSIS_FILES.values()],
+        [src, args.scene, *scene.referenced_files()],
     )
     mesh = read_dataset(src)
 
@@ -141,9 +179,12 @@ def analyze(args: argparse.Namespace) -> str:
     deformer_filter.SetDeformer(dfm)
     deformer_filter.SetOutsidePolicy(args.outside)
     deformed = pv.wrap(update(deformer_filter))
+    analysed.point_data["displacement"] = np.asarray(deformed.points) - np.asarray(mesh.points)
+    analysis_name = ANALYSIS_FILES.get(type(analysed).__name__, "analysis.vtk")
 
     surf = deformed if isinstance(deformed, pv.PolyData) else None
     slice_ = plotting.jacobian_slice(mesh, hm, normal=normal)
+    certificate = _certify(dfm, mesh, args) if args.certify else None
 
     metrics = {
         "input": str(src),
@@ -159,18 +200,35 @@ def analyze(args: argparse.Namespace) -> str:
         "condition_number": _stats(cond),
         "rotation_angle_degrees": _stats(rot),
         "foldovers": int(np.count_nonzero(det <= 0)),
+        "analysis": analysis_name,
         "slice": {
             "normal": np.asarray(slice_.field_data["slice_normal"]).ravel().tolist(),
             "jacobian_determinant": _stats(slice_.point_data["jacobian_determinant"]),
             "condition_number": _stats(slice_.point_data["condition_number"]),
         },
     }
+    if ana.cell_summary is not None:
+        metrics["cells"] = {
+            k: finite_or_none(v) if isinstance(v, float) else v for k, v in ana.cell_summary.items()
+        }
+    if certificate is not None:
+        metrics["injectivity"] = certificate.to_json()
     # the report is one unit: its files appear together, or the old ones stay untouched
     with atomic_outputs(out_dir) as stage:
+        write_dataset(stage / analysis_name, analysed)
         pl = plotting.figure4(slice_, deformed_surface=surf, filename=stage / FILES["figure4"])
         pl.close()
         plotting.figure12({scene.mode: cond}, filename=stage / FILES["figure12"])
         plotting.energy_plot(reports, filename=stage / FILES["energy"])
+        if certificate is not None:
+            pl = plotting.injectivity_figure(
+                slice_,
+                certificate,
+                hm,
+                deformed_surface=deformed,
+                filename=stage / FILES["injectivity"],
+            )
+            pl.close()
         write_text(stage / FILES["metrics"], json_text(metrics))
     seconds = time.perf_counter() - t0
     summary = [f"analyzed {mesh.n_points} points"]
@@ -183,5 +241,24 @@ def analyze(args: argparse.Namespace) -> str:
         f"{metrics['jacobian_determinant'].get('max', float('nan')):.3f}]"
     )
     summary.append(f"{metrics['foldovers']} foldovers")
+    if "cells" in metrics:
+        c = metrics["cells"]
+        summary.append(f"{c['inverted']} of {c['cells']} cells inverted")
+        if c["rest_inverted"]:
+            summary.append(f"{c['rest_inverted']} cells inverted at rest (not counted)")
+    if certificate is not None:
+        summary.append(certificate.summary())
     summary.append(f"{seconds:.1f} s")
     return ", ".join(summary) + f" -> {out_dir}/"
+
+
+def _certify(dfm, mesh, args):
+    """Certify the map over the shape's region, with a progress bar."""
+    from vhm_viz.core.certify import certify_injectivity
+    from vhm_viz.filters import region_of
+
+    region = region_of(mesh, dfm.cage)
+    bar = Progress("certify", enabled=not args.quiet)
+    cert = certify_injectivity(dfm, region, max_cubes=args.max_cubes, progress=bar)
+    bar.finish()
+    return cert

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 from vhm_viz.cli._util import (
     OUTPUT_SUFFIXES,
@@ -14,6 +17,7 @@ from vhm_viz.cli._util import (
     build_and_solve,
     check_input,
     check_output,
+    fold_warning,
     load_scene,
     observe_progress,
     outside_message,
@@ -34,7 +38,9 @@ def add_parser(subparsers) -> None:
         description="Deform INPUT with the variational harmonic map described by SCENE and "
         "write OUTPUT. Surfaces stay surfaces, tet meshes stay tet meshes; a volume (.vti) "
         "written to .vti is resampled onto a regular grid (pull-back through the inverse "
-        "map), to .vts it becomes a warped structured grid. Prints one summary line.",
+        "map), to .vts it becomes a warped structured grid. Prints one summary line, and a "
+        "warning line (stderr) when the output has inverted cells or det J <= 0 at sampled "
+        "points.",
         epilog=f"input types: {' '.join(DATASET_SUFFIXES)}, or a DICOM folder. Example: "
         "vhm-viz deform bar.vtp "
         "--scene bar.json -o bent.vtp",
@@ -56,7 +62,10 @@ def add_parser(subparsers) -> None:
         "flagged by the point array vhm_outside",
     )
     p.add_argument(
-        "--arrays", default="", help="comma-separated extra point arrays: displacement, det, cond"
+        "--arrays",
+        default="",
+        help="comma-separated extra arrays: displacement, det, cond (point arrays), cells "
+        "(cell_jacobian_determinant, cell_condition_number, cell_inverted of 3D cells)",
     )
     p.add_argument(
         "--fill-value",
@@ -78,10 +87,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _parse_arrays(text: str) -> set[str]:
     names = {t.strip() for t in text.split(",") if t.strip()}
-    known = {"displacement", "det", "cond"}
+    known = {"displacement", "det", "cond", "cells"}
     bad = sorted(names - known)
     if bad:
-        raise CLIError(f"unknown --arrays entry {bad[0]!r}; use displacement, det, cond")
+        raise CLIError(f"unknown --arrays entry {bad[0]!r}; use displacement, det, cond, cells")
     return names
 
 
@@ -120,6 +129,7 @@ def deform(args: argparse.Namespace) -> str:
         flt.SetComputeDisplacement("displacement" in arrays)
         flt.SetComputeJacobianDeterminant("det" in arrays)
         flt.SetComputeConditionNumber("cond" in arrays)
+        flt.SetComputeCellQuality("cells" in arrays)
         label = "binding"
     flt.SetInputData(mesh)
     flt.SetDeformer(dfm)
@@ -132,8 +142,11 @@ def deform(args: argparse.Namespace) -> str:
     bar.finish()
     # everything that can fail happens before the write: an error never follows an output
     summary = _summary(mesh, result, reports, flt, resample)
+    warning = _check_folds(mesh, result, dfm, flt, resample)
     write_dataset(out, result)
     seconds = time.perf_counter() - t0
+    if warning:
+        print(warning, file=sys.stderr)
     return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {out}"
 
 
@@ -160,3 +173,18 @@ def _output_type(mesh) -> str:
     if isinstance(mesh, pv.UnstructuredGrid):
         return "UnstructuredGrid"
     return "StructuredGrid"
+
+
+def _check_folds(mesh, result, dfm, flt, resample: bool) -> str | None:
+    """The fold warning of the output: inverted cells and sampled det J <= 0."""
+    from vhm_viz.filters import cell_quality
+
+    cells = None
+    point_det = None
+    if not resample:
+        cells = cell_quality(mesh, result.points)
+        if "jacobian_determinant" in result.point_data:
+            point_det = np.asarray(result.point_data["jacobian_determinant"])
+            if "vhm_outside" in result.point_data:  # passthrough points are not the map's
+                point_det = np.where(result.point_data["vhm_outside"] == 0, point_det, np.nan)
+    return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det)

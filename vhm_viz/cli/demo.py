@@ -162,10 +162,14 @@ def demo(args: argparse.Namespace):
         tet_filter.SetInputData(tets)
         tet_filter.SetDeformer(dfm)
         tet_filter.SetComputeJacobianDeterminant(True)
+        tet_filter.SetComputeCellQuality(True)
         tet_bent = pv.wrap(update(tet_filter))
-        save(tet_bent, "bar_tets_bent.vtu", "deformed tet mesh")
+        save(tet_bent, "bar_tets_bent.vtu", "deformed tet mesh (with cell quality arrays)")
         v0, v1 = tets.volume, tet_bent.volume
-        tet_line = f"tets: {tets.n_cells} tetrahedra, volume change {abs(v1 - v0) / v0:.4f}"
+        tet_line = (
+            f"tets: {tets.n_cells} tetrahedra, volume change {abs(v1 - v0) / v0:.4f}, "
+            f"{tet_filter.cell_summary['inverted']} inverted"
+        )
 
     # 4. a voxelised bar ---------------------------------------------------------------------
     vol = bar_volume(args.voxel)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 
@@ -151,3 +154,59 @@ def triangulate_polygons(points: np.ndarray, polygons) -> np.ndarray:
             continue  # points / polyline records
         tris.extend(_triangulate_polygon(points, poly))
     return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+
+
+@numba.njit(cache=True, inline="always")
+def closest_point_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):  # pragma: no cover
+    """Closest point of the triangle ``(a, b, c)`` to ``p``, compiled, scalar coordinates.
+
+    The Voronoi-region tests of Ericson (Real-Time Collision Detection, 2004, 5.1.5).
+
+    Returns
+    -------
+    qx, qy, qz : float
+        The closest point.
+    region : int
+        0 face interior, 1 edge ab, 2 edge bc, 3 edge ca, 4 vertex a, 5 vertex b, 6 vertex c.
+    """
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = abx * apx + aby * apy + abz * apz
+    d2 = acx * apx + acy * apy + acz * apz
+    if d1 <= 0.0 and d2 <= 0.0:
+        return ax, ay, az, 4
+    bpx, bpy, bpz = px - bx, py - by, pz - bz
+    d3 = abx * bpx + aby * bpy + abz * bpz
+    d4 = acx * bpx + acy * bpy + acz * bpz
+    if d3 >= 0.0 and d4 <= d3:
+        return bx, by, bz, 5
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        return ax + v * abx, ay + v * aby, az + v * abz, 1
+    cpx, cpy, cpz = px - cx, py - cy, pz - cz
+    d5 = abx * cpx + aby * cpy + abz * cpz
+    d6 = acx * cpx + acy * cpy + acz * cpz
+    if d6 >= 0.0 and d5 <= d6:
+        return cx, cy, cz, 6
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        w = d2 / (d2 - d6)
+        return ax + w * acx, ay + w * acy, az + w * acz, 3
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz), 2
+    s = 1.0 / (va + vb + vc)
+    v = vb * s
+    w = vc * s
+    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w, 0
+
+
+@numba.njit(cache=True, inline="always")
+def triangle_distance(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):  # pragma: no cover
+    """Distance from ``p`` to the triangle ``(a, b, c)`` (compiled, scalar coordinates)."""
+    qx, qy, qz, _ = closest_point_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
+    dx, dy, dz = px - qx, py - qy, pz - qz
+    return math.sqrt(dx * dx + dy * dy + dz * dz)

@@ -173,11 +173,13 @@ class HarmonicMap:
             if not ins.all() and outside == "error":
                 self._raise_outside(p, s, ins)
             f[rows] = np.where(ins[:, None], self._offset + b.values @ z, p[rows])
+            # all inside (the usual case): no copies of the basis arrays, one matrix product
+            sel = slice(None) if ins.all() else ins
             if order >= 1:
                 # gradients[k, j, c] z[c, i] = d f_i / d x_j  ->  J[k, i, j]
-                jac[rows][ins] = np.swapaxes(b.gradients[ins] @ z, 1, 2)
+                jac[rows][sel] = np.swapaxes(_times(b.gradients[sel], z), 1, 2)
             if order >= 2:
-                hess[rows][ins] = hessian5_to_full(np.swapaxes(b.hessians[ins] @ z, 1, 2))
+                hess[rows][sel] = hessian5_to_full(np.swapaxes(_times(b.hessians[sel], z), 1, 2))
         if outside == "nan" and not inside.all():
             out = ~inside
             f[out] = np.nan
@@ -220,6 +222,12 @@ class HarmonicMap:
 
     def __repr__(self) -> str:
         return f"HarmonicMap(n_vertices={len(self.cage.vertices)}, n_faces={len(self.cage.faces)})"
+
+
+def _times(basis: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``basis @ z`` for an (N, k, n + m) stack, as one (N k, n + m) matrix product."""
+    n, k, c = basis.shape
+    return (basis.reshape(n * k, c) @ z).reshape(n, k, z.shape[1])
 
 
 def green_stretch(source_vertices, target_vertices, faces) -> np.ndarray:

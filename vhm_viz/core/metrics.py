@@ -11,6 +11,11 @@ returned by ``HarmonicMap.jacobian``): :func:`jacobian_determinant`,
 :func:`condition_number` (``s_max / s_min``), :func:`rotation_angle` (angle of the rotation
 of the polar decomposition), :func:`stretch` (largest singular value), :func:`foldover_count`
 (``det J <= 0``), and :func:`jacobian_measures` for all of them at once.
+
+Cell measures judge the linear tetrahedra a user gets back, which can invert while the map
+is positive at every vertex (and the other way round): :func:`tetrahedron_gradients` (the
+deformation gradient ``D_def D_rest^-1`` of each tet's edge matrices), :func:`cell_measures`
+(per cell, over the tets a cell was split into) and :func:`cell_summary` (the counts).
 """
 
 from __future__ import annotations
@@ -30,7 +35,15 @@ __all__ = [
     "stretch",
     "foldover_count",
     "jacobian_measures",
+    "tetrahedron_gradients",
+    "cell_measures",
+    "cell_summary",
+    "finite_or_none",
 ]
+
+#: Rest tetrahedra with ``|det D_rest|`` below this times their longest edge cubed are
+#: degenerate: their deformation gradient is undefined (NaN), never counted as inverted.
+DEGENERATE_RTOL = 1e-12
 
 
 def _points(a, name: str) -> np.ndarray:
@@ -42,13 +55,14 @@ def _points(a, name: str) -> np.ndarray:
     return p
 
 
-def _triangles(t, n_points: int) -> np.ndarray:
-    f = np.asarray(t)
-    if f.ndim != 2 or f.shape[1] != 3:
-        raise ValueError(f"triangles must have shape (m, 3); got {f.shape}")
+def _simplices(s, n_points: int, corners: int = 3, name: str = "triangles") -> np.ndarray:
+    """Validated (m, corners) int64 indices into ``n_points`` points (triangles or tets)."""
+    f = np.asarray(s)
+    if f.ndim != 2 or f.shape[1] != corners:
+        raise ValueError(f"{name} must have shape (m, {corners}); got {f.shape}")
     f = f.astype(np.int64)
     if f.size and (f.min() < 0 or f.max() >= n_points):
-        raise ValueError(f"triangle indices must lie in [0, {n_points})")
+        raise ValueError(f"{name} indices must lie in [0, {n_points})")
     return f
 
 
@@ -105,7 +119,7 @@ def triangle_singular_values(source_points, deformed_points, triangles):
     y = _points(deformed_points, "deformed_points")
     if x.shape != y.shape:
         raise ValueError(f"source and deformed points differ in shape: {x.shape} vs {y.shape}")
-    f = _triangles(triangles, len(x))
+    f = _simplices(triangles, len(x))
     ms, twice_area = _frame_coords(x[f[:, 0]], x[f[:, 1]], x[f[:, 2]])
     md, _ = _frame_coords(y[f[:, 0]], y[f[:, 1]], y[f[:, 2]])
     # deformed triangles that collapsed to a segment/point: their frame is NaN; treat the
@@ -171,7 +185,7 @@ def volume_change(source_points, deformed_points, triangles) -> float:
     """
     x = _points(source_points, "source_points")
     y = _points(deformed_points, "deformed_points")
-    f = _triangles(triangles, len(x))
+    f = _simplices(triangles, len(x))
     v0 = signed_volume(x, f)
     if v0 == 0.0:
         raise ValueError("the source mesh encloses no volume")
@@ -302,3 +316,145 @@ def jacobian_measures(jacobians) -> dict:
         "min_stretch": s[:, 2],
         "foldovers": int(np.count_nonzero(det <= 0.0)),
     }
+
+
+# ----------------------------------------------------------------------------- cells
+def _edge_matrices(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) edge matrices ``[x1 - x0 | x2 - x0 | x3 - x0]`` (edges as columns)."""
+    x = points[tets]
+    return np.swapaxes(x[:, 1:] - x[:, :1], 1, 2)
+
+
+def tetrahedron_gradients(rest_points, deformed_points, tets):
+    """Deformation gradient of each linear tetrahedron, ``F = D_def D_rest^-1``.
+
+    ``D`` are the edge matrices ``[x1 - x0 | x2 - x0 | x3 - x0]``; ``F`` is the Jacobian of
+    the affine map taking the rest tet onto the deformed one, so ``det F = det D_def /
+    det D_rest`` is the tet's volume ratio, independent of the order its vertices are
+    stored in (a tet stored inverted at rest is not blamed on the deformation).
+
+    Parameters
+    ----------
+    rest_points, deformed_points : (N, 3) array_like
+    tets : (T, 4) array_like of int
+
+    Returns
+    -------
+    F : (T, 3, 3) float64
+        NaN for tets degenerate at rest (see :data:`DEGENERATE_RTOL`).
+    rest_det : (T,) float64
+        ``det D_rest`` (six times the signed rest volume; negative: stored inverted).
+    """
+    x = np.asarray(rest_points, dtype=np.float64).reshape(-1, 3)
+    y = np.asarray(deformed_points, dtype=np.float64).reshape(-1, 3)
+    if x.shape != y.shape:
+        raise ValueError(f"rest and deformed points differ in shape: {x.shape} vs {y.shape}")
+    t = _simplices(tets, len(x), 4, "tets")
+    d_rest = _edge_matrices(x, t)
+    rest_det = np.linalg.det(d_rest)
+    edge = np.linalg.norm(d_rest, axis=1).max(axis=1) if len(t) else np.zeros(0)
+    ok = np.abs(rest_det) > DEGENERATE_RTOL * edge**3
+    grads = np.full((len(t), 3, 3), np.nan)
+    if ok.any():
+        # F D_rest = D_def  <=>  D_rest^T F^T = D_def^T
+        d_def = _edge_matrices(y, t[ok])
+        grads[ok] = np.swapaxes(
+            np.linalg.solve(np.swapaxes(d_rest[ok], 1, 2), np.swapaxes(d_def, 1, 2)), 1, 2
+        )
+    return grads, rest_det
+
+
+def cell_measures(rest_points, deformed_points, tets, cells=None, n_cells=None) -> dict:
+    """Per-cell quality of a deformed mesh whose cells are (split into) tetrahedra.
+
+    Parameters
+    ----------
+    rest_points, deformed_points : (N, 3) array_like
+    tets : (T, 4) array_like of int
+    cells : (T,) array_like of int, optional
+        The cell each tet belongs to (a hexahedron split into five or six tets, ...);
+        default: each tet is a cell.
+    n_cells : int, optional
+        Number of cells (cells without tets, e.g. 2D cells of a mixed mesh, get NaN);
+        default ``cells.max() + 1``.
+
+    Returns
+    -------
+    dict
+        ``determinant`` (n_cells,): the smallest ``det F`` of the cell's tets (``<= 0``:
+        the cell comes back inverted or flat); ``condition_number`` (n_cells,): the largest
+        ``s_max / s_min`` of ``F`` (inf for a flattened tet); ``rest_inverted`` (n_cells,
+        bool): a tet of the cell is stored with negative volume at rest; ``degenerate``
+        (n_cells, bool): a tet of the cell has no volume at rest (its ``F`` is undefined).
+    """
+    grads, rest_det = tetrahedron_gradients(rest_points, deformed_points, tets)
+    t = len(grads)
+    owner = np.arange(t) if cells is None else np.asarray(cells, dtype=np.int64).reshape(-1)
+    if owner.shape != (t,):
+        raise ValueError(f"cells must have one entry per tet ({t}); got {owner.shape}")
+    if n_cells is None:
+        n_cells = int(owner.max()) + 1 if t else 0
+    if t and (owner.min() < 0 or owner.max() >= n_cells):
+        raise ValueError(f"cell ids must lie in [0, {n_cells})")
+    measured = np.isfinite(grads).all(axis=(1, 2))
+    # NaN gradients: a flat rest tet, or deformed corners that are NaN (outside the cage
+    # under the "nan" policy); only the first is a property of the mesh
+    moved = np.asarray(deformed_points, dtype=np.float64).reshape(-1, 3)
+    index = _simplices(tets, len(moved), 4, "tets")
+    corners_ok = np.isfinite(moved).all(axis=1)[index].all(axis=1)
+    degenerate = ~measured & corners_ok
+    det = np.full(t, np.nan)
+    cond = np.full(t, np.nan)
+    if measured.any():
+        det[measured] = np.linalg.det(grads[measured])
+        cond[measured] = condition_number(grads[measured])
+    out_det = np.full(n_cells, np.inf)
+    out_cond = np.full(n_cells, -np.inf)
+    np.minimum.at(out_det, owner[measured], det[measured])
+    np.maximum.at(out_cond, owner[measured], cond[measured])
+    has = np.zeros(n_cells, bool)
+    has[owner[measured]] = True
+    out_det[~has] = np.nan
+    out_cond[~has] = np.nan
+    rest_inverted = np.zeros(n_cells, bool)
+    rest_inverted[owner[rest_det < 0]] = True
+    bad = np.zeros(n_cells, bool)
+    bad[owner[degenerate]] = True
+    return {
+        "determinant": out_det,
+        "condition_number": out_cond,
+        "rest_inverted": rest_inverted,
+        "degenerate": bad,
+    }
+
+
+def cell_summary(measures: dict) -> dict:
+    """The counts of :func:`cell_measures` (what ``metrics.json`` reports as ``"cells"``).
+
+    Returns
+    -------
+    dict
+        ``cells`` (with a measure), ``inverted`` (cells with ``det F <= 0``: inverted or
+        flattened by the deformation), ``det_min``, ``det_max``, ``cond_max``,
+        ``rest_inverted`` (cells stored inverted at rest: reported, not blamed on the
+        deformation) and ``degenerate`` (cells with a flat rest tet).
+    """
+    det = np.asarray(measures["determinant"], dtype=np.float64)
+    cond = np.asarray(measures["condition_number"], dtype=np.float64)
+    ok = np.isfinite(det)
+    out = {
+        "cells": int(ok.sum()),
+        "inverted": int(np.count_nonzero(det[ok] <= 0.0)),
+        "det_min": float(det[ok].min()) if ok.any() else float("nan"),
+        "det_max": float(det[ok].max()) if ok.any() else float("nan"),
+        "cond_max": float(np.nanmax(cond)) if ok.any() else float("nan"),
+        "rest_inverted": int(np.count_nonzero(measures["rest_inverted"])),
+        "degenerate": int(np.count_nonzero(measures["degenerate"])),
+    }
+    return out
+
+
+def finite_or_none(value):
+    """``float(value)``, or None for NaN and infinity (strict JSON has neither)."""
+    v = float(value)
+    return v if np.isfinite(v) else None

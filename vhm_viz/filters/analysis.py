@@ -8,6 +8,7 @@ from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkDataSet
 
 from vhm_viz.core.metrics import jacobian_measures
 from vhm_viz.filters._common import DeformationSource, numpy_points
+from vhm_viz.filters.cells import add_cell_arrays, cell_quality
 
 __all__ = ["JacobianAnalysisFilter", "ANALYSIS_ARRAYS"]
 
@@ -38,10 +39,22 @@ class JacobianAnalysisFilter(DeformationSource):
     ``J = I``). The values equal :func:`vhm_viz.metrics.jacobian_measures` of
     ``HarmonicMap.jacobian`` at the same points. The deformation and the cage (port 1)
     are set as for :class:`~vhm_viz.filters.HarmonicDeformationFilter`.
+
+    Datasets with 3D cells (tet meshes, any cells VTK splits into tets, volumes) also get
+    the quality of the cells the deformation returns, from the deformed vertex positions
+    (:func:`vhm_viz.core.metrics.cell_measures`): the cell arrays
+    ``cell_jacobian_determinant`` (volume ratio of the cell's linear tets, the smallest
+    over them), ``cell_condition_number`` (the largest), ``cell_inverted`` (``uint8``, 1
+    where the determinant is ``<= 0``) and ``cell_rest_inverted`` (``uint8``, cells stored
+    inverted at rest: not blamed on the deformation), with the counts in the field arrays
+    ``vhm_cells_inverted`` and ``vhm_cells_rest_inverted``. :attr:`cell_summary` holds all
+    the counts of the last update (None without 3D cells).
     """
 
     def __init__(self):
         super().__init__(input_type="vtkDataSet", output_type="vtkDataSet")
+        #: :func:`vhm_viz.core.metrics.cell_summary` of the last update, or None.
+        self.cell_summary: dict | None = None
 
     def RequestDataObject(self, request, in_info, out_info):
         """The output has the input's type."""
@@ -60,7 +73,7 @@ class JacobianAnalysisFilter(DeformationSource):
         out.ShallowCopy(inp)
         pts = numpy_points(inp)
         ev = self._bind(hm, dfm, inp, pts, 0.0, 0.5)
-        jac = ev.jacobians(progress=self._progress(0.5, 0.95), abort=self._aborted)
+        jac = ev.jacobians(progress=self._progress(0.5, 0.9), abort=self._aborted)
         pd = out.GetPointData()
         if len(pts):
             m = jacobian_measures(jac)
@@ -70,5 +83,11 @@ class JacobianAnalysisFilter(DeformationSource):
             _add(pd, "foldover", (m["determinant"] <= 0).astype(np.uint8))
         if self._outside != "error":
             _add(pd, "vhm_outside", ev.outside.astype(np.uint8))
+        self.cell_summary = None
+        if len(pts):
+            quality = cell_quality(inp, ev.deform())
+            if quality is not None:
+                add_cell_arrays(out, quality)
+                self.cell_summary = quality["summary"]
         self.UpdateProgress(1.0)
         return 1

@@ -21,6 +21,7 @@ from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearG
 from vhm_viz.core.binding import cofactor_normals
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
 from vhm_viz.filters._common import DeformationSource, numpy_points
+from vhm_viz.filters.cells import add_cell_arrays, cell_quality
 
 __all__ = ["HarmonicDeformationFilter", "output_type_for"]
 
@@ -106,7 +107,9 @@ class HarmonicDeformationFilter(DeformationSource):
     StructuredGrid. Point and cell data pass through, except normals: point normals are
     deformed through the Jacobian, ``n' = cof(J) n`` normalised (paper eq. 6), and cell
     normals likewise with the Jacobian at the rest cell centre. Optional point arrays:
-    ``displacement`` (vectors), ``jacobian_determinant``, ``condition_number``. With the
+    ``displacement`` (vectors), ``jacobian_determinant``, ``condition_number``; optional
+    cell arrays (:meth:`SetComputeCellQuality`, datasets with 3D cells): the quality of the
+    deformed cells, as :class:`~vhm_viz.filters.JacobianAnalysisFilter` writes it. With the
     ``"passthrough"`` outside policy, the ``uint8`` point array ``vhm_outside`` flags the
     points left in place; :attr:`outside_count` counts them (also stored as the field
     array ``vhm_outside_count``).
@@ -129,7 +132,11 @@ class HarmonicDeformationFilter(DeformationSource):
         self._displacement = False
         self._determinant = False
         self._condition = False
+        self._cell_quality = False
         self._deform_normals = True
+        #: :func:`vhm_viz.core.metrics.cell_summary` of the last update (with
+        #: :meth:`SetComputeCellQuality` and 3D cells), else None.
+        self.cell_summary: dict | None = None
 
     # ------------------------------------------------------------------ options
     def SetComputeDisplacement(self, value: bool) -> None:
@@ -145,6 +152,11 @@ class HarmonicDeformationFilter(DeformationSource):
     def SetComputeConditionNumber(self, value: bool) -> None:
         """Add the point array ``condition_number`` (``s_max / s_min`` of ``J``)."""
         self._condition = bool(value)
+        self.Modified()
+
+    def SetComputeCellQuality(self, value: bool) -> None:
+        """Add the cell quality arrays (datasets with 3D cells; see the class notes)."""
+        self._cell_quality = bool(value)
         self.Modified()
 
     def SetDeformNormals(self, value: bool) -> None:
@@ -231,6 +243,12 @@ class HarmonicDeformationFilter(DeformationSource):
             jc = hm.evaluate(centres, order=1, outside="passthrough")[1]
             n = ns.vtk_to_numpy(cnormals).reshape(-1, 3)
             _set_array(cd, cnormals.GetName() or "Normals", cofactor_normals(jc, n), normals=True)
+        self.cell_summary = None
+        if self._cell_quality and len(points):
+            quality = cell_quality(src, deformed)
+            if quality is not None:
+                add_cell_arrays(out, quality)
+                self.cell_summary = quality["summary"]
         if self._displacement:
             _set_array(pd, "displacement", deformed - points)
         if self._outside != "error":

@@ -1,0 +1,233 @@
+"""Per-cell quality of deformed tet meshes (and cells split into tets) against brute force.
+
+References: signed tet volumes of the deformed vertex positions (an inverted cell is one
+whose deformed volume changed sign), the edge equations ``F (x_i - x_0) = y_i - y_0``, and
+affine maps (every cell gets ``det A`` and ``cond A``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import box_cage, data_path
+
+pv = pytest.importorskip("pyvista")
+
+from vhm_viz import examples  # noqa: E402
+from vhm_viz.core.cage import Cage  # noqa: E402
+from vhm_viz.core.certify import Region, certify_injectivity  # noqa: E402
+from vhm_viz.core.harmonic_map import HarmonicMap  # noqa: E402
+from vhm_viz.core.metrics import cell_measures, cell_summary, tetrahedron_gradients  # noqa: E402
+from vhm_viz.filters import (  # noqa: E402
+    HarmonicDeformationFilter,
+    JacobianAnalysisFilter,
+    cell_quality,
+    update,
+)
+
+
+def _signed_volumes(points, tets):
+    x = np.asarray(points, dtype=np.float64)[tets]
+    return np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]))
+
+
+def _tet_grid(points, tets):
+    cells = np.hstack([np.full((len(tets), 1), 4), tets]).ravel()
+    return pv.UnstructuredGrid(cells, np.full(len(tets), pv.CellType.TETRA), points)
+
+
+def _analyse(data, deformation):
+    f = JacobianAnalysisFilter()
+    f.SetInputData(data)
+    f.SetDeformation(deformation)
+    f.SetOutsidePolicy("passthrough")
+    return pv.wrap(update(f)), f.cell_summary
+
+
+@pytest.fixture(scope="module")
+def bar_tets():
+    return examples.bar_tets(10)
+
+
+def _solved(kind, **kw):
+    sc = examples.bar(kind, **kw)
+    sc.solve()
+    return sc.deformer
+
+
+# ------------------------------------------------------------------------- core
+def test_gradients_map_rest_edges_onto_deformed_edges():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(40, 3))
+    y = x @ rng.normal(size=(3, 3)).T + 0.1 * rng.normal(size=x.shape)
+    tets = np.array([rng.choice(40, 4, replace=False) for _ in range(30)])
+    grads, rest_det = tetrahedron_gradients(x, y, tets)
+    for k, t in enumerate(tets):
+        assert np.allclose(grads[k] @ (x[t[1:]] - x[t[0]]).T, (y[t[1:]] - y[t[0]]).T)
+    ratio = _signed_volumes(y, tets) / _signed_volumes(x, tets)
+    assert np.allclose(np.linalg.det(grads), ratio)
+    assert np.allclose(rest_det, _signed_volumes(x, tets))
+
+
+def test_vertex_order_does_not_blame_the_deformation():
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    y = x * [2.0, 1.0, 1.0]
+    upright, flipped = np.array([[0, 1, 2, 3]]), np.array([[0, 2, 1, 3]])
+    a = cell_measures(x, y, upright)
+    b = cell_measures(x, y, flipped)
+    assert np.allclose(a["determinant"], 2.0) and np.allclose(b["determinant"], 2.0)
+    assert not a["rest_inverted"][0] and b["rest_inverted"][0]
+    s = cell_summary(b)
+    assert s["inverted"] == 0 and s["rest_inverted"] == 1
+
+
+def test_cells_take_the_worst_of_their_tets_and_flat_tets_are_degenerate():
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0], [1, 1, 1.0], [2, 0, 0]])
+    y = x.copy()
+    y[4] = [0.1, 0.1, 0.1]  # pushes the second tet through its base
+    tets = np.array([[0, 1, 2, 3], [1, 2, 3, 4], [0, 1, 5, 2]])  # the last one is flat
+    m = cell_measures(x, y, tets, cells=[0, 0, 1], n_cells=3)
+    assert m["determinant"][0] < 0 and np.isnan(m["determinant"][1:]).all()
+    assert m["degenerate"].tolist() == [False, True, False]
+    s = cell_summary(m)
+    assert s == {**s, "cells": 1, "inverted": 1, "degenerate": 1, "rest_inverted": 0}
+
+
+# ------------------------------------------------------------------------- against brute force
+@pytest.mark.parametrize(("kind", "height", "expected"), [("push", 2.5, 178), ("bend-u", None, 0)])
+def test_inverted_cells_equal_brute_force_signed_volumes(bar_tets, kind, height, expected):
+    points, tets = bar_tets
+    dfm = _solved(kind, top_height=height) if height else _solved(kind)
+    out, summary = _analyse(_tet_grid(points, tets), dfm)
+    moved = dfm.harmonic_map.map(points)
+    brute = np.count_nonzero(_signed_volumes(moved, tets) <= 0)  # all rest tets are positive
+    assert summary["inverted"] == brute == expected
+    inverted = np.asarray(out.cell_data["cell_inverted"], bool)
+    assert np.array_equal(np.nonzero(inverted)[0], np.nonzero(_signed_volumes(moved, tets) <= 0)[0])
+    ratio = _signed_volumes(moved, tets) / _signed_volumes(points, tets)
+    assert np.allclose(out.cell_data["cell_jacobian_determinant"], ratio, rtol=1e-9, atol=1e-12)
+    assert summary["det_min"] == pytest.approx(ratio.min())
+    assert summary["cond_max"] >= 1.0
+
+
+def test_subtle_fold_inverts_no_tet_but_the_certificate_sees_it(bar_tets):
+    points, tets = bar_tets
+    dfm = _solved("push", top_height=3.582)
+    moved = dfm.harmonic_map.map(points)
+    assert np.all(_signed_volumes(moved, tets) > 0)  # every tet comes back upright
+    _, summary = _analyse(_tet_grid(points, tets), dfm)
+    assert summary["inverted"] == 0
+    cert = certify_injectivity(dfm, Region.tetrahedra(points, tets))
+    assert cert.status == "not injective"
+    assert np.all(np.linalg.det(dfm.harmonic_map.jacobian(cert.witnesses)) <= 0)
+
+
+def test_rest_inverted_cells_are_reported_not_blamed():
+    mesh = pv.read(data_path("tets", "tetraMesh_inverted.vtk"))
+    points = np.asarray(mesh.points, dtype=np.float64)
+    tets = np.asarray(mesh.cells_dict[pv.CellType.TETRA])
+    lo, hi = points.min(0) - 1.0, points.max(0) + 1.0
+    cage = Cage(*box_cage(lo, hi, 2))
+    stored_inverted = np.count_nonzero(_signed_volumes(points, tets) < 0)
+    assert stored_inverted == 80  # the data's README: 80 of 160
+    out, summary = _analyse(mesh, HarmonicMap.identity(cage))
+    assert summary["rest_inverted"] == stored_inverted
+    assert summary["inverted"] == 0  # the identity inverts nothing
+    assert np.asarray(out.cell_data["cell_rest_inverted"]).sum() == stored_inverted
+    # a reflection inverts every cell, stored inverted or not
+    _, summary = _analyse(mesh, HarmonicMap.affine(cage, np.diag([1.0, 1.0, -1.0])))
+    assert summary["inverted"] == 160 and summary["rest_inverted"] == 80
+
+
+def test_volumes_and_hexahedra_under_an_affine_map():
+    cage = Cage(*box_cage((-1, -1, -1), (2, 2, 2), 2))
+    a = np.array([[1.1, 0.2, 0.0], [0.0, 0.8, 0.3], [0.1, 0.0, 1.2]])
+    hm = HarmonicMap.affine(cage, a, [0.3, 0.0, -0.2])
+    img = pv.ImageData(dimensions=(5, 4, 6), spacing=(0.2, 0.25, 0.15))
+    cond = np.linalg.cond(a)
+    for data in (img, img.cast_to_unstructured_grid(), img.cast_to_structured_grid()):
+        out, summary = _analyse(data, hm)
+        assert out.n_cells == img.n_cells
+        assert np.allclose(out.cell_data["cell_jacobian_determinant"], np.linalg.det(a))
+        assert np.allclose(out.cell_data["cell_condition_number"], cond)
+        assert summary["inverted"] == 0 and summary["rest_inverted"] == 0
+
+
+def test_cells_without_volume_get_nan():
+    grid = pv.UnstructuredGrid(
+        np.array([4, 0, 1, 2, 3, 3, 0, 1, 2]),
+        np.array([pv.CellType.TETRA, pv.CellType.TRIANGLE]),
+        np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]),
+    )
+    q = cell_quality(grid, np.asarray(grid.points) * 2.0)
+    assert q["determinant"][0] == pytest.approx(8.0) and np.isnan(q["determinant"][1])
+    assert q["summary"]["cells"] == 1
+    assert cell_quality(pv.Sphere(), pv.Sphere().points) is None
+
+
+def test_deformation_filter_writes_the_same_cell_arrays(bar_tets):
+    points, tets = bar_tets
+    dfm = _solved("push", top_height=2.5)
+    grid = _tet_grid(points, tets)
+    analysed, summary = _analyse(grid, dfm)
+    f = HarmonicDeformationFilter()
+    f.SetInputData(grid)
+    f.SetDeformer(dfm)
+    f.SetComputeCellQuality(True)
+    bent = pv.wrap(update(f))
+    for name in ("cell_jacobian_determinant", "cell_condition_number", "cell_inverted"):
+        assert np.allclose(bent.cell_data[name], analysed.cell_data[name])
+    assert f.cell_summary == summary
+
+
+def test_accessor_analyze_and_certify(bar_tets):
+    import vhm_viz
+    import vhm_viz.accessor  # noqa: F401 -- registers mesh.vhm
+
+    points, tets = bar_tets
+    grid = _tet_grid(points, tets)
+    dfm = _solved("push", top_height=2.5)
+    out = grid.vhm.analyze(dfm)
+    inverted = int(np.count_nonzero(_signed_volumes(dfm.harmonic_map.map(points), tets) <= 0))
+    assert int(np.asarray(out.cell_data["cell_inverted"]).sum()) == inverted
+    assert int(out.field_data["vhm_cells_inverted"][0]) == inverted
+    assert int(out.field_data["vhm_cells_rest_inverted"][0]) == 0
+    cert = grid.vhm.certify(dfm)
+    assert cert.status == "not injective" and cert.region["kind"] == "tetrahedra"
+    # the same through the top-level API, and a dataset is refused by the core with advice
+    again = vhm_viz.certify_injectivity(dfm, vhm_viz.region_of(grid))
+    assert np.array_equal(again.witnesses, cert.witnesses)
+    with pytest.raises(TypeError, match="region_of"):
+        vhm_viz.certify_injectivity(dfm, grid)
+
+
+def test_region_of_each_kind_of_dataset():
+    from vhm_viz.core.certify import INSIDE, OUTSIDE
+    from vhm_viz.filters import region_of
+
+    bar = examples.bar("bend-u", resolution=8)
+    lo, hi = np.array([-0.5, -0.5, 0.0]), np.array([0.5, 0.5, 5.0])
+    rng = np.random.default_rng(3)
+    q = rng.uniform(lo - 0.2, hi + 0.2, (3000, 3))
+    truth = np.all((q >= lo) & (q <= hi), axis=1)
+    # a closed surface: its solid, exactly
+    solid = region_of(bar.surface)
+    assert solid.kind == "solid" and np.array_equal(solid.contains(q), truth)
+    half = np.full(3, 0.06)
+    state = solid.classify(q, half)
+    meets = np.all((q + half >= lo) & (q - half <= hi), axis=1)
+    within = np.all((q - half >= lo) & (q + half <= hi), axis=1)
+    assert not np.any(meets & (state == OUTSIDE)) and not np.any(~within & (state == INSIDE))
+    assert (state == INSIDE).any() and (state == OUTSIDE).any()
+    # a volume: the box of its points; a point cloud: the cage's interior
+    img = pv.ImageData(dimensions=(3, 3, 6), spacing=(0.5, 0.5, 1.0), origin=(-0.5, -0.5, 0))
+    box = region_of(img)
+    assert box.kind == "box" and np.allclose(box.lo, lo) and np.allclose(box.hi, hi)
+    cloud = region_of(pv.PolyData(bar.points[::50]), bar.cage)
+    assert cloud.kind == "cage" and cloud.description["margin"] > 0
+    with pytest.raises(ValueError, match="cage"):
+        region_of(pv.PolyData(bar.points[::50]))
+    # a tet mesh: its tetrahedra
+    points, tets = examples.bar_tets(3)
+    tet_region = region_of(_tet_grid(points, tets))
+    assert tet_region.kind == "tetrahedra" and np.array_equal(tet_region.contains(q), truth)

@@ -1,0 +1,247 @@
+"""``vhm-viz analyze`` and ``deform`` on cells and folds: the analysed dataset, the cell
+counts, the certificate, the fold warning; checked against brute-force signed volumes and
+exact re-evaluation of the witnesses.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import box_cage, data_path
+
+pv = pytest.importorskip("pyvista")
+
+from vhm_viz import examples  # noqa: E402
+from vhm_viz.cli import main  # noqa: E402
+from vhm_viz.scene import Scene  # noqa: E402
+
+
+def _run(capsys, *argv):
+    rc = main(list(map(str, argv)))
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def _signed_volumes(points, tets):
+    x = np.asarray(points, dtype=np.float64)[tets]
+    return np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]))
+
+
+def _analyze(capsys, data, scene, out_dir, *extra):
+    """Run ``vhm-viz analyze -q``; returns the output line, metrics.json and the dataset."""
+    rc, out, err = _run(capsys, "analyze", data, "--scene", scene, "-o", out_dir, "-q", *extra)
+    assert rc == 0, err
+    m = json.loads((out_dir / "metrics.json").read_text())
+    return out, m, pv.read(out_dir / m["analysis"])
+
+
+def _moved(analysed):
+    """Deformed positions of an analysed dataset (rest points + displacement)."""
+    return np.asarray(analysed.points, dtype=np.float64) + analysed.point_data["displacement"]
+
+
+def _scene(kind, path, **kw):
+    sc = examples.bar(kind, resolution=12, **kw)
+    scene = sc.scene
+    if kind == "push":
+        scene.solver["steps"] = 8  # the continuation of BarScenario.solve
+    scene.save(path)
+    return scene
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bar")
+    _scene("bend-u", d / "bend.json")
+    _scene("push", d / "push.json", top_height=2.5)
+    points, tets = examples.bar_tets(5)
+    cells = np.hstack([np.full((len(tets), 1), 4), tets]).ravel()
+    grid = pv.UnstructuredGrid(cells, np.full(len(tets), pv.CellType.TETRA), points)
+    grid.save(d / "bar_tets.vtu")
+    examples.bar("bend-u", resolution=12).surface.save(d / "bar.vtp")
+    img = pv.ImageData(dimensions=(6, 6, 26), spacing=(0.2, 0.2, 0.2), origin=(-0.5, -0.5, 0))
+    img.point_data["density"] = np.arange(img.n_points, dtype=np.float32)
+    img.save(d / "bar.vti")
+    return d, points, tets
+
+
+@pytest.mark.parametrize(
+    ("data", "written", "cells"),
+    [
+        ("bar.vtp", "analysis.vtp", 0),
+        ("bar_tets.vtu", "analysis.vtu", 3750),
+        ("bar.vti", "analysis.vti", 625),
+    ],
+)
+def test_analyze_writes_the_analysed_dataset(files, tmp_path, capsys, data, written, cells):
+    d, _, _ = files
+    out_dir = tmp_path / "report"
+    rc, out, err = _run(
+        capsys, "analyze", d / data, "--scene", d / "bend.json", "-o", out_dir, "-q"
+    )
+    assert rc == 0, err
+    m = json.loads((out_dir / "metrics.json").read_text())
+    assert m["analysis"] == written
+    analysed = pv.read(out_dir / written)
+    rest = pv.read(d / data)
+    assert type(analysed) is type(rest) and analysed.n_points == rest.n_points
+    for name in ("jacobian_determinant", "condition_number", "rotation_angle", "displacement"):
+        assert name in analysed.point_data
+    if cells:
+        assert m["cells"]["cells"] == cells and m["cells"]["inverted"] == 0
+        for name in ("cell_jacobian_determinant", "cell_condition_number", "cell_inverted"):
+            assert len(analysed.cell_data[name]) == analysed.n_cells
+        assert f"0 of {cells} cells inverted" in out
+    else:
+        assert "cells" not in m
+    assert not [p for p in out_dir.iterdir() if p.name.startswith(".")]  # atomic writes
+
+
+def test_analyze_certifies_the_bend(files, tmp_path, capsys):
+    d, _, _ = files
+    out_dir = tmp_path / "cert"
+    rc, out, err = _run(
+        capsys,
+        "analyze",
+        d / "bar_tets.vtu",
+        "--scene",
+        d / "bend.json",
+        "-o",
+        out_dir,
+        "-q",
+        "--certify",
+    )
+    assert rc == 0, err
+    inj = json.loads((out_dir / "metrics.json").read_text())["injectivity"]
+    assert inj["certified"] is True and inj["status"] == "certified"
+    assert inj["witnesses"] == [] and inj["undecided"] == 0 and inj["cubes"] > 0
+    assert inj["region"]["kind"] == "tetrahedra"
+    assert (out_dir / "injectivity.png").stat().st_size > 5000
+    assert "certified injective" in out
+
+
+def test_analyze_finds_the_fold_and_counts_its_cells(files, tmp_path, capsys):
+    d, points, tets = files
+    out, m, analysed = _analyze(
+        capsys, d / "bar_tets.vtu", d / "push.json", tmp_path / "fold", "--certify"
+    )
+    moved = _moved(analysed)
+    brute = int(np.count_nonzero(_signed_volumes(moved, tets) <= 0))
+    assert m["cells"]["inverted"] == brute > 0
+    assert int(np.asarray(analysed.cell_data["cell_inverted"]).sum()) == brute
+    inj = m["injectivity"]
+    assert inj["status"] == "not injective" and inj["certified"] is False
+    dfm = Scene.load(d / "push.json").build()
+    Scene.load(d / "push.json").solve(dfm)
+    det = np.linalg.det(dfm.harmonic_map.jacobian(np.array(inj["witnesses"])))
+    assert np.all(det <= 0)
+    assert np.allclose(det, inj["witness_determinants"], atol=1e-9)
+    assert f"{brute} of {len(tets)} cells inverted" in out and "not injective" in out
+
+
+def test_analyze_out_of_budget_is_undecided(files, tmp_path, capsys):
+    d, _, _ = files
+    out_dir = tmp_path / "budget"
+    rc, out, err = _run(
+        capsys, "analyze", d / "bar.vti", "--scene", d / "bend.json", "-o", out_dir, "-q",
+        "--certify", "--max-cubes", "40",
+    )  # fmt: skip
+    assert rc == 0, err
+    inj = json.loads((out_dir / "metrics.json").read_text())["injectivity"]
+    assert inj["status"] == "undecided" and inj["certified"] is False
+    assert inj["cubes"] == 40 and inj["undecided"] > 0 and inj["region"]["kind"] == "box"
+    rc, _, err = _run(
+        capsys, "analyze", d / "bar.vti", "--scene", d / "bend.json", "-o", out_dir, "-q",
+        "--certify", "--max-cubes", "0",
+    )  # fmt: skip
+    assert rc != 0 and "--max-cubes" in err
+
+
+def test_analyze_never_overwrites_its_input(files, tmp_path, capsys):
+    d, _, _ = files
+    out_dir = tmp_path / "same"
+    out_dir.mkdir()
+    data = out_dir / "analysis.vtu"
+    data.write_bytes((d / "bar_tets.vtu").read_bytes())
+    before = data.read_bytes()
+    rc, _, err = _run(capsys, "analyze", data, "--scene", d / "bend.json", "-o", out_dir, "-q")
+    assert rc != 0 and "refusing to overwrite" in err
+    assert data.read_bytes() == before
+
+
+def test_deform_warns_when_the_output_folds(files, tmp_path, capsys):
+    d, points, tets = files
+    rc, out, err = _run(
+        capsys,
+        "deform",
+        d / "bar_tets.vtu",
+        "--scene",
+        d / "push.json",
+        "-o",
+        tmp_path / "f.vtu",
+        "-q",
+    )
+    assert rc == 0, err
+    assert len(out.strip().splitlines()) == 1
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("warning: the deformation folds")
+    bent = pv.read(tmp_path / "f.vtu")
+    brute = int(np.count_nonzero(_signed_volumes(bent.points, tets) <= 0))
+    assert f"{brute} of {len(tets)} cells inverted" in lines[0]
+    assert "det J <= 0 at" in lines[0] and " at (" in lines[0]
+    rc, out, err = _run(
+        capsys, "deform", d / "bar_tets.vtu", "--scene", d / "bend.json", "-o", tmp_path / "b.vtu",
+        "-q", "--arrays", "cells",
+    )  # fmt: skip
+    assert rc == 0 and err.strip() == ""  # no fold, no warning
+    assert "cell_jacobian_determinant" in pv.read(tmp_path / "b.vtu").cell_data
+
+
+def _dragon_scene(path, degrees=66.0):
+    """The dragon held at one end, the other end swung by ``degrees`` about y (box cage)."""
+    mesh = pv.read(data_path("tets", "dragon.tet.vtk"))
+    p = np.asarray(mesh.points)
+    lo, hi = p.min(0), p.max(0)
+    c = (lo + hi) / 2
+
+    def nearest(q):
+        return p[np.argmin(np.linalg.norm(p - q, axis=1))]
+
+    held = [nearest([lo[0] + 0.05, c[1], c[2]]), nearest([lo[0] + 0.25, c[1] + 0.1, c[2]]),
+            nearest([lo[0] + 0.25, c[1] - 0.1, c[2]])]  # fmt: skip
+    moved = nearest([hi[0] - 0.08, c[1], c[2] + 0.1])
+    rot = examples.rotation("y", -degrees)
+    v, f = box_cage(lo - 0.1, hi + 0.1, 3)
+    along = np.linspace(0.15, 0.85, 8)[:, None] * [1, 0, 0] + [0, 0.5, 0.5]
+    scene = Scene(
+        cage={"vertices": v, "faces": f},
+        anchors={"points": np.array([nearest(lo + (hi - lo) * t) for t in along])},
+        constraints={
+            "positions": np.vstack([held, moved]),
+            "targets": np.vstack([held, c + rot @ (moved - c)]),
+            "jacobian_points": moved[None],
+            "jacobians": rot[None],
+        },
+    )
+    scene.solver["steps"] = 4
+    scene.save(path)
+
+
+def test_analyze_dragon_tet_mesh_reports_inverted_cells(tmp_path, capsys):
+    src = data_path("tets", "dragon.tet.vtk")
+    _dragon_scene(tmp_path / "dragon.json")
+    out, m, analysed = _analyze(capsys, src, tmp_path / "dragon.json", tmp_path / "d", "--certify")
+    rest = pv.read(src)
+    tets = np.asarray(rest.cells_dict[pv.CellType.TETRA])
+    ratio = _signed_volumes(_moved(analysed), tets) / _signed_volumes(rest.points, tets)
+    assert m["cells"]["cells"] == rest.n_cells == 104261
+    assert m["cells"]["inverted"] == int(np.count_nonzero(ratio <= 0)) > 0
+    assert m["cells"]["rest_inverted"] == 0
+    assert np.allclose(
+        analysed.cell_data["cell_jacobian_determinant"], ratio, rtol=1e-8, atol=1e-10
+    )
+    assert int(np.asarray(analysed.cell_data["cell_inverted"]).sum()) == m["cells"]["inverted"]
+    assert m["injectivity"]["status"] == "not injective"
+    assert f"{m['cells']['inverted']} of 104261 cells inverted" in out

@@ -1,0 +1,302 @@
+"""Cells as tetrahedra, and datasets as regions: the VTK edge of the cell and injectivity analysis.
+
+The numeric core measures linear tetrahedra (:func:`vhm_viz.core.metrics.cell_measures`)
+and certifies regions (:mod:`vhm_viz.core.certify`); this module turns VTK datasets into
+those arrays:
+
+* :func:`cell_tetrahedra` -- the 3D cells of a dataset split into tetrahedra, chunk by chunk
+  with the cell each tet came from: tet meshes as they are; image and structured data six
+  tets per voxel around its main diagonal (Kuhn's conforming split), slab by slab so a
+  large volume never materialises as an unstructured grid; every other cell type through
+  ``vtkDataSetTriangleFilter``.
+* :func:`cell_quality` -- the per-cell determinant and condition number of a deformation,
+  plus the counts ``metrics.json`` reports.
+* :func:`region_of` -- the region to certify for a dataset: a volume's box, a mesh's
+  tetrahedra, a closed surface's solid, or the cage's interior.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from vtkmodules.util import numpy_support as ns
+
+from vhm_viz.core.geometry import signed_volume
+from vhm_viz.core.metrics import cell_measures, cell_summary
+from vhm_viz.filters._common import numpy_points
+from vhm_viz.io import cell_types
+
+__all__ = ["CELL_ARRAYS", "cell_tetrahedra", "cell_quality", "add_cell_arrays", "region_of"]
+
+#: Cell arrays written by the analysis (and, on request, the deformation) filter.
+CELL_ARRAYS = ("cell_jacobian_determinant", "cell_condition_number", "cell_inverted")
+# Tetrahedra per chunk (about 100 MB of work arrays).
+_CHUNK_TETS = 2_000_000
+_VTK_TETRA = 10
+_ID_ARRAY = "vhm_cell_id"
+# Kuhn's split of a voxel: one tet per monotone path from corner (0,0,0) to (1,1,1).
+_KUHN_PATHS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
+_ODD_PATHS = ((0, 2, 1), (1, 0, 2), (2, 1, 0))
+
+
+def _dimensions(ds):
+    """Point dimensions of image, rectilinear and structured data (else None)."""
+    if ds.IsA("vtkImageData") or ds.IsA("vtkRectilinearGrid") or ds.IsA("vtkStructuredGrid"):
+        dims = [0, 0, 0]
+        ds.GetDimensions(dims)
+        return tuple(int(d) for d in dims)
+    return None
+
+
+def _cell_dimension(cell_type: int) -> int:
+    """Topological dimension of a VTK cell type (VTK >= 9.6 moved the function)."""
+    try:
+        from vtkmodules.vtkCommonDataModel import vtkCellTypeUtilities as utilities
+    except ImportError:  # VTK < 9.6
+        from vtkmodules.vtkCommonDataModel import vtkCellTypes as utilities
+    return int(utilities.GetDimension(int(cell_type)))
+
+
+def _has_3d_cells(ds) -> bool:
+    dims = _dimensions(ds)
+    if dims is not None:
+        return all(d >= 2 for d in dims)
+    if not ds.IsA("vtkUnstructuredGrid") or ds.GetNumberOfCells() == 0:
+        return False
+    return any(_cell_dimension(t) == 3 for t in np.unique(cell_types(ds)))
+
+
+def _kuhn_tets(dims, k0: int, k1: int):
+    """Tets (point ids) and voxel ids of the voxel layers ``k0 <= k < k1`` of a lattice."""
+    nx, ny, _ = dims
+    i, j, k = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), np.arange(k0, k1), indexing="ij")
+    i, j, k = (np.ravel(a, order="F") for a in (i, j, k))  # VTK order: i fastest
+    voxel = i + (nx - 1) * (j + (ny - 1) * k)
+    tets = []
+    for order in _KUHN_PATHS:
+        corner = [0, 0, 0]
+        ids = [i + nx * (j + ny * k)]
+        for axis in order:
+            corner[axis] = 1
+            ids.append((i + corner[0]) + nx * ((j + corner[1]) + ny * (k + corner[2])))
+        if order in _ODD_PATHS:  # odd permutations: swap two corners for positive volume
+            ids[1], ids[2] = ids[2], ids[1]
+        tets.append(np.column_stack(ids))
+    return np.concatenate(tets), np.tile(voxel, len(_KUHN_PATHS))
+
+
+def cell_tetrahedra(ds, chunk_tets: int = _CHUNK_TETS):
+    """The 3D cells of a dataset as tetrahedra, in chunks.
+
+    Parameters
+    ----------
+    ds : vtkDataSet
+    chunk_tets : int
+        Tetrahedra per chunk (lattices are split by layers of voxels).
+
+    Yields
+    ------
+    tets : (T, 4) int64
+        Point ids of the dataset's points.
+    cells : (T,) int64
+        The cell each tet belongs to. Cells that are not 3D get no tets.
+    """
+    dims = _dimensions(ds)
+    if dims is not None:
+        if not all(d >= 2 for d in dims):
+            return
+        per_layer = 6 * (dims[0] - 1) * (dims[1] - 1)
+        step = max(1, chunk_tets // max(per_layer, 1))
+        for k0 in range(0, dims[2] - 1, step):
+            yield _kuhn_tets(dims, k0, min(dims[2] - 1, k0 + step))
+        return
+    if not _has_3d_cells(ds):
+        return
+    types = cell_types(ds)
+    if np.all(types == _VTK_TETRA):
+        conn = ns.vtk_to_numpy(ds.GetCells().GetConnectivityArray()).astype(np.int64)
+        yield conn.reshape(-1, 4), np.arange(len(types), dtype=np.int64)
+        return
+    yield _triangulated(ds)
+
+
+def _triangulated(ds):
+    """Tets of any 3D cells through ``vtkDataSetTriangleFilter`` (points kept as they are)."""
+    from vtkmodules.vtkFiltersGeneral import vtkDataSetTriangleFilter
+
+    tagged = ds.NewInstance()
+    tagged.ShallowCopy(ds)
+    ids = ns.numpy_to_vtk(np.arange(ds.GetNumberOfCells(), dtype=np.int64), deep=1)
+    ids.SetName(_ID_ARRAY)
+    tagged.GetCellData().AddArray(ids)
+    tri = vtkDataSetTriangleFilter()
+    tri.SetInputData(tagged)
+    tri.TetrahedraOnlyOn()
+    tri.Update()
+    out = tri.GetOutput()
+    if out.GetNumberOfCells() == 0:
+        return np.zeros((0, 4), np.int64), np.zeros(0, np.int64)
+    if out.GetNumberOfPoints() != ds.GetNumberOfPoints() or not np.array_equal(
+        numpy_points(out), numpy_points(ds)
+    ):
+        raise ValueError(
+            "VTK's triangulation of these cells adds points; per-cell analysis needs cells "
+            "whose tetrahedra use the dataset's own points"
+        )
+    conn = ns.vtk_to_numpy(out.GetCells().GetConnectivityArray()).astype(np.int64)
+    owner = ns.vtk_to_numpy(out.GetCellData().GetArray(_ID_ARRAY)).astype(np.int64)
+    return conn.reshape(-1, 4), owner
+
+
+def cell_quality(ds, deformed_points) -> dict | None:
+    """Per-cell determinant and condition number of a deformation of ``ds``'s 3D cells.
+
+    Parameters
+    ----------
+    ds : vtkDataSet
+        The rest dataset.
+    deformed_points : (N, 3) array_like
+        Its points after the deformation (same order).
+
+    Returns
+    -------
+    dict or None
+        None without 3D cells; else :func:`~vhm_viz.core.metrics.cell_measures`'s arrays
+        (one entry per cell of ``ds``) and ``"summary"``
+        (:func:`~vhm_viz.core.metrics.cell_summary`).
+    """
+    if not _has_3d_cells(ds):
+        return None
+    rest = numpy_points(ds)
+    moved = np.asarray(deformed_points, dtype=np.float64).reshape(-1, 3)
+    n = ds.GetNumberOfCells()
+    det = np.full(n, np.nan)
+    cond = np.full(n, np.nan)
+    rest_inverted = np.zeros(n, bool)
+    degenerate = np.zeros(n, bool)
+    for tets, cells in cell_tetrahedra(ds):
+        if len(tets) == 0:
+            continue
+        # renumber the chunk's cells so the work arrays stay the chunk's size
+        used, local = np.unique(cells, return_inverse=True)
+        m = cell_measures(rest, moved, tets, local, len(used))
+        det[used], cond[used] = m["determinant"], m["condition_number"]
+        degenerate[used] |= m["degenerate"]
+        if _dimensions(ds) is None:  # a lattice's tets are ours: it stores no orientation
+            rest_inverted[used] |= m["rest_inverted"]
+    out = {
+        "determinant": det,
+        "condition_number": cond,
+        "rest_inverted": rest_inverted,
+        "degenerate": degenerate,
+    }
+    out["summary"] = cell_summary(out)
+    return out
+
+
+def add_cell_arrays(data, quality: dict) -> None:
+    """Write :data:`CELL_ARRAYS` (and ``cell_rest_inverted``) into ``data``'s cell data.
+
+    The counts go to the field arrays ``vhm_cells_inverted`` and ``vhm_cells_rest_inverted``
+    (one value each), so they travel down a pipeline with the data.
+    """
+    fd = data.GetFieldData()
+    for name, key in (
+        ("vhm_cells_inverted", "inverted"),
+        ("vhm_cells_rest_inverted", "rest_inverted"),
+    ):
+        count = ns.numpy_to_vtk(np.array([quality["summary"][key]], dtype=np.int64), deep=1)
+        count.SetName(name)
+        fd.RemoveArray(name)
+        fd.AddArray(count)
+    cd = data.GetCellData()
+    det = quality["determinant"]
+    arrays = {
+        "cell_jacobian_determinant": det,
+        "cell_condition_number": quality["condition_number"],
+        "cell_inverted": (det <= 0).astype(np.uint8),  # NaN (no tets) compares False
+        "cell_rest_inverted": quality["rest_inverted"].astype(np.uint8),
+    }
+    for name, values in arrays.items():
+        arr = ns.numpy_to_vtk(np.ascontiguousarray(values), deep=1)
+        arr.SetName(name)
+        cd.RemoveArray(name)
+        cd.AddArray(arr)
+
+
+def region_of(ds, cage=None):
+    """The region of a dataset to certify (:class:`vhm_viz.core.certify.Region`).
+
+    * image, rectilinear and structured data: the box of their points;
+    * meshes with 3D cells: their tetrahedra (:func:`cell_tetrahedra`);
+    * closed surfaces: the solid they bound (exact signed distances near the surface,
+      the generalised winding number elsewhere);
+    * anything else (point clouds, open surfaces): the cage's interior farther than
+      :func:`~vhm_viz.core.certify.default_margin` from the cage (needs ``cage``).
+
+    Parameters
+    ----------
+    ds : vtkDataSet or pyvista.DataSet
+    cage : Cage, optional
+
+    Returns
+    -------
+    Region
+    """
+    import pyvista as pv
+
+    from vhm_viz.core.certify import Region, default_margin
+
+    ds = pv.wrap(ds)
+    if _dimensions(ds) is not None:
+        b = np.asarray(ds.bounds, dtype=np.float64)
+        return Region.box(b[0::2], b[1::2])
+    if _has_3d_cells(ds):
+        tets = [t for t, _ in cell_tetrahedra(ds)]
+        return Region.tetrahedra(numpy_points(ds), np.concatenate(tets))
+    if isinstance(ds, pv.PolyData) and ds.n_cells and ds.GetNumberOfPolys():
+        surf = ds.triangulate() if not ds.is_all_triangles else ds
+        if surf.n_open_edges == 0:
+            return _solid_region(surf)
+    if cage is None:
+        raise ValueError(
+            "this dataset bounds no solid (a point cloud or an open surface): certify the "
+            "cage's interior instead (pass the cage)"
+        )
+    return Region.cage_interior(cage, default_margin(cage))
+
+
+def _solid_region(surface):
+    """The solid a closed, consistently oriented triangle surface bounds.
+
+    Cubes near the surface are classified by exact signed distances (angle-weighted
+    pseudo-normals, :mod:`vhm_viz.autocage.proximity`); the few first-level cubes far
+    from it, and witnesses, by the surface's generalised winding number. Children of a
+    cube that straddles the surface lie within four of their radii of it, so the exact
+    distance covers every later test.
+    """
+    from vhm_viz.autocage.proximity import NearDistance, grid_signed_distance
+    from vhm_viz.core.basis import inside_cage, winding_number
+    from vhm_viz.core.certify import INSIDE, MEETS, OUTSIDE, Region
+
+    v = np.ascontiguousarray(surface.points, dtype=np.float64)
+    f = np.ascontiguousarray(np.asarray(surface.faces).reshape(-1, 4)[:, 1:], dtype=np.int64)
+    if signed_volume(v, f) < 0:
+        f = f[:, ::-1]  # inward-oriented: the signs below assume outward normals
+    near = NearDistance(v, f)
+
+    def inside(points):
+        return inside_cage(winding_number(points, v, f))
+
+    def test(centres, e):
+        r = float(np.linalg.norm(e))
+        sd, _ = grid_signed_distance(near, centres, 4.0 * r)
+        state = np.full(len(centres), MEETS, dtype=np.int8)
+        state[sd < -r] = INSIDE
+        state[np.isfinite(sd) & (sd > r)] = OUTSIDE
+        far = ~np.isfinite(sd)
+        if far.any():
+            state[far] = np.where(inside(centres[far]), INSIDE, OUTSIDE)
+        return state
+
+    b = np.asarray(surface.bounds, dtype=np.float64)
+    return Region("solid", b[0::2], b[1::2], test, inside, {"triangles": int(len(f))})
