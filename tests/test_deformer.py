@@ -454,6 +454,53 @@ def test_custom_smoothness_samples_on_faces(cage, anchors):
         _deformer(cage, anchors, smoothness_samples=np.array([[0, 0, 1.0], [9, 9, 9.0]]))
 
 
+def _wedge_cage(half_angle_deg=0.1, length=1.0, width=0.5):
+    """A triangular prism whose cross-section is a sharp isosceles wedge (apex at x=length)."""
+    t = np.tan(np.radians(half_angle_deg)) * length
+    tri = np.array([[0.0, -t], [length, 0.0], [0.0, t]])  # counter-clockwise in (x, y)
+    v = np.array([[x, y, z] for z in (0.0, width) for x, y in tri])
+    f = np.array(
+        [[0, 2, 1], [3, 4, 5], [0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [2, 0, 3], [2, 3, 5]]
+    )
+    return v, f
+
+
+@pytest.mark.parametrize("shape", ["plate", "wedge"])
+def test_default_samples_adapt_to_thin_cages(shape):
+    """Plates thinner than 2e-3 of the diagonal and sharp wedges still get inside samples."""
+    from conftest import box_cage
+
+    from vhm_viz.core.basis import winding_number
+    from vhm_viz.core.cage import Cage
+    from vhm_viz.core.deformer import Deformer, default_smoothness_samples
+
+    if shape == "plate":
+        v, f = box_cage((0, 0, 0), (1.0, 1.0, 4e-4), 3)  # 2.8e-4 of the diagonal thick
+        anchors = np.array([[0.3, 0.3, 2e-4], [0.7, 0.6, 2e-4]])
+        pos = np.array([[0.1, 0.1, 2e-4], [0.9, 0.9, 2e-4]])
+    else:
+        v, f = _wedge_cage()
+        anchors = np.array([[0.2, 0.0, 0.25], [0.5, 0.0, 0.25]])
+        pos = np.array([[0.1, 0.0, 0.1], [0.6, 0.0, 0.4]])
+    w = default_smoothness_samples(v, f)
+    # independent check: the winding number, 1 strictly inside
+    assert (winding_number(w, v, f) > 1 - 1e-9).all()
+    d = Deformer(Cage(v, f), anchors)
+    d.set_constraints(positions=pos, targets=pos + [0.0, 0.0, 0.05])
+    d.solve(max_iterations=500)
+    assert np.isfinite(d.harmonic_map.map(anchors)).all()
+
+
+def test_default_samples_keep_the_fixed_inset_where_the_cage_is_thick(cage):
+    from vhm_viz.core.deformer import default_smoothness_samples
+
+    v, f = np.asarray(cage.vertices), np.asarray(cage.faces)
+    on = default_smoothness_samples(v, f, inset=0.0)
+    w = default_smoothness_samples(v, f)
+    diag = float(np.linalg.norm(np.ptp(v, axis=0)))
+    np.testing.assert_allclose(np.linalg.norm(w - on, axis=1), 1e-3 * diag, rtol=1e-12)
+
+
 def test_lambda_follows_paper_rule(cage, anchors):
     a = _deformer(cage, anchors, alpha=0.01)
     b = _deformer(cage, anchors, alpha=0.02)

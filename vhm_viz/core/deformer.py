@@ -16,7 +16,8 @@ Design (all documented choices in one place):
   the public API converts at the boundary. The local step commutes with transposition.
 * **Smoothness samples.** By default 3 per cage face, at the barycentric points
   ``(2/3, 1/6, 1/6)`` and permutations, pulled inward along the face normal by ``1e-3`` of
-  the cage's bounding-box diagonal (k = 3 m samples, each giving 5 Hessian rows
+  the cage's bounding-box diagonal, or by half the cage's local thickness where the cage
+  is thinner than twice that (k = 3 m samples, each giving 5 Hessian rows
   ``xx, xy, xz, yy, yz`` per map component, as in the paper's eq. 5). Your own samples can be
   passed instead; samples lying exactly on a face need ``smoothness_host_faces`` so that the
   interior limit of the basis is used.
@@ -60,7 +61,7 @@ import scipy.linalg as sla
 from vhm_viz.core.basis import evaluate_basis, inside_cage
 from vhm_viz.core.binding import Binding
 from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indices
-from vhm_viz.core.geometry import face_normals_and_areas
+from vhm_viz.core.geometry import face_normals_and_areas, ray_depth
 from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW, project_blocks, run_local_global
 
 __all__ = ["Deformer", "SolveReport", "default_smoothness_samples"]
@@ -117,13 +118,20 @@ def _as_matrix_array(a, name: str) -> np.ndarray:
 def default_smoothness_samples(vertices, faces, inset: float = _SAMPLE_INSET) -> np.ndarray:
     """The default smoothness samples of a cage (3 per face, pulled inward).
 
+    Each sample starts at a barycentric point of its face and moves inward along the face
+    normal by ``inset`` times the cage's bounding-box diagonal, or by half the cage's local
+    thickness there when that is less: the distance along the inward normal to the first
+    other face (the far side of a thin plate, or the neighbour of a sharp convex edge). So
+    every sample of a valid cage lies strictly inside it, however thin the cage gets.
+
     Parameters
     ----------
     vertices : (n, 3) array_like
     faces : (m, 3) array_like of int
         Outward-oriented cage.
     inset : float
-        Inward offset along the face normal, as a fraction of the bounding-box diagonal.
+        Largest inward offset along the face normal, as a fraction of the bounding-box
+        diagonal (0 puts the samples on the faces).
 
     Returns
     -------
@@ -134,9 +142,13 @@ def default_smoothness_samples(vertices, faces, inset: float = _SAMPLE_INSET) ->
     f = np.asarray(faces, dtype=np.int64)
     normals, _ = face_normals_and_areas(v, f)
     diag = float(np.linalg.norm(v.max(0) - v.min(0)))
-    pts = np.einsum("sb,fbc->fsc", _SAMPLE_BARY, v[f])
-    pts -= (inset * diag) * normals[:, None, :]
-    return pts.reshape(-1, 3)
+    on_face = np.einsum("sb,fbc->fsc", _SAMPLE_BARY, v[f]).reshape(-1, 3)
+    if inset <= 0:
+        return on_face
+    inward = -np.repeat(normals, 3, axis=0)
+    thickness = ray_depth(on_face, inward, v, f, skip_faces=np.repeat(np.arange(len(f)), 3))
+    depth = np.minimum(inset * diag, 0.5 * thickness)
+    return on_face + depth[:, None] * inward
 
 
 @dataclass
@@ -288,7 +300,8 @@ class Deformer:
                 f"{idx.size} smoothness samples are outside the cage "
                 f"(indices {describe_indices(idx)})"
                 + (
-                    "; the cage may be thinner than the default inset"
+                    "; default samples lie halfway to the next face along the inward normal, "
+                    "so the cage is not a closed, embedded surface there"
                     if smoothness_samples is None
                     else ""
                 ),
