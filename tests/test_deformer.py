@@ -524,3 +524,60 @@ def test_parallel_deform_kernel_matches_numpy(bent, monkeypatch):
         np.testing.assert_array_equal(got[1], pts[1])
         inside = dfm.bind(pts[[0, 2, 3]], dtype=dtype)
         np.testing.assert_allclose(inside.deform(), ref[[0, 2, 3]], atol=tol)
+
+
+# ----------------------------------------------------------------------------- shells
+def _two_box_cage():
+    from conftest import box_cage
+
+    from vhm_viz.core.cage import Cage
+
+    v1, f1 = box_cage((-0.5, -0.5, 0), (0.5, 0.5, 5), 2)
+    v2, f2 = box_cage((1.0, -0.5, 0), (2.0, 0.5, 5), 2)
+    return Cage(np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)]))
+
+
+def test_a_shell_without_constraints_stays_put():
+    """Constraints in one shell only: the other is pinned to the identity, with a warning."""
+    from vhm_viz.core.deformer import Deformer
+
+    cage = _two_box_cage()
+    z = (np.arange(4) + 0.5) * 5 / 4
+    left = np.column_stack([np.zeros(4), np.zeros(4), z])
+    right = left + [1.5, 0, 0]
+    pos = np.array([[0.0, 0.0, 0.2], [0.3, 0.0, 0.2], [0.0, 0.0, 4.8]])
+    tgt = pos + [[0, 0, 0], [0, 0, 0], [1.0, 0.5, -0.5]]
+    rng = np.random.default_rng(4)
+    inside_right = rng.uniform((1.05, -0.45, 0.05), (1.95, 0.45, 4.95), (50, 3))
+    for anchors in (np.vstack([left, right]), left):  # with or without anchors of its own
+        d = Deformer(cage, anchors)
+        with pytest.warns(UserWarning, match="cage shell 1 .* stays put"):
+            d.set_constraints(positions=pos, targets=tgt)
+        assert d.pinned_shells == (1,) and len(d.notes) == 1
+        assert d.n_constraints == 3
+        rep = d.solve(max_iterations=3000, tolerance=1e-8)
+        assert rep.converged
+        hm = d.harmonic_map
+        # independent check: the basis reproduces the identity exactly inside the pinned shell
+        np.testing.assert_allclose(hm.map(inside_right), inside_right, atol=1e-10)
+        np.testing.assert_allclose(hm.map(pos), tgt, atol=1e-9)
+        assert np.isfinite(d.energy()[0])
+
+
+def test_constrained_shells_need_anchors_and_a_position():
+    from vhm_viz.core.deformer import Deformer
+
+    cage = _two_box_cage()
+    z = (np.arange(4) + 0.5) * 5 / 4
+    left = np.column_stack([np.zeros(4), np.zeros(4), z])
+    pos = np.array([[0.0, 0.0, 0.2], [1.5, 0.0, 4.8]])
+    d = Deformer(cage, left)
+    with pytest.raises(ConstraintError, match="cage shell 1 .* no anchor"):
+        d.set_constraints(positions=pos, targets=pos)
+    with pytest.raises(ConstraintError, match="cage shell 1 .* no position"):
+        d.set_constraints(
+            positions=pos[:1],
+            targets=pos[:1],
+            jacobian_points=[[1.5, 0.0, 2.0]],
+            jacobians=[np.eye(3)],
+        )
