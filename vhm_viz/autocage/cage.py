@@ -314,11 +314,13 @@ class AutoCageReport:
     offset : float
         Requested clearance (world units).
     clearance : float
-        Smallest distance from an input point to the cage (world units, > 0).
+        Smallest distance from an input point on the shape's boundary to the cage (world
+        units, > 0): every point of a surface or cloud, a tet mesh's surface points, a
+        volume region's rim voxels.
     clearance_relative : float
         ``clearance`` divided by the input's bounding-box diagonal.
     min_winding_number : float
-        Smallest generalized winding number over the input points (1 when enclosed).
+        Smallest generalized winding number over all input points (1 when enclosed).
     enclosed : bool
         Every input point strictly inside (winding number > 0.5 and clearance > 0).
     voxel_size : float
@@ -390,30 +392,19 @@ def _near_sd(V, F, points, radius):
     return grid_signed_distance(NearDistance(V, F), points, radius)
 
 
-def _verify_enclosure(vertices, faces, points, unsigned_dist) -> float:
-    """Smallest winding number over ``points``, evaluated on few representatives.
+def _on_boundary(samples: InputSamples) -> np.ndarray:
+    """Which input points lie on the shape's boundary (where the cage comes closest).
 
-    The winding number is constant on every ball that does not meet the cage: a point
-    within ``unsigned_dist[r]`` of a representative ``r`` has ``r``'s winding number
-    (``unsigned_dist`` may be a lower bound of the distance to the cage). Points are
-    bucketed on a grid; in each bucket the point farthest from the cage represents the
-    others it covers; uncovered points are evaluated themselves.
+    A volume's rim voxels, a tet mesh's surface points; every point of a surface or a
+    cloud.
     """
-    p = np.asarray(points, dtype=np.float64)
-    d = np.abs(np.asarray(unsigned_dist, dtype=np.float64))
-    cell = max(float(np.median(d)), 1e-12 * float(np.ptp(p, axis=0).max()))
-    key = np.floor((p - p.min(axis=0)) / cell).astype(np.int64)
-    _, bucket = np.unique(key, axis=0, return_inverse=True)
-    bucket = bucket.ravel()
-    order = np.lexsort((-d, bucket))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = bucket[order[1:]] != bucket[order[:-1]]
-    rep_of_bucket = order[first]  # farthest point in each bucket
-    rep = rep_of_bucket[bucket]
-    covered = np.linalg.norm(p - p[rep], axis=1) < 0.999 * d[rep]
-    evaluate = np.unique(np.concatenate([rep_of_bucket, np.flatnonzero(~covered)]))
-    w = winding_number(p[evaluate], vertices, faces)
-    return float(np.min(w)) if len(w) else 1.0
+    if samples.boundary is not None:
+        return np.asarray(samples.boundary, dtype=bool)
+    if samples.kind == "tetmesh" and samples.tri_faces is not None and len(samples.tri_faces):
+        surface = samples.tri_vertices[np.unique(samples.tri_faces)]
+        d, _ = cKDTree(surface).query(samples.points)
+        return d == 0
+    return np.ones(len(samples.points), dtype=bool)
 
 
 def _clearance(V, F, points, radius):
@@ -517,7 +508,7 @@ def _group_inside(points, h, offset, spacing):
     return grid, inside
 
 
-def _group_offset_surface(points, boundary, clear, grid, inside, offset):
+def _group_offset_surface(points, clear, grid, inside, offset, solid_radius=None):
     """Surface at the local clearance ``clear`` outside one group of samples (PolyData).
 
     Outside the group the surface is the boundary of the union of the balls of radius
@@ -528,6 +519,12 @@ def _group_offset_surface(points, boundary, clear, grid, inside, offset):
     the nearest boundary sample minus its clearance: signed, it interpolates linearly
     across the surface, so the contour stays accurate where the clearance is much smaller
     than a voxel. Beyond a band around the surface, voxel distances stand in.
+
+    ``inside`` (filled voxels holding samples) counts a voxel centre up to a voxel from
+    the shape as inside; for point sets (volumes, clouds) ``solid_radius`` corrects that
+    where the clearance varies (near another group): a centre farther than it from every
+    sample is outside (at a coarse grid the error otherwise bulges the surface towards
+    the close group).
     """
     import pyvista as pv
 
@@ -546,26 +543,47 @@ def _group_offset_surface(points, boundary, clear, grid, inside, offset):
         field_[band_out] = (d - clear[j]).reshape(len(idx), k).min(axis=1)
     idx = np.argwhere(band_in)
     if len(idx):
-        bnd = np.flatnonzero(boundary) if boundary.any() else np.arange(len(points))
-        d, j = cKDTree(points[bnd]).query(grid.centers(idx), k=1, workers=-1)
-        field_[band_in] = -d - clear[bnd[j]]
+        where = grid.centers(idx)
+        d, j = cKDTree(points).query(where, k=1, workers=-1)
+        values = -d - clear[j]
+        if solid_radius is not None and varies:
+            k = min(8, len(points))
+            d, j = cKDTree(points).query(where, k=k, workers=-1)
+            d, j = d.reshape(len(idx), k), j.reshape(len(idx), k)
+            out = d[:, 0] > solid_radius
+            values[out] = (d[out] - clear[j[out]]).min(axis=1)
+        field_[band_in] = values
+    # a pocket whose mouth the balls close over leaves a void inside the surface (an
+    # inner shell that would be flipped outward, nested): the surface takes it in
+    solid = ndimage.binary_fill_holes(field_ < 0)
+    field_[solid & (field_ >= 0)] = -0.5 * h
     img = pv.ImageData(dimensions=grid.shape, spacing=(h, h, h), origin=grid.origin + 0.5 * h)
     img.point_data["f"] = field_.ravel(order="F")
-    return img.contour([0.0], scalars="f", method="flying_edges").clean().triangulate()
+    iso = img.contour([0.0], scalars="f", method="flying_edges").clean().triangulate()
+    return iso, solid
 
 
 def _nested_groups(groups_inside, points, group):
-    """Pairs (outer, inner) of groups whose samples lie inside another group's region."""
+    """Pairs (outer, inner) of groups whose samples lie inside another group's region.
+
+    ``groups_inside`` holds a (grid, mask) per group: the filled voxels of its samples,
+    or the inside of its offset surface (which can close over a pocket holding another
+    group).
+    """
+    n = len(groups_inside)
+    members = [np.flatnonzero(group == g) for g in range(n)]
+    boxes = [(points[m].min(axis=0), points[m].max(axis=0)) for m in members]
     pairs = []
     for g, (grid, inside) in enumerate(groups_inside):
-        other = np.flatnonzero(group != g)
-        if len(other) == 0:
-            continue
-        idx = np.floor((points[other] - grid.origin) / grid.h).astype(np.int64)
-        ok = np.all((idx >= 0) & (idx < np.asarray(grid.shape)), axis=1)
-        hit = np.zeros(len(other), dtype=bool)
-        hit[ok] = inside[idx[ok, 0], idx[ok, 1], idx[ok, 2]]
-        pairs += [(g, int(k)) for k in np.unique(group[other[hit]])]
+        lo = grid.origin
+        hi = grid.origin + grid.h * np.asarray(grid.shape)
+        for k in range(n):
+            if k == g or np.any(boxes[k][0] > hi) or np.any(boxes[k][1] < lo):
+                continue
+            idx = np.floor((points[members[k]] - lo) / grid.h).astype(np.int64)
+            ok = np.all((idx >= 0) & (idx < np.asarray(grid.shape)), axis=1)
+            if inside[idx[ok, 0], idx[ok, 1], idx[ok, 2]].any():
+                pairs.append((g, k))
     return pairs
 
 
@@ -581,9 +599,18 @@ class _Groups:
     inside: list  # (grid, mask) per group
 
 
-def _make_groups(shape: ShapeSamples, offset: float, h: float, spacing, max_groups: int) -> _Groups:
-    """Group the parts (closer than ``offset``, or nested) and set local clearances."""
-    group, count, bridged, kept = group_parts(shape, offset)
+def _make_groups(
+    shape: ShapeSamples, offset: float, h: float, spacing, max_groups: int, merged=None
+) -> _Groups:
+    """Group the parts (closer than ``offset``, or nested) and set local clearances.
+
+    ``merged`` (a previous :class:`_Groups` whose labels were merged further) skips the
+    distance grouping.
+    """
+    if merged is None:
+        group, count, bridged, kept = group_parts(shape, offset)
+    else:
+        group, count, bridged = merged.label, merged.count, merged.bridged
     if count > max_groups:
         raise RuntimeError(
             f"{count} parts farther apart than the offset need more than {max_groups} shells"
@@ -601,7 +628,7 @@ def _make_groups(shape: ShapeSamples, offset: float, h: float, spacing, max_grou
             break
         group, count = merge_groups(group, nested)
     if count > 1:
-        gap = gap_to_other_groups(shape.points, group, shape.boundary, 3.0 * offset)
+        gap = gap_to_other_groups(shape.points, group, 3.0 * offset)
         clear = np.minimum(offset, _GAP_SHARE * gap)
         finite = np.isfinite(gap)
         kept = float(gap[finite].min()) if finite.any() else float("inf")
@@ -611,19 +638,33 @@ def _make_groups(shape: ShapeSamples, offset: float, h: float, spacing, max_grou
     return _Groups(group, count, clear, bridged, kept, inside)
 
 
-def _offset_surface(shape: ShapeSamples, groups: _Groups, offset: float, spacing):
-    """Offset surface of every group (one PolyData each, at the groups' local clearance)."""
-    meshes = []
+def _offset_surface(shape: ShapeSamples, groups: _Groups, offset: float, solid_radius=None):
+    """Offset surface of every group at the groups' local clearance.
+
+    Returns
+    -------
+    meshes : list of PolyData
+        One per group.
+    solids : list of (Grid, (nx, ny, nz) bool)
+        The voxels inside each surface.
+    """
+    meshes, solids = [], []
     for g in range(groups.count):
         sel = groups.label == g
         grid, inside = groups.inside[g]
-        iso = _group_offset_surface(
-            shape.points[sel], shape.boundary[sel], groups.clear[sel], grid, inside, offset
+        iso, solid = _group_offset_surface(
+            shape.points[sel],
+            groups.clear[sel],
+            grid,
+            inside,
+            offset,
+            solid_radius,
         )
         if iso.n_cells == 0:
             raise RuntimeError(f"empty offset surface for part group {g}")
         meshes.append(iso)
-    return meshes
+        solids.append((grid, solid))
+    return meshes, solids
 
 
 def _faces_of(poly) -> np.ndarray:
@@ -682,15 +723,27 @@ def _push_out(V, F, points, min_clear, radius, rounds=25):
     (``inf`` beyond ``radius``).
     """
     V = V.copy()
-    min_clear = np.broadcast_to(np.asarray(min_clear, dtype=np.float64), (len(points),))
+    all_points = points
+    all_clear = np.broadcast_to(np.asarray(min_clear, dtype=np.float64), (len(points),))
+    points, min_clear = all_points, all_clear
     previous = None
     for it in range(rounds):
         sd, face = _near_sd(V, F, points, radius)
+        if it == 0:
+            # only points near the cage can be reached by the small steps below; the
+            # others are checked again at the end
+            near = np.isfinite(sd)
+            points, min_clear, sd, face = points[near], min_clear[near], sd[near], face[near]
         viol = np.flatnonzero(np.isfinite(sd) & (sd > -min_clear))
         if len(viol) == 0:
-            return V, sd
+            sd, _ = _near_sd(V, F, all_points, radius)
+            if not (np.isfinite(sd) & (sd > -all_clear)).any():
+                return V, sd
+            near = np.isfinite(sd)  # a far point came near: carry on with them
+            points, min_clear = all_points[near], all_clear[near]
+            continue
         if previous is not None and it >= 2 and len(viol) > previous:
-            return V, sd  # diverging (pushing one branch into another): give up early
+            break  # diverging (pushing one branch into another): give up early
         previous = len(viol)
         fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
         fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
@@ -706,7 +759,7 @@ def _push_out(V, F, points, min_clear, radius, rounds=25):
             np.maximum.at(need, vk, deficit / np.maximum(cos, 0.25))
             np.maximum.at(cap, vk, mc)
         V = V + vn * np.minimum(need, cap)[:, None]
-    sd, _ = _near_sd(V, F, points, radius)
+    sd, _ = _near_sd(V, F, all_points, radius)
     return V, sd
 
 
@@ -732,7 +785,11 @@ def _gap_midpoints(shape: ShapeSamples, groups: _Groups, limit: int = 20_000) ->
 
 
 def _decimated(V, F, target: int, notes: list):
-    """The offset surfaces taken down to a few times ``target`` faces (VTK, fast)."""
+    """The offset surfaces taken down to a few times ``target`` faces.
+
+    VTK's quadric decimation (fast) when its result is a closed 2-manifold, else the
+    compiled simplifier.
+    """
     F, _ = _orient_outward(V, F)
     for factor in (4, 8, 16):
         coarse = factor * target
@@ -746,7 +803,11 @@ def _decimated(V, F, target: int, notes: list):
         if not any(probs.values()):
             return V1, F1
         notes.append(f"quadric decimation to {coarse} faces not manifold ({probs})")
-    raise RuntimeError("quadric decimation keeps producing non-manifold surfaces")
+    # the compiled simplifier keeps the surface a 2-manifold (link condition): slower
+    # from a large contour, but it does not fail
+    if any(edge_problems(F).values()):
+        raise RuntimeError("the offset surface is not a closed 2-manifold")
+    return simplify(V, F, 4 * target, outside=True, min_component_vertices=6)
 
 
 def _simplified(V1, F1, target: int, turn: float):
@@ -766,7 +827,7 @@ def _simplified(V1, F1, target: int, turn: float):
 
 
 def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
-    """(grid, vertices, faces, signed distances, components, Cage, groups) of "offset".
+    """(grid, vertices, faces, components, Cage, groups) of the "offset" method.
 
     Parts closer than ``offset`` (and nested parts) are grouped; every group gets its own
     offset surface, at the clearance ``offset`` narrowed to a third of the gap near other
@@ -775,8 +836,7 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
     :func:`vhm_viz.autocage.simplify.simplify` finishes with link-condition-checked
     collapses, then the cage is pushed out where needed (every boundary sample at least
     half its local clearance inside) and checked to leave the space between groups
-    outside. The signed distances returned are those of the input points
-    (``shape.points[:shape.n_input]``, ``inf`` beyond twice the offset).
+    outside.
     """
     ext = float((hi - lo).max())
     if resolution is None:
@@ -784,7 +844,20 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
     h = ext / int(resolution)
     max_groups = max(1, max_faces // _FACES_PER_SHELL)
     groups = _make_groups(shape, offset, h, samples.spacing, max_groups)
-    meshes = _offset_surface(shape, groups, offset, samples.spacing)
+    # point sets: a voxel centre is in the shape when within a sample's voxel (volumes)
+    # or a typical neighbour distance (clouds) of a sample
+    solid_radius = None
+    if samples.tri_faces is None and samples.spacing:
+        solid_radius = (0.5 * np.sqrt(3.0) if samples.kind == "volume" else 1.0) * samples.spacing
+    while True:
+        meshes, solids = _offset_surface(shape, groups, offset, solid_radius)
+        # an offset surface that closes over a pocket holding another group would nest
+        # that group's shell inside it: such groups share a shell
+        nested = _nested_groups(solids, shape.points, groups.label) if groups.count > 1 else []
+        if not nested:
+            break
+        groups.label, groups.count = merge_groups(groups.label, nested)
+        groups = _make_groups(shape, offset, h, samples.spacing, max_groups, merged=groups)
     V = np.concatenate([np.asarray(m.points, dtype=np.float64) for m in meshes])
     first = np.cumsum([0] + [m.n_points for m in meshes])[:-1]
     F = np.concatenate([_faces_of(m) + o for m, o in zip(meshes, first, strict=True)])
@@ -795,8 +868,8 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
     # samples on the input's triangles near gaps between groups (so that no triangle pokes
     # through where the cage hugs the shape); elsewhere the simplified cage may cut the
     # corner of a large input triangle between its (enclosed) corners
-    check = shape.boundary.copy()
-    check[shape.n_input :] &= groups.clear[shape.n_input :] < offset
+    check = np.ones(len(shape.points), dtype=bool)
+    check[shape.n_input :] = groups.clear[shape.n_input :] < offset
     check_points = shape.points[check]
     min_clear = 0.5 * groups.clear[check]
     mids = _gap_midpoints(shape, groups)
@@ -818,7 +891,12 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
                 f"the simplified offset surface self-intersects ({crossing} face pairs)"
             )
         V3, sd = _push_out(V2, F2, check_points, min_clear, radius)
-        if (np.isfinite(sd) & (sd > -min_clear * 0.999)).any():
+        short = np.isfinite(sd) & (sd > -min_clear * 0.999)
+        if short.any():
+            if (min_clear[short] < 0.5 * offset).any():
+                # near a gap the faces are too coarse to keep it open: another variant of
+                # the same face count will not do better, a larger offset (merging) does
+                raise RuntimeError("the faces cannot keep the gaps between parts open")
             notes.append(
                 f"push-out did not restore the clearance ({len(F2)} faces, normal turn "
                 f"{turn}); retrying"
@@ -828,15 +906,13 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
             notes.append(f"{ncomp} shells for {groups.count} part groups; retrying")
             continue
         if len(mids) and (winding_number(mids, V3, F2) > 0.5).any():
-            notes.append("the cage closes a gap between parts; retrying")
-            continue
+            raise RuntimeError("the cage closes a gap between parts")
         try:
             cage = _make_cage(V3, F2)
         except CageError as exc:
             notes.append(f"offset cage rejected ({exc}); retrying")
             continue
-        sd, _ = _near_sd(V3, F2, shape.points[: shape.n_input], radius)
-        return vx.Grid(lo, h, (int(resolution),) * 3), V3, F2, sd, ncomp, cage, groups
+        return vx.Grid(lo, h, (int(resolution),) * 3), V3, F2, ncomp, cage, groups
     raise RuntimeError("could not simplify the offset surface into a valid cage")
 
 
@@ -921,23 +997,26 @@ def auto_cage(
     cage = None
     offset_used, bridged, kept, n_parts = offset, float("nan"), float("nan"), 1
     if used in ("auto", "offset"):
-        # thin tubes (fingers) sometimes cannot be simplified at the requested offset:
-        # "auto" retries at twice the offset before falling back to the voxel cage
-        tries = (offset, 2.0 * offset) if method == "auto" else (offset,)
+        # when the cage cannot be made at the requested offset (too many separate parts
+        # for the faces, gaps the faces cannot keep open), "auto" retries at two and four
+        # times the offset -- parts closer than it then share a shell -- before falling
+        # back to the voxel cage
+        tries = (offset, 2.0 * offset, 4.0 * offset) if method == "auto" else (offset,)
         ext = float((hi - lo).max())
         res0 = resolution or int(np.clip(np.ceil(1.5 * ext / offset), 32, 112))
         shape = shape_samples(samples, 0.5 * ext / res0)
         for k, off in enumerate(tries):
             try:
-                grid, V, F, sd, ncomp, cage, groups = _offset_cage(
+                grid, V, F, ncomp, cage, groups = _offset_cage(
                     samples, shape, lo, hi, off, max_faces, resolution, notes
                 )
                 used = "offset"
-                radius_used = 2.0 * off
                 offset_used, bridged, kept = off, groups.bridged, groups.kept
                 n_parts = shape.n_parts
                 if k:
-                    notes.append(f"used offset {off:.4g} (twice the requested one)")
+                    notes.append(
+                        f"used offset {off:.4g} ({off / offset:g} times the requested one)"
+                    )
                 break
             except (RuntimeError, ValueError) as exc:
                 if method == "offset":
@@ -975,7 +1054,6 @@ def auto_cage(
         )
         F, ncomp = _orient_outward(V, F)
         grid = vx.make_grid(lo, hi, 1, 0)
-        sd, radius_used = _clearance(V, F, pts, 2 * offset)
         cage = _make_cage(V, F)
         used = "box"
     if used == "voxel":
@@ -988,16 +1066,12 @@ def auto_cage(
                 f"more than max_faces={max_faces}"
             )
         F, ncomp = _orient_outward(V, F)
-        sd, radius_used = _clearance(V, F, pts, offset + 3 * grid.h)
         cage = _make_cage(V, F, check_self_intersection=False)  # embedded by construction
-    finite = np.isfinite(sd)
-    if not finite.any():
-        sd, radius_used = _clearance(V, F, pts, 4.0 * offset)
-        finite = np.isfinite(sd)
-    clearance = float(-sd[finite].max())
-    # exact distances near the cage, the search radius (a lower bound) elsewhere
-    lower = np.where(finite, np.abs(sd), radius_used)
-    wmin = _verify_enclosure(V, F, pts, lower)
+    # independent of how the cage was built: the distance from the boundary points (the
+    # closest to the cage) and the winding number of every point
+    sd, _ = _clearance(V, F, pts[_on_boundary(samples)], 2.0 * offset_used)
+    clearance = float(-sd[np.isfinite(sd)].max())
+    wmin = float(winding_number(pts, V, F).min())
     enclosed = bool(clearance > 0 and wmin > 0.5)
     if not enclosed:  # pragma: no cover - guarded by construction
         raise RuntimeError(

@@ -6,8 +6,9 @@ point cloud. :func:`automatic cages <vhm_viz.autocage.cage.auto_cage>` give part
 farther apart than the clearance separate shells, and shrink the clearance between them
 so that the space between parts stays outside the cage:
 
-* :func:`shape_samples` -- the input's points plus samples on its triangles, each with the
-  part it belongs to;
+* :func:`shape_samples` -- the input's points on its boundary plus samples on its
+  triangles, each with the part it belongs to (the cage comes closest to the boundary, and
+  the nearest point of one part to another lies on it);
 * :func:`group_parts` -- parts closer than a distance merged into groups (one shell each),
   exactly: by nearest-sample distances, never by voxels;
 * :func:`gap_to_other_groups` -- for every sample, the distance to the nearest sample of
@@ -32,26 +33,24 @@ __all__ = ["ShapeSamples", "shape_samples", "group_parts", "gap_to_other_groups"
 
 @dataclass
 class ShapeSamples:
-    """Points that stand for a shape, with the part each belongs to.
+    """Points on a shape's boundary, with the part each belongs to.
 
     Attributes
     ----------
     points : (N, 3) float64
-        The input's points first (``n_input`` of them), then samples on its triangles.
+        The input's points on the boundary first (``n_input`` of them: a surface's
+        vertices, a tet mesh's surface points, a volume region's rim voxels, every cloud
+        point), then samples on its triangles.
     n_input : int
         How many of ``points`` are input points.
     part : (N,) int64
         Part label of every point, ``0 .. n_parts - 1``.
-    boundary : (N,) bool
-        Points on the shape's surface (triangle corners and samples, the outer voxels of a
-        volume region, every cloud point): depths inside the shape are measured to them.
     n_parts : int
     """
 
     points: np.ndarray
     n_input: int
     part: np.ndarray
-    boundary: np.ndarray
     n_parts: int
 
 
@@ -66,7 +65,7 @@ def _compact_labels(labels: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def shape_samples(samples, spacing: float) -> ShapeSamples:
-    """The input's points and triangle samples, labelled by part.
+    """The input's boundary points and triangle samples, labelled by part.
 
     Parameters
     ----------
@@ -90,18 +89,17 @@ def shape_samples(samples, spacing: float) -> ShapeSamples:
         # which lie inside the component whose boundary vertex is nearest
         used = np.unique(tf)
         dist, near = cKDTree(tv[used]).query(pts)
-        plab = vlab[used[near]]
-        part, n_parts = _compact_labels(np.concatenate([plab, vlab[tf[owner, 0]]]))
-        boundary = np.concatenate([dist == 0, np.ones(len(extra), dtype=bool)])
-        return ShapeSamples(np.concatenate([pts, extra]), n_in, part, boundary, n_parts)
-    if samples.part is not None:  # volumes: regions labelled on the image
-        part, n_parts = _compact_labels(np.asarray(samples.part))
-        boundary = (
+        on = dist == 0  # a tet mesh's inner points are not on its boundary
+        part, n_parts = _compact_labels(np.concatenate([vlab[used[near[on]]], vlab[tf[owner, 0]]]))
+        return ShapeSamples(np.concatenate([pts[on], extra]), int(on.sum()), part, n_parts)
+    if samples.part is not None:  # volumes: regions labelled on the image, rim voxels
+        rim = (
             np.asarray(samples.boundary, dtype=bool)
             if samples.boundary is not None
             else np.ones(n_in, dtype=bool)
         )
-        return ShapeSamples(pts, n_in, part, boundary, n_parts)
+        part, n_parts = _compact_labels(np.asarray(samples.part)[rim])
+        return ShapeSamples(pts[rim], int(rim.sum()), part, n_parts)
     # point clouds: points within twice the typical spacing are connected
     step = 2.0 * float(samples.spacing or 0.0)
     if step > 0 and n_in > 1:
@@ -109,7 +107,7 @@ def shape_samples(samples, spacing: float) -> ShapeSamples:
         part, n_parts = _compact_labels(_components(n_in, pairs))
     else:
         part, n_parts = np.zeros(n_in, dtype=np.int64), 1
-    return ShapeSamples(pts, n_in, part, np.ones(n_in, dtype=bool), n_parts)
+    return ShapeSamples(pts, n_in, part, n_parts)
 
 
 def _bbox(points: np.ndarray, labels: np.ndarray, n: int):
@@ -181,9 +179,7 @@ def group_parts(shape: ShapeSamples, distance: float) -> tuple[np.ndarray, int, 
     n = shape.n_parts
     if n == 1:
         return np.zeros(len(shape.points), dtype=np.int64), 1, 0.0, float("inf")
-    # the nearest points of two parts lie on their boundaries
-    b = shape.boundary
-    pairs = _close_pairs(shape.points[b], shape.part[b], n, 3.0 * distance)
+    pairs = _close_pairs(shape.points, shape.part, n, 3.0 * distance)
     close = [(a, b, d) for a, b, d in pairs if d <= distance]
     if close:
         e = np.array([(a, b) for a, b, _ in close], dtype=np.int64)
@@ -208,17 +204,13 @@ def merge_groups(group: np.ndarray, pairs) -> tuple[np.ndarray, int]:
     return _compact_labels(lab[group])
 
 
-def gap_to_other_groups(
-    points: np.ndarray, group: np.ndarray, boundary: np.ndarray, radius: float
-) -> np.ndarray:
-    """Distance from every sample to the nearest boundary sample of another group.
+def gap_to_other_groups(points: np.ndarray, group: np.ndarray, radius: float) -> np.ndarray:
+    """Distance from every boundary sample to the nearest one of another group.
 
     Parameters
     ----------
     points : (N, 3) float64
     group : (N,) int64
-    boundary : (N,) bool
-        Samples on the shape's surface (the nearest point of another part is one of them).
     radius : float
         Distances above this are not needed: ``inf`` is returned for them.
 
@@ -234,7 +226,7 @@ def gap_to_other_groups(
     order = np.argsort(group, kind="stable")
     starts = np.searchsorted(group[order], np.arange(n + 1))
     members = [order[starts[k] : starts[k + 1]] for k in range(n)]
-    rims = [m[boundary[m]] for m in members]
+    rims = members
 
     def within(idx, lo_, hi_):
         return idx[np.all((points[idx] >= lo_) & (points[idx] <= hi_), axis=1)]

@@ -85,8 +85,9 @@ def simplify(
         when needed, refused when impossible.
     no_intersections : bool
         Refuse a collapse that makes a moved face touch another face (the contact test
-        of :func:`vhm_viz.core.cage.self_intersections`), so a mesh free of
-        self-intersections stays free of them. A brute-force check per collapse: fine for
+        of :func:`vhm_viz.core.cage.self_intersections`) or sweeps the surface over
+        another connected component (which would end up nested), so a mesh of disjoint,
+        non-nested shells stays one. A brute-force check per collapse: fine for
         the few thousand faces the automatic cage simplifies.
     min_component_vertices : int
         No connected component is collapsed below this many vertices (4, a tetrahedron,
@@ -271,7 +272,10 @@ def _simplify_python(
                 break
         if not ok:
             continue
-        if tol >= 0 and _collapse_clashes(V, F, alive_f, u, v, p, tol, no_grid, visit):
+        if tol >= 0 and (
+            _collapse_clashes(V, F, alive_f, u, v, p, tol, no_grid, visit)
+            or _collapse_swallows(V, F, alive_f, u, v, p, comp, no_grid, visit)
+        ):
             continue
         # collapse v into u
         for fi in shared:
@@ -512,18 +516,45 @@ def _make_face_grid(V, F, tol, enabled):
 
 
 @numba.njit(cache=True)
+def _candidates(grid, visit, m, lo, hi, out):
+    """Faces whose registered boxes meet the box ``lo``-``hi``, each once, into ``out``.
+
+    All ``m`` faces when the grid is empty or ran out of entries. Returns how many.
+    ``visit`` (one int per face, ``visit[-1]`` the running token) marks the faces taken.
+    """
+    head, nxt, entry_face, state, origin, cs, dims = grid
+    if head.size == 0 or state[1] != 0:
+        for g in range(m):
+            out[g] = g
+        return m
+    visit[-1] += 1
+    token = visit[-1]
+    n = 0
+    r = _grid_cells(origin, cs, dims, lo, hi)
+    for i in range(r[0], r[1] + 1):
+        for j in range(r[2], r[3] + 1):
+            for k in range(r[4], r[5] + 1):
+                e = head[(i * dims[1] + j) * dims[2] + k]
+                while e >= 0:
+                    g = entry_face[e]
+                    e = nxt[e]
+                    if visit[g] != token:
+                        visit[g] = token
+                        out[n] = g
+                        n += 1
+    return n
+
+
+@numba.njit(cache=True)
 def _collapse_clashes(V, F, alive, u, v, p, tol, grid, visit):
     """Whether collapsing edge ``(u, v)`` to ``p`` makes a moved face touch another face.
 
-    Candidates come from the face grid (``grid``, see :func:`_make_face_grid`) or, when it
-    is empty or full, from all live faces; a bounding-box test comes first. Faces around
-    ``u`` or ``v`` are compared with the others only (their mutual folds are the normal
-    check's job). ``visit`` (one int per face, ``visit[-1]`` the running token) marks the
-    faces already compared.
+    Candidates come from :func:`_candidates` (the face grid of :func:`_make_face_grid`); a
+    bounding-box test comes first. Faces around ``u`` or ``v`` are compared with the
+    others only (their mutual folds are the normal check's job).
     """
-    head, nxt, entry_face, state, origin, cs, dims = grid
-    use_grid = head.size > 0 and state[1] == 0
     m = F.shape[0]
+    cand = np.empty(m, dtype=np.int64)
     ta = np.empty((3, 3))
     ia = np.empty(3, dtype=np.int64)
     lo = np.empty(3)
@@ -546,26 +577,76 @@ def _collapse_clashes(V, F, alive, u, v, p, tol, grid, visit):
         for k in range(3):
             lo[k] = min(ta[0, k], ta[1, k], ta[2, k]) - tol
             hi[k] = max(ta[0, k], ta[1, k], ta[2, k]) + tol
-        if not use_grid:
-            for g in range(m):
-                if g != f and _clashes_with(V, F, alive, u, v, ta, ia, lo, hi, g, tol):
-                    return True
+        n = _candidates(grid, visit, m, lo, hi, cand)
+        for c in range(n):
+            g = cand[c]
+            if g != f and _clashes_with(V, F, alive, u, v, ta, ia, lo, hi, g, tol):
+                return True
+    return False
+
+
+@numba.njit(cache=True)
+def _in_tet(x, a, b, c, d):
+    """Whether point ``x`` lies strictly inside tetrahedron ``abcd`` (any orientation)."""
+    vol = np.dot(np.cross(b - a, c - a), d - a)
+    if vol == 0.0:
+        return False
+    s = 1.0 if vol > 0 else -1.0
+    for p, q, r, t in ((a, b, c, x), (a, b, x, d), (a, x, c, d), (x, b, c, d)):
+        if s * np.dot(np.cross(q - p, r - p), t - p) <= 0.0:
+            return False
+    return True
+
+
+@numba.njit(cache=True)
+def _collapse_swallows(V, F, alive, u, v, p, comp, grid, visit):
+    """Whether collapsing ``(u, v)`` to ``p`` sweeps the surface over another shell.
+
+    The region the moving faces sweep is the union of the tetrahedra (old face, ``p``);
+    a vertex of another connected component inside it would end up enclosed (a small
+    shell swallowed whole, which no face-face contact reveals).
+    """
+    m = F.shape[0]
+    tets = np.empty((2 * m, 4, 3))
+    nt = 0
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for f in range(m):
+        if not alive[f]:
             continue
-        visit[-1] += 1
-        token = visit[-1]
-        r = _grid_cells(origin, cs, dims, lo, hi)
-        for i in range(r[0], r[1] + 1):
-            for j in range(r[2], r[3] + 1):
-                for k in range(r[4], r[5] + 1):
-                    e = head[(i * dims[1] + j) * dims[2] + k]
-                    while e >= 0:
-                        g = entry_face[e]
-                        e = nxt[e]
-                        if visit[g] == token:
-                            continue
-                        visit[g] = token
-                        if _clashes_with(V, F, alive, u, v, ta, ia, lo, hi, g, tol):
-                            return True
+        has_u = F[f, 0] == u or F[f, 1] == u or F[f, 2] == u
+        has_v = F[f, 0] == v or F[f, 1] == v or F[f, 2] == v
+        if not (has_u or has_v):
+            continue
+        for j in range(3):
+            tets[nt, j] = V[F[f, j]]
+        tets[nt, 3] = p
+        for j in range(4):
+            for k in range(3):
+                lo[k] = min(lo[k], tets[nt, j, k])
+                hi[k] = max(hi[k], tets[nt, j, k])
+        nt += 1
+    own = comp[u]
+
+    def hit(g):
+        if not alive[g] or comp[F[g, 0]] == own:
+            return False
+        for j in range(3):
+            x = V[F[g, j]]
+            if x[0] < lo[0] or x[0] > hi[0] or x[1] < lo[1] or x[1] > hi[1]:
+                continue
+            if x[2] < lo[2] or x[2] > hi[2]:
+                continue
+            for t in range(nt):
+                if _in_tet(x, tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]):
+                    return True
+        return False
+
+    cand = np.empty(m, dtype=np.int64)
+    n = _candidates(grid, visit, m, lo, hi, cand)
+    for c in range(n):
+        if hit(cand[c]):
+            return True
     return False
 
 
@@ -846,7 +927,10 @@ def _simplify_nb(
                     break
         if not ok:
             continue
-        if tol >= 0 and _collapse_clashes(V, F, alive, u, v, p, tol, grid, visit):
+        if tol >= 0 and (
+            _collapse_clashes(V, F, alive, u, v, p, tol, grid, visit)
+            or _collapse_swallows(V, F, alive, u, v, p, comp, grid, visit)
+        ):
             continue
         # collapse v into u
         for t in range(2):
