@@ -128,6 +128,8 @@ def read_dataset(path):
                 data = _read_meshio(p)
             else:
                 data = pv.read(os.fspath(p))
+                if suffix == ".slc":
+                    _fix_slc_voxels(p, data)
         except ReadError:
             raise
         except Exception as exc:  # noqa: BLE001 -- VTK and meshio raise many types
@@ -160,6 +162,69 @@ def _read_point_list(p: Path, suffix: str) -> np.ndarray:
     if not np.isfinite(pts).all():
         raise ReadError(f"{p}: points with non-finite coordinates")
     return pts
+
+
+def _slc_voxels(p: Path) -> np.ndarray | None:
+    """The voxels of an 8-bit SLC file, ``(nz, ny, nx)``, missing ones set to 0.
+
+    VTK's SLC reader leaves a voxel uninitialised when a slice's run-length code stops
+    short of it (the bundled embryo's slices all stop one voxel short): its value then
+    changes from run to run, and so does the region above a threshold. Returns None for
+    files this decoder does not handle (other than 8 bits).
+    """
+    import re
+
+    raw = p.read_bytes()
+    head = re.match(
+        # magic; nx ny nz bits; spacing (3); units, origin, model, compression; icon w h
+        rb"\s*11111\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(?:\S+\s+){3}"
+        rb"(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+X",
+        raw,
+    )
+    if head is None:
+        return None
+    nx, ny, nz, bits = (int(head.group(i)) for i in range(1, 5))
+    compression = int(head.group(8))
+    icon_w, icon_h = int(head.group(9)), int(head.group(10))
+    if bits != 8 or compression not in (0, 1):
+        return None
+    pos = head.end() + 3 * icon_w * icon_h
+    out = np.zeros((nz, ny * nx), dtype=np.uint8)
+    for z in range(nz):
+        m = re.match(rb"\s*(\d+)\s+X", raw[pos : pos + 64])
+        if m is None:
+            return None
+        size = int(m.group(1))
+        pos += m.end()
+        code = raw[pos : pos + size]
+        pos += size
+        if compression == 0:
+            values = np.frombuffer(code, dtype=np.uint8)
+        else:
+            values, i = bytearray(), 0
+            while i < len(code):
+                count = code[i] & 0x7F
+                if count == 0:
+                    break
+                if code[i] & 0x80:  # a run of literal bytes
+                    values += code[i + 1 : i + 1 + count]
+                    i += 1 + count
+                else:  # one byte repeated
+                    values += code[i + 1 : i + 2] * count
+                    i += 2
+            values = np.frombuffer(bytes(values), dtype=np.uint8)
+        n = min(len(values), ny * nx)
+        out[z, :n] = values[:n]
+    return out
+
+
+def _fix_slc_voxels(p: Path, data) -> None:
+    """Replace the scalars VTK read from an SLC file by :func:`_slc_voxels` (in place)."""
+    voxels = _slc_voxels(p)
+    name = data.active_scalars_name
+    if voxels is None or name is None or data.point_data[name].size != voxels.size:
+        return
+    data.point_data[name] = voxels.ravel()
 
 
 def _read_meshio(p: Path):
@@ -272,9 +337,7 @@ def read_cage(path, **kwargs) -> Cage:
             points, tris = _merge_exact_duplicates(points, triangulate_polygons(points, polys))
             return Cage(points, tris, **kwargs)
         return cage_from_dataset(mesh, **kwargs)
-    raise CageError(
-        f"unsupported cage file type {suffix!r} ({p}); use {', '.join(CAGE_SUFFIXES)}"
-    )
+    raise CageError(f"unsupported cage file type {suffix!r} ({p}); use {', '.join(CAGE_SUFFIXES)}")
 
 
 def cage_from_dataset(data, **kwargs) -> Cage:
@@ -413,7 +476,6 @@ def _merge_exact_duplicates(points: np.ndarray, tris: np.ndarray) -> tuple[np.nd
     return points[np.sort(first)], rank[inverse][tris]
 
 
-
 def _read_obj(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     verts: list[list[float]] = []
     polys: list[np.ndarray] = []
@@ -462,7 +524,6 @@ def _read_off(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     if len(verts) != nv or len(polys) != nf:
         raise CageError(f"{path}: OFF header announces {nv} vertices / {nf} faces, file is short")
     return verts.reshape(-1, 3), polys
-
 
 
 # ----------------------------------------------------------------------------------------
