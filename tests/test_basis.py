@@ -402,3 +402,21 @@ def test_disjoint_shells_are_separate_domains():
     ref = evaluate_basis(np.vstack([p1, p2, gap]), v, f, order=2, backend="numpy")
     for x, y in zip(b, ref, strict=True):
         assert np.abs(x - y).max() <= 1e-12 * np.abs(y).max()
+
+
+def test_domain_columns_own_each_shell_and_its_holes():
+    """Each outward shell owns its vertex and face columns, and the hole shell inside it."""
+    v1, f1 = box_cage((0, 0, 0), (1, 1, 3), 1)
+    v2, f2 = box_cage((2, 0, 0), (3, 1, 3), 1)
+    v3, f3 = box_cage((2.3, 0.3, 1), (2.7, 0.7, 2), 1)  # a hole in the second box
+    v = np.vstack([v1, v2, v3])
+    f = np.vstack([f1, f2 + 8, f3[:, ::-1] + 16])
+    n = len(v)
+    from vhm_viz.core.basis import domain_columns
+
+    d = domain_columns(v, f)
+    assert len(d) == 2
+    np.testing.assert_array_equal(d[0], np.r_[0:8, n + np.arange(0, 12)])
+    np.testing.assert_array_equal(d[1], np.r_[8:24, n + np.arange(12, 36)])
+    # a single shell owns every column
+    np.testing.assert_array_equal(domain_columns(v1, f1)[0], np.arange(8 + 12))

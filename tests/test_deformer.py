@@ -473,6 +473,53 @@ def test_custom_smoothness_samples_on_faces(cage, anchors):
         _deformer(cage, anchors, smoothness_samples=np.array([[0, 0, 1.0], [9, 9, 9.0]]))
 
 
+def _wedge_cage(half_angle_deg=0.1, length=1.0, width=0.5):
+    """A triangular prism whose cross-section is a sharp isosceles wedge (apex at x=length)."""
+    t = np.tan(np.radians(half_angle_deg)) * length
+    tri = np.array([[0.0, -t], [length, 0.0], [0.0, t]])  # counter-clockwise in (x, y)
+    v = np.array([[x, y, z] for z in (0.0, width) for x, y in tri])
+    f = np.array(
+        [[0, 2, 1], [3, 4, 5], [0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [2, 0, 3], [2, 3, 5]]
+    )
+    return v, f
+
+
+@pytest.mark.parametrize("shape", ["plate", "wedge"])
+def test_default_samples_adapt_to_thin_cages(shape):
+    """Plates thinner than 2e-3 of the diagonal and sharp wedges still get inside samples."""
+    from conftest import box_cage
+
+    from vhm_viz.core.basis import winding_number
+    from vhm_viz.core.cage import Cage
+    from vhm_viz.core.deformer import Deformer, default_smoothness_samples
+
+    if shape == "plate":
+        v, f = box_cage((0, 0, 0), (1.0, 1.0, 4e-4), 3)  # 2.8e-4 of the diagonal thick
+        anchors = np.array([[0.3, 0.3, 2e-4], [0.7, 0.6, 2e-4]])
+        pos = np.array([[0.1, 0.1, 2e-4], [0.9, 0.9, 2e-4]])
+    else:
+        v, f = _wedge_cage()
+        anchors = np.array([[0.2, 0.0, 0.25], [0.5, 0.0, 0.25]])
+        pos = np.array([[0.1, 0.0, 0.1], [0.6, 0.0, 0.4]])
+    w = default_smoothness_samples(v, f)
+    # independent check: the winding number, 1 strictly inside
+    assert (winding_number(w, v, f) > 1 - 1e-9).all()
+    d = Deformer(Cage(v, f), anchors)
+    d.set_constraints(positions=pos, targets=pos + [0.0, 0.0, 0.05])
+    d.solve(max_iterations=500)
+    assert np.isfinite(d.harmonic_map.map(anchors)).all()
+
+
+def test_default_samples_keep_the_fixed_inset_where_the_cage_is_thick(cage):
+    from vhm_viz.core.deformer import default_smoothness_samples
+
+    v, f = np.asarray(cage.vertices), np.asarray(cage.faces)
+    on = default_smoothness_samples(v, f, inset=0.0)
+    w = default_smoothness_samples(v, f)
+    diag = float(np.linalg.norm(np.ptp(v, axis=0)))
+    np.testing.assert_allclose(np.linalg.norm(w - on, axis=1), 1e-3 * diag, rtol=1e-12)
+
+
 def test_lambda_follows_paper_rule(cage, anchors):
     a = _deformer(cage, anchors, alpha=0.01)
     b = _deformer(cage, anchors, alpha=0.02)
@@ -499,3 +546,60 @@ def test_parallel_deform_kernel_matches_numpy(bent, monkeypatch):
         np.testing.assert_array_equal(got[1], pts[1])
         inside = dfm.bind(pts[[0, 2, 3]], dtype=dtype)
         np.testing.assert_allclose(inside.deform(), ref[[0, 2, 3]], atol=tol)
+
+
+# ----------------------------------------------------------------------------- shells
+def _two_box_cage():
+    from conftest import box_cage
+
+    from vhm_viz.core.cage import Cage
+
+    v1, f1 = box_cage((-0.5, -0.5, 0), (0.5, 0.5, 5), 2)
+    v2, f2 = box_cage((1.0, -0.5, 0), (2.0, 0.5, 5), 2)
+    return Cage(np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)]))
+
+
+def test_a_shell_without_constraints_stays_put():
+    """Constraints in one shell only: the other is pinned to the identity, with a warning."""
+    from vhm_viz.core.deformer import Deformer
+
+    cage = _two_box_cage()
+    z = (np.arange(4) + 0.5) * 5 / 4
+    left = np.column_stack([np.zeros(4), np.zeros(4), z])
+    right = left + [1.5, 0, 0]
+    pos = np.array([[0.0, 0.0, 0.2], [0.3, 0.0, 0.2], [0.0, 0.0, 4.8]])
+    tgt = pos + [[0, 0, 0], [0, 0, 0], [1.0, 0.5, -0.5]]
+    rng = np.random.default_rng(4)
+    inside_right = rng.uniform((1.05, -0.45, 0.05), (1.95, 0.45, 4.95), (50, 3))
+    for anchors in (np.vstack([left, right]), left):  # with or without anchors of its own
+        d = Deformer(cage, anchors)
+        with pytest.warns(UserWarning, match="cage shell 1 .* stays put"):
+            d.set_constraints(positions=pos, targets=tgt)
+        assert d.pinned_shells == (1,) and len(d.notes) == 1
+        assert d.n_constraints == 3
+        rep = d.solve(max_iterations=3000, tolerance=1e-8)
+        assert rep.converged
+        hm = d.harmonic_map
+        # independent check: the basis reproduces the identity exactly inside the pinned shell
+        np.testing.assert_allclose(hm.map(inside_right), inside_right, atol=1e-10)
+        np.testing.assert_allclose(hm.map(pos), tgt, atol=1e-9)
+        assert np.isfinite(d.energy()[0])
+
+
+def test_constrained_shells_need_anchors_and_a_position():
+    from vhm_viz.core.deformer import Deformer
+
+    cage = _two_box_cage()
+    z = (np.arange(4) + 0.5) * 5 / 4
+    left = np.column_stack([np.zeros(4), np.zeros(4), z])
+    pos = np.array([[0.0, 0.0, 0.2], [1.5, 0.0, 4.8]])
+    d = Deformer(cage, left)
+    with pytest.raises(ConstraintError, match="cage shell 1 .* no anchor"):
+        d.set_constraints(positions=pos, targets=pos)
+    with pytest.raises(ConstraintError, match="cage shell 1 .* no position"):
+        d.set_constraints(
+            positions=pos[:1],
+            targets=pos[:1],
+            jacobian_points=[[1.5, 0.0, 2.0]],
+            jacobians=[np.eye(3)],
+        )

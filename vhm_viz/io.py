@@ -165,6 +165,8 @@ def read_dataset(path):
                 data = _read_vtk_isolated(p, suffix)
                 if suffix == ".nrrd":
                     data = _nrrd_volume(data, p)
+                if suffix == ".slc":
+                    _fix_slc_voxels(p, data)
         except ReadError:
             raise
         except MemoryError as exc:
@@ -201,6 +203,69 @@ def _read_point_list(p: Path, suffix: str) -> np.ndarray:
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise ReadError(f"{p}: expected one point per row (x y z ...), got shape {pts.shape}")
     return np.ascontiguousarray(pts[:, :3])
+
+
+def _slc_voxels(p: Path) -> np.ndarray | None:
+    """The voxels of an 8-bit SLC file, ``(nz, ny, nx)``, missing ones set to 0.
+
+    VTK's SLC reader leaves a voxel uninitialised when a slice's run-length code stops
+    short of it (the bundled embryo's slices all stop one voxel short): its value then
+    changes from run to run, and so does the region above a threshold. Returns None for
+    files this decoder does not handle (other than 8 bits).
+    """
+    import re
+
+    raw = p.read_bytes()
+    head = re.match(
+        # magic; nx ny nz bits; spacing (3); units, origin, model, compression; icon w h
+        rb"\s*11111\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(?:\S+\s+){3}"
+        rb"(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+X",
+        raw,
+    )
+    if head is None:
+        return None
+    nx, ny, nz, bits = (int(head.group(i)) for i in range(1, 5))
+    compression = int(head.group(8))
+    icon_w, icon_h = int(head.group(9)), int(head.group(10))
+    if bits != 8 or compression not in (0, 1):
+        return None
+    pos = head.end() + 3 * icon_w * icon_h
+    out = np.zeros((nz, ny * nx), dtype=np.uint8)
+    for z in range(nz):
+        m = re.match(rb"\s*(\d+)\s+X", raw[pos : pos + 64])
+        if m is None:
+            return None
+        size = int(m.group(1))
+        pos += m.end()
+        code = raw[pos : pos + size]
+        pos += size
+        if compression == 0:
+            values = np.frombuffer(code, dtype=np.uint8)
+        else:
+            values, i = bytearray(), 0
+            while i < len(code):
+                count = code[i] & 0x7F
+                if count == 0:
+                    break
+                if code[i] & 0x80:  # a run of literal bytes
+                    values += code[i + 1 : i + 1 + count]
+                    i += 1 + count
+                else:  # one byte repeated
+                    values += code[i + 1 : i + 2] * count
+                    i += 2
+            values = np.frombuffer(bytes(values), dtype=np.uint8)
+        n = min(len(values), ny * nx)
+        out[z, :n] = values[:n]
+    return out
+
+
+def _fix_slc_voxels(p: Path, data) -> None:
+    """Replace the scalars VTK read from an SLC file by :func:`_slc_voxels` (in place)."""
+    voxels = _slc_voxels(p)
+    name = data.active_scalars_name
+    if voxels is None or name is None or data.point_data[name].size != voxels.size:
+        return
+    data.point_data[name] = voxels.ravel()
 
 
 def _read_meshio(p: Path):

@@ -1,12 +1,26 @@
-"""Automatic anchors: :func:`auto_anchors` places rigidity samples on the medial structure.
+"""Automatic anchors: :func:`auto_anchors` places rigidity samples that cover the shape.
 
 The paper puts its anchors on the medial axis (curve-like parts, Figures 5-6) or medial
-surface (plate-like parts, Figure 14). Here the input's interior is voxelised, its
-Euclidean distance transform computed, and the voxels on the ridge of that distance (no
-neighbour farther from the surface by more than half the step to it: centres of
-near-maximal balls) are the medial candidates. Anchors are picked from them by farthest
-point sampling started at the thickest point, so they are spread over every part, and
-each is checked to lie strictly inside the shape and the cage.
+surface (plate-like parts, Figure 14). Here the input's interior is voxelised and its
+Euclidean distance transform computed; the voxels on the ridge of that distance (no
+neighbour deeper by half the step to it: centres of near-maximal balls) are the medial
+skeleton. Anchors must also *cover* the shape -- every input point near an anchor -- since
+the rigidity term only acts where anchors are:
+
+1. every cage shell, then every connected part of the shape (largest first, at most half
+   the anchors when parts are many) gets an anchor at its deepest skeleton voxel;
+2. farthest-point sampling adds the others, either over the skeleton (the medial
+   placement) or over the shape's points (the point farthest from all anchors gets the
+   next one, on the skeleton where the skeleton comes nearer to it than any anchor --
+   limbs --, else halfway from it towards the skeleton -- fat parts);
+3. Lloyd rounds move each anchor towards the centre of the smallest ball around the points
+   it covers, within its part, keeping the best configuration seen;
+4. the medial placement is kept when it covers every point within ``_COVERAGE_GOAL`` (15%)
+   of the diagonal, or when neither does and it is within ``_MEDIAL_SLACK`` of the other.
+
+Candidates are voxels at least a voxel from the surface; thin limbs without such voxels
+and specks of volumes use their own voxels, checked to lie inside a closed input surface
+exactly (winding number). Every anchor lies inside the shape and the cage.
 """
 
 from __future__ import annotations
@@ -17,11 +31,19 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from vhm_viz.autocage import voxel as vx
-from vhm_viz.autocage.cage import collect_samples
+from vhm_viz.autocage.cage import _point_spacing, collect_samples
 
 __all__ = ["auto_anchors", "AnchorReport"]
+
+#: every point within this fraction of the bounding-box diagonal of an anchor: the
+#: coverage the automatic anchors aim at. They stay on the skeleton when that meets it,
+#: or when neither placement does and the skeleton's coverage is within
+#: ``_MEDIAL_SLACK`` times the other's.
+_COVERAGE_GOAL = 0.15
+_MEDIAL_SLACK = 1.2
 
 
 @dataclass
@@ -35,8 +57,16 @@ class AnchorReport:
         Smallest distance between two anchors (world units).
     min_depth : float
         Smallest estimated distance from an anchor to the shape's surface.
+    coverage : float
+        Largest distance from an input point to its nearest anchor (world units).
+    coverage_relative : float
+        ``coverage`` over the input's bounding-box diagonal.
+    n_parts : int
+        Connected parts of the interior (within the cage's shells) that can hold anchors.
+    parts_without_anchor : int
+        Parts left without an anchor (only when there are more parts than anchors).
     n_candidates : int
-        Medial voxels the anchors were sampled from.
+        Medial (skeleton) voxels.
     voxel_size : float
     seconds : float
     """
@@ -44,15 +74,21 @@ class AnchorReport:
     count: int
     min_pairwise_distance: float
     min_depth: float
+    coverage: float
+    coverage_relative: float
+    n_parts: int
+    parts_without_anchor: int
     n_candidates: int
     voxel_size: float
     seconds: float
 
     def __str__(self) -> str:
         return (
-            f"{self.count} anchors from {self.n_candidates} medial voxels; min pairwise "
-            f"distance {self.min_pairwise_distance:.4g}, min depth {self.min_depth:.4g}; "
-            f"{self.seconds:.2f} s"
+            f"{self.count} anchors from {self.n_candidates} medial voxels in {self.n_parts} "
+            f"part(s); every point within {self.coverage:.4g} "
+            f"({100 * self.coverage_relative:.1f}% of the diagonal) of an anchor; min "
+            f"pairwise distance {self.min_pairwise_distance:.4g}, min depth "
+            f"{self.min_depth:.4g}; {self.seconds:.2f} s"
         )
 
 
@@ -93,6 +129,188 @@ def _as_cage(cage):
     raise ValueError(f"auto_anchors: cannot use {type(cage).__name__} as a cage")
 
 
+def _shape_voxels(samples, grid):
+    """(inside, surface) voxel masks of the shape on ``grid``."""
+    h = grid.h
+    pts = samples.points
+    if samples.kind == "volume-box":
+        inside = np.zeros(grid.shape, dtype=bool)
+        i0, i1 = grid.voxel_of(pts.min(axis=0)[None])[0], grid.voxel_of(pts.max(axis=0)[None])[0]
+        inside[i0[0] : i1[0] + 1, i0[1] : i1[1] + 1, i0[2] : i1[2] + 1] = True
+        return inside, inside & ~ndimage.binary_erosion(inside)
+    allp = [pts]
+    if samples.tri_faces is not None and len(samples.tri_faces):
+        allp.append(vx.sample_triangles(samples.tri_vertices, samples.tri_faces, 0.5 * h))
+    surface = vx.splat(grid, np.concatenate(allp))
+    if samples.spacing is not None:
+        factor = 1 if samples.kind == "volume" else 2
+        surface = vx.close_shell(surface, int(np.ceil(factor * samples.spacing / h)) - 1)
+    if samples.kind == "volume":
+        # the region itself is the shape (cavities below the threshold stay out)
+        return surface, surface & ~ndimage.binary_erosion(surface)
+    inside = ndimage.binary_fill_holes(vx.grow(surface, 1.0))
+    inside = ndimage.binary_erosion(inside, structure=np.ones((3, 3, 3), bool)) | surface
+    return inside, surface
+
+
+def _shell_of(cage, points: np.ndarray) -> np.ndarray:
+    """Index of the cage shell (domain) holding each point; -1 outside the cage."""
+    from vhm_viz.core.basis import domain_columns, inside_cage, winding_number
+
+    V, F = np.asarray(cage.vertices), np.asarray(cage.faces)
+    out = np.full(len(points), -1, dtype=np.int64)
+    n = len(V)
+    for k, cols in enumerate(domain_columns(V, F)):
+        faces = F[cols[cols >= n] - n]
+        out[inside_cage(winding_number(points, V, faces)) & (out < 0)] = k
+    return out
+
+
+def _targets(points: np.ndarray, h: float, limit: int = 50_000) -> np.ndarray:
+    """What the anchors must cover: one input point per cell of a grid.
+
+    Cells of size ``h`` or, for large inputs, coarser so that about ``limit`` remain
+    (the coverage is then exact up to a cell diagonal; the report measures every point).
+    """
+    cell = float(h)
+    for _ in range(8):
+        key = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
+        _, first = np.unique(key, axis=0, return_index=True)
+        if len(first) <= limit:
+            break
+        cell *= (len(first) / limit) ** (1.0 / 3.0) * 1.05
+    return points[np.sort(first)]
+
+
+def _ball_centre(points: np.ndarray, rounds: int = 30) -> np.ndarray:
+    """Approximate centre of the smallest ball around ``points`` (Badoiu-Clarkson)."""
+    c = points.mean(axis=0)
+    for i in range(1, rounds + 1):
+        far = points[np.argmax(((points - c) ** 2).sum(axis=1))]
+        c = c + (far - c) / (i + 1)
+    return c
+
+
+def _farthest_point_anchors(centres, skeleton, part, targets, seeds, count, on_skeleton):
+    """Farthest-point sampling, over the skeleton or over the shape's points.
+
+    ``on_skeleton``: the skeleton voxel farthest from all anchors gets the next one (the
+    paper's medial anchors). Otherwise the target (shape point) farthest from all anchors
+    gets it, in the part of the candidate nearest to the target: on that part's skeleton
+    when that is nearer to the target than every anchor (a limb), else halfway from the
+    target towards the skeleton (a fat part, whose skeleton is far from its surface).
+    Returns candidate indices, ``seeds`` first.
+    """
+    chosen = list(seeds)
+    tree_all = cKDTree(centres)
+    by_part = {}
+
+    def part_trees(k):
+        if k not in by_part:
+            members = np.flatnonzero(part == k)
+            sk = members[skeleton[members]]
+            by_part[k] = (
+                members,
+                cKDTree(centres[members]),
+                sk,
+                cKDTree(centres[sk]) if len(sk) else None,
+            )
+        return by_part[k]
+
+    if on_skeleton:
+        # plain farthest-point sampling over the skeleton (and over the candidates of
+        # parts that have none)
+        has_skeleton = np.zeros(int(part.max()) + 1, dtype=bool)
+        has_skeleton[part[skeleton]] = True
+        pool = np.flatnonzero(skeleton | ~has_skeleton[part])
+        gap = np.full(len(pool), np.inf)
+        for c in chosen:
+            gap = np.minimum(gap, np.linalg.norm(centres[pool] - centres[c], axis=1))
+        while len(chosen) < count:
+            c = int(pool[np.argmax(gap)])
+            chosen.append(c)
+            gap = np.minimum(gap, np.linalg.norm(centres[pool] - centres[c], axis=1))
+        return np.array(chosen[:count], dtype=np.int64)
+    dist = np.full(len(targets), np.inf)
+    for c in chosen:
+        dist = np.minimum(dist, np.linalg.norm(targets - centres[c], axis=1))
+    while len(chosen) < count:
+        i = int(np.argmax(dist))
+        p, r = targets[i], float(dist[i])
+        c = int(tree_all.query(p)[1])
+        members, tree, sk, tree_sk = part_trees(int(part[c]))
+        pool = members
+        if tree_sk is not None:
+            ds, js = tree_sk.query(p)
+            if ds < r:  # the skeleton is nearer than any anchor: use it
+                c, pool = int(sk[js]), sk
+            else:  # a fat part: halfway from the point towards its skeleton
+                q = p + min(0.5 * r, ds) * (centres[sk[js]] - p) / max(ds, 1e-300)
+                c = int(members[tree.query(q)[1]])
+        if c in chosen:  # taken: the candidate of the pool farthest from the anchors
+            c = int(pool[np.argmax(cKDTree(centres[chosen]).query(centres[pool])[0])])
+        chosen.append(c)
+        dist = np.minimum(dist, np.linalg.norm(targets - centres[c], axis=1))
+    return np.array(chosen[:count], dtype=np.int64)
+
+
+def _closest_pair(points: np.ndarray) -> float:
+    """Smallest distance between two of the points (``inf`` for fewer than two)."""
+    if len(points) < 2:
+        return float("inf")
+    return float(cKDTree(points).query(points, k=2)[0][:, 1].min())
+
+
+def _minimax_rounds(centres, allowed, part, targets, chosen, rounds: int = 40):
+    """Lloyd iterations towards the centres of the balls around what each anchor covers.
+
+    Every round moves each anchor to (the ``allowed`` candidate of its part nearest to)
+    the centre of the smallest ball around the targets it is nearest to; the
+    configuration with the smallest largest distance seen is returned (rounds may go up
+    as well as down, which lets anchors slide past each other).
+    """
+    trees = {}
+    for k in np.unique(part[chosen]):
+        idx = np.flatnonzero((part == k) & allowed)
+        if len(idx) == 0:
+            idx = np.flatnonzero(part == k)
+        trees[int(k)] = (idx, cKDTree(centres[idx]))
+    d, lab = cKDTree(centres[chosen]).query(targets)
+    best, best_chosen = float(d.max()), chosen.copy()
+    # anchors may not crowd closer than half the closest pair farthest-point sampling left
+    spread = 0.5 * _closest_pair(centres[chosen])
+    for _ in range(rounds):
+        moved = chosen.copy()
+        for a in range(len(chosen)):
+            mine = targets[lab == a]
+            if len(mine):
+                idx, tree = trees[int(part[chosen[a]])]
+                moved[a] = idx[tree.query(_ball_centre(mine))[1]]
+        for a in range(len(moved)):  # a move that crowds another anchor is undone
+            others = np.delete(moved, a)
+            if np.linalg.norm(centres[others] - centres[moved[a]], axis=1).min() < spread:
+                moved[a] = chosen[a]
+        if _closest_pair(centres[moved]) < spread:
+            break
+        if np.array_equal(moved, chosen):
+            break
+        chosen = moved
+        d, lab = cKDTree(centres[chosen]).query(targets)
+        if d.max() < best:
+            best, best_chosen = float(d.max()), chosen.copy()
+    return best_chosen, best
+
+
+def _inside_shape(samples, points: np.ndarray) -> np.ndarray:
+    """Exact check that points lie inside the input's surface (surfaces, tet meshes)."""
+    if samples.tri_faces is None or not len(samples.tri_faces) or not len(points):
+        return np.ones(len(points), dtype=bool)
+    from vhm_viz.core.basis import winding_number
+
+    # inconsistently oriented inputs give -1 inside: only the magnitude is trusted
+    return np.abs(winding_number(points, samples.tri_vertices, samples.tri_faces)) > 0.5
+
+
 def auto_anchors(
     data,
     cage,
@@ -103,7 +321,7 @@ def auto_anchors(
     scalars: str | None = None,
     return_report: bool = False,
 ):
-    """Place ``count`` anchors on the medial axis/surface of ``data``, inside ``cage``.
+    """Place ``count`` anchors that cover ``data``, on its skeleton where it is thin.
 
     Parameters
     ----------
@@ -112,25 +330,27 @@ def auto_anchors(
     cage : Cage, (vertices, faces), PolyData or path
         Anchors must lie inside it.
     count : int
-        Number of anchors ``d`` (>= 1).
+        Number of anchors ``d`` (>= 1); exactly this many are returned.
     resolution : int, optional
-        Voxels along the longest side of the shape (default 96).
+        Voxels along the longest side of the shape (default 96; volumes: one per image
+        sample, at most 96).
     threshold, scalars
         Volumes: as for :func:`vhm_viz.auto_cage`.
     return_report : bool
-        Also return an :class:`AnchorReport`.
+        Also return an :class:`AnchorReport` (coverage, parts, depth).
 
     Returns
     -------
     anchors : (count, 3) float64
-        Strictly inside the shape and the cage, farthest-point spread.
+        Strictly inside the shape and the cage; every connected part gets one (largest
+        first, when there are more parts than anchors).
     report : AnchorReport, only with ``return_report``
 
     Raises
     ------
     ValueError
-        Degenerate input, ``count < 1``, or a shape too thin for the voxel grid (raise
-        ``resolution``), or fewer interior candidates than ``count``.
+        Degenerate input, ``count < 1``, a shape too thin for the voxel grid (raise
+        ``resolution``), or fewer interior voxels than ``count``.
     """
     t0 = time.perf_counter()
     count = int(count)
@@ -147,90 +367,95 @@ def auto_anchors(
     r = int(resolution or 96)
     if r < 4:
         raise ValueError(f"auto_anchors: resolution must be >= 4, got {r}")
+    if samples.kind == "points" and samples.spacing is None:
+        samples.spacing = _point_spacing(pts)
     grid = vx.make_grid(lo, hi, r, 2)
-    h = grid.h
-    if samples.kind == "volume-box":
-        inside = np.zeros(grid.shape, dtype=bool)
-        i0, i1 = grid.voxel_of(lo[None])[0], grid.voxel_of(hi[None])[0]
-        inside[i0[0] : i1[0] + 1, i0[1] : i1[1] + 1, i0[2] : i1[2] + 1] = True
-        surface = inside & ~ndimage.binary_erosion(inside)
-    else:
-        allp = [pts]
-        if samples.tri_faces is not None and len(samples.tri_faces):
-            allp.append(vx.sample_triangles(samples.tri_vertices, samples.tri_faces, 0.5 * h))
-        surface = vx.splat(grid, np.concatenate(allp))
-        if samples.kind in ("points",) and samples.spacing is None:
-            from vhm_viz.autocage.cage import _point_spacing
-
-            samples.spacing = _point_spacing(pts)
-        if samples.spacing is not None:
-            factor = 1 if samples.kind == "volume" else 2
-            surface = vx.close_shell(surface, int(np.ceil(factor * samples.spacing / h)) - 1)
-        if samples.kind == "volume":
-            # the region itself is the shape (cavities below the threshold stay out)
-            inside = surface
-            surface = inside & ~ndimage.binary_erosion(inside)
-        else:
-            inside = ndimage.binary_fill_holes(vx.grow(surface, 1.0))
-            inside = ndimage.binary_erosion(inside, structure=np.ones((3, 3, 3), bool)) | surface
-    # interior: voxels that are not next to a surface sample
+    inside, surface = _shape_voxels(samples, grid)
+    depth = ndimage.distance_transform_edt(inside)  # voxels to the nearest outside centre
+    # candidates: voxels at least a voxel away from every surface sample ("interior");
+    # where the shape is too thin to have any (a limb one or two voxels thick, a few
+    # voxels from any interior one) the voxels that hold no surface sample; in a speck
+    # (a voxel or two of a volume) its voxels. So thin limbs and small parts can hold
+    # anchors too.
+    pieces, n_pieces = ndimage.label(inside, structure=np.ones((3, 3, 3), dtype=bool))
     interior = inside & ~vx._cube_dilate(surface, 1)
-    if not interior.any():
+    loose = inside & ~surface
+    held = np.zeros(n_pieces + 1, dtype=bool)
+    held[np.unique(pieces[loose])] = True
+    cand_mask = interior | (loose & ~vx._cube_dilate(interior, 2)) | (inside & ~held[pieces])
+    cand = np.argwhere(cand_mask)
+    if len(cand) == 0:
         raise ValueError(
             f"auto_anchors: the shape is too thin for a {r}-voxel grid (no interior voxel); "
             "raise resolution"
         )
-    depth = ndimage.distance_transform_edt(interior)  # voxels to the nearest non-interior
-    medial = _medial(depth, interior) & (depth >= 1.0)
-    cand = np.argwhere(medial)
     centres = grid.centers(cand)
-    ok = cage.contains(centres)
-    cand, centres = cand[ok], centres[ok]
-    if len(cand) < count:
-        extra = np.argwhere(interior)
-        extra_c = grid.centers(extra)
-        okx = cage.contains(extra_c)
-        cand = np.concatenate([cand, extra[okx]])
-        centres = np.concatenate([centres, extra_c[okx]])
-        _, uniq = np.unique(cand, axis=0, return_index=True)
-        cand, centres = cand[np.sort(uniq)], centres[np.sort(uniq)]
+    shell = _shell_of(cage, centres)
+    keep = shell >= 0
+    # a voxel off the interior can lie outside a closed input surface (in a narrow gap
+    # the voxelisation closed): those are checked exactly (winding number)
+    doubtful = keep & ~interior[cand[:, 0], cand[:, 1], cand[:, 2]]
+    keep[doubtful] = _inside_shape(samples, centres[doubtful])
+    cand, centres, shell = cand[keep], centres[keep], shell[keep]
     if len(cand) < count:
         raise ValueError(
             f"auto_anchors: only {len(cand)} interior voxels inside the cage for {count} "
             "anchors; raise resolution or lower count"
         )
     dep = depth[cand[:, 0], cand[:, 1], cand[:, 2]]
-    chosen = [int(np.argmax(dep))]
-    mind = np.linalg.norm(centres - centres[chosen[0]], axis=1)
-    for _ in range(count - 1):
-        nxt = int(np.argmax(mind))
-        chosen.append(nxt)
-        mind = np.minimum(mind, np.linalg.norm(centres - centres[nxt], axis=1))
-    anchors = centres[chosen]
-    # strictly inside the shape: for closed surfaces, check the winding number
-    if samples.tri_faces is not None and len(samples.tri_faces) and samples.kind == "surface":
-        from vhm_viz.core.basis import winding_number
-
-        w = winding_number(anchors, samples.tri_vertices, samples.tri_faces)
-        bad = np.flatnonzero(w < 0.5)
-        if len(bad):  # pragma: no cover - open or inconsistent input surfaces
-            raise ValueError(
-                f"auto_anchors: anchors {bad.tolist()} fall outside the input surface "
-                "(is it closed and consistently oriented?)"
-            )
-    if len(anchors) > 1:
-        diff = anchors[:, None, :] - anchors[None, :, :]
-        dist = np.linalg.norm(diff, axis=2)
-        dist[np.diag_indices(len(anchors))] = np.inf
-        min_pair = float(dist.min())
+    skeleton = _medial(depth, inside)[cand[:, 0], cand[:, 1], cand[:, 2]]
+    # parts: connected pieces of the shape, split by cage shell
+    comp = pieces[cand[:, 0], cand[:, 1], cand[:, 2]]
+    _, part = np.unique(np.stack([comp, shell], axis=1), axis=0, return_inverse=True)
+    part = part.ravel()
+    sizes = np.bincount(part)
+    # seeds: every cage shell holding candidates (a constrained shell needs an anchor),
+    # then every part, largest first -- all of them when they take at most half the
+    # anchors, else as many as that (the rest go where the coverage needs them)
+    shell_of_part = np.zeros(len(sizes), dtype=np.int64)
+    shell_of_part[part] = shell
+    order = np.argsort(-sizes, kind="stable")
+    first_of_shell = [int(order[shell_of_part[order] == k][0]) for k in np.unique(shell)]
+    rest = [int(k) for k in order if int(k) not in first_of_shell]
+    budget = count if len(sizes) <= count // 2 else max(count // 2, len(first_of_shell))
+    seed_parts = (first_of_shell + rest)[: min(budget, count)]
+    seeds = []
+    for k in seed_parts:
+        members = np.flatnonzero(part == k)
+        pref = members[skeleton[members]] if skeleton[members].any() else members
+        seeds.append(int(pref[np.argmax(dep[pref])]))
+    targets = _targets(pts, grid.h)
+    # on the skeleton (the paper's medial anchors) unless leaving it covers the shape
+    # clearly better, or the skeleton alone misses the coverage goal (fat parts, whose
+    # skeleton lies far from much of their surface)
+    placed = []
+    for on_skeleton in (True, False):
+        chosen = _farthest_point_anchors(
+            centres, skeleton, part, targets, seeds, count, on_skeleton
+        )
+        allowed = skeleton if on_skeleton else np.ones(len(centres), dtype=bool)
+        placed.append(_minimax_rounds(centres, allowed, part, targets, chosen))
+    (medial, medial_cover), (mixed, mixed_cover) = placed
+    diag = float(np.linalg.norm(hi - lo))
+    goal = _COVERAGE_GOAL * diag
+    if medial_cover <= goal or mixed_cover > goal:
+        on_medial = medial_cover <= max(goal, _MEDIAL_SLACK * mixed_cover)
     else:
-        min_pair = float("inf")
+        on_medial = False
+    chosen = medial if on_medial else mixed
+    anchors = centres[chosen]
+    dist, _ = cKDTree(anchors).query(pts)
+    min_pair = _closest_pair(anchors)
     report = AnchorReport(
         count=count,
         min_pairwise_distance=min_pair,
-        min_depth=float(dep[chosen].min() * h),
-        n_candidates=int(medial.sum()),
-        voxel_size=float(h),
+        min_depth=float(dep[chosen].min() * grid.h),
+        coverage=float(dist.max()),
+        coverage_relative=float(dist.max()) / diag,
+        n_parts=int(len(sizes)),
+        parts_without_anchor=int(len(sizes) - len(np.unique(part[chosen]))),
+        n_candidates=int(skeleton.sum()),
+        voxel_size=float(grid.h),
         seconds=time.perf_counter() - t0,
     )
     return (anchors, report) if return_report else anchors

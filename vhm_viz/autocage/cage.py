@@ -35,6 +35,13 @@ from scipy.spatial import cKDTree
 
 from vhm_viz.autocage import voxel as vx
 from vhm_viz.autocage.meshcheck import edge_problems
+from vhm_viz.autocage.parts import (
+    ShapeSamples,
+    gap_to_other_groups,
+    group_parts,
+    merge_groups,
+    shape_samples,
+)
 from vhm_viz.autocage.proximity import NearDistance, grid_signed_distance
 from vhm_viz.autocage.simplify import simplify
 from vhm_viz.core.basis import winding_number
@@ -68,6 +75,11 @@ class InputSamples:
     spacing : float or None
         Typical distance between neighbouring points for point sets (clouds, volumes),
         used to close their voxelisation; None for surfaces.
+    threshold : float or None
+        Volumes: the threshold the region was selected with (Otsu's value resolved).
+    part, boundary : (N,) arrays or None
+        Volumes: the 26-connected region of every point, and whether it is on the region's
+        rim (see :mod:`vhm_viz.autocage.parts`).
     """
 
     points: np.ndarray
@@ -75,11 +87,15 @@ class InputSamples:
     tri_faces: np.ndarray | None = None
     kind: str = "points"
     spacing: float | None = None
+    threshold: float | None = None
+    part: np.ndarray | None = None
+    boundary: np.ndarray | None = None
 
 
 def _otsu(values: np.ndarray) -> float:
-    v = np.asarray(values, dtype=np.float64).ravel()
-    v = v[np.isfinite(v)]
+    v = np.asarray(values).ravel()
+    if v.dtype.kind == "f":
+        v = v[np.isfinite(v)]
     hist, edges = np.histogram(v, bins=256)
     centers = 0.5 * (edges[1:] + edges[:-1])
     w0 = np.cumsum(hist)
@@ -118,6 +134,40 @@ def _check_points(points: np.ndarray, what: str) -> np.ndarray:
             f"{what}: all points are {kind} (no volume to enclose); a cage needs a 3D shape"
         )
     return p
+
+
+def _volume_points(ds, index: np.ndarray, on_cells: bool) -> tuple[np.ndarray, float]:
+    """Positions of the volume samples ``index`` (points, or cell centres) and their spacing.
+
+    Image data are computed from the indices (materialising every point of a 256^3 image
+    costs seconds and 400 MB); other grids use their points or cell centres.
+    """
+    import pyvista as pv
+
+    if isinstance(ds, pv.ImageData):
+        dims = np.asarray(ds.dimensions) - (1 if on_cells else 0)
+        ijk = np.stack(np.unravel_index(index, tuple(dims[::-1])), axis=1)[:, ::-1]
+        local = (ijk + (0.5 if on_cells else 0.0)) * np.asarray(ds.spacing, dtype=np.float64)
+        direction = np.asarray(ds.direction_matrix, dtype=np.float64)
+        pts = np.asarray(ds.origin, dtype=np.float64) + local @ direction.T
+        return pts, float(np.max(ds.spacing))
+    pts = np.asarray(ds.cell_centers().points if on_cells else ds.points, dtype=np.float64)
+    dims = np.maximum(np.asarray(ds.dimensions) - 1, 1)
+    return pts[index], float(np.max(np.ptp(pts, axis=0) / dims))
+
+
+def _region_labels(mask: np.ndarray, dims, index: np.ndarray):
+    """26-connected region of every selected sample, and whether it is on the region's rim.
+
+    ``mask`` is the flat selection in VTK order (x fastest) of a ``dims`` lattice; the
+    rim samples have a face neighbour outside the region (or on the lattice border).
+    """
+    from scipy import ndimage
+
+    m = np.asarray(mask, dtype=bool).reshape(tuple(int(d) for d in dims[::-1]))
+    labels, _ = ndimage.label(m, structure=np.ones((3, 3, 3), dtype=bool))
+    rim = m & ~ndimage.binary_erosion(m, border_value=0)
+    return labels.ravel()[index] - 1, rim.ravel()[index]
 
 
 def collect_samples(data, *, threshold=None, scalars=None, what="auto_cage") -> InputSamples:
@@ -176,13 +226,10 @@ def collect_samples(data, *, threshold=None, scalars=None, what="auto_cage") -> 
         raise ValueError(f"{what}: the input is empty (no points)")
 
     if isinstance(ds, (pv.ImageData, pv.RectilinearGrid, pv.StructuredGrid)):
-        pts = np.asarray(ds.points, dtype=np.float64)
-        _check_points(pts, what)
         if threshold is None:
-            lo, hi = pts.min(axis=0), pts.max(axis=0)
-            corners = np.array(
-                [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-            )
+            b = np.asarray(ds.bounds, dtype=np.float64).reshape(3, 2)
+            corners = np.array([[x, y, z] for x in b[0] for y in b[1] for z in b[2]])
+            _check_points(corners, what)
             return InputSamples(points=corners, kind="volume-box")
         name = scalars or ds.active_scalars_name or (ds.array_names[0] if ds.array_names else None)
         if name is None:
@@ -190,22 +237,24 @@ def collect_samples(data, *, threshold=None, scalars=None, what="auto_cage") -> 
         vals = np.asarray(ds.get_array(name))
         if vals.ndim > 1:
             vals = np.linalg.norm(vals, axis=1)
-        if len(vals) == ds.n_cells and len(vals) != ds.n_points:
-            pts = np.asarray(ds.cell_centers().points)
+        on_cells = len(vals) == ds.n_cells and len(vals) != ds.n_points
         thr = (
             _otsu(vals)
             if (isinstance(threshold, str) and threshold.lower() == "otsu")
             else float(threshold)
         )
-        sel = vals > thr
-        if not sel.any():
+        sel = np.flatnonzero(vals > thr)
+        if not len(sel):
             raise ValueError(f"{what}: no voxel of '{name}' is above the threshold {thr:g}")
-        sp = np.asarray(
-            getattr(ds, "spacing", None)
-            or np.ptp(pts, axis=0) / np.maximum(np.asarray(ds.dimensions) - 1, 1)
-        )
+        pts, spacing = _volume_points(ds, sel, on_cells)
+        part, boundary = _region_labels(vals > thr, np.asarray(ds.dimensions) - on_cells, sel)
         return InputSamples(
-            points=_check_points(pts[sel], what), kind="volume", spacing=float(np.max(sp))
+            points=_check_points(pts, what),
+            kind="volume",
+            spacing=spacing,
+            threshold=thr,
+            part=part,
+            boundary=boundary,
         )
 
     pts = _check_points(np.asarray(ds.points, dtype=np.float64), what)
@@ -265,11 +314,13 @@ class AutoCageReport:
     offset : float
         Requested clearance (world units).
     clearance : float
-        Smallest distance from an input point to the cage (world units, > 0).
+        Smallest distance from an input point on the shape's boundary to the cage (world
+        units, > 0): every point of a surface or cloud, a tet mesh's surface points, a
+        volume region's rim voxels.
     clearance_relative : float
         ``clearance`` divided by the input's bounding-box diagonal.
     min_winding_number : float
-        Smallest generalized winding number over the input points (1 when enclosed).
+        Smallest generalized winding number over all input points (1 when enclosed).
     enclosed : bool
         Every input point strictly inside (winding number > 0.5 and clearance > 0).
     voxel_size : float
@@ -278,7 +329,19 @@ class AutoCageReport:
     n_points : int
         Input points checked.
     n_components : int
-        Connected components of the cage.
+        Connected components (shells) of the cage.
+    offset_used : float
+        The clearance the cage was built for (the requested ``offset``, or twice it when
+        the first attempt failed); parts farther apart than it get separate shells.
+    n_parts : int
+        Separate parts of the input (surface components, volume regions, point clusters).
+    bridged_gap : float
+        Largest gap between two parts that share a shell (0 if none; at most
+        ``offset_used``; NaN for the voxel and box methods, which do not track parts).
+    min_gap_kept : float
+        Smallest gap between two parts in different shells (``inf`` when no two shells are
+        within three clearances; NaN for the voxel and box methods). The cage's clearance
+        there is at most a third of the gap.
     seconds : float
         Wall time of the whole call.
     notes : list of str
@@ -297,6 +360,10 @@ class AutoCageReport:
     grid_shape: tuple
     n_points: int
     n_components: int
+    offset_used: float = float("nan")
+    n_parts: int = 1
+    bridged_gap: float = float("nan")
+    min_gap_kept: float = float("nan")
     seconds: float = 0.0
     notes: list = field(default_factory=list)
 
@@ -305,7 +372,13 @@ class AutoCageReport:
             f"{self.method} cage: {self.n_faces} faces, {self.n_vertices} vertices, "
             f"{self.n_components} component(s); clearance {self.clearance:.4g} "
             f"({100 * self.clearance_relative:.2f}% of the diagonal), min winding number "
-            f"{self.min_winding_number:.6f} over {self.n_points} points; {self.seconds:.2f} s"
+            f"{self.min_winding_number:.6f} over {self.n_points} points"
+            + (
+                f"; smallest gap kept between parts {self.min_gap_kept:.4g}"
+                if np.isfinite(self.min_gap_kept)
+                else ""
+            )
+            + f"; {self.seconds:.2f} s"
         )
 
 
@@ -319,30 +392,19 @@ def _near_sd(V, F, points, radius):
     return grid_signed_distance(NearDistance(V, F), points, radius)
 
 
-def _verify_enclosure(vertices, faces, points, unsigned_dist) -> float:
-    """Smallest winding number over ``points``, evaluated on few representatives.
+def _on_boundary(samples: InputSamples) -> np.ndarray:
+    """Which input points lie on the shape's boundary (where the cage comes closest).
 
-    The winding number is constant on every ball that does not meet the cage: a point
-    within ``unsigned_dist[r]`` of a representative ``r`` has ``r``'s winding number
-    (``unsigned_dist`` may be a lower bound of the distance to the cage). Points are
-    bucketed on a grid; in each bucket the point farthest from the cage represents the
-    others it covers; uncovered points are evaluated themselves.
+    A volume's rim voxels, a tet mesh's surface points; every point of a surface or a
+    cloud.
     """
-    p = np.asarray(points, dtype=np.float64)
-    d = np.abs(np.asarray(unsigned_dist, dtype=np.float64))
-    cell = max(float(np.median(d)), 1e-12 * float(np.ptp(p, axis=0).max()))
-    key = np.floor((p - p.min(axis=0)) / cell).astype(np.int64)
-    _, bucket = np.unique(key, axis=0, return_inverse=True)
-    bucket = bucket.ravel()
-    order = np.lexsort((-d, bucket))
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = bucket[order[1:]] != bucket[order[:-1]]
-    rep_of_bucket = order[first]  # farthest point in each bucket
-    rep = rep_of_bucket[bucket]
-    covered = np.linalg.norm(p - p[rep], axis=1) < 0.999 * d[rep]
-    evaluate = np.unique(np.concatenate([rep_of_bucket, np.flatnonzero(~covered)]))
-    w = winding_number(p[evaluate], vertices, faces)
-    return float(np.min(w)) if len(w) else 1.0
+    if samples.boundary is not None:
+        return np.asarray(samples.boundary, dtype=bool)
+    if samples.kind == "tetmesh" and samples.tri_faces is not None and len(samples.tri_faces):
+        surface = samples.tri_vertices[np.unique(samples.tri_faces)]
+        d, _ = cKDTree(surface).query(samples.points)
+        return d == 0
+    return np.ones(len(samples.points), dtype=bool)
 
 
 def _clearance(V, F, points, radius):
@@ -425,39 +487,184 @@ def _voxel_cage(samples, lo, hi, offset, max_faces, resolution, notes):
 # ---------------------------------------------------------------------------------------
 
 
-def _offset_surface(samples: InputSamples, lo, hi, offset, resolution):
-    """Triangle mesh of the surface at distance ``offset`` outside the input."""
-    import pyvista as pv
+#: the clearance between two parts a gap ``g`` apart is at most ``g / 3``, so a third of
+#: the gap stays open between their shells
+_GAP_SHARE = 1.0 / 3.0
+#: a shell needs about this many faces: more separate groups than max_faces / this at the
+#: requested offset make the offset method retry with a larger one (fewer groups)
+_FACES_PER_SHELL = 24
 
-    ext = float((hi - lo).max())
-    if resolution is None:
-        resolution = int(np.clip(np.ceil(1.5 * ext / offset), 32, 112))
-    h = ext / resolution
-    pad = int(np.ceil(offset / h)) + 4
-    grid = vx.make_grid(lo, hi, resolution, pad)
-    pts = [samples.points]
-    if samples.tri_faces is not None and len(samples.tri_faces):
-        pts.append(vx.sample_triangles(samples.tri_vertices, samples.tri_faces, 0.5 * h))
-    allpts = np.concatenate(pts)
-    occ = vx.splat(grid, allpts)
-    if samples.spacing is not None:
-        occ = vx.close_shell(occ, int(np.ceil(2 * samples.spacing / h)) - 1)
+
+def _group_inside(points, h, offset, spacing):
+    """(grid, inside mask) of one group of samples: splatted, closed and filled."""
+    grid = vx.make_grid(
+        points.min(axis=0), points.max(axis=0), None, int(np.ceil(offset / h)) + 4, h
+    )
+    occ = vx.splat(grid, points)
+    if spacing is not None:
+        occ = vx.close_shell(occ, int(np.ceil(2 * spacing / h)) - 1)
     inside = ndimage.binary_fill_holes(vx.grow(occ, 1.0))
     inside = ndimage.binary_erosion(inside, structure=np.ones((3, 3, 3), bool)) | occ
-    # distance (voxel units) from every voxel centre to the nearest inside voxel centre
-    edt = ndimage.distance_transform_edt(~inside)
-    field_ = edt * h
-    band = (~inside) & (field_ < offset + 3 * h)
-    idx = np.argwhere(band)
+    return grid, inside
+
+
+def _group_offset_surface(points, clear, grid, inside, offset, solid_radius=None):
+    """Surface at the local clearance ``clear`` outside one group of samples (PolyData).
+
+    Outside the group the surface is the boundary of the union of the balls of radius
+    ``clear[i]`` around the samples: the zero level of ``min_i |x - p_i| - clear[i]``
+    (over the 8 nearest samples where the clearance varies). A sample whose clearance is a
+    third of its gap to another group keeps its ball on its own side of that gap, so the
+    surface never reaches the middle of a gap. Inside, the field is minus the distance to
+    the nearest boundary sample minus its clearance: signed, it interpolates linearly
+    across the surface, so the contour stays accurate where the clearance is much smaller
+    than a voxel. Beyond a band around the surface, voxel distances stand in.
+
+    ``inside`` (filled voxels holding samples) counts a voxel centre up to a voxel from
+    the shape as inside; for point sets (volumes, clouds) ``solid_radius`` corrects that
+    where the clearance varies (near another group): a centre farther than it from every
+    sample is outside (at a coarse grid the error otherwise bulges the surface towards
+    the close group).
+    """
+    import pyvista as pv
+
+    h = grid.h
+    out_d = ndimage.distance_transform_edt(~inside) * h
+    in_d = ndimage.distance_transform_edt(inside) * h
+    cmax = float(clear.max())
+    varies = bool(clear.min() < cmax)
+    band_out = (~inside) & (out_d < cmax + 2 * h)
+    band_in = inside & (in_d < 1.5 * h)
+    field_ = np.where(inside, -in_d - cmax, out_d - cmax)
+    idx = np.argwhere(band_out)
     if len(idx):
-        d, _ = cKDTree(allpts).query(grid.centers(idx), k=1, workers=-1)
-        field_[band] = d
-    field_[inside] = 0.0
+        k = min(8, len(points)) if varies else 1
+        d, j = cKDTree(points).query(grid.centers(idx), k=k, workers=-1)
+        field_[band_out] = (d - clear[j]).reshape(len(idx), k).min(axis=1)
+    idx = np.argwhere(band_in)
+    if len(idx):
+        where = grid.centers(idx)
+        d, j = cKDTree(points).query(where, k=1, workers=-1)
+        values = -d - clear[j]
+        if solid_radius is not None and varies:
+            k = min(8, len(points))
+            d, j = cKDTree(points).query(where, k=k, workers=-1)
+            d, j = d.reshape(len(idx), k), j.reshape(len(idx), k)
+            out = d[:, 0] > solid_radius
+            values[out] = (d[out] - clear[j[out]]).min(axis=1)
+        field_[band_in] = values
+    # a pocket whose mouth the balls close over leaves a void inside the surface (an
+    # inner shell that would be flipped outward, nested): the surface takes it in
+    solid = ndimage.binary_fill_holes(field_ < 0)
+    field_[solid & (field_ >= 0)] = -0.5 * h
     img = pv.ImageData(dimensions=grid.shape, spacing=(h, h, h), origin=grid.origin + 0.5 * h)
-    img.point_data["d"] = field_.ravel(order="F")
-    iso = img.contour([offset], scalars="d", method="flying_edges")
-    iso = iso.clean().triangulate()
-    return grid, iso
+    img.point_data["f"] = field_.ravel(order="F")
+    iso = img.contour([0.0], scalars="f", method="flying_edges").clean().triangulate()
+    return iso, solid
+
+
+def _nested_groups(groups_inside, points, group):
+    """Pairs (outer, inner) of groups whose samples lie inside another group's region.
+
+    ``groups_inside`` holds a (grid, mask) per group: the filled voxels of its samples,
+    or the inside of its offset surface (which can close over a pocket holding another
+    group).
+    """
+    n = len(groups_inside)
+    members = [np.flatnonzero(group == g) for g in range(n)]
+    boxes = [(points[m].min(axis=0), points[m].max(axis=0)) for m in members]
+    pairs = []
+    for g, (grid, inside) in enumerate(groups_inside):
+        lo = grid.origin
+        hi = grid.origin + grid.h * np.asarray(grid.shape)
+        for k in range(n):
+            if k == g or np.any(boxes[k][0] > hi) or np.any(boxes[k][1] < lo):
+                continue
+            idx = np.floor((points[members[k]] - lo) / grid.h).astype(np.int64)
+            ok = np.all((idx >= 0) & (idx < np.asarray(grid.shape)), axis=1)
+            if inside[idx[ok, 0], idx[ok, 1], idx[ok, 2]].any():
+                pairs.append((g, k))
+    return pairs
+
+
+@dataclass
+class _Groups:
+    """Groups of parts that get one shell each, and the local clearance of every sample."""
+
+    label: np.ndarray  # (N,) group of every shape sample
+    count: int
+    clear: np.ndarray  # (N,) local clearance of every shape sample (world units)
+    bridged: float  # largest gap between parts that share a shell
+    kept: float  # smallest gap between parts in different shells (inf: none near)
+    inside: list  # (grid, mask) per group
+
+
+def _make_groups(
+    shape: ShapeSamples, offset: float, h: float, spacing, max_groups: int, merged=None
+) -> _Groups:
+    """Group the parts (closer than ``offset``, or nested) and set local clearances.
+
+    ``merged`` (a previous :class:`_Groups` whose labels were merged further) skips the
+    distance grouping.
+    """
+    if merged is None:
+        group, count, bridged, kept = group_parts(shape, offset)
+    else:
+        group, count, bridged = merged.label, merged.count, merged.bridged
+    if count > max_groups:
+        raise RuntimeError(
+            f"{count} parts farther apart than the offset need more than {max_groups} shells"
+        )
+    while True:
+        inside = []
+        for g in range(count):
+            pts = shape.points[group == g]
+            # a small part (a speck of a volume) gets a grid fine enough to resolve the
+            # ball around it: a coarse octahedron would have to grow far to enclose it
+            hg = min(h, (float(np.ptp(pts, axis=0).max()) + 2.0 * offset) / 16.0)
+            inside.append(_group_inside(pts, hg, offset, spacing))
+        nested = _nested_groups(inside, shape.points, group) if count > 1 else []
+        if not nested:
+            break
+        group, count = merge_groups(group, nested)
+    if count > 1:
+        gap = gap_to_other_groups(shape.points, group, 3.0 * offset)
+        clear = np.minimum(offset, _GAP_SHARE * gap)
+        finite = np.isfinite(gap)
+        kept = float(gap[finite].min()) if finite.any() else float("inf")
+    else:
+        clear = np.full(len(shape.points), float(offset))
+        kept = float("inf")
+    return _Groups(group, count, clear, bridged, kept, inside)
+
+
+def _offset_surface(shape: ShapeSamples, groups: _Groups, offset: float, solid_radius=None):
+    """Offset surface of every group at the groups' local clearance.
+
+    Returns
+    -------
+    meshes : list of PolyData
+        One per group.
+    solids : list of (Grid, (nx, ny, nz) bool)
+        The voxels inside each surface.
+    """
+    meshes, solids = [], []
+    for g in range(groups.count):
+        sel = groups.label == g
+        grid, inside = groups.inside[g]
+        iso, solid = _group_offset_surface(
+            shape.points[sel],
+            groups.clear[sel],
+            grid,
+            inside,
+            offset,
+            solid_radius,
+        )
+        if iso.n_cells == 0:
+            raise RuntimeError(f"empty offset surface for part group {g}")
+        meshes.append(iso)
+        solids.append((grid, solid))
+    return meshes, solids
 
 
 def _faces_of(poly) -> np.ndarray:
@@ -504,56 +711,88 @@ def _vertex_normals(V, F):
 
 
 def _push_out(V, F, points, min_clear, radius, rounds=25):
-    """Move cage vertices outward until every point is ``min_clear`` inside.
+    """Move cage vertices outward until every point is its ``min_clear`` inside.
 
-    Each point closer than ``min_clear`` (or outside) pushes the three vertices of its
-    nearest face along their normals, far enough to move that face's plane by the
-    missing distance (plus 20%), but at most ``min_clear`` per round: small steps with
-    normals recomputed in between do not fold concave regions onto themselves (larger
-    steps made the CT head's cage self-intersect). Returns the new vertices and the
-    signed distances (``inf`` beyond ``radius``).
+    Each point closer than its ``min_clear`` (or outside) pushes the three vertices of
+    its nearest face along their normals, far enough to move that face's plane by the
+    missing distance (plus 20%), but at most the largest ``min_clear`` of the points that
+    push it, per round: small steps with normals recomputed in between do not fold
+    concave regions onto themselves (larger steps made the CT head's cage
+    self-intersect), and near a narrow gap between parts (small ``min_clear``) the cage
+    does not jump across the gap. Returns the new vertices and the signed distances
+    (``inf`` beyond ``radius``).
     """
     V = V.copy()
+    all_points = points
+    all_clear = np.broadcast_to(np.asarray(min_clear, dtype=np.float64), (len(points),))
+    points, min_clear = all_points, all_clear
     previous = None
     for it in range(rounds):
         sd, face = _near_sd(V, F, points, radius)
+        if it == 0:
+            # only points near the cage can be reached by the small steps below; the
+            # others are checked again at the end
+            near = np.isfinite(sd)
+            points, min_clear, sd, face = points[near], min_clear[near], sd[near], face[near]
         viol = np.flatnonzero(np.isfinite(sd) & (sd > -min_clear))
         if len(viol) == 0:
-            return V, sd
+            sd, _ = _near_sd(V, F, all_points, radius)
+            if not (np.isfinite(sd) & (sd > -all_clear)).any():
+                return V, sd
+            near = np.isfinite(sd)  # a far point came near: carry on with them
+            points, min_clear = all_points[near], all_clear[near]
+            continue
         if previous is not None and it >= 2 and len(viol) > previous:
-            return V, sd  # diverging (pushing one branch into another): give up early
+            break  # diverging (pushing one branch into another): give up early
         previous = len(viol)
         fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
         fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
         vn = _vertex_normals(V, F)
-        deficit = 1.2 * (min_clear + sd[viol]) + 1e-3 * min_clear
+        mc = min_clear[viol]
+        deficit = 1.2 * (mc + sd[viol]) + 1e-3 * mc
         need = np.zeros(len(V))
+        cap = np.zeros(len(V))
         fv = face[viol]
         for k in range(3):
             vk = F[fv, k]
             cos = np.einsum("ij,ij->i", vn[vk], fn[fv])
             np.maximum.at(need, vk, deficit / np.maximum(cos, 0.25))
-        V = V + vn * np.minimum(need, min_clear)[:, None]
-    sd, _ = _near_sd(V, F, points, radius)
+            np.maximum.at(cap, vk, mc)
+        V = V + vn * np.minimum(need, cap)[:, None]
+    sd, _ = _near_sd(V, F, all_points, radius)
     return V, sd
 
 
-def _offset_cage(samples, lo, hi, offset, max_faces, resolution, min_clear, notes):
-    """(grid, vertices, faces, signed distances, components, Cage) of the offset method.
+def _gap_midpoints(shape: ShapeSamples, groups: _Groups, limit: int = 20_000) -> np.ndarray:
+    """Points halfway between samples and the nearest sample of another group.
 
-    VTK's quadric decimation takes the offset surface down to a few times ``max_faces``
-    (fast, still manifold there), :func:`vhm_viz.autocage.simplify.simplify` finishes with
-    link-condition-checked collapses, then the cage is pushed out where needed.
+    They lie in the open space between two parts; the cage must leave them outside. At
+    most ``limit`` of them (the narrowest gaps first).
     """
-    grid, iso = _offset_surface(samples, lo, hi, offset, resolution)
-    if iso.n_cells == 0:
-        raise RuntimeError("empty offset surface")
-    V = np.asarray(iso.points, dtype=np.float64)
-    F, _ = _orient_outward(V, _faces_of(iso))
-    radius = 2.0 * offset
-    target = max_faces
+    if groups.count < 2:
+        return np.empty((0, 3))
+    tight = np.flatnonzero(groups.clear < np.max(groups.clear))
+    if len(tight) == 0:
+        return np.empty((0, 3))
+    tight = tight[np.argsort(groups.clear[tight], kind="stable")[:limit]]
+    mids = []
+    for g in np.unique(groups.label[tight]):
+        mine = tight[groups.label[tight] == g]
+        others = np.flatnonzero(groups.label != g)
+        _, j = cKDTree(shape.points[others]).query(shape.points[mine])
+        mids.append(0.5 * (shape.points[mine] + shape.points[others[j]]))
+    return np.concatenate(mids)
+
+
+def _decimated(V, F, target: int, notes: list):
+    """The offset surfaces taken down to a few times ``target`` faces.
+
+    VTK's quadric decimation (fast) when its result is a closed 2-manifold, else the
+    compiled simplifier.
+    """
+    F, _ = _orient_outward(V, F)
     for factor in (4, 8, 16):
-        coarse = factor * max_faces
+        coarse = factor * target
         if len(F) > coarse:
             dec = _polydata(V, F).decimate(1.0 - coarse / len(F))
             V1, F1 = _compact(np.asarray(dec.points, dtype=np.float64), _faces_of(dec))
@@ -561,18 +800,85 @@ def _offset_cage(samples, lo, hi, offset, max_faces, resolution, min_clear, note
         else:
             V1, F1 = V, F
         probs = edge_problems(F1)
-        if any(probs.values()):
-            notes.append(f"quadric decimation to {coarse} faces not manifold ({probs})")
-            continue
-        break
-    else:
-        raise RuntimeError("quadric decimation keeps producing non-manifold surfaces")
+        if not any(probs.values()):
+            return V1, F1
+        notes.append(f"quadric decimation to {coarse} faces not manifold ({probs})")
+    # the compiled simplifier keeps the surface a 2-manifold (link condition): slower
+    # from a large contour, but it does not fail
+    if any(edge_problems(F).values()):
+        raise RuntimeError("the offset surface is not a closed 2-manifold")
+    return simplify(V, F, 4 * target, outside=True, min_component_vertices=6)
+
+
+def _simplified(V1, F1, target: int, turn: float):
+    """The decimated surfaces simplified together to ``target`` faces.
+
+    Together, so that collapses that would make faces touch -- within a shell or between
+    two shells -- are refused (``no_intersections``), a brute-force check per collapse:
+    the first collapses, down to twice the target, run without it when they leave no
+    intersection (the usual case), the rest with it. Every shell keeps at least 6
+    vertices.
+    """
+    kw = {"outside": True, "max_normal_turn": turn, "min_component_vertices": 6}
+    Vh, Fh = simplify(V1, F1, 2 * target, **kw)
+    if len(self_intersections(Vh, Fh)):
+        Vh, Fh = V1, F1
+    return simplify(Vh, Fh, target, no_intersections=True, **kw)
+
+
+def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
+    """(grid, vertices, faces, components, Cage, groups) of the "offset" method.
+
+    Parts closer than ``offset`` (and nested parts) are grouped; every group gets its own
+    offset surface, at the clearance ``offset`` narrowed to a third of the gap near other
+    groups. VTK's quadric decimation takes the surfaces down to a few times ``max_faces``
+    (fast, still manifold there),
+    :func:`vhm_viz.autocage.simplify.simplify` finishes with link-condition-checked
+    collapses, then the cage is pushed out where needed (every boundary sample at least
+    half its local clearance inside) and checked to leave the space between groups
+    outside.
+    """
+    ext = float((hi - lo).max())
+    if resolution is None:
+        resolution = int(np.clip(np.ceil(1.5 * ext / offset), 32, 112))
+    h = ext / int(resolution)
+    max_groups = max(1, max_faces // _FACES_PER_SHELL)
+    groups = _make_groups(shape, offset, h, samples.spacing, max_groups)
+    # point sets: a voxel centre is in the shape when within a sample's voxel (volumes)
+    # or a typical neighbour distance (clouds) of a sample
+    solid_radius = None
+    if samples.tri_faces is None and samples.spacing:
+        solid_radius = (0.5 * np.sqrt(3.0) if samples.kind == "volume" else 1.0) * samples.spacing
+    while True:
+        meshes, solids = _offset_surface(shape, groups, offset, solid_radius)
+        # an offset surface that closes over a pocket holding another group would nest
+        # that group's shell inside it: such groups share a shell
+        nested = _nested_groups(solids, shape.points, groups.label) if groups.count > 1 else []
+        if not nested:
+            break
+        groups.label, groups.count = merge_groups(groups.label, nested)
+        groups = _make_groups(shape, offset, h, samples.spacing, max_groups, merged=groups)
+    V = np.concatenate([np.asarray(m.points, dtype=np.float64) for m in meshes])
+    first = np.cumsum([0] + [m.n_points for m in meshes])[:-1]
+    F = np.concatenate([_faces_of(m) + o for m, o in zip(meshes, first, strict=True)])
+    V1, F1 = _decimated(V, F, max_faces, notes)
+    radius = 2.0 * offset
+    # the clearance is kept at the boundary samples (the enclosure of the points inside
+    # them is verified by winding numbers afterwards): the input points everywhere, the
+    # samples on the input's triangles near gaps between groups (so that no triangle pokes
+    # through where the cage hugs the shape); elsewhere the simplified cage may cut the
+    # corner of a large input triangle between its (enclosed) corners
+    check = np.ones(len(shape.points), dtype=bool)
+    check[shape.n_input :] = groups.clear[shape.n_input :] < offset
+    check_points = shape.points[check]
+    min_clear = 0.5 * groups.clear[check]
+    mids = _gap_midpoints(shape, groups)
     # simplification is cheap (compiled), so several variants are tried before the caller
     # falls back to a larger offset: fewer faces, then a stricter normal-turn limit
     # (flatter, less folded surfaces push out more cleanly)
     attempts = ((1.0, 0.2), (0.9, 0.2), (1.0, 0.5), (0.8, 0.5))
     for frac, turn in attempts:
-        V2, F2 = simplify(V1, F1, int(target * frac), outside=True, max_normal_turn=turn)
+        V2, F2 = _simplified(V1, F1, int(max_faces * frac), turn)
         if len(F2) > max_faces:
             notes.append(f"simplification stopped at {len(F2)} faces (> {max_faces}); retrying")
             continue
@@ -584,19 +890,29 @@ def _offset_cage(samples, lo, hi, offset, max_faces, resolution, min_clear, note
             raise RuntimeError(
                 f"the simplified offset surface self-intersects ({crossing} face pairs)"
             )
-        V3, sd = _push_out(V2, F2, samples.points, min_clear, radius)
-        if (np.isfinite(sd) & (sd > -min_clear * 0.999)).any():
+        V3, sd = _push_out(V2, F2, check_points, min_clear, radius)
+        short = np.isfinite(sd) & (sd > -min_clear * 0.999)
+        if short.any():
+            if (min_clear[short] < 0.5 * offset).any():
+                # near a gap the faces are too coarse to keep it open: another variant of
+                # the same face count will not do better, a larger offset (merging) does
+                raise RuntimeError("the faces cannot keep the gaps between parts open")
             notes.append(
                 f"push-out did not restore the clearance ({len(F2)} faces, normal turn "
                 f"{turn}); retrying"
             )
             continue
+        if ncomp < groups.count:
+            notes.append(f"{ncomp} shells for {groups.count} part groups; retrying")
+            continue
+        if len(mids) and (winding_number(mids, V3, F2) > 0.5).any():
+            raise RuntimeError("the cage closes a gap between parts")
         try:
             cage = _make_cage(V3, F2)
         except CageError as exc:
             notes.append(f"offset cage rejected ({exc}); retrying")
             continue
-        return grid, V3, F2, sd, ncomp, cage
+        return vx.Grid(lo, h, (int(resolution),) * 3), V3, F2, ncomp, cage, groups
     raise RuntimeError("could not simplify the offset surface into a valid cage")
 
 
@@ -679,19 +995,28 @@ def auto_cage(
     notes: list[str] = []
     used = "voxel" if samples.kind == "volume-box" else method
     cage = None
+    offset_used, bridged, kept, n_parts = offset, float("nan"), float("nan"), 1
     if used in ("auto", "offset"):
-        # thin tubes (fingers) sometimes cannot be simplified at the requested offset:
-        # "auto" retries at twice the offset before falling back to the voxel cage
-        tries = (offset, 2.0 * offset) if method == "auto" else (offset,)
+        # when the cage cannot be made at the requested offset (too many separate parts
+        # for the faces, gaps the faces cannot keep open), "auto" retries at two and four
+        # times the offset -- parts closer than it then share a shell -- before falling
+        # back to the voxel cage
+        tries = (offset, 2.0 * offset, 4.0 * offset) if method == "auto" else (offset,)
+        ext = float((hi - lo).max())
+        res0 = resolution or int(np.clip(np.ceil(1.5 * ext / offset), 32, 112))
+        shape = shape_samples(samples, 0.5 * ext / res0)
         for k, off in enumerate(tries):
             try:
-                grid, V, F, sd, ncomp, cage = _offset_cage(
-                    samples, lo, hi, off, max_faces, resolution, 0.5 * off, notes
+                grid, V, F, ncomp, cage, groups = _offset_cage(
+                    samples, shape, lo, hi, off, max_faces, resolution, notes
                 )
                 used = "offset"
-                radius_used = 2.0 * off
+                offset_used, bridged, kept = off, groups.bridged, groups.kept
+                n_parts = shape.n_parts
                 if k:
-                    notes.append(f"used offset {off:.4g} (twice the requested one)")
+                    notes.append(
+                        f"used offset {off:.4g} ({off / offset:g} times the requested one)"
+                    )
                 break
             except (RuntimeError, ValueError) as exc:
                 if method == "offset":
@@ -729,7 +1054,6 @@ def auto_cage(
         )
         F, ncomp = _orient_outward(V, F)
         grid = vx.make_grid(lo, hi, 1, 0)
-        sd, radius_used = _clearance(V, F, pts, 2 * offset)
         cage = _make_cage(V, F)
         used = "box"
     if used == "voxel":
@@ -742,16 +1066,12 @@ def auto_cage(
                 f"more than max_faces={max_faces}"
             )
         F, ncomp = _orient_outward(V, F)
-        sd, radius_used = _clearance(V, F, pts, offset + 3 * grid.h)
         cage = _make_cage(V, F, check_self_intersection=False)  # embedded by construction
-    finite = np.isfinite(sd)
-    if not finite.any():
-        sd, radius_used = _clearance(V, F, pts, 4.0 * offset)
-        finite = np.isfinite(sd)
-    clearance = float(-sd[finite].max())
-    # exact distances near the cage, the search radius (a lower bound) elsewhere
-    lower = np.where(finite, np.abs(sd), radius_used)
-    wmin = _verify_enclosure(V, F, pts, lower)
+    # independent of how the cage was built: the distance from the boundary points (the
+    # closest to the cage) and the winding number of every point
+    sd, _ = _clearance(V, F, pts[_on_boundary(samples)], 2.0 * offset_used)
+    clearance = float(-sd[np.isfinite(sd)].max())
+    wmin = float(winding_number(pts, V, F).min())
     enclosed = bool(clearance > 0 and wmin > 0.5)
     if not enclosed:  # pragma: no cover - guarded by construction
         raise RuntimeError(
@@ -771,6 +1091,10 @@ def auto_cage(
         grid_shape=tuple(grid.shape),
         n_points=len(pts),
         n_components=int(ncomp),
+        offset_used=offset_used,
+        n_parts=int(n_parts),
+        bridged_gap=bridged,
+        min_gap_kept=kept,
         seconds=time.perf_counter() - t0,
         notes=notes,
     )

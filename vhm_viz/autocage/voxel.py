@@ -71,17 +71,21 @@ class Grid:
         return self.origin + np.asarray(vertex_index, dtype=np.float64) * self.h
 
 
-def make_grid(lo: np.ndarray, hi: np.ndarray, resolution: int, pad: int) -> Grid:
+def make_grid(
+    lo: np.ndarray, hi: np.ndarray, resolution: int | None, pad: int, h: float | None = None
+) -> Grid:
     """Grid with ``resolution`` voxels along the longest side of the box ``[lo, hi]``.
 
     Parameters
     ----------
     lo, hi : (3,) array
         Bounding box of the data.
-    resolution : int
-        Voxels along the longest box side (>= 1).
+    resolution : int or None
+        Voxels along the longest box side (>= 1); ignored when ``h`` is given.
     pad : int
         Empty voxels added on every side (room for the clearance and a border).
+    h : float, optional
+        Voxel size instead of ``resolution`` (world units).
 
     Returns
     -------
@@ -91,7 +95,8 @@ def make_grid(lo: np.ndarray, hi: np.ndarray, resolution: int, pad: int) -> Grid
     lo = np.asarray(lo, dtype=np.float64)
     hi = np.asarray(hi, dtype=np.float64)
     ext = hi - lo
-    h = float(ext.max()) / max(int(resolution), 1)
+    if h is None:
+        h = float(ext.max()) / max(int(resolution), 1)
     if not h > 0:
         raise ValueError("the data has no extent")
     # a hair more than the extent so points on the upper face fall inside the last voxel
@@ -101,7 +106,9 @@ def make_grid(lo: np.ndarray, hi: np.ndarray, resolution: int, pad: int) -> Grid
     return Grid(origin=origin, h=h, shape=(int(n[0]), int(n[1]), int(n[2])))
 
 
-def sample_triangles(vertices: np.ndarray, faces: np.ndarray, spacing: float) -> np.ndarray:
+def sample_triangles(
+    vertices: np.ndarray, faces: np.ndarray, spacing: float, return_faces: bool = False
+):
     """Extra points on triangles whose longest edge exceeds ``spacing``.
 
     Every point of such a triangle is within ``spacing`` of a returned point or of a
@@ -113,16 +120,19 @@ def sample_triangles(vertices: np.ndarray, faces: np.ndarray, spacing: float) ->
     faces : (m, 3) int array
     spacing : float
         Largest allowed distance between neighbouring samples.
+    return_faces : bool
+        Also return the triangle each sample lies on.
 
     Returns
     -------
-    (k, 3) float64
+    samples : (k, 3) float64
         Samples (triangle corners not repeated); may be empty.
+    face : (k,) int64, only with ``return_faces``
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     if len(f) == 0 or spacing <= 0:
-        return np.empty((0, 3))
+        return (np.empty((0, 3)), np.empty(0, np.int64)) if return_faces else np.empty((0, 3))
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     longest = np.maximum.reduce(
         [
@@ -132,9 +142,10 @@ def sample_triangles(vertices: np.ndarray, faces: np.ndarray, spacing: float) ->
         ]
     )
     divisions = np.ceil(longest / spacing).astype(np.int64)
-    out = []
+    out, owner = [], []
+    total = 0
     for k in np.unique(divisions[divisions > 1]):
-        sel = divisions == k
+        sel = np.flatnonzero(divisions == k)
         i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
         keep = (
             (i + j <= k) & ~((i == 0) & (j == 0)) & ~((i == k) & (j == 0)) & ~((i == 0) & (j == k))
@@ -143,9 +154,14 @@ def sample_triangles(vertices: np.ndarray, faces: np.ndarray, spacing: float) ->
         wc = (j[keep] / k)[None, :, None]
         aa, bb, cc = a[sel][:, None, :], b[sel][:, None, :], c[sel][:, None, :]
         out.append((aa + wb * (bb - aa) + wc * (cc - aa)).reshape(-1, 3))
-        if sum(len(o) for o in out) > 20_000_000:  # pragma: no cover - defensive
+        owner.append(np.repeat(sel, int(keep.sum())))
+        total += len(out[-1])
+        if total > 20_000_000:  # pragma: no cover - defensive
             raise ValueError("triangles too large for the voxel size; use a lower resolution")
-    return np.concatenate(out) if out else np.empty((0, 3))
+    pts = np.concatenate(out) if out else np.empty((0, 3))
+    if return_faces:
+        return pts, (np.concatenate(owner) if owner else np.empty(0, np.int64))
+    return pts
 
 
 def splat(grid: Grid, points: np.ndarray) -> np.ndarray:

@@ -189,6 +189,54 @@ def _outward_shells(v: np.ndarray, f: np.ndarray, edges: np.ndarray) -> tuple:
     return tuple(shells) if len(shells) > 1 else ()
 
 
+def domain_columns(vertices, faces) -> tuple[np.ndarray, ...]:
+    """Basis columns of each separate domain of a cage (one per outward shell).
+
+    The map inside one outward shell depends only on that shell's coefficients (and those
+    of the inward hole shells inside it), see :func:`_outward_shells`, so a solver can tell
+    which coefficients each domain owns.
+
+    Parameters
+    ----------
+    vertices : (n, 3) array_like
+    faces : (m, 3) array_like of int
+        Outward-oriented cage.
+
+    Returns
+    -------
+    tuple of int64 arrays
+        Column ids (vertex ``v`` is column ``v``, face ``t`` column ``n + t``), one array
+        per outward shell in the order of :func:`_outward_shells`; a single array of all
+        ``n + m`` columns for a cage of one outward shell. A hole shell belongs to the
+        outward shell whose winding number is 1 on it.
+    """
+    cd = _prepare_cage(vertices, faces)
+    n, m = cd.vertices.shape[0], cd.faces.shape[0]
+    if not cd.shells:
+        return (np.arange(n + m, dtype=np.int64),)
+    cols = [list(np.concatenate([vids, n + fids])) for vids, fids in cd.shells]
+    owned = np.zeros(n + m, dtype=bool)
+    for c in cols:
+        owned[c] = True
+    hole_faces = np.flatnonzero(~owned[n:])
+    if len(hole_faces):
+        import scipy.sparse.csgraph as csgraph
+
+        f = cd.faces[hole_faces]
+        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
+        graph = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+        _, labels = csgraph.connected_components(graph, directed=False)
+        for lab in np.unique(labels[f[:, 0]]):
+            fids = hole_faces[labels[f[:, 0]] == lab]
+            vids = np.unique(cd.faces[fids])
+            probe = cd.vertices[vids[:1]]
+            for k, (_, shell_faces) in enumerate(cd.shells):
+                if winding_number(probe, cd.vertices, cd.faces[shell_faces])[0] > 0.5:
+                    cols[k].extend(np.concatenate([vids, n + fids]).tolist())
+                    break
+    return tuple(np.unique(np.asarray(c, dtype=np.int64)) for c in cols)
+
+
 def _separate_shells(cd: _CageData, values, gradients, hessians) -> None:
     """Zero, for each point, the basis functions of outward shells that do not contain it."""
     n = cd.vertices.shape[0]

@@ -16,7 +16,8 @@ Design (all documented choices in one place):
   the public API converts at the boundary. The local step commutes with transposition.
 * **Smoothness samples.** By default 3 per cage face, at the barycentric points
   ``(2/3, 1/6, 1/6)`` and permutations, pulled inward along the face normal by ``1e-3`` of
-  the cage's bounding-box diagonal (k = 3 m samples, each giving 5 Hessian rows
+  the cage's bounding-box diagonal, or by half the cage's local thickness where the cage
+  is thinner than twice that (k = 3 m samples, each giving 5 Hessian rows
   ``xx, xy, xz, yy, yz`` per map component, as in the paper's eq. 5). Your own samples can be
   passed instead; samples lying exactly on a face need ``smoothness_host_faces`` so that the
   interior limit of the basis is used.
@@ -35,6 +36,12 @@ Design (all documented choices in one place):
   factorisations, and :meth:`update_targets` (same points, new targets) performs none.
 * **Translation.** It lies in the null space of both the Jacobian and the Hessian rows, so
   at least one position constraint is required (:class:`ConstraintError` otherwise).
+* **Cages of several shells.** Each outward shell is its own domain with its own
+  coefficients (:func:`~vhm_viz.core.basis.domain_columns`). A shell without any
+  constraint would leave its translation free (a singular solve): it stays put instead,
+  its coefficients fixed to the identity's as extra constraint rows, listed in
+  :attr:`Deformer.pinned_shells` and :attr:`Deformer.notes` and announced by a
+  ``UserWarning``. A constrained shell needs a position constraint and an anchor.
 * **Solver.** Local/global iteration on the anchors' local matrices, Anderson-accelerated
   (window 10) with an energy safeguard, so the energy never increases (see
   :mod:`vhm_viz.core.solver`). Stopping rule: the estimated distance to the fixed point,
@@ -54,15 +61,16 @@ so that deforming a shape is one matrix product (paper eq. 8).
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
 
-from vhm_viz.core.basis import evaluate_basis, evaluate_inside, inside_cage
+from vhm_viz.core.basis import domain_columns, evaluate_basis, evaluate_inside, inside_cage
 from vhm_viz.core.binding import Binding
 from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indices
-from vhm_viz.core.geometry import face_normals_and_areas
+from vhm_viz.core.geometry import face_normals_and_areas, ray_depth
 from vhm_viz.core.limits import check_setting
 from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW, project_blocks, run_local_global
 
@@ -120,13 +128,20 @@ def _as_matrix_array(a, name: str) -> np.ndarray:
 def default_smoothness_samples(vertices, faces, inset: float = _SAMPLE_INSET) -> np.ndarray:
     """The default smoothness samples of a cage (3 per face, pulled inward).
 
+    Each sample starts at a barycentric point of its face and moves inward along the face
+    normal by ``inset`` times the cage's bounding-box diagonal, or by half the cage's local
+    thickness there when that is less: the distance along the inward normal to the first
+    other face (the far side of a thin plate, or the neighbour of a sharp convex edge). So
+    every sample of a valid cage lies strictly inside it, however thin the cage gets.
+
     Parameters
     ----------
     vertices : (n, 3) array_like
     faces : (m, 3) array_like of int
         Outward-oriented cage.
     inset : float
-        Inward offset along the face normal, as a fraction of the bounding-box diagonal.
+        Largest inward offset along the face normal, as a fraction of the bounding-box
+        diagonal (0 puts the samples on the faces).
 
     Returns
     -------
@@ -137,9 +152,13 @@ def default_smoothness_samples(vertices, faces, inset: float = _SAMPLE_INSET) ->
     f = np.asarray(faces, dtype=np.int64)
     normals, _ = face_normals_and_areas(v, f)
     diag = float(np.linalg.norm(v.max(0) - v.min(0)))
-    pts = np.einsum("sb,fbc->fsc", _SAMPLE_BARY, v[f])
-    pts -= (inset * diag) * normals[:, None, :]
-    return pts.reshape(-1, 3)
+    on_face = np.einsum("sb,fbc->fsc", _SAMPLE_BARY, v[f]).reshape(-1, 3)
+    if inset <= 0:
+        return on_face
+    inward = -np.repeat(normals, 3, axis=0)
+    thickness = ray_depth(on_face, inward, v, f, skip_faces=np.repeat(np.arange(len(f)), 3))
+    depth = np.minimum(inset * diag, 0.5 * thickness)
+    return on_face + depth[:, None] * inward
 
 
 def _smoothness_weight(alpha, d, Jhat, Hhat, n, vertices) -> float:
@@ -262,6 +281,14 @@ class Deformer:
         Anderson acceleration window in [0, 100] (0 for the plain local/global iteration of
         the paper); default :data:`~vhm_viz.core.solver.DEFAULT_ANDERSON_WINDOW` (10).
 
+    Attributes
+    ----------
+    pinned_shells : tuple of int
+        Cage shells (indices into :func:`~vhm_viz.core.basis.domain_columns`) that hold no
+        constraint and therefore stay put; set by :meth:`set_constraints`.
+    notes : list of str
+        Messages for the user from the last :meth:`set_constraints` (pinned shells).
+
     Raises
     ------
     OutsideCageError
@@ -306,6 +333,10 @@ class Deformer:
             bad = np.nonzero(~np.isfinite(ev.gradients).all(axis=(1, 2)))[0]
             raise ValueError(f"anchors {describe_indices(bad)} lie on a cage edge or vertex")
         self._Jhat = np.ascontiguousarray(ev.gradients.reshape(3 * d, self._N))
+        self._domains = domain_columns(self._V, self._Fc)
+        self._anchor_domain = self._domain_of(ev.values)
+        self.pinned_shells: tuple[int, ...] = ()
+        self.notes: list[str] = []
 
         if smoothness_samples is None:
             w = default_smoothness_samples(self._V, self._Fc)
@@ -324,7 +355,8 @@ class Deformer:
                 f"{idx.size} smoothness samples are outside the cage "
                 f"(indices {describe_indices(idx)})"
                 + (
-                    "; the cage may be thinner than the default inset"
+                    "; default samples lie halfway to the next face along the inward normal, "
+                    "so the cage is not a closed, embedded surface there"
                     if smoothness_samples is None
                     else ""
                 ),
@@ -384,8 +416,11 @@ class Deformer:
 
     @property
     def n_constraints(self) -> int:
-        """Number of scalar constraint rows ``c = r + 3 s`` (per map component)."""
-        return self._c if self._has_constraints else 0
+        """Number of scalar constraint rows ``c = r + 3 s`` (per map component).
+
+        Rows that pin unconstrained shells (:attr:`pinned_shells`) are not counted.
+        """
+        return self._r + 3 * self._s if self._has_constraints else 0
 
     @property
     def B(self) -> np.ndarray:
@@ -450,6 +485,43 @@ class Deformer:
             )
         return ev
 
+    def _domain_of(self, values: np.ndarray) -> np.ndarray:
+        """Index of the domain (outward shell) holding each point, from its basis values."""
+        if len(self._domains) == 1:
+            return np.zeros(len(values), dtype=np.int64)
+        # the basis zeroes the other shells' columns, so only the own shell sums to ~1
+        own = np.stack(
+            [values[:, cols[cols < self._n]].sum(axis=1) for cols in self._domains], axis=1
+        )
+        return np.argmax(own, axis=1)
+
+    def _describe_shell(self, k: int) -> str:
+        cols = self._domains[k]
+        verts = self._V[cols[cols < self._n]]
+        centre = ", ".join(f"{x:.4g}" for x in 0.5 * (verts.min(0) + verts.max(0)))
+        return f"cage shell {k} ({int((cols >= self._n).sum())} faces, centred at ({centre}))"
+
+    def _shells_to_pin(self, position_domain: np.ndarray, jacobian_domain: np.ndarray):
+        """Shells without constraints (pinned to the identity); errors for singular ones."""
+        pinned = []
+        for k in range(len(self._domains)):
+            has_pos = bool((position_domain == k).any())
+            has_jac = bool((jacobian_domain == k).any())
+            if not has_pos and not has_jac:
+                pinned.append(k)
+            elif not has_pos:
+                raise ConstraintError(
+                    f"{self._describe_shell(k)} has Jacobian constraints but no position "
+                    "constraint: its translation is free; add a position constraint inside it"
+                )
+            elif not (self._anchor_domain == k).any():
+                raise ConstraintError(
+                    f"{self._describe_shell(k)} has constraints but no anchor: nothing "
+                    "determines its rotation; add anchors inside it (auto_anchors gives "
+                    "every shell at least one)"
+                )
+        return pinned
+
     def _require_constraints(self) -> None:
         if not self._has_constraints:
             raise ConstraintError(
@@ -498,14 +570,18 @@ class Deformer:
         jacobians : (s, 3, 3) array_like, optional
             Target Jacobians ``J[i, j] = d f_i / d x_j`` (``det > 0``).
 
+        A cage shell holding none of the points stays put (identity map; see
+        :attr:`pinned_shells`), with a ``UserWarning`` naming it.
+
         Raises
         ------
         OutsideCageError
             Constraint points outside the cage (indices listed).
         ConstraintError
-            No position constraint; more constraint rows than degrees of freedom; duplicate
-            constraint points; linearly dependent constraints (named); Jacobian targets with
-            ``det <= 0``.
+            No position constraint; a shell with Jacobian constraints but no position
+            constraint, or with constraints but no anchor (named); more constraint rows
+            than degrees of freedom; duplicate constraint points; linearly dependent
+            constraints (named); Jacobian targets with ``det <= 0``.
         ValueError
             Shapes, non-finite values.
         """
@@ -555,17 +631,40 @@ class Deformer:
                     "or vertex"
                 )
             rows.append(evt.gradients.reshape(3 * s, self._N))
-        K = np.vstack(rows)
         labels = [f"position constraint {i}" for i in range(r)] + [
             f"Jacobian constraint {i} (row {k})" for i in range(s) for k in range(3)
         ]
+        # a shell nobody constrains would leave the solve singular (its translation is
+        # free): it stays put instead, its coefficients fixed to the identity's
+        pinned = self._shells_to_pin(
+            self._domain_of(evq.values),
+            self._domain_of(evt.values) if s else np.zeros(0, dtype=np.int64),
+        )
+        pin_cols = (
+            np.concatenate([self._domains[k] for k in pinned])
+            if pinned
+            else np.zeros(0, dtype=np.int64)
+        )
+        pin_rows = np.zeros((len(pin_cols), self._N))
+        pin_rows[np.arange(len(pin_cols)), pin_cols] = 1.0
+        rows.append(pin_rows)
+        labels += [f"pinned coefficient {j}" for j in pin_cols]
+        K = np.vstack(rows)
         self._build(K, labels)
         self._q, self._t = q, t
-        self._r, self._s, self._c = r, s, c
+        self._r, self._s, self._c = r, s, c + len(pin_cols)
         self._h_rest = K @ self._z_identity
         self._has_constraints = True
         self._layout_version += 1
-        self._set_h(np.vstack([f, _stack_T(g)]) if s else f.copy())
+        self.pinned_shells = tuple(pinned)
+        self.notes = [
+            f"{self._describe_shell(k)} has no constraint: it stays put (identity map)"
+            for k in pinned
+        ]
+        for note in self.notes:
+            warnings.warn(note, UserWarning, stacklevel=2)
+        h = np.vstack([f, _stack_T(g)]) if s else f.copy()
+        self._set_h(np.vstack([h, self._h_rest[c:]]))
         return self
 
     @staticmethod
@@ -669,7 +768,7 @@ class Deformer:
             if len(g) != self._s:
                 raise ValueError(f"expected {self._s} jacobians; got {len(g)}")
             self._check_jacobian_targets(g)
-            h[self._r :] = _stack_T(g)
+            h[self._r : self._r + 3 * self._s] = _stack_T(g)
         self._set_h(h)
         return self
 
@@ -681,7 +780,11 @@ class Deformer:
             "positions": self._q.copy(),
             "targets": self._h[: self._r].copy(),
             "jacobian_points": self._t.copy(),
-            "jacobians": _blocks_T(self._h[self._r :]) if self._s else np.zeros((0, 3, 3)),
+            "jacobians": (
+                _blocks_T(self._h[self._r : self._r + 3 * self._s])
+                if self._s
+                else np.zeros((0, 3, 3))
+            ),
         }
 
     # ------------------------------------------------------------------ solve

@@ -210,3 +210,53 @@ def triangle_distance(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):  # pragma
     qx, qy, qz, _ = closest_point_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
     dx, dy, dz = px - qx, py - qy, pz - qz
     return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+def ray_depth(origins, directions, vertices, faces, skip_faces=None) -> np.ndarray:
+    """Distance along each ray to the first triangle it crosses (Moller-Trumbore).
+
+    Parameters
+    ----------
+    origins : (k, 3) float array
+        Ray starts.
+    directions : (k, 3) float array
+        Unit ray directions.
+    vertices : (n, 3) float array
+    faces : (m, 3) int array
+    skip_faces : (k,) int array, optional
+        One face per ray that is never hit (the face the ray starts on); -1 for none.
+
+    Returns
+    -------
+    (k,) float64
+        Distance to the first crossing (length units), ``inf`` when the ray meets nothing.
+        Rays that touch a triangle's edge or corner count as crossing it.
+    """
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    skip = np.full(len(o), -1) if skip_faces is None else np.asarray(skip_faces).ravel()
+    a = v[f[:, 0]]
+    e1 = v[f[:, 1]] - a
+    e2 = v[f[:, 2]] - a
+    out = np.full(len(o), np.inf)
+    # (rays x faces) blocks of ~1M pairs keep the temporaries near 100 MB
+    step = max(1, 1_000_000 // max(len(f), 1))
+    for s in range(0, len(o), step):
+        oo, dd = o[s : s + step, None, :], d[s : s + step, None, :]
+        p = np.cross(dd, e2[None])
+        det = np.einsum("rfi,fi->rf", p, e1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / det
+            t_vec = oo - a[None]
+            u = np.einsum("rfi,rfi->rf", t_vec, p) * inv
+            q = np.cross(t_vec, e1[None])
+            w = np.einsum("rfi,rfi->rf", np.broadcast_to(dd, q.shape), q) * inv
+            t = np.einsum("rfi,fi->rf", q, e2) * inv
+            hit = (det != 0) & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0)
+        rows = np.arange(len(oo))
+        own = skip[s : s + step]
+        hit[rows[own >= 0], own[own >= 0]] = False
+        out[s : s + step] = np.where(hit, t, np.inf).min(axis=1)
+    return out
