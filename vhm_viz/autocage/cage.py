@@ -1068,7 +1068,16 @@ def auto_cage(
         F, ncomp = _orient_outward(V, F)
         cage = _make_cage(V, F, check_self_intersection=False)  # embedded by construction
     # independent of how the cage was built: the distance from the boundary points (the
-    # closest to the cage) and the winding number of every point
+    # closest to the cage) and the winding number of every point, on the cage returned
+    V, F = np.asarray(cage.vertices), np.asarray(cage.faces)
+    for _ in range(3):
+        if not cage.repairs or winding_number(pts, V, F).min() > 0.5:
+            break
+        # sliver repair (edge collapses) cut into the shape: push those faces back out
+        notes.append(f"sliver repair moved the cage ({len(cage.repairs)} steps); pushed out")
+        V, _sd = _push_out(V, F, pts, 0.5 * offset_used, 2.0 * offset_used)
+        cage = _make_cage(V, F)
+        V, F = np.asarray(cage.vertices), np.asarray(cage.faces)
     sd, _ = _clearance(V, F, pts[_on_boundary(samples)], 2.0 * offset_used)
     clearance = float(-sd[np.isfinite(sd)].max())
     wmin = float(winding_number(pts, V, F).min())
@@ -1102,7 +1111,12 @@ def auto_cage(
 
 
 def _make_cage(V, F, check_self_intersection=True):
-    """A validated :class:`vhm_viz.Cage` from arrays (raises CageError)."""
+    """A validated :class:`vhm_viz.Cage` from arrays (raises CageError).
+
+    Slivers are repaired (:func:`vhm_viz.core.cage.repair_slivers`); a repair moves the
+    surface, so :func:`auto_cage` checks the enclosure on the cage returned here and
+    pushes a repaired surface back out where it cut into the shape.
+    """
     from vhm_viz.core.cage import Cage
 
     with warnings.catch_warnings():
