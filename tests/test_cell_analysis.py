@@ -94,14 +94,17 @@ def test_cells_take_the_worst_of_their_tets_and_flat_tets_are_degenerate():
 
 
 # ------------------------------------------------------------------------- against brute force
-@pytest.mark.parametrize(("kind", "height", "expected"), [("push", 2.5, 178), ("bend-u", None, 0)])
-def test_inverted_cells_equal_brute_force_signed_volumes(bar_tets, kind, height, expected):
+@pytest.mark.parametrize(
+    ("kind", "height", "folds"), [("push", 2.5, True), ("bend-u", None, False)]
+)
+def test_inverted_cells_equal_brute_force_signed_volumes(bar_tets, kind, height, folds):
     points, tets = bar_tets
     dfm = _solved(kind, top_height=height) if height else _solved(kind)
     out, summary = _analyse(_tet_grid(points, tets), dfm)
     moved = dfm.harmonic_map.map(points)
     brute = np.count_nonzero(_signed_volumes(moved, tets) <= 0)  # all rest tets are positive
-    assert summary["inverted"] == brute == expected
+    assert summary["inverted"] == brute
+    assert (brute > 50) if folds else (brute == 0)  # the push folds many tets, bend-u none
     inverted = np.asarray(out.cell_data["cell_inverted"], bool)
     assert np.array_equal(np.nonzero(inverted)[0], np.nonzero(_signed_volumes(moved, tets) <= 0)[0])
     ratio = _signed_volumes(moved, tets) / _signed_volumes(points, tets)

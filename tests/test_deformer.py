@@ -504,10 +504,14 @@ def test_default_samples_adapt_to_thin_cages(shape):
     w = default_smoothness_samples(v, f)
     # independent check: the winding number, 1 strictly inside
     assert (winding_number(w, v, f) > 1 - 1e-9).all()
-    d = Deformer(Cage(v, f), anchors)
-    d.set_constraints(positions=pos, targets=pos + [0.0, 0.0, 0.05])
-    d.solve(max_iterations=500)
-    assert np.isfinite(d.harmonic_map.map(anchors)).all()
+    # such cages have faces far below the sliver limit (0.02-0.07 degrees): they are
+    # refused by name rather than deformed badly (issue 12); the inset itself is what
+    # adapts, for any cage
+    from vhm_viz.core.cage import SliverError
+
+    with pytest.raises(SliverError, match="near-degenerate faces"):
+        Deformer(Cage(v, f), anchors)
+    del pos
 
 
 def test_default_samples_keep_the_fixed_inset_where_the_cage_is_thick(cage):

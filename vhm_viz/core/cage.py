@@ -776,9 +776,12 @@ class Cage:
                 raise
             v0, f0 = _as_arrays(vertices, faces)
             v1, f1, notes = repair_slivers(v0, f0, error=exc)
-            v, f, flipped = validate_cage(
-                v1, f1, check_self_intersection=check_self_intersection, stacklevel=3
-            )
+            try:
+                v, f, flipped = validate_cage(
+                    v1, f1, check_self_intersection=check_self_intersection, stacklevel=3
+                )
+            except CageError:  # the repair broke the cage: the slivers are the problem
+                raise exc from None
             self._repairs = tuple(notes)
         self._vertices = _readonly(v)
         self._faces = _readonly(f)

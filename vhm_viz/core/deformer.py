@@ -653,6 +653,8 @@ class Deformer:
         self._build(K, labels)
         self._q, self._t = q, t
         self._r, self._s, self._c = r, s, c + len(pin_cols)
+        # pinned vertex coefficients are positions (a_v = x_v): centred like the targets
+        self._pin_position_rows = c + np.flatnonzero(pin_cols < self._n)
         self._h_rest = K @ self._z_identity
         self._has_constraints = True
         self._layout_version += 1
@@ -733,6 +735,7 @@ class Deformer:
         """
         local = np.array(h, dtype=np.float64)
         local[: self._r] -= self._centre
+        local[getattr(self, "_pin_position_rows", np.zeros(0, dtype=np.int64))] -= self._centre
         return local
 
     def _set_h(self, h: np.ndarray) -> None:
