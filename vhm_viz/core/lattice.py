@@ -935,17 +935,56 @@ def _locate(origin, size, root_start, root_count, n_root, root, u, out):  # prag
                 break
 
 
+@numba.njit(cache=True)
+def _clip_net(cp, axis, t0, t1):  # pragma: no cover - compiled
+    """Restrict a tricubic Bezier net to ``t0 <= t <= t1`` along one axis (de Casteljau).
+
+    The new net's control points bound the image of the restricted cell only.
+    """
+    b = np.empty((4, 3))
+    for line in range(16):
+        # the 4 control points of this line along ``axis``
+        idx = np.empty(4, dtype=np.int64)
+        for q in range(4):
+            if axis == 0:
+                idx[q] = q + 4 * (line % 4) + 16 * (line // 4)
+            elif axis == 1:
+                idx[q] = (line % 4) + 4 * q + 16 * (line // 4)
+            else:
+                idx[q] = (line % 4) + 4 * (line // 4) + 16 * q
+        for q in range(4):
+            b[q] = cp[idx[q]]
+        # keep [0, t1]: the left half of a split at t1
+        for r in range(1, 4):
+            for q in range(3, r - 1, -1):
+                b[q] = (1.0 - t1) * b[q - 1] + t1 * b[q]
+        # keep [t0 / t1, 1] of that: the right half of a split
+        s = t0 / t1 if t1 > 0.0 else 0.0
+        for r in range(1, 4):
+            for q in range(0, 4 - r):
+                b[q] = (1.0 - s) * b[q] + s * b[q + 1]
+        for q in range(4):
+            cp[idx[q]] = b[q]
+
+
 @numba.njit(parallel=True, cache=True)
-def _output_boxes(data, rows, size, origin_out, to_out, margin, lo, hi):  # pragma: no cover
+def _output_boxes(data, rows, origin, size, lower, upper, origin_out, to_out, margin, lo, hi):
     """Per leaf: the box of output-grid indices its image can reach.
 
-    The control points bound the image of the cell; ``margin[n]`` (input voxels) around
-    the cell adds at most that times the largest corner Jacobian (output voxels per input
-    voxel), a first-order bound that the rounding of the box to whole voxels covers.
-    """
+    The control points bound the image of the cell, restricted to the input region
+    ``lower <= u <= upper`` (the volume: cells overhang it); ``margin[n]`` (input voxels)
+    around that adds at most that times the largest corner Jacobian (output voxels per
+    input voxel), a first-order bound that the rounding of the box to whole voxels covers.
+    """  # noqa: D401
     for n in numba.prange(rows.shape[0]):
+        h = float(size[n])
         cp = np.empty((64, 3))
-        _control_points(data, rows[n], float(size[n]), cp)
+        _control_points(data, rows[n], h, cp)
+        for a in range(3):
+            t0 = max((lower[a] - origin[n, a]) / h, 0.0)
+            t1 = min((upper[a] - origin[n, a]) / h, 1.0)
+            if t0 > 0.0 or t1 < 1.0:
+                _clip_net(cp, a, t0, max(t1, t0))
         for a in range(3):
             lo[n, a] = np.inf
             hi[n, a] = -np.inf
@@ -1306,12 +1345,12 @@ class HermiteLattice:
         )  # fmt: skip
         return out
 
-    def image_boxes(self, geometry: ImageGeometry, margin=0.0):
+    def image_boxes(self, geometry: ImageGeometry, margin=0.0, border: float = 0.0):
         """Per leaf, the box of ``geometry``'s continuous indices its image can reach.
 
-        From the Bezier control points of each leaf's polynomial, which contain its image;
-        ``margin`` (voxels, scalar or per leaf) grows each cell before mapping (to first
-        order).
+        From the Bezier control points of each leaf's polynomial, which contain its image,
+        restricted to the volume (extended by ``border`` voxels); ``margin`` (voxels,
+        scalar or per leaf) grows each cell before mapping (to first order).
 
         Returns
         -------
@@ -1321,7 +1360,8 @@ class HermiteLattice:
         lo, hi = np.empty((n, 3)), np.empty((n, 3))
         if n:
             _output_boxes(
-                self.data, self.leaf_rows, self.leaf_size, geometry.origin,
+                self.data, self.leaf_rows, self.leaf_origin, self.leaf_size,
+                np.full(3, -border), self.last + border, geometry.origin,
                 np.ascontiguousarray(geometry.world_to_index),
                 np.broadcast_to(np.asarray(margin, dtype=np.float64), (n,)).copy(), lo, hi,
             )  # fmt: skip
@@ -1339,7 +1379,7 @@ class HermiteLattice:
 
     def candidate_boxes(self, geometry: ImageGeometry):
         """Per leaf, the output voxels (inclusive int64 boxes) where it may hold pre-images."""
-        lo, hi = self.image_boxes(geometry, self.margins())
+        lo, hi = self.image_boxes(geometry, self.margins(), BORDER)
         return np.floor(lo).astype(np.int64), np.ceil(hi).astype(np.int64)
 
     def pull_back(self, geometry: ImageGeometry, box, boxes, u, state, fold, quality) -> None:

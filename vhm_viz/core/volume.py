@@ -427,8 +427,7 @@ class VolumeDeformation:
                     f"array {name!r} has {v.shape[0]} values for {src.n_points} voxels"
                 )
             volumes[name] = v.reshape(nz, ny, nx, -1)
-        lat = self.build(progress=_scaled(progress, 0.0, 0.5), abort=abort)
-        self._refuse_outside()
+        self.build(progress=_scaled(progress, 0.0, 0.5), abort=abort)
         out_geo = self.output_geometry() if geometry is None else geometry
         b = _box_of(out_geo, box)
         n = int(np.prod(b[1::2] - b[0::2] + 1))
@@ -438,8 +437,79 @@ class VolumeDeformation:
         }
         valid = np.zeros(n, dtype=np.uint8)
         foldover = np.zeros(n, dtype=np.uint8)
-        boxes = lat.candidate_boxes(out_geo)
         identity = 0
+        for rows, u, state, fold in self._pull_back_slabs(out_geo, b, progress, abort):
+            identity += int(np.count_nonzero(state == 3))
+            ok = np.nonzero(state > 0)[0].astype(np.int64)
+            valid[rows] = state > 0
+            foldover[rows] = fold
+            for name, vol in volumes.items():
+                _sample_into(result[name][rows], vol, u, ok, interpolation, fill_value)
+        counts = {
+            "voxels": n,
+            "valid": int(valid.sum()),
+            "identity": int(identity),
+            "foldover": int(foldover.sum()),
+        }
+        return Resampled(out_geo.sub(b), result, valid, foldover, counts)
+
+    def preimages(self, geometry: ImageGeometry, voxels, progress=None, abort=None):
+        """Pre-images (input voxel indices) of some output voxels, as resampling finds them.
+
+        Parameters
+        ----------
+        geometry : ImageGeometry
+            The output grid.
+        voxels : (P, 3) int array_like
+            Output voxel indices.
+
+        Returns
+        -------
+        u : (P, 3) float64
+            Continuous input indices (NaN where there is none).
+        kind : (P,) uint8
+            0 none, 1 found inside the cage, 3 left in place outside it (passthrough).
+        fold : (P,) uint8
+            1 where another pre-image lies more than a voxel away.
+        """
+        ijk = np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
+        u = np.full((len(ijk), 3), np.nan)
+        kind = np.zeros(len(ijk), dtype=np.uint8)
+        fold_out = np.zeros(len(ijk), dtype=np.uint8)
+        if not len(ijk):
+            return u, kind, fold_out
+        b = np.empty(6, dtype=np.int64)
+        b[0::2], b[1::2] = ijk.min(0), ijk.max(0)
+        b = _box_of(geometry, b)
+        nx, ny = b[1] - b[0] + 1, b[3] - b[2] + 1
+        flat = (ijk[:, 0] - b[0]) + nx * ((ijk[:, 1] - b[2]) + ny * (ijk[:, 2] - b[4]))
+        order = np.argsort(flat)
+        for rows, us, state, fold in self._pull_back_slabs(geometry, b, progress, abort):
+            lo, hi = np.searchsorted(flat[order], [rows.start, rows.stop])
+            pick = order[lo:hi]
+            local = flat[pick] - rows.start
+            found = state[local] > 0
+            u[pick[found]] = us[local[found]]
+            kind[pick] = state[local]
+            fold_out[pick] = fold[local]
+        return u, kind, fold_out
+
+    def _pull_back_slabs(self, out_geo, b, progress, abort):
+        """Pre-images of an output box, slab by slab (see :meth:`resample`).
+
+        Yields
+        ------
+        rows : slice
+            The slab's voxels among the box's.
+        u : (P, 3) float64
+            Pre-images (input voxel indices) where ``state > 0``.
+        state : (P,) uint8
+            0 none, 1 inside the cage, 3 left in place (passthrough).
+        fold : (P,) uint8
+        """
+        lat = self.build(progress=_scaled(progress, 0.0, 0.5), abort=abort)
+        self._refuse_outside()
+        boxes = lat.candidate_boxes(out_geo)
         self._start_slabs()
         slabs = list(_slabs(b, _RESAMPLE_BYTES, self.memory_budget))
         plane = int((b[1] - b[0] + 1) * (b[3] - b[2] + 1))
@@ -450,26 +520,13 @@ class VolumeDeformation:
             u = np.zeros((m, 3))
             state = np.zeros(m, dtype=np.uint8)
             fold = np.zeros(m, dtype=np.uint8)
-            quality = np.zeros(m)
-            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality)
+            lat.pull_back(out_geo, slab, boxes, u, state, fold, np.zeros(m))
             self._confirm_tentative(u, state)
-            identity += self._pass_through(out_geo, slab, u, state)
-            ok = np.nonzero(state > 0)[0].astype(np.int64)
-            lo_row = (slab[4] - b[4]) * plane
-            rows = slice(lo_row, lo_row + m)
-            valid[rows] = state > 0
-            foldover[rows] = fold
-            for name, vol in volumes.items():
-                _sample_into(result[name][rows], vol, u, ok, interpolation, fill_value)
+            self._pass_through(out_geo, slab, u, state)
+            lo = int((slab[4] - b[4]) * plane)
+            yield slice(lo, lo + m), u, state, fold
             if progress is not None:
                 progress(0.5 + 0.5 * (s + 1) / len(slabs), "resample")
-        counts = {
-            "voxels": n,
-            "valid": int(valid.sum()),
-            "identity": int(identity),
-            "foldover": int(foldover.sum()),
-        }
-        return Resampled(out_geo.sub(b), result, valid, foldover, counts)
 
     def _confirm_tentative(self, u, state) -> None:
         """Pre-images next to the cage: keep those the winding number puts inside."""
