@@ -318,3 +318,153 @@ def test_volume_files_keep_origin_spacing_direction(tmp_path, suffix):
     direction = np.reshape(s.GetDirection(), (3, 3))
     np.testing.assert_allclose(direction, img.direction_matrix, atol=1e-6)
     np.testing.assert_array_equal(sitk.GetArrayFromImage(s).ravel(), img.point_data["a"])
+
+
+# ------------------------------------------------------------------------ command line
+
+
+def _write_slc(path, vol, spacing):
+    """A minimal SLC file (8 bits, uncompressed, 1 x 1 icon), as VTK's reader reads it."""
+    nz, ny, nx = vol.shape
+    header = f"11111\n{nx} {ny} {nz} 8\n{spacing[0]} {spacing[1]} {spacing[2]}\n0 0 0 0\n1 1 X"
+    path.write_bytes(header.encode() + b"\0\0\0" + vol.astype(np.uint8).tobytes())
+
+
+def _bend_scene(folder, lo, hi):
+    """A scene file: box cage around [lo, hi], the far end turned by 20 degrees."""
+    import json
+
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    pad = 0.08 * (hi - lo)
+    v, f = box_cage(lo - pad, hi + pad, divisions=2)
+    centre = 0.5 * (lo + hi)
+    axis = np.array([0.0, 0.0, 1.0]) * (hi - lo)
+    anchors = [centre + t * 0.35 * axis for t in np.linspace(-1, 1, 5)]
+    turn = Rotation.from_rotvec([np.radians(20), 0, 0]).as_matrix()
+    base, top = centre - 0.35 * axis, centre + 0.35 * axis
+    scene = {
+        "format": "vhm_viz.scene",
+        "version": 1,
+        "cage": {"vertices": v.tolist(), "faces": f.tolist()},
+        "anchors": np.array(anchors).tolist(),
+        "constraints": {
+            "positions": [base.tolist(), top.tolist()],
+            "targets": [base.tolist(), (base + turn @ (top - base)).tolist()],
+            "jacobian_points": [base.tolist(), top.tolist()],
+            "jacobians": [np.eye(3).tolist(), turn.tolist()],
+        },
+    }
+    path = folder / "scene.json"
+    path.write_text(json.dumps(scene))
+    return path
+
+
+@pytest.fixture(scope="module")
+def cli_volume(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("volcli")
+    z, y, x = np.mgrid[0:44, 0:36, 0:34]
+    vol = (40 + 100 * (((x // 6) + (y // 6) + (z // 6)) % 2)).astype(np.uint8)
+    spacing = (1.0, 1.1, 0.9)
+    img = pv.ImageData(dimensions=vol.shape[::-1], spacing=spacing)
+    img.point_data["v"] = vol.ravel()
+    files = {}
+    for suffix in (".vti", ".mhd", ".nii.gz"):
+        files[suffix] = folder / f"in{suffix}"
+        write_dataset(files[suffix], img)
+    files[".slc"] = folder / "in.slc"
+    _write_slc(files[".slc"], vol, spacing)
+    scene = _bend_scene(folder, img.bounds[0::2], img.bounds[1::2])
+    return folder, img, files, scene
+
+
+def _cli(capsys, *argv):
+    from vhm_viz.cli import main
+
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+@pytest.mark.parametrize("source", [".vti", ".slc", ".mhd", ".nii.gz"])
+def test_cli_deforms_every_volume_format(cli_volume, source, tmp_path, capsys):
+    folder, img, files, scene = cli_volume
+    outputs = {}
+    for target in (".vti", ".mhd", ".nii.gz", ".vts"):
+        path = tmp_path / f"out{target}"
+        rc, out, err = _cli(capsys, "deform", files[source], "-s", scene, "-o", path, "-q")
+        assert rc == 0, err
+        assert "tolerance 0.05 voxel" in out and str(path) in out
+        if target != ".vts":
+            assert "voxels with a pre-image" in out and "in folds" in out
+        outputs[target] = read_dataset(path)
+    grid = outputs[".vti"]
+    for target in (".mhd", ".nii.gz"):  # the same grid and voxels in every format
+        other = outputs[target]
+        np.testing.assert_allclose(other.origin, grid.origin, atol=1e-4)
+        np.testing.assert_allclose(other.spacing, grid.spacing, atol=1e-6)
+        np.testing.assert_allclose(other.direction_matrix, grid.direction_matrix, atol=1e-6)
+        np.testing.assert_array_equal(other.active_scalars, grid.active_scalars)
+    assert grid.active_scalars.dtype == np.uint8
+    assert "vtkValidPointMask" in grid.point_data and "vhm_foldover" in grid.point_data
+    warped = outputs[".vts"]
+    assert warped.n_points == img.n_points
+    np.testing.assert_array_equal(warped.active_scalars, img.point_data["v"])
+    moved = np.linalg.norm(np.asarray(warped.points) - np.asarray(img.points), axis=1)
+    assert moved.max() > 3.0  # really bent
+
+
+def test_cli_resampling_options(cli_volume, tmp_path, capsys):
+    folder, img, files, scene = cli_volume
+    src = files[".vti"]
+    rc, out, err = _cli(
+        capsys, "deform", src, "-s", scene, "-o", tmp_path / "a.vti", "-q",
+        "--interpolation", "nearest", "--spacing", "2", "--fill-value", "7",
+    )  # fmt: skip
+    assert rc == 0, err
+    a = read_dataset(tmp_path / "a.vti")
+    np.testing.assert_allclose(a.spacing, 2.0)
+    values = np.asarray(a.point_data["v"])
+    valid = np.asarray(a.point_data["vtkValidPointMask"]).astype(bool)
+    assert set(np.unique(values[valid])) <= {40, 140} and (values[~valid] == 7).all()
+    # onto another image's grid
+    ref = pv.ImageData(dimensions=(20, 21, 22), spacing=(1.5, 1.5, 1.5), origin=(-3, -2, -1))
+    ref.point_data["r"] = np.zeros(ref.n_points, np.uint8)
+    write_dataset(tmp_path / "ref.mhd", ref)
+    rc, out, err = _cli(
+        capsys, "deform", src, "-s", scene, "-o", tmp_path / "b.nii.gz", "-q",
+        "--reference", tmp_path / "ref.mhd", "--tolerance", "0.02",
+    )  # fmt: skip
+    assert rc == 0, err
+    b = read_dataset(tmp_path / "b.nii.gz")
+    assert b.dimensions == ref.dimensions
+    np.testing.assert_allclose(b.origin, ref.origin, atol=1e-4)
+    # bad values are refused
+    for extra in (["--tolerance", "0"], ["--spacing", "1,2"], ["--interpolation", "sinc"]):
+        try:
+            rc, _, err = _cli(capsys, "deform", src, "-s", scene, "-o", tmp_path / "c.vti", *extra)
+        except SystemExit as exc:  # argparse
+            rc, err = exc.code, capsys.readouterr().err
+        assert rc != 0 and err.strip()
+    assert not (tmp_path / "c.vti").exists()
+
+
+def test_cli_volume_outside_the_cage(cli_volume, tmp_path, capsys):
+    import json
+
+    folder, img, files, scene = cli_volume
+    data = json.loads(scene.read_text())
+    v = np.asarray(data["cage"]["vertices"])
+    centre = v.mean(0)
+    data["cage"]["vertices"] = (centre + 0.8 * (v - centre)).tolist()  # too small now
+    small = tmp_path / "small.json"
+    small.write_text(json.dumps(data))
+    target = tmp_path / "o.vti"
+    rc, out, err = _cli(capsys, "deform", files[".vti"], "-s", small, "-o", target, "-q")
+    assert rc != 0 and len(err.strip().splitlines()) == 1
+    assert "outside the cage" in err and "--outside passthrough" in err
+    rc, out, err = _cli(
+        capsys, "deform", files[".vti"], "-s", small, "-o", tmp_path / "o.vti", "-q",
+        "--outside", "passthrough",
+    )  # fmt: skip
+    assert rc == 0, err
+    assert "left in place outside the cage" in out
