@@ -468,3 +468,14 @@ def test_cli_volume_outside_the_cage(cli_volume, tmp_path, capsys):
     )  # fmt: skip
     assert rc == 0, err
     assert "left in place outside the cage" in out
+
+
+def test_slice_is_the_plane_of_the_resampled_volume(bend):
+    geo, cage, hm, vol = bend
+    values = {"v": np.arange(geo.n_points, dtype=np.float64)}
+    whole = vol.resample(values)
+    nx, ny, nz = whole.geometry.dimensions
+    plane = vol.slice(values, axis=1, index=ny // 3)
+    assert plane.geometry.dimensions == (nx, 1, nz)
+    ref = whole.arrays["v"].reshape(nz, ny, nx)[:, ny // 3, :].ravel()
+    np.testing.assert_allclose(plane.arrays["v"], ref, rtol=0, atol=1e-6)

@@ -453,6 +453,47 @@ class VolumeDeformation:
         }
         return Resampled(out_geo.sub(b), result, valid, foldover, counts)
 
+    def slice(
+        self,
+        arrays: dict,
+        axis: int = 2,
+        index: int | None = None,
+        geometry: ImageGeometry | None = None,
+        *,
+        interpolation: str = "linear",
+        fill_value: float = 0.0,
+    ) -> Resampled:
+        """One plane of the resampled volume (for viewers: only that plane is pulled back).
+
+        Parameters
+        ----------
+        arrays : dict of str -> ndarray
+            Input point arrays, as for :meth:`resample`.
+        axis : {0, 1, 2}
+            The plane's normal axis of the output grid (2: a k-plane).
+        index : int, optional
+            The plane (default: the middle one).
+        geometry : ImageGeometry, optional
+            Output grid (default :meth:`output_geometry`).
+        interpolation, fill_value
+            As for :meth:`resample`.
+
+        Returns
+        -------
+        Resampled
+            Its ``geometry`` is the one-voxel-thick plane.
+        """
+        out = self.output_geometry() if geometry is None else geometry
+        dims = out.dimensions
+        index = dims[axis] // 2 if index is None else int(index)
+        if not 0 <= index < dims[axis]:
+            raise ValueError(f"plane {index} is outside 0..{dims[axis] - 1} along axis {axis}")
+        box = [0, dims[0] - 1, 0, dims[1] - 1, 0, dims[2] - 1]
+        box[2 * axis] = box[2 * axis + 1] = index
+        return self.resample(
+            arrays, out, box=box, interpolation=interpolation, fill_value=fill_value
+        )
+
     def preimages(self, geometry: ImageGeometry, voxels, progress=None, abort=None):
         """Pre-images (input voxel indices) of some output voxels, as resampling finds them.
 

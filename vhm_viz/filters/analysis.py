@@ -7,7 +7,7 @@ from vtkmodules.util import numpy_support as ns
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkDataSet
 
 from vhm_viz.core.metrics import jacobian_measures
-from vhm_viz.filters._common import DeformationSource, numpy_points
+from vhm_viz.filters._common import DeformationSource, image_geometry, numpy_points
 
 __all__ = ["JacobianAnalysisFilter", "ANALYSIS_ARRAYS"]
 
@@ -38,6 +38,11 @@ class JacobianAnalysisFilter(DeformationSource):
     ``J = I``). The values equal :func:`vhm_viz.metrics.jacobian_measures` of
     ``HarmonicMap.jacobian`` at the same points. The deformation and the cage (port 1)
     are set as for :class:`~vhm_viz.filters.HarmonicDeformationFilter`.
+
+    Images of more than :data:`~vhm_viz.core.volume.EXACT_VOXELS` voxels take their
+    Jacobians from the volume engine's lattice (:mod:`vhm_viz.core.volume`, tolerance
+    :meth:`SetTolerance`), slab by slab: a 256^3 scan in seconds instead of an exact
+    evaluation per voxel.
     """
 
     def __init__(self):
@@ -58,6 +63,8 @@ class JacobianAnalysisFilter(DeformationSource):
         out = vtkDataObject.GetData(out_info, 0)
         hm, dfm = self._resolve(in_info, inp)
         out.ShallowCopy(inp)
+        if inp.IsA("vtkImageData"):
+            return self._execute_image(in_info, inp, hm, out)
         pts = numpy_points(inp)
         ev = self._bind(hm, dfm, inp, pts, 0.0, 0.5)
         jac = ev.jacobians(progress=self._progress(0.5, 0.95), abort=self._aborted)
@@ -70,5 +77,25 @@ class JacobianAnalysisFilter(DeformationSource):
             _add(pd, "foldover", (m["determinant"] <= 0).astype(np.uint8))
         if self._outside != "error":
             _add(pd, "vhm_outside", ev.outside.astype(np.uint8))
+        self.UpdateProgress(1.0)
+        return 1
+
+    def _execute_image(self, in_info, inp, hm, out):
+        """Images: the measures of the lattice's Jacobians, over the whole extent's lattice."""
+        from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
+
+        whole = in_info[0].GetInformationObject(0).Get(sddp.WHOLE_EXTENT())
+        whole = inp.GetExtent() if whole is None else whole
+        ext = inp.GetExtent()
+        vol = self._volume(hm, image_geometry(inp, whole), self._outside)
+        box = [ext[a] - whole[a - a % 2] for a in range(6)]
+        m = vol.jacobian_measures(box, progress=self._progress(0.0, 0.95), abort=self._aborted)
+        pd = out.GetPointData()
+        _add(pd, "jacobian_determinant", m["determinant"])
+        _add(pd, "condition_number", m["condition_number"])
+        _add(pd, "rotation_angle", np.degrees(m["rotation_angle"]))
+        _add(pd, "foldover", m["foldover"].astype(np.uint8))
+        if self._outside != "error":
+            _add(pd, "vhm_outside", (~vol.lattice.inside(box)).ravel().astype(np.uint8))
         self.UpdateProgress(1.0)
         return 1
