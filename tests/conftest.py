@@ -123,3 +123,34 @@ def subprocess_env() -> dict:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([root, env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     return env
+
+
+def affine_resampled(img, name, matrix, translation):
+    """Independent reference for resampling ``img`` through ``x -> A x + T``.
+
+    scipy.ndimage.affine_transform in index space ((k, j, i) order), trilinear, with the
+    boundary values beyond the grid ("nearest": the half-voxel border of vtkImageReslice).
+
+    Returns
+    -------
+    values : (N,) float64
+        On the input grid, VTK order.
+    clearly_in, clearly_out : (N,) bool
+        Output voxels whose pre-image lies inside / outside the input's half-voxel border
+        by more than 1e-6 voxel.
+    """
+    from scipy.ndimage import affine_transform
+
+    sp, org = np.asarray(img.spacing), np.asarray(img.origin)
+    a_inv = np.linalg.inv(np.asarray(matrix, float))
+    m = np.diag(1 / sp) @ a_inv @ np.diag(sp)
+    c = (a_inv @ (org - np.asarray(translation, float)) - org) / sp
+    flip = np.eye(3)[::-1]
+    nx, ny, nz = img.dimensions
+    data = np.asarray(img.point_data[name], dtype=np.float64).reshape(nz, ny, nx)
+    ref = affine_transform(data, flip @ m @ flip, offset=flip @ c, order=1, mode="nearest")
+    idx = ((np.asarray(img.points) - org) / sp) @ m.T + c
+    top = np.array([nx, ny, nz]) - 1
+    clearly_in = np.all((idx > -0.5 + 1e-6) & (idx < top + 0.5 - 1e-6), axis=1)
+    clearly_out = np.any((idx < -0.5 - 1e-6) | (idx > top + 0.5 + 1e-6), axis=1)
+    return ref.ravel(), clearly_in, clearly_out

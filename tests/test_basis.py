@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import box_cage, data_path, interior_points, read_triangles, simple_cage
 
-from vhm_viz.core.basis import evaluate_basis, hessian5_to_full, winding_number
+from vhm_viz.core.basis import evaluate_basis, evaluate_map, hessian5_to_full, winding_number
 from vhm_viz.core.geometry import face_normals_and_areas
 
 
@@ -354,6 +354,41 @@ def test_lanes_kernel_flags_points_next_to_edges_and_vertices():
     for kind, flag in zip(kinds, flagged[: len(kinds)], strict=True):
         assert flag == (kind != "face"), kind
     assert not flagged[-2:].any()  # next to a face's interior, and the centre
+
+
+@pytest.mark.parametrize("order", [0, 1])
+def test_fused_map_equals_basis_times_coefficients(order):
+    """``evaluate_map`` (basis contracted inside the kernel) is the basis matrix product.
+
+    Random coefficients, points in the deep interior, next to edges and vertices (per-point
+    kernel), on an edge and outside; and a cage of two shells (the matrix path).
+    """
+    v, f = read_triangles(data_path("armadillo", "cage_216f.obj"))
+    rng = np.random.default_rng(5)
+    z = rng.normal(size=(len(v) + len(f), 3))
+    near = [base + 1e-7 * d for _k, base, d in _approach_points(v, f)]
+    edge_mid = 0.5 * (v[f[0, 0]] + v[f[0, 1]])
+    pts = np.vstack([interior_points(v, f, 40, rng), *near, edge_mid, v.max(0) + 1.0])
+    values, jac, winding = evaluate_map(pts, v, f, z, order=order)
+    b = evaluate_basis(pts, v, f, order=order)
+    n = len(v)
+    np.testing.assert_allclose(values, b.values @ z, rtol=0, atol=1e-12 * np.abs(z).sum(0).max())
+    np.testing.assert_allclose(winding, b.values[:, :n].sum(1), atol=1e-13)
+    if order:
+        ref = np.swapaxes(b.gradients @ z, 1, 2)
+        finite = np.isfinite(ref).all(axis=(1, 2))
+        assert np.array_equal(finite, np.isfinite(jac).all(axis=(1, 2)))
+        np.testing.assert_allclose(jac[finite], ref[finite], rtol=1e-12, atol=1e-10)
+    else:
+        assert jac is None
+    # two shells: each point sees its own shell only, as in evaluate_basis
+    v2, f2 = box_cage((0, 0, 0), (1, 1, 1), 2)
+    vv = np.vstack([v2, v2 + (2.0, 0, 0)])
+    ff = np.vstack([f2, f2 + len(v2)])
+    z2 = rng.normal(size=(len(vv) + len(ff), 3))
+    p2 = rng.uniform((0.1, 0.1, 0.1), (2.9, 0.9, 0.9), (30, 3))
+    b2 = evaluate_basis(p2, vv, ff, order=order)
+    np.testing.assert_allclose(evaluate_map(p2, vv, ff, z2, order=order)[0], b2.values @ z2)
 
 
 def test_bad_arguments():

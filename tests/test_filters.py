@@ -8,7 +8,7 @@ import pytest
 pv = pytest.importorskip("pyvista")
 vtk = pytest.importorskip("vtkmodules.vtkCommonDataModel")
 
-from conftest import box_cage, data_path  # noqa: E402
+from conftest import affine_resampled, box_cage, data_path  # noqa: E402
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase  # noqa: E402
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline  # noqa: E402
 from vtkmodules.vtkImagingCore import vtkRTAnalyticSource  # noqa: E402
@@ -433,7 +433,6 @@ def _smooth_volume(dims=(20, 18, 16), spacing=(0.1, 0.11, 0.12), origin=(-1.0, -
 
 
 def test_resample_affine_matches_affine_resampling():
-    from scipy.ndimage import affine_transform
     from scipy.spatial.transform import Rotation
 
     img = _smooth_volume()
@@ -451,23 +450,9 @@ def test_resample_affine_matches_affine_resampling():
     assert out.dimensions == img.dimensions
     np.testing.assert_allclose(out.origin, img.origin)
 
-    # independent reference: scipy's affine resampling in index space (k, j, i order)
-    sp, org = np.asarray(img.spacing), np.asarray(img.origin)
-    Ainv = np.linalg.inv(A)
-    M = np.diag(1 / sp) @ Ainv @ np.diag(sp)
-    c = (Ainv @ (org - T) - org) / sp
-    P = np.eye(3)[::-1]
-    nx, ny, nz = img.dimensions
-    vol = np.asarray(img.point_data["density"]).reshape(nz, ny, nx)
-    # the volume extends half a voxel beyond its grid with the boundary values ("nearest")
-    ref = affine_transform(vol, P @ M @ P, offset=P @ c, order=1, mode="nearest")
-    ref = ref.ravel()
-    # which output voxels have a pre-image inside that volume (away from its boundary)
+    # independent reference: scipy's affine resampling, same grid in and out
+    ref, clearly_in, clearly_out = affine_resampled(img, "density", A, T)
     y = np.asarray(out.points)
-    idx = ((y - T) @ Ainv.T - org) / sp
-    hi = np.array([nx, ny, nz]) - 1
-    clearly_in = np.all((idx > -0.5 + 1e-6) & (idx < hi + 0.5 - 1e-6), axis=1)
-    clearly_out = np.any((idx < -0.5 - 1e-6) | (idx > hi + 0.5 + 1e-6), axis=1)
     mask = np.asarray(out.point_data["vtkValidPointMask"]).astype(bool)
     assert clearly_in.sum() > 0.5 * len(y) and clearly_out.sum() > 0
     assert mask[clearly_in].all() and not mask[clearly_out].any()
@@ -484,7 +469,6 @@ def test_resample_pieces_and_deformed_grid():
     flt = HarmonicResampleFilter()
     flt.SetInputData(img)
     flt.SetHarmonicMap(hm)
-    flt.SetTolerance(1e-9)
     whole = pv.wrap(update(flt)).copy()
     np.testing.assert_allclose(whole.spacing, img.spacing)
     valid = np.asarray(whole.point_data["vtkValidPointMask"]).astype(bool)
@@ -504,7 +488,8 @@ def test_resample_pieces_and_deformed_grid():
         assert sol.success
         idx = (sol.x - np.asarray(img.origin)) / np.asarray(img.spacing)
         ref = map_coordinates(vol, idx[::-1, None], order=1, mode="nearest")[0]
-        assert abs(whole.point_data["density"][k] - ref) < 1e-6
+        # the engine's pre-images are within 0.05 voxel; |grad density| < 3 per unit
+        assert abs(whole.point_data["density"][k] - ref) < 3 * 0.05 * max(img.spacing)
     # pieces
     nx, ny, nz = whole.dimensions
     expected = np.asarray(whole.point_data["density"]).reshape(nz, ny, nx)
@@ -513,7 +498,6 @@ def test_resample_pieces_and_deformed_grid():
         f2 = HarmonicResampleFilter()
         f2.SetInputData(img)
         f2.SetHarmonicMap(hm)
-        f2.SetTolerance(1e-9)
         out = update(f2, p, 3)
         ext = out.GetExtent()
         d = [ext[1] - ext[0] + 1, ext[3] - ext[2] + 1, ext[5] - ext[4] + 1]

@@ -21,11 +21,13 @@ import pyvista as pv
 __all__ = ["VHMAccessor"]
 
 
-def _configure(flt, deformation, cage, outside):
+def _configure(flt, deformation, cage, outside, tolerance=None):
     flt.SetDeformation(deformation)
     flt.SetOutsidePolicy(outside)
     if cage is not None:
         flt.SetCageData(cage)
+    if tolerance is not None:
+        flt.SetTolerance(tolerance)
 
 
 class VHMAccessor:
@@ -49,14 +51,16 @@ class VHMAccessor:
         determinant: bool = False,
         condition_number: bool = False,
         normals: bool = True,
+        tolerance: float | None = None,
     ):
         """The deformed dataset (:class:`vhm_viz.filters.HarmonicDeformationFilter`).
 
         Parameters
         ----------
         deformation : Deformer, HarmonicMap, Scene or path
-        outside : {"error", "passthrough"}
-            Points outside the cage: raise, or leave in place (flagged ``vhm_outside``).
+        outside : {"error", "passthrough", "nan"}
+            Points outside the cage: raise, leave in place (flagged ``vhm_outside``), or
+            NaN.
         cage : pyvista.PolyData or Cage, optional
             The cage (input port 1); default: the deformation's.
         displacement, determinant, condition_number : bool
@@ -64,6 +68,9 @@ class VHMAccessor:
             ``condition_number``.
         normals : bool
             Deform normals through the Jacobian.
+        tolerance : float, optional
+            Images: largest position error of a voxel, in voxels (default 0.05); images
+            are mapped through the volume engine's lattice (:mod:`vhm_viz.core.volume`).
 
         Returns
         -------
@@ -75,7 +82,7 @@ class VHMAccessor:
 
         f = HarmonicDeformationFilter()
         f.SetInputData(self._mesh)
-        _configure(f, deformation, cage, outside)
+        _configure(f, deformation, cage, outside, tolerance)
         f.SetComputeDisplacement(displacement)
         f.SetComputeJacobianDeterminant(determinant)
         f.SetComputeConditionNumber(condition_number)
@@ -125,12 +132,44 @@ class VHMAccessor:
         return certify_injectivity(deformation, region, max_cubes=max_cubes, progress=progress)
 
     def resample(
-        self, deformation, *, fill_value: float = 0.0, output: str = "deformed", cage=None
+        self,
+        deformation,
+        *,
+        fill_value: float = 0.0,
+        output: str = "deformed",
+        cage=None,
+        outside: str = "error",
+        interpolation: str = "linear",
+        spacing=None,
+        reference=None,
+        tolerance: float | None = None,
     ):
         """A deformed volume on a regular grid (``pyvista.ImageData`` input only).
 
-        See :class:`vhm_viz.filters.HarmonicResampleFilter`; ``output`` is ``"deformed"``
-        (bounding box of the deformed volume) or ``"input"`` (the input grid).
+        See :class:`vhm_viz.filters.HarmonicResampleFilter`.
+
+        Parameters
+        ----------
+        deformation : Deformer, HarmonicMap, Scene or path
+        fill_value : float
+            Value of the voxels without a pre-image (``vtkValidPointMask`` 0 there).
+        output : {"deformed", "input"}
+            The grid holding the whole deformed volume (default) or the input grid.
+        cage : pyvista.PolyData or Cage, optional
+        outside : {"error", "passthrough", "nan"}
+            Voxels outside the cage: refuse, leave in place, or drop.
+        interpolation : {"linear", "nearest", "cubic"}
+            ``"nearest"`` for label maps (values copied, integer type kept).
+        spacing : (3,) float, optional
+            Output voxel size of the ``"deformed"`` grid (default: the input's).
+        reference : pyvista.ImageData, optional
+            Resample onto this image's grid instead.
+        tolerance : float, optional
+            Largest position error of a voxel, in voxels (default 0.05).
+
+        Returns
+        -------
+        pyvista.ImageData
         """
         from vhm_viz.filters import HarmonicResampleFilter, update
 
@@ -138,9 +177,14 @@ class VHMAccessor:
             raise TypeError(f"resample needs pyvista.ImageData; got {type(self._mesh).__name__}")
         f = HarmonicResampleFilter()
         f.SetInputData(self._mesh)
-        _configure(f, deformation, cage, "passthrough")
+        _configure(f, deformation, cage, outside, tolerance)
         f.SetFillValue(fill_value)
         f.SetOutputMode(output)
+        f.SetInterpolation(interpolation)
+        if spacing is not None:
+            f.SetOutputSpacing(spacing)
+        if reference is not None:
+            f.SetReferenceImage(reference)
         return pv.wrap(update(f))
 
 

@@ -182,6 +182,8 @@ def read_dataset(path):
         why = f" ({_first_line(caught[0].message)})" if caught else ""
         raise ReadError(f"{p}: no points (empty, or not a valid {suffix} file){why}")
     _check_dataset(data, p)
+    if suffix in VOLUME_WRITE_SUFFIXES:
+        _apply_orientation(p, suffix, data)
     return _surface_if_polygonal(data)
 
 
@@ -1032,13 +1034,194 @@ def atomic_outputs(directory):
 def write_dataset(path, data) -> None:
     """Write a PyVista dataset atomically (format from the suffix).
 
+    Images may also go to MetaImage (``.mhd`` + ``.raw``, or ``.mha``) and NIfTI
+    (``.nii``, ``.nii.gz``), written here with their origin, spacing and direction
+    (:func:`write_volume`).
+
     Parameters
     ----------
     path : str or os.PathLike
     data : pyvista.DataSet
     """
+    if suffix_of(path) in VOLUME_WRITE_SUFFIXES:
+        write_volume(path, data)
+        return
     with atomic_path(path) as tmp:
         data.save(os.fspath(tmp))
+
+
+# ----------------------------------------------------------------------------------------
+# Volumes in medical formats
+# ----------------------------------------------------------------------------------------
+#: Image formats written by :func:`write_volume` (and whose orientation
+#: :func:`read_dataset` reads from the header).
+VOLUME_WRITE_SUFFIXES = (".mhd", ".mha", ".nii", ".nii.gz")
+# NIfTI's world is RAS; vhm_viz follows ITK and DICOM (LPS), like MetaImage: x and y flip.
+_RAS_LPS = np.diag([-1.0, -1.0, 1.0])
+_META_TYPES = {
+    "uint8": "MET_UCHAR", "int8": "MET_CHAR", "uint16": "MET_USHORT", "int16": "MET_SHORT",
+    "uint32": "MET_UINT", "int32": "MET_INT", "uint64": "MET_ULONG_LONG",
+    "int64": "MET_LONG_LONG", "float32": "MET_FLOAT", "float64": "MET_DOUBLE",
+}  # fmt: skip
+_NIFTI_TYPES = {  # NIfTI-1 datatype code, bits per voxel
+    "uint8": (2, 8), "int16": (4, 16), "int32": (8, 32), "float32": (16, 32),
+    "float64": (64, 64), "int8": (256, 8), "uint16": (512, 16), "uint32": (768, 32),
+    "int64": (1024, 64), "uint64": (1280, 64),
+}  # fmt: skip
+
+
+def _volume_array(image) -> tuple[np.ndarray, str]:
+    """The array a single-array format stores: the active scalars, else the first one."""
+    name = image.active_scalars_name or (image.point_data.keys() or [None])[0]
+    if name is None:
+        raise ValueError("the image has no point array to write")
+    values = np.ascontiguousarray(image.point_data[name])
+    if values.dtype.name not in _META_TYPES:
+        values = values.astype(np.float64)
+    return values, name
+
+
+def write_volume(path, image) -> None:
+    """Write an image as MetaImage or NIfTI, keeping origin, spacing and direction.
+
+    Formats with one array per file get the active scalars (or the first point array);
+    multi-component arrays become channels (MetaImage) or a vector (NIfTI). Conventions
+    are ITK's, so SimpleITK and ITK-based tools read the same geometry: MetaImage lists the
+    direction matrix column by column (``TransformMatrix``, each image axis's direction in
+    turn); NIfTI stores its RAS world, so x and y are negated from vhm_viz's (LPS) world.
+    ``.mhd`` puts the voxels in a ``.raw`` file beside it; both are written atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        ``.mhd``, ``.mha``, ``.nii`` or ``.nii.gz``.
+    image : pyvista.ImageData
+    """
+    suffix = suffix_of(path)
+    if suffix not in VOLUME_WRITE_SUFFIXES:
+        raise ValueError(f"write_volume writes {', '.join(VOLUME_WRITE_SUFFIXES)}; got {suffix!r}")
+    if not hasattr(image, "direction_matrix"):
+        raise ValueError(f"{suffix} holds an image (vtkImageData); got {type(image).__name__}")
+    values, _ = _volume_array(image)
+    if suffix in (".mhd", ".mha"):
+        _write_metaimage(Path(path), image, values)
+    else:
+        _write_nifti(Path(path), image, values)
+
+
+def _write_metaimage(path: Path, image, values: np.ndarray) -> None:
+    direction = np.asarray(image.direction_matrix, dtype=np.float64)
+    comps = 1 if values.ndim == 1 else values.shape[1]
+    fmt = lambda v: " ".join(f"{x:.17g}" for x in v)  # noqa: E731
+    data_file = "LOCAL" if path.suffix.lower() == ".mha" else path.with_suffix(".raw").name
+    header = [
+        "ObjectType = Image",
+        "NDims = 3",
+        "BinaryData = True",
+        "BinaryDataByteOrderMSB = False",
+        "CompressedData = False",
+        f"TransformMatrix = {fmt(direction.T.ravel())}",  # ITK: one image axis after another
+        f"Offset = {fmt(image.origin)}",
+        "CenterOfRotation = 0 0 0",
+        f"ElementSpacing = {fmt(image.spacing)}",
+        f"DimSize = {' '.join(str(int(d)) for d in image.dimensions)}",
+        *([f"ElementNumberOfChannels = {comps}"] if comps > 1 else []),
+        f"ElementType = {_META_TYPES[values.dtype.name]}",
+        f"ElementDataFile = {data_file}",
+    ]
+    text = ("\n".join(header) + "\n").encode("ascii")
+    raw = values.astype(values.dtype.newbyteorder("<"), copy=False).tobytes()
+    if data_file == "LOCAL":
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(text + raw)
+        return
+    with atomic_path(path.with_suffix(".raw")) as tmp:
+        tmp.write_bytes(raw)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(text)
+
+
+def _write_nifti(path: Path, image, values: np.ndarray) -> None:
+    """NIfTI-1 (single file, 352-byte header) with matching qform and sform."""
+    import gzip
+    import struct
+
+    from scipy.spatial.transform import Rotation
+
+    if values.dtype.name not in _NIFTI_TYPES:
+        values = values.astype(np.float64)
+    code, bits = _NIFTI_TYPES[values.dtype.name]
+    comps = 1 if values.ndim == 1 else values.shape[1]
+    spacing = np.asarray(image.spacing, dtype=np.float64)
+    rot = _RAS_LPS @ np.asarray(image.direction_matrix, dtype=np.float64)
+    offset = _RAS_LPS @ np.asarray(image.origin, dtype=np.float64)
+    # the quaternion holds a proper rotation; a reflection flips the third axis (qfac = -1)
+    qfac = 1.0 if np.linalg.det(rot) > 0 else -1.0
+    quat = Rotation.from_matrix(rot * [1.0, 1.0, qfac]).as_quat()  # x, y, z, w
+    if quat[3] < 0:
+        quat = -quat
+    affine = rot * spacing
+    dims = [5 if comps > 1 else 3, *image.dimensions, 1, comps, 1, 1]
+    header = bytearray(352)
+    struct.pack_into("<i", header, 0, 348)
+    struct.pack_into("<8h", header, 40, *dims)
+    if comps > 1:
+        struct.pack_into("<h", header, 68, 1007)  # intent: vector
+    struct.pack_into("<2h", header, 70, code, bits)
+    struct.pack_into("<8f", header, 76, qfac, *spacing, 1.0, 1.0, 1.0, 1.0)
+    struct.pack_into("<f", header, 108, 352.0)  # vox_offset
+    struct.pack_into("<f", header, 112, 1.0)  # scl_slope
+    header[123] = 2  # xyzt_units: millimetres
+    struct.pack_into("<2h", header, 252, 1, 1)  # qform_code, sform_code: scanner
+    struct.pack_into("<6f", header, 256, *quat[:3], *offset)
+    for r in range(3):
+        struct.pack_into("<4f", header, 280 + 16 * r, *affine[r], offset[r])
+    header[344:348] = b"n+1\0"
+    raw = values.astype(values.dtype.newbyteorder("<"), copy=False)
+    # NIfTI orders a vector's components slowest: (c, z, y, x)
+    blob = bytes(header) + (raw.T if comps > 1 else raw).tobytes()
+    with atomic_path(path) as tmp:
+        if suffix_of(path) == ".nii.gz":
+            with gzip.open(tmp, "wb", compresslevel=6) as fh:
+                fh.write(blob)
+        else:
+            tmp.write_bytes(blob)
+
+
+def _apply_orientation(p: Path, suffix: str, image) -> None:
+    """Origin and direction of a MetaImage or NIfTI file, read as ITK reads them.
+
+    VTK's MetaImage reader takes ``TransformMatrix`` row by row (the transpose of what ITK
+    writes), and its NIfTI reader keeps the qform/sform apart from the image.
+    """
+    if not hasattr(image, "direction_matrix"):
+        return
+    if suffix in (".mhd", ".mha"):
+        fields = {}
+        with open(p, "rb") as fh:
+            for raw in fh:
+                line = raw.decode("latin-1").strip()
+                key, _, value = line.partition("=")
+                fields[key.strip()] = value.strip()
+                if key.strip() == "ElementDataFile":
+                    break
+        text = fields.get("TransformMatrix") or fields.get("Rotation") or fields.get("Orientation")
+        if text:
+            m = np.array([float(v) for v in text.split()], dtype=np.float64)
+            if m.size == 9:
+                image.direction_matrix = m.reshape(3, 3).T
+        return
+    from vtkmodules.vtkIOImage import vtkNIFTIImageReader
+
+    reader = vtkNIFTIImageReader()
+    reader.SetFileName(os.fspath(p))
+    reader.UpdateInformation()
+    matrix = reader.GetSFormMatrix() or reader.GetQFormMatrix()
+    if matrix is None:
+        return
+    m = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+    image.origin = tuple(_RAS_LPS @ m[:3, 3])
+    image.direction_matrix = _RAS_LPS @ m[:3, :3]
 
 
 def write_text(path, text: str) -> None:

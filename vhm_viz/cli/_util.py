@@ -17,7 +17,7 @@ OUTPUT_SUFFIXES = {
     "PolyData": (".vtp", ".vtk", ".ply", ".obj", ".stl"),
     "UnstructuredGrid": (".vtu", ".vtk"),
     "StructuredGrid": (".vts", ".vtk"),
-    "ImageData": (".vti", ".vtk"),
+    "ImageData": (".vti", ".vtk", ".mhd", ".mha", ".nii", ".nii.gz"),
 }
 
 
@@ -176,7 +176,7 @@ def outside_message(exc, n_points: int, source) -> str:
     return (
         f"{len(idx)} of {n_points} points of {source} are outside the cage (indices "
         f"{describe_indices(np.asarray(idx))}): the cage must enclose the data, or pass "
-        "--outside passthrough to leave them in place"
+        "--outside passthrough to leave them in place (or --outside nan to drop them)"
     )
 
 

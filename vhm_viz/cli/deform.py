@@ -25,9 +25,13 @@ from vhm_viz.cli._util import (
     surface_metrics,
 )
 from vhm_viz.core.errors import OutsideCageError
-from vhm_viz.io import DATASET_SUFFIXES, read_dataset, write_dataset
+from vhm_viz.core.image import INTERPOLATIONS
+from vhm_viz.core.volume import DEFAULT_TOLERANCE
+from vhm_viz.io import DATASET_SUFFIXES, read_dataset, suffix_of, write_dataset
 
 ALL_OUTPUT_SUFFIXES = tuple(sorted({s for v in OUTPUT_SUFFIXES.values() for s in v}))
+#: Outputs of a volume that are resampled images (the others are warped grids).
+RESAMPLED_SUFFIXES = (".vti", ".mhd", ".mha", ".nii", ".nii.gz")
 
 
 def add_parser(subparsers) -> None:
@@ -36,11 +40,14 @@ def add_parser(subparsers) -> None:
         "deform",
         help="deform a dataset with a scene (cage, anchors, constraints)",
         description="Deform INPUT with the variational harmonic map described by SCENE and "
-        "write OUTPUT. Surfaces stay surfaces, tet meshes stay tet meshes; a volume (.vti) "
-        "written to .vti is resampled onto a regular grid (pull-back through the inverse "
-        "map), to .vts it becomes a warped structured grid. Prints one summary line, and a "
-        "warning line (stderr) when the output has inverted cells or det J <= 0 at sampled "
-        "points.",
+        "write OUTPUT. Surfaces stay surfaces, tet meshes stay tet meshes. A volume (any "
+        "image format read) written to .vts or .vtk becomes a warped structured grid "
+        "(every voxel moved); written to .vti, .mhd, .mha, .nii or .nii.gz it is resampled "
+        "onto a regular grid that holds the whole deformed volume (each output voxel pulled "
+        "back through the inverse map), keeping origin, spacing and direction. Volumes go "
+        "through an adaptive lattice of exact map values (--tolerance). Prints one summary "
+        "line, and a warning line (stderr) when the output has inverted cells or det J <= 0 "
+        "at sampled points.",
         epilog=f"input types: {' '.join(DATASET_SUFFIXES)}, or a DICOM folder. Example: "
         "vhm-viz deform bar.vtp "
         "--scene bar.json -o bent.vtp",
@@ -56,10 +63,11 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--outside",
-        choices=("error", "passthrough"),
+        choices=("error", "passthrough", "nan"),
         default="error",
-        help="points outside the cage: fail (default) or leave them in place, "
-        "flagged by the point array vhm_outside",
+        help="points (voxels) outside the cage: fail (default), leave them in place "
+        "(flagged by the point array vhm_outside), or drop them (NaN positions; no data "
+        "in a resampled volume)",
     )
     p.add_argument(
         "--arrays",
@@ -71,7 +79,39 @@ def add_parser(subparsers) -> None:
         "--fill-value",
         type=float,
         default=0.0,
-        help="volume resampling: value of voxels without a pre-image (default 0)",
+        help="volume resampling: value of voxels without a pre-image, in the units of the "
+        "data (default 0; they also get 0 in the array vtkValidPointMask)",
+    )
+    p.add_argument(
+        "--tolerance",
+        type=float,
+        default=DEFAULT_TOLERANCE,
+        metavar="VOXELS",
+        help="volumes: largest position error of a mapped voxel, in voxels of the input "
+        f"spacing (default {DEFAULT_TOLERANCE})",
+    )
+    p.add_argument(
+        "--interpolation",
+        choices=INTERPOLATIONS,
+        default="linear",
+        help="volume resampling: sampling of the input at the pre-images: trilinear "
+        "(default), nearest (label maps: values copied, integer type kept) or cubic "
+        "(Catmull-Rom)",
+    )
+    p.add_argument(
+        "--spacing",
+        type=_spacing,
+        default=None,
+        metavar="SX,SY,SZ",
+        help="volume resampling: output voxel size in world units (default: the input "
+        "spacing); one number for cubic voxels",
+    )
+    p.add_argument(
+        "--reference",
+        metavar="IMAGE",
+        default=None,
+        help="volume resampling: resample onto this image's grid (origin, spacing, "
+        "dimensions, direction) instead (default: a grid holding the whole deformed volume)",
     )
     add_convergence_argument(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
@@ -83,6 +123,19 @@ def run(args: argparse.Namespace) -> int:
     quiet_vtk()
     print(deform(args))
     return 0
+
+
+def _spacing(text: str) -> tuple[float, float, float]:
+    """``--spacing``: one number or three, comma- or space-separated, all positive."""
+    try:
+        values = [float(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not numbers: {text!r}") from None
+    if len(values) == 1:
+        values *= 3
+    if len(values) != 3 or not all(v > 0 and v < float("inf") for v in values):
+        raise argparse.ArgumentTypeError(f"expected 1 or 3 positive numbers; got {text!r}")
+    return tuple(values)
 
 
 def _parse_arrays(text: str) -> set[str]:
@@ -102,18 +155,30 @@ def deform(args: argparse.Namespace) -> str:
 
     src = check_input(args.input)
     arrays = _parse_arrays(args.arrays)
+    if not (args.tolerance > 0 and args.tolerance < float("inf")):
+        raise CLIError(f"--tolerance must be a positive number of voxels; got {args.tolerance}")
     scene = load_scene(args.scene)
+    reference = check_input(args.reference) if args.reference else None
     # never write onto the data, the scene or any file the scene names
-    check_output(args.output, ALL_OUTPUT_SUFFIXES, [src, args.scene, *scene.referenced_files()])
+    inputs = [src, args.scene, *scene.referenced_files(), *([reference] if reference else [])]
+    check_output(args.output, ALL_OUTPUT_SUFFIXES, inputs)
     out = Path(args.output)
     mesh = read_dataset(src)
-    resample = isinstance(mesh, pv.ImageData) and out.suffix.lower() == ".vti"
+    volume = isinstance(mesh, pv.ImageData)
+    resample = volume and suffix_of(out) in RESAMPLED_SUFFIXES
     out_type = "ImageData" if resample else _output_type(mesh)
-    if out.suffix.lower() not in OUTPUT_SUFFIXES[out_type]:
+    if suffix_of(out) not in OUTPUT_SUFFIXES[out_type]:
         raise CLIError(
-            f"cannot write a {out_type} to {out.suffix!r}; use "
+            f"cannot write a {out_type} to {suffix_of(out)!r}; use "
             f"{', '.join(OUTPUT_SUFFIXES[out_type])}"
         )
+    ref_image = None
+    if reference is not None:
+        ref_image = read_dataset(reference)
+        if not isinstance(ref_image, pv.ImageData):
+            raise CLIError(f"--reference {reference} is not an image")
+    if not resample and (args.spacing or reference):
+        raise CLIError("--spacing and --reference apply to a volume resampled to an image")
 
     t0 = time.perf_counter()
     dfm, reports = build_and_solve(
@@ -122,15 +187,21 @@ def deform(args: argparse.Namespace) -> str:
     if resample:
         flt = HarmonicResampleFilter()
         flt.SetFillValue(args.fill_value)
+        flt.SetInterpolation(args.interpolation)
+        if args.spacing:
+            flt.SetOutputSpacing(args.spacing)
+        if ref_image is not None:
+            flt.SetReferenceImage(ref_image)
         label = "resampling"
     else:
         flt = HarmonicDeformationFilter()
-        flt.SetOutsidePolicy(args.outside)
         flt.SetComputeDisplacement("displacement" in arrays)
         flt.SetComputeJacobianDeterminant("det" in arrays)
         flt.SetComputeConditionNumber("cond" in arrays)
         flt.SetComputeCellQuality("cells" in arrays)
-        label = "binding"
+        label = "warping" if volume else "binding"
+    flt.SetOutsidePolicy(args.outside)
+    flt.SetTolerance(args.tolerance)
     flt.SetInputData(mesh)
     flt.SetDeformer(dfm)
     bar = Progress(label, enabled=not args.quiet)
@@ -141,7 +212,7 @@ def deform(args: argparse.Namespace) -> str:
         raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
     bar.finish()
     # everything that can fail happens before the write: an error never follows an output
-    summary = _summary(mesh, result, reports, flt, resample)
+    summary = _summary(mesh, result, reports, flt, resample, volume, args.tolerance)
     warning = _check_folds(mesh, result, dfm, flt, resample)
     write_dataset(out, result)
     seconds = time.perf_counter() - t0
@@ -150,18 +221,24 @@ def deform(args: argparse.Namespace) -> str:
     return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {out}"
 
 
-def _summary(mesh, result, reports, flt, resample: bool) -> list[str]:
+def _summary(mesh, result, reports, flt, resample: bool, volume: bool, tolerance) -> list[str]:
     iterations = sum(r.iterations for r in reports)
-    parts = [f"deformed {mesh.n_points} points ({type(mesh).__name__})"]
+    kind = "voxels" if volume else "points"
+    parts = [f"deformed {mesh.n_points} {kind} ({type(mesh).__name__})"]
     parts.append(f"{iterations} iterations" + ("" if reports[-1].converged else " (not converged)"))
     if resample:
         stats = flt.stats
-        parts.append(f"{stats['valid']}/{stats['voxels']} voxels with a pre-image")
+        kept = f" ({stats['identity']} left in place outside the cage)" if stats["identity"] else ""
+        parts.append(f"{stats['valid']}/{stats['voxels']} voxels with a pre-image{kept}")
+        parts.append(f"{stats['foldover']} in folds")
+        parts.append(f"grid {'x'.join(str(d) for d in result.dimensions)}")
     else:
         metrics = surface_metrics(mesh, result)
         if "E_volume" in metrics:
             parts.append(f"E_volume {metrics['E_volume']:.4f}")
-        parts.append(f"{flt.outside_count} points outside the cage")
+        parts.append(f"{flt.outside_count} {kind} outside the cage")
+    if volume:
+        parts.append(f"tolerance {tolerance:g} voxel")
     return parts
 
 

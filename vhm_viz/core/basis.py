@@ -48,7 +48,7 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
-from vhm_viz.core.basis_lanes import lanes_kernel, winding_kernel
+from vhm_viz.core.basis_lanes import lanes_kernel, lanes_map_kernel, winding_kernel
 from vhm_viz.core.geometry import face_normals_and_areas
 from vhm_viz.core.limits import check_setting
 
@@ -855,6 +855,75 @@ def evaluate_basis(
     if cd.shells:
         _separate_shells(cd, values, gradients, hessians)
     return BasisEvaluation(values, gradients, hessians)
+
+
+def evaluate_map(points, vertices, faces, coefficients, *, order: int = 1):
+    """A map ``f = sum_v a_v phi_v + sum_t b_t psi_t`` and its Jacobian, without the basis.
+
+    The same numbers as ``evaluate_basis(...).values @ coefficients`` (and the gradients),
+    but the basis of each group of points is contracted with the coefficients inside the
+    kernel: nothing of size ``(N, n + m)`` is stored, which makes it several times faster
+    for large cages. Points near a cage edge go through the careful per-point kernel, as
+    in :func:`evaluate_basis`. A cage of several outward shells takes the basis path
+    (the shells' functions are switched per point).
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+    vertices : (n, 3) array_like
+    faces : (m, 3) array_like of int
+        Outward-oriented cage triangles.
+    coefficients : (n + m, 3) array_like
+        ``z = [a; b]``.
+    order : {0, 1}
+        Values only, or values and Jacobians.
+
+    Returns
+    -------
+    values : (N, 3) ndarray
+    jacobians : (N, 3, 3) ndarray or None
+        ``J[k, i, j] = d f_i / d x_j`` (NaN on a cage edge or vertex).
+    winding : (N,) ndarray
+        The winding number (sum of the vertex functions), for :func:`inside_cage`.
+    """
+    if order not in (0, 1):
+        raise ValueError(f"order must be 0 or 1; got {order!r}")
+    p = _as_points(points)
+    cd = _prepare_cage(vertices, faces)
+    z = np.ascontiguousarray(coefficients, dtype=np.float64)
+    n, m = cd.vertices.shape[0], cd.faces.shape[0]
+    if z.shape != (n + m, 3):
+        raise ValueError(f"coefficients must have shape ({n + m}, 3); got {z.shape}")
+    npts = p.shape[0]
+    if cd.shells or npts == 0:
+        b = evaluate_basis(p, vertices, faces, order=order)
+        jac = None
+        if order:
+            jac = np.swapaxes((b.gradients.reshape(-1, n + m) @ z).reshape(npts, 3, 3), 1, 2)
+        return b.values @ z, jac, b.values[:, :n].sum(axis=1)
+    values = np.empty((npts, 3))
+    jac = np.empty((npts, 3, 3)) if order else np.zeros((0, 3, 3))
+    winding = np.empty(npts)
+    flagged = np.zeros(npts, dtype=np.bool_)
+    kernel_args = _kernel_arrays(cd)
+    lanes_map_kernel(
+        p, *kernel_args, _NEAR_EDGE, order, z, values, jac, winding, flagged
+    )
+    rows = np.nonzero(flagged)[0]
+    if rows.size:
+        host = np.full(rows.size, -1, dtype=np.int64)
+        vals, grads, _, degenerate = _evaluate_per_point(p[rows], kernel_args, cd, order, host)
+        if degenerate.any():
+            _fix_edge_and_vertex_points(
+                p[rows], cd, np.nonzero(degenerate)[0], vals, grads, None
+            )
+        values[rows] = vals @ z
+        winding[rows] = vals[:, :n].sum(axis=1)
+        if order:
+            jac[rows] = np.swapaxes(
+                (grads.reshape(-1, n + m) @ z).reshape(rows.size, 3, 3), 1, 2
+            )
+    return values, (jac if order else None), winding
 
 
 def _evaluate_numba(p, cd: _CageData, order: int, host: np.ndarray):

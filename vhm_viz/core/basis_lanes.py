@@ -237,6 +237,34 @@ def _face_terms(E, ce, F, N, inv_twice_area, D, NxD, face_edges, order, acc, acc
                     _scatter(accg, row, buf, 4 + c2, -D[t, v, c1] * ia, True, L)
 
 
+@numba.njit(**_INLINE)
+def _group_basis(
+    points, k0, host, V, F, N, inv_twice_area, D, NxD, edges, edge_len, inv_4pi_len,
+    face_edges, near_edge, order, pts, near, E, ce, acc, accg, buf, L,
+):  # pragma: no cover - compiled  # fmt: skip
+    """Basis values (and gradients) of the group of points starting at ``k0``.
+
+    Into ``acc`` (and ``accg``); ``near[j]`` flags the lanes the per-point kernel must redo.
+    """
+    npts = points.shape[0]
+    n = V.shape[0]
+    nm = n + F.shape[0]
+    for j in range(L):
+        k = min(k0 + j, npts - 1)  # the last group repeats its last point
+        pts[j] = points[k, 0]
+        pts[L + j] = points[k, 1]
+        pts[2 * L + j] = points[k, 2]
+        near[j] = 0.0 if host[min(k, host.shape[0] - 1)] < 0 else 1.0
+    # the vertex rows accumulate over faces: start them at zero
+    acc[: n * L] = 0.0
+    if order >= 1:
+        for c in range(3):
+            accg[c * nm * L : c * nm * L + n * L] = 0.0
+    _vectors_to_vertices(pts, V, E, L)
+    _edge_logs(E, edges, edge_len, inv_4pi_len, near_edge, ce, near, L)
+    _face_terms(E, ce, F, N, inv_twice_area, D, NxD, face_edges, order, acc, accg, buf, L)
+
+
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def lanes_kernel(
     points,
@@ -281,20 +309,10 @@ def lanes_kernel(
         buf = np.empty(7 * L)
         for grp in range(item * _GROUPS_PER_ITEM, min(ngroups, (item + 1) * _GROUPS_PER_ITEM)):
             k0 = grp * L
-            for j in range(L):
-                k = min(k0 + j, npts - 1)  # the last group repeats its last point
-                pts[j] = points[k, 0]
-                pts[L + j] = points[k, 1]
-                pts[2 * L + j] = points[k, 2]
-                near[j] = 0.0 if host[k] < 0 else 1.0
-            # the vertex rows accumulate over faces: start them at zero
-            acc[: n * L] = 0.0
-            if order >= 1:
-                for c in range(3):
-                    accg[c * nm * L : c * nm * L + n * L] = 0.0
-            _vectors_to_vertices(pts, V, E, L)
-            _edge_logs(E, edges, edge_len, inv_4pi_len, near_edge, ce, near, L)
-            _face_terms(E, ce, F, N, inv_twice_area, D, NxD, face_edges, order, acc, accg, buf, L)
+            _group_basis(
+                points, k0, host, V, F, N, inv_twice_area, D, NxD, edges, edge_len,
+                inv_4pi_len, face_edges, near_edge, order, pts, near, E, ce, acc, accg, buf, L,
+            )  # fmt: skip
             for j in range(min(L, npts - k0)):
                 k = k0 + j
                 flagged[k] = near[j] > 0.0
@@ -350,3 +368,92 @@ def winding_kernel(points, V, F, out):  # pragma: no cover - compiled
                 _add_solid_angles(E, b0, b1, b2, wsum, L)
             for j in range(min(L, npts - k0)):
                 out[k0 + j] = wsum[j]
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def lanes_map_kernel(
+    points,
+    V,
+    F,
+    N,
+    inv_twice_area,
+    D,
+    NxD,
+    edges,
+    edge_len,
+    inv_4pi_len,
+    face_edges,
+    near_edge,
+    order,
+    z,
+    values,
+    jacobians,
+    winding,
+    flagged,
+):  # pragma: no cover - compiled
+    """A map ``f = sum_c z_c b_c`` (and its Jacobian) without storing the basis.
+
+    The basis values and gradients of a group of points are contracted with the
+    coefficients ``z`` (``n + m`` rows, 3 columns) as soon as they are complete, so no
+    ``(N, n + m)`` matrices are written or read back (for a 500-face cage that traffic
+    cost more than the kernel itself). ``values[k]`` is ``f``, ``jacobians[k, i, j]`` is
+    ``d f_i / d x_j`` (``order`` 1), ``winding[k]`` the sum of the vertex functions.
+    Flagged points as in :func:`lanes_kernel`.
+    """
+    L = LANES
+    npts = points.shape[0]
+    n = V.shape[0]
+    m = F.shape[0]
+    nm = n + m
+    S = _S
+    ngroups = (npts + L - 1) // L
+    nitems = (ngroups + _GROUPS_PER_ITEM - 1) // _GROUPS_PER_ITEM
+    host = np.full(1, -1, dtype=np.int64)
+    for item in numba.prange(nitems):
+        pts = np.empty(3 * L)
+        near = np.empty(L)
+        E = np.empty(4 * n * L)
+        ce = np.empty(edges.shape[0] * L)
+        acc = np.empty(nm * L)
+        accg = np.empty(3 * nm * L if order >= 1 else 0)
+        buf = np.empty(7 * L)
+        fz = np.empty(3 * L)
+        jz = np.empty(9 * L)
+        wz = np.empty(L)
+        for grp in range(item * _GROUPS_PER_ITEM, min(ngroups, (item + 1) * _GROUPS_PER_ITEM)):
+            k0 = grp * L
+            _group_basis(
+                points, k0, host, V, F, N, inv_twice_area, D, NxD, edges, edge_len,
+                inv_4pi_len, face_edges, near_edge, order, pts, near, E, ce, acc, accg, buf, L,
+            )  # fmt: skip
+            fz[:] = 0.0
+            jz[:] = 0.0
+            wz[:] = 0.0
+            for c in range(nm):
+                cb = _U(c) * S
+                for i in range(3):
+                    zi = z[c, i]
+                    ob = _U(i) * S
+                    for j in range(_U(L)):
+                        fz[ob + j] += acc[cb + j] * zi
+                if c < n:
+                    for j in range(_U(L)):
+                        wz[j] += acc[cb + j]
+                if order >= 1:
+                    for r in range(3):
+                        gb = (_U(r) * _U(nm) + _U(c)) * S
+                        for i in range(3):
+                            zi = z[c, i]
+                            ob = _U(3 * i + r) * S
+                            for j in range(_U(L)):
+                                jz[ob + j] += accg[gb + j] * zi
+            for j in range(min(L, npts - k0)):
+                k = k0 + j
+                flagged[k] = near[j] > 0.0
+                winding[k] = wz[j]
+                for i in range(3):
+                    values[k, i] = fz[i * L + j]
+                if order >= 1:
+                    for i in range(3):
+                        for r in range(3):
+                            jacobians[k, i, r] = jz[(3 * i + r) * L + j]

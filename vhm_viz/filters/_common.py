@@ -30,10 +30,12 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandD
 from vhm_viz import interrupts
 from vhm_viz.core.binding import bind_map, check_outside_policy
 from vhm_viz.core.errors import AbortedError
+from vhm_viz.core.image import ImageGeometry
 from vhm_viz.core.limits import check_setting
+from vhm_viz.core.volume import DEFAULT_TOLERANCE, VolumeDeformation
 from vhm_viz.filters import _parallel
 
-__all__ = ["DeformationSource", "update", "numpy_points", "geometry_key"]
+__all__ = ["DeformationSource", "update", "numpy_points", "geometry_key", "image_geometry"]
 
 _SDDP = vtkStreamingDemandDrivenPipeline
 # Relative tolerance (of the cage diagonal) for "the port-1 cage is the deformer's cage".
@@ -52,6 +54,32 @@ def numpy_points(ds) -> np.ndarray:
         ds.GetPoint(i, p)
         out[i] = p
     return out
+
+
+def image_geometry(img, extent=None) -> ImageGeometry:
+    """:class:`~vhm_viz.core.image.ImageGeometry` of a ``vtkImageData`` (or of an extent).
+
+    ``extent`` (default: the image's own) may be any extent of the same grid, such as the
+    whole extent of a pipeline whose data holds one piece.
+    """
+    ext = img.GetExtent() if extent is None else extent
+    origin = np.asarray(img.GetOrigin(), dtype=np.float64)
+    spacing = np.asarray(img.GetSpacing(), dtype=np.float64)
+    m = img.GetDirectionMatrix()
+    direction = np.array([[m.GetElement(i, j) for j in range(3)] for i in range(3)])
+    start = np.array(ext[0::2], dtype=np.float64)
+    dims = [ext[2 * a + 1] - ext[2 * a] + 1 for a in range(3)]
+    return ImageGeometry(origin + direction @ (start * spacing), spacing, dims, direction)
+
+
+def _map_key(hm) -> tuple:
+    """Changes when the map (its cage or coefficients) changes."""
+    cage = hm.cage
+    return (
+        hash(np.asarray(cage.vertices).tobytes()),
+        hash(np.asarray(cage.faces).tobytes()),
+        hash(np.asarray(hm.coefficients).tobytes()),
+    )
 
 
 def geometry_key(ds) -> tuple:
@@ -155,6 +183,9 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self._solver: dict = {}
         self._derived_key = None
         self._memory_budget = None
+        self._tolerance = DEFAULT_TOLERANCE
+        self._volume_engine = None
+        self._volume_key = None
         self._binding = None
         self._binding_key = None
         self._scene_file = ""
@@ -399,6 +430,23 @@ class DeformationSource(VTKPythonAlgorithmBase):
             self._memory_budget = nbytes
             self.Modified()
 
+    def SetTolerance(self, voxels: float) -> None:
+        """Volumes: largest position error of a mapped voxel, in voxels (default 0.05).
+
+        Image inputs go through the lattice of :mod:`vhm_viz.core.lattice` (exact map at
+        its nodes, tricubic Hermite in between) instead of evaluating every voxel.
+        """
+        voxels = float(voxels)
+        if not (np.isfinite(voxels) and voxels > 0):
+            raise ValueError(f"tolerance must be a positive number of voxels; got {voxels}")
+        if voxels != self._tolerance:
+            self._tolerance = voxels
+            self.Modified()
+
+    def GetTolerance(self) -> float:
+        """The volume tolerance (voxels)."""
+        return self._tolerance
+
     def SetSolverSettings(self, **settings) -> None:
         """Keyword arguments for :meth:`Deformer.solve` used when the filter solves."""
         self._solver = dict(settings)
@@ -537,6 +585,34 @@ class DeformationSource(VTKPythonAlgorithmBase):
             binding = self._binding
         self.outside_count = binding.n_outside
         return binding
+
+    def _volume(self, hm, geometry: ImageGeometry, outside: str) -> VolumeDeformation:
+        """The volume engine of ``hm`` on ``geometry``, kept while nothing changes.
+
+        Pieces of one update share it, so they are cut from one lattice: the 2-piece
+        result equals the 1-piece result.
+        """
+        key = (
+            _map_key(hm),
+            geometry.dimensions,
+            tuple(geometry.origin),
+            tuple(geometry.spacing),
+            tuple(geometry.direction.ravel()),
+            self._tolerance,
+            outside,
+            self._memory_budget,
+        )
+        if key != self._volume_key or self._volume_engine is None:
+            self._volume_engine = None  # free the old lattice first
+            self._volume_engine = VolumeDeformation(
+                hm,
+                geometry,
+                tolerance=self._tolerance,
+                outside=outside,
+                memory_budget=self._memory_budget,
+            )
+            self._volume_key = key
+        return self._volume_engine
 
     def _progress(self, lo: float, hi: float):
         def cb(fraction, _message=""):

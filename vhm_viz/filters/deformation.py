@@ -20,7 +20,7 @@ from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearG
 
 from vhm_viz.core.binding import cofactor_normals
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
-from vhm_viz.filters._common import DeformationSource, numpy_points
+from vhm_viz.filters._common import DeformationSource, image_geometry, numpy_points
 from vhm_viz.filters.cells import add_cell_arrays, cell_quality
 
 __all__ = ["HarmonicDeformationFilter", "output_type_for"]
@@ -211,6 +211,8 @@ class HarmonicDeformationFilter(DeformationSource):
         inp = vtkDataSet.GetData(in_info[0], 0)
         out = vtkDataObject.GetData(out_info, 0)
         inp = self._piece_input(inp, in_info, out_info)
+        if inp.IsA("vtkImageData"):
+            return self._execute_image(inp, in_info, out)
         hm, dfm = self._resolve(in_info, inp)
         self.UpdateProgress(0.05)
         src = _as_point_set(inp)
@@ -251,13 +253,67 @@ class HarmonicDeformationFilter(DeformationSource):
                 self.cell_summary = quality["summary"]
         if self._displacement:
             _set_array(pd, "displacement", deformed - points)
+        self._finish(out, ev.outside)
+        return 1
+
+    def _finish(self, out, outside: np.ndarray) -> None:
+        """The outside flags (``vhm_outside``) and count (field ``vhm_outside_count``)."""
         if self._outside != "error":
-            _set_array(pd, "vhm_outside", ev.outside.astype(np.uint8))
+            _set_array(out.GetPointData(), "vhm_outside", outside.astype(np.uint8))
         count = ns.numpy_to_vtk(np.array([self.outside_count], dtype=np.int64), deep=1)
         count.SetName("vhm_outside_count")
         out.GetFieldData().RemoveArray("vhm_outside_count")
         out.GetFieldData().AddArray(count)
         self.UpdateProgress(1.0)
+
+
+    def _execute_image(self, inp, in_info, out):
+        """Images: the volume engine's lattice, streamed in slabs, instead of a binding.
+
+        The lattice is built over the whole extent (pieces of one update share it, so
+        they agree exactly); this piece's voxels are interpolated from it.
+        """
+        hm, _ = self._resolve(in_info, inp)
+        whole = in_info[0].GetInformationObject(0).Get(_SDDP.WHOLE_EXTENT())
+        whole = inp.GetExtent() if whole is None else whole
+        ext = inp.GetExtent()
+        vol = self._volume(hm, image_geometry(inp, whole), self._outside)
+        box = [ext[a] - whole[a - a % 2] for a in range(6)]
+        progress, abort = self._progress(0.0, 0.8), self._aborted
+        points = vol.warp(box, progress=progress, abort=abort)
+        inside = vol.lattice.inside(box).ravel()
+        self.outside_count = int(inside.size - np.count_nonzero(inside))
+        out.SetExtent(ext)
+        pts = vtkPoints()
+        pts.SetData(ns.numpy_to_vtk(points, deep=0))  # keeps a reference, no copy
+        out.SetPoints(pts)
+        out.GetPointData().ShallowCopy(inp.GetPointData())
+        out.GetCellData().ShallowCopy(inp.GetCellData())
+        pd = out.GetPointData()
+        pnormals = _normals_array(inp.GetPointData()) if self._deform_normals else None
+        if self._determinant or self._condition or pnormals is not None:
+            n = len(points)
+            det = np.empty(n) if self._determinant else None
+            cond = np.empty(n) if self._condition else None
+            normals = np.empty((n, 3)) if pnormals is not None else None
+            rest = ns.vtk_to_numpy(pnormals).reshape(-1, 3) if pnormals is not None else None
+            slabs = vol.jacobian_slabs(box, progress=self._progress(0.8, 0.95), abort=abort)
+            for rows, jac in slabs:
+                if det is not None:
+                    det[rows] = jacobian_determinant(jac)
+                if cond is not None:
+                    cond[rows] = condition_number(jac)
+                if normals is not None:
+                    normals[rows] = cofactor_normals(jac, rest[rows])
+            if det is not None:
+                _set_array(pd, "jacobian_determinant", det)
+            if cond is not None:
+                _set_array(pd, "condition_number", cond)
+            if normals is not None:
+                _set_array(pd, pnormals.GetName() or "Normals", normals, normals=True)
+        if self._displacement:
+            _set_array(pd, "displacement", points - vol.geometry.sub(box).points())
+        self._finish(out, ~inside)
         return 1
 
 

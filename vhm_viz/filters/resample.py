@@ -2,55 +2,50 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from vtkmodules.util import numpy_support as ns
 from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
-from vhm_viz.core.inverse import ImageGeometry, forward_lattice, pull_back, trilinear
-from vhm_viz.filters._common import DeformationSource
+from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry
+from vhm_viz.filters._common import DeformationSource, image_geometry
 
 __all__ = ["HarmonicResampleFilter", "image_geometry"]
 
 _SDDP = vtkStreamingDemandDrivenPipeline
 _MODES = ("deformed", "input")
-
-
-def image_geometry(img, extent=None) -> ImageGeometry:
-    """:class:`ImageGeometry` of a ``vtkImageData`` (or of one of its sub-extents)."""
-    ext = img.GetExtent() if extent is None else extent
-    origin = np.asarray(img.GetOrigin(), dtype=np.float64)
-    spacing = np.asarray(img.GetSpacing(), dtype=np.float64)
-    m = img.GetDirectionMatrix()
-    direction = np.array([[m.GetElement(i, j) for j in range(3)] for i in range(3)])
-    start = np.array(ext[0::2], dtype=np.float64)
-    dims = [ext[2 * a + 1] - ext[2 * a] + 1 for a in range(3)]
-    return ImageGeometry(origin + direction @ (start * spacing), spacing, dims, direction)
+#: Point arrays the filter adds (never resampled from an input that already has them).
+_OWN_ARRAYS = ("vtkValidPointMask", "vhm_foldover")
 
 
 class HarmonicResampleFilter(DeformationSource):
     """Resample a deformed volume onto a regular grid by pulling voxels back (vtkImageData).
 
-    Each output voxel centre ``y`` is mapped back to its pre-image ``x`` (``f(x) = y``)
-    by Newton iterations with the closed-form Jacobian, started from a forward-deformed
-    lattice of the input grid; every point array of the input is then sampled at ``x``
-    by trilinear interpolation (integer arrays are rounded back to their type). See
-    :mod:`vhm_viz.core.inverse`.
+    The volume engine (:mod:`vhm_viz.core.volume`) maps the input through an adaptive
+    lattice of exact map values and Jacobians (tricubic Hermite in between, within
+    :meth:`SetTolerance` voxels of the exact map); each output voxel is pulled back to its
+    pre-image by Newton's method on the lattice's polynomials, and every point array of
+    the input is sampled there (:meth:`SetInterpolation`; integer arrays keep their type).
 
-    **Fill value.** Voxels without a pre-image -- it would lie outside the cage or
-    outside the input volume (extended by half a voxel, where the nearest boundary values
-    are used, as ``vtkImageReslice``'s border does), or Newton did not converge -- get
-    :meth:`SetFillValue` (default 0, the background of CT/MR data) in every array, and 0
-    in the ``uint8`` array ``vtkValidPointMask`` (1 elsewhere), as ``vtkProbeFilter``
-    does. Cell data is not resampled.
+    **Fill value.** Voxels without a pre-image -- outside the deformed volume, whose
+    input extends half a voxel beyond its outer grid points as with ``vtkImageReslice``'s
+    border -- get :meth:`SetFillValue` (default 0) in every array and 0 in the ``uint8``
+    array ``vtkValidPointMask`` (1 elsewhere), as ``vtkProbeFilter`` does. Where several
+    pre-images exist (a fold) the ``uint8`` array ``vhm_foldover`` is 1; the field arrays
+    ``vhm_foldover_count`` and ``vhm_valid_count`` count them. Cell data is not resampled.
 
-    **Output grid.** ``"deformed"`` (default): the input spacing, over the bounding box of
-    the deformed volume (the part inside the cage); ``"input"``: the input grid itself;
-    or set explicitly with :meth:`SetOutputGeometry`. The output honours requested
-    sub-extents (pieces); the whole input volume and the whole cage are requested in
-    every piece, since a pre-image can be anywhere.
+    **Outside the cage** voxels follow the outside policy (:meth:`SetOutsidePolicy`):
+    ``"error"`` (default) refuses a volume with voxels outside the cage, ``"passthrough"``
+    leaves them in place (output voxels outside the cage take the input there), ``"nan"``
+    drops them.
+
+    **Output grid.** ``"deformed"`` (default): the input's spacing (or
+    :meth:`SetOutputSpacing`) and direction, over the box that holds the whole deformed
+    volume (bounded from the lattice's control points, so nothing is clipped);
+    ``"input"``: the input grid itself; or :meth:`SetReferenceImage` (another image's
+    grid) or :meth:`SetOutputGeometry`. The output honours requested sub-extents (pieces);
+    the whole input volume and the whole cage are requested in every piece, since a
+    pre-image can be anywhere, and all pieces share one lattice.
 
     Input port 0: ``vtkImageData``; port 1: optional cage. The deformation is set as for
     :class:`~vhm_viz.filters.HarmonicDeformationFilter`.
@@ -60,12 +55,11 @@ class HarmonicResampleFilter(DeformationSource):
         super().__init__(input_type="vtkImageData", output_type="vtkImageData")
         self._fill = 0.0
         self._mode = "deformed"
-        self._explicit = None
-        self._tolerance = 1e-3
-        self._max_iterations = 30
-        self._lattice = None
-        self._geometry = None
-        #: Newton statistics of the last execution: voxels, valid voxels.
+        self._explicit: ImageGeometry | None = None
+        self._spacing = None
+        self._interpolation = "linear"
+        self._geometry: ImageGeometry | None = None
+        #: Counts of the last execution: voxels, valid, identity, foldover.
         self.stats: dict = {}
 
     # ------------------------------------------------------------------ options
@@ -78,33 +72,42 @@ class HarmonicResampleFilter(DeformationSource):
         """The fill value."""
         return self._fill
 
+    def SetInterpolation(self, kind: str) -> None:
+        """``"linear"`` (trilinear, default), ``"nearest"`` (label maps) or ``"cubic"``."""
+        if kind not in INTERPOLATIONS:
+            raise ValueError(f"interpolation must be one of {INTERPOLATIONS}; got {kind!r}")
+        self._interpolation = kind
+        self.Modified()
+
+    def GetInterpolation(self) -> str:
+        """The interpolation kind."""
+        return self._interpolation
+
     def SetOutputMode(self, mode: str) -> None:
-        """``"deformed"`` (bounding box of the deformed volume) or ``"input"`` (input grid)."""
+        """``"deformed"`` (the whole deformed volume) or ``"input"`` (the input grid)."""
         if mode not in _MODES:
             raise ValueError(f"output mode must be one of {_MODES}; got {mode!r}")
         self._mode = mode
         self._explicit = None
         self.Modified()
 
-    def SetOutputGeometry(self, origin, spacing, dimensions) -> None:
-        """An explicit output grid (axis-aligned)."""
-        dims = tuple(int(d) for d in dimensions)
-        if len(dims) != 3 or min(dims) < 1:
-            raise ValueError(f"dimensions must be three positive integers; got {dimensions}")
-        sp = np.asarray(spacing, dtype=np.float64).reshape(3)
-        if not (sp > 0).all():
-            raise ValueError(f"spacing must be positive; got {spacing}")
-        self._explicit = ImageGeometry(origin, sp, dims)
+    def SetOutputSpacing(self, spacing) -> None:
+        """Voxel size of the ``"deformed"`` output grid (default: the input spacing)."""
+        if spacing is not None:
+            spacing = tuple(float(v) for v in np.asarray(spacing, dtype=np.float64).reshape(3))
+            if not all(np.isfinite(v) and v > 0 for v in spacing):
+                raise ValueError(f"spacing must be three positive numbers; got {spacing}")
+        self._spacing = spacing
         self.Modified()
 
-    def SetTolerance(self, value: float) -> None:
-        """Newton tolerance on ``|f(x) - y|`` as a fraction of the smallest input spacing."""
-        self._tolerance = float(value)
+    def SetOutputGeometry(self, origin, spacing, dimensions, direction=None) -> None:
+        """An explicit output grid."""
+        self._explicit = ImageGeometry(origin, spacing, dimensions, direction)
         self.Modified()
 
-    def SetMaxIterations(self, value: int) -> None:
-        """Newton iteration cap (default 30)."""
-        self._max_iterations = int(value)
+    def SetReferenceImage(self, image) -> None:
+        """Resample onto the grid (origin, spacing, dimensions, direction) of ``image``."""
+        self._explicit = image_geometry(image)
         self.Modified()
 
     # ------------------------------------------------------------------ pipeline
@@ -112,27 +115,24 @@ class HarmonicResampleFilter(DeformationSource):
         """Compute the output grid (needs the map: built or solved here if necessary)."""
         return self._guard(self._information, in_info, out_info)
 
-    def _information(self, in_info, out_info):
+    def _engine(self, in_info, img):
         info0 = in_info[0].GetInformationObject(0)
-        img = vtkImageData.GetData(in_info[0], 0)
         whole = info0.Get(_SDDP.WHOLE_EXTENT())
         if img is None or whole is None:
             raise ValueError("HarmonicResampleFilter needs vtkImageData on input port 0")
-        src = image_geometry(img, whole)
         hm, _ = self._resolve(in_info, img)
-        self._lattice = forward_lattice(hm, src)
+        return self._volume(hm, image_geometry(img, whole), self._outside)
+
+    def _information(self, in_info, out_info):
+        img = vtkImageData.GetData(in_info[0], 0)
+        vol = self._engine(in_info, img)
         if self._explicit is not None:
             geo = self._explicit
         elif self._mode == "input":
-            geo = ImageGeometry(src.origin, src.spacing, src.dimensions, src.direction)
+            geo = vol.geometry
         else:
-            deformed = self._lattice[1]
-            if len(deformed) == 0:
-                raise ValueError("no input voxel lies inside the cage")
-            lo, hi = deformed.min(0), deformed.max(0)
-            sp = src.spacing
-            dims = [max(1, math.floor((hi[a] - lo[a]) / sp[a] + 1e-9) + 1) for a in range(3)]
-            geo = ImageGeometry(lo, sp, dims)
+            vol.build(progress=self._progress(0.0, 0.5), abort=self._aborted)
+            geo = vol.output_geometry(self._spacing)
         self._geometry = geo
         out = out_info.GetInformationObject(0)
         nx, ny, nz = geo.dimensions
@@ -156,8 +156,7 @@ class HarmonicResampleFilter(DeformationSource):
         img = vtkImageData.GetData(in_info[0], 0)
         out = vtkImageData.GetData(out_info, 0)
         info = out_info.GetInformationObject(0)
-        hm, _ = self._resolve(in_info, img)
-        src = image_geometry(img)
+        vol = self._engine(in_info, img)
         geo = self._geometry
         ext = info.Get(_SDDP.UPDATE_EXTENT())
         if ext is None:
@@ -166,43 +165,40 @@ class HarmonicResampleFilter(DeformationSource):
         out.SetOrigin(*geo.origin)
         out.SetSpacing(*geo.spacing)
         out.SetDirectionMatrix(*geo.direction.ravel())
-        sub = image_geometry(out, ext)
-        y = sub.points()
-        tol = self._tolerance * float(np.min(src.spacing))
-        x, valid = pull_back(
-            hm,
-            src,
-            y,
-            tolerance=tol,
-            max_iterations=self._max_iterations,
-            progress=self._progress(0.05, 0.9),
-            abort=self._aborted,
-            lattice=self._lattice,
-        )
-        self.stats = {"voxels": len(y), "valid": int(valid.sum())}
         pd_in, pd_out = img.GetPointData(), out.GetPointData()
-        xs = x[valid]
-        scalars_name = pd_in.GetScalars().GetName() if pd_in.GetScalars() is not None else None
+        scalars = pd_in.GetScalars().GetName() if pd_in.GetScalars() is not None else None
+        arrays, types = {}, {}
         for a in range(pd_in.GetNumberOfArrays()):
             arr = pd_in.GetArray(a)
-            if arr is None or arr.GetName() == "vtkValidPointMask":
+            if arr is None or arr.GetName() in _OWN_ARRAYS:
                 continue
-            vals = ns.vtk_to_numpy(arr)
-            comps = arr.GetNumberOfComponents()
-            res = np.full((len(y), comps) if comps > 1 else len(y), self._fill, dtype=np.float64)
-            if xs.size:
-                res[valid] = trilinear(vals, src, xs, self._fill)
-            if np.issubdtype(vals.dtype, np.integer):
-                info_t = np.iinfo(vals.dtype)
-                res = np.clip(np.rint(res), info_t.min, info_t.max)
-            res = res.astype(vals.dtype)
-            new = ns.numpy_to_vtk(np.ascontiguousarray(res), deep=1, array_type=arr.GetDataType())
-            new.SetName(arr.GetName())
+            arrays[arr.GetName()] = ns.vtk_to_numpy(arr)
+            types[arr.GetName()] = arr.GetDataType()
+        res = vol.resample(
+            arrays,
+            geo,
+            box=ext,
+            interpolation=self._interpolation,
+            fill_value=self._fill,
+            progress=self._progress(0.0, 0.98),
+            abort=self._aborted,
+        )
+        self.stats = dict(res.counts)
+        for name, values in res.arrays.items():
+            new = ns.numpy_to_vtk(values, deep=0, array_type=types[name])
+            new.SetName(name)
             pd_out.AddArray(new)
-            if arr.GetName() == scalars_name:
-                pd_out.SetActiveScalars(arr.GetName())
-        mask = ns.numpy_to_vtk(valid.astype(np.uint8), deep=1)
-        mask.SetName("vtkValidPointMask")
-        pd_out.AddArray(mask)
+            if name == scalars:
+                pd_out.SetActiveScalars(name)
+        for name, values in (("vtkValidPointMask", res.valid), ("vhm_foldover", res.foldover)):
+            new = ns.numpy_to_vtk(values, deep=0)
+            new.SetName(name)
+            pd_out.AddArray(new)
+        fd = out.GetFieldData()
+        for name in ("valid", "foldover"):
+            count = ns.numpy_to_vtk(np.array([res.counts[name]], dtype=np.int64), deep=1)
+            count.SetName(f"vhm_{name}_count")
+            fd.RemoveArray(count.GetName())
+            fd.AddArray(count)
         self.UpdateProgress(1.0)
         return 1

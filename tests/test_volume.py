@@ -1,0 +1,481 @@
+"""Volumes: the lattice engine against independent references, and volume files.
+
+References: scipy.ndimage.affine_transform (affine maps), the exact closed-form map and
+scipy's root finder on it (random bends), the exact winding number (inside tests),
+SimpleITK (MetaImage/NIfTI geometry, when installed).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pv = pytest.importorskip("pyvista")
+
+from conftest import affine_resampled, box_cage, data_path  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from vhm_viz import Cage, HarmonicMap  # noqa: E402
+from vhm_viz.core.basis import inside_cage, winding_number  # noqa: E402
+from vhm_viz.core.errors import AbortedError, OutsideCageError  # noqa: E402
+from vhm_viz.core.image import ImageGeometry, inside_mask  # noqa: E402
+from vhm_viz.core.volume import VolumeDeformation  # noqa: E402
+from vhm_viz.io import read_dataset, write_dataset  # noqa: E402
+
+
+def _cage_around(lo, hi, margin, divisions=2):
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    pad = margin * (hi - lo).max()
+    return Cage(*box_cage(lo - pad, hi + pad, divisions))
+
+
+def _random_bend(cage, scale, seed):
+    """The identity plus random coefficient noise: a smooth map with cage-edge kinks."""
+    rng = np.random.default_rng(seed)
+    z = np.array(HarmonicMap.identity(cage).coefficients)
+    z += scale * cage.diagonal * rng.standard_normal(z.shape)
+    return HarmonicMap(cage, z)
+
+
+def _voxel_error(geo, delta):
+    """Euclidean norm of world displacements in voxels of ``geo``'s spacing."""
+    return np.linalg.norm(np.asarray(delta) @ geo.world_to_index.T, axis=1)
+
+
+# --------------------------------------------------------------------------- inside mask
+
+
+def test_scan_line_mask_equals_winding_number_on_a_rotated_mirrored_grid():
+    from vhm_viz import read_cage
+
+    cage = read_cage(data_path("armadillo", "cage_216f.obj"))
+    lo, hi = cage.vertices.min(0), cage.vertices.max(0)
+    rot = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix() @ np.diag([1.0, -1.0, 1.0])
+    sp = (hi - lo).max() / np.array([40.0, 47.0, 43.0])
+    geo = ImageGeometry((lo + hi) / 2 - rot @ (sp * 22), sp, (44, 45, 41), rot)
+    mask = inside_mask(geo, cage.vertices, cage.faces).ravel()
+    wn = winding_number(geo.points(), cage.vertices, cage.faces)
+    clear = np.abs(wn - 0.5) > 0.25  # not within rounding of the surface
+    assert 0.1 < mask.mean() < 0.9
+    np.testing.assert_array_equal(mask[clear], inside_cage(wn[clear]))
+
+
+# ------------------------------------------------------------------------- affine maps
+
+
+def _smooth_volume(dims, spacing, origin):
+    img = pv.ImageData(dimensions=dims, spacing=spacing, origin=origin)
+    p = np.asarray(img.points)
+    img.point_data["density"] = np.sin(0.21 * p[:, 0]) * np.cos(0.17 * p[:, 1]) + 0.05 * p[:, 2]
+    return img
+
+
+def test_affine_map_reproduces_scipy_affine_transform():
+    """Warp and resample of an affine map agree with scipy.ndimage to rounding."""
+    img = _smooth_volume((48, 44, 40), (1.0, 1.1, 1.2), (-24.0, -24.0, -24.0))
+    geo = ImageGeometry(img.origin, img.spacing, img.dimensions)
+    lo, hi = np.asarray(img.bounds[0::2]), np.asarray(img.bounds[1::2])
+    cage = _cage_around(lo, hi, 0.3, divisions=1)
+    A = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix() @ np.diag([1.1, 0.95, 1.0])
+    T = np.array([1.5, -2.0, 0.5])
+    vol = VolumeDeformation(HarmonicMap.affine(cage, A, T), geo)
+    assert vol.root > 1  # the lattice, not voxel by voxel
+    pts = vol.warp()
+    np.testing.assert_allclose(pts, geo.points() @ A.T + T, rtol=0, atol=1e-9)
+    # nothing was refined: an affine map is interpolated exactly
+    assert set(vol.lattice.stats["leaves_per_size"]) == {vol.root}
+    res = vol.resample({"density": np.asarray(img.point_data["density"])}, geometry=geo)
+    ref, clearly_in, clearly_out = affine_resampled(img, "density", A, T)
+    assert clearly_in.mean() > 0.5 and clearly_out.any()
+    assert res.valid[clearly_in].all() and not res.valid[clearly_out].any()
+    got = res.arrays["density"]
+    np.testing.assert_allclose(got[clearly_in], ref[clearly_in], rtol=0, atol=1e-10)
+    assert res.counts["foldover"] == 0
+
+
+# ----------------------------------------------------------------------- random bends
+
+
+@pytest.fixture(scope="module")
+def bend():
+    """A 72 x 64 x 56 volume in a 2-division box cage, randomly bent by up to ~14 voxels."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.25), (72, 64, 56))
+    lo, hi = geo.origin, geo.points(np.array([geo.dimensions]) - 1.0)[0]
+    cage = _cage_around(lo, hi, 0.02)
+    hm = _random_bend(cage, 0.004, seed=4)
+    vol = VolumeDeformation(hm, geo, tolerance=0.05)
+    vol.build()
+    return geo, cage, hm, vol
+
+
+def _near_cage_voxels(geo, cage, count, rng):
+    """Voxels within two voxels of the cage (the hard ones), by the scan-line mask."""
+    from scipy.ndimage import binary_erosion
+
+    nx, ny, nz = geo.dimensions
+    inside = inside_mask(geo, cage.vertices, cage.faces)
+    band = inside & ~binary_erosion(inside, iterations=2, border_value=0)
+    ijk = np.argwhere(band)[:, ::-1]
+    return ijk[rng.choice(len(ijk), min(count, len(ijk)), replace=False)]
+
+
+def test_warp_matches_exact_map_within_tolerance(bend):
+    geo, cage, hm, vol = bend
+    rng = np.random.default_rng(0)
+    pts = vol.warp()
+    nx, ny, _ = geo.dimensions
+    everywhere = rng.choice(geo.n_points, 4000, replace=False)
+    ijk = np.column_stack([everywhere % nx, (everywhere // nx) % ny, everywhere // (nx * ny)])
+    ijk = np.vstack([ijk, _near_cage_voxels(geo, cage, 3000, rng)])
+    flat = ijk[:, 0] + nx * (ijk[:, 1] + ny * ijk[:, 2])
+    exact = hm.map(geo.points(ijk))
+    err = _voxel_error(geo, pts[flat] - exact)
+    assert err.max() <= vol.tolerance
+    # a real deformation, refined near the cage
+    assert _voxel_error(geo, exact - geo.points(ijk)).max() > 2.0
+    assert min(vol.lattice.stats["leaves_per_size"]) < vol.root
+
+
+def test_resample_preimages_match_exact_inverse(bend):
+    """Pre-images of output voxels over the deformed volume (and of voxels whose pre-image
+    is next to the cage) are within the tolerance of scipy's root of the exact map.
+
+    A position error ``e`` moves a pre-image by up to ``e / s_min`` (``s_min``: smallest
+    singular value of the Jacobian in voxel units), so the bound is the tolerance divided
+    by ``min(1, s_min)``: this bend folds space in places, where no inverse is accurate.
+    """
+    from scipy.optimize import root
+
+    geo, cage, hm, vol = bend
+    out = vol.output_geometry()
+    rng = np.random.default_rng(1)
+    near = geo.points(_near_cage_voxels(geo, cage, 150, rng).astype(float))
+    near_out = np.rint(out.continuous_index(hm.map(near))).astype(np.int64)
+    # output voxels over the deformed volume: near images of random input voxels
+    x = geo.points(rng.uniform(0, np.asarray(geo.dimensions) - 1, (600, 3)))
+    x = x[inside_cage(winding_number(x, cage.vertices, cage.faces))]
+    anywhere = np.rint(out.continuous_index(hm.map(x))).astype(np.int64)
+    voxels = np.vstack([near_out, anywhere])
+    u, kind, fold = vol.preimages(out, voxels)
+    found = np.nonzero(kind == 1)[0]
+    assert len(found) > 0.9 * len(voxels)
+    assert (kind[: len(near_out)] == 1).mean() > 0.8  # next to the cage too (rounding to a
+    # voxel can leave the deformed volume there)
+    scaled, plain = [], []
+    for p in found:
+        y = out.points(voxels[p][None].astype(float))[0]
+        sol = root(lambda x, y=y: hm.map(x[None])[0] - y, geo.points(u[p][None])[0], tol=1e-12)
+        assert np.linalg.norm(hm.map(sol.x[None])[0] - y) < 1e-9  # (success may be False
+        # when the start is already the root to rounding)
+        err = np.linalg.norm(geo.continuous_index(sol.x[None])[0] - u[p])
+        jac = geo.world_to_index @ hm.jacobian(sol.x[None])[0] @ geo.index_to_world
+        s_min = np.linalg.svd(jac, compute_uv=False)[-1]
+        scaled.append(err * min(1.0, s_min))
+        if not fold[p] and s_min > 0.3:
+            plain.append(err)
+    assert max(scaled) <= vol.tolerance
+    assert len(plain) > 0.5 * len(found) and max(plain) <= vol.tolerance
+
+
+def test_output_grid_contains_every_deformed_voxel(bend):
+    geo, cage, hm, vol = bend
+    out = vol.output_geometry()
+    np.testing.assert_allclose(out.spacing, geo.spacing)
+    inside = inside_mask(geo, cage.vertices, cage.faces).ravel()
+    deformed = hm.map(geo.points()[inside])
+    idx = out.continuous_index(deformed)
+    top = np.asarray(out.dimensions) - 1
+    assert (idx >= 0).all() and (idx <= top).all()
+    # not oversized: each side within two voxels of the deformed voxels' extent
+    assert (idx.min(0) < 2).all() and (idx.max(0) > top - 2).all()
+    # on the input's voxel lattice: the offset is a whole number of voxels
+    shift = geo.continuous_index(out.origin[None])[0]
+    np.testing.assert_allclose(shift, np.round(shift), atol=1e-9)
+
+
+def test_resampled_voxels_hold_the_input_at_their_preimage(bend):
+    geo, cage, hm, vol = bend
+    rng = np.random.default_rng(2)
+    values = rng.standard_normal(geo.n_points).astype(np.float32)
+    labels = rng.integers(0, 7, geo.n_points).astype(np.uint16) * 1000
+    res = vol.resample({"v": values, "label": labels}, interpolation="nearest")
+    assert res.arrays["label"].dtype == np.uint16 and res.arrays["v"].dtype == np.float32
+    assert set(np.unique(res.arrays["label"][res.valid == 1])) <= set(np.unique(labels))
+    assert (res.arrays["label"][res.valid == 0] == 0).all()
+    lin = vol.resample({"label": labels}, interpolation="linear", fill_value=-5)
+    assert lin.arrays["label"].dtype == np.uint16  # rounded and clipped back
+    assert (lin.arrays["label"][lin.valid == 0] == 0).all()  # -5 clipped to the type
+
+
+def test_two_pieces_equal_one_piece(bend):
+    geo, cage, hm, vol = bend
+    rng = np.random.default_rng(3)
+    values = rng.standard_normal(geo.n_points)
+    out = vol.output_geometry()
+    whole = vol.resample({"v": values}, out)
+    nx, ny, nz = out.dimensions
+    half = nz // 2
+    parts = [
+        vol.resample({"v": values}, out, box=(0, nx - 1, 0, ny - 1, 0, half)),
+        vol.resample({"v": values}, out, box=(0, nx - 1, 0, ny - 1, half + 1, nz - 1)),
+    ]
+    joined = np.concatenate([p.arrays["v"] for p in parts])
+    np.testing.assert_allclose(joined, whole.arrays["v"], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(np.concatenate([p.valid for p in parts]), whole.valid)
+    pts = vol.warp()
+    box = (5, 40, 3, 60, 10, 30)
+    sub = vol.warp(box)
+    ref = pts.reshape(geo.dimensions[::-1] + (3,))[10:31, 3:61, 5:41].reshape(-1, 3)
+    np.testing.assert_array_equal(sub, ref)
+
+
+def test_memory_bound_slabs_do_not_grow_with_the_volume():
+    """With a small budget the largest slab is the same for a volume 4 times longer."""
+    cage_lo, cage_hi = (-1.0, -1.0, -1.0), (33.0, 33.0, 130.0)
+    cage = _cage_around(cage_lo, cage_hi, 0.0)
+    hm = _random_bend(cage, 0.002, seed=1)
+    values = {}
+    for nz in (32, 128):
+        geo = ImageGeometry((0, 0, 0), (1, 1, 1), (32, 32, nz))
+        vol = VolumeDeformation(hm, geo, memory_budget=200_000)
+        vol.warp()
+        warp_slab = vol.largest_slab
+        res = vol.resample({"v": np.zeros(geo.n_points, np.float32)}, geometry=geo)
+        assert res.counts["voxels"] == geo.n_points
+        values[nz] = (warp_slab, vol.largest_slab, vol.slab_count)
+    (w32, r32, n32), (w128, r128, n128) = values[32], values[128]
+    assert w32 == w128 and r32 == r128  # the working set per slab is fixed
+    assert r32 * 56 <= 200_000 + 32 * 32 * 56  # within the budget (one plane at least)
+    assert n128 >= 3 * n32  # more slabs instead
+
+
+def test_outside_policies_and_abort(bend):
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (40, 40, 40))
+    cage = _cage_around((8, 8, 8), (30, 30, 30), 0.0)  # the volume sticks out
+    hm = _random_bend(cage, 0.01, seed=3)
+    with pytest.raises(OutsideCageError, match="voxels are outside the cage"):
+        VolumeDeformation(hm, geo).warp()
+    inside = inside_mask(geo, cage.vertices, cage.faces).ravel()
+    kept = VolumeDeformation(hm, geo, outside="passthrough")
+    pts = kept.warp()
+    np.testing.assert_array_equal(pts[~inside], geo.points()[~inside])
+    dropped = VolumeDeformation(hm, geo, outside="nan").warp()
+    assert np.isnan(dropped[~inside]).all() and np.isfinite(dropped[inside]).all()
+    # resampled: outside voxels stay in place (passthrough) or vanish (nan)
+    values = {"v": np.ones(geo.n_points)}
+    res_kept = kept.resample(values, geometry=geo)
+    res_nan = VolumeDeformation(hm, geo, outside="nan").resample(values, geometry=geo)
+    assert res_kept.counts["identity"] > 0 and res_nan.counts["identity"] == 0
+    assert res_kept.counts["valid"] > res_nan.counts["valid"]
+    calls = []
+
+    def abort():
+        calls.append(1)
+        return len(calls) > 2
+
+    fresh = VolumeDeformation(hm, geo, outside="passthrough", memory_budget=100_000)
+    with pytest.raises(AbortedError):
+        fresh.warp(abort=abort)
+
+
+def test_fold_is_flagged():
+    """A map that folds space over itself gives voxels with two pre-images."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (40, 36, 36))
+    cage = _cage_around((0, 0, 0), (39, 35, 35), 0.05, divisions=3)
+    z = np.array(HarmonicMap.identity(cage).coefficients)
+    v = np.asarray(cage.vertices)
+    # push the cage vertices of the left half far to the right (past the others)
+    left = v[:, 0] < 10
+    z[: len(v)][left, 0] += 45.0
+    vol = VolumeDeformation(HarmonicMap(cage, z), geo)
+    res = vol.resample({"v": np.ones(geo.n_points)})
+    det = vol.jacobian_measures()["determinant"]
+    assert (det <= 0).any()  # the map folds
+    assert res.counts["foldover"] > 0
+    assert res.foldover.sum() == res.counts["foldover"]
+
+
+# ----------------------------------------------------------------------- volume files
+
+
+@pytest.mark.parametrize("suffix", [".mhd", ".mha", ".nii", ".nii.gz", ".vti"])
+def test_volume_files_keep_origin_spacing_direction(tmp_path, suffix):
+    img = pv.ImageData(dimensions=(5, 6, 7), spacing=(0.5, 0.7, 0.9), origin=(1.0, -2.0, 3.0))
+    img.direction_matrix = Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix()
+    img.point_data["a"] = np.arange(img.n_points, dtype=np.int16)
+    path = tmp_path / f"v{suffix}"
+    write_dataset(path, img)
+    back = read_dataset(path)
+    np.testing.assert_allclose(back.origin, img.origin, atol=1e-5)
+    np.testing.assert_allclose(back.spacing, img.spacing, atol=1e-6)
+    np.testing.assert_allclose(back.direction_matrix, img.direction_matrix, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(back.active_scalars), img.point_data["a"])
+    if suffix == ".vti":
+        return
+    sitk = pytest.importorskip("SimpleITK")  # the geometry as ITK reads it
+    s = sitk.ReadImage(str(path))
+    np.testing.assert_allclose(s.GetOrigin(), img.origin, atol=1e-5)
+    direction = np.reshape(s.GetDirection(), (3, 3))
+    np.testing.assert_allclose(direction, img.direction_matrix, atol=1e-6)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(s).ravel(), img.point_data["a"])
+
+
+# ------------------------------------------------------------------------ command line
+
+
+def _write_slc(path, vol, spacing):
+    """A minimal SLC file (8 bits, uncompressed, 1 x 1 icon), as VTK's reader reads it."""
+    nz, ny, nx = vol.shape
+    header = f"11111\n{nx} {ny} {nz} 8\n{spacing[0]} {spacing[1]} {spacing[2]}\n0 0 0 0\n1 1 X"
+    path.write_bytes(header.encode() + b"\0\0\0" + vol.astype(np.uint8).tobytes())
+
+
+def _bend_scene(folder, lo, hi):
+    """A scene file: box cage around [lo, hi], the far end turned by 20 degrees."""
+    import json
+
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    pad = 0.08 * (hi - lo)
+    v, f = box_cage(lo - pad, hi + pad, divisions=2)
+    centre = 0.5 * (lo + hi)
+    axis = np.array([0.0, 0.0, 1.0]) * (hi - lo)
+    anchors = [centre + t * 0.35 * axis for t in np.linspace(-1, 1, 5)]
+    turn = Rotation.from_rotvec([np.radians(20), 0, 0]).as_matrix()
+    base, top = centre - 0.35 * axis, centre + 0.35 * axis
+    scene = {
+        "format": "vhm_viz.scene",
+        "version": 1,
+        "cage": {"vertices": v.tolist(), "faces": f.tolist()},
+        "anchors": np.array(anchors).tolist(),
+        "constraints": {
+            "positions": [base.tolist(), top.tolist()],
+            "targets": [base.tolist(), (base + turn @ (top - base)).tolist()],
+            "jacobian_points": [base.tolist(), top.tolist()],
+            "jacobians": [np.eye(3).tolist(), turn.tolist()],
+        },
+    }
+    path = folder / "scene.json"
+    path.write_text(json.dumps(scene))
+    return path
+
+
+@pytest.fixture(scope="module")
+def cli_volume(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("volcli")
+    z, y, x = np.mgrid[0:44, 0:36, 0:34]
+    vol = (40 + 100 * (((x // 6) + (y // 6) + (z // 6)) % 2)).astype(np.uint8)
+    spacing = (1.0, 1.1, 0.9)
+    img = pv.ImageData(dimensions=vol.shape[::-1], spacing=spacing)
+    img.point_data["v"] = vol.ravel()
+    files = {}
+    for suffix in (".vti", ".mhd", ".nii.gz"):
+        files[suffix] = folder / f"in{suffix}"
+        write_dataset(files[suffix], img)
+    files[".slc"] = folder / "in.slc"
+    _write_slc(files[".slc"], vol, spacing)
+    scene = _bend_scene(folder, img.bounds[0::2], img.bounds[1::2])
+    return folder, img, files, scene
+
+
+def _cli(capsys, *argv):
+    from vhm_viz.cli import main
+
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+@pytest.mark.parametrize("source", [".vti", ".slc", ".mhd", ".nii.gz"])
+def test_cli_deforms_every_volume_format(cli_volume, source, tmp_path, capsys):
+    folder, img, files, scene = cli_volume
+    outputs = {}
+    for target in (".vti", ".mhd", ".nii.gz", ".vts"):
+        path = tmp_path / f"out{target}"
+        rc, out, err = _cli(capsys, "deform", files[source], "-s", scene, "-o", path, "-q")
+        assert rc == 0, err
+        assert "tolerance 0.05 voxel" in out and str(path) in out
+        if target != ".vts":
+            assert "voxels with a pre-image" in out and "in folds" in out
+        outputs[target] = read_dataset(path)
+    grid = outputs[".vti"]
+    for target in (".mhd", ".nii.gz"):  # the same grid and voxels in every format
+        other = outputs[target]
+        np.testing.assert_allclose(other.origin, grid.origin, atol=1e-4)
+        np.testing.assert_allclose(other.spacing, grid.spacing, atol=1e-6)
+        np.testing.assert_allclose(other.direction_matrix, grid.direction_matrix, atol=1e-6)
+        np.testing.assert_array_equal(other.active_scalars, grid.active_scalars)
+    assert grid.active_scalars.dtype == np.uint8
+    assert "vtkValidPointMask" in grid.point_data and "vhm_foldover" in grid.point_data
+    warped = outputs[".vts"]
+    assert warped.n_points == img.n_points
+    np.testing.assert_array_equal(warped.active_scalars, img.point_data["v"])
+    moved = np.linalg.norm(np.asarray(warped.points) - np.asarray(img.points), axis=1)
+    assert moved.max() > 3.0  # really bent
+
+
+def test_cli_resampling_options(cli_volume, tmp_path, capsys):
+    folder, img, files, scene = cli_volume
+    src = files[".vti"]
+    rc, out, err = _cli(
+        capsys, "deform", src, "-s", scene, "-o", tmp_path / "a.vti", "-q",
+        "--interpolation", "nearest", "--spacing", "2", "--fill-value", "7",
+    )  # fmt: skip
+    assert rc == 0, err
+    a = read_dataset(tmp_path / "a.vti")
+    np.testing.assert_allclose(a.spacing, 2.0)
+    values = np.asarray(a.point_data["v"])
+    valid = np.asarray(a.point_data["vtkValidPointMask"]).astype(bool)
+    assert set(np.unique(values[valid])) <= {40, 140} and (values[~valid] == 7).all()
+    # onto another image's grid
+    ref = pv.ImageData(dimensions=(20, 21, 22), spacing=(1.5, 1.5, 1.5), origin=(-3, -2, -1))
+    ref.point_data["r"] = np.zeros(ref.n_points, np.uint8)
+    write_dataset(tmp_path / "ref.mhd", ref)
+    rc, out, err = _cli(
+        capsys, "deform", src, "-s", scene, "-o", tmp_path / "b.nii.gz", "-q",
+        "--reference", tmp_path / "ref.mhd", "--tolerance", "0.02",
+    )  # fmt: skip
+    assert rc == 0, err
+    b = read_dataset(tmp_path / "b.nii.gz")
+    assert b.dimensions == ref.dimensions
+    np.testing.assert_allclose(b.origin, ref.origin, atol=1e-4)
+    # bad values are refused
+    for extra in (["--tolerance", "0"], ["--spacing", "1,2"], ["--interpolation", "sinc"]):
+        try:
+            rc, _, err = _cli(capsys, "deform", src, "-s", scene, "-o", tmp_path / "c.vti", *extra)
+        except SystemExit as exc:  # argparse
+            rc, err = exc.code, capsys.readouterr().err
+        assert rc != 0 and err.strip()
+    assert not (tmp_path / "c.vti").exists()
+
+
+def test_cli_volume_outside_the_cage(cli_volume, tmp_path, capsys):
+    import json
+
+    folder, img, files, scene = cli_volume
+    data = json.loads(scene.read_text())
+    v = np.asarray(data["cage"]["vertices"])
+    centre = v.mean(0)
+    data["cage"]["vertices"] = (centre + 0.8 * (v - centre)).tolist()  # too small now
+    small = tmp_path / "small.json"
+    small.write_text(json.dumps(data))
+    target = tmp_path / "o.vti"
+    rc, out, err = _cli(capsys, "deform", files[".vti"], "-s", small, "-o", target, "-q")
+    assert rc != 0 and len(err.strip().splitlines()) == 1
+    assert "outside the cage" in err and "--outside passthrough" in err
+    rc, out, err = _cli(
+        capsys, "deform", files[".vti"], "-s", small, "-o", tmp_path / "o.vti", "-q",
+        "--outside", "passthrough",
+    )  # fmt: skip
+    assert rc == 0, err
+    assert "left in place outside the cage" in out
+
+
+def test_slice_is_the_plane_of_the_resampled_volume(bend):
+    geo, cage, hm, vol = bend
+    values = {"v": np.arange(geo.n_points, dtype=np.float64)}
+    whole = vol.resample(values)
+    nx, ny, nz = whole.geometry.dimensions
+    plane = vol.slice(values, axis=1, index=ny // 3)
+    assert plane.geometry.dimensions == (nx, 1, nz)
+    ref = whole.arrays["v"].reshape(nz, ny, nx)[:, ny // 3, :].ravel()
+    np.testing.assert_allclose(plane.arrays["v"], ref, rtol=0, atol=1e-6)
