@@ -6,8 +6,9 @@ Modelled on meshio's ParaView plugin: the filter is a thin wrapper that delegate
 work to :class:`vhm_viz.filters.HarmonicDeformationFilter`.
 
 Inputs: the data to deform (any dataset) and, optionally, the cage (polydata). Properties:
-the scene file (JSON, see ``vhm_viz.scene``), the outside-the-cage policy and the optional
-output arrays.
+the scene file (JSON, see ``vhm_viz.scene``), the outside-the-cage policy, the optional
+output arrays and, for image data, the volume tolerance (the lattice of
+``vhm_viz.core.volume``).
 """
 
 from paraview.util.vtkAlgorithm import (
@@ -36,6 +37,7 @@ class VHMHarmonicDeformation(VTKPythonAlgorithmBase):
         self._scene_file = ""
         self._outside = "error"
         self._arrays = [False, False, False]
+        self._tolerance = 0.05
         self._inner = HarmonicDeformationFilter()
 
     def FillInputPortInformation(self, port, info):
@@ -74,6 +76,17 @@ class VHMHarmonicDeformation(VTKPythonAlgorithmBase):
         self._arrays = [bool(displacement), bool(determinant), bool(condition)]
         self.Modified()
 
+    @smproperty.xml(
+        '<DoubleVectorProperty name="VolumeTolerance" command="SetVolumeTolerance" '
+        'number_of_elements="1" default_values="0.05"><DoubleRangeDomain name="range" '
+        'min="0.001"/><Documentation>Image data: largest position error of a warped voxel, '
+        "in voxels (default 0.05).</Documentation></DoubleVectorProperty>"
+    )
+    def SetVolumeTolerance(self, value):
+        if float(value) != self._tolerance:
+            self._tolerance = float(value)
+            self.Modified()
+
     # the same output-type rules as the filter it wraps (vtkWarpVector's)
     RequestDataObject = HarmonicDeformationFilter.RequestDataObject
 
@@ -90,6 +103,7 @@ class VHMHarmonicDeformation(VTKPythonAlgorithmBase):
         if cage is not None:
             inner.SetCageData(cage)
         inner.SetOutsidePolicy(self._outside)
+        inner.SetTolerance(self._tolerance)
         inner.SetComputeDisplacement(self._arrays[0])
         inner.SetComputeJacobianDeterminant(self._arrays[1])
         inner.SetComputeConditionNumber(self._arrays[2])
