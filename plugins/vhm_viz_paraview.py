@@ -130,6 +130,15 @@ class VHMHarmonicDeformation(_ParaViewReporting, HarmonicDeformationFilter):
     def GetOutputArrays(self):
         return self._arrays
 
+    @smproperty.doublevector(name="VolumeTolerance", default_values=0.05)
+    @smdomain.doublerange(min=0.001, max=1.0)
+    @smdomain.xml(
+        "<Documentation>Image data: largest position error of a warped voxel, in voxels of "
+        "the input spacing (the volume engine's adaptive lattice).</Documentation>"
+    )
+    def SetVolumeTolerance(self, value):
+        self.SetTolerance(float(value))
+
 
 @_filter("VHMJacobianAnalysis", "VHM Jacobian Analysis", "vtkDataSet")
 @_scene_and_outside

@@ -479,3 +479,37 @@ def test_slice_is_the_plane_of_the_resampled_volume(bend):
     assert plane.geometry.dimensions == (nx, 1, nz)
     ref = whole.arrays["v"].reshape(nz, ny, nx)[:, ny // 3, :].ravel()
     np.testing.assert_allclose(plane.arrays["v"], ref, rtol=0, atol=1e-6)
+
+
+def test_surface_mask_catches_every_cube_the_cage_crosses():
+    """Cubes whose corners agree and touch no marked point are entirely on one side."""
+    from vhm_viz import read_cage
+    from vhm_viz.core.image import surface_mask
+
+    cage = read_cage(data_path("armadillo", "cage_216f.obj"))
+    lo, hi = cage.vertices.min(0), cage.vertices.max(0)
+    sp = (hi - lo).max() / np.array([40.0, 47.0, 43.0])
+    rot = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    geo = ImageGeometry((lo + hi) / 2 - rot @ (sp * 22), sp, (44, 45, 41), rot)
+    near = surface_mask(geo, cage.vertices, cage.faces)
+    inside = inside_mask(geo, cage.vertices, cage.faces)
+
+    def cubes(a, op):
+        """``op`` over the 8 corners of every grid cube."""
+        nz, ny, nx = (n - 1 for n in a.shape)
+        c = a[:nz, :ny, :nx]
+        for d in ((1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (1, 1, 1)):
+            c = op(c, a[d[0] : d[0] + nz, d[1] : d[1] + ny, d[2] : d[2] + nx])
+        return c
+
+    all_in = cubes(inside, np.logical_and)
+    any_in = cubes(inside, np.logical_or)
+    touched = cubes(near, np.logical_or)
+    assert not ((all_in != any_in) & ~touched).any()  # mixed corners: always marked
+    rng = np.random.default_rng(0)
+    u = rng.uniform(0, np.asarray(geo.dimensions) - 1, (100_000, 3))
+    i, j, k = np.minimum(np.floor(u).astype(int), np.asarray(geo.dimensions) - 2).T
+    clean = ~touched[k, j, i]
+    wn = inside_cage(winding_number(geo.points(u[clean]), cage.vertices, cage.faces))
+    np.testing.assert_array_equal(wn, all_in[k, j, i][clean])
+    assert clean.mean() > 0.5

@@ -21,7 +21,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["ImageGeometry", "INTERPOLATIONS", "BORDER", "inside_mask", "sample"]
+__all__ = ["ImageGeometry", "INTERPOLATIONS", "BORDER", "inside_mask", "surface_mask", "sample"]
 
 #: Interpolation kinds of :func:`sample`.
 INTERPOLATIONS = ("linear", "nearest", "cubic")
@@ -144,7 +144,7 @@ def _edge_sign(ay, az, by, bz, py, pz):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _scanline_winding(tri, vid, i_count, j0, j1, k0, k1, out):  # pragma: no cover - compiled
+def _scanline_winding(tri, vid, i_count, j0, j1, k0, k1, out, crossed):  # pragma: no cover
     """Winding numbers of the integer grid points ``(i, j, k)`` in a block of rows.
 
     For every triangle and every row ``(j, k)`` whose (perturbed) projection falls inside
@@ -165,6 +165,9 @@ def _scanline_winding(tri, vid, i_count, j0, j1, k0, k1, out):  # pragma: no cov
         Rows ``j0 <= j < j1``, ``k0 <= k < k1``.
     out : (k1 - k0, j1 - j0, i_count + 1) int16
         Zeroed on entry; winding numbers in ``[..., :i_count]`` on return.
+    crossed : (k1 - k0, j1 - j0, i_count + 1) uint8, or empty
+        Set to 1 at ``i0`` where the row crosses the surface between points ``i0 - 1`` and
+        ``i0`` (crossings that cancel, like a sliver between two points, included).
     """
     m = tri.shape[0]
     for t in range(m):
@@ -216,6 +219,8 @@ def _scanline_winding(tri, vid, i_count, j0, j1, k0, k1, out):  # pragma: no cov
                 if i0 > i_count:
                     continue
                 out[k - k0, j - j0, i0] += d
+                if crossed.size:
+                    crossed[k - k0, j - j0, i0] = 1
     for k in range(out.shape[0]):
         for j in range(out.shape[1]):
             acc = 0
@@ -254,15 +259,52 @@ def inside_mask(geometry: ImageGeometry, vertices, faces, rows=None, i_count=Non
     nx, ny, nz = geometry.dimensions
     j0, j1, k0, k1 = (0, ny, 0, nz) if rows is None else (int(r) for r in rows)
     i_count = nx if i_count is None else int(i_count)
+    v, f = _index_triangles(geometry, vertices, faces)
+    out = np.zeros((max(k1 - k0, 0), max(j1 - j0, 0), i_count + 1), dtype=np.int16)
+    if out.size:
+        none = np.zeros((0, 0, 0), dtype=np.uint8)
+        _scanline_winding(np.ascontiguousarray(v[f]), f, i_count, j0, j1, k0, k1, out, none)
+    return out[..., :i_count] >= 1
+
+
+def _index_triangles(geometry: ImageGeometry, vertices, faces):
+    """Cage vertices in index coordinates and the faces, outward in index space too."""
     v = geometry.continuous_index(np.asarray(vertices, dtype=np.float64))
     f = np.ascontiguousarray(faces, dtype=np.int64)
     if np.linalg.det(geometry.index_to_world) < 0:
         # a mirrored grid turns the faces over in index space: keep them outward there
         f = np.ascontiguousarray(f[:, ::-1])
-    out = np.zeros((max(k1 - k0, 0), max(j1 - j0, 0), i_count + 1), dtype=np.int16)
-    if out.size:
-        _scanline_winding(np.ascontiguousarray(v[f]), f, i_count, j0, j1, k0, k1, out)
-    return out[..., :i_count] >= 1
+    return v, f
+
+
+def surface_mask(geometry: ImageGeometry, vertices, faces) -> np.ndarray:
+    """Grid points next to the cage surface: an edge of the grid from them crosses it.
+
+    Scan lines along each of the three axes record every crossing, also pairs that cancel
+    (a sliver of the outside between two points, which :func:`inside_mask` cannot see).
+    A point is marked when the surface crosses the grid edge to one of its six neighbours;
+    away from marked points, the inside of a grid cube is decided by its corners.
+
+    Returns
+    -------
+    (nz, ny, nx) bool
+    """
+    v, f = _index_triangles(geometry, vertices, faces)
+    dims = geometry.dimensions
+    near = np.zeros(dims[::-1], dtype=bool)
+    for axis in range(3):
+        # cyclic permutations keep the faces' orientation: axis ``axis`` becomes i
+        order = [(axis + c) % 3 for c in range(3)]
+        n_i, n_j, n_k = (dims[a] for a in order)
+        tri = np.ascontiguousarray(v[:, order][f])
+        out = np.zeros((n_k, n_j, n_i + 1), dtype=np.int16)
+        crossed = np.zeros((n_k, n_j, n_i + 1), dtype=np.uint8)
+        _scanline_winding(tri, f, n_i, 0, n_j, 0, n_k, out, crossed)
+        hit = crossed.astype(bool)
+        adjacent = hit[..., 1:] | hit[..., :-1]  # the points on both sides of a crossing
+        back = {0: (0, 1, 2), 1: (1, 2, 0), 2: (2, 0, 1)}[axis]
+        near |= np.transpose(adjacent, back)
+    return near
 
 
 # --------------------------------------------------------------------------------------

@@ -55,7 +55,7 @@ import numpy as np
 
 from vhm_viz.core.basis import chunk_rows, evaluate_map, inside_cage
 from vhm_viz.core.errors import AbortedError
-from vhm_viz.core.image import BORDER, ImageGeometry, inside_mask
+from vhm_viz.core.image import BORDER, ImageGeometry, inside_mask, surface_mask
 
 __all__ = ["HermiteLattice", "build_lattice", "DEFAULT_ROOT"]
 
@@ -585,11 +585,12 @@ def _level_data(table: _NodeTable, keys: np.ndarray, h: int) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True)
-def _count_inside(mask, origins, h, last, counts):  # pragma: no cover - compiled
-    """Inside and outside voxels of the volume in each closed cell ``[o, o + h]``."""
+def _count_inside(mask, near, origins, h, last, counts):  # pragma: no cover - compiled
+    """Inside, outside and next-to-the-surface voxels of the volume in each closed cell."""
     for c in numba.prange(origins.shape[0]):
         nin = 0
         nout = 0
+        nnear = 0
         for k in range(origins[c, 2], min(origins[c, 2] + h, last[2]) + 1):
             for j in range(origins[c, 1], min(origins[c, 1] + h, last[1]) + 1):
                 for i in range(origins[c, 0], min(origins[c, 0] + h, last[0]) + 1):
@@ -597,8 +598,11 @@ def _count_inside(mask, origins, h, last, counts):  # pragma: no cover - compile
                         nin += 1
                     else:
                         nout += 1
+                    if near[k, j, i]:
+                        nnear += 1
         counts[c, 0] = nin
         counts[c, 1] = nout
+        counts[c, 2] = nnear
 
 
 _CORNERS = np.array([[a, b, c] for c in (0, 1) for b in (0, 1) for a in (0, 1)])
@@ -684,6 +688,7 @@ def build_lattice(
     # every lattice point's side of the cage (the lattice overhangs the volume)
     lat_geo = ImageGeometry(geometry.origin, geometry.spacing, lattice_dims, geometry.direction)
     mask = inside_mask(lat_geo, V, Fc)
+    near = surface_mask(lat_geo, V, Fc)
     table = _NodeTable(lattice_dims)
     n_eval = np.zeros(2, dtype=np.int64)  # inside, outside (continued)
 
@@ -707,10 +712,11 @@ def build_lattice(
         if abort is not None and abort():
             raise AbortedError("aborted")
         # only cells with a voxel inside the cage matter
-        counts = np.zeros((len(cells), 2), dtype=np.int64)
-        _count_inside(mask, cells, h, last, counts)
+        counts = np.zeros((len(cells), 3), dtype=np.int64)
+        _count_inside(mask, near, cells, h, last, counts)
         keep = counts[:, 0] > 0
-        cells, cut = cells[keep], counts[keep, 1] > 0
+        # cut: the cage passes through the cell (voxels outside, or next to the surface)
+        cells, cut = cells[keep], (counts[keep, 1] > 0) | (counts[keep, 2] > 0)
         if not len(cells):
             break
         corners = cells[:, None, :] + _CORNERS[None] * h
@@ -740,7 +746,7 @@ def build_lattice(
             break
         cells = (cells[split][:, None, :] + _CORNERS[None] * (h // 2)).reshape(-1, 3)
         h //= 2
-    lattice = _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask)
+    lattice = _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask, near)
     lattice.stats.update(
         evaluations=int(n_eval.sum()),
         evaluations_outside=int(n_eval[1]),
@@ -751,7 +757,7 @@ def build_lattice(
     return lattice
 
 
-def _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask) -> HermiteLattice:
+def _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask, near):
     """Pack the levels into one data table and the leaves, grouped by root cell."""
     starts = np.cumsum([0] + [len(d) for d in level_data])
     data = np.concatenate(level_data) if level_data else np.zeros((0, _N_TERMS, 3))
@@ -795,6 +801,7 @@ def _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask) -> He
         centre_ginv=centre_ginv,
         rho=rho,
         mask=mask,
+        near=near,
         stats=stats,
     )
 
@@ -1036,8 +1043,12 @@ def _candidate_rows(leaves, ilo, ihi, box, row_start, row_leaf, row_i0, row_i1):
 
 
 @numba.njit(cache=True)
-def _inside_around(mask, u):  # pragma: no cover - compiled
-    """Voxels around ``u`` inside the cage: 0 of 8, 8 of 8, or some (-1)."""
+def _inside_around(mask, near, u):  # pragma: no cover - compiled
+    """Whether ``u`` is inside the cage, from the grid cube around it.
+
+    8 (inside) or 0 (outside) when the cage does not cross the cube's edges and the
+    corners agree; -1 (ask the winding number) when the surface runs next to the cube.
+    """
     nz, ny, nx = mask.shape
     i0 = min(max(int(math.floor(u[0])), 0), nx - 2)
     j0 = min(max(int(math.floor(u[1])), 0), ny - 2)
@@ -1046,6 +1057,8 @@ def _inside_around(mask, u):  # pragma: no cover - compiled
     for c in range(2):
         for b in range(2):
             for a in range(2):
+                if near[k0 + c, j0 + b, i0 + a]:
+                    return -1
                 if mask[k0 + c, j0 + b, i0 + a]:
                     count += 1
     return count if count == 0 or count == 8 else -1
@@ -1053,7 +1066,7 @@ def _inside_around(mask, u):  # pragma: no cover - compiled
 
 @numba.njit(parallel=True, cache=True)
 def _pull_back_rows(
-    data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, mask, last,
+    data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, mask, near, last,
     origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
     u_out, state, fold, quality,
 ):  # pragma: no cover - compiled  # fmt: skip
@@ -1114,10 +1127,10 @@ def _pull_back_rows(
                 if state[v] == 1 and quality[v] == 0.0:
                     # a pre-image inside its own leaf is known: a pre-image in this leaf
                     # (within rho of the estimate) more than a voxel away would be a fold
-                    near = 0.0
+                    gap = 0.0
                     for a in range(3):
-                        near = max(near, abs(ul[a] - u_out[v, a]))
-                    if near + rho[n] < 1.0:
+                        gap = max(gap, abs(ul[a] - u_out[v, a]))
+                    if gap + rho[n] < 1.0:
                         chained = 0
                         continue
                 if chained >= 3:
@@ -1192,7 +1205,7 @@ def _pull_back_rows(
                     continue
                 s = 1
                 if cut[n]:
-                    around = _inside_around(mask, u)
+                    around = _inside_around(mask, near, u)
                     if around == 0:
                         continue
                     if around < 0:
@@ -1238,10 +1251,13 @@ class HermiteLattice:
     leaf_rows : (L, 8) int64
         Data rows of the corners (corner ``a + 2 b + 4 c`` at ``origin + (a, b, c) size``).
     leaf_cut : (L,) bool
-        The cell has voxels outside the cage.
+        The cage passes through the cell (voxels outside it, or next to its surface).
     mask : (Nz, Ny, Nx) bool
         Inside the cage, for every lattice point (the volume's voxels and the lattice's
         overhang beyond them).
+    near : (Nz, Ny, Nx) bool
+        Lattice points next to the cage surface (:func:`~vhm_viz.core.image.surface_mask`):
+        pre-images in grid cubes touching them are checked with the winding number.
     stats : dict
         ``evaluations`` (exact map evaluations), ``leaves``, ``leaves_per_size``,
         ``data_rows``, ``seconds``.
@@ -1416,7 +1432,8 @@ class HermiteLattice:
             _candidate_rows(leaves, lo, hi, b, start, row_leaf, row_i0, row_i1)
             _pull_back_rows(
                 self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaf_cut,
-                self.centre_f, self.centre_ginv, self.rho, self.margins(), self.mask, self.last,
+                self.centre_f, self.centre_ginv, self.rho, self.margins(), self.mask, self.near,
+                self.last,
                 geometry.origin, geometry.index_to_world, b, start, row_leaf, row_i0, row_i1,
                 u, state, fold, quality,
             )  # fmt: skip
