@@ -452,7 +452,10 @@ class ExplorerWindow(QMainWindow):
         if self.ctrl.rest is None:
             raise ValueError("open data before loading a cage")
         self.ctrl.load_cage(path)
-        self.status(f"cage {Path(path).name}: {self.ctrl.cage.n_faces} faces")
+        notes = "; ".join(self.ctrl.notes)
+        self.ctrl.notes = []
+        message = f"cage {Path(path).name}: {self.ctrl.cage.n_faces} faces"
+        self.status(message + (f"; {notes}" if notes else ""), 15000 if notes else 5000)
         self.after_edit(structure=True)
 
     @guarded
@@ -603,6 +606,9 @@ class ExplorerWindow(QMainWindow):
             self.slice = None
             self._marker_binding = None
             self.solve_and_show()
+            if self.ctrl.notes:  # e.g. cage shells without constraints stay put
+                self.status("; ".join(self.ctrl.notes), 15000)
+                self.ctrl.notes = []
 
         self.run_job("binding", job, done)
 

@@ -48,7 +48,14 @@ from vhm_viz.core.basis import winding_number
 from vhm_viz.core.cage import self_intersections
 from vhm_viz.core.errors import CageError
 
-__all__ = ["auto_cage", "AutoCageReport", "InputSamples", "collect_samples"]
+__all__ = [
+    "auto_cage",
+    "AutoCageReport",
+    "InputSamples",
+    "collect_samples",
+    "volume_values",
+    "resolve_threshold",
+]
 
 #: more self-intersecting face pairs than this in the simplified offset surface (before
 #: the push-out) means the offset is too small for the shape's gaps: skip the retries
@@ -134,6 +141,44 @@ def _check_points(points: np.ndarray, what: str) -> np.ndarray:
             f"{what}: all points are {kind} (no volume to enclose); a cage needs a 3D shape"
         )
     return p
+
+
+def volume_values(ds, scalars: str | None = None, what: str = "volume"):
+    """The scalar a volume is thresholded on, per point (or per cell), and its name.
+
+    Parameters
+    ----------
+    ds : pyvista.ImageData, RectilinearGrid or StructuredGrid
+    scalars : str, optional
+        Array name (default: the active scalars, else the first array).
+    what : str
+        Prefix for error messages.
+
+    Returns
+    -------
+    values : (n,) ndarray
+        The array (vectors: their length).
+    name : str
+    """
+    name = scalars or ds.active_scalars_name or (ds.array_names[0] if ds.array_names else None)
+    if name is None:
+        raise ValueError(f"{what}: the volume has no scalars to threshold")
+    vals = np.asarray(ds.get_array(name))
+    if vals.ndim > 1:
+        vals = np.linalg.norm(vals, axis=1)
+    return vals, name
+
+
+def resolve_threshold(values: np.ndarray, threshold) -> float:
+    """A threshold as a number: ``"otsu"`` becomes Otsu's threshold of ``values``.
+
+    The region of a volume is the voxels whose value is strictly above it.
+    """
+    if isinstance(threshold, str):
+        if threshold.lower() != "otsu":
+            raise ValueError(f"threshold must be a number or 'otsu', got {threshold!r}")
+        return _otsu(values)
+    return float(threshold)
 
 
 def _volume_points(ds, index: np.ndarray, on_cells: bool) -> tuple[np.ndarray, float]:
@@ -231,18 +276,9 @@ def collect_samples(data, *, threshold=None, scalars=None, what="auto_cage") -> 
             corners = np.array([[x, y, z] for x in b[0] for y in b[1] for z in b[2]])
             _check_points(corners, what)
             return InputSamples(points=corners, kind="volume-box")
-        name = scalars or ds.active_scalars_name or (ds.array_names[0] if ds.array_names else None)
-        if name is None:
-            raise ValueError(f"{what}: the volume has no scalars to threshold")
-        vals = np.asarray(ds.get_array(name))
-        if vals.ndim > 1:
-            vals = np.linalg.norm(vals, axis=1)
+        vals, name = volume_values(ds, scalars, what)
         on_cells = len(vals) == ds.n_cells and len(vals) != ds.n_points
-        thr = (
-            _otsu(vals)
-            if (isinstance(threshold, str) and threshold.lower() == "otsu")
-            else float(threshold)
-        )
+        thr = resolve_threshold(vals, threshold)
         sel = np.flatnonzero(vals > thr)
         if not len(sel):
             raise ValueError(f"{what}: no voxel of '{name}' is above the threshold {thr:g}")
@@ -330,6 +366,9 @@ class AutoCageReport:
         Input points checked.
     n_components : int
         Connected components (shells) of the cage.
+    threshold : float or None
+        Volumes: the threshold whose region (voxels strictly above it) the cage encloses,
+        Otsu's value resolved; None otherwise.
     offset_used : float
         The clearance the cage was built for (the requested ``offset``, or twice it when
         the first attempt failed); parts farther apart than it get separate shells.
@@ -360,6 +399,7 @@ class AutoCageReport:
     grid_shape: tuple
     n_points: int
     n_components: int
+    threshold: float | None = None
     offset_used: float = float("nan")
     n_parts: int = 1
     bridged_gap: float = float("nan")
@@ -373,6 +413,7 @@ class AutoCageReport:
             f"{self.n_components} component(s); clearance {self.clearance:.4g} "
             f"({100 * self.clearance_relative:.2f}% of the diagonal), min winding number "
             f"{self.min_winding_number:.6f} over {self.n_points} points"
+            + (f" (the voxels above {self.threshold:.6g})" if self.threshold is not None else "")
             + (
                 f"; smallest gap kept between parts {self.min_gap_kept:.4g}"
                 if np.isfinite(self.min_gap_kept)
@@ -1091,6 +1132,7 @@ def auto_cage(
         grid_shape=tuple(grid.shape),
         n_points=len(pts),
         n_components=int(ncomp),
+        threshold=samples.threshold,
         offset_used=offset_used,
         n_parts=int(n_parts),
         bridged_gap=bridged,

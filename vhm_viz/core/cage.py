@@ -655,6 +655,9 @@ class Cage:
     def contains(self, points, tol: float = 1e-8) -> np.ndarray:
         """Whether points lie inside the cage (winding number ``>= 0.5 - tol``).
 
+        With the default ``tol`` this is :func:`vhm_viz.core.basis.inside_cage`, the one
+        inside test the deformer, bindings, explorer and command line share.
+
         Points on the cage surface (winding number 1/2) count as inside; ``tol`` absorbs
         rounding there. Points even ``1e-9`` off the surface are classified correctly: the
         winding number jumps from 0 to 1 across the surface, it does not pass through 1/2.
@@ -669,7 +672,10 @@ class Cage:
         -------
         (k,) bool array
         """
-        return self.winding_number(points) >= 0.5 - tol
+        from .basis import WINDING_TOLERANCE, inside_cage
+
+        w = self.winding_number(points)
+        return inside_cage(w) if tol == WINDING_TOLERANCE else w >= 0.5 - tol
 
     # --- misc
     def __repr__(self) -> str:
