@@ -641,7 +641,13 @@ class _Groups:
 
 
 def _make_groups(
-    shape: ShapeSamples, offset: float, h: float, spacing, max_groups: int, merged=None
+    shape: ShapeSamples,
+    offset: float,
+    h: float,
+    spacing,
+    max_groups: int,
+    merged=None,
+    reach: float | None = None,
 ) -> _Groups:
     """Group the parts (closer than ``offset``, or nested) and set local clearances.
 
@@ -649,7 +655,7 @@ def _make_groups(
     distance grouping.
     """
     if merged is None:
-        group, count, bridged, kept = group_parts(shape, offset)
+        group, count, bridged, kept = group_parts(shape, offset, reach)
     else:
         group, count, bridged = merged.label, merged.count, merged.bridged
     if count > max_groups:
@@ -867,8 +873,8 @@ def _simplified(V1, F1, target: int, turn: float):
     return simplify(Vh, Fh, target, no_intersections=True, **kw)
 
 
-def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
-    """(grid, vertices, faces, components, Cage, groups) of the "offset" method.
+def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes, reach=None):
+    """(grid, vertices, faces, components, Cage, groups, sd) of the "offset" method.
 
     Parts closer than ``offset`` (and nested parts) are grouped; every group gets its own
     offset surface, at the clearance ``offset`` narrowed to a third of the gap near other
@@ -877,14 +883,15 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
     :func:`vhm_viz.autocage.simplify.simplify` finishes with link-condition-checked
     collapses, then the cage is pushed out where needed (every boundary sample at least
     half its local clearance inside) and checked to leave the space between groups
-    outside.
+    outside. ``sd``: signed distances of the input's boundary points (``inf`` beyond twice
+    the offset); ``reach``: how far to look for pairs of parts (reused by retries).
     """
     ext = float((hi - lo).max())
     if resolution is None:
         resolution = int(np.clip(np.ceil(1.5 * ext / offset), 32, 112))
     h = ext / int(resolution)
     max_groups = max(1, max_faces // _FACES_PER_SHELL)
-    groups = _make_groups(shape, offset, h, samples.spacing, max_groups)
+    groups = _make_groups(shape, offset, h, samples.spacing, max_groups, reach=reach)
     # point sets: a voxel centre is in the shape when within a sample's voxel (volumes)
     # or a typical neighbour distance (clouds) of a sample
     solid_radius = None
@@ -931,6 +938,9 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
             raise RuntimeError(
                 f"the simplified offset surface self-intersects ({crossing} face pairs)"
             )
+        if len(mids) and (winding_number(mids, V2, F2) > 0.5).any():
+            # pushing out only grows the cage: the gap stays closed
+            raise RuntimeError("the cage closes a gap between parts")
         V3, sd = _push_out(V2, F2, check_points, min_clear, radius)
         short = np.isfinite(sd) & (sd > -min_clear * 0.999)
         if short.any():
@@ -953,7 +963,8 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
         except CageError as exc:
             notes.append(f"offset cage rejected ({exc}); retrying")
             continue
-        return vx.Grid(lo, h, (int(resolution),) * 3), V3, F2, ncomp, cage, groups
+        grid = vx.Grid(lo, h, (int(resolution),) * 3)
+        return grid, V3, F2, ncomp, cage, groups, sd[: shape.n_input]
     raise RuntimeError("could not simplify the offset surface into a valid cage")
 
 
@@ -1037,6 +1048,7 @@ def auto_cage(
     used = "voxel" if samples.kind == "volume-box" else method
     cage = None
     offset_used, bridged, kept, n_parts = offset, float("nan"), float("nan"), 1
+    sd = np.empty(0)
     if used in ("auto", "offset"):
         # when the cage cannot be made at the requested offset (too many separate parts
         # for the faces, gaps the faces cannot keep open), "auto" retries at two and four
@@ -1048,8 +1060,8 @@ def auto_cage(
         shape = shape_samples(samples, 0.5 * ext / res0)
         for k, off in enumerate(tries):
             try:
-                grid, V, F, ncomp, cage, groups = _offset_cage(
-                    samples, shape, lo, hi, off, max_faces, resolution, notes
+                grid, V, F, ncomp, cage, groups, sd = _offset_cage(
+                    samples, shape, lo, hi, off, max_faces, resolution, notes, 3.0 * tries[-1]
                 )
                 used = "offset"
                 offset_used, bridged, kept = off, groups.bridged, groups.kept
@@ -1110,7 +1122,8 @@ def auto_cage(
         cage = _make_cage(V, F, check_self_intersection=False)  # embedded by construction
     # independent of how the cage was built: the distance from the boundary points (the
     # closest to the cage) and the winding number of every point
-    sd, _ = _clearance(V, F, pts[_on_boundary(samples)], 2.0 * offset_used)
+    if used != "offset" or not np.isfinite(sd).any():
+        sd, _ = _clearance(V, F, pts[_on_boundary(samples)], 2.0 * offset_used)
     clearance = float(-sd[np.isfinite(sd)].max())
     wmin = float(winding_number(pts, V, F).min())
     enclosed = bool(clearance > 0 and wmin > 0.5)
