@@ -3,23 +3,29 @@
 Two methods, tried in this order by ``method="auto"``:
 
 ``"offset"`` (shape-following)
-    The input is voxelised (surface samples, points, tet-mesh boundary or the region of a
-    volume above a threshold; inside filled by a flood fill from outside), the exact
-    distance to the input samples is computed near an offset surface at distance
-    ``offset``, that surface is extracted (flying edges) and simplified to ``max_faces``
-    with quadric decimation. Where the simplification cut into the clearance, cage
-    vertices are pushed outward until every input point is at least ``min_clearance``
-    inside. The result is checked (closed, 2-manifold, outward, no self-intersection,
-    winding number 1 at every input point); any failure falls back to ``"voxel"``.
+    The input's boundary samples (surface vertices and samples on its triangles, a tet
+    mesh's surface, a volume region's rim voxels, cloud points) are split into *parts*
+    (:mod:`vhm_viz.autocage.parts`); parts closer than ``offset``, or nested, form a
+    group, and every group gets its own shell: the boundary of the union of balls around
+    its samples, of radius ``offset`` lowered to a third of the gap to the nearest other
+    group, extracted from a signed field (flying edges) on the group's own grid. VTK's
+    quadric decimation and the compiled simplifier (which refuses collapses that make
+    faces touch or swallow a shell) take the shells to ``max_faces``; where that cut into
+    the clearance, vertices are pushed outward until every boundary sample is half its
+    local clearance inside. The result is checked (closed, 2-manifold, outward, no
+    self-intersection, gap midpoints outside, winding number 1 at every input point).
+    When that fails ``"auto"`` retries at 2 and 4 times the offset (more parts share a
+    shell), then falls back to ``"voxel"``.
 
 ``"voxel"`` (the paper's Section 4 cage: uniform decomposition of space with coplanar
 faces merged)
     The union of the voxels within the clearance of the input, made well composed, its
     boundary squares merged into maximal coplanar polygons and triangulated. Valid by
-    construction; coarser (the voxel size is the largest one that fits ``max_faces``).
+    construction; coarser (the voxel size is the largest one that fits ``max_faces``);
+    parts closer than about twice the clearance share a shell.
 
-Both keep parts apart when they are farther apart than about twice the clearance, so
-fingers and legs get their own cage branches (paper Figure 11).
+The report (:class:`AutoCageReport`) gives the clearance used, the smallest gap kept open
+between shells and the largest gap bridged inside one.
 """
 
 from __future__ import annotations
@@ -992,10 +998,12 @@ def auto_cage(
         A surface, a point cloud, a tet mesh or a volume (see :func:`collect_samples`).
     offset : float, optional
         Target clearance between the input and the cage, in world units (default 1% of
-        the input's bounding-box diagonal). The ``"offset"`` method guarantees at least
-        half of it (where simplification cut in, the cage is pushed back out to that),
-        the ``"voxel"`` method all of it. Parts closer than about ``2 * offset`` may
-        share a cage branch; farther parts are kept apart.
+        the input's bounding-box diagonal). The ``"offset"`` method keeps at least half
+        of it (where simplification cut in, the cage is pushed back out to that), and
+        between separate parts at most a third of their gap; the ``"voxel"`` method all
+        of it. Separate parts farther apart than the offset used (``offset_used`` in the
+        report) get separate shells and the space between them stays outside; closer
+        ones may share a shell.
     max_faces : int
         Largest number of triangles (default 500, the paper's range is 200-500).
     resolution : int, optional
@@ -1003,12 +1011,14 @@ def auto_cage(
         surface is extracted on (default ``1.5 * side / offset`` within 32-112).
         ``"voxel"``: the cube size (default: the finest that fits ``max_faces``).
     method : {"auto", "offset", "voxel"}
-        See the module documentation. ``"auto"`` uses ``"offset"``, retries it at twice
-        the offset when the simplified surface cannot be made a valid cage (thin tubes
-        such as fingers), then falls back to ``"voxel"``. Volumes without a threshold get
-        their bounding box grown by ``offset`` (12 triangles).
+        See the module documentation. ``"auto"`` uses ``"offset"``, retries it at two
+        and four times the offset when no valid cage comes out (too many separate parts
+        for the faces, gaps the faces cannot keep open), then falls back to ``"voxel"``.
+        Volumes without a threshold get their bounding box grown by ``offset`` (12
+        triangles).
     threshold : float, "otsu" or None
-        Volumes: None encloses the bounding box, a value the points above it.
+        Volumes: None encloses the bounding box, a value every voxel strictly above it
+        (the region; see :func:`resolve_threshold`).
     scalars : str, optional
         Volume array to threshold.
     return_report : bool
