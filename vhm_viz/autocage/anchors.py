@@ -374,8 +374,9 @@ def auto_anchors(
     Returns
     -------
     anchors : (count, 3) float64
-        Strictly inside the shape and the cage; every connected part gets one (largest
-        first, when there are more parts than anchors).
+        Inside the shape and the cage. Every cage shell holding part of the shape gets
+        one, and every connected part when there are at most ``count // 2`` of them
+        (else the largest, up to half the anchors; the report counts the others).
     report : AnchorReport, only with ``return_report``
 
     Raises
