@@ -480,7 +480,16 @@ class Scene:
                 raise SceneError("anchors", '"auto" needs the data to deform')
             from vhm_viz.autocage import auto_anchors
 
-            return auto_anchors(data, cage, int(a["auto"]))
+            # a volume's automatic cage encloses the region above its threshold: the
+            # anchors go in that region too
+            options = self.cage.get("auto") if isinstance(self.cage.get("auto"), dict) else {}
+            return auto_anchors(
+                data,
+                cage,
+                int(a["auto"]),
+                threshold=options.get("threshold"),
+                scalars=options.get("scalars"),
+            )
         from vhm_viz.core.anchors import anchors_from_polylines
 
         if "polylines" in a:

@@ -275,6 +275,9 @@ class ExplorerController:
         self.notes: list[str] = []
         self.certificate = None
         self._certified_map = None
+        #: Volumes: the threshold whose region (values strictly above it) a cage must
+        #: enclose -- a number, ``"otsu"``, or None for every voxel; see :meth:`set_cage`.
+        self.threshold = None
 
     # ------------------------------------------------------------------ data
     @property
@@ -320,6 +323,7 @@ class ExplorerController:
         self.source = source
         self.input_files = [Path(source["path"])] if "path" in source else []
         self.cage = None
+        self.threshold = None
         self.anchors = np.zeros((0, 3))
         self.positions = []
         self.jacobians = []
@@ -388,29 +392,80 @@ class ExplorerController:
 
     # ------------------------------------------------------------------ cage
     def set_cage(self, cage) -> None:
-        """Use a cage; it must enclose every point of the data.
+        """Use a cage; it must enclose every point of the data (or of a volume's region).
+
+        "Inside" is the one test everything uses (:meth:`vhm_viz.Cage.contains`: winding
+        number at least 1/2). A volume's cage may enclose only the region above a
+        threshold, as ``auto_cage(..., threshold=...)`` and ``vhm-viz cage --threshold``
+        build it: with :attr:`threshold` set, every voxel above it must be inside; with
+        None, a cage that leaves voxels out is taken for the region above the largest value
+        it leaves out (set as :attr:`threshold`, with a note). Voxels outside stay put.
 
         Raises
         ------
         CageError
-            Points of the data outside the cage (count and indices in the message).
+            Points of the data (or voxels of the region) outside the cage, with count and
+            indices; for a volume also a cage that encloses no region above a threshold.
         """
         if self.rest is not None:
             inside = cage.contains(self._rest_points)
             if not inside.all():
-                from vhm_viz.core.errors import describe_indices
-
-                bad = np.nonzero(~inside)[0]
-                raise CageError(
-                    f"the cage does not enclose the shape: {bad.size} of {len(inside)} points "
-                    f"are outside (indices {describe_indices(bad)})"
-                )
+                self._check_region_inside(inside)
         self.cage = cage
         self.anchors = (
             self.anchors[cage.contains(self.anchors)] if len(self.anchors) else self.anchors
         )
         self._drop_outside_constraints()
         self._deformer_stale = True
+
+    def _volume_values(self):
+        """The scalar values of a volume's points; None for other data."""
+        import pyvista as pv
+
+        if not isinstance(self.rest, pv.StructuredGrid | pv.ImageData | pv.RectilinearGrid):
+            return None
+        from vhm_viz.autocage.cage import volume_values
+
+        try:
+            values, _ = volume_values(self.rest)
+        except ValueError:
+            return None
+        return values if len(values) == len(self._rest_points) else None
+
+    def _check_region_inside(self, inside: np.ndarray) -> None:
+        """Accept a cage that leaves points out only when it encloses a volume's region."""
+        from vhm_viz.autocage.cage import resolve_threshold
+        from vhm_viz.core.errors import describe_indices
+
+        values = self._volume_values()
+        bad = np.nonzero(~inside)[0]
+        if values is None:
+            raise CageError(
+                f"the cage does not enclose the shape: {bad.size} of {len(inside)} points "
+                f"are outside (indices {describe_indices(bad)})"
+            )
+        if self.threshold is not None:
+            thr = resolve_threshold(values, self.threshold)
+            missed = np.nonzero(~inside & (values > thr))[0]
+            if missed.size:
+                raise CageError(
+                    f"the cage does not enclose the region above {thr:.6g}: {missed.size} of "
+                    f"{int((values > thr).sum())} voxels are outside (indices "
+                    f"{describe_indices(missed)})"
+                )
+            return
+        thr = float(values[~inside].max())
+        region = int((values > thr).sum())
+        if region == 0:
+            raise CageError(
+                f"the cage does not enclose the volume: {bad.size} of {len(inside)} voxels are "
+                "outside, among them the largest values"
+            )
+        self.threshold = thr
+        self.notes.append(
+            f"the cage encloses the {region} voxels above {thr:.6g} (threshold set to it); "
+            f"the {bad.size} voxels outside stay put"
+        )
 
     def load_cage(self, path) -> None:
         """Read, validate and use a cage file (OBJ, OFF, PLY, STL, VTP, VTK)."""
@@ -435,7 +490,7 @@ class ExplorerController:
         if self.rest is None:
             raise ValueError("load data first")
         progress(0.05, "generating cage")
-        return auto_cage(self.rest, max_faces=int(max_faces))
+        return auto_cage(self.rest, max_faces=int(max_faces), threshold=self.threshold)
 
     def _drop_outside_constraints(self) -> None:
         if self.cage is None:
@@ -484,7 +539,9 @@ class ExplorerController:
 
         if self.rest is None or self.cage is None:
             raise ValueError("load data and a cage first")
-        return np.asarray(auto_anchors(self.rest, self.cage, int(count)), dtype=float)
+        return np.asarray(
+            auto_anchors(self.rest, self.cage, int(count), threshold=self.threshold), dtype=float
+        )
 
     def add_anchor(self, point) -> int:
         """Add an anchor at a rest-space point; returns its index."""
@@ -673,6 +730,7 @@ class ExplorerController:
         except AbortedError as exc:
             raise Cancelled("cancelled") from exc
         self.deformer, self.binding = deformer, binding
+        self.notes.extend(n for n in deformer.notes if n not in self.notes)  # pinned shells
         self.proxy, self.proxy_binding = proxy, proxy_binding
         self._deformer_stale = self._layout_stale = False
         self._targets_stale = False

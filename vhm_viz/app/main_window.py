@@ -454,10 +454,12 @@ class ExplorerWindow(QMainWindow):
             raise ValueError("open data before loading a cage")
         self.ctrl.load_cage(path)
         repaired = self.ctrl.cage.repairs
-        self.status(
-            f"cage {Path(path).name}: {self.ctrl.cage.n_faces} faces"
-            + (f"; repaired {len(repaired)} slivers: {'; '.join(repaired)}" if repaired else "")
-        )
+        notes = "; ".join(self.ctrl.notes)
+        self.ctrl.notes = []
+        message = f"cage {Path(path).name}: {self.ctrl.cage.n_faces} faces"
+        if repaired:
+            message += f"; repaired {len(repaired)} slivers: {'; '.join(repaired)}"
+        self.status(message + (f"; {notes}" if notes else ""), 15000 if notes else 5000)
         self.after_edit(structure=True)
 
     @guarded
@@ -608,6 +610,9 @@ class ExplorerWindow(QMainWindow):
             self.slice = None
             self._marker_binding = None
             self.solve_and_show()
+            if self.ctrl.notes:  # e.g. cage shells without constraints stay put
+                self.status("; ".join(self.ctrl.notes), 15000)
+                self.ctrl.notes = []
 
         self.run_job("binding", job, done)
 

@@ -14,7 +14,8 @@ the rigidity term only acts where anchors are:
    next one, on the skeleton where the skeleton comes nearer to it than any anchor --
    limbs --, else halfway from it towards the skeleton -- fat parts);
 3. Lloyd rounds move each anchor towards the centre of the smallest ball around the points
-   it covers, within its part, keeping the best configuration seen;
+   it covers, within its part, keeping the best configuration seen; then the least useful
+   anchor moves next to the worst-covered point while that improves the coverage;
 4. the medial placement is kept when it covers every point within ``_COVERAGE_GOAL`` (15%)
    of the diagonal, or when neither does and it is within ``_MEDIAL_SLACK`` of the other.
 
@@ -301,6 +302,37 @@ def _minimax_rounds(centres, allowed, part, targets, chosen, rounds: int = 40):
     return best_chosen, best
 
 
+def _relocated(centres, allowed, part, targets, chosen, cover, tries: int = 6):
+    """Move the least useful anchor next to the worst-covered point, while that helps.
+
+    The anchor with the smallest covered ball (not the only one of its part) goes to the
+    ``allowed`` candidate nearest to the target farthest from all anchors, then Lloyd
+    rounds settle the rest; the move is kept when the coverage improves.
+    """
+    tree = cKDTree(centres)
+    for _ in range(tries):
+        d, lab = cKDTree(centres[chosen]).query(targets)
+        radius = np.zeros(len(chosen))
+        np.maximum.at(radius, lab, d)
+        alone = np.array([np.sum(part[chosen] == part[c]) == 1 for c in chosen])
+        radius[alone] = np.inf
+        a = int(np.argmin(radius))
+        if not np.isfinite(radius[a]):
+            break
+        k = min(16, len(centres))
+        near = np.atleast_1d(tree.query(targets[int(np.argmax(d))], k=k)[1])
+        near = [c for c in near if allowed[c] and c not in set(chosen.tolist())]
+        if not near:
+            break
+        trial = chosen.copy()
+        trial[a] = near[0]
+        trial, trial_cover = _minimax_rounds(centres, allowed, part, targets, trial, rounds=15)
+        if trial_cover >= cover:
+            break
+        chosen, cover = trial, trial_cover
+    return chosen, cover
+
+
 def _inside_shape(samples, points: np.ndarray) -> np.ndarray:
     """Exact check that points lie inside the input's surface (surfaces, tet meshes)."""
     if samples.tri_faces is None or not len(samples.tri_faces) or not len(points):
@@ -342,8 +374,9 @@ def auto_anchors(
     Returns
     -------
     anchors : (count, 3) float64
-        Strictly inside the shape and the cage; every connected part gets one (largest
-        first, when there are more parts than anchors).
+        Inside the shape and the cage. Every cage shell holding part of the shape gets
+        one, and every connected part when there are at most ``count // 2`` of them
+        (else the largest, up to half the anchors; the report counts the others).
     report : AnchorReport, only with ``return_report``
 
     Raises
@@ -390,6 +423,12 @@ def auto_anchors(
             "raise resolution"
         )
     centres = grid.centers(cand)
+    if samples.kind == "volume":
+        # a voxel of the anchor grid can straddle the region's rim (anisotropic images):
+        # the anchor goes to the nearest voxel above the threshold, in the region for sure
+        nearest = cKDTree(pts).query(centres)[1]
+        _, first = np.unique(nearest, return_index=True)
+        cand, centres = cand[np.sort(first)], pts[nearest[np.sort(first)]]
     shell = _shell_of(cage, centres)
     keep = shell >= 0
     # a voxel off the interior can lie outside a closed input surface (in a narrow gap
@@ -434,7 +473,8 @@ def auto_anchors(
             centres, skeleton, part, targets, seeds, count, on_skeleton
         )
         allowed = skeleton if on_skeleton else np.ones(len(centres), dtype=bool)
-        placed.append(_minimax_rounds(centres, allowed, part, targets, chosen))
+        chosen, cover = _minimax_rounds(centres, allowed, part, targets, chosen)
+        placed.append(_relocated(centres, allowed, part, targets, chosen, cover))
     (medial, medial_cover), (mixed, mixed_cover) = placed
     diag = float(np.linalg.norm(hi - lo))
     goal = _COVERAGE_GOAL * diag

@@ -3,23 +3,29 @@
 Two methods, tried in this order by ``method="auto"``:
 
 ``"offset"`` (shape-following)
-    The input is voxelised (surface samples, points, tet-mesh boundary or the region of a
-    volume above a threshold; inside filled by a flood fill from outside), the exact
-    distance to the input samples is computed near an offset surface at distance
-    ``offset``, that surface is extracted (flying edges) and simplified to ``max_faces``
-    with quadric decimation. Where the simplification cut into the clearance, cage
-    vertices are pushed outward until every input point is at least ``min_clearance``
-    inside. The result is checked (closed, 2-manifold, outward, no self-intersection,
-    winding number 1 at every input point); any failure falls back to ``"voxel"``.
+    The input's boundary samples (surface vertices and samples on its triangles, a tet
+    mesh's surface, a volume region's rim voxels, cloud points) are split into *parts*
+    (:mod:`vhm_viz.autocage.parts`); parts closer than ``offset``, or nested, form a
+    group, and every group gets its own shell: the boundary of the union of balls around
+    its samples, of radius ``offset`` lowered to a third of the gap to the nearest other
+    group, extracted from a signed field (flying edges) on the group's own grid. VTK's
+    quadric decimation and the compiled simplifier (which refuses collapses that make
+    faces touch or swallow a shell) take the shells to ``max_faces``; where that cut into
+    the clearance, vertices are pushed outward until every boundary sample is half its
+    local clearance inside. The result is checked (closed, 2-manifold, outward, no
+    self-intersection, gap midpoints outside, winding number 1 at every input point).
+    When that fails ``"auto"`` retries at 2 and 4 times the offset (more parts share a
+    shell), then falls back to ``"voxel"``.
 
 ``"voxel"`` (the paper's Section 4 cage: uniform decomposition of space with coplanar
 faces merged)
     The union of the voxels within the clearance of the input, made well composed, its
     boundary squares merged into maximal coplanar polygons and triangulated. Valid by
-    construction; coarser (the voxel size is the largest one that fits ``max_faces``).
+    construction; coarser (the voxel size is the largest one that fits ``max_faces``);
+    parts closer than about twice the clearance share a shell.
 
-Both keep parts apart when they are farther apart than about twice the clearance, so
-fingers and legs get their own cage branches (paper Figure 11).
+The report (:class:`AutoCageReport`) gives the clearance used, the smallest gap kept open
+between shells and the largest gap bridged inside one.
 """
 
 from __future__ import annotations
@@ -48,7 +54,14 @@ from vhm_viz.core.basis import winding_number
 from vhm_viz.core.cage import self_intersections
 from vhm_viz.core.errors import CageError
 
-__all__ = ["auto_cage", "AutoCageReport", "InputSamples", "collect_samples"]
+__all__ = [
+    "auto_cage",
+    "AutoCageReport",
+    "InputSamples",
+    "collect_samples",
+    "volume_values",
+    "resolve_threshold",
+]
 
 #: more self-intersecting face pairs than this in the simplified offset surface (before
 #: the push-out) means the offset is too small for the shape's gaps: skip the retries
@@ -134,6 +147,44 @@ def _check_points(points: np.ndarray, what: str) -> np.ndarray:
             f"{what}: all points are {kind} (no volume to enclose); a cage needs a 3D shape"
         )
     return p
+
+
+def volume_values(ds, scalars: str | None = None, what: str = "volume"):
+    """The scalar a volume is thresholded on, per point (or per cell), and its name.
+
+    Parameters
+    ----------
+    ds : pyvista.ImageData, RectilinearGrid or StructuredGrid
+    scalars : str, optional
+        Array name (default: the active scalars, else the first array).
+    what : str
+        Prefix for error messages.
+
+    Returns
+    -------
+    values : (n,) ndarray
+        The array (vectors: their length).
+    name : str
+    """
+    name = scalars or ds.active_scalars_name or (ds.array_names[0] if ds.array_names else None)
+    if name is None:
+        raise ValueError(f"{what}: the volume has no scalars to threshold")
+    vals = np.asarray(ds.get_array(name))
+    if vals.ndim > 1:
+        vals = np.linalg.norm(vals, axis=1)
+    return vals, name
+
+
+def resolve_threshold(values: np.ndarray, threshold) -> float:
+    """A threshold as a number: ``"otsu"`` becomes Otsu's threshold of ``values``.
+
+    The region of a volume is the voxels whose value is strictly above it.
+    """
+    if isinstance(threshold, str):
+        if threshold.lower() != "otsu":
+            raise ValueError(f"threshold must be a number or 'otsu', got {threshold!r}")
+        return _otsu(values)
+    return float(threshold)
 
 
 def _volume_points(ds, index: np.ndarray, on_cells: bool) -> tuple[np.ndarray, float]:
@@ -231,18 +282,9 @@ def collect_samples(data, *, threshold=None, scalars=None, what="auto_cage") -> 
             corners = np.array([[x, y, z] for x in b[0] for y in b[1] for z in b[2]])
             _check_points(corners, what)
             return InputSamples(points=corners, kind="volume-box")
-        name = scalars or ds.active_scalars_name or (ds.array_names[0] if ds.array_names else None)
-        if name is None:
-            raise ValueError(f"{what}: the volume has no scalars to threshold")
-        vals = np.asarray(ds.get_array(name))
-        if vals.ndim > 1:
-            vals = np.linalg.norm(vals, axis=1)
+        vals, name = volume_values(ds, scalars, what)
         on_cells = len(vals) == ds.n_cells and len(vals) != ds.n_points
-        thr = (
-            _otsu(vals)
-            if (isinstance(threshold, str) and threshold.lower() == "otsu")
-            else float(threshold)
-        )
+        thr = resolve_threshold(vals, threshold)
         sel = np.flatnonzero(vals > thr)
         if not len(sel):
             raise ValueError(f"{what}: no voxel of '{name}' is above the threshold {thr:g}")
@@ -330,6 +372,9 @@ class AutoCageReport:
         Input points checked.
     n_components : int
         Connected components (shells) of the cage.
+    threshold : float or None
+        Volumes: the threshold whose region (voxels strictly above it) the cage encloses,
+        Otsu's value resolved; None otherwise.
     offset_used : float
         The clearance the cage was built for (the requested ``offset``, or twice it when
         the first attempt failed); parts farther apart than it get separate shells.
@@ -360,6 +405,7 @@ class AutoCageReport:
     grid_shape: tuple
     n_points: int
     n_components: int
+    threshold: float | None = None
     offset_used: float = float("nan")
     n_parts: int = 1
     bridged_gap: float = float("nan")
@@ -373,6 +419,7 @@ class AutoCageReport:
             f"{self.n_components} component(s); clearance {self.clearance:.4g} "
             f"({100 * self.clearance_relative:.2f}% of the diagonal), min winding number "
             f"{self.min_winding_number:.6f} over {self.n_points} points"
+            + (f" (the voxels above {self.threshold:.6g})" if self.threshold is not None else "")
             + (
                 f"; smallest gap kept between parts {self.min_gap_kept:.4g}"
                 if np.isfinite(self.min_gap_kept)
@@ -600,7 +647,13 @@ class _Groups:
 
 
 def _make_groups(
-    shape: ShapeSamples, offset: float, h: float, spacing, max_groups: int, merged=None
+    shape: ShapeSamples,
+    offset: float,
+    h: float,
+    spacing,
+    max_groups: int,
+    merged=None,
+    reach: float | None = None,
 ) -> _Groups:
     """Group the parts (closer than ``offset``, or nested) and set local clearances.
 
@@ -608,7 +661,7 @@ def _make_groups(
     distance grouping.
     """
     if merged is None:
-        group, count, bridged, kept = group_parts(shape, offset)
+        group, count, bridged, kept = group_parts(shape, offset, reach)
     else:
         group, count, bridged = merged.label, merged.count, merged.bridged
     if count > max_groups:
@@ -826,8 +879,8 @@ def _simplified(V1, F1, target: int, turn: float):
     return simplify(Vh, Fh, target, no_intersections=True, **kw)
 
 
-def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
-    """(grid, vertices, faces, components, Cage, groups) of the "offset" method.
+def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes, reach=None):
+    """(grid, vertices, faces, components, Cage, groups, sd) of the "offset" method.
 
     Parts closer than ``offset`` (and nested parts) are grouped; every group gets its own
     offset surface, at the clearance ``offset`` narrowed to a third of the gap near other
@@ -836,14 +889,15 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
     :func:`vhm_viz.autocage.simplify.simplify` finishes with link-condition-checked
     collapses, then the cage is pushed out where needed (every boundary sample at least
     half its local clearance inside) and checked to leave the space between groups
-    outside.
+    outside. ``sd``: signed distances of the input's boundary points (``inf`` beyond twice
+    the offset); ``reach``: how far to look for pairs of parts (reused by retries).
     """
     ext = float((hi - lo).max())
     if resolution is None:
         resolution = int(np.clip(np.ceil(1.5 * ext / offset), 32, 112))
     h = ext / int(resolution)
     max_groups = max(1, max_faces // _FACES_PER_SHELL)
-    groups = _make_groups(shape, offset, h, samples.spacing, max_groups)
+    groups = _make_groups(shape, offset, h, samples.spacing, max_groups, reach=reach)
     # point sets: a voxel centre is in the shape when within a sample's voxel (volumes)
     # or a typical neighbour distance (clouds) of a sample
     solid_radius = None
@@ -890,6 +944,9 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
             raise RuntimeError(
                 f"the simplified offset surface self-intersects ({crossing} face pairs)"
             )
+        if len(mids) and (winding_number(mids, V2, F2) > 0.5).any():
+            # pushing out only grows the cage: the gap stays closed
+            raise RuntimeError("the cage closes a gap between parts")
         V3, sd = _push_out(V2, F2, check_points, min_clear, radius)
         short = np.isfinite(sd) & (sd > -min_clear * 0.999)
         if short.any():
@@ -912,7 +969,8 @@ def _offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes):
         except CageError as exc:
             notes.append(f"offset cage rejected ({exc}); retrying")
             continue
-        return vx.Grid(lo, h, (int(resolution),) * 3), V3, F2, ncomp, cage, groups
+        grid = vx.Grid(lo, h, (int(resolution),) * 3)
+        return grid, V3, F2, ncomp, cage, groups, sd[: shape.n_input]
     raise RuntimeError("could not simplify the offset surface into a valid cage")
 
 
@@ -940,10 +998,12 @@ def auto_cage(
         A surface, a point cloud, a tet mesh or a volume (see :func:`collect_samples`).
     offset : float, optional
         Target clearance between the input and the cage, in world units (default 1% of
-        the input's bounding-box diagonal). The ``"offset"`` method guarantees at least
-        half of it (where simplification cut in, the cage is pushed back out to that),
-        the ``"voxel"`` method all of it. Parts closer than about ``2 * offset`` may
-        share a cage branch; farther parts are kept apart.
+        the input's bounding-box diagonal). The ``"offset"`` method keeps at least half
+        of it (where simplification cut in, the cage is pushed back out to that), and
+        between separate parts at most a third of their gap; the ``"voxel"`` method all
+        of it. Separate parts farther apart than the offset used (``offset_used`` in the
+        report) get separate shells and the space between them stays outside; closer
+        ones may share a shell.
     max_faces : int
         Largest number of triangles (default 500, the paper's range is 200-500).
     resolution : int, optional
@@ -951,12 +1011,14 @@ def auto_cage(
         surface is extracted on (default ``1.5 * side / offset`` within 32-112).
         ``"voxel"``: the cube size (default: the finest that fits ``max_faces``).
     method : {"auto", "offset", "voxel"}
-        See the module documentation. ``"auto"`` uses ``"offset"``, retries it at twice
-        the offset when the simplified surface cannot be made a valid cage (thin tubes
-        such as fingers), then falls back to ``"voxel"``. Volumes without a threshold get
-        their bounding box grown by ``offset`` (12 triangles).
+        See the module documentation. ``"auto"`` uses ``"offset"``, retries it at two
+        and four times the offset when no valid cage comes out (too many separate parts
+        for the faces, gaps the faces cannot keep open), then falls back to ``"voxel"``.
+        Volumes without a threshold get their bounding box grown by ``offset`` (12
+        triangles).
     threshold : float, "otsu" or None
-        Volumes: None encloses the bounding box, a value the points above it.
+        Volumes: None encloses the bounding box, a value every voxel strictly above it
+        (the region; see :func:`resolve_threshold`).
     scalars : str, optional
         Volume array to threshold.
     return_report : bool
@@ -996,6 +1058,7 @@ def auto_cage(
     used = "voxel" if samples.kind == "volume-box" else method
     cage = None
     offset_used, bridged, kept, n_parts = offset, float("nan"), float("nan"), 1
+    sd = np.empty(0)
     if used in ("auto", "offset"):
         # when the cage cannot be made at the requested offset (too many separate parts
         # for the faces, gaps the faces cannot keep open), "auto" retries at two and four
@@ -1007,8 +1070,8 @@ def auto_cage(
         shape = shape_samples(samples, 0.5 * ext / res0)
         for k, off in enumerate(tries):
             try:
-                grid, V, F, ncomp, cage, groups = _offset_cage(
-                    samples, shape, lo, hi, off, max_faces, resolution, notes
+                grid, V, F, ncomp, cage, groups, sd = _offset_cage(
+                    samples, shape, lo, hi, off, max_faces, resolution, notes, 3.0 * tries[-1]
                 )
                 used = "offset"
                 offset_used, bridged, kept = off, groups.bridged, groups.kept
@@ -1078,7 +1141,8 @@ def auto_cage(
         V, _sd = _push_out(V, F, pts, 0.5 * offset_used, 2.0 * offset_used)
         cage = _make_cage(V, F)
         V, F = np.asarray(cage.vertices), np.asarray(cage.faces)
-    sd, _ = _clearance(V, F, pts[_on_boundary(samples)], 2.0 * offset_used)
+    if cage.repairs or used != "offset" or not np.isfinite(sd).any():
+        sd, _ = _clearance(V, F, pts[_on_boundary(samples)], 2.0 * offset_used)
     clearance = float(-sd[np.isfinite(sd)].max())
     wmin = float(winding_number(pts, V, F).min())
     enclosed = bool(clearance > 0 and wmin > 0.5)
@@ -1100,6 +1164,7 @@ def auto_cage(
         grid_shape=tuple(grid.shape),
         n_points=len(pts),
         n_components=int(ncomp),
+        threshold=samples.threshold,
         offset_used=offset_used,
         n_parts=int(n_parts),
         bridged_gap=bridged,

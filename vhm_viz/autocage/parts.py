@@ -156,7 +156,9 @@ def _close_pairs(points, labels, n, radius):
     return out
 
 
-def group_parts(shape: ShapeSamples, distance: float) -> tuple[np.ndarray, int, float, float]:
+def group_parts(
+    shape: ShapeSamples, distance: float, reach: float | None = None
+) -> tuple[np.ndarray, int, float, float]:
     """Merge parts closer than ``distance`` (nearest samples) into groups.
 
     Parameters
@@ -164,6 +166,9 @@ def group_parts(shape: ShapeSamples, distance: float) -> tuple[np.ndarray, int, 
     shape : ShapeSamples
     distance : float
         Parts whose nearest samples are at most this far apart share a group (world units).
+    reach : float, optional
+        How far apart to look for pairs of parts (default ``3 * distance``); the pairs
+        found are kept on ``shape`` and reused by later calls that reach no farther.
 
     Returns
     -------
@@ -179,7 +184,11 @@ def group_parts(shape: ShapeSamples, distance: float) -> tuple[np.ndarray, int, 
     n = shape.n_parts
     if n == 1:
         return np.zeros(len(shape.points), dtype=np.int64), 1, 0.0, float("inf")
-    pairs = _close_pairs(shape.points, shape.part, n, 3.0 * distance)
+    reach = max(3.0 * distance, reach or 0.0)
+    cached = getattr(shape, "_pairs", None)
+    if cached is None or cached[0] < reach:
+        shape._pairs = (reach, _close_pairs(shape.points, shape.part, n, reach))
+    pairs = [(a, b, d) for a, b, d in shape._pairs[1] if d <= 3.0 * distance]
     close = [(a, b, d) for a, b, d in pairs if d <= distance]
     if close:
         e = np.array([(a, b) for a, b, _ in close], dtype=np.int64)
