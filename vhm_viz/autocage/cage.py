@@ -787,4 +787,7 @@ def _make_cage(V, F, check_self_intersection=True):
             np.asarray(V, dtype=np.float64),
             np.asarray(F, dtype=np.int64),
             check_self_intersection=check_self_intersection,
+            # thin faces are not refused or repaired here: a repair may not move the surface
+            # inward and the simplified cages have many; Cage.thin_faces reports them
+            min_angle=0.0,
         )
