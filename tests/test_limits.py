@@ -156,3 +156,13 @@ def test_not_converged_is_a_distinct_exit_status_and_writes_nothing(capped_scene
     assert main([*args, "-o", str(report), "--allow-unconverged"]) == 0
     metrics = json.loads((report / "metrics.json").read_text())
     assert metrics["iterations"] == 20 and metrics["converged"] is False
+
+
+def test_bad_arguments_exit_2(capsys):
+    from vhm_viz.cli import main
+
+    with pytest.raises(SystemExit) as info:
+        main(["deform"])  # INPUT, --scene and -o missing: argparse's usage error
+    assert info.value.code == 2
+    assert main([]) == 2  # no command
+    capsys.readouterr()

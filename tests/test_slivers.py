@@ -118,3 +118,25 @@ def _raw_cage(v, f):
     from types import SimpleNamespace
 
     return SimpleNamespace(vertices=v, faces=f)
+
+
+def test_automatic_cages_keep_their_thin_faces_and_say_so(tmp_path, capsys):
+    from vhm_viz.autocage import auto_cage
+    from vhm_viz.cli import main
+    from vhm_viz.io import read_cage
+
+    sc = examples.bar("bend-u", resolution=6)
+    auto = auto_cage(sc.surface, max_faces=80)
+    assert len(auto.thin_faces)  # this bar's automatic cages have some (0.5 degrees)
+    write_cage(tmp_path / "auto.obj", auto)  # marks them as accepted ...
+    back = read_cage(tmp_path / "auto.obj")  # ... so the cage reads back as it was
+    np.testing.assert_array_equal(back.faces, auto.faces)
+    assert len(back.thin_faces) == len(auto.thin_faces) and not back.repairs
+    d = sc.scene.to_dict()
+    d["cage"] = "auto.obj"
+    (tmp_path / "scene.json").write_text(json.dumps(d))
+    sc.surface.save(tmp_path / "bar.vtp")
+    main(["deform", str(tmp_path / "bar.vtp"), "-s", str(tmp_path / "scene.json"),
+          "-o", str(tmp_path / "out.vtp"), "-q", "--allow-unconverged"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert f"faces with an angle below {MIN_FACE_ANGLE:g} degrees" in err

@@ -1255,7 +1255,9 @@ def read_cage(path, **kwargs) -> Cage:
     reader can split vertices that carry several texture coordinates or normals); the other
     formats go through VTK. Quads and polygons are triangulated
     (:func:`~vhm_viz.core.geometry.triangulate_polygons`); STL's per-facet corners are
-    merged when bit-identical.
+    merged when bit-identical. Slivers are repaired or refused (:class:`Cage`), unless an
+    OBJ file accepts them with a ``# vhm_viz min_angle 0`` comment line (what
+    :func:`write_cage` writes for automatic cages, whose thin faces are then reported).
 
     Parameters
     ----------
@@ -1285,6 +1287,7 @@ def read_cage(path, **kwargs) -> Cage:
     try:
         if suffix == ".obj":
             points, polys = _read_obj(p)
+            kwargs.setdefault("min_angle", _obj_min_angle(p))
         elif suffix == ".off":
             points, polys = _read_off(p)
         else:
@@ -1368,6 +1371,9 @@ def write_cage(path, cage, comment: str = "") -> None:
     """
     if suffix_of(path) == ".obj":
         lines = [f"# {line}" for line in comment.splitlines()]
+        if len(getattr(cage, "thin_faces", ())):
+            # a cage accepted with thin faces (an automatic one) reads back the same way
+            lines.append(f"{_MIN_ANGLE_DIRECTIVE} {cage.min_angle:g}")
         lines += [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in np.asarray(cage.vertices)]
         lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in np.asarray(cage.faces)]
         write_text(path, "\n".join(lines) + "\n")
@@ -1441,6 +1447,29 @@ def _merge_exact_duplicates(points: np.ndarray, tris: np.ndarray) -> tuple[np.nd
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     return points[np.sort(first)], rank[inverse][tris]
+
+
+#: An OBJ cage comment line accepting thin faces (``# vhm_viz min_angle 0``): what
+#: :func:`write_cage` writes for a cage that has them (automatic cages), so that reading it
+#: back accepts the same cage; :func:`read_cage` then reports them rather than repairing or
+#: refusing them (:attr:`~vhm_viz.core.cage.Cage.thin_faces`).
+_MIN_ANGLE_DIRECTIVE = "# vhm_viz min_angle"
+
+
+def _obj_min_angle(path: Path) -> float:
+    """The ``min_angle`` an OBJ cage asks for (:data:`MIN_FACE_ANGLE` unless it says)."""
+    from vhm_viz.core.cage import MIN_FACE_ANGLE
+
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            if line.startswith(_MIN_ANGLE_DIRECTIVE):
+                try:
+                    return min(float(line[len(_MIN_ANGLE_DIRECTIVE) :].split()[0]), MIN_FACE_ANGLE)
+                except (IndexError, ValueError):
+                    break
+            elif line.strip() and not line.startswith("#"):
+                break  # directives come first, with the other comments
+    return MIN_FACE_ANGLE
 
 
 def _read_obj(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:

@@ -40,6 +40,7 @@ from PySide6.QtWidgets import (
 from vhm_viz.app.controller import ExplorerController
 from vhm_viz.app.panels import AnalysisPanel, ConstraintPanel
 from vhm_viz.app.workers import JobRunner
+from vhm_viz.core.cage import MIN_FACE_ANGLE
 
 __all__ = ["ExplorerWindow", "MODES"]
 
@@ -478,7 +479,16 @@ class ExplorerWindow(QMainWindow):
 
         def done(cage):
             self.ctrl.set_cage(cage)
-            self.status(f"generated cage: {cage.n_faces} faces")
+            thin = cage.thin_faces
+            self.status(
+                f"generated cage: {cage.n_faces} faces"
+                + (
+                    f"; {len(thin)} faces thinner than {MIN_FACE_ANGLE:g} degrees (the "
+                    "smoothness weight collapses on them: the result may be poor)"
+                    if len(thin)
+                    else ""
+                )
+            )
             self.after_edit(structure=True)
 
         self.run_job("generate cage", job, done)

@@ -1178,9 +1178,9 @@ def auto_cage(
 def _make_cage(V, F, check_self_intersection=True):
     """A validated :class:`vhm_viz.Cage` from arrays (raises CageError).
 
-    Slivers are repaired (:func:`vhm_viz.core.cage.repair_slivers`); a repair moves the
-    surface, so :func:`auto_cage` checks the enclosure on the cage returned here and
-    pushes a repaired surface back out where it cut into the shape.
+    Thin faces are kept and reported (``Cage.thin_faces``), not repaired: a repair moves the
+    surface. :func:`auto_cage` still checks the enclosure on the cage returned here, and
+    pushes the surface back out should a repair ever have cut into the shape.
     """
     from vhm_viz.core.cage import Cage
 
@@ -1190,4 +1190,7 @@ def _make_cage(V, F, check_self_intersection=True):
             np.asarray(V, dtype=np.float64),
             np.asarray(F, dtype=np.int64),
             check_self_intersection=check_self_intersection,
+            # thin faces are not refused or repaired here: a repair may not move the surface
+            # inward and the simplified cages have many; Cage.thin_faces reports them
+            min_angle=0.0,
         )

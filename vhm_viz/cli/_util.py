@@ -10,6 +10,7 @@ import numpy as np
 
 from vhm_viz import interrupts
 from vhm_viz.cli import one_line
+from vhm_viz.core.cage import MIN_FACE_ANGLE
 from vhm_viz.io import DATASET_SUFFIXES, OverwriteError, refuse_inputs, suffix_of
 
 #: Output formats per output dataset type.
@@ -213,7 +214,15 @@ def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False
 
     dfm = scene.build(data=mesh)
     # what loading had to change is said, one line each (old scene format, cage repairs)
-    for note in [*scene.notes, *(f"cage repaired: {r}" for r in dfm.cage.repairs)]:
+    notes = [*scene.notes, *(f"cage repaired: {r}" for r in dfm.cage.repairs)]
+    thin = dfm.cage.thin_faces
+    if len(thin):
+        notes.append(
+            f"the cage has {len(thin)} faces with an angle below {MIN_FACE_ANGLE:g} degrees "
+            "(e.g. face " + str(int(thin[0])) + "): the smoothness weight collapses on "
+            "them and the result may be poor"
+        )
+    for note in notes:
         print(f"vhm-viz: note: {note}", file=sys.stderr)
     bar = Progress("solving", enabled=not quiet)
     reports = scene.solve(dfm, progress=bar)

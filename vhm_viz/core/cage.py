@@ -321,7 +321,7 @@ def validate_cage(
     check_self_intersection: bool = True,
     area_rtol: float = AREA_RTOL,
     dist_rtol: float = DIST_RTOL,
-    min_angle: float = MIN_FACE_ANGLE,
+    min_angle: float = 0.0,
     stacklevel: int = 2,
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """Check a triangle mesh for use as a cage; flip it if it is oriented inward.
@@ -338,7 +338,8 @@ def validate_cage(
         Faces closer than ``dist_rtol * diagonal`` touch (count as intersecting).
     min_angle : float
         Faces whose smallest angle is below this many degrees are slivers
-        (:class:`SliverError`); 0 disables the check.
+        (:class:`SliverError`); 0 (the default here, a purely structural check) disables
+        it. :class:`Cage` checks :data:`MIN_FACE_ANGLE`.
     stacklevel : int
         For the warnings issued.
 
@@ -579,16 +580,23 @@ def face_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def repair_slivers(
-    vertices, faces, min_angle: float = MIN_FACE_ANGLE, *, error: SliverError | None = None
+    vertices,
+    faces,
+    min_angle: float = MIN_FACE_ANGLE,
+    *,
+    error: SliverError | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Remove slivers from a closed, consistently oriented triangle mesh.
 
-    Worst face first: a cap (one angle of at least 90 degrees) has the edge opposite that
-    angle flipped; a needle has its shortest edge collapsed (to an end point or the
-    midpoint, whichever leaves the best smallest angle). A step is taken only if it keeps
-    the mesh a closed manifold (no duplicate edge, the link condition for collapses), turns
-    no face over (each changed face's normal within 90 degrees of the old ones) and improves
-    the smallest angle where it acts. The caller validates the result (self-intersection).
+    Worst face first: the edge opposite the largest angle is flipped, or the shortest edge
+    collapsed (to an end point or the midpoint), whichever leaves the larger smallest angle.
+    A step is taken only if it keeps the mesh a closed manifold (no duplicate edge, the
+    link condition for collapses), turns no face over (each changed face's normal within
+    90 degrees of the old ones), improves the smallest angle where it acts, and moves no
+    part of the surface inward (a flip adds volume or none, a collapse moves no vertex
+    through a face around it): the repaired cage holds everything the input held, so a
+    cage that enclosed the data still does. The caller validates the result
+    (self-intersection).
 
     Parameters
     ----------
@@ -616,22 +624,19 @@ def repair_slivers(
     f = np.array(faces, dtype=np.int64)
     alive = np.ones(len(v), dtype=bool)
     notes: list[str] = []
+    stuck: set[tuple] = set()  # slivers no step removes (by their corners)
     for _ in range(2 * len(f)):
         ang = face_angles(v, f)
         smallest = ang.min(axis=1)
-        t = int(np.argmin(smallest))
-        if smallest[t] >= min_angle:
+        open_ = [u for u in np.argsort(smallest) if tuple(sorted(f[u])) not in stuck]
+        if not open_ or smallest[open_[0]] >= min_angle:
             break
+        t = int(open_[0])
         # of the flip and the collapse that are allowed, the one leaving the larger angle
         steps = [x for x in (_flip_cap(v, f, t, ang), _collapse_needle(v, f, t)) if x]
         if not steps:
-            msg = (
-                f"face {t} has an angle of {smallest[t]:.3g} degrees, below the {min_angle:g} "
-                "degree minimum (vhm_viz.core.cage.MIN_FACE_ANGLE), and no edge flip or "
-                "collapse removes it without breaking the cage; move its vertices "
-                f"{', '.join(str(int(i)) for i in f[t])}"
-            )
-            raise SliverError(msg if error is None else f"{error} -- {msg}", [t])
+            stuck.add(tuple(sorted(f[t])))
+            continue
         f, note, _, collapse = max(steps, key=lambda x: x[2])
         if collapse is not None:
             a, b, point = collapse
@@ -640,6 +645,17 @@ def repair_slivers(
         notes.append(f"{note} (face {t} had an angle of {smallest[t]:.3g} degrees)")
     else:  # pragma: no cover - each step removes a face or improves one
         raise SliverError("sliver repair did not finish", [])
+    thin = np.flatnonzero(face_angles(v, f).min(axis=1) < min_angle)
+    if len(thin):
+        t = int(thin[0])
+        msg = (
+            f"{len(thin)} slivers left: face {t} has an angle of "
+            f"{face_angles(v, f[[t]]).min():.3g} degrees, below the {min_angle:g} degree "
+            "minimum (vhm_viz.core.cage.MIN_FACE_ANGLE), and no edge flip or collapse "
+            "removes it without moving the cage into what it encloses; move its vertices "
+            f"{', '.join(str(int(i)) for i in f[t])}"
+        )
+        raise SliverError(msg if error is None else f"{error} -- {msg}", thin)
     keep = np.flatnonzero(alive)
     renumber = np.full(len(v), -1, dtype=np.int64)
     renumber[keep] = np.arange(len(keep))
@@ -657,6 +673,39 @@ def _normals_kept(v, old_faces, new_faces) -> bool:
     if (a_new <= 0).any():
         return False
     return bool(((n_new @ n_old.T) > 0).any(axis=1).all())
+
+
+def _flat(v, faces) -> float:
+    """What counts as no volume next to ``faces``: rounding of their size cubed."""
+    x = v[faces]
+    size = float(np.linalg.norm(x.max(axis=(0, 1)) - x.min(axis=(0, 1))))
+    return 1e-9 * size**3
+
+
+def _volume_change(v_old, old_faces, v_new, new_faces) -> float:
+    """Volume the replacement of ``old_faces`` by ``new_faces`` adds (both closing a patch)."""
+    origin = v_old[old_faces].reshape(-1, 3).mean(axis=0)  # origin-free, like signed_volume
+
+    def cones(v, faces):
+        x = v[faces] - origin
+        return float(np.einsum("ij,ij->i", x[:, 0], np.cross(x[:, 1], x[:, 2])).sum() / 6.0)
+
+    return cones(v_new, new_faces) - cones(v_old, old_faces)
+
+
+def _moves_outward(v, f, moves: dict) -> bool:
+    """Whether moving vertices (``{vertex: new position}``) keeps the surface outside.
+
+    Every moved vertex must not go inward through any face around it (beyond rounding):
+    the repaired cage then still holds all it held, which a cage around data must.
+    """
+    normals, _ = face_normals_and_areas(v, f)
+    for vid, point in moves.items():
+        around = np.flatnonzero((f == vid).any(axis=1))
+        step = np.asarray(point) - v[vid]
+        if (normals[around] @ step < -1e-9 * np.linalg.norm(step) - 1e-300).any():
+            return False
+    return True
 
 
 def _flip_cap(v, f, t, ang):
@@ -680,6 +729,8 @@ def _flip_cap(v, f, t, ang):
     worst = face_angles(v, new).min()
     if worst <= min(ang[t].min(), face_angles(v, f[[u]]).min()):
         return None
+    if _volume_change(v, f[[t, u]], v, new) < -_flat(v, f[[t, u]]):
+        return None  # the new edge would cut into the cage: what it held could be lost
     g = f.copy()
     g[t], g[u] = new
     return g, f"flipped edge ({a}, {b}) to ({c}, {d})", worst, None
@@ -717,8 +768,11 @@ def _collapse_needle(v, f, t):
         if (np.einsum("ij,ij->i", n_old, n_new) <= 0).any():
             continue
         worst = face_angles(w, new).min()
-        if worst > before and (best is None or worst > best[0]):
-            best = (worst, where, point, g)
+        if worst <= before or (best is not None and worst <= best[0]):
+            continue
+        if not _moves_outward(v, f, {a: point, b: point}):
+            continue  # the surface would move inward: what it held could be lost
+        best = (worst, where, point, g)
     if best is None:
         return None
     worst, where, point, g = best
@@ -751,11 +805,14 @@ class Cage:
         Triangles (0-based vertex indices).
     check_self_intersection : bool
         Skip the self-intersection test when False (only for input known to be embedded).
+    min_angle : float
+        Faces whose smallest angle is below this many degrees are slivers (default
+        :data:`MIN_FACE_ANGLE`; 0 accepts any face, see :attr:`thin_faces`).
     repair : bool
-        Repair slivers (faces with an angle below :data:`MIN_FACE_ANGLE`) by edge flips
-        and collapses (:func:`repair_slivers`; each step is listed in :attr:`repairs`, and
-        a collapse removes a vertex, so vertex numbers then differ from the input's). When
-        False, or when no repair keeps the cage valid, a sliver is a :class:`SliverError`.
+        Repair slivers by edge flips and collapses that move no part of the surface inward
+        (:func:`repair_slivers`; each step is listed in :attr:`repairs`, and a collapse
+        removes a vertex, so vertex numbers then differ from the input's). When False, or
+        when no such repair exists, a sliver is a :class:`SliverError` naming the face.
 
     Raises
     ------
@@ -764,22 +821,26 @@ class Cage:
     """
 
     def __init__(
-        self, vertices, faces, *, check_self_intersection: bool = True, repair: bool = True
+        self,
+        vertices,
+        faces,
+        *,
+        check_self_intersection: bool = True,
+        min_angle: float = MIN_FACE_ANGLE,
+        repair: bool = True,
     ):
         self._repairs: tuple[str, ...] = ()
+        self._min_angle = float(min_angle)
+        checks = {"check_self_intersection": check_self_intersection, "min_angle": min_angle}
         try:
-            v, f, flipped = validate_cage(
-                vertices, faces, check_self_intersection=check_self_intersection, stacklevel=3
-            )
+            v, f, flipped = validate_cage(vertices, faces, stacklevel=3, **checks)
         except SliverError as exc:
             if not repair:
                 raise
             v0, f0 = _as_arrays(vertices, faces)
-            v1, f1, notes = repair_slivers(v0, f0, error=exc)
+            v1, f1, notes = repair_slivers(v0, f0, min_angle, error=exc)
             try:
-                v, f, flipped = validate_cage(
-                    v1, f1, check_self_intersection=check_self_intersection, stacklevel=3
-                )
+                v, f, flipped = validate_cage(v1, f1, stacklevel=3, **checks)
             except CageError:  # the repair broke the cage: the slivers are the problem
                 raise exc from None
             self._repairs = tuple(notes)
@@ -821,6 +882,22 @@ class Cage:
     def repairs(self) -> tuple[str, ...]:
         """What was done to repair slivers (empty when the input had none)."""
         return self._repairs
+
+    @property
+    def min_angle(self) -> float:
+        """The smallest face angle (degrees) this cage was checked against."""
+        return self._min_angle
+
+    @cached_property
+    def thin_faces(self) -> np.ndarray:
+        """Faces whose smallest angle is below :data:`MIN_FACE_ANGLE` (read-only).
+
+        Empty unless the cage was made with a smaller ``min_angle`` (automatic cages are):
+        such faces make the smoothness weight collapse, and the command line says so.
+        """
+        return _readonly(
+            np.flatnonzero(face_angles(self._vertices, self._faces).min(1) < MIN_FACE_ANGLE)
+        )
 
     @property
     def face_normals(self) -> np.ndarray:
