@@ -116,5 +116,11 @@ class JacobianAnalysisFilter(DeformationSource):
         _add(pd, "foldover", m["foldover"].astype(np.uint8))
         if self._outside != "error":
             _add(pd, "vhm_outside", (~vol.lattice.inside(box)).ravel().astype(np.uint8))
+        # the voxels as the deformation returns them (six tets each), from the same lattice
+        quality = cell_quality(inp, vol.warp(box, abort=self._aborted))
+        self.cell_summary = None
+        if quality is not None:
+            add_cell_arrays(out, quality)
+            self.cell_summary = quality["summary"]
         self.UpdateProgress(1.0)
         return 1
