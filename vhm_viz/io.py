@@ -348,7 +348,12 @@ def _read_vtk_isolated(p: Path, suffix: str):
             os.close(read_end)
             _limit_memory(p)
             try:
-                payload = ("ok", _read_vtk(p, suffix))
+                data = _read_vtk(p, suffix)
+                # PyVista's pickling (the legacy VTK format) drops an image's direction
+                direction = (
+                    np.array(data.direction_matrix) if hasattr(data, "direction_matrix") else None
+                )
+                payload = ("ok", (data, direction))
             except BaseException as exc:  # noqa: BLE001 - everything goes back as text
                 payload = ("error", _first_line(exc))
             with os.fdopen(write_end, "wb") as fh:
@@ -378,7 +383,10 @@ def _read_vtk_isolated(p: Path, suffix: str):
     kind, value = pickle.loads(blob)  # noqa: S301 - our own child's data
     if kind == "error":
         raise ReadError(f"{p}: cannot read ({value})")
-    return value
+    data, direction = value
+    if direction is not None:
+        data.direction_matrix = direction
+    return data
 
 
 def _limit_memory(p: Path) -> None:
