@@ -157,15 +157,10 @@ def test_surface_two_ranks_equal_serial_equal_python(paraview_env, armadillo_sce
 
 
 def test_no_scene_file_one_message_no_output(paraview_env, tmp_path):
-    config = {
-        "input": str(ROOT / "tests" / "paraview" / "run_filter.py"),  # replaced below
-        "filter": "VHMHarmonicDeformation",
-        "scene": None,
-        "ids": False,
-    }
     sphere = tmp_path / "sphere.vtp"
     pv.Sphere().save(sphere)
-    config["input"] = str(sphere)
+    config = {"input": str(sphere), "filter": "VHMHarmonicDeformation", "scene": None,
+              "ids": False}  # fmt: skip
     for ranks in (1, 2):
         log = _run(paraview_env, config, tmp_path, ranks=ranks, name="noscene")
         assert log.count("set SceneFile (a vhm_viz scene JSON)") == 1, log
