@@ -539,3 +539,61 @@ def test_fast_jacobian_measures_equal_the_svd_ones(bend):
     hard = np.zeros(3, dtype=bool)
     _measures(odd, det, cond, angle, hard)
     assert hard.tolist() == [True, True, False] and cond[2] == 1.0 and angle[2] == 0.0
+
+
+def test_cubic_sampling_reproduces_quadratics():
+    """Catmull-Rom reproduces quadratics: a translated quadratic volume comes out exact."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (40, 36, 34))
+    cage = _cage_around((0, 0, 0), (39, 35, 33), 0.1, divisions=1)
+    shift = np.array([0.37, -0.61, 0.25])
+    vol = VolumeDeformation(HarmonicMap.affine(cage, np.eye(3), shift), geo)
+    p = geo.points()
+
+    def quadratic(x):
+        return 0.02 * x[:, 0] ** 2 - 0.01 * x[:, 0] * x[:, 1] + 0.03 * x[:, 2] ** 2 + x[:, 1]
+
+    res = vol.resample({"q": quadratic(p)}, geometry=geo, interpolation="cubic")
+    pre = p - shift  # the exact pre-images
+    away = np.all((pre >= 2) & (pre <= np.asarray(geo.dimensions) - 3), axis=1)
+    assert away.sum() > 0.5 * len(p) and res.valid[away].all()
+    np.testing.assert_allclose(res.arrays["q"][away], quadratic(pre[away]), atol=1e-9)
+    lin = vol.resample({"q": quadratic(p)}, geometry=geo, interpolation="linear")
+    assert np.abs(lin.arrays["q"][away] - quadratic(pre[away])).max() > 1e-3  # not exact
+
+
+def test_vtk_filters_two_pieces_equal_one_on_the_lattice():
+    """Warp and resample filters on a volume large enough for the lattice (not exact)."""
+    from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
+
+    img = pv.ImageData(dimensions=(44, 40, 36), spacing=(1.0, 1.0, 1.2))
+    rng = np.random.default_rng(7)
+    img.point_data["v"] = rng.integers(0, 200, img.n_points).astype(np.uint8)
+    lo, hi = np.asarray(img.bounds[0::2]), np.asarray(img.bounds[1::2])
+    hm = _random_bend(_cage_around(lo, hi, 0.03), 0.004, seed=2)
+    for cls in (HarmonicDeformationFilter, HarmonicResampleFilter):
+        whole_filter = cls()
+        whole_filter.SetInputData(img)
+        whole_filter.SetHarmonicMap(hm)
+        whole = pv.wrap(update(whole_filter))
+        assert whole.n_points > 32768
+        nx, ny, nz = whole.dimensions
+        points = np.full((nz, ny, nx, 3), np.nan)
+        values = np.zeros((nz, ny, nx), dtype=np.uint8)
+        for piece in range(2):
+            flt = cls()
+            flt.SetInputData(img)
+            flt.SetHarmonicMap(hm)
+            part = update(flt, piece, 2)
+            e = part.GetExtent()
+            assert e != whole.GetExtent()
+            part = pv.wrap(part)
+            shape = (e[5] - e[4] + 1, e[3] - e[2] + 1, e[1] - e[0] + 1)
+            box = np.s_[e[4] : e[5] + 1, e[2] : e[3] + 1, e[0] : e[1] + 1]
+            points[box] = np.asarray(part.points).reshape(shape + (3,))
+            values[box] = np.asarray(part.point_data["v"]).reshape(shape)
+        if cls is HarmonicDeformationFilter:  # same lattice, same arithmetic
+            np.testing.assert_array_equal(points.reshape(-1, 3), whole.points)
+            assert isinstance(whole, pv.StructuredGrid)
+        else:
+            np.testing.assert_array_equal(values.ravel(), whole.point_data["v"])
+            assert whole.point_data["v"].dtype == np.uint8
