@@ -597,3 +597,23 @@ def test_vtk_filters_two_pieces_equal_one_on_the_lattice():
         else:
             np.testing.assert_array_equal(values.ravel(), whole.point_data["v"])
             assert whole.point_data["v"].dtype == np.uint8
+
+
+def test_cage_of_two_shells():
+    """Two outward shells, each around half of the volume: each half follows its own."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (64, 30, 30))
+    v1, f1 = box_cage((-1.0, -1.0, -1.0), (29.5, 30.0, 30.0), 2)
+    v2, f2 = box_cage((32.5, -1.0, -1.0), (64.0, 30.0, 30.0), 2)
+    cage = Cage(np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)]))
+    hm = _random_bend(cage, 0.004, seed=9)
+    vol = VolumeDeformation(hm, geo, outside="passthrough")
+    pts = vol.warp()
+    inside = inside_mask(geo, cage.vertices, cage.faces).ravel()
+    assert 0.8 < inside.mean() < 0.97  # the gap between the shells is outside
+    rng = np.random.default_rng(0)
+    pick = rng.choice(np.nonzero(inside)[0], 3000, replace=False)
+    err = _voxel_error(geo, pts[pick] - hm.map(geo.points()[pick]))
+    assert err.max() <= vol.tolerance
+    np.testing.assert_array_equal(pts[~inside], geo.points()[~inside])
+    res = vol.resample({"v": np.ones(geo.n_points)})
+    assert res.counts["valid"] > 0.9 * geo.n_points
