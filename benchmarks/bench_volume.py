@@ -23,7 +23,8 @@ threshold=...)``), 24 automatic anchors and a bend (one end held, the other turn
 Timings on a shared machine are noisy: the load average seen is printed with the table.
 
 Run: ``python benchmarks/bench_volume.py [--repeats 3] [--only head|embryo]``
-(SimpleITK is the ``bench`` extra: ``pip install vhm_viz[bench]``).
+(SimpleITK is the ``bench`` extra: ``pip install vhm_viz[bench]``). ``--figure PNG``
+renders the embryo and its resampled bend side by side, off screen (the README's picture).
 """
 
 from __future__ import annotations
@@ -224,6 +225,54 @@ def simpleitk_resample(img, vol, repeats):
     return times, float(diff.max()), int(inside.sum())
 
 
+# ------------------------------------------------------------------------------ figure
+def figure(path, cache: Path, key="embryo"):
+    """The volume's three middle planes and the same world planes of its resampled bend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    img, hm, _, _ = prepare(key, cache)
+    name = img.active_scalars_name
+    vol = engine(hm, img)
+    geo = vol.geometry
+    res = vol.resample({name: np.asarray(img.active_scalars)})
+    out = res.geometry
+    before = np.asarray(img.active_scalars).reshape(geo.dimensions[::-1])
+    after = res.arrays[name].reshape(out.dimensions[::-1])
+    shift = np.rint(geo.continuous_index(out.origin[None])[0]).astype(int)  # whole voxels
+    lo = np.minimum(0, shift)
+    hi = np.maximum(np.asarray(geo.dimensions), shift + np.asarray(out.dimensions))
+    fig, axes = plt.subplots(2, 3, figsize=(10.5, 7.2))
+    labels = "xyz"
+    for a in range(3):
+        u, v = [b for b in range(3) if b != a]
+        mid = geo.dimensions[a] // 2
+        for row, (values, start, title) in enumerate(
+            ((before, np.zeros(3, int), "input"), (after, shift, "resampled bend"))
+        ):
+            # values are (z, y, x): the plane keeps rows along v, columns along u (u < v)
+            plane = np.take(values, mid - start[a], axis=2 - a)
+            ext = (start[u], start[u] + plane.shape[1], start[v], start[v] + plane.shape[0])
+            ax = axes[row, a]
+            ax.imshow(plane, cmap="gray", origin="lower", extent=ext, vmin=0, vmax=160)
+            ax.set_xlim(lo[u], hi[u])
+            ax.set_ylim(lo[v], hi[v])
+            ax.set_title(f"{title}, {labels[a]} = {mid} (voxels)", fontsize=10)
+            ax.set_xlabel(labels[u])
+            ax.set_ylabel(labels[v])
+    fig.suptitle(
+        f"{img.dimensions[0]}x{img.dimensions[1]}x{img.dimensions[2]} embryo bent by "
+        f"{BEND_DEGREES:.0f} degrees: resampled onto "
+        f"{'x'.join(str(d) for d in out.dimensions)} voxels, tolerance 0.05 voxel",
+        fontsize=11,
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=72)
+    plt.close(fig)
+
+
 # --------------------------------------------------------------------------------- main
 def run_volume(key, repeats, cache: Path):
     name = VOLUMES[key][0]
@@ -285,9 +334,13 @@ def main() -> None:
     parser.add_argument("--only", choices=sorted(VOLUMES), default=None)
     parser.add_argument("--cache", default=None, help="folder for the solved maps")
     parser.add_argument("--json", default=None, help="also write the results here")
+    parser.add_argument("--figure", default=None, help="only render the picture to this PNG")
     args = parser.parse_args()
     cache = Path(args.cache or tempfile.mkdtemp(prefix="bench_volume_"))
     cache.mkdir(parents=True, exist_ok=True)
+    if args.figure:
+        figure(args.figure, cache)
+        return
     keys = [args.only] if args.only else list(VOLUMES)
     load0 = os.getloadavg()
     results = [run_volume(k, args.repeats, cache) for k in keys]

@@ -513,3 +513,107 @@ def test_surface_mask_catches_every_cube_the_cage_crosses():
     wn = inside_cage(winding_number(geo.points(u[clean]), cage.vertices, cage.faces))
     np.testing.assert_array_equal(wn, all_in[k, j, i][clean])
     assert clean.mean() > 0.5
+
+
+def test_fast_jacobian_measures_equal_the_svd_ones(bend):
+    """Closed-form singular values and Higham's polar iteration against numpy's SVD."""
+    from vhm_viz.core.metrics import jacobian_measures
+
+    geo, cage, hm, vol = bend
+    box = (10, 50, 5, 45, 8, 40)
+    got = vol.jacobian_measures(box)
+    jac = vol.jacobians(box)
+    ref = jacobian_measures(jac)
+    np.testing.assert_allclose(got["determinant"], ref["determinant"], rtol=1e-12)
+    np.testing.assert_allclose(got["condition_number"], ref["condition_number"], rtol=1e-7)
+    np.testing.assert_allclose(got["rotation_angle"], ref["rotation_angle"], atol=1e-9)
+    # and the lattice's Jacobians are those of the exact map, to the tolerance's order
+    exact = hm.jacobian(geo.sub(box).points())
+    scale = np.abs(exact).max()
+    assert np.median(np.abs(jac - exact)) < 1e-4 * scale
+    # degenerate and mirrored matrices take the SVD's values
+    odd = np.array([np.diag([1.0, 1.0, -1.0]), np.diag([1.0, 1.0, 1e-15]), np.eye(3)])
+    from vhm_viz.core.volume import _measures
+
+    det, cond, angle = np.empty(3), np.empty(3), np.empty(3)
+    hard = np.zeros(3, dtype=bool)
+    _measures(odd, det, cond, angle, hard)
+    assert hard.tolist() == [True, True, False] and cond[2] == 1.0 and angle[2] == 0.0
+
+
+def test_cubic_sampling_reproduces_quadratics():
+    """Catmull-Rom reproduces quadratics: a translated quadratic volume comes out exact."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (40, 36, 34))
+    cage = _cage_around((0, 0, 0), (39, 35, 33), 0.1, divisions=1)
+    shift = np.array([0.37, -0.61, 0.25])
+    vol = VolumeDeformation(HarmonicMap.affine(cage, np.eye(3), shift), geo)
+    p = geo.points()
+
+    def quadratic(x):
+        return 0.02 * x[:, 0] ** 2 - 0.01 * x[:, 0] * x[:, 1] + 0.03 * x[:, 2] ** 2 + x[:, 1]
+
+    res = vol.resample({"q": quadratic(p)}, geometry=geo, interpolation="cubic")
+    pre = p - shift  # the exact pre-images
+    away = np.all((pre >= 2) & (pre <= np.asarray(geo.dimensions) - 3), axis=1)
+    assert away.sum() > 0.5 * len(p) and res.valid[away].all()
+    np.testing.assert_allclose(res.arrays["q"][away], quadratic(pre[away]), atol=1e-9)
+    lin = vol.resample({"q": quadratic(p)}, geometry=geo, interpolation="linear")
+    assert np.abs(lin.arrays["q"][away] - quadratic(pre[away])).max() > 1e-3  # not exact
+
+
+def test_vtk_filters_two_pieces_equal_one_on_the_lattice():
+    """Warp and resample filters on a volume large enough for the lattice (not exact)."""
+    from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
+
+    img = pv.ImageData(dimensions=(44, 40, 36), spacing=(1.0, 1.0, 1.2))
+    rng = np.random.default_rng(7)
+    img.point_data["v"] = rng.integers(0, 200, img.n_points).astype(np.uint8)
+    lo, hi = np.asarray(img.bounds[0::2]), np.asarray(img.bounds[1::2])
+    hm = _random_bend(_cage_around(lo, hi, 0.03), 0.004, seed=2)
+    for cls in (HarmonicDeformationFilter, HarmonicResampleFilter):
+        whole_filter = cls()
+        whole_filter.SetInputData(img)
+        whole_filter.SetHarmonicMap(hm)
+        whole = pv.wrap(update(whole_filter))
+        assert whole.n_points > 32768
+        nx, ny, nz = whole.dimensions
+        points = np.full((nz, ny, nx, 3), np.nan)
+        values = np.zeros((nz, ny, nx), dtype=np.uint8)
+        for piece in range(2):
+            flt = cls()
+            flt.SetInputData(img)
+            flt.SetHarmonicMap(hm)
+            part = update(flt, piece, 2)
+            e = part.GetExtent()
+            assert e != whole.GetExtent()
+            part = pv.wrap(part)
+            shape = (e[5] - e[4] + 1, e[3] - e[2] + 1, e[1] - e[0] + 1)
+            box = np.s_[e[4] : e[5] + 1, e[2] : e[3] + 1, e[0] : e[1] + 1]
+            points[box] = np.asarray(part.points).reshape(shape + (3,))
+            values[box] = np.asarray(part.point_data["v"]).reshape(shape)
+        if cls is HarmonicDeformationFilter:  # same lattice, same arithmetic
+            np.testing.assert_array_equal(points.reshape(-1, 3), whole.points)
+            assert isinstance(whole, pv.StructuredGrid)
+        else:
+            np.testing.assert_array_equal(values.ravel(), whole.point_data["v"])
+            assert whole.point_data["v"].dtype == np.uint8
+
+
+def test_cage_of_two_shells():
+    """Two outward shells, each around half of the volume: each half follows its own."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (64, 30, 30))
+    v1, f1 = box_cage((-1.0, -1.0, -1.0), (29.5, 30.0, 30.0), 2)
+    v2, f2 = box_cage((32.5, -1.0, -1.0), (64.0, 30.0, 30.0), 2)
+    cage = Cage(np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)]))
+    hm = _random_bend(cage, 0.004, seed=9)
+    vol = VolumeDeformation(hm, geo, outside="passthrough")
+    pts = vol.warp()
+    inside = inside_mask(geo, cage.vertices, cage.faces).ravel()
+    assert 0.8 < inside.mean() < 0.97  # the gap between the shells is outside
+    rng = np.random.default_rng(0)
+    pick = rng.choice(np.nonzero(inside)[0], 3000, replace=False)
+    err = _voxel_error(geo, pts[pick] - hm.map(geo.points()[pick]))
+    assert err.max() <= vol.tolerance
+    np.testing.assert_array_equal(pts[~inside], geo.points()[~inside])
+    res = vol.resample({"v": np.ones(geo.n_points)})
+    assert res.counts["valid"] > 0.9 * geo.n_points

@@ -832,11 +832,12 @@ def _owned_box(origin, h, end, box, n):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def _leaf_voxels(data, rows, origin, size, leaves, end, box, mask, jacobians, out):
+def _leaf_voxels(data, rows, origin, size, leaves, end, box, mask, jacobians, to_index, out):
     """Interpolated positions (or u-Jacobians) of the inside voxels of a box, leaf by leaf.
 
     ``box = (i0, i1, j0, j1, k0, k1)`` (inclusive voxel ranges); ``out`` is the box's
-    (P, 3) positions or (P, 3, 3) ``df/du`` (``jacobians``), i fastest. Positions are
+    (P, 3) positions or (P, 3, 3) world Jacobians ``df/du @ to_index`` (``jacobians``;
+    ``to_index`` = du/dx), i fastest. Positions are
     evaluated separably: per voxel row the polynomial is reduced to 4 cubic terms in u,
     then each voxel costs 12 products.
     """
@@ -852,6 +853,7 @@ def _leaf_voxels(data, rows, origin, size, leaves, end, box, mask, jacobians, ou
         qrow = np.empty((2, 2, 3))
         f = np.empty(3)
         g = np.empty((3, 3))
+        gw = np.empty((3, 3))
         r = rows[n]
         for k in range(ka, kb + 1):
             ww[0], ww[1], ww[2], ww[3], _, _, _, _ = _weights((k - origin[n, 2]) / hf, hf)
@@ -864,7 +866,14 @@ def _leaf_voxels(data, rows, origin, size, leaves, end, box, mask, jacobians, ou
                                 data, r, hf, (i_ - origin[n, 0]) / hf, (j - origin[n, 1]) / hf,
                                 (k - origin[n, 2]) / hf, f, g, True,
                             )  # fmt: skip
-                            out[base + i_] = g
+                            for a in range(3):
+                                for b in range(3):
+                                    gw[a, b] = (
+                                        g[a, 0] * to_index[0, b]
+                                        + g[a, 1] * to_index[1, b]
+                                        + g[a, 2] * to_index[2, b]
+                                    )
+                            out[base + i_] = gw
                     continue
                 wv[0], wv[1], wv[2], wv[3], _, _, _, _ = _weights((j - origin[n, 1]) / hf, hf)
                 # reduce to 4 terms in u: qrow[a, ku] = sum over (b, c, kv, kw)
@@ -1306,7 +1315,7 @@ class HermiteLattice:
         b = np.asarray(box, dtype=np.int64)
         _leaf_voxels(
             self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaves_in(b),
-            self.end, b, self.mask, False, out,
+            self.end, b, self.mask, False, np.eye(3), out,
         )  # fmt: skip
 
     def jacobians(self, box, out) -> None:
@@ -1314,9 +1323,9 @@ class HermiteLattice:
         b = np.asarray(box, dtype=np.int64)
         _leaf_voxels(
             self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaves_in(b),
-            self.end, b, self.mask, True, out,
+            self.end, b, self.mask, True, self.geometry.world_to_index, out,
         )  # fmt: skip
-        out[...] = out @ self.geometry.world_to_index
+
 
     def evaluate(self, u, *, gradient: bool = False):
         """The interpolated map at continuous voxel indices.

@@ -326,19 +326,21 @@ class VolumeDeformation:
 
         b = _box_of(self.geometry, box)
         n = int(np.prod(b[1::2] - b[0::2] + 1))
-        out = {
-            "determinant": np.empty(n),
-            "condition_number": np.empty(n),
-            "rotation_angle": np.empty(n),
-            "foldover": np.empty(n, dtype=bool),
-        }
+        det, cond, angle = np.empty(n), np.empty(n), np.empty(n)
         for rows, jac in self.jacobian_slabs(b, progress, abort):
-            m = jacobian_measures(jac)
-            out["determinant"][rows] = m["determinant"]
-            out["condition_number"][rows] = m["condition_number"]
-            out["rotation_angle"][rows] = m["rotation_angle"]
-            out["foldover"][rows] = m["determinant"] <= 0
-        return out
+            hard = np.zeros(len(jac), dtype=np.bool_)
+            _measures(jac, det[rows], cond[rows], angle[rows], hard)
+            if hard.any():  # folded or degenerate: the SVD's definitions
+                m = jacobian_measures(jac[hard])
+                for name, dst in (("determinant", det), ("condition_number", cond),
+                                  ("rotation_angle", angle)):  # fmt: skip
+                    dst[rows][hard] = m[name]
+        return {
+            "determinant": det,
+            "condition_number": cond,
+            "rotation_angle": angle,
+            "foldover": det <= 0,
+        }
 
     # ------------------------------------------------------------------ output grid
     def output_geometry(self, spacing=None) -> ImageGeometry:
@@ -612,6 +614,84 @@ class VolumeDeformation:
             f"VolumeDeformation(dimensions={self.geometry.dimensions}, "
             f"tolerance={self.tolerance}, outside={self.outside!r})"
         )
+
+
+@numba.njit(parallel=True, cache=True)
+def _measures(jac, det, cond, angle, hard):  # pragma: no cover - compiled
+    """Det J, s_max / s_min and the polar rotation's angle of 3x3 matrices, fast.
+
+    The singular values come from the eigenvalues of ``J^T J`` in closed form
+    (trigonometric solution of the characteristic cubic, Smith 1961); the rotation from
+    Higham's scaled Newton iteration ``X <- (g X + X^-T / g) / 2`` (Higham 1986), a few
+    3x3 inverses. Matrices with ``det J <= 0`` or that do not converge are flagged in
+    ``hard`` (the caller takes the SVD's values there). NaN matrices give NaN.
+    """
+    for p in numba.prange(jac.shape[0]):
+        a0, a1, a2 = jac[p, 0, 0], jac[p, 0, 1], jac[p, 0, 2]
+        a3, a4, a5 = jac[p, 1, 0], jac[p, 1, 1], jac[p, 1, 2]
+        a6, a7, a8 = jac[p, 2, 0], jac[p, 2, 1], jac[p, 2, 2]
+        d = a0 * (a4 * a8 - a5 * a7) - a1 * (a3 * a8 - a5 * a6) + a2 * (a3 * a7 - a4 * a6)
+        det[p] = d
+        if not d > 0.0:
+            hard[p] = np.isfinite(d)
+            cond[p] = np.nan
+            angle[p] = np.nan
+            continue
+        # eigenvalues of the symmetric S = J^T J
+        s00 = a0 * a0 + a3 * a3 + a6 * a6
+        s11 = a1 * a1 + a4 * a4 + a7 * a7
+        s22 = a2 * a2 + a5 * a5 + a8 * a8
+        s01 = a0 * a1 + a3 * a4 + a6 * a7
+        s02 = a0 * a2 + a3 * a5 + a6 * a8
+        s12 = a1 * a2 + a4 * a5 + a7 * a8
+        q = (s00 + s11 + s22) / 3.0
+        off = s01 * s01 + s02 * s02 + s12 * s12
+        r = math.sqrt(((s00 - q) ** 2 + (s11 - q) ** 2 + (s22 - q) ** 2 + 2.0 * off) / 6.0)
+        if r <= 1e-300:
+            lmax = lmin = q
+        else:
+            b00, b11, b22 = (s00 - q) / r, (s11 - q) / r, (s22 - q) / r
+            b01, b02, b12 = s01 / r, s02 / r, s12 / r
+            half = 0.5 * (
+                b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02)
+                + b02 * (b01 * b12 - b11 * b02)
+            )  # fmt: skip
+            phi = math.acos(min(1.0, max(-1.0, half))) / 3.0
+            lmax = q + 2.0 * r * math.cos(phi)
+            lmin = q + 2.0 * r * math.cos(phi + 2.0 * math.pi / 3.0)
+        if not lmin > 1e-12 * lmax:  # nearly singular: the cubic loses s_min
+            hard[p] = True
+            continue
+        cond[p] = math.sqrt(lmax / lmin)
+        # polar rotation: X <- (g X + X^-T / g) / 2, X^-T = cofactor(X) / det(X)
+        x0, x1, x2, x3, x4, x5, x6, x7, x8 = a0, a1, a2, a3, a4, a5, a6, a7, a8
+        dx = d
+        ok = False
+        for _ in range(30):
+            c0, c1, c2 = x4 * x8 - x5 * x7, x5 * x6 - x3 * x8, x3 * x7 - x4 * x6
+            c3, c4, c5 = x2 * x7 - x1 * x8, x0 * x8 - x2 * x6, x1 * x6 - x0 * x7
+            c6, c7, c8 = x1 * x5 - x2 * x4, x2 * x3 - x0 * x5, x0 * x4 - x1 * x3
+            nx = x0 * x0 + x1 * x1 + x2 * x2 + x3 * x3 + x4 * x4 + x5 * x5
+            nx += x6 * x6 + x7 * x7 + x8 * x8
+            nc = c0 * c0 + c1 * c1 + c2 * c2 + c3 * c3 + c4 * c4 + c5 * c5
+            nc += c6 * c6 + c7 * c7 + c8 * c8
+            g = math.sqrt(math.sqrt(nc / (dx * dx * nx)))
+            h = 0.5 / (g * dx)
+            y0, y1, y2 = 0.5 * g * x0 + h * c0, 0.5 * g * x1 + h * c1, 0.5 * g * x2 + h * c2
+            y3, y4, y5 = 0.5 * g * x3 + h * c3, 0.5 * g * x4 + h * c4, 0.5 * g * x5 + h * c5
+            y6, y7, y8 = 0.5 * g * x6 + h * c6, 0.5 * g * x7 + h * c7, 0.5 * g * x8 + h * c8
+            change = (y0 - x0) ** 2 + (y4 - x4) ** 2 + (y8 - x8) ** 2 + (y1 - x1) ** 2
+            change += (y2 - x2) ** 2 + (y3 - x3) ** 2 + (y5 - x5) ** 2 + (y6 - x6) ** 2
+            change += (y7 - x7) ** 2
+            x0, x1, x2, x3, x4, x5, x6, x7, x8 = y0, y1, y2, y3, y4, y5, y6, y7, y8
+            dx = x0 * (x4 * x8 - x5 * x7) - x1 * (x3 * x8 - x5 * x6) + x2 * (x3 * x7 - x4 * x6)
+            if change < 1e-24:
+                ok = True
+                break
+        if not ok:
+            hard[p] = True
+            continue
+        angle[p] = math.acos(min(1.0, max(-1.0, 0.5 * (x0 + x4 + x8 - 1.0))))
 
 
 @numba.njit(parallel=True, cache=True)
