@@ -15,9 +15,15 @@ end of the drag (solve to convergence, full deformation and render of the full m
 the time until the deferred shape metrics (E_rigid, E_volume) are shown too; "proxy" the
 time to decimate and bind the proxy (part of "bind").
 
-Prints a Markdown table of per-frame medians with the 10th-90th percentile spread.
+Volumes (``--volume``, default the 256^3 embryo): an automatic cage (Otsu threshold) and
+anchors, one end held and the other dragged; each frame deforms the three orthogonal
+slices at drag resolution (``app.volume.DRAG_SAMPLES`` per side) with the solve, and
+renders. The release deforms the full-resolution slices (every voxel of the plane).
 
-Run: ``python benchmarks/bench_explorer.py [--frames 60] [--sizes 43k 173k] [--no-lod]``
+Prints Markdown tables of per-frame medians with the min-max range, and frames/s.
+
+Run: ``python benchmarks/bench_explorer.py [--frames 60] [--sizes 43k 173k] [--no-lod]
+[--volume embryo|head|none]``
 """
 
 from __future__ import annotations
@@ -80,7 +86,80 @@ def pct(values, q):
 
 def fmt(values) -> str:
     ms = 1e3 * np.asarray(values)
-    return f"{statistics.median(ms):.1f} ({pct(ms, 10):.1f}-{pct(ms, 90):.1f})"
+    return f"{statistics.median(ms):.1f} ({ms.min():.1f}-{ms.max():.1f})"
+
+
+def fps(totals) -> str:
+    """Frames per second: median (min-max) over the frames."""
+    f = 1.0 / np.asarray(totals)
+    return f"{statistics.median(f):.1f} ({f.min():.1f}-{f.max():.1f})"
+
+
+VOLUMES = {"embryo": "embryo.slc", "head": "headsq_64x64x93.vti"}
+
+
+def run_volume(win, name: str, frames: int, n_anchors: int) -> dict:
+    """Drag one end of a volume: the slices follow (drag resolution), release: full."""
+    from PySide6.QtWidgets import QApplication
+
+    from vhm_viz.app.controller import ExplorerController
+
+    ctrl = ExplorerController()
+    t0 = time.perf_counter()
+    ctrl.load_file(data("volumes", VOLUMES[name]))
+    ctrl.threshold = "otsu"
+    ctrl.set_cage(ctrl.auto_cage(500))
+    ctrl.set_anchors(ctrl.auto_anchors(n_anchors))
+    a = np.asarray(ctrl.anchors)
+    c = a.mean(axis=0)
+    _, _, vt = np.linalg.svd(a - c, full_matrices=False)
+    t = (a - c) @ vt[0]
+    lo, hi = a[np.argmin(t)], a[np.argmax(t)]
+    ctrl.add_position_constraint(lo, lo)
+    k = ctrl.add_position_constraint(hi, hi)
+    t_setup = time.perf_counter() - t0
+    ctrl.prepare()
+    ctrl.settle(init="identity")
+    ctrl.deform()
+    win.ctrl.adopt(ctrl)
+    win._vslices_for = None
+    t0 = time.perf_counter()
+    win.rebuild_scene(reset_camera=True)
+    t_slices = time.perf_counter() - t0
+    win.plotter.render()
+    QApplication.processEvents()
+    diag = float(np.linalg.norm(np.ptp(a, axis=0)))
+    u = np.cross(vt[0], vt[1])
+    start = ctrl.positions[k].target.copy()
+    timings = []
+    for f in range(frames + 5):
+        ang = 2 * np.pi * f / frames
+        goal = start + 0.1 * diag * (np.sin(ang) * u + (np.cos(ang) - 1) * vt[1])
+        win._handles[k].SetCenter(*goal)
+        win._handle_cb(k, goal)
+        win.plotter.iren.interactor.Render()
+        QApplication.processEvents()
+        if f >= 5:
+            timings.append(win.last_frame)
+    t0 = time.perf_counter()
+    win.on_handle_released()
+    release = time.perf_counter() - t0
+    if win.errors:
+        raise SystemExit(f"explorer errors: {win.errors}")
+    drag = win._vslices[2]["drag"].mesh
+    full = win._vslices[2]["full"].mesh
+    return {
+        "name": name,
+        "dims": "x".join(str(d) for d in ctrl.volume.dimensions),
+        "setup": t_setup,
+        "slices": t_slices,
+        "drag": f"{drag.n_points:,} / {full.n_points:,}",
+        "solve": [t.solve for t in timings],
+        "update": [t.deform + t.analysis for t in timings],
+        "render": [t.render for t in timings],
+        "total": [t.total for t in timings],
+        "release": release,
+    }
 
 
 def run_model(win, size: str, frames: int, n_anchors: int, lod: bool, triangles: int) -> dict:
@@ -174,6 +253,7 @@ def main() -> None:
     ap.add_argument("--anchors", type=int, default=50)
     ap.add_argument("--no-lod", action="store_true", help="drag the full mesh (no proxy)")
     ap.add_argument("--proxy-triangles", type=int, default=None)
+    ap.add_argument("--volume", default="embryo", choices=[*VOLUMES, "none"])
     args = ap.parse_args()
     xvfb = ensure_display()
     try:
@@ -198,7 +278,6 @@ def main() -> None:
         rows = []
         for size in args.sizes:
             r = run_model(win, size, args.frames, args.anchors, not args.no_lod, triangles)
-            med = statistics.median(r["total"])
             rows.append(
                 [
                     f"Armadillo {size} ({r['points']:,} pts)",
@@ -209,7 +288,7 @@ def main() -> None:
                     fmt(r["deform"]),
                     fmt(r["render"]),
                     fmt(r["total"]),
-                    f"{1 / med:.1f}",
+                    fps(r["total"]),
                     f"{statistics.median(r['iterations']):.0f}",
                     f"{1e3 * statistics.median(r['release']):.0f} / "
                     f"{1e3 * statistics.median(r['settled']):.0f}",
@@ -221,7 +300,7 @@ def main() -> None:
             f"renderer: {renderer}, VTK {vtk.vtkVersion.GetVTKVersion()}, "
             f"{os.cpu_count()} CPUs, load average {load:.1f} at the end; "
             f"level of detail {'off' if args.no_lod else f'on, proxy {triangles} triangles'}; "
-            "ms: median (10th-90th percentile))\n"
+            "ms: median (min-max))\n"
         )
         print_table(
             [
@@ -239,6 +318,19 @@ def main() -> None:
             ],
             rows,
         )
+        if args.volume != "none":
+            r = run_volume(win, args.volume, args.frames, 24)
+            print(
+                f"\nVolume slices following a drag ({args.frames} frames; three slices, "
+                "points per slice while dragging / at rest; ms: median (min-max))\n"
+            )
+            print_table(
+                ["volume", "cage+anchors s", "slices bind s", "slice points", "solve ms",
+                 "slices ms", "render ms", "frame ms", "fps", "release s"],
+                [[f"{r['name']} {r['dims']}", f"{r['setup']:.1f}", f"{r['slices']:.2f}",
+                  r["drag"], fmt(r["solve"]), fmt(r["update"]), fmt(r["render"]),
+                  fmt(r["total"]), fps(r["total"]), f"{r['release']:.2f}"]],
+            )  # fmt: skip
         win.close()
     except BaseException:
         if xvfb is not None:

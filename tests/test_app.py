@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
@@ -27,27 +26,11 @@ RES = 8  # bar resolution of the tests (1,410 surface points: fast bindings)
 
 
 def _start_xvfb():
-    exe = shutil.which("Xvfb")
-    if exe is None:
-        return None, None
-    for num in range(99, 120):
-        if Path(f"/tmp/.X{num}-lock").exists():
-            continue
-        proc = subprocess.Popen(
-            # -terminate: the server exits when the test process (its last client) does,
-            # so Qt never sees its display vanish while the QApplication is alive
-            [exe, f":{num}", "-screen", "0", "1280x1024x24", "-nolisten", "tcp", "-terminate"],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        for _ in range(100):
-            if Path(f"/tmp/.X11-unix/X{num}").exists():
-                return proc, f":{num}"
-            if proc.poll() is not None:
-                break
-            time.sleep(0.05)
-        proc.kill()
-    return None, None
+    from vhm_viz.app import start_xvfb
+
+    # -terminate: the server exits when the test process (its last client) does, so Qt
+    # never sees its display vanish while the QApplication is alive
+    return start_xvfb()
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -526,3 +509,329 @@ def test_certify_action_draws_witnesses_and_the_dock_shows_the_answer(window):
     win.full_solve()
     win.update_analysis()
     assert ctrl.certificate is None and "witnesses" not in win._actors
+
+
+# ---------------------------------------------------------------------------- issue 17
+
+
+def test_solved_bar_fills_the_analysis_dock_and_a_cage_shows_at_once(window, tmp_path):
+    win = window
+    ctrl = _open_bar(win, "bend-90")
+    # the dock shows the solved state right after loading (no other change needed)
+    assert "energy" in win.analysis_panel.metrics.text()
+    assert win.analysis_panel.energy._lines
+    # a loaded cage is drawn by the edit itself: a render happens inside load_cage
+    renders = []
+    obs = win.plotter.ren_win.AddObserver("EndEvent", lambda *a: renders.append(1))
+    path = tmp_path / "cage.obj"
+    v, f = np.asarray(ctrl.cage.vertices), np.asarray(ctrl.cage.faces)
+    with open(path, "w") as fh:
+        fh.writelines(f"v {x} {y} {z}\n" for x, y, z in 1.05 * v)
+        fh.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f)
+    win.load_cage(str(path))
+    win.plotter.ren_win.RemoveObserver(obs)
+    assert win.last_error is None, win.last_error
+    assert renders
+    cage_pts = np.asarray(win._actors["cage"].mapper.dataset.points)
+    np.testing.assert_allclose(cage_pts, 1.05 * v)
+    win.wait_idle()
+    # camera reset frames shape and cage: every cage vertex projects inside the view
+    win.frame_all()
+    w, h = win.plotter.window_size
+    for x in np.asarray(win.ctrl.cage.vertices):
+        px, py = win.display_coordinates(x)
+        assert 0 <= px < w and 0 <= py < h
+
+
+def test_undo_redo_delete_of_constraints_and_anchors(window):
+    win = window
+    ctrl = _open_bar(win, "bend-90", apply=False)  # bottom held only
+    rest = ctrl.rest_points
+    n0, a0 = len(ctrl.positions), len(ctrl.anchors)
+    assert win.undo_action.shortcut().toString() == "Ctrl+Z"
+    assert "Ctrl+Shift+Z" in [s.toString() for s in win.redo_action.shortcuts()]
+    assert win.delete_action.shortcut().toString() == "Del"
+    # add a position constraint at the top (click path), drag it
+    win.plotter.view_xz()
+    win.plotter.render()
+    k = int(np.argmin(np.linalg.norm(rest - [0.0, -0.5, 4.5], axis=1)))
+    win.set_interaction_mode("position")
+    assert win.click_at_display(*win.display_coordinates(ctrl.deformed_points[k]))
+    win.wait_idle()
+    assert len(ctrl.positions) == n0 + 1
+    start = ctrl.positions[-1].target.copy()
+    w = win._handles[-1]
+    for step in (0.2, 0.4, 0.6):  # one drag of three frames = one undo step
+        w.SetCenter(*(start + [step, 0.0, 0.0]))
+        w.InvokeEvent("InteractionEvent")
+    w.InvokeEvent("EndInteractionEvent")
+    dragged = ctrl.deformed_points.copy()
+    np.testing.assert_allclose(dragged, _direct_points(ctrl), atol=5e-4)
+    # an anchor edit
+    win.set_interaction_mode("anchor-")
+    assert win.click_at_display(*win.display_coordinates(ctrl.deformed_points[k]))
+    win.wait_idle()
+    assert len(ctrl.anchors) == a0 - 1
+    # undo: the anchor comes back, then the drag is undone, then the constraint goes
+    win.undo_action.trigger()
+    win.wait_idle()
+    assert len(ctrl.anchors) == a0 and win.last_error is None
+    np.testing.assert_allclose(ctrl.deformed_points, dragged, atol=5e-4)
+    win.undo_action.trigger()
+    win.wait_idle()
+    np.testing.assert_allclose(ctrl.positions[-1].target, start)
+    np.testing.assert_allclose(ctrl.deformed_points, rest, atol=1e-4)  # nothing pulled
+    win.undo_action.trigger()
+    win.wait_idle()
+    assert len(ctrl.positions) == n0 and len(win._handles) == n0
+    # redo twice: the constraint and its drag are back, solved as before
+    win.redo_action.trigger()
+    win.wait_idle()
+    win.redo_action.trigger()
+    win.wait_idle()
+    assert len(ctrl.positions) == n0 + 1
+    np.testing.assert_allclose(ctrl.positions[-1].target, start + [0.6, 0, 0])
+    np.testing.assert_allclose(ctrl.deformed_points, dragged, atol=5e-4)
+    # Delete removes the constraint selected in the table
+    win.constraints_panel.fill(ctrl.positions, ctrl.jacobians)
+    win.constraints_panel.table.selectRow(n0)
+    win.delete_action.trigger()
+    win.wait_idle()
+    assert len(ctrl.positions) == n0 and win.last_error is None
+    np.testing.assert_allclose(ctrl.deformed_points, rest, atol=1e-4)
+    win.undo_action.trigger()  # and that is undone too
+    win.wait_idle()
+    assert len(ctrl.positions) == n0 + 1
+
+
+def test_rotation_gizmo_sets_the_jacobian_target(window):
+    import vtk
+    from scipy.spatial.transform import Rotation
+
+    win = window
+    ctrl = _open_bar(win, "bend-90", apply=False)
+    top = ctrl.rest_points[np.argmax(ctrl.rest_points[:, 2])] * [0, 0, 0.9]
+    with win._recorded():
+        ctrl.add_jacobian_constraint(top)
+    win.gizmo_index = 0
+    win.after_edit(structure=False)
+    win.wait_idle()
+    assert win._gizmo is not None and win._gizmo.GetEnabled()
+    np.testing.assert_allclose(win.gizmo_rotation(), np.eye(3), atol=1e-9)
+    # the user turns the box 35 degrees about y (the widget's transform), frame by frame
+    centre = ctrl.image_of(top)
+    for deg in (10, 25, 35):
+        r = Rotation.from_euler("y", deg, degrees=True).as_matrix()
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = r, centre - r @ centre
+        t = vtk.vtkTransform()
+        t.SetMatrix(m.ravel())
+        win._gizmo.SetTransform(t)
+        win._gizmo.InvokeEvent("InteractionEvent")
+    win._gizmo.InvokeEvent("EndInteractionEvent")
+    assert win.last_error is None, win.last_error
+    expected = Rotation.from_euler("y", 35, degrees=True).as_matrix()
+    np.testing.assert_allclose(ctrl.jacobians[0].matrix, expected, atol=1e-9)
+    J = ctrl.deformer.harmonic_map.jacobian(top[None])[0]
+    np.testing.assert_allclose(J, expected, atol=1e-6)  # the solve follows the gizmo
+    np.testing.assert_allclose(ctrl.deformed_points, _direct_points(ctrl), atol=5e-4)
+    win.undo_action.trigger()  # one rotation = one undo step
+    win.wait_idle()
+    np.testing.assert_allclose(ctrl.jacobians[0].matrix, np.eye(3), atol=1e-9)
+
+
+def _grey_levels(img) -> int:
+    a = np.asarray(img)[..., :3].astype(int)
+    grey = (np.abs(a[..., 0] - a[..., 1]) < 3) & (np.abs(a[..., 1] - a[..., 2]) < 3)
+    grey &= a[..., 0] < 235  # not the white background
+    return len(np.unique(a[..., 0][grey]))
+
+
+def test_volume_slices_follow_the_map_and_show_the_data(window):
+    win = window
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    scene = Path(__file__).resolve().parents[1] / "docs" / "examples" / "head_scene.json"
+    assert win.open_file(str(head))
+    win.wait_idle()
+    assert win.load_scene(str(scene))
+    win.wait_idle()
+    assert win.last_error is None, win.last_error
+    ctrl = win.ctrl
+    assert ctrl.volume is not None and ctrl.ready and ctrl.last_report.converged
+    # three slices at full resolution (every voxel of the plane), mapped by the solution
+    hm = ctrl.deformer.harmonic_map
+    for axis, e in win._vslices.items():
+        full = e["full"]
+        n = [d for a, d in enumerate(ctrl.volume.dimensions) if a != axis]
+        assert full.n_points == n[0] * n[1]
+        assert win._actors[f"vslice{axis}full"].GetVisibility()
+        ref = hm.map(full.rest_points, outside="passthrough")
+        np.testing.assert_allclose(full.mesh.points, ref, atol=1e-3)
+        vals = np.asarray(full.mesh.point_data["value"])
+        assert len(np.unique(vals)) > 100  # CT values, not a flat box
+    win.frame_all()
+    img = win.screenshot(False)
+    assert _grey_levels(img) > 60
+    # drag the target: the drag slices follow each frame, the full ones on release
+    w = win._handles[-1]
+    goal = ctrl.positions[-1].target + np.array([-10.0, 0.0, 5.0])
+    w.SetCenter(*goal)
+    w.InvokeEvent("InteractionEvent")
+    assert win.last_error is None, win.last_error
+    assert win._actors["vslice2drag"].GetVisibility()
+    drag = win._vslices[2]["drag"]
+    np.testing.assert_allclose(
+        drag.mesh.points, ctrl.deformer.harmonic_map.map(drag.rest_points, outside="passthrough"),
+        atol=1e-6,
+    )  # fmt: skip
+    w.InvokeEvent("EndInteractionEvent")
+    full = win._vslices[2]["full"]
+    assert win._actors["vslice2full"].GetVisibility()
+    np.testing.assert_allclose(
+        full.mesh.points, ctrl.deformer.harmonic_map.map(full.rest_points, outside="passthrough"),
+        atol=1e-3,
+    )  # fmt: skip
+    # det J on the same slices, in the colours' convention; the histogram counts all
+    from vhm_viz.colours import det_range
+
+    win.view_panel.slice_colour.setCurrentText("determinant")
+    drag = win._vslices[0]["drag"]
+    det = np.linalg.det(ctrl.deformer.harmonic_map.jacobian(drag.rest_points))
+    inside = ctrl.cage.contains(drag.rest_points)
+    np.testing.assert_allclose(drag.mesh.point_data["measure"][inside], det[inside], rtol=1e-5)
+    shown = np.asarray(drag.mesh.point_data["shown"])
+    lo, hi = det_range(np.concatenate(
+        [np.asarray(e["drag"].mesh.point_data["measure"]) for e in win._vslices.values()]
+    ))  # fmt: skip
+    assert shown.min() >= lo * 0.5 - 1e-12 and shown.max() <= hi + 1e-12
+    hist = win.analysis_panel.histogram._bars
+    assert hist.total == sum(e["drag"].n_points for e in win._vslices.values())
+    # move a slice: the new plane, at full resolution once the slider rests
+    win.view_panel.slice_sliders[2].setValue(20)
+    win._full_slices()
+    assert ctrl.volume.index[2] == 20
+    z = ctrl.volume.grid_points(np.array([[0, 0, 20]]))[0, 2]
+    np.testing.assert_allclose(win._vslices[2]["full"].rest_points[:, 2], z)
+    # volume rendering and an isosurface of the deformed volume
+    win.view_panel.volume.setChecked(True)
+    win.wait_idle()
+    assert win.last_error is None, win.last_error
+    assert "volume" in win._actors and win.volume_image is not None
+    level, width, opacity = 1000.0, 400.0, 0.5
+    win.view_panel.set_transfer(level, width, opacity)
+    otf = win._actors["volume"].GetProperty().GetScalarOpacity()
+    lvl, wid, op = win.view_panel.transfer
+    assert otf.GetValue(lvl - wid / 2 - 1) == pytest.approx(0.0)
+    assert otf.GetValue(lvl + wid / 2 + 1) == pytest.approx(op, abs=1e-6)
+    assert otf.GetValue(lvl) == pytest.approx(op / 2, abs=0.02)
+    win.view_panel.iso_value.setValue(win.view_panel.step_of(1000.0))
+    win.view_panel.iso.setChecked(True)
+    assert "iso" in win._actors and win._actors["iso"].mapper.dataset.n_points > 100
+
+
+def _run_cli(*args, timeout=600):
+    import sys
+
+    from tests.conftest import subprocess_env
+
+    env = subprocess_env()
+    env.pop("DISPLAY", None)  # the command starts its own X server
+    env.pop("QT_QPA_PLATFORM", None)
+    return subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", *args], capture_output=True, text=True,
+        env=env, timeout=timeout,
+    )  # fmt: skip
+
+
+def test_screenshot_command_head_volume_and_errors(tmp_path):
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    scene = Path(__file__).resolve().parents[1] / "docs" / "examples" / "head_scene.json"
+    out = tmp_path / "head.png"
+    r = _run_cli("explore", str(head), "--scene", str(scene), "--screenshot", str(out),
+                 "--size", "640", "480")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    from PIL import Image
+
+    img = np.asarray(Image.open(out))
+    assert img.shape[:2] == (480, 640)
+    assert _grey_levels(img) > 60  # the CT's grey levels inside, not an opaque box
+    assert [p.name for p in tmp_path.iterdir()] == ["head.png"]  # no temporary left
+    # bad input: one line, non-zero exit, nothing written
+    bad = tmp_path / "bad.png"
+    r = _run_cli("explore", str(tmp_path / "missing.vti"), "--screenshot", str(bad))
+    assert r.returncode != 0 and not bad.exists()
+    assert len(r.stderr.strip().splitlines()) == 1 and "missing.vti" in r.stderr
+    r = _run_cli("explore", "--help")
+    help_text = " ".join(r.stdout.split())
+    assert "(default: 1200 900)" in help_text and "(default: none" in help_text
+
+
+def _constrain(ctrl, sc) -> None:
+    """A bar scenario's cage, anchors and position constraints on loaded data."""
+    ctrl.set_cage(sc.cage)
+    ctrl.set_anchors(sc.anchors)
+    for p, t in zip(sc.constraints["positions"], sc.constraints["targets"], strict=True):
+        ctrl.add_position_constraint(p, t)
+
+
+def test_screenshot_command_tet_mesh_coloured_by_det(tmp_path):
+    from tests.test_explorer_analysis import bar_tet_file
+    from vhm_viz import examples
+    from vhm_viz.app.controller import ExplorerController
+
+    bar_tet_file(tmp_path / "bar.vtu")
+    sc = examples.bar("bend-90", resolution=8)
+    ctrl = ExplorerController()
+    ctrl.load_file(tmp_path / "bar.vtu")
+    _constrain(ctrl, sc)
+    ctrl.prepare()
+    ctrl.settle(init="identity")
+    ctrl.save_scene(tmp_path / "scene.json")
+    out = tmp_path / "bar.png"
+    r = _run_cli("explore", "--scene", str(tmp_path / "scene.json"), "--colour", "determinant",
+                 "--screenshot", str(out), "--size", "640", "480")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    from PIL import Image
+
+    img = np.asarray(Image.open(out))[..., :3].astype(int)
+    # coolwarm: saturated blue (det < 1) and red (det > 1) pixels of the section
+    blue = img[..., 2] - img[..., 0] > 60
+    red = img[..., 0] - img[..., 2] > 60
+    assert blue.sum() > 200 and red.sum() > 200, (blue.sum(), red.sum())
+
+
+def test_explorer_save_of_a_200_iteration_scene_converges_in_the_cli(tmp_path):
+    """A scene written with max_iterations 200 is settled and saved with settings under
+    which `vhm-viz deform` converges to the explorer's result."""
+    import json
+
+    from vhm_viz import examples
+    from vhm_viz.app.controller import ExplorerController
+
+    sc = examples.bar("bend-90", resolution=8)
+    sc.surface.save(tmp_path / "bar.vtp")
+    ctrl = ExplorerController()
+    ctrl.load_file(tmp_path / "bar.vtp")
+    _constrain(ctrl, sc)
+    ctrl.solver["max_iterations"] = 200
+    ctrl.save_scene(tmp_path / "s200.json")
+    assert json.loads((tmp_path / "s200.json").read_text())["solver"]["max_iterations"] == 200
+    ex = ExplorerController()
+    ex.load_scene(tmp_path / "s200.json")
+    ex.prepare()
+    rep = ex.settle(init="identity")
+    assert rep.converged
+    ex.deform()
+    ex.export(tmp_path / "explorer.vtp")
+    ex.save_scene(tmp_path / "saved.json")
+    solver = json.loads((tmp_path / "saved.json").read_text())["solver"]
+    assert solver["max_iterations"] >= rep.iterations  # what it solved with
+    r = _run_cli("deform", str(tmp_path / "bar.vtp"), "--scene", str(tmp_path / "saved.json"),
+                 "-o", str(tmp_path / "cli.vtp"), "-q")  # fmt: skip
+    assert r.returncode == 0, r.stderr  # converged: no --allow-unconverged needed
+    import pyvista as pv
+
+    np.testing.assert_allclose(
+        pv.read(tmp_path / "cli.vtp").points, pv.read(tmp_path / "explorer.vtp").points,
+        atol=1e-9,
+    )  # fmt: skip

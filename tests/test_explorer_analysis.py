@@ -61,11 +61,16 @@ def test_certify_needs_a_solution_and_can_be_cancelled():
     assert ctrl.certificate is None
 
 
-def test_metrics_count_inverted_cells_of_tet_meshes(tmp_path):
-    points, tets = examples.bar_tets(4)
+def bar_tet_file(path, resolution: int = 4) -> np.ndarray:
+    """Write the bar as a tet mesh (``examples.bar_tets``) to ``path``; its tets."""
+    points, tets = examples.bar_tets(resolution)
     cells = np.hstack([np.full((len(tets), 1), 4), tets]).ravel()
-    grid = pv.UnstructuredGrid(cells, np.full(len(tets), pv.CellType.TETRA), points)
-    grid.save(tmp_path / "bar.vtu")
+    pv.UnstructuredGrid(cells, np.full(len(tets), pv.CellType.TETRA), points).save(path)
+    return tets
+
+
+def test_metrics_count_inverted_cells_of_tet_meshes(tmp_path):
+    tets = bar_tet_file(tmp_path / "bar.vtu")
     sc = examples.bar("push", resolution=8)
     ctrl = ExplorerController()
     ctrl.load_file(tmp_path / "bar.vtu")

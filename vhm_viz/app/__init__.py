@@ -7,7 +7,7 @@ Qt is imported only by :func:`main` and the window module.
 
 from __future__ import annotations
 
-__all__ = ["main", "ExplorerController"]
+__all__ = ["main", "ExplorerController", "start_xvfb"]
 
 
 def __getattr__(name: str):
@@ -33,11 +33,36 @@ def main(argv: list[str] | None = None) -> int:
 
 def add_arguments(parser) -> None:
     """Arguments shared with ``vhm-viz explore``."""
-    parser.add_argument("file", nargs="?", help="data file to open (any format pyvista reads)")
-    parser.add_argument("--scene", help="scene file (.json) to open")
-    parser.add_argument("--cage", help="cage file to load after the data")
     parser.add_argument(
-        "--bar", metavar="KIND", help="open a bundled bar scenario (bend-u, bend-90, twist, bulge)"
+        "file", nargs="?", help="data file to open (any format pyvista reads; default: none)"
+    )
+    parser.add_argument("--scene", help="scene file (.json) to open and solve (default: none)")
+    parser.add_argument("--cage", help="cage file to load after the data (default: none)")
+    parser.add_argument(
+        "--bar",
+        metavar="KIND",
+        help="open a bundled bar scenario (bend-u, bend-90, twist, bulge; default: none)",
+    )
+    parser.add_argument(
+        "--screenshot",
+        metavar="PNG",
+        help="render one frame of what FILE/--scene open (solved) to this PNG file and exit "
+        "without showing a window (default: open the interactive window)",
+    )
+    parser.add_argument(
+        "--size",
+        nargs=2,
+        type=int,
+        metavar=("W", "H"),
+        default=(1200, 900),
+        help="with --screenshot: the image size in pixels (default: 1200 900)",
+    )
+    parser.add_argument(
+        "--colour",
+        choices=("none", "determinant", "condition_number"),
+        default="none",
+        help="with --screenshot: colour the slices (a volume's orthogonal slices, or a "
+        "section of other data) by det J or cond J (default: none, the data's values)",
     )
 
 
@@ -56,6 +81,8 @@ def run(args) -> int:
     from vhm_viz import interrupts
     from vhm_viz.app.main_window import ExplorerWindow
 
+    if getattr(args, "screenshot", None):
+        return screenshot(args)
     # The explorer's linear algebra is small (QR of a few hundred columns, products with
     # 3 columns) but runs next to Qt, VTK, a worker thread and numba's parallel kernels;
     # OpenBLAS's spinning pool then fights them for the cores (a 3138 x 314 QR measured
@@ -94,3 +121,113 @@ def run(args) -> int:
         tick.stop()
         win.runner.wait()
     return status
+
+
+def screenshot(args) -> int:
+    """``--screenshot PNG``: open, solve, render one frame to ``PNG`` (atomically), exit 0.
+
+    Renders off screen (Qt's ``offscreen`` platform when no display is set). Errors (a
+    missing or unreadable file, a scene that cannot be solved) raise ``ValueError`` with
+    one line, which the command line prints.
+    """
+    import os
+    import sys
+    from pathlib import Path
+
+    if not (args.file or args.bar or args.scene):
+        raise ValueError("--screenshot needs FILE, --bar or --scene")
+    w, h = (int(v) for v in args.size)
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise ValueError(f"--size must be between 16 and 8192 pixels; got {w} {h}")
+    out = Path(args.screenshot)
+    if out.suffix.lower() != ".png":
+        raise ValueError(f"--screenshot writes PNG: {out.name} does not end in .png")
+    for name in (args.file, args.scene, args.cage):
+        if name and not Path(name).is_file():
+            raise ValueError(f"{name}: no such file")
+    if not os.environ.get("DISPLAY"):
+        # VTK needs an OpenGL context: a private X server gives one (it exits with its
+        # last client, after Qt has closed its connection)
+        proc, display = start_xvfb()
+        if proc is None:
+            raise ValueError("--screenshot needs an X display: set DISPLAY or install Xvfb")
+        os.environ["DISPLAY"] = display
+        os.environ["QT_QPA_PLATFORM"] = "xcb"
+    from PySide6.QtWidgets import QApplication
+    from threadpoolctl import threadpool_limits
+
+    from vhm_viz.app.main_window import ExplorerWindow
+    from vhm_viz.atomic import atomic_path
+    from vhm_viz.io import refuse_inputs
+
+    refuse_inputs(out, [Path(p) for p in (args.file, args.scene, args.cage) if p])
+    threadpool_limits(limits=int(os.environ.get("VHM_BLAS_THREADS", "1")), user_api="blas")
+    app = QApplication.instance() or QApplication(sys.argv[:1])  # noqa: F841 - kept alive
+    win = ExplorerWindow(dialogs=False)
+    try:
+        win.plotter.interactor.setFixedSize(w, h)  # the 3D view, docks around it
+        win.show()
+        app.processEvents()
+
+        def step(ok, what: str) -> None:
+            win.wait_idle(600)
+            if win.last_error or ok is False or ok is None and what != "cage":
+                raise ValueError(f"{what}: {win.last_error or 'failed'}")
+
+        if args.file:
+            step(win.open_file(args.file), Path(args.file).name)
+            if args.cage:
+                win.load_cage(args.cage)
+                step(True, Path(args.cage).name)
+        elif args.bar:
+            step(win.open_bar(args.bar), f"bar {args.bar}")
+        if args.scene:
+            step(win.load_scene(args.scene), Path(args.scene).name)
+        if args.colour != "none":
+            win.colour_by(args.colour)
+            step(True, "colour")
+        win.wait_idle(600)  # e.g. the volume rendering
+        win.frame_all()
+        img = win.screenshot(False)
+        if img is None:
+            raise ValueError(f"no image rendered: {win.last_error}")
+        from PIL import Image
+
+        with atomic_path(out) as tmp:
+            Image.fromarray(img).save(tmp, format="PNG")
+    finally:
+        win.runner.wait(60000)
+        win.close()
+    return 0
+
+
+def start_xvfb(first: int = 99, last: int = 170, terminate: bool = True):
+    """Start a private Xvfb server; returns ``(process, ":N")`` or ``(None, None)``.
+
+    ``terminate``: the server exits with its last client (``-terminate``).
+    """
+    import shutil
+    import subprocess
+    import time
+    from pathlib import Path
+
+    exe = shutil.which("Xvfb")
+    if exe is None:
+        return None, None
+    for num in range(first, last):
+        if Path(f"/tmp/.X{num}-lock").exists():
+            continue
+        cmd = [exe, f":{num}", "-screen", "0", "1920x1200x24", "-nolisten", "tcp"]
+        proc = subprocess.Popen(
+            cmd + (["-terminate"] if terminate else []),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for _ in range(100):
+            if Path(f"/tmp/.X11-unix/X{num}").exists():
+                return proc, f":{num}"
+            if proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        proc.kill()
+    return None, None

@@ -10,10 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["SliceProbe", "MEASURE_RANGES", "measure_values"]
-
-# default colour ranges of the measures (det: 1 = volume preserved, <= 0 foldover)
-MEASURE_RANGES = {"determinant": (0.0, 2.0), "condition_number": (1.0, 3.0)}
+__all__ = ["SliceProbe", "measure_values", "shown_values"]
 
 
 def measure_values(jacobians: np.ndarray, measure: str) -> np.ndarray:
@@ -25,6 +22,19 @@ def measure_values(jacobians: np.ndarray, measure: str) -> np.ndarray:
     if measure == "condition_number":
         return M.condition_number(jacobians)
     raise ValueError(f"unknown measure {measure!r} (determinant, condition_number)")
+
+
+def shown_values(values: np.ndarray, style: dict) -> np.ndarray:
+    """Values to draw with a :func:`vhm_viz.colours.measure_style` (log scale safe).
+
+    Clipped into the colour range; a fold (``det J <= 0``, no logarithm) goes below it
+    so that it takes the style's ``below_color``.
+    """
+    lo, hi = style["clim"]
+    v = np.clip(np.nan_to_num(values, nan=hi, posinf=hi), lo, hi)
+    if style["below_color"] is not None:
+        v[np.asarray(values) <= 0] = 0.5 * lo
+    return v
 
 
 def _plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -56,7 +66,6 @@ class SliceProbe:
     """
 
     def __init__(self, controller, origin, normal, resolution: int = 60):
-        import pyvista as pv
 
         cage = controller.cage
         n, u, v = _plane_basis(normal)
@@ -80,15 +89,50 @@ class SliceProbe:
         used = np.unique(quads)
         remap = -np.ones(r * r, dtype=np.int64)
         remap[used] = np.arange(used.size)
-        self.rest_points = pts[used]
         self.normal, self.origin = n, o
-        faces = np.column_stack([np.full(len(quads), 4), remap[quads]]).ravel()
+        self._setup(controller, pts[used], remap[quads])
+
+    def _setup(self, controller, rest_points, quads, dtype=np.float64) -> None:
+        import pyvista as pv
+
+        self.rest_points = np.ascontiguousarray(rest_points, dtype=np.float64)
+        faces = np.column_stack([np.full(len(quads), 4), quads]).ravel()
         self.mesh = pv.PolyData(self.rest_points.copy(), faces if len(quads) else None)
-        self.mesh.point_data["measure"] = np.zeros(len(used))
+        self.mesh.point_data["measure"] = np.zeros(len(self.rest_points))
         self.binding = None
-        if used.size:
-            self.binding = controller.deformer.bind(self.rest_points, outside="passthrough")
-        self.jacobians = np.broadcast_to(np.eye(3), (used.size, 3, 3))
+        if len(self.rest_points) and controller is not None and controller.ready:
+            self.binding = controller.deformer.bind(
+                self.rest_points, outside="passthrough", dtype=dtype
+            )
+        self.jacobians = np.broadcast_to(np.eye(3), (len(self.rest_points), 3, 3))
+
+    def colour(self, measure: str, values: np.ndarray) -> dict:
+        """Store ``values`` for drawing in the style of :mod:`vhm_viz.colours`; the style."""
+        from vhm_viz.colours import measure_style
+
+        style = measure_style(measure, values)
+        self.mesh.point_data["shown"] = shown_values(values, style)
+        return style
+
+    @classmethod
+    def on_grid(cls, controller, points, shape, dtype=np.float64) -> SliceProbe:
+        """A slice through given rest points on a (a, b) grid (first axis fastest).
+
+        The volume's slices (:class:`~vhm_viz.app.volume.VolumeView`): every sample is
+        kept; outside the cage it stays in place. ``dtype``: the binding's (float32
+        halves the memory of a large slice). Before a deformation is ready (``controller``
+        None or not ready) the slice is not bound and stays at rest.
+        """
+        a, b = (int(v) for v in shape)
+        grid = np.arange(a * b).reshape(b, a)
+        quads = np.column_stack([grid[:-1, :-1].ravel(), grid[:-1, 1:].ravel(),
+                                 grid[1:, 1:].ravel(), grid[1:, :-1].ravel()])  # fmt: skip
+        self = cls.__new__(cls)
+        pts = np.asarray(points, dtype=np.float64)
+        self.origin = pts.mean(axis=0) if len(pts) else np.zeros(3)
+        self.normal = None
+        self._setup(controller, pts, quads, dtype)
+        return self
 
     @staticmethod
     def _inside_shape(controller, pts: np.ndarray) -> np.ndarray:
@@ -110,13 +154,15 @@ class SliceProbe:
         """Number of slice samples."""
         return len(self.rest_points)
 
-    def update(self, measure: str = "determinant") -> np.ndarray:
-        """Deform the slice and recompute the measure; returns the measure values."""
+    def update(self, measure: str | None = "determinant") -> np.ndarray:
+        """Deform the slice and recompute the measure (None: deform only); returns it."""
         if self.binding is None:
             return np.zeros(0)
         pts = np.asarray(self.mesh.points)
         self.binding.deform(out=pts)
         self.mesh.GetPoints().Modified()
+        if measure is None:
+            return np.zeros(0)
         self.jacobians = self.binding.jacobians()
         vals = measure_values(self.jacobians, measure)
         self.mesh.point_data["measure"][:] = vals

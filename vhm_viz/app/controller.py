@@ -54,6 +54,7 @@ __all__ = [
     "FrameTiming",
     "Cancelled",
     "SETTLE_SOLVER",
+    "settle_settings",
     "make_proxy",
 ]
 
@@ -61,6 +62,23 @@ __all__ = [
 # fixed-point estimate is optimistic at small alpha, so settle tighter than the scene
 # default. They are saved with the scene, so `vhm-viz deform` reproduces the explorer.
 SETTLE_SOLVER = dict(DEFAULT_SOLVER, max_iterations=50000, tolerance=1e-8)
+
+
+def settle_settings(solver: dict) -> dict:
+    """The settings the explorer settles a scene with, and saves it with.
+
+    A scene's own cap and tolerance, at least as strict as :data:`SETTLE_SOLVER`: a
+    scene written with ``max_iterations: 200`` would otherwise be settled (and saved)
+    unconverged, and ``vhm-viz deform`` would refuse it.
+    """
+    out = dict(solver)
+    out["max_iterations"] = max(int(out["max_iterations"]), SETTLE_SOLVER["max_iterations"])
+    out["tolerance"] = min(float(out["tolerance"]), SETTLE_SOLVER["tolerance"])
+    return out
+
+
+# undo steps kept
+UNDO_LIMIT = 100
 # level of detail: shapes with more points than this are dragged as a decimated proxy
 LOD_POINTS = 30000
 # triangles of the proxy (software OpenGL renders ~10k triangles well within a frame)
@@ -278,6 +296,12 @@ class ExplorerController:
         #: Volumes: the threshold whose region (values strictly above it) a cage must
         #: enclose -- a number, ``"otsu"``, or None for every voxel; see :meth:`set_cage`.
         self.threshold = None
+        #: A loaded volume (:class:`~vhm_viz.app.volume.VolumeView`); its outline box
+        #: surface is then the display dataset (voxels are never bound one by one).
+        self.volume = None
+        # undo / redo: snapshots of the edited state (see :meth:`checkpoint`)
+        self._undo: list[dict] = []
+        self._redo: list[dict] = []
 
     # ------------------------------------------------------------------ data
     @property
@@ -308,9 +332,15 @@ class ExplorerController:
     def _set_data(self, data, source: dict) -> None:
         import pyvista as pv
 
-        if isinstance(data, pv.ImageData | pv.RectilinearGrid):
-            data = data.cast_to_structured_grid()
-        display = data.copy(deep=True)
+        from vhm_viz.app.volume import VolumeView, is_volume
+
+        self.volume = VolumeView(data) if is_volume(data) else None
+        if self.volume is not None:
+            display = self.volume.outline()
+        else:
+            if isinstance(data, pv.ImageData | pv.RectilinearGrid):
+                data = data.cast_to_structured_grid()
+            display = data.copy(deep=True)
         display.points = np.asarray(display.points, dtype=np.float64)
         # the rest pose's normals would shade (and export) the deformed shape wrongly: drop
         # them; the renderer then shades each triangle by its deformed geometry
@@ -338,6 +368,7 @@ class ExplorerController:
         self._initial_contraction = None
         self._deformer_stale = True
         self._layout_stale = True
+        self._undo, self._redo = [], []
 
     def load_file(self, path) -> None:
         """Load any dataset PyVista reads. On error the current state is kept.
@@ -407,7 +438,11 @@ class ExplorerController:
             Points of the data (or voxels of the region) outside the cage, with count and
             indices; for a volume also a cage that encloses no region above a threshold.
         """
-        if self.rest is not None:
+        if self.volume is not None:
+            inside = self.volume.inside(cage)
+            if not inside.all():
+                self._check_region_inside(inside)
+        elif self.rest is not None:
             inside = cage.contains(self._rest_points)
             if not inside.all():
                 self._check_region_inside(inside)
@@ -422,6 +457,8 @@ class ExplorerController:
         """The scalar values of a volume's points; None for other data."""
         import pyvista as pv
 
+        if self.volume is not None:
+            return self.volume.values
         if not isinstance(self.rest, pv.StructuredGrid | pv.ImageData | pv.RectilinearGrid):
             return None
         from vhm_viz.autocage.cage import volume_values
@@ -637,6 +674,14 @@ class ExplorerController:
             c.angles = np.asarray(angles, float).reshape(3)
         self._targets_stale = True
 
+    def set_jacobian_rotation(self, index: int, rotation) -> None:
+        """Set the target rotation of Jacobian constraint ``index`` (scale kept).
+
+        ``rotation`` (3, 3) is replaced by its closest rotation (polar decomposition).
+        """
+        r = JacobianConstraint.from_matrix(self.jacobians[index].point, rotation)
+        self.set_jacobian(index, angles=r.angles)
+
     def set_point(self, kind: str, index: int, point) -> None:
         """Move the rest-space point of a constraint (changes the layout)."""
         p = np.asarray(point, dtype=float).reshape(3)
@@ -838,6 +883,20 @@ class ExplorerController:
         """
         t0 = time.perf_counter()
         self.set_target(index, target)
+        return self._frame(t0, lod)
+
+    def rotate(self, index: int, rotation, lod: bool | None = None) -> FrameTiming:
+        """One interactive frame of the rotation gizmo (see :meth:`drag`).
+
+        Jacobian constraint ``index`` gets the target rotation ``rotation`` (3, 3; its
+        closest rotation is used, the scale is kept), then a warm-started solve and
+        deformation.
+        """
+        t0 = time.perf_counter()
+        self.set_jacobian_rotation(index, rotation)
+        return self._frame(t0, lod)
+
+    def _frame(self, t0: float, lod: bool | None) -> FrameTiming:
         rep = self.solve()
         t1 = time.perf_counter()
         proxy = self.uses_proxy if lod is None else bool(lod) and self.uses_proxy
@@ -881,7 +940,7 @@ class ExplorerController:
         if self.last_report is not None:
             out["energy"] = self.last_report.final_energy
             out["iterations"] = self.last_report.iterations
-        if self.rest is not None and self.display is not None:
+        if self.rest is not None and self.display is not None and self.volume is None:
             from vhm_viz.filters import cell_quality
 
             quality = cell_quality(self.rest, self.deformed_points)
@@ -982,6 +1041,9 @@ class ExplorerController:
             src = self.source.get("path")
             path = path.with_suffix(Path(src).suffix if src else ".vtp")
         refuse_inputs(path, self.input_files)
+        if self.volume is not None:
+            self._export_volume(path)
+            return
         data = self.display.copy(deep=True)
         if self.ready and self.last_report is not None:
             data.points = self.deformer.harmonic_map.map(self._rest_points, outside="passthrough")
@@ -991,6 +1053,91 @@ class ExplorerController:
             write_dataset(path, data)
         except (ValueError, TypeError) as exc:  # a suffix VTK cannot write this type to
             raise ValueError(f"cannot write {path.name}: {exc}") from exc
+
+    def _export_volume(self, path: Path) -> None:
+        """A volume: resampled (image suffixes) or warped, as ``vhm-viz deform`` does it."""
+        from vhm_viz.cli.deform import RESAMPLED_SUFFIXES
+        from vhm_viz.io import suffix_of
+
+        if not (self.ready and self.last_report is not None):
+            raise ValueError("nothing to export yet: solve first")
+        hm = self.deformer.harmonic_map
+        if suffix_of(path) in RESAMPLED_SUFFIXES:
+            data = self.rest.vhm.resample(hm, outside="passthrough")
+        else:
+            data = self.rest.vhm.deform(hm, outside="passthrough")
+        write_dataset(path, data)
+
+    # ------------------------------------------------------------------ undo / redo
+    _SNAPSHOT_KEYS = ("cage", "anchors", "positions", "jacobians", "mode", "alpha", "threshold")
+
+    def snapshot(self) -> dict:
+        """The edited state (cage, anchors, constraints, mode, alpha, threshold), copied."""
+        from copy import deepcopy
+
+        snap = {k: getattr(self, k) for k in ("cage", "mode", "alpha", "threshold")}
+        snap["anchors"] = np.array(self.anchors, copy=True)
+        snap["positions"] = deepcopy(self.positions)
+        snap["jacobians"] = deepcopy(self.jacobians)
+        return snap
+
+    def checkpoint(self, state: dict | None = None) -> None:
+        """Remember the state before a user action (default: now); clears the redo history.
+
+        The window calls this for every constraint, anchor, cage and setting edit (with the
+        :meth:`snapshot` taken before it, once the edit succeeded) and once at the start of
+        a drag, so :meth:`undo` steps back one user action.
+        """
+        self._undo.append(self.snapshot() if state is None else state)
+        del self._undo[:-UNDO_LIMIT]
+        self._redo.clear()
+
+    @property
+    def can_undo(self) -> bool:
+        """Whether :meth:`undo` has a state to go back to."""
+        return bool(self._undo)
+
+    @property
+    def can_redo(self) -> bool:
+        """Whether :meth:`redo` has a state to go forward to."""
+        return bool(self._redo)
+
+    def undo(self) -> bool:
+        """Go back to the state before the last user action; False when there is none."""
+        return self._step(self._undo, self._redo)
+
+    def redo(self) -> bool:
+        """Re-apply the last undone action; False when there is none."""
+        return self._step(self._redo, self._undo)
+
+    def _step(self, source: list, target: list) -> bool:
+        if not source:
+            return False
+        target.append(self.snapshot())
+        self._restore(source.pop())
+        return True
+
+    def _restore(self, snap: dict) -> None:
+        """Set a snapshot and mark stale exactly what differs (cheapest rebuild)."""
+        same_shape = (
+            snap["cage"] is self.cage
+            and snap["alpha"] == self.alpha
+            and np.array_equal(snap["anchors"], self.anchors)
+        )
+        points = [c.point.tolist() for c in snap["positions"] + snap["jacobians"]]
+        layout = [c.point.tolist() for c in self.positions + self.jacobians]
+        kinds = (len(snap["positions"]), len(snap["jacobians"]))
+        same_layout = kinds == (len(self.positions), len(self.jacobians)) and points == layout
+        for k in self._SNAPSHOT_KEYS:
+            setattr(self, k, snap[k])
+        if self.deformer is not None:
+            self.deformer.mode = self.mode
+        if not same_shape:
+            self._deformer_stale = True
+        elif not same_layout:
+            self._layout_stale = True
+        self._targets_stale = True
+        self.certificate = None
 
     def scene(self, relative_to=None) -> Scene:
         """The deformation being edited, as a :class:`~vhm_viz.scene.Scene`.
@@ -1078,7 +1225,7 @@ class ExplorerController:
         new.copy_lod_settings(self)
         new.max_iterations, new.tolerance = self.max_iterations, self.tolerance
         new.mode, new.alpha = scene.mode, float(scene.alpha)
-        new.solver = dict(scene.solver)
+        new.solver = settle_settings(scene.solver)
         new._load_data_ref(scene.data, path, current)
         cage = scene.build_cage(new.rest)
         new.set_cage(cage)

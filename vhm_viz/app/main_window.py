@@ -18,6 +18,7 @@ the full shape is deformed and shown again. The status bar says which one is dis
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import time
 import traceback
@@ -38,7 +39,7 @@ from PySide6.QtWidgets import (
 )
 
 from vhm_viz.app.controller import ExplorerController
-from vhm_viz.app.panels import AnalysisPanel, ConstraintPanel
+from vhm_viz.app.panels import AnalysisPanel, ConstraintPanel, ViewPanel
 from vhm_viz.app.workers import JobRunner
 from vhm_viz.core.cage import MIN_FACE_ANGLE
 
@@ -59,6 +60,12 @@ HANDLE_COLOR = "orange"
 CAGE_COLOR = (0.62, 0.74, 0.86)  # steel blue at half opacity on white
 ANCHOR_COLOR = "green"
 JACOBIAN_COLOR = "magenta"
+GIZMO_COLOR = (0.75, 0.1, 0.75)
+ISO_COLOR = (0.95, 0.85, 0.70)
+# opacity of a volume's outline box (the draggable "shape" of a volume)
+OUTLINE_OPACITY = 0.15
+# the full-resolution volume slice replaces the drag slice this long after a slider stops
+SLICE_DELAY_MS = 250
 # data formats offered in the open dialog (anything pyvista.read accepts works)
 _OPEN_FILTER = (
     "Data (*.obj *.ply *.stl *.vtp *.vtk *.vtu *.vti *.vts *.off *.mesh *.msh *.mhd *.nii "
@@ -133,6 +140,23 @@ class ExplorerWindow(QMainWindow):
         self._proxy_clipper = None
         self._proxy_data = None
         self.showing_proxy = False
+        # volumes: per axis {"drag": SliceProbe, "full": SliceProbe}, the rendered image
+        self._vslices: dict[int, dict] = {}
+        self._vslices_for = None  # (volume, deformer) the slices are bound to
+        self.slice_colour = "value"
+        self.volume_image = None  # the rendered (deformed) volume, pyvista.ImageData
+        self._volume_stale = False
+        self._dragging = False
+        #: ("position" | "jacobian", index) of the constraint Delete removes.
+        self.selected = None
+        self._gizmo = None
+        self._gizmo_start = None
+        #: Jacobian constraint the rotation gizmo edits (default: the last one).
+        self.gizmo_index = None
+        self._slice_timer = QTimer(self)
+        self._slice_timer.setSingleShot(True)
+        self._slice_timer.setInterval(SLICE_DELAY_MS)
+        self._slice_timer.timeout.connect(self._full_slices)
         # full-resolution refinement once the handle rests (restarted by every drag frame)
         self._refine_timer = QTimer(self)
         self._refine_timer.setSingleShot(True)
@@ -160,7 +184,10 @@ class ExplorerWindow(QMainWindow):
         self.runner.progressed.connect(self._on_progress)
         self.runner.started.connect(self._on_job_started)
         self.runner.finished.connect(self._on_job_finished)
-        self.plotter.iren.add_observer("LeftButtonPressEvent", self._on_left_press)
+        # off screen (``--screenshot``) there is no interactor: no clicks, no widgets
+        self.interactive = self.plotter.iren is not None
+        if self.interactive:
+            self.plotter.iren.add_observer("LeftButtonPressEvent", self._on_left_press)
         # drag frames rendered by the sphere widget are timed by these observers
         self._pending_frame = None
         self._render_t0: float | None = None
@@ -189,6 +216,20 @@ class ExplorerWindow(QMainWindow):
         ap.measure_changed.connect(self.set_measure)
         ap.live_toggled.connect(lambda on: setattr(self, "live_slice", bool(on)))
         ap.clip_toggled.connect(self._on_clip_toggled)
+        self.view_panel = vp = ViewPanel()
+        vdock = QDockWidget("View", self)
+        vdock.setWidget(vp)
+        self.addDockWidget(Qt.DockWidgetArea.LeftDockWidgetArea, vdock)
+        vp.shape_opacity_changed.connect(self.set_shape_opacity)
+        vp.cage_opacity_changed.connect(self.set_cage_opacity)
+        vp.slices_toggled.connect(lambda on: self._update_volume_actors())
+        vp.slice_moved.connect(self.move_volume_slice)
+        vp.slice_released.connect(lambda a: self._full_slices())
+        vp.slice_colour_changed.connect(self.set_slice_colour)
+        vp.volume_toggled.connect(self.show_volume)
+        vp.transfer_changed.connect(self.set_transfer)
+        vp.iso_changed.connect(self.show_isosurface)
+        cp.table.itemSelectionChanged.connect(self._on_table_selection)
 
     def _action(self, menu, text, slot, shortcut=None, checkable=False):
         act = QAction(text, self)
@@ -219,6 +260,14 @@ class ExplorerWindow(QMainWindow):
         f.addSeparator()
         self._action(f, "&Quit", self.close, "Ctrl+Q")
 
+        e = mb.addMenu("&Edit")
+        self.undo_action = self._action(e, "&Undo", lambda: self.undo(), "Ctrl+Z")
+        self.redo_action = self._action(e, "&Redo", lambda: self.redo(), "Ctrl+Shift+Z")
+        self.redo_action.setShortcuts([QKeySequence("Ctrl+Shift+Z"), QKeySequence("Ctrl+Y")])
+        self.delete_action = self._action(
+            e, "&Delete selected constraint", lambda: self.delete_selected(), "Delete"
+        )
+
         c = mb.addMenu("&Cage")
         self._action(c, "&Load cage...", lambda: self.load_cage())
         self._action(c, "&Generate cage...", lambda: self.generate_cage())
@@ -233,7 +282,7 @@ class ExplorerWindow(QMainWindow):
         s = mb.addMenu("&Solve")
         self._action(s, "Solve to convergence", self.full_solve, "F5")
         self.certify_action = self._action(s, "&Certify injectivity", lambda: self.certify(), "F6")
-        self._action(s, "Reset camera", lambda: self.plotter.reset_camera(), "R")
+        self._action(s, "Reset camera", lambda: self.frame_all(), "R")
 
         tb = self.addToolBar("Interaction")
         group = QActionGroup(self)
@@ -354,7 +403,21 @@ class ExplorerWindow(QMainWindow):
             self.analysis_panel.show_slice.setChecked(False)
         self.slice = None
         self._marker_binding = None
+        self.gizmo_index = self.selected = None
+        vp = self.view_panel
+        vp.shape_opacity.blockSignals(True)
+        vp.shape_opacity.setValue(
+            int(100 * OUTLINE_OPACITY) if self.ctrl.volume is not None else 100
+        )
+        vp.shape_opacity.blockSignals(False)
+        self._vslices_for = None
+        self.volume_image = None
+        self._volume_stale = self.ctrl.volume is not None
         self.rebuild_scene(reset_camera=True)
+        if self.ctrl.ready and self.ctrl.last_report is not None:
+            self.update_analysis()
+        self._refresh_volume_image()
+        self.plotter.render()
 
     def _load_job(self, name: str, load):
         mode, alpha = self.ctrl.mode, self.ctrl.alpha
@@ -453,7 +516,8 @@ class ExplorerWindow(QMainWindow):
                 return
         if self.ctrl.rest is None:
             raise ValueError("open data before loading a cage")
-        self.ctrl.load_cage(path)
+        with self._recorded():
+            self.ctrl.load_cage(path)
         repaired = self.ctrl.cage.repairs
         notes = "; ".join(self.ctrl.notes)
         self.ctrl.notes = []
@@ -478,7 +542,8 @@ class ExplorerWindow(QMainWindow):
             return ctrl.auto_cage(max_faces, progress)
 
         def done(cage):
-            self.ctrl.set_cage(cage)
+            with self._recorded():
+                self.ctrl.set_cage(cage)
             thin = cage.thin_faces
             self.status(
                 f"generated cage: {cage.n_faces} faces"
@@ -506,7 +571,8 @@ class ExplorerWindow(QMainWindow):
             count, ok = QInputDialog.getInt(self, "Anchors", "Number of anchors", 50, 1, 5000)
             if not ok:
                 return
-        self.ctrl.load_anchors(path, count)
+        with self._recorded():
+            self.ctrl.load_anchors(path, count)
         self.after_edit(structure=True)
 
     @guarded
@@ -523,7 +589,8 @@ class ExplorerWindow(QMainWindow):
             return ctrl.auto_anchors(count)
 
         def done(anchors):
-            self.ctrl.set_anchors(anchors)
+            with self._recorded():
+                self.ctrl.set_anchors(anchors)
             self.status(f"{len(anchors)} anchors")
             self.after_edit(structure=True)
 
@@ -532,14 +599,18 @@ class ExplorerWindow(QMainWindow):
     @guarded
     def clear_anchors(self) -> None:
         """Remove all anchors."""
-        self.ctrl.set_anchors(np.zeros((0, 3)))
+        with self._recorded():
+            self.ctrl.set_anchors(np.zeros((0, 3)))
         self.after_edit(structure=True)
 
     # ================================================================== settings
     @guarded
     def set_mode(self, mode: str) -> None:
         """Rigid / similar; re-solves warm-started."""
-        self.ctrl.set_mode(mode)
+        if mode == self.ctrl.mode:
+            return
+        with self._recorded():
+            self.ctrl.set_mode(mode)
         self.constraints_panel.set_mode(mode)
         if self.ctrl.ready:
             self.solve_and_show()
@@ -547,7 +618,8 @@ class ExplorerWindow(QMainWindow):
     @guarded
     def set_alpha(self, alpha: float) -> None:
         """Stiffness alpha (rebuilds the deformer in the background)."""
-        self.ctrl.set_alpha(alpha)
+        with self._recorded():
+            self.ctrl.set_alpha(alpha)
         self.constraints_panel.set_alpha(alpha)
         self.after_edit(structure=False)
 
@@ -574,7 +646,9 @@ class ExplorerWindow(QMainWindow):
         if not np.isfinite(target).all():
             self.refresh_panels()
             raise ValueError("target values must be numbers")
-        self.ctrl.set_target(index, target)
+        with self._recorded():
+            self.ctrl.set_target(index, target)
+        self.selected = ("position", index)
         self._move_handle(index, target)
         self.solve_and_show()
 
@@ -585,10 +659,12 @@ class ExplorerWindow(QMainWindow):
             self.refresh_panels()
             raise ValueError("angles and scale must be numbers")
         try:
-            self.ctrl.set_jacobian(index, angles, scale)
+            with self._recorded():
+                self.ctrl.set_jacobian(index, angles, scale)
         except Exception:
             self.refresh_panels()
             raise
+        self.selected = ("jacobian", index)
         self.solve_and_show()
 
     @guarded
@@ -598,14 +674,73 @@ class ExplorerWindow(QMainWindow):
             raise ValueError(
                 "the last position constraint cannot be deleted (it fixes the translation)"
             )
-        self.ctrl.remove_constraint(kind, index)
+        with self._recorded():
+            self.ctrl.remove_constraint(kind, index)
+        self.selected = None
+        if kind == "jacobian":
+            self.gizmo_index = None
         self.after_edit(structure=False)
+
+    @contextlib.contextmanager
+    def _recorded(self):
+        """Record the state before an edit for undo, once the edit succeeded."""
+        state = self.ctrl.snapshot()
+        yield
+        self.ctrl.checkpoint(state)
+
+    def undo(self) -> bool:
+        """Ctrl+Z: back to the state before the last edit, solved and shown."""
+        return self._history(self.ctrl.undo, "undo")
+
+    def redo(self) -> bool:
+        """Ctrl+Shift+Z: re-apply the last undone edit."""
+        return self._history(self.ctrl.redo, "redo")
+
+    @guarded
+    def _history(self, step, what: str) -> bool:
+        if self.busy:
+            self.status("busy: wait or cancel the running job")
+            return False
+        if not step():
+            self.status(f"nothing to {what}")
+            return False
+        self._after_history(f"{what} done")
+        return True
+
+    def _after_history(self, what: str) -> None:
+        self.selected = None
+        if self.gizmo_index is not None and self.gizmo_index >= len(self.ctrl.jacobians):
+            self.gizmo_index = None
+        self.status(what)
+        self.after_edit(structure=True)
+
+    def _on_table_selection(self) -> None:
+        rows = self.constraints_panel.selected_rows()
+        if rows:
+            self.selected = rows[0]
+            if rows[0][0] == "jacobian" and rows[0][1] != self.gizmo_index:
+                self.gizmo_index = rows[0][1]
+                self._rebuild_gizmo()
+                self.plotter.render()
+
+    @guarded
+    def delete_selected(self) -> bool:
+        """Delete: remove the constraint selected in the table (or last added / dragged)."""
+        rows = self.constraints_panel.selected_rows() or ([self.selected] if self.selected else [])
+        if not rows:
+            self.status("no constraint selected")
+            return False
+        for kind, index in sorted(rows, key=lambda r: (r[0], -r[1])):
+            self.delete_constraint(kind, index)
+        return True
 
     def after_edit(self, structure: bool) -> None:
         """Rebuild what the edit made stale (in the background), then solve and show."""
         self.refresh_panels()
         self.rebuild_scene(reset_camera=False, solve=False)
+        self.plotter.render()  # the edit shows now, before any solve
         if not self.ctrl.can_solve:
+            self.update_analysis()
             return
         if self.ctrl.ready:
             self.solve_and_show()
@@ -671,11 +806,21 @@ class ExplorerWindow(QMainWindow):
             return
         mode = self.interaction_mode
         rest = self.ctrl.rest_point_from_cell(cell_id, world_point)
+        with self._recorded():
+            if not self._apply_pick(mode, rest, world_point):
+                return
+        self.after_edit(structure=mode.startswith("anchor"))
+
+    def _apply_pick(self, mode: str, rest, world_point) -> bool:
+        """Add or remove what ``mode`` says at a picked point; whether anything changed."""
         if mode == "position":
             i = self.ctrl.add_position_constraint(rest, target=np.asarray(world_point, float))
+            self.selected = ("position", i)
             self.status(f"position constraint {i} added")
         elif mode == "jacobian":
             i = self.ctrl.add_jacobian_constraint(rest)
+            self.selected = ("jacobian", i)
+            self.gizmo_index = i
             self.status(f"Jacobian constraint {i} added")
         elif mode == "anchor+":
             i = self.ctrl.add_anchor(rest)
@@ -684,12 +829,12 @@ class ExplorerWindow(QMainWindow):
             i = self.ctrl.nearest_anchor(rest)
             if i is None:
                 self.status("no anchors to remove")
-                return
+                return False
             self.ctrl.remove_anchor(i)
             self.status(f"anchor {i} removed")
         else:
-            return
-        self.after_edit(structure=mode.startswith("anchor"))
+            return False
+        return True
 
     # ================================================================== drag
     def on_handle_moved(self, index: int, center, render: bool = True) -> None:
@@ -702,8 +847,16 @@ class ExplorerWindow(QMainWindow):
         self._pending_frame = None
         if self.busy or not self.ctrl.ready:
             return
+        if not self._dragging:  # one undo step per drag
+            self.ctrl.checkpoint()
+            self._dragging = True
+            self.selected = ("position", index)
+        self._frame(lambda: self.ctrl.drag(index, np.asarray(center, float)), render)
+
+    def _frame(self, step, render: bool) -> None:
+        """One live frame: ``step()`` edits, solves and deforms (returns its FrameTiming)."""
         try:
-            t = self.ctrl.drag(index, np.asarray(center, float))
+            t = step()
             t0 = time.perf_counter()
             if t.mesh == "proxy" and self._proxy_data is not self.ctrl.proxy:
                 self._rebuild_proxy()  # a proxy built since the last scene rebuild
@@ -711,8 +864,11 @@ class ExplorerWindow(QMainWindow):
             if self.showing_proxy:
                 self._refine_timer.start()
             self._update_markers()
+            self._move_gizmo()
             if self.live_slice and self.slice is not None:
                 self.update_analysis(full=False)
+            if self._vslices:
+                self._update_volume_slices(drag=True)
             t.analysis = time.perf_counter() - t0
             if not render:
                 self.last_frame = self._pending_frame = t  # completed by _on_render_end
@@ -737,6 +893,7 @@ class ExplorerWindow(QMainWindow):
 
     def on_handle_released(self, *args) -> None:
         """End of a drag: solve to convergence, refresh the analysis and the table."""
+        self._dragging = False
         self._refine_timer.stop()
         if self.busy or not self.ctrl.ready:
             return
@@ -801,6 +958,11 @@ class ExplorerWindow(QMainWindow):
             self._update_markers()
             self.refresh_panels()
         self._show_proxy(False)
+        self._move_gizmo()
+        if self.ctrl.volume is not None:
+            self._update_volume_slices(drag=False)
+            self._volume_stale = True
+            self._refresh_volume_image()
         self.update_analysis(defer_metrics=True)
         t3 = time.perf_counter()
         self.plotter.render()
@@ -901,6 +1063,9 @@ class ExplorerWindow(QMainWindow):
                 render=False,
                 reset_camera=False,
             )
+            if ctrl.volume is not None:  # the outline box: light, never hides the slices
+                self._actors["shape"].GetProperty().SetLighting(False)
+        self._apply_opacity("shape", self.view_panel.shape_opacity.value() / 100.0)
         self._rebuild_proxy()
         self._remove("cage")
         if ctrl.cage is not None:
@@ -915,12 +1080,72 @@ class ExplorerWindow(QMainWindow):
                 pickable=False,
             )
             self._actors["cage"].SetVisibility(self.show_cage_action.isChecked())
+            self._apply_opacity("cage", self.view_panel.cage_opacity.value() / 100.0)
         self._rebuild_markers()
         self._rebuild_handles()
+        self._rebuild_gizmo()
+        self._rebuild_volume()
         self.refresh_panels()
         if reset_camera:
-            p.reset_camera()
+            self.frame_all(render=False)
             self.status(self._summary())
+
+    # ================================================================== view
+    def _apply_opacity(self, name: str, opacity: float) -> None:
+        for key in (name, "proxy") if name == "shape" else (name,):
+            actor = self._actors.get(key)
+            if actor is not None:
+                actor.GetProperty().SetOpacity(float(opacity))
+
+    @guarded
+    def set_shape_opacity(self, opacity: float) -> None:
+        """Opacity of the shape (and its drag proxy), 0..1."""
+        self._apply_opacity("shape", opacity)
+        self.plotter.render()
+
+    @guarded
+    def set_cage_opacity(self, opacity: float) -> None:
+        """Opacity of the cage wireframe, 0..1."""
+        self._apply_opacity("cage", opacity)
+        self.plotter.render()
+
+    def scene_bounds(self) -> np.ndarray:
+        """(2, 3) box around the shown shape, cage, handles and volume (deformed space)."""
+        ctrl = self.ctrl
+        boxes = []
+        for data in (ctrl.display, self.volume_image):
+            if data is not None and data.n_points:
+                b = np.asarray(data.bounds).reshape(3, 2).T
+                boxes.append(b)
+        if ctrl.cage is not None:
+            v = np.asarray(ctrl.cage.vertices)
+            boxes.append(np.vstack([v.min(0), v.max(0)]))
+        if ctrl.positions:
+            t = np.array([c.target for c in ctrl.positions])
+            boxes.append(np.vstack([t.min(0), t.max(0)]))
+        if not boxes:
+            return np.array([[-1.0, -1, -1], [1, 1, 1]])
+        b = np.stack(boxes)
+        return np.vstack([b[:, 0].min(0), b[:, 1].max(0)])
+
+    def frame_all(self, render: bool = True) -> None:
+        """Reset the camera so that shape, cage and volume are all in view (key R)."""
+        lo, hi = self.scene_bounds()
+        cam = self.plotter.camera
+        centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
+        direction = np.subtract(cam.position, cam.focal_point)
+        direction = direction / (np.linalg.norm(direction) or 1.0)
+        # the bounding sphere fits the narrower of the two view angles, with a margin
+        w, h = self.plotter.window_size
+        half = np.radians(cam.view_angle) / 2
+        if w < h:
+            half = np.arctan(np.tan(half) * w / h)
+        distance = 1.08 * radius / np.sin(half)
+        cam.focal_point = tuple(centre)
+        cam.position = tuple(centre + distance * direction)
+        self.plotter.renderer.ResetCameraClippingRange()
+        if render:
+            self.plotter.render()
 
     def _rebuild_proxy(self) -> None:
         """Add the (hidden) drag proxy's actor when the controller has a new proxy."""
@@ -1024,7 +1249,7 @@ class ExplorerWindow(QMainWindow):
         p = self.plotter
         p.clear_sphere_widgets()
         self._handles = []
-        if not self.ctrl.ready:
+        if not self.ctrl.ready or not self.interactive:
             return
         radius = getattr(self, "_marker_radius", 0.02)
         for i, c in enumerate(self.ctrl.positions):
@@ -1086,15 +1311,16 @@ class ExplorerWindow(QMainWindow):
         normal = np.asarray(normal, float)
         self._slice_plane = (origin, normal)
         p.clear_plane_widgets()
-        p.add_plane_widget(
-            self._plane_moved,
-            normal=normal,
-            origin=origin,
-            bounds=np.ravel(np.column_stack([b[0], b[1]])),
-            interaction_event="end",
-            color="gray",
-            outline_opacity=0.3,
-        )
+        if self.interactive:
+            p.add_plane_widget(
+                self._plane_moved,
+                normal=normal,
+                origin=origin,
+                bounds=np.ravel(np.column_stack([b[0], b[1]])),
+                interaction_event="end",
+                color="gray",
+                outline_opacity=0.3,
+            )
         if not self.analysis_panel.show_slice.isChecked():
             self.analysis_panel.show_slice.blockSignals(True)
             self.analysis_panel.show_slice.setChecked(True)
@@ -1163,7 +1389,7 @@ class ExplorerWindow(QMainWindow):
             self.report_error(f"slice: {exc}", traceback.format_exc())
 
     def _make_slice(self) -> None:
-        from vhm_viz.app.analysis import MEASURE_RANGES, SliceProbe
+        from vhm_viz.app.analysis import SliceProbe
 
         self._remove("slice")
         self.slice = None
@@ -1172,20 +1398,26 @@ class ExplorerWindow(QMainWindow):
         res = int(self.analysis_panel.resolution.value())
         self.slice = SliceProbe(self.ctrl, *self._slice_plane, resolution=res)
         self._clip_shape(self.analysis_panel.clip.isChecked())
-        self.slice.update(self.measure)
+        style = self.slice.colour(self.measure, self.slice.update(self.measure))
         if self.slice.n_points and self.slice.mesh.n_cells:
-            self._actors["slice"] = self.plotter.add_mesh(
-                self.slice.mesh,
-                scalars="measure",
-                cmap="jet",
-                clim=MEASURE_RANGES[self.measure],
-                name="slice",
-                render=False,
-                reset_camera=False,
-                pickable=False,
-                scalar_bar_args={"title": self.measure},
-            )
+            self._actors["slice"] = self._add_measure_mesh(self.slice.mesh, "slice", style)
         self.update_analysis()
+
+    def _add_measure_mesh(self, mesh, name: str, style: dict):
+        """Add a mesh coloured by its ``"shown"`` measure in the :mod:`vhm_viz.colours` style."""
+        return self.plotter.add_mesh(
+            mesh,
+            scalars="shown",
+            cmap=style["cmap"],
+            clim=style["clim"],
+            log_scale=style["log_scale"],
+            below_color=style["below_color"],
+            name=name,
+            render=False,
+            reset_camera=False,
+            pickable=False,
+            scalar_bar_args={"title": style["title"]},
+        )
 
     def update_analysis(self, full: bool = True, defer_metrics: bool = False) -> None:
         """Recompute the slice colours, histogram, energy plot and metrics.
@@ -1194,18 +1426,29 @@ class ExplorerWindow(QMainWindow):
         shape metrics (E_rigid, E_volume: a pass over every triangle, ~0.4 s at 346k
         triangles) are computed once the event loop is idle, after the frame is shown.
         """
-        from vhm_viz.app.analysis import MEASURE_RANGES
+        from vhm_viz.colours import histogram, measure_style
 
         ap = self.analysis_panel
         m: dict = {}
-        if self.slice is not None and self.ctrl.ready:
-            vals = self.slice.update(self.measure)
-            actor = self._actors.get("slice")
-            if actor is not None:
-                actor.mapper.scalar_range = MEASURE_RANGES[self.measure]
-            ap.histogram.title = f"Histogram of {self.measure} (slice, {len(vals)} samples)"
-            ap.histogram.set_histogram(vals, marker=0.0 if self.measure == "determinant" else 1.0)
-            m["foldovers"] = self.slice.foldovers()
+        probes = [self.slice] if self.slice is not None else []
+        if not probes and not full:
+            return
+        probes += [e["drag"] for e in self._vslices.values() if e["drag"].binding is not None]
+        if probes and self.ctrl.ready and self.ctrl.last_report is not None:
+            vals = np.concatenate([p.update(self.measure) for p in probes])
+            style = measure_style(self.measure, vals)
+            if self.slice is not None:
+                self.slice.colour(self.measure, vals[: self.slice.n_points])
+                actor = self._actors.get("slice")
+                if actor is not None:
+                    actor.mapper.scalar_range = style["clim"]
+            log = style["log_scale"]
+            what = "slice" if self.slice is not None else "volume slices"
+            ap.histogram.title = f"Histogram of {self.measure} ({what}, {len(vals)} samples)"
+            ap.histogram.set_histogram(histogram(vals, style["clim"], log=log), marker=1.0, log=log)
+            m["foldovers"] = int(sum(p.foldovers() for p in probes))
+        else:
+            ap.histogram.set_histogram(None)
         if not full:
             return
         rep = self.ctrl.last_report
@@ -1242,6 +1485,336 @@ class ExplorerWindow(QMainWindow):
                 m["foldovers"] = foldover_count(self.ctrl.deformer.jacobians_at_anchors)
         ap.show_metrics(m)
         self.analysis_metrics = m
+
+    # ================================================================== volumes
+    def _rebuild_volume(self) -> None:
+        """A volume's slices: (re)made when the volume or its deformer changed."""
+        ctrl, vp = self.ctrl, self.view_panel
+        vol = ctrl.volume
+        key = (id(vol), id(ctrl.deformer) if ctrl.ready and ctrl.last_report is not None else None)
+        if vol is None:
+            for name in [n for n in self._actors if n.startswith("vslice")]:
+                self._remove(name)
+            for name in ("volume", "iso"):
+                self._remove(name)
+            self._vslices, self._vslices_for = {}, None
+            vp.set_volume(None, None, None)
+            return
+        if key == self._vslices_for:
+            return
+        if self._vslices_for is None or self._vslices_for[0] != key[0]:
+            vp.set_volume(vol.dimensions, vol.range, vol.index)
+            lo, hi = vol.window()
+            vp.set_transfer(0.5 * (lo + hi), hi - lo, 0.3)
+        self._vslices_for = key
+        for axis in range(3):
+            self._make_volume_slice(axis, ("drag", "full"))
+        self._update_volume_slices(drag=False)
+        self._update_volume_actors()
+
+    def _make_volume_slice(self, axis: int, parts) -> None:
+        from vhm_viz.app.volume import DRAG_SAMPLES, FULL_SAMPLES
+
+        ctrl = self.ctrl
+        bound = ctrl if ctrl.ready and ctrl.last_report is not None else None
+        entry = self._vslices.setdefault(axis, {})
+        for part in parts:
+            samples = DRAG_SAMPLES if part == "drag" else FULL_SAMPLES
+            probe = ctrl.volume.slice_probe(bound, axis, samples)
+            entry[part] = probe
+            self._add_volume_slice_actor(axis, part)
+
+    def _add_volume_slice_actor(self, axis: int, part: str, style: dict | None = None) -> None:
+        name = f"vslice{axis}{part}"
+        self._remove(name)
+        mesh = self._vslices[axis][part].mesh
+        if style is not None:
+            self._actors[name] = self._add_measure_mesh(mesh, name, style)
+            self._actors[name].SetPickable(True)
+        else:
+            level, width, _ = self.view_panel.transfer
+            self._actors[name] = self.plotter.add_mesh(
+                mesh, scalars="value", cmap="gray", show_scalar_bar=False, name=name,
+                clim=(level - width / 2, level + width / 2), render=False, reset_camera=False,
+            )  # fmt: skip
+        self._actors[name].GetProperty().SetLighting(False)  # the values, unshaded
+
+    def _update_volume_slices(self, drag: bool) -> None:
+        """Deform the volume's slices: the drag resolution always, the full one at rest."""
+        if not self._vslices or not self.ctrl.ready:
+            return
+        measure = None if self.slice_colour == "value" else self.slice_colour
+        values = []
+        for e in self._vslices.values():
+            values.append(e["drag"].update(measure))
+            if not drag:
+                e["full"].update(None)
+        if measure is not None:
+            from vhm_viz.colours import measure_style
+
+            style = measure_style(measure, np.concatenate(values))
+            for axis, e in self._vslices.items():
+                e["drag"].colour(measure, values[axis])
+                actor = self._actors.get(f"vslice{axis}drag")
+                if actor is not None:
+                    actor.mapper.scalar_range = style["clim"]
+        self._update_volume_actors(visibility_only=True)
+
+    @guarded
+    def move_volume_slice(self, axis: int, index: int) -> None:
+        """Move the volume's slice along ``axis`` to voxel ``index``.
+
+        The drag-resolution slice follows at once, the full one when the slider rests.
+        """
+        vol = self.ctrl.volume
+        if vol is None or not self._vslices:
+            return
+        vol.index[axis] = int(index)
+        self._make_volume_slice(axis, ("drag",))
+        self._moving_slice = axis
+        self._restyle_volume_slices()
+        self._update_volume_slices(drag=True)
+        self._slice_timer.start()
+        self.plotter.render()
+
+    def _full_slices(self) -> None:
+        """The slider rests: the full-resolution slice of the moved axis."""
+        axis = getattr(self, "_moving_slice", None)
+        self._moving_slice = None
+        if axis is None or not self._vslices:
+            return
+        try:
+            self._make_volume_slice(axis, ("full",))
+            self._update_volume_slices(drag=False)
+            self.update_analysis()
+            self.plotter.render()
+        except Exception as exc:  # noqa: BLE001
+            self.report_error(f"slice: {exc}", traceback.format_exc())
+
+    @guarded
+    def set_slice_colour(self, colour: str) -> None:
+        """Colour the volume's slices by ``value``, ``determinant`` or ``condition_number``."""
+        self.slice_colour = colour
+        if colour != "value" and colour != self.measure:
+            self.analysis_panel.measure.setCurrentText(colour)  # one measure in the dock
+        self._restyle_volume_slices()
+        self._update_volume_slices(drag=False)
+        self.plotter.render()
+
+    def _restyle_volume_slices(self) -> None:
+        from vhm_viz.colours import measure_style
+
+        style = None
+        if self.slice_colour != "value":
+            style = measure_style(self.slice_colour, [1.0])
+        for axis, e in self._vslices.items():
+            if style is not None and "shown" not in e["drag"].mesh.point_data:
+                e["drag"].mesh.point_data["shown"] = np.ones(e["drag"].n_points)
+            self._add_volume_slice_actor(axis, "drag", style)
+
+    def _update_volume_actors(self, visibility_only: bool = False) -> None:
+        """Show the slices of the current resolution; the volume rendering and isosurface."""
+        vp = self.view_panel
+        on = vp.slices.isChecked()
+        use_drag = (
+            self.slice_colour != "value"
+            or self._dragging
+            or bool(getattr(self, "_moving_slice", None) is not None)
+        )
+        for axis in self._vslices:
+            for part, shown in (("drag", use_drag), ("full", not use_drag)):
+                actor = self._actors.get(f"vslice{axis}{part}")
+                if actor is not None:
+                    actor.SetVisibility(on and shown)
+        for name in ("volume", "iso"):
+            actor = self._actors.get(name)
+            if actor is not None:  # they lag behind a drag: hidden until the release
+                actor.SetVisibility(not self._dragging)
+        if visibility_only:
+            return
+        self._remove("volume")
+        img = self.volume_image
+        if vp.volume.isChecked() and img is not None:
+            lo, hi = self.ctrl.volume.range
+            self._actors["volume"] = self.plotter.add_volume(
+                img, scalars="values", cmap="gray", clim=(lo, hi), mapper="smart",
+                show_scalar_bar=False, name="volume", render=False, reset_camera=False,
+            )  # fmt: skip
+            self.set_transfer(*vp.transfer, render=False)
+        self.show_isosurface(vp.iso.isChecked(), vp.value_of(vp.iso_value.value()), render=False)
+
+    @guarded
+    def show_volume(self, on: bool = True) -> None:
+        """Volume rendering of the deformed volume (resampled in the background)."""
+        if self.view_panel.volume.isChecked() != bool(on):
+            self.view_panel.volume.setChecked(bool(on))  # comes back here
+            return
+        self._refresh_volume_image()
+        self._update_volume_actors()
+        self.plotter.render()
+
+    @guarded
+    def set_transfer(self, level: float, width: float, opacity: float, render=True) -> None:
+        """Window/level ramp of the volume rendering (and grey window of the slices).
+
+        Opacity 0 below ``level - width/2``, rising to ``opacity`` at ``level + width/2``.
+        """
+        a, b = level - 0.5 * width, level + 0.5 * width
+        vol = self._actors.get("volume")
+        if vol is not None and self.ctrl.volume is not None:
+            lo, hi = self.ctrl.volume.range
+            prop = vol.GetProperty()
+            otf = prop.GetScalarOpacity()
+            otf.RemoveAllPoints()
+            otf.AddPoint(min(lo, a) - 1e-6, 0.0)
+            otf.AddPoint(a, 0.0)
+            otf.AddPoint(b, float(opacity))
+            otf.AddPoint(max(hi, b) + 1e-6, float(opacity))
+            ctf = prop.GetRGBTransferFunction()
+            ctf.RemoveAllPoints()
+            ctf.AddRGBPoint(a, 0.0, 0.0, 0.0)
+            ctf.AddRGBPoint(b, 1.0, 1.0, 1.0)
+        for axis in self._vslices:
+            for part in ("drag", "full"):
+                actor = self._actors.get(f"vslice{axis}{part}")
+                if actor is not None and actor.mapper.scalar_range is not None:
+                    if part == "full" or self.slice_colour == "value":
+                        actor.mapper.scalar_range = (a, b)
+        if render:
+            self.plotter.render()
+
+    @guarded
+    def show_isosurface(self, on: bool, value: float, render: bool = True) -> None:
+        """The isosurface ``value`` of the deformed volume (None: hidden)."""
+        self._remove("iso")
+        if on and self.volume_image is None:
+            self._refresh_volume_image()
+        if on and self.volume_image is not None:
+            iso = self.volume_image.contour([float(value)], scalars="values")
+            if iso.n_points:
+                self._actors["iso"] = self.plotter.add_mesh(
+                    iso, color=ISO_COLOR, name="iso", render=False, reset_camera=False,
+                    pickable=False, scalars=None,
+                )  # fmt: skip
+        if render:
+            self.plotter.render()
+
+    def _refresh_volume_image(self) -> None:
+        """Resample the deformed volume (background job) if rendering or iso needs it."""
+        ctrl, vp = self.ctrl, self.view_panel
+        vol = ctrl.volume
+        if vol is None or not (vp.volume.isChecked() or vp.iso.isChecked()):
+            return
+        if not (ctrl.ready and ctrl.last_report is not None):
+            self.volume_image, self._volume_stale = vol.rest_image(), False
+            return
+        if not self._volume_stale and self.volume_image is not None:
+            return
+        if self.busy:
+            QTimer.singleShot(200, self._refresh_volume_image)
+            return
+        hm = ctrl.deformer.harmonic_map
+
+        def job(progress, cancelled):
+            return vol.deformed_image(hm, progress=progress, abort=cancelled)
+
+        def done(img):
+            self.volume_image, self._volume_stale = img, False
+            self._update_volume_actors()
+            self.plotter.render()
+
+        self._volume_stale = False
+        self.run_job("volume rendering", job, done)
+
+    @guarded
+    def colour_by(self, measure: str) -> None:
+        """Show ``measure`` (det J or cond J): a volume's slices, else a section of the shape."""
+        self.analysis_panel.measure.setCurrentText(measure)
+        if self.ctrl.volume is not None:
+            self.view_panel.slice_colour.setCurrentText(measure)
+        elif self.ctrl.ready:
+            self.show_slice(True)
+        self.plotter.render()
+
+    # ================================================================== rotation gizmo
+    def _rebuild_gizmo(self) -> None:
+        """A box around the selected Jacobian constraint: rotate it to set the target."""
+        import vtk
+
+        if self._gizmo is not None:
+            self._gizmo.Off()
+            self._gizmo = None
+        ctrl = self.ctrl
+        if not ctrl.jacobians or not ctrl.ready or not self.interactive:
+            self.gizmo_index = None
+            return
+        if self.gizmo_index is None or self.gizmo_index >= len(ctrl.jacobians):
+            self.gizmo_index = len(ctrl.jacobians) - 1
+        c = ctrl.jacobians[self.gizmo_index]
+        centre = ctrl.image_of(c.point)
+        r = 3.0 * getattr(self, "_marker_radius", 0.02)
+        w = vtk.vtkBoxWidget()
+        w.SetInteractor(self.plotter.iren.interactor)
+        w.SetPlaceFactor(1.0)
+        w.PlaceWidget(*np.ravel(np.column_stack([centre - r, centre + r])))
+        w.TranslationEnabledOff()
+        w.ScalingEnabledOff()
+        w.RotationEnabledOn()
+        w.HandlesOff()
+        w.GetOutlineProperty().SetColor(*GIZMO_COLOR)
+        w.GetOutlineProperty().SetLineWidth(2)
+        w.GetSelectedOutlineProperty().SetLineWidth(3)
+        w.AddObserver("InteractionEvent", self._on_gizmo_moved)
+        w.AddObserver("EndInteractionEvent", self._on_gizmo_released)
+        self._gizmo, self._gizmo_centre = w, centre
+        self._gizmo_active = False
+        self._move_gizmo()
+        w.On()
+
+    def _move_gizmo(self) -> None:
+        """Orient the gizmo by its constraint's target rotation, at the point's image."""
+        import vtk
+
+        w, i = self._gizmo, self.gizmo_index
+        if w is None or i is None or getattr(self, "_gizmo_active", False):
+            return
+        if i >= len(self.ctrl.jacobians):
+            return
+        c = self.ctrl.jacobians[i]
+        centre = self.ctrl.image_of(c.point)
+        m = np.eye(4)
+        rot = c.matrix / c.scale
+        m[:3, :3] = rot
+        m[:3, 3] = centre - rot @ self._gizmo_centre
+        t = vtk.vtkTransform()
+        t.SetMatrix(m.ravel())
+        w.SetTransform(t)
+
+    def gizmo_rotation(self) -> np.ndarray:
+        """(3, 3) rotation the gizmo box shows now (the linear part of its transform)."""
+        import vtk
+
+        t = vtk.vtkTransform()
+        self._gizmo.GetTransform(t)
+        m = t.GetMatrix()
+        return np.array([[m.GetElement(r, k) for k in range(3)] for r in range(3)])
+
+    def _on_gizmo_moved(self, *args) -> None:
+        if self.busy or not self.ctrl.ready or self.gizmo_index is None:
+            return
+        if not self._gizmo_active:  # one undo step per rotation
+            self.ctrl.checkpoint()
+            self._gizmo_active = True
+            self.selected = ("jacobian", self.gizmo_index)
+        rot = self.gizmo_rotation()
+        self._dragging = True
+        self._frame(lambda: self.ctrl.rotate(self.gizmo_index, rot), render=False)
+
+    def _on_gizmo_released(self, *args) -> None:
+        self._gizmo_active = False
+        if self._dragging:
+            self.on_handle_released()
+            self.refresh_panels()
 
     # ================================================================== shutdown
     def closeEvent(self, event) -> None:  # noqa: N802, D102 - Qt override

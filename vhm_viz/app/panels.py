@@ -33,6 +33,7 @@ from PySide6.QtWidgets import (
 __all__ = [
     "ConstraintPanel",
     "AnalysisPanel",
+    "ViewPanel",
     "PlotWidget",
     "alpha_from_slider",
     "slider_from_alpha",
@@ -196,11 +197,14 @@ class ConstraintPanel(QWidget):
         else:
             self.jacobian_edited.emit(i, np.array(vals[:3]), vals[3])
 
-    def _delete_selected(self) -> None:
+    def selected_rows(self) -> list[tuple[str, int]]:
+        """(kind, index) of the selected constraints, last row first."""
         rows = sorted({ix.row() for ix in self.table.selectedIndexes()}, reverse=True)
-        for r in rows:
-            if r < len(self._rows):
-                self.delete_requested.emit(*self._rows[r])
+        return [self._rows[r] for r in rows if r < len(self._rows)]
+
+    def _delete_selected(self) -> None:
+        for row in self.selected_rows():
+            self.delete_requested.emit(*row)
 
 
 class PlotWidget(QWidget):
@@ -213,23 +217,36 @@ class PlotWidget(QWidget):
         self._bars = None  # (edges, counts)
         self._lines: list[tuple[np.ndarray, np.ndarray, QColor]] = []
         self._logy = False
+        self._log = False
         self._marker = None
 
-    def set_histogram(self, values, bins: int = 40, marker: float | None = None) -> None:
-        """Histogram of finite ``values``; ``marker`` draws a vertical line (e.g. det = 0)."""
-        v = np.asarray(values, dtype=float)
-        v = v[np.isfinite(v)]
+    def set_histogram(self, hist, marker: float | None = None, log: bool = False) -> None:
+        """Draw a :class:`vhm_viz.colours.Histogram` (every value counted).
+
+        Values under and over the drawn range, and non-finite ones, are drawn as labelled
+        end bins with their counts; ``marker`` draws a vertical line (e.g. det J = 1);
+        ``log``: the bins are equal in log (det J).
+        """
         self._lines = []
         self._marker = marker
-        if v.size == 0:
-            self._bars = None
-        else:
-            lo, hi = float(v.min()), float(v.max())
-            if hi <= lo:
-                lo, hi = lo - 0.5, hi + 0.5
-            counts, edges = np.histogram(v, bins=bins, range=(lo, hi))
-            self._bars = (edges, counts)
+        self._log = bool(log)
+        self._bars = None if hist is None or hist.total == 0 else hist
         self.update()
+
+    def end_labels(self) -> list[str]:
+        """Texts of the underflow / overflow / non-finite bins that hold values."""
+        h = self._bars
+        if h is None:
+            return []
+        lo, hi = h.edges[0], h.edges[-1]
+        out = []
+        if h.below:
+            out.append(f"< {lo:.3g}: {h.below}")
+        if h.above:
+            out.append(f"> {hi:.3g}: {h.above}")
+        if h.nonfinite:
+            out.append(f"non-finite: {h.nonfinite}")
+        return out
 
     def set_lines(self, ys: list[np.ndarray], logy: bool = True) -> None:
         """Plot curves against their index (energy vs iteration)."""
@@ -252,23 +269,41 @@ class PlotWidget(QWidget):
         p.drawText(QPointF(m, 14), self.title)
         p.drawRect(area)
         if self._bars is not None:
-            edges, counts = self._bars
-            cmax = max(int(counts.max()), 1)
-            x0, x1 = edges[0], edges[-1]
-            p.setBrush(QColor(90, 120, 200))
+            h = self._bars
+            edges, counts = h.edges, h.counts
+            pos = np.log(edges) if self._log else edges
+            ends = [c for c in (h.below, h.above) if c]
+            cmax = max(int(counts.max()) if counts.size else 0, *ends, 1)
+            x0, x1 = pos[0], pos[-1]
+            # the underflow / overflow bins: grey bars outside the range, labelled
+            gap = 0.06 * area.width()
+            inner = QRectF(area.left() + gap, area.top(), area.width() - 2 * gap, area.height())
+
+            def bar(xa, xb, c, colour):
+                hgt = c / cmax * inner.height()
+                p.setBrush(colour)
+                p.drawRect(QRectF(xa, inner.bottom() - hgt, max(xb - xa - 1, 1), hgt))
+
             for k, c in enumerate(counts):
-                xa = area.left() + (edges[k] - x0) / (x1 - x0) * area.width()
-                xb = area.left() + (edges[k + 1] - x0) / (x1 - x0) * area.width()
-                h = c / cmax * area.height()
-                p.drawRect(QRectF(xa, area.bottom() - h, max(xb - xa - 1, 1), h))
-            if self._marker is not None and x0 <= self._marker <= x1:
-                xm = area.left() + (self._marker - x0) / (x1 - x0) * area.width()
+                xa = inner.left() + (pos[k] - x0) / (x1 - x0) * inner.width()
+                xb = inner.left() + (pos[k + 1] - x0) / (x1 - x0) * inner.width()
+                bar(xa, xb, c, QColor(90, 120, 200))
+            if h.below:
+                bar(area.left() + 2, inner.left() - 2, h.below, QColor(120, 120, 120))
+            if h.above:
+                bar(inner.right() + 2, area.right() - 2, h.above, QColor(120, 120, 120))
+            if self._marker is not None and edges[0] <= self._marker <= edges[-1]:
+                m = np.log(self._marker) if self._log else self._marker
+                xm = inner.left() + (m - x0) / (x1 - x0) * inner.width()
                 p.setPen(QPen(QColor(220, 0, 0), 2))
                 p.drawLine(QPointF(xm, area.top()), QPointF(xm, area.bottom()))
             p.setPen(QColor(0, 0, 0))
-            p.drawText(QPointF(area.left(), self.height() - 6), f"{x0:.3g}")
-            p.drawText(QPointF(area.right() - 40, self.height() - 6), f"{x1:.3g}")
+            p.drawText(QPointF(inner.left(), self.height() - 6), f"{edges[0]:.3g}")
+            p.drawText(QPointF(inner.right() - 40, self.height() - 6), f"{edges[-1]:.3g}")
             p.drawText(QPointF(2, area.top() + 10), str(cmax))
+            labels = self.end_labels()
+            if labels:
+                p.drawText(QPointF(area.left() + 4, area.top() + 14), "   ".join(labels))
         elif self._lines:
             ys = np.concatenate([y for _, y, _ in self._lines])
             if self._logy:
@@ -362,3 +397,146 @@ class AnalysisPanel(QWidget):
                     continue
                 parts.append(f"{key}: " + fmt.format(v))
         self.metrics.setText("   ".join(parts) if parts else "-")
+
+
+def _slider(lo: int, hi: int, value: int) -> QSlider:
+    s = QSlider(Qt.Orientation.Horizontal)
+    s.setRange(lo, hi)
+    s.setValue(value)
+    return s
+
+
+class ViewPanel(QWidget):
+    """Opacities of shape and cage; a volume's slices, volume rendering and isosurface.
+
+    The transfer function of the volume rendering is a window/level ramp: opacity 0 below
+    ``level - width / 2``, rising linearly to ``opacity`` at ``level + width / 2``; the
+    grey ramp of the colours spans the same window (slices use it too).
+
+    Signals
+    -------
+    shape_opacity_changed(float), cage_opacity_changed(float)
+        0..1.
+    slices_toggled(bool), slice_moved(int axis, int index), slice_released(int axis)
+    slice_colour_changed(str)
+        ``"value"``, ``"determinant"`` or ``"condition_number"``.
+    volume_toggled(bool), transfer_changed(float level, float width, float opacity)
+    iso_changed(bool shown, float value)
+    """
+
+    shape_opacity_changed = Signal(float)
+    cage_opacity_changed = Signal(float)
+    slices_toggled = Signal(bool)
+    slice_moved = Signal(int, int)
+    slice_released = Signal(int)
+    slice_colour_changed = Signal(str)
+    volume_toggled = Signal(bool)
+    transfer_changed = Signal(float, float, float)
+    iso_changed = Signal(bool, float)
+
+    COLOURS = ("value", "determinant", "condition_number")
+    STEPS = 1000  # slider steps over the value range
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        lay = QVBoxLayout(self)
+        form = QFormLayout()
+        self.shape_opacity = _slider(0, 100, 100)
+        self.cage_opacity = _slider(0, 100, 100)
+        self.shape_opacity.valueChanged.connect(
+            lambda v: self.shape_opacity_changed.emit(v / 100.0)
+        )
+        self.cage_opacity.valueChanged.connect(lambda v: self.cage_opacity_changed.emit(v / 100.0))
+        form.addRow("Shape opacity", self.shape_opacity)
+        form.addRow("Cage opacity", self.cage_opacity)
+        lay.addLayout(form)
+        self.volume_box = QGroupBox("Volume")
+        vform = QFormLayout(self.volume_box)
+        self.slices = QCheckBox("Slices")
+        self.slices.setChecked(True)
+        self.slices.toggled.connect(self.slices_toggled)
+        self.slice_colour = QComboBox()
+        self.slice_colour.addItems(list(self.COLOURS))
+        self.slice_colour.currentTextChanged.connect(self.slice_colour_changed)
+        row = QHBoxLayout()
+        row.addWidget(self.slices)
+        row.addWidget(self.slice_colour)
+        vform.addRow(row)
+        self.slice_sliders = []
+        for axis, name in enumerate("xyz"):
+            s = _slider(0, 1, 0)
+            s.valueChanged.connect(lambda v, a=axis: self.slice_moved.emit(a, int(v)))
+            s.sliderReleased.connect(lambda a=axis: self.slice_released.emit(a))
+            self.slice_sliders.append(s)
+            vform.addRow(f"{name} slice", s)
+        self.volume = QCheckBox("Volume rendering")
+        self.volume.toggled.connect(self.volume_toggled)
+        vform.addRow(self.volume)
+        self.level = _slider(0, self.STEPS, self.STEPS // 2)
+        self.width = _slider(1, self.STEPS, self.STEPS // 2)
+        self.opacity = _slider(0, 100, 30)
+        for s in (self.level, self.width, self.opacity):
+            s.valueChanged.connect(self._transfer)
+        vform.addRow("Level", self.level)
+        vform.addRow("Window", self.width)
+        vform.addRow("Max opacity", self.opacity)
+        self.iso = QCheckBox("Isosurface")
+        self.iso_value = _slider(0, self.STEPS, self.STEPS // 2)
+        self.iso.toggled.connect(self._iso)
+        self.iso_value.sliderReleased.connect(self._iso)
+        vform.addRow(self.iso, self.iso_value)
+        lay.addWidget(self.volume_box)
+        lay.addStretch(1)
+        self.range = (0.0, 1.0)
+        self.volume_box.setEnabled(False)
+
+    def value_of(self, step: int) -> float:
+        """Data value of a slider step (over :attr:`range`)."""
+        lo, hi = self.range
+        return lo + (hi - lo) * step / self.STEPS
+
+    def step_of(self, value: float) -> int:
+        """Slider step of a data value (clamped)."""
+        lo, hi = self.range
+        t = (value - lo) / (hi - lo) if hi > lo else 0.0
+        return int(np.clip(round(t * self.STEPS), 0, self.STEPS))
+
+    @property
+    def transfer(self) -> tuple[float, float, float]:
+        """(level, width, max opacity) of the ramp, in data values."""
+        lo, hi = self.range
+        return (
+            self.value_of(self.level.value()),
+            (hi - lo) * self.width.value() / self.STEPS,
+            self.opacity.value() / 100.0,
+        )
+
+    def set_transfer(self, level: float, width: float, opacity: float) -> None:
+        """Move the ramp's sliders (emits :attr:`transfer_changed` once)."""
+        lo, hi = self.range
+        for s in (self.level, self.width, self.opacity):
+            s.blockSignals(True)
+        self.level.setValue(self.step_of(level))
+        self.width.setValue(max(1, int(round(width / (hi - lo) * self.STEPS))) if hi > lo else 1)
+        self.opacity.setValue(int(round(100 * opacity)))
+        for s in (self.level, self.width, self.opacity):
+            s.blockSignals(False)
+        self._transfer()
+
+    def _transfer(self, *args) -> None:
+        self.transfer_changed.emit(*self.transfer)
+
+    def _iso(self, *args) -> None:
+        self.iso_changed.emit(self.iso.isChecked(), self.value_of(self.iso_value.value()))
+
+    def set_volume(self, dimensions, value_range, index) -> None:
+        """Enable the volume controls for a grid (None: disable them)."""
+        self.volume_box.setEnabled(dimensions is not None)
+        if dimensions is None:
+            return
+        self.range = tuple(float(v) for v in value_range)
+        for s, n, i in zip(self.slice_sliders, dimensions, index, strict=True):
+            s.blockSignals(True)
+            s.setRange(0, int(n) - 1)
+            s.setValue(int(i))
+            s.blockSignals(False)

@@ -1,4 +1,4 @@
-"""``vhm-viz explore [FILE] [--scene SCENE]``: the Qt desktop explorer."""
+"""``vhm-viz explore [FILE] [--scene SCENE] [--screenshot PNG]``: the Qt desktop explorer."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ def add_parser(subparsers) -> None:
         help="open the interactive Qt explorer",
         description="Open a mesh, tet mesh, point cloud or volume (or a scene) in the "
         "interactive explorer: load or generate a cage and anchors, click to add "
-        "constraints, drag them and analyse the deformation live.",
+        "constraints, drag them and analyse the deformation live. With --screenshot, render "
+        "one frame of the solved scene to a PNG file and exit.",
     )
     add_arguments(p)
     p.set_defaults(func=run)
@@ -29,4 +30,4 @@ def run(args) -> int:
         ) from exc
     from vhm_viz.app import run as run_app
 
-    return run_app(args)
+    return run_app(args)  # an error becomes one line and exit status 1 (vhm_viz.cli.main)
