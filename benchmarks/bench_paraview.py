@@ -86,11 +86,9 @@ def run_once(cfg: dict, ranks: int, env: dict, folder: Path) -> list[tuple[float
     path.write_text(json.dumps(cfg))
     script = folder / "bench_pv.py"
     script.write_text(SCRIPT)
-    cmd = ["pvbatch", str(script), str(path)]
-    if ranks > 1:
-        cmd = ["mpiexec", "-n", str(ranks), *cmd]
-        env = {**env, "OMPI_MCA_mpi_yield_when_idle": "1", "NUMBA_NUM_THREADS": "1",
-               "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}  # fmt: skip
+    from vhm_viz.filters._parallel import mpi_command
+
+    cmd, env = mpi_command(["pvbatch", str(script), str(path)], ranks, env)
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
     lines = [ln.split() for ln in done.stdout.splitlines() if ln.startswith("bench-rank")]
     if done.returncode != 0 or len(lines) != ranks:

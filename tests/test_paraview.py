@@ -59,13 +59,9 @@ def paraview_env():
 def _run(env, config: dict, tmp_path: Path, ranks: int = 1, name="cfg") -> str:
     path = tmp_path / f"{name}{ranks}.json"
     path.write_text(json.dumps(config))
-    cmd = ["pvbatch", str(RUN), str(path)]
-    if ranks > 1:
-        cmd = ["mpiexec", "-n", str(ranks), *cmd]
-        # one thread per rank, and idle ranks yield the core: on a 2-core machine a rank
-        # that busy-waits in a collective (or spawns numba/BLAS threads) starves the other
-        env = {**env, "OMPI_MCA_mpi_yield_when_idle": "1", "NUMBA_NUM_THREADS": "1",
-               "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}  # fmt: skip
+    from vhm_viz.filters._parallel import mpi_command
+
+    cmd, env = mpi_command(["pvbatch", str(RUN), str(path)], ranks, env)
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
     log = done.stdout + done.stderr
     assert done.returncode == 0, log
