@@ -59,13 +59,9 @@ def paraview_env():
 def _run(env, config: dict, tmp_path: Path, ranks: int = 1, name="cfg") -> str:
     path = tmp_path / f"{name}{ranks}.json"
     path.write_text(json.dumps(config))
-    cmd = ["pvbatch", str(RUN), str(path)]
-    if ranks > 1:
-        cmd = ["mpiexec", "-n", str(ranks), *cmd]
-        # one thread per rank, and idle ranks yield the core: on a 2-core machine a rank
-        # that busy-waits in a collective (or spawns numba/BLAS threads) starves the other
-        env = {**env, "OMPI_MCA_mpi_yield_when_idle": "1", "NUMBA_NUM_THREADS": "1",
-               "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}  # fmt: skip
+    from vhm_viz.filters._parallel import mpi_command
+
+    cmd, env = mpi_command(["pvbatch", str(RUN), str(path)], ranks, env)
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
     log = done.stdout + done.stderr
     assert done.returncode == 0, log
@@ -201,3 +197,180 @@ def test_automatic_cage_is_refused_under_mpi(paraview_env, tmp_path):
     log = _run(paraview_env, config, tmp_path, ranks=2)
     assert "compute them once with 'vhm-viz cage' / 'vhm-viz anchors'" in log
     assert "vhm-paraview-points: 0" in log
+
+
+def _by_id(values: np.ndarray, ids: np.ndarray, n: int) -> np.ndarray:
+    """Rows of ``values`` ordered by ``ids``; every id present, duplicates (cells or points
+    on the ranks' shared boundary) equal."""
+    out = np.full((n,) + values.shape[1:], np.nan)
+    out[ids] = values
+    assert np.isfinite(out).all(), "some input ids are missing from the output"
+    np.testing.assert_array_equal(out[ids], values)
+    return out
+
+
+@pytest.fixture(scope="session")
+def tet_scene(tmp_path_factory):
+    """The tet hand (7k points, 30k tets) as .vtu in a box cage, bent; anchors from a file."""
+    from conftest import box_cage
+
+    from vhm_viz import Cage
+    from vhm_viz.autocage import auto_anchors
+    from vhm_viz.io import read_dataset, write_anchors
+
+    tmp = tmp_path_factory.mktemp("pv_tets")
+    mesh = read_dataset(data_path("hand_tet", "hand.mesh"))
+    mesh = pv.wrap(mesh).extract_cells_by_type(pv.CellType.TETRA)  # not its boundary triangles
+    mesh.clear_data()
+    assert mesh.n_cells == 29998
+    mesh.save(tmp / "hand.vtu")
+    p = np.asarray(mesh.points)
+    lo, hi = p.min(0), p.max(0)
+    pad = 0.05 * (hi - lo)
+    verts, faces = box_cage(lo - pad, hi + pad, 2)
+    pv.PolyData(verts, np.hstack([np.full((len(faces), 1), 3), faces]).ravel()).save(
+        tmp / "cage.vtp"
+    )
+    write_anchors(tmp / "anchors.json", auto_anchors(mesh, Cage(verts, faces), 12))
+    axis = int(np.argmax(hi - lo))
+    positions = np.vstack([p[np.argmin(p[:, axis])], p[np.argmax(p[:, axis])]])
+    targets = positions.copy()
+    targets[1, (axis + 1) % 3] += 0.15 * (hi - lo)[axis]
+    scene = {"format": "vhm_viz.scene", "version": 1, "cage": str(tmp / "cage.vtp"),
+             "anchors": "anchors.json",
+             "constraints": {"positions": positions.tolist(), "targets": targets.tolist()},
+             "solver": TIGHT}  # fmt: skip
+    (tmp / "scene.json").write_text(json.dumps(scene))
+    return tmp
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
+def test_tet_mesh_two_ranks_equal_serial_equal_python(paraview_env, tet_scene, tmp_path):
+    """Jacobian analysis (point and cell arrays) and the deformed points of a tet mesh."""
+    from vhm_viz.core.metrics import cell_measures, jacobian_measures
+    from vhm_viz.scene import Scene
+
+    mesh = pv.read(tet_scene / "hand.vtu")
+    n_pts, n_cells = mesh.n_points, mesh.n_cells
+    sc = Scene.load(tet_scene / "scene.json")
+    dfm = sc.build()
+    assert sc.solve(dfm)[-1].converged
+    ev = dfm.bind(np.asarray(mesh.points))
+    deformed = ev.deform()
+    m = jacobian_measures(ev.jacobians())
+    tets = mesh.cells_dict[10]  # VTK_TETRA
+    cm = cell_measures(mesh.points, deformed, tets)
+    diag = np.linalg.norm(np.ptp(deformed, axis=0))
+    assert np.abs(deformed - mesh.points).max() > 0.05 * diag  # a real bend
+    base = {"input": str(tet_scene / "hand.vtu"), "scene": str(tet_scene / "scene.json"),
+            "cage": str(tet_scene / "cage.vtp"), "redistribute": True}  # fmt: skip
+    got = {}
+    for ranks in (1, 2):
+        for flt in ("VHMJacobianAnalysis", "VHMHarmonicDeformation"):
+            out = tmp_path / f"{flt}{ranks}.pvtu"
+            log = _run(paraview_env, {**base, "filter": flt, "output": str(out)}, tmp_path,
+                       ranks=ranks, name=flt)  # fmt: skip
+            assert f"on {ranks} rank(s)" in log
+            path = out if ranks > 1 else out.with_suffix(".vtu")
+            if ranks > 1:
+                assert len(list((tmp_path / f"{flt}{ranks}").glob("*.vtu"))) == 2
+            res = pv.read(path)
+            pid = np.asarray(res.point_data["vhm_id"])
+            cid = np.asarray(res.cell_data["vhm_cell_id"])
+            if flt == "VHMHarmonicDeformation":
+                got[ranks, "points"] = _by_id(np.asarray(res.points), pid, n_pts)
+                continue
+            for name in ("jacobian_determinant", "condition_number"):
+                got[ranks, name] = _by_id(np.asarray(res.point_data[name]), pid, n_pts)
+            for name in ("cell_jacobian_determinant", "cell_condition_number"):
+                got[ranks, name] = _by_id(np.asarray(res.cell_data[name]), cid, n_cells)
+    np.testing.assert_allclose(got[2, "points"], got[1, "points"], rtol=0, atol=1e-9 * diag)
+    np.testing.assert_allclose(got[1, "points"], deformed, rtol=0, atol=1e-9 * diag)
+    expected = {"jacobian_determinant": m["determinant"],
+                "condition_number": m["condition_number"],
+                "cell_jacobian_determinant": cm["determinant"],
+                "cell_condition_number": cm["condition_number"]}  # fmt: skip
+    for name, ref in expected.items():  # dimensionless: relative to their size
+        np.testing.assert_allclose(got[2, name], got[1, name], rtol=1e-9, atol=0)
+        np.testing.assert_allclose(got[1, name], ref, rtol=1e-9, atol=0)
+
+
+@pytest.fixture(scope="session")
+def head_scene(tmp_path_factory):
+    """The CT head's example scene (cage and anchors from files), solved tight."""
+    tmp = tmp_path_factory.mktemp("pv_head")
+    examples = ROOT / "docs" / "examples"
+    scene = json.loads((examples / "head_scene.json").read_text())
+    scene["cage"] = str(examples / scene["cage"])
+    scene["anchors"] = str(examples / scene["anchors"])
+    scene["solver"] = {**scene["solver"], **TIGHT}
+    (tmp / "scene.json").write_text(json.dumps(scene))
+    return tmp / "scene.json", str(examples / "head_cage.obj")
+
+
+def _volume_engine(scene_path):
+    from vhm_viz.core.image import ImageGeometry
+    from vhm_viz.core.volume import VolumeDeformation
+    from vhm_viz.scene import Scene
+
+    img = pv.read(data_path("volumes", "headsq_64x64x93.vti"))
+    sc = Scene.load(scene_path)
+    dfm = sc.build()
+    assert sc.solve(dfm)[-1].converged
+    geo = ImageGeometry(img.origin, img.spacing, img.dimensions, img.direction_matrix)
+    return img, VolumeDeformation(dfm.harmonic_map, geo)
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
+def test_volume_warp_in_pieces_equals_serial_equals_python(paraview_env, head_scene, tmp_path):
+    """The head CT's forward warp, each rank a piece of the extent (.pvts)."""
+    scene, cage = head_scene
+    img, vol = _volume_engine(scene)
+    expected = vol.warp()
+    config = {"input": str(data_path("volumes", "headsq_64x64x93.vti")), "ids": False,
+              "filter": "VHMHarmonicDeformation", "scene": str(scene), "cage": cage}  # fmt: skip
+    _run(paraview_env, {**config, "output": str(tmp_path / "serial.pvts")}, tmp_path)
+    log = _run(paraview_env, {**config, "output": str(tmp_path / "mpi.pvts")}, tmp_path, ranks=2)
+    assert "on 2 rank(s)" in log
+    pieces = [pv.read(f) for f in sorted((tmp_path / "mpi").glob("*.vts"))]
+    assert len(pieces) == 2 and all(0 < p.n_points < img.n_points for p in pieces)
+    serial = np.asarray(pv.read(tmp_path / "serial.vts").points)
+    from vtkmodules.vtkIOXML import vtkXMLPStructuredGridReader  # (pyvista reads no .pvts)
+
+    reader = vtkXMLPStructuredGridReader()
+    reader.SetFileName(str(tmp_path / "mpi.pvts"))
+    reader.Update()
+    mpi = pv.wrap(reader.GetOutput())
+    assert mpi.dimensions == img.dimensions
+    diag = np.linalg.norm(np.ptp(expected, axis=0))
+    assert np.abs(expected - img.points).max() > 0.05 * diag  # a real bend
+    assert np.abs(np.asarray(mpi.points) - serial).max() <= 1e-9 * diag
+    assert np.abs(serial - expected).max() <= 1e-9 * diag
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
+def test_volume_resample_in_pieces_equals_serial_equals_python(
+    paraview_env, head_scene, tmp_path
+):
+    """The head CT resampled (VHMResampleToImage), each rank a piece of the output (.pvti)."""
+    scene, cage = head_scene
+    img, vol = _volume_engine(scene)
+    expected = vol.resample({"s": np.asarray(img.point_data.active_scalars)})
+    config = {"input": str(data_path("volumes", "headsq_64x64x93.vti")), "ids": False,
+              "filter": "VHMResampleToImage", "scene": str(scene), "cage": cage}  # fmt: skip
+    _run(paraview_env, {**config, "output": str(tmp_path / "serial.pvti")}, tmp_path)
+    log = _run(paraview_env, {**config, "output": str(tmp_path / "mpi.pvti")}, tmp_path, ranks=2)
+    assert "on 2 rank(s)" in log
+    assert len(list((tmp_path / "mpi").glob("*.vti"))) == 2
+    serial = pv.read(tmp_path / "serial.vti")
+    mpi = pv.read(tmp_path / "mpi.pvti")
+    assert mpi.dimensions == serial.dimensions == tuple(expected.geometry.dimensions)
+    np.testing.assert_allclose(serial.origin, expected.geometry.origin, rtol=0, atol=1e-9)
+    name = img.point_data.active_scalars_name
+    for a in (name, "vtkValidPointMask", "vhm_foldover"):
+        np.testing.assert_array_equal(mpi.point_data[a], serial.point_data[a])
+    ref = {name: expected.arrays["s"], "vtkValidPointMask": expected.valid,
+           "vhm_foldover": expected.foldover}  # fmt: skip
+    assert expected.valid.mean() > 0.3
+    for a, values in ref.items():
+        np.testing.assert_array_equal(serial.point_data[a], values)

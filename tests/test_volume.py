@@ -599,6 +599,83 @@ def test_vtk_filters_two_pieces_equal_one_on_the_lattice():
             assert whole.point_data["v"].dtype == np.uint8
 
 
+def test_a_window_of_the_lattice_gives_the_whole_lattices_voxels():
+    """A piece's lattice (its root cells only) warps its voxels as the whole lattice does."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
+    hm = _random_bend(_cage_around((0, 0, 0), (43, 39, 82.8), 0.03), 0.004, seed=2)
+    whole = VolumeDeformation(hm, geo, outside="passthrough")
+    pts, jac = whole.warp(), whole.jacobians()
+    shape = geo.dimensions[::-1]
+    scale = np.linalg.norm(np.ptp(pts, axis=0))
+    for window in ([0, 43, 0, 39, 0, 34], [0, 43, 0, 39, 34, 69], [5, 30, 3, 20, 9, 33]):
+        part = VolumeDeformation(hm, geo, outside="passthrough", window=window)
+        i0, i1, j0, j1, k0, k1 = window
+        cut = np.s_[k0 : k1 + 1, j0 : j1 + 1, i0 : i1 + 1]
+        np.testing.assert_allclose(
+            part.warp(), pts.reshape(shape + (3,))[cut].reshape(-1, 3), rtol=0, atol=1e-12 * scale
+        )
+        np.testing.assert_allclose(
+            part.jacobians(), jac.reshape(shape + (3, 3))[cut].reshape(-1, 3, 3), rtol=0,
+            atol=1e-10,
+        )  # fmt: skip
+        assert part.lattice.stats["evaluations"] < whole.lattice.stats["evaluations"]
+        with pytest.raises(ValueError, match="not inside the window"):
+            part.warp([0, 43, 0, 39, 0, 69])
+        with pytest.raises(ValueError, match="needs the whole lattice"):
+            part.resample({"v": np.zeros(geo.n_points)})
+
+
+def test_resample_pieces_read_only_the_window_their_preimages_reach(tmp_path):
+    """Streamed in 4 pieces from a reader, each piece reads only a window of the volume,
+    holding its pre-images, and the pieces equal the whole."""
+    from vtkmodules.vtkIOXML import vtkXMLImageDataReader
+
+    from vhm_viz.filters import HarmonicResampleFilter, update
+
+    img = pv.ImageData(dimensions=(30, 28, 80), spacing=(1.0, 1.0, 1.0))
+    rng = np.random.default_rng(5)
+    img.point_data["v"] = rng.integers(0, 60000, img.n_points).astype(np.uint16)
+    img.save(tmp_path / "v.vti")
+    hm = _random_bend(_cage_around((0, 0, 0), (29, 27, 79), 0.03), 0.003, seed=4)
+
+    def pipeline():  # a fresh reader: one that holds the whole volume would not read again
+        reader = vtkXMLImageDataReader()  # it reads sub-extents (a trivial producer cannot)
+        reader.SetFileName(str(tmp_path / "v.vti"))
+        flt = HarmonicResampleFilter()
+        flt.SetInputConnection(reader.GetOutputPort())
+        flt.SetHarmonicMap(hm)
+        flt.SetInterpolation("cubic")
+        return flt
+
+    flt = pipeline()
+    whole = pv.wrap(update(flt))
+    nx, ny, nz = whole.dimensions
+    ref = {n: np.asarray(whole.point_data[n]).reshape(nz, ny, nx) for n in
+           ("v", "vtkValidPointMask", "vhm_foldover")}  # fmt: skip
+    assert ref["vtkValidPointMask"].mean() > 0.5
+    vol, out_geo = flt._volume_engine, flt._geometry
+    read = []
+    for piece in range(4):
+        flt = pipeline()
+        part = update(flt, piece, 4)
+        e = part.GetExtent()
+        window = flt.GetInputDataObject(0, 0).GetExtent()  # what the reader delivered
+        read.append(window[5] - window[4] + 1)
+        part = pv.wrap(part)
+        box = np.s_[e[4] : e[5] + 1, e[2] : e[3] + 1, e[0] : e[1] + 1]
+        for name, values in ref.items():
+            np.testing.assert_array_equal(part.point_data[name], values[box].ravel())
+        # the window holds every pre-image of the piece with its cubic stencil (-1 .. +2)
+        k, j, i = np.meshgrid(*[np.arange(e[2 * a], e[2 * a + 1] + 1) for a in (2, 1, 0)],
+                              indexing="ij")  # fmt: skip
+        u, kind, _ = vol.preimages(out_geo, np.column_stack([i.ravel(), j.ravel(), k.ravel()]))
+        u = u[kind > 0]
+        lo = np.clip(np.floor(u) - 1, 0, np.asarray(img.dimensions) - 1)
+        hi = np.clip(np.floor(u) + 2, 0, np.asarray(img.dimensions) - 1)
+        assert (lo >= window[0::2]).all() and (hi <= window[1::2]).all()
+    assert max(read) < img.dimensions[2]  # no piece read the whole volume
+
+
 def test_cage_of_two_shells():
     """Two outward shells, each around half of the volume: each half follows its own."""
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (64, 30, 30))

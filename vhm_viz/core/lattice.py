@@ -537,50 +537,88 @@ class _NodeTable:
         self.inside = np.concatenate([self.inside, inside])[order]
 
 
+# Offsets (in units of h) of the lattice points a node's differenced terms read: the six
+# along the axes (twists) and the twelve edge diagonals (f_uvw from the twists of the six).
+_STENCIL = np.array(
+    [d for d in np.ndindex(3, 3, 3) if 0 < sum(abs(x - 1) for x in d) <= 2], dtype=np.int64
+) - 1
+
+
+def _stencil_points(table: _NodeTable, keys: np.ndarray, h: int) -> np.ndarray:
+    """Lattice points (ijk) that :func:`_level_data` reads around ``keys`` at level ``h``."""
+    ijk = table.ijk(keys)
+    pts = (ijk[:, None, :] + h * _STENCIL[None]).reshape(-1, 3)
+    ok = np.all((pts >= 0) & (pts <= table.dims - 1), axis=1)
+    return pts[ok]
+
+
 def _level_data(table: _NodeTable, keys: np.ndarray, h: int) -> np.ndarray:
     """Node data rows ``(P, 8, 3)`` of one level: exact ``f``, ``f_u``; differenced twists.
 
-    Mixed derivatives are central differences of the exact Jacobians of the level's
-    neighbours ``+- h`` (one-sided where one is missing: every node of a level is the
-    corner of a cell, so one neighbour along each axis exists), symmetrised; ``f_uvw``
-    likewise from the mixed derivatives.
+    Mixed derivatives are central differences of the exact Jacobians at the lattice points
+    ``+- h`` along each axis (all in ``table``: :func:`build_lattice` evaluates them; one-
+    sided only at the lattice's own boundary), symmetrised; ``f_uvw`` likewise from the
+    mixed derivatives of those points. A node's data thus depends on its position and
+    ``h`` alone, not on which other cells were refined: the lattice of a root cell is the
+    same whether the whole grid or a window of it is built (see ``window``).
     """
     rows = table.find(keys)
     ijk = table.ijk(keys)
     top = table.dims - 1
-    fu = table.fu[rows]  # fu[:, i, a] = d f_i / d u_a
     out = np.empty((len(keys), _N_TERMS, 3))
     out[:, 0] = table.f[rows]
-    out[:, 1:4] = np.swapaxes(fu, 1, 2)
+    out[:, 1:4] = np.swapaxes(table.fu[rows], 1, 2)
 
-    def neighbour(axis, sign):
-        n = ijk.copy()
+    def shifted(base, axis, sign):
+        n = base.copy()
         n[:, axis] += sign * h
         ok = (n[:, axis] >= 0) & (n[:, axis] <= top[axis])
-        key = table.key(np.where(ok[:, None], n, 0))
-        pos = np.minimum(np.searchsorted(keys, key), len(keys) - 1)
-        return np.where(ok & (keys[pos] == key), pos, -1)
+        return np.where(ok, table.find(table.key(np.where(ok[:, None], n, 0))), -1)
 
-    nb = {(a, s): neighbour(a, s) for a in range(3) for s in (1, -1)}
-
-    def derivative(values, axis):
-        p, m = nb[(axis, 1)], nb[(axis, -1)]
+    def derivative(base, axis, values_at):
+        """d/du_axis of ``values_at(rows)`` at the points ``base`` (central where possible)."""
+        p, m = shifted(base, axis, 1), shifted(base, axis, -1)
+        here = table.find(table.key(base))
         both = (p >= 0) & (m >= 0)
         fwd = (p >= 0) & ~both
         bwd = (m >= 0) & ~both
-        d = np.zeros_like(values)
-        d[both] = (values[p[both]] - values[m[both]]) / (2.0 * h)
-        d[fwd] = (values[p[fwd]] - values[fwd]) / h
-        d[bwd] = (values[bwd] - values[m[bwd]]) / h
+        d = np.zeros((len(base), 3))
+        d[both] = (values_at(p[both]) - values_at(m[both])) / (2.0 * h)
+        d[fwd] = (values_at(p[fwd]) - values_at(here[fwd])) / h
+        d[bwd] = (values_at(here[bwd]) - values_at(m[bwd])) / h
         return d
 
-    twist = {}
+    def fu(a):
+        return lambda r: table.fu[r][:, :, a]
+
+    def twist(base, a, b):
+        return 0.5 * (derivative(base, b, fu(a)) + derivative(base, a, fu(b)))
+
     for (a, b), slot in (((0, 1), 4), ((0, 2), 5), ((1, 2), 6)):
-        twist[(a, b)] = 0.5 * (derivative(fu[:, :, a], b) + derivative(fu[:, :, b], a))
-        out[:, slot] = twist[(a, b)]
-    out[:, 7] = (
-        derivative(twist[(0, 1)], 2) + derivative(twist[(0, 2)], 1) + derivative(twist[(1, 2)], 0)
-    ) / 3.0
+        out[:, slot] = twist(ijk, a, b)
+
+    # f_uvw: differences of the twists of the neighbours (which need their neighbours:
+    # twists at +-h of a node use points up to 2h away along two axes)
+    def twist_at(rows_ijk, a, b):
+        return twist(rows_ijk, a, b)
+
+    def third(axis, a, b):
+        p, m = ijk.copy(), ijk.copy()
+        p[:, axis] += h
+        m[:, axis] -= h
+        okp, okm = p[:, axis] <= top[axis], m[:, axis] >= 0
+        both, fwd, bwd = okp & okm, okp & ~okm, okm & ~okp
+        d = np.zeros((len(ijk), 3))
+        t0 = out[:, {(0, 1): 4, (0, 2): 5, (1, 2): 6}[(a, b)]]
+        if both.any():
+            d[both] = (twist_at(p[both], a, b) - twist_at(m[both], a, b)) / (2.0 * h)
+        if fwd.any():
+            d[fwd] = (twist_at(p[fwd], a, b) - t0[fwd]) / h
+        if bwd.any():
+            d[bwd] = (t0[bwd] - twist_at(m[bwd], a, b)) / h
+        return d
+
+    out[:, 7] = (third(2, 0, 1) + third(1, 0, 2) + third(0, 1, 2)) / 3.0
     return out
 
 
@@ -646,6 +684,7 @@ def build_lattice(
     memory_budget: int | None = None,
     progress=None,
     abort=None,
+    window=None,
 ) -> HermiteLattice:
     """Build the adaptive Hermite lattice of a map over an image grid.
 
@@ -664,6 +703,13 @@ def build_lattice(
     progress : callable(fraction, message), optional
     abort : callable() -> bool, optional
         Checked between evaluation chunks; :class:`~vhm_viz.core.errors.AbortedError`.
+    window : (i0, i1, j0, j1, k0, k1), optional
+        Build only the root cells that own a voxel of this box (inclusive voxel ranges;
+        default: the whole grid). Root cells stay aligned with the whole grid and every
+        node's data depends on its position alone, so each root cell's subtree -- and
+        every voxel of the window -- is the same as in the whole grid's lattice (to
+        rounding: the exact evaluations run in other chunks). For pieces of a volume
+        (MPI ranks, streaming): each builds only its own part.
 
     Returns
     -------
@@ -702,7 +748,17 @@ def build_lattice(
             n_eval[0] += ins.sum()
             n_eval[1] += (~ins).sum()
 
-    g = np.stack(np.meshgrid(*[np.arange(n) for n in n_root[::-1]], indexing="ij"), -1)
+    lo_root, hi_root = np.zeros(3, dtype=np.int64), n_root - 1
+    if window is not None:
+        w = np.asarray(window, dtype=np.int64).reshape(6)
+        if (w[0::2] < 0).any() or (w[1::2] > last).any() or (w[1::2] < w[0::2]).any():
+            raise ValueError(f"window {w.tolist()} is not inside the grid of dimensions "
+                             f"{tuple(geometry.dimensions)}")  # fmt: skip
+        # a root cell owns [o, o + root); the grid's last voxel belongs to the last cell
+        lo_root = np.minimum(w[0::2] // root, n_root - 1)
+        hi_root = np.minimum(w[1::2] // root, n_root - 1)
+    ranges = [np.arange(lo_root[a], hi_root[a] + 1) for a in range(3)]
+    g = np.stack(np.meshgrid(*ranges[::-1], indexing="ij"), -1)
     cells = (g.reshape(-1, 3)[:, ::-1] * root).astype(np.int64)
     leaves: list = []
     level_data: list = []
@@ -728,6 +784,7 @@ def build_lattice(
         else:
             ensure(corners.reshape(-1, 3))
         level_keys = np.unique(table.key(corners.reshape(-1, 3)))
+        ensure(_stencil_points(table, level_keys, h))
         data = _level_data(table, level_keys, h)
         rows = np.searchsorted(level_keys, table.key(corners))
         split = np.zeros(len(cells), dtype=bool)

@@ -145,6 +145,12 @@ class VolumeDeformation:
         Root cell size of the lattice (voxels, a power of two; default
         :data:`~vhm_viz.core.lattice.DEFAULT_ROOT`, or 1 -- every voxel exact -- for
         volumes of at most :data:`EXACT_VOXELS` voxels).
+    window : (i0, i1, j0, j1, k0, k1), optional
+        Only this box of voxels will be warped or analysed (a piece of the volume: an MPI
+        rank's, a streamed piece): the lattice is built over the root cells that own its
+        voxels only, aligned with the whole grid, so those voxels get the same values as
+        with the whole lattice (to rounding). Resampling and :meth:`output_geometry` need
+        the whole lattice (pre-images may lie anywhere): they refuse a window.
 
     Notes
     -----
@@ -161,6 +167,7 @@ class VolumeDeformation:
         outside: str = "error",
         memory_budget: int | None = None,
         root: int | None = None,
+        window=None,
     ):
         self.map = harmonic_map
         self.geometry = geometry
@@ -174,6 +181,9 @@ class VolumeDeformation:
         if root is None:
             root = 1 if geometry.n_points <= EXACT_VOXELS else DEFAULT_ROOT
         self.root = int(root)
+        self.window = None if window is None else _box_of(geometry, window)
+        if self.window is not None and self.window.tolist() == _box_of(geometry, None).tolist():
+            self.window = None
         self._lattice: HermiteLattice | None = None
         #: Slabs processed by the last warp/resample/jacobians call (for tests of the
         #: memory bound) and the largest slab's voxel count.
@@ -197,12 +207,31 @@ class VolumeDeformation:
                 memory_budget=self.memory_budget,
                 progress=progress,
                 abort=abort,
+                window=None if self.window is None else self.window.tolist(),
             )
         return self._lattice
 
+    def _in_window(self, box) -> np.ndarray:
+        """``box`` validated, and inside the window this engine was built for."""
+        b = _box_of(self.geometry, box)
+        w = self.window
+        if w is not None and ((b[0::2] < w[0::2]).any() or (b[1::2] > w[1::2]).any()):
+            raise ValueError(
+                f"box {b.tolist()} is not inside the window {w.tolist()} this volume engine "
+                "was built for"
+            )
+        return b
+
+    def _whole(self, what: str) -> None:
+        if self.window is not None:
+            raise ValueError(
+                f"{what} needs the whole lattice: this volume engine was built for the window "
+                f"{self.window.tolist()} only"
+            )
+
     def outside_voxels(self, box=None) -> np.ndarray:
         """Indices (VTK order, of the whole grid) of the voxels outside the cage."""
-        b = _box_of(self.geometry, box)
+        b = self._in_window(self.window if box is None else box)
         inside = self.lattice.inside(b)
         if b.tolist() == _box_of(self.geometry, None).tolist():
             return np.nonzero(~inside.ravel())[0]
@@ -246,7 +275,7 @@ class VolumeDeformation:
         OutsideCageError
             With the ``"error"`` policy when a voxel of the box is outside the cage.
         """
-        b = _box_of(self.geometry, box)
+        b = self._in_window(self.window if box is None else box)
         lat = self.build(progress=_scaled(progress, 0.0, 0.6), abort=abort)
         self._refuse_outside(b)
         n = int(np.prod(b[1::2] - b[0::2] + 1))
@@ -284,7 +313,7 @@ class VolumeDeformation:
         J : (P, 3, 3) float64
             ``J[p, i, j] = d f_i / d x_j``.
         """
-        b = _box_of(self.geometry, box)
+        b = self._in_window(self.window if box is None else box)
         lat = self.build(progress=_scaled(progress, 0.0, 0.6), abort=abort)
         self._refuse_outside(b)
         self._start_slabs()
@@ -307,7 +336,7 @@ class VolumeDeformation:
 
         See :meth:`jacobian_slabs` (which keeps only one slab's Jacobians in memory).
         """
-        b = _box_of(self.geometry, box)
+        b = self._in_window(self.window if box is None else box)
         out = np.empty((int(np.prod(b[1::2] - b[0::2] + 1)), 3, 3))
         for rows, jac in self.jacobian_slabs(b, progress, abort):
             out[rows] = jac
@@ -324,7 +353,7 @@ class VolumeDeformation:
         """
         from vhm_viz.core.metrics import jacobian_measures
 
-        b = _box_of(self.geometry, box)
+        b = self._in_window(self.window if box is None else box)
         n = int(np.prod(b[1::2] - b[0::2] + 1))
         det, cond, angle = np.empty(n), np.empty(n), np.empty(n)
         for rows, jac in self.jacobian_slabs(b, progress, abort):
@@ -357,6 +386,7 @@ class VolumeDeformation:
         spacing : (3,) array_like, optional
             Output voxel size (world units); default the input spacing.
         """
+        self._whole("output_geometry")
         lat = self.lattice
         geo = self.geometry
         if not len(lat.leaf_size):
@@ -389,6 +419,7 @@ class VolumeDeformation:
         box=None,
         interpolation: str = "linear",
         fill_value: float = 0.0,
+        input_box=None,
         progress=None,
         abort=None,
     ) -> Resampled:
@@ -407,6 +438,10 @@ class VolumeDeformation:
             copied exactly, for label maps); Catmull-Rom cubic convolution.
         fill_value : float
             Value of voxels without a pre-image (cast to each array's dtype).
+        input_box : (i0, i1, j0, j1, k0, k1), optional
+            ``arrays`` hold only this box of the input grid (default: all of it); it must
+            contain :meth:`input_window` of the output box, the voxels the pre-images
+            reach. The result is the same as with the whole input.
         progress, abort : callables, optional
 
         Returns
@@ -420,18 +455,29 @@ class VolumeDeformation:
                 f"interpolation must be one of {INTERPOLATIONS}; got {interpolation!r}"
             )
         src = self.geometry
-        nx, ny, nz = src.dimensions
+        ib = _box_of(src, input_box)
+        nx, ny, nz = (int(n) for n in ib[1::2] - ib[0::2] + 1)
         volumes = {}
         for name, values in arrays.items():
             v = np.asarray(values)
-            if v.shape[0] != src.n_points:
+            if v.shape[0] != nx * ny * nz:
                 raise ValueError(
-                    f"array {name!r} has {v.shape[0]} values for {src.n_points} voxels"
+                    f"array {name!r} has {v.shape[0]} values for {nx * ny * nz} voxels"
                 )
             volumes[name] = v.reshape(nz, ny, nx, -1)
         self.build(progress=_scaled(progress, 0.0, 0.5), abort=abort)
         out_geo = self.output_geometry() if geometry is None else geometry
         b = _box_of(out_geo, box)
+        if input_box is not None:
+            need = self.input_window(out_geo, b, interpolation)
+            short = need is not None and (
+                (need[0::2] < ib[0::2]).any() or (need[1::2] > ib[1::2]).any()
+            )
+            if short:
+                raise ValueError(
+                    f"input_box {ib.tolist()} does not hold the input voxels {need.tolist()} "
+                    "that the pre-images of this output box reach"
+                )
         n = int(np.prod(b[1::2] - b[0::2] + 1))
         result = {
             name: np.empty((n,) + v.shape[3:] if v.shape[3] > 1 else (n,), dtype=v.dtype)
@@ -445,6 +491,8 @@ class VolumeDeformation:
             ok = np.nonzero(state > 0)[0].astype(np.int64)
             valid[rows] = state > 0
             foldover[rows] = fold
+            if input_box is not None:
+                u[ok] -= ib[0::2]  # indices of the box's arrays
             for name, vol in volumes.items():
                 _sample_into(result[name][rows], vol, u, ok, interpolation, fill_value)
         counts = {
@@ -454,6 +502,51 @@ class VolumeDeformation:
             "foldover": int(foldover.sum()),
         }
         return Resampled(out_geo.sub(b), result, valid, foldover, counts)
+
+    def input_window(self, geometry: ImageGeometry, box=None, interpolation: str = "linear"):
+        """The input voxels that resampling the output ``box`` of ``geometry`` reads.
+
+        The leaves whose images can reach the box (their Bezier control points' boxes, as
+        :meth:`resample` scatters them), each widened by how far outside it a pre-image
+        may lie and by the interpolation stencil; with the ``"passthrough"`` policy also
+        the box's own position in the input grid (voxels outside the cage stay in place).
+        A piece of the output thus needs only its window of the input (an UPDATE_EXTENT).
+
+        Returns
+        -------
+        (6,) int64 or None
+            ``(i0, i1, j0, j1, k0, k1)`` inclusive, or None when nothing is read.
+        """
+        self._whole("input_window")
+        lat = self.lattice
+        b = _box_of(geometry, box)
+        lo, hi = lat.candidate_boxes(geometry)
+        hit = np.all((lo <= b[1::2]) & (hi >= b[0::2]), axis=1)
+        # pre-images lie within the leaf grown by its margin; the stencil reaches one
+        # voxel beyond the cell holding them (linear), two for cubic
+        stencil = 2 if interpolation == "cubic" else 1
+        reach = stencil + int(math.ceil(lat.margins().max(initial=0.0)))
+        last = np.asarray(self.geometry.dimensions, dtype=np.int64) - 1
+        parts_lo, parts_hi = [], []
+        if hit.any():
+            o, h = lat.leaf_origin[hit], lat.leaf_size[hit][:, None]
+            parts_lo.append(o.min(axis=0) - reach)
+            parts_hi.append((o + h).max(axis=0) + reach)
+        if self.outside == "passthrough" and not lat.inside(_box_of(self.geometry, None)).all():
+            corners = np.array([[b[0 + a], b[2 + c], b[4 + d]] for a in (0, 1)
+                                for c in (0, 1) for d in (0, 1)], dtype=np.float64)  # fmt: skip
+            u = self.geometry.continuous_index(geometry.points(corners))
+            parts_lo.append(np.floor(u.min(axis=0)).astype(np.int64) - reach)
+            parts_hi.append(np.ceil(u.max(axis=0)).astype(np.int64) + reach)
+        if not parts_lo:
+            return None
+        w_lo = np.maximum(np.min(parts_lo, axis=0), 0)
+        w_hi = np.minimum(np.max(parts_hi, axis=0), last)
+        if (w_hi < w_lo).any():
+            return None
+        out = np.empty(6, dtype=np.int64)
+        out[0::2], out[1::2] = w_lo, w_hi
+        return out
 
     def slice(
         self,
@@ -550,6 +643,7 @@ class VolumeDeformation:
             0 none, 1 inside the cage, 3 left in place (passthrough).
         fold : (P,) uint8
         """
+        self._whole("resampling")
         lat = self.build(progress=_scaled(progress, 0.0, 0.5), abort=abort)
         self._refuse_outside()
         boxes = lat.candidate_boxes(out_geo)

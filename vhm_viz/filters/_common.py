@@ -35,7 +35,15 @@ from vhm_viz.core.limits import check_setting
 from vhm_viz.core.volume import DEFAULT_TOLERANCE, VolumeDeformation
 from vhm_viz.filters import _parallel
 
-__all__ = ["DeformationSource", "update", "numpy_points", "geometry_key", "image_geometry"]
+__all__ = [
+    "DeformationSource",
+    "update",
+    "numpy_points",
+    "geometry_key",
+    "image_geometry",
+    "information_geometry",
+    "requested_extent",
+]
 
 _SDDP = vtkStreamingDemandDrivenPipeline
 # Relative tolerance (of the cage diagonal) for "the port-1 cage is the deformer's cage".
@@ -70,6 +78,47 @@ def image_geometry(img, extent=None) -> ImageGeometry:
     start = np.array(ext[0::2], dtype=np.float64)
     dims = [ext[2 * a + 1] - ext[2 * a] + 1 for a in range(3)]
     return ImageGeometry(origin + direction @ (start * spacing), spacing, dims, direction)
+
+
+def information_geometry(info) -> ImageGeometry | None:
+    """The whole grid an image pipeline announces (WHOLE_EXTENT, ORIGIN, SPACING, DIRECTION).
+
+    Known in the information pass, before any data is read: what a filter needs to plan
+    which extent of its input to request. None without a whole extent.
+    """
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+
+    whole = info.Get(_SDDP.WHOLE_EXTENT())
+    if whole is None:
+        return None
+    origin = info.Get(vtkImageData.ORIGIN()) or (0.0, 0.0, 0.0)
+    spacing = info.Get(vtkImageData.SPACING()) or (1.0, 1.0, 1.0)
+    direction = info.Get(vtkImageData.DIRECTION()) if info.Has(vtkImageData.DIRECTION()) else None
+    direction = np.eye(3) if direction is None else np.asarray(direction).reshape(3, 3)
+    start = np.array(whole[0::2], dtype=np.float64)
+    dims = [whole[2 * a + 1] - whole[2 * a] + 1 for a in range(3)]
+    origin = np.asarray(origin, dtype=np.float64) + direction @ (start * np.asarray(spacing))
+    return ImageGeometry(origin, spacing, dims, direction)
+
+
+def requested_extent(info, whole=None):
+    """The extent a structured output is asked for: its piece's (block mode) or UPDATE_EXTENT.
+
+    When a piece is requested (``UpdatePiece``, MPI ranks), VTK turns it into an extent
+    with ``vtkExtentTranslator`` only after the update-extent pass; a filter that plans
+    what to read from its input (the resampling's window) needs the piece's extent then.
+    """
+    whole = info.Get(_SDDP.WHOLE_EXTENT()) if whole is None else whole
+    ext = info.Get(_SDDP.UPDATE_EXTENT()) or whole
+    n = info.Get(_SDDP.UPDATE_NUMBER_OF_PIECES()) or 1
+    if n > 1 and whole is not None and (ext is None or tuple(ext) == tuple(whole)):
+        from vtkmodules.vtkCommonExecutionModel import vtkExtentTranslator
+
+        piece = info.Get(_SDDP.UPDATE_PIECE_NUMBER()) or 0
+        tr = vtkExtentTranslator()
+        ext = [0] * 6
+        tr.PieceToExtentThreadSafe(piece, n, 0, whole, ext, tr.BLOCK_MODE, 0)
+    return None if ext is None else tuple(int(v) for v in ext)
 
 
 def _map_key(hm) -> tuple:
@@ -224,6 +273,12 @@ class DeformationSource(VTKPythonAlgorithmBase):
     def SetCageConnection(self, port) -> None:
         """Connect the cage from another algorithm's output port."""
         self.SetInputConnection(1, port)
+
+    def RequestInformation(self, request, in_info, out_info):
+        """Structured outputs (of image and structured inputs) are made piece by piece."""
+        if in_info[0].GetInformationObject(0).Has(_SDDP.WHOLE_EXTENT()):
+            out_info.GetInformationObject(0).Set(vtkAlgorithm.CAN_PRODUCE_SUB_EXTENT(), 1)
+        return 1
 
     def RequestUpdateExtent(self, request, in_info, out_info):
         """Forward the piece request on port 0; ask for the whole cage on port 1."""
@@ -586,11 +641,12 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self.outside_count = binding.n_outside
         return binding
 
-    def _volume(self, hm, geometry: ImageGeometry, outside: str) -> VolumeDeformation:
+    def _volume(self, hm, geometry: ImageGeometry, outside: str, window=None):
         """The volume engine of ``hm`` on ``geometry``, kept while nothing changes.
 
-        Pieces of one update share it, so they are cut from one lattice: the 2-piece
-        result equals the 1-piece result.
+        ``window`` (a box of voxels): a piece's engine, whose lattice covers the piece's
+        root cells only (aligned with the whole grid: its voxels get the values the whole
+        lattice gives them). None: the whole lattice, shared by the pieces of an update.
         """
         key = (
             _map_key(hm),
@@ -601,6 +657,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
             self._tolerance,
             outside,
             self._memory_budget,
+            None if window is None else tuple(int(v) for v in window),
         )
         if key != self._volume_key or self._volume_engine is None:
             self._volume_engine = None  # free the old lattice first
@@ -610,6 +667,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 tolerance=self._tolerance,
                 outside=outside,
                 memory_budget=self._memory_budget,
+                window=window,
             )
             self._volume_key = key
         return self._volume_engine

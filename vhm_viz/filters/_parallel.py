@@ -10,7 +10,27 @@ With one process (or without VTK's parallel module) every function here is a no-
 
 from __future__ import annotations
 
-__all__ = ["process_count", "rank", "all_ranks", "any_rank", "min_max_over_ranks"]
+__all__ = [
+    "process_count",
+    "rank",
+    "all_ranks",
+    "any_rank",
+    "min_max_over_ranks",
+    "mpi_command",
+]
+
+
+def mpi_command(cmd: list[str], ranks: int, env: dict) -> tuple[list[str], dict]:
+    """``mpiexec -n ranks cmd`` and its environment: one thread per rank, idle ranks yield.
+
+    On a machine with as many cores as ranks, a rank that busy-waits in a collective (or
+    spawns numba/BLAS threads) starves the other. One rank: ``cmd`` and ``env`` unchanged.
+    """
+    if ranks <= 1:
+        return list(cmd), dict(env)
+    single = {"OMPI_MCA_mpi_yield_when_idle": "1", "NUMBA_NUM_THREADS": "1",
+              "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}  # fmt: skip
+    return ["mpiexec", "-n", str(ranks), *cmd], {**env, **single}
 
 
 def _controller():

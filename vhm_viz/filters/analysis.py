@@ -100,14 +100,14 @@ class JacobianAnalysisFilter(DeformationSource):
         return 1
 
     def _execute_image(self, in_info, inp, hm, out):
-        """Images: the measures of the lattice's Jacobians, over the whole extent's lattice."""
+        """Images: the measures of the lattice's Jacobians (this piece's part of it)."""
         from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
 
         whole = in_info[0].GetInformationObject(0).Get(sddp.WHOLE_EXTENT())
         whole = inp.GetExtent() if whole is None else whole
         ext = inp.GetExtent()
-        vol = self._volume(hm, image_geometry(inp, whole), self._outside)
         box = [ext[a] - whole[a - a % 2] for a in range(6)]
+        vol = self._volume(hm, image_geometry(inp, whole), self._outside, window=box)
         m = vol.jacobian_measures(box, progress=self._progress(0.0, 0.95), abort=self._aborted)
         pd = out.GetPointData()
         _add(pd, "jacobian_determinant", m["determinant"])

@@ -12,15 +12,17 @@ from vtkmodules.vtkCommonDataModel import (
     vtkStructuredGrid,
     vtkUnstructuredGrid,
 )
-from vtkmodules.vtkCommonExecutionModel import (
-    vtkExtentTranslator,
-    vtkStreamingDemandDrivenPipeline,
-)
+from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearGridToPointSet
 
 from vhm_viz.core.binding import cofactor_normals
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
-from vhm_viz.filters._common import DeformationSource, image_geometry, numpy_points
+from vhm_viz.filters._common import (
+    DeformationSource,
+    image_geometry,
+    numpy_points,
+    requested_extent,
+)
 from vhm_viz.filters.cells import add_cell_arrays, cell_quality
 
 __all__ = ["HarmonicDeformationFilter", "output_type_for"]
@@ -185,26 +187,25 @@ class HarmonicDeformationFilter(DeformationSource):
     def _piece_input(self, inp, in_info, out_info):
         """Structured input delivered whole while a piece is wanted: crop to the piece.
 
-        Sources that stream (e.g. ``vtkRTAnalyticSource``) already deliver the piece's
+        Sources that stream (readers, ``vtkRTAnalyticSource``) deliver the requested
         extent; a ``vtkTrivialProducer`` delivers the whole data set, which is cropped here
-        to the piece ``vtkExtentTranslator`` assigns (block mode).
+        to the output's update extent (or, without one, to the piece that
+        ``vtkExtentTranslator`` assigns in block mode).
         """
-        info = out_info.GetInformationObject(0)
-        n = info.Get(_SDDP.UPDATE_NUMBER_OF_PIECES()) or 1
-        if n <= 1 or inp.GetExtentType() != 1:
+        if inp.GetExtentType() != 1:
             return inp
         whole = in_info[0].GetInformationObject(0).Get(_SDDP.WHOLE_EXTENT())
-        if whole is None or tuple(inp.GetExtent()) != tuple(whole):
+        have = tuple(inp.GetExtent())
+        want = requested_extent(out_info.GetInformationObject(0), whole)
+        if want is None or tuple(want) == have:
             return inp
-        piece = info.Get(_SDDP.UPDATE_PIECE_NUMBER()) or 0
-        tr = vtkExtentTranslator()
-        ext = [0] * 6
-        tr.PieceToExtentThreadSafe(piece, n, 0, whole, ext, tr.BLOCK_MODE, 0)
-        if tuple(ext) == tuple(whole):
+        inside = all(have[2 * a] <= want[2 * a] and want[2 * a + 1] <= have[2 * a + 1]
+                     for a in range(3))  # fmt: skip
+        if not inside or any(want[2 * a] > want[2 * a + 1] for a in range(3)):
             return inp
         sub = inp.NewInstance()
         sub.ShallowCopy(inp)
-        sub.Crop(ext)
+        sub.Crop(want)
         return sub
 
     def _execute(self, in_info, out_info):
@@ -270,15 +271,16 @@ class HarmonicDeformationFilter(DeformationSource):
     def _execute_image(self, inp, in_info, out):
         """Images: the volume engine's lattice, streamed in slabs, instead of a binding.
 
-        The lattice is built over the whole extent (pieces of one update share it, so
-        they agree exactly); this piece's voxels are interpolated from it.
+        Only this piece's root cells of the lattice are built (aligned with the whole
+        grid, so a piece's voxels get the same positions as in the whole volume, to
+        rounding): two ranks each build about half of it.
         """
         hm, _ = self._resolve(in_info, inp)
         whole = in_info[0].GetInformationObject(0).Get(_SDDP.WHOLE_EXTENT())
         whole = inp.GetExtent() if whole is None else whole
         ext = inp.GetExtent()
-        vol = self._volume(hm, image_geometry(inp, whole), self._outside)
         box = [ext[a] - whole[a - a % 2] for a in range(6)]
+        vol = self._volume(hm, image_geometry(inp, whole), self._outside, window=box)
         progress, abort = self._progress(0.0, 0.8), self._aborted
         points = vol.warp(box, progress=progress, abort=abort)
         inside = vol.lattice.inside(box).ravel()

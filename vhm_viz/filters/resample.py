@@ -4,11 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 from vtkmodules.util import numpy_support as ns
-from vtkmodules.vtkCommonDataModel import vtkImageData
+from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry
-from vhm_viz.filters._common import DeformationSource, image_geometry
+from vhm_viz.filters._common import (
+    DeformationSource,
+    image_geometry,
+    information_geometry,
+    requested_extent,
+)
 
 __all__ = ["HarmonicResampleFilter", "image_geometry"]
 
@@ -43,9 +48,13 @@ class HarmonicResampleFilter(DeformationSource):
     :meth:`SetOutputSpacing`) and direction, over the box that holds the whole deformed
     volume (bounded from the lattice's control points, so nothing is clipped);
     ``"input"``: the input grid itself; or :meth:`SetReferenceImage` (another image's
-    grid) or :meth:`SetOutputGeometry`. The output honours requested sub-extents (pieces);
-    the whole input volume and the whole cage are requested in every piece, since a
-    pre-image can be anywhere, and all pieces share one lattice.
+    grid) or :meth:`SetOutputGeometry`. The output honours requested sub-extents (pieces):
+    a piece pulls back its own voxels only, and requests from its input only the window
+    its pre-images reach (:meth:`VolumeDeformation.input_window
+    <vhm_viz.core.volume.VolumeDeformation.input_window>`: the leaves whose images can
+    reach the piece, widened by the interpolation stencil), plus the whole cage. The
+    lattice is built whole (from the input's grid, before any voxel is read) and shared
+    by the pieces of an update.
 
     Input port 0: ``vtkImageData``; port 1: optional cage. The deformation is set as for
     :class:`~vhm_viz.filters.HarmonicDeformationFilter`.
@@ -116,12 +125,23 @@ class HarmonicResampleFilter(DeformationSource):
         return self._guard(self._information, in_info, out_info)
 
     def _engine(self, in_info, img):
-        info0 = in_info[0].GetInformationObject(0)
-        whole = info0.Get(_SDDP.WHOLE_EXTENT())
-        if img is None or whole is None:
+        geo = information_geometry(in_info[0].GetInformationObject(0))
+        if img is None or geo is None:
             raise ValueError("HarmonicResampleFilter needs vtkImageData on input port 0")
+        self._cage_now(in_info)
         hm, _ = self._resolve(in_info, img)
-        return self._volume(hm, image_geometry(img, whole), self._outside)
+        return self._volume(hm, geo, self._outside)
+
+    def _cage_now(self, in_info) -> None:
+        """Bring the port-1 cage up to date.
+
+        The map is needed in the information pass, before the pipeline has run the cage's
+        producer.
+        """
+        if self.GetNumberOfInputConnections(1):
+            pd = vtkPolyData.GetData(in_info[1])
+            if pd is None or pd.GetNumberOfPoints() == 0:
+                self.GetInputAlgorithm(1, 0).UpdatePiece(0, 1, 0)
 
     def _information(self, in_info, out_info):
         img = vtkImageData.GetData(in_info[0], 0)
@@ -144,12 +164,29 @@ class HarmonicResampleFilter(DeformationSource):
         return 1
 
     def RequestUpdateExtent(self, request, in_info, out_info):
-        """The whole input volume and the whole cage, whatever the output piece."""
+        """The input window the output piece's pre-images reach, and the whole cage."""
+        self._request_whole_cage(in_info)
+        return self._guard(self._request_window, in_info, out_info)
+
+    def _request_window(self, in_info, out_info):
         info0 = in_info[0].GetInformationObject(0)
         whole = info0.Get(_SDDP.WHOLE_EXTENT())
-        if whole is not None:
-            info0.Set(_SDDP.UPDATE_EXTENT(), *whole)
-        self._request_whole_cage(in_info)
+        if whole is None:
+            return 1
+        out = out_info.GetInformationObject(0)
+        ext = requested_extent(out)
+        window = None
+        if self._geometry is not None and ext is not None and ext[0] <= ext[1]:
+            vol = self._engine(in_info, vtkImageData.GetData(in_info[0], 0))
+            window = vol.input_window(self._geometry, ext, self._interpolation)
+        if window is None:  # nothing to read: one voxel (an empty extent confuses readers)
+            window = [0, 0, 0, 0, 0, 0]
+        start = whole[0::2]
+        info0.Set(_SDDP.UPDATE_EXTENT(), *[int(window[a]) + start[a // 2] for a in range(6)])
+        # the window is the request: not the output's piece number, which a reader would
+        # turn into its own extent
+        info0.Set(_SDDP.UPDATE_PIECE_NUMBER(), 0)
+        info0.Set(_SDDP.UPDATE_NUMBER_OF_PIECES(), 1)
         return 1
 
     def _execute(self, in_info, out_info):
@@ -165,6 +202,9 @@ class HarmonicResampleFilter(DeformationSource):
         out.SetOrigin(*geo.origin)
         out.SetSpacing(*geo.spacing)
         out.SetDirectionMatrix(*geo.direction.ravel())
+        whole = in_info[0].GetInformationObject(0).Get(_SDDP.WHOLE_EXTENT())
+        have = img.GetExtent()
+        input_box = [have[a] - whole[a - a % 2] for a in range(6)]
         pd_in, pd_out = img.GetPointData(), out.GetPointData()
         scalars = pd_in.GetScalars().GetName() if pd_in.GetScalars() is not None else None
         arrays, types = {}, {}
@@ -180,6 +220,7 @@ class HarmonicResampleFilter(DeformationSource):
             box=ext,
             interpolation=self._interpolation,
             fill_value=self._fill,
+            input_box=input_box,
             progress=self._progress(0.0, 0.98),
             abort=self._aborted,
         )
