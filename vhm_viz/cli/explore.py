@@ -21,13 +21,20 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     """Run the explorer until its window closes."""
-    try:
-        import PySide6  # noqa: F401
-        import pyvistaqt  # noqa: F401
-    except ImportError as exc:
-        raise RuntimeError(
-            f"the explorer needs the Qt extra: pip install 'vhm_viz[qt]' ({exc})"
-        ) from exc
-    from vhm_viz.app import run as run_app
+    from vhm_viz import interrupts
+
+    # A signal raised as an exception inside the import of a compiled module can abort
+    # the interpreter (shiboken's start-up turns it into "Fatal Python error"): the
+    # imports only record a SIGINT/SIGTERM, which is raised once they are done.
+    with interrupts.deferred():
+        try:
+            import PySide6.QtWidgets  # noqa: F401
+            import pyvistaqt  # noqa: F401
+        except ImportError as exc:
+            raise RuntimeError(
+                f"the explorer needs the Qt extra: pip install 'vhm_viz[qt]' ({exc})"
+            ) from exc
+        import vhm_viz.app.main_window  # noqa: F401
+        from vhm_viz.app import run as run_app
 
     return run_app(args)  # an error becomes one line and exit status 1 (vhm_viz.cli.main)
