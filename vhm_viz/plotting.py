@@ -6,6 +6,8 @@
 * :func:`figure12` -- the paper's Figure 12: histogram of condition numbers (a matplotlib
   ``Figure``), optionally comparing several deformations.
 * :func:`energy_plot` -- energy against iteration (the paper's Figure 7).
+* :func:`deformation_view` -- a 3D picture of the rest shape (grey, translucent) and the
+  deformed shape coloured by det J, with the cage's wireframe.
 * :func:`injectivity_figure` -- the answer of :func:`vhm_viz.certify_injectivity` on the
   Figure 4 slice: witnesses of folds and the cubes left undecided, mapped into the
   deformed shape.
@@ -27,6 +29,7 @@ __all__ = [
     "figure12",
     "energy_plot",
     "injectivity_figure",
+    "deformation_view",
     "mapped_boxes",
     "default_slice_normal",
 ]
@@ -71,6 +74,7 @@ def measure_mesh_kwargs(measure: str, values, *, clim=None, scalar_bar_args=None
     }
     if style["below_color"] is not None:
         kwargs["below_color"] = style["below_color"]
+        kwargs["scalar_bar_args"].setdefault("below_label", "fold")
     return kwargs
 
 
@@ -455,6 +459,87 @@ def energy_plot(
     if filename is not None:
         fig.savefig(os.fspath(filename), dpi=dpi)
     return fig
+
+
+def deformation_view(
+    rest,
+    deformed,
+    *,
+    cage=None,
+    window_size=(1000, 700),
+    view: str = "xz",
+    filename=None,
+    off_screen: bool = True,
+    title: str | None = None,
+):
+    """A 3D picture of a deformation: the rest shape and the deformed one, side by side.
+
+    The rest shape is drawn translucent light grey, the deformed shape lit and coloured by
+    its point array ``jacobian_determinant`` when it has one (the det J convention of
+    :mod:`vhm_viz.colours`: log scale centred on 1, folds black), else plain.
+
+    Parameters
+    ----------
+    rest, deformed : pyvista.DataSet
+        Same points, before and after (their surfaces are drawn).
+    cage : Cage or pyvista.PolyData, optional
+        Drawn as a faint wireframe (the rest cage).
+    window_size : (int, int)
+        Pixels (width, height) of the PNG.
+    view : {"xz", "xy", "yz"}
+        The coordinate plane looked at (``"xz"``: along -y, z up).
+    filename : str or path-like, optional
+        Save a PNG there.
+    off_screen : bool
+    title : str, optional
+
+    Returns
+    -------
+    pyvista.Plotter
+    """
+    import pyvista as pv
+
+    def surface(ds):
+        ds = pv.wrap(ds)
+        return ds if isinstance(ds, pv.PolyData) else _surface(ds)
+
+    pl = pv.Plotter(off_screen=off_screen, window_size=list(window_size))
+    pl.set_background("white")
+    pl.add_mesh(surface(rest), color="lightgrey", opacity=0.35, label="rest")
+    bent = surface(deformed)
+    if "jacobian_determinant" in bent.point_data:
+        pl.add_mesh(
+            bent,
+            scalars="jacobian_determinant",
+            **measure_mesh_kwargs(
+                "determinant",
+                bent.point_data["jacobian_determinant"],
+                scalar_bar_args={
+                    "title": "det J (log)\nblack: fold",
+                    "below_label": "",
+                    "fmt": "%.3g",
+                    "vertical": True,
+                    "position_x": 0.8,
+                    "position_y": 0.15,
+                    "width": 0.08,
+                    "height": 0.7,
+                },
+            ),
+        )
+    else:
+        pl.add_mesh(bent, color="tan")
+    if cage is not None:
+        if not isinstance(cage, pv.DataSet):
+            cage = pv.PolyData.from_regular_faces(np.asarray(cage.vertices), np.asarray(cage.faces))
+        pl.add_mesh(cage, style="wireframe", color="black", opacity=0.25, lighting=False)
+    if title:
+        pl.add_text(title, font_size=12, color="black")
+    {"xz": pl.view_xz, "xy": pl.view_xy, "yz": pl.view_yz}[view]()
+    pl.reset_camera()
+    pl.camera.zoom(0.9)  # room for the colour bar on the right
+    if filename is not None:
+        pl.screenshot(os.fspath(filename))
+    return pl
 
 
 def mapped_boxes(boxes, harmonic_map):
