@@ -217,9 +217,8 @@ def test_a_scene_uses_the_anchors_file_vhm_viz_anchors_writes(small_bar, tmp_pat
 
     import numpy as np
 
-    from vhm_viz import Deformer
     from vhm_viz.cli import main
-    from vhm_viz.io import read_cage, write_cage
+    from vhm_viz.io import write_cage
 
     bar = small_bar / "bar.vtp"
     work = tmp_path / "scene dir"
@@ -246,17 +245,65 @@ def test_a_scene_uses_the_anchors_file_vhm_viz_anchors_writes(small_bar, tmp_pat
     _, err = capsys.readouterr()
     assert rc == 0, err
 
-    dfm = Deformer(read_cage(work / "cage.obj"), anchors)
+    rest = pv.read(bar)
+    expected = _direct_map(work / "cage.obj", anchors, constraints, rest.points)
+    bent = pv.read(out)
+    assert np.abs(expected - rest.points).max() > 1.0  # it did bend
+    np.testing.assert_allclose(bent.points, expected, atol=1e-6)
+
+
+def _direct_map(cage_path, anchors, constraints, points):
+    """The scene's map at ``points``, built from the files' contents with the API."""
+    import numpy as np
+
+    from vhm_viz import Deformer
+    from vhm_viz.io import read_cage
+
+    dfm = Deformer(read_cage(cage_path), np.asarray(anchors, dtype=float))
     c = {k: np.array(v, dtype=float) for k, v in constraints.items()}
     dfm.set_constraints(
         positions=c["positions"],
         targets=c["targets"],
-        jacobian_points=c["jacobian_points"],
-        jacobians=c["jacobians"],
+        jacobian_points=c.get("jacobian_points", np.zeros((0, 3))),
+        jacobians=c.get("jacobians", np.zeros((0, 3, 3))),
     )
-    dfm.solve(init="identity", max_iterations=1000, tolerance=1e-6)
-    rest = pv.read(bar)
-    expected = dfm.harmonic_map.map(np.asarray(rest.points))
-    bent = pv.read(out)
-    assert np.abs(expected - rest.points).max() > 1.0  # it did bend
-    np.testing.assert_allclose(bent.points, expected, atol=1e-6)
+    report = dfm.solve(init="identity", max_iterations=1000, tolerance=1e-6)
+    assert report.converged
+    return dfm.harmonic_map.map(np.asarray(points, dtype=float))
+
+
+def test_the_readme_scene_is_the_example_file_and_it_works(tmp_path, capsys):
+    """The README shows docs/examples/bar_scene.json as it is, explains each of its fields,
+    and the scene bends the bar as a Deformer built from its files does."""
+    import json
+
+    import numpy as np
+
+    from vhm_viz.cli import main
+    from vhm_viz.scene import _TOP_FIELDS, DEFAULT_SOLVER
+
+    readme = (REPO / "README.md").read_text()
+    folder = REPO / "docs" / "examples"
+    text = (folder / "bar_scene.json").read_text()
+    assert "```json\n" + text.rstrip("\n") + "\n```" in readme
+    section = readme.split("#### A scene, field by field", 1)[1].split("\n### ", 1)[0]
+    table = [ln for ln in section.splitlines() if ln.startswith("| `")]
+    for name in [*_TOP_FIELDS, *(f"solver.{k}" for k in DEFAULT_SOLVER)]:
+        assert any(f"`{name}`" in row or f"`{name}." in row for row in table), name
+    for key in ("positions", "targets", "jacobian_points", "jacobians"):
+        assert any(f"`constraints.{key}`" in row for row in table), key
+
+    scene = json.loads(text)
+    surface = pv.PolyData.from_regular_faces(*examples.bar_surface(12))
+    surface.save(tmp_path / "bar.vtp")
+    out = tmp_path / "bent.vtp"
+    rc = main(["deform", str(tmp_path / "bar.vtp"), "--scene", str(folder / "bar_scene.json"),
+               "-o", str(out), "-q"])  # fmt: skip
+    _, err = capsys.readouterr()
+    assert rc == 0, err
+    anchors = json.loads((folder / "bar_anchors.json").read_text())["anchors"]
+    expected = _direct_map(folder / "bar_cage.obj", anchors, scene["constraints"], surface.points)
+    np.testing.assert_allclose(pv.read(out).points, expected, atol=1e-6)
+    # the top's centre went exactly to its target (a hard constraint)
+    (top,) = np.nonzero(np.linalg.norm(surface.points - np.array([0, 0, 5.0]), axis=1) < 1e-9)
+    np.testing.assert_allclose(pv.read(out).points[top], [[3.18, 0, 0]], atol=1e-6)
