@@ -218,7 +218,7 @@ def test_a_scene_uses_the_anchors_file_vhm_viz_anchors_writes(small_bar, tmp_pat
     import numpy as np
 
     from vhm_viz.cli import main
-    from vhm_viz.io import write_cage
+    from vhm_viz.io import read_anchors, write_cage
 
     bar = small_bar / "bar.vtp"
     work = tmp_path / "scene dir"
@@ -230,6 +230,8 @@ def test_a_scene_uses_the_anchors_file_vhm_viz_anchors_writes(small_bar, tmp_pat
     written = json.loads((work / "anchors.json").read_text())
     anchors = np.array(written["anchors"], dtype=float)
     assert anchors.shape == (10, 3)
+    # the explorer's "load anchors" reads the file the same way
+    np.testing.assert_array_equal(read_anchors(work / "anchors.json"), anchors)
 
     constraints = json.loads((small_bar / "scene.json").read_text())["constraints"]
     scene = {
