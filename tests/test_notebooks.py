@@ -240,6 +240,5 @@ def test_notebook_02_says_clearly_when_the_data_is_missing(kernel_env, tmp_path)
     # one clear note naming the variable and the folder, then the stand-ins; no traceback
     assert f"VHM_VIZ_DATA={missing} does not exist" in text
     assert "Using generated stand-ins instead" in text
-    assert "a phantom head instead" in text and "a generated finger instead" in text
     assert "Traceback" not in text
     assert (ref["n_points"], ref["n_tets"]) != (7234, 29998)  # not the real hand
