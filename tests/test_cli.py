@@ -44,6 +44,7 @@ def test_demo_writes_everything(demo_dir):
         "figure4_slices.png",
         "figure12_condition_histogram.png",
         "energy.png",
+        "bar_bent.png",
         "metrics.json",
     }
     assert expected <= names
@@ -62,12 +63,13 @@ def test_demo_writes_everything(demo_dir):
     assert 0.9 < metrics["volume_voxel_sum_ratio"] < 1.15
 
 
-def test_demo_prints_where_outputs_are(tmp_path, capsys):
+def test_demo_writes_relative_to_the_current_folder(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     rc, out, err = _run(
         capsys,
         "demo",
         "-o",
-        tmp_path / "d",
+        "d",
         "-q",
         "--resolution",
         "6",
@@ -77,7 +79,35 @@ def test_demo_prints_where_outputs_are(tmp_path, capsys):
     )
     assert rc == 0, err
     assert str((tmp_path / "d").resolve()) in out
-    assert "figure4_slices.png" in out
+    assert "figure4_slices.png" in out and "bar_bent.png" in out
+    assert (tmp_path / "d" / "bar_bent.png").is_file()
+    _check_bar_picture(tmp_path / "d" / "bar_bent.png")
+
+
+def _check_bar_picture(path):
+    """The demo's 3D view: the rest bar in grey and the bent bar in colour, seen along y.
+
+    The rest bar spans x in [-0.5, 0.5] and z in [0, 5]; bent into a U (the bottom held)
+    its top goes over to x = 3.18, so the U is 4.2 wide and about 2.1 high. Left of the
+    colour bar (the right quarter) and below the title, the coloured pixels span about 4.2
+    times the width of the grey ones above the U, and about 2.1 / 5 of the rest bar's height.
+    """
+    from matplotlib.image import imread
+
+    img = imread(str(path))[..., :3]
+    assert img.shape[:2] == (700, 1000)
+    view = img[60:, :750]
+    spread = view.max(axis=2) - view.min(axis=2)
+    coloured = spread > 0.12
+    rows_c, cols_c = np.nonzero(coloured)
+    assert coloured.sum() > 10_000
+    # grey above the U: only the rest bar is there (det J near 1 is greyish on the U too)
+    grey = (spread < 0.03) & (view.mean(axis=2) > 0.6) & (view.mean(axis=2) < 0.9)
+    grey[rows_c.min() - 5 :] = False
+    rows_g, cols_g = np.nonzero(grey)
+    assert grey.sum() > 5_000
+    assert 3.2 < np.ptp(cols_c) / np.ptp(cols_g) < 5.0
+    assert 0.3 < np.ptp(rows_c) / (rows_c.max() - rows_g.min()) < 0.55
 
 
 def test_deform_matches_the_scene(demo_dir, tmp_path, capsys):

@@ -96,8 +96,9 @@ _probe_print(
 """
 
 
-def _execute(name, probes):
-    """Run notebook ``name`` with probe cells inserted after the given cell indices.
+def _execute(name, probes, cwd):
+    """Run notebook ``name`` in folder ``cwd``, with probe cells inserted after the given
+    cell indices.
 
     Returns the executed notebook (probe cells included) and the probes' values.
     """
@@ -108,7 +109,7 @@ def _execute(name, probes):
     for position, source in sorted(at, key=lambda p: p[0], reverse=True):
         nb.cells.insert(position, nbformat.v4.new_code_cell(source))
     client = nbclient.NotebookClient(
-        nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}
+        nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(cwd)}}
     )
     client.execute()  # raises CellExecutionError on any failing cell
     errors = [o for c in _code_cells(nb) for o in c.outputs if o.output_type == "error"]
@@ -167,10 +168,17 @@ def test_there_are_notebooks():
     assert names == {"01_bar_bend_u.ipynb", "02_volume_and_tets.ipynb"}
 
 
-def test_notebook_01_bar_bend_u(monkeypatch):
+@pytest.fixture
+def kernel_env(monkeypatch):
     monkeypatch.setenv("PYVISTA_OFF_SCREEN", "true")
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    nb, ref = _execute("01_bar_bend_u.ipynb", [(None, _PROBE_01)])
+    monkeypatch.delenv("VHM_VIZ_DATA", raising=False)
+    return monkeypatch
+
+
+def test_notebook_01_bar_bend_u(kernel_env, tmp_path):
+    # started from a folder that is neither the repository nor notebooks/
+    nb, ref = _execute("01_bar_bend_u.ipynb", [(None, _PROBE_01)], tmp_path)
     # the solve report it prints converged
     assert any("SolveReport(" in t and "converged=True" in t for t in _streams(nb))
     # Table 1 (markdown): E_rigid and E_volume per mode, as recomputed independently
@@ -197,10 +205,11 @@ def test_notebook_01_bar_bend_u(monkeypatch):
     _assert_figures(_pngs(nb), [(900, 400), (1200, 520), None, None])
 
 
-def test_notebook_02_volume_and_tets(monkeypatch):
-    monkeypatch.setenv("PYVISTA_OFF_SCREEN", "true")
-    monkeypatch.setenv("MPLBACKEND", "Agg")
-    nb, ref = _execute("02_volume_and_tets.ipynb", [(5, _PROBE_02_CT), (None, _PROBE_02_TETS)])
+def _run_notebook_02(cwd):
+    """Notebook 02 run in ``cwd``, its printed numbers checked against the probes."""
+    nb, ref = _execute(
+        "02_volume_and_tets.ipynb", [(5, _PROBE_02_CT), (None, _PROBE_02_TETS)], cwd
+    )
     assert ref["ct_dims"] == [32, 32, 47]  # the real CT subsampled by 2, or the phantom
     # the resampled volume's intensity sum equals the change-of-variables integral (to the
     # discretisation of the resampling)
@@ -211,6 +220,25 @@ def test_notebook_02_volume_and_tets(monkeypatch):
     np.testing.assert_allclose(_printed(nb, "volume change"), ref["volume_change"], rtol=1e-6)
     np.testing.assert_allclose(_printed(nb, "min det J"), ref["min_det"], rtol=1e-9)
     assert 0 < ref["min_det"] < 1  # no fold-over, but real compression somewhere
-    if (DATA / "hand_tet" / "hand.mesh").exists():
-        assert (ref["n_points"], ref["n_tets"]) == (7234, 29998)
     _assert_figures(_pngs(nb), [(1000, 450), (900, 450)])
+    return nb, ref
+
+
+def test_notebook_02_volume_and_tets(kernel_env, tmp_path):
+    # started from another folder: the data is still found (shared/data beside the repo)
+    nb, ref = _run_notebook_02(tmp_path)
+    if (DATA / "hand_tet" / "hand.mesh").exists():
+        assert f"data: {DATA.resolve()}" in _streams(nb)[0]
+        assert (ref["n_points"], ref["n_tets"]) == (7234, 29998)
+
+
+def test_notebook_02_says_clearly_when_the_data_is_missing(kernel_env, tmp_path):
+    missing = tmp_path / "no such data"
+    kernel_env.setenv("VHM_VIZ_DATA", str(missing))
+    nb, ref = _run_notebook_02(tmp_path)
+    text = "\n".join(_streams(nb))
+    # one clear note naming the variable and the folder, then the stand-ins; no traceback
+    assert f"VHM_VIZ_DATA={missing} does not exist" in text
+    assert "Using generated stand-ins instead" in text
+    assert "Traceback" not in text
+    assert (ref["n_points"], ref["n_tets"]) != (7234, 29998)  # not the real hand

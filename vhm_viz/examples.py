@@ -27,7 +27,9 @@ other kinds when ``steps > 1``) over several warm-started solves.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -40,6 +42,9 @@ __all__ = [
     "BAR_KINDS",
     "FOLD_KINDS",
     "rotation",
+    "data_dir",
+    "DataNotFound",
+    "DATA_ENV",
 ]
 
 BAR_KINDS = ("bend-u", "bend-90", "twist", "bulge")
@@ -49,6 +54,72 @@ BAR_LENGTH = 5.0
 BAR_WIDTH = 1.0
 # top-centre target of the bends: a half circle of the bar's length has diameter 2L/pi
 _BEND_REACH = 3.18
+
+
+#: Environment variable naming the folder of the real models and volumes (``shared/data``).
+DATA_ENV = "VHM_VIZ_DATA"
+
+
+class DataNotFound(FileNotFoundError):
+    """The folder of the real models is not where :func:`data_dir` looked (message: where)."""
+
+
+def _data_candidates(cwd=None) -> list[Path]:
+    """Where ``shared/data`` may be, in order.
+
+    The repository's sibling, then the sibling of the current folder and of each of its
+    parents (``../shared/data`` seen from any of them).
+    """
+    cwd = Path.cwd() if cwd is None else Path(cwd)
+    repo = Path(__file__).resolve().parents[1]  # the checkout (or site-packages) holding us
+    out: list[Path] = []
+    for base in (repo, cwd, *cwd.parents):
+        path = base.parent / "shared" / "data"
+        if path not in out:
+            out.append(path)
+    return out
+
+
+def data_dir(cwd=None) -> Path:
+    """The folder of the real models and volumes (the repository's ``../shared/data``).
+
+    Found from any working folder: ``$VHM_VIZ_DATA`` when set (then only there); else
+    ``shared/data`` beside the repository that holds this package; else ``../shared/data``
+    seen from the current folder or any of its parents.
+
+    Parameters
+    ----------
+    cwd : path-like, optional
+        The folder to search from instead of the current one.
+
+    Returns
+    -------
+    pathlib.Path
+        An existing folder (absolute).
+
+    Raises
+    ------
+    DataNotFound
+        With one line naming every place looked at and how to say where the data is.
+    """
+    env = os.environ.get(DATA_ENV)
+    if env:
+        path = Path(env).expanduser().resolve()
+        if path.is_dir():
+            return path
+        raise DataNotFound(
+            f"the data folder {DATA_ENV}={env} does not exist (or is not a folder); "
+            f"point {DATA_ENV} at the folder holding volumes/, hand_tet/, armadillo/, ..."
+        )
+    candidates = _data_candidates(cwd)
+    for path in candidates:
+        if path.is_dir():
+            return path.resolve()
+    raise DataNotFound(
+        "the data folder shared/data was not found; looked in "
+        + ", ".join(str(p) for p in candidates)
+        + f"; set {DATA_ENV} to the folder holding volumes/, hand_tet/, armadillo/, ..."
+    )
 
 
 def rotation(axis: str, degrees: float) -> np.ndarray:

@@ -6,6 +6,8 @@
 * :func:`figure12` -- the paper's Figure 12: histogram of condition numbers (a matplotlib
   ``Figure``), optionally comparing several deformations.
 * :func:`energy_plot` -- energy against iteration (the paper's Figure 7).
+* :func:`deformation_view` -- a 3D picture of the rest shape (grey, translucent) and the
+  deformed shape coloured by det J, with the cage's wireframe.
 * :func:`injectivity_figure` -- the answer of :func:`vhm_viz.certify_injectivity` on the
   Figure 4 slice: witnesses of folds and the cubes left undecided, mapped into the
   deformed shape.
@@ -21,16 +23,59 @@ import os
 import numpy as np
 
 __all__ = [
+    "measure_mesh_kwargs",
     "jacobian_slice",
     "figure4",
     "figure12",
     "energy_plot",
     "injectivity_figure",
+    "deformation_view",
     "mapped_boxes",
     "default_slice_normal",
 ]
 
 _AXES = np.eye(3)
+
+
+def measure_mesh_kwargs(measure: str, values, *, clim=None, scalar_bar_args=None) -> dict:
+    """``Plotter.add_mesh`` keyword arguments that draw a Jacobian measure by the convention.
+
+    The one colour convention of :mod:`vhm_viz.colours`: det J in ``coolwarm`` on a log
+    scale centred on 1 over ``(1/r, r)``, folds (``det J <= 0``) in
+    :data:`~vhm_viz.colours.FOLD_COLOUR`; cond J in ``viridis`` from 1.
+
+    Parameters
+    ----------
+    measure : {"determinant", "condition_number"}
+    values : array_like
+        The values drawn (set the range unless ``clim`` is given).
+    clim : (float, float), optional
+        Colour range instead of the convention's (for det J, keep it positive: it is drawn
+        on a log scale).
+    scalar_bar_args : dict, optional
+        Merged over the defaults (black text, the measure's title).
+
+    Returns
+    -------
+    dict
+        ``scalars`` is not included: pass it yourself.
+    """
+    from vhm_viz.colours import measure_style
+
+    style = measure_style(measure, values)
+    if clim is not None:
+        style["clim"] = tuple(float(c) for c in clim)
+    kwargs = {
+        "cmap": style["cmap"],
+        "clim": style["clim"],
+        "log_scale": style["log_scale"],
+        "nan_color": "lightgrey",
+        "scalar_bar_args": {"title": style["title"], "color": "black", **(scalar_bar_args or {})},
+    }
+    if style["below_color"] is not None:
+        kwargs["below_color"] = style["below_color"]
+        kwargs["scalar_bar_args"].setdefault("below_label", "fold")
+    return kwargs
 
 
 def default_slice_normal(points, deformed) -> np.ndarray:
@@ -183,8 +228,10 @@ def figure4(
     window_size : (int, int)
         Pixels (width, height) of the PNG.
     det_range, cond_range : (float, float), optional
-        Colour ranges; default ``[min(0.5, lo), max(1.5, hi)]`` centred on 1 for the
-        determinant (diverging map) and ``[1, max(2, p99)]`` for the condition number.
+        Colour ranges; default the convention of :mod:`vhm_viz.colours`: ``(1/r, r)`` on
+        a log scale for the determinant (:func:`~vhm_viz.colours.det_range`; folds,
+        ``det J <= 0``, in :data:`~vhm_viz.colours.FOLD_COLOUR`) and ``(1, max(2, p99))``
+        for the condition number (:func:`~vhm_viz.colours.cond_range`).
     filename : str or path-like, optional
         Save a PNG there.
     off_screen : bool
@@ -197,15 +244,6 @@ def figure4(
     """
     import pyvista as pv
 
-    det = np.asarray(deformed_slice.point_data["jacobian_determinant"])
-    cond = np.asarray(deformed_slice.point_data["condition_number"])
-    if det_range is None:
-        half = max(0.5, float(np.nanmax(np.abs(det - 1.0))) if det.size else 0.5)
-        det_range = (1.0 - half, 1.0 + half)
-    if cond_range is None:
-        finite = cond[np.isfinite(cond)]
-        top = float(np.percentile(finite, 99)) if finite.size else 2.0
-        cond_range = (1.0, max(2.0, top))
     normal = np.asarray(
         deformed_slice.field_data.get("slice_normal", [0.0, 1.0, 0.0]), dtype=np.float64
     ).ravel()[:3]
@@ -214,33 +252,37 @@ def figure4(
     )
     pl.set_background("white")
     views = (
-        ("jacobian_determinant", "det J", "coolwarm", det_range),
-        ("condition_number", "cond J", "viridis", cond_range),
+        ("jacobian_determinant", "det J", "determinant", det_range),
+        ("condition_number", "cond J", "condition_number", cond_range),
     )
-    for col, (name, label, cmap, clim) in enumerate(views):
+    for col, (name, label, measure, clim) in enumerate(views):
         pl.subplot(0, col)
         pl.add_mesh(
             deformed_slice.copy(),
             scalars=name,
-            cmap=cmap,
-            clim=clim,
             show_edges=False,
-            scalar_bar_args={
-                "title": label,
-                "vertical": False,
-                "color": "black",
-                "position_x": 0.2,
-                "position_y": 0.04,
-                "width": 0.6,
-                "height": 0.08,
-                "title_font_size": 22,
-                "label_font_size": 18,
-                "fmt": "%.2f",
-            },
             lighting=False,
+            **measure_mesh_kwargs(
+                measure,
+                deformed_slice.point_data[name],
+                clim=clim,
+                scalar_bar_args={
+                    "title": label,
+                    "vertical": False,
+                    "position_x": 0.2,
+                    "position_y": 0.09,
+                    "width": 0.6,
+                    "height": 0.07,
+                    "title_font_size": 22,
+                    "label_font_size": 18,
+                    "fmt": "%.3g",
+                },
+            ),
         )
         if deformed_surface is not None:
             pl.add_mesh(deformed_surface, color="lightgrey", opacity=0.15, lighting=False)
+        if measure == "determinant":
+            label += " (log scale, folds black)"
         pl.add_text(label if title is None else f"{title}: {label}", font_size=12, color="black")
         pl.camera_position = _view_along(deformed_slice, normal)
         pl.reset_camera()
@@ -267,7 +309,14 @@ def figure12(
     dpi: int = 100,
     title: str = "Condition number of J",
 ):
-    """The paper's Figure 12: histogram(s) of condition numbers.
+    """The paper's Figure 12: histogram(s) of condition numbers, every value shown.
+
+    Values beyond the drawn range are not cut: they are counted in an **overflow bin**
+    drawn (hatched) to the right of the range and labelled with its count (an infinite
+    cond J, a singular Jacobian, counts there too); values under the range, if any, in an
+    underflow bin on the left. NaN values (no Jacobian, e.g. outside the cage) are counted
+    in the legend. Bins come from :func:`vhm_viz.colours.histogram`; heights are percent
+    of all values of the set.
 
     Parameters
     ----------
@@ -275,7 +324,8 @@ def figure12(
         One or several sets (e.g. ``{"rigid": c1, "similar": c2}``).
     bins : int
     value_range : (float, float), optional
-        Default ``[1, 99th percentile]`` over all sets.
+        Default :func:`vhm_viz.colours.cond_range` over all sets: ``(1, max(2, p99))``,
+        the range of the cond J colour bar.
     filename : str or path-like, optional
         Save a PNG there.
     figsize, dpi
@@ -285,36 +335,70 @@ def figure12(
     Returns
     -------
     matplotlib.figure.Figure
+        ``fig.histograms`` holds the :class:`vhm_viz.colours.Histogram` of each set.
     """
     from matplotlib.figure import Figure
 
+    from vhm_viz.colours import cond_range, histogram
+
     sets = condition_numbers if isinstance(condition_numbers, dict) else {"": condition_numbers}
     data = {k: np.asarray(v, dtype=np.float64).ravel() for k, v in sets.items()}
-    data = {k: v[np.isfinite(v)] for k, v in data.items()}
-    allv = np.concatenate([v for v in data.values()] or [np.ones(1)])
     if value_range is None:
-        top = float(np.percentile(allv, 99)) if allv.size else 2.0
-        value_range = (1.0, max(top, 1.0 + 1e-3))
+        value_range = cond_range(np.concatenate([*data.values(), np.zeros(0)]))
     fig = Figure(figsize=figsize, dpi=dpi)
     ax = fig.add_subplot(1, 1, 1)
     colors = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple"]
-    for i, (label, vals) in enumerate(data.items()):
-        ax.hist(
-            vals,
-            bins=bins,
-            range=value_range,
-            alpha=0.6 if len(data) > 1 else 0.9,
-            color=colors[i % len(colors)],
-            label=label or None,
-            weights=np.full(vals.size, 100.0 / max(vals.size, 1)),
+    hists = {label: histogram(v, value_range, bins) for label, v in data.items()}
+    lo, hi = (float(e) for e in next(iter(hists.values())).edges[[0, -1]])
+    side = 4 * (hi - lo) / bins  # width of the under/overflow bins, half of it as a gap
+    over_x = (hi + 0.5 * side, hi + 1.5 * side)
+    under_x = (lo - 1.5 * side, lo - 0.5 * side)
+    any_under = any(h.below for h in hists.values())
+    alpha = 0.6 if len(data) > 1 else 0.9
+    notes = []
+    for i, (label, h) in enumerate(hists.items()):
+        vals = data[label]
+        colour = colors[i % len(colors)]
+        pct = 100.0 / max(h.total, 1)
+        n_nan = int(np.isnan(vals).sum())
+        over = h.above + (h.nonfinite - n_nan)  # +-inf: a singular J is beyond any range
+        text = label or None
+        if n_nan:
+            text = f"{label + ': ' if label else ''}{n_nan} NaN (no Jacobian)"
+        ax.stairs(h.counts * pct, h.edges, fill=True, alpha=alpha, color=colour, label=text)
+        ax.stairs(
+            [over * pct], over_x, fill=True, alpha=alpha, color=colour, hatch="//", ec="black"
         )
-    ax.set_xlabel("condition number  s_max / s_min")
+        notes.append((over, over * pct, colour))
+        if any_under:
+            ax.stairs([h.below * pct], under_x, fill=True, alpha=alpha, color=colour, hatch="\\\\")
+    top = max(n for _, n, _ in notes)
+    for h in hists.values():
+        top = max(top, float(h.counts.max()) * 100.0 / max(h.total, 1))
+    over_top = max(n for _, n, _ in notes)
+    for k, (count, _, colour) in enumerate(notes):  # stacked above the tallest overflow bar
+        ax.annotate(
+            f"{count:,}",
+            (0.5 * sum(over_x), over_top),
+            xytext=(0, 3 + 12 * (len(notes) - 1 - k)),
+            textcoords="offset points",
+            ha="center",
+            va="bottom",
+            color=colour if len(notes) > 1 else "black",
+            fontsize=9,
+        )
+    ax.set_ylim(0, 1.15 * top + 1e-9 + 0.06 * top * len(notes))
+    ticks = [t for t in ax.get_xticks() if lo <= t <= hi]
+    ax.set_xticks([*ticks, 0.5 * sum(over_x)], [f"{t:g}" for t in ticks] + [f"> {hi:.3g}"])
+    ax.set_xlim(under_x[0] if any_under else lo, over_x[1] + 0.25 * side)
+    ax.set_xlabel("condition number  s_max / s_min  (hatched: beyond the range, with its count)")
     ax.set_ylabel("% of points")
     ax.set_title(title)
-    if len(data) > 1 or next(iter(data)):
+    if ax.get_legend_handles_labels()[0]:
         ax.legend()
     ax.grid(alpha=0.3)
     fig.tight_layout()
+    fig.histograms = hists
     if filename is not None:
         fig.savefig(os.fspath(filename), dpi=dpi)
     return fig
@@ -377,6 +461,87 @@ def energy_plot(
     return fig
 
 
+def deformation_view(
+    rest,
+    deformed,
+    *,
+    cage=None,
+    window_size=(1000, 700),
+    view: str = "xz",
+    filename=None,
+    off_screen: bool = True,
+    title: str | None = None,
+):
+    """A 3D picture of a deformation: the rest shape and the deformed one, side by side.
+
+    The rest shape is drawn translucent light grey, the deformed shape lit and coloured by
+    its point array ``jacobian_determinant`` when it has one (the det J convention of
+    :mod:`vhm_viz.colours`: log scale centred on 1, folds black), else plain.
+
+    Parameters
+    ----------
+    rest, deformed : pyvista.DataSet
+        Same points, before and after (their surfaces are drawn).
+    cage : Cage or pyvista.PolyData, optional
+        Drawn as a faint wireframe (the rest cage).
+    window_size : (int, int)
+        Pixels (width, height) of the PNG.
+    view : {"xz", "xy", "yz"}
+        The coordinate plane looked at (``"xz"``: along -y, z up).
+    filename : str or path-like, optional
+        Save a PNG there.
+    off_screen : bool
+    title : str, optional
+
+    Returns
+    -------
+    pyvista.Plotter
+    """
+    import pyvista as pv
+
+    def surface(ds):
+        ds = pv.wrap(ds)
+        return ds if isinstance(ds, pv.PolyData) else _surface(ds)
+
+    pl = pv.Plotter(off_screen=off_screen, window_size=list(window_size))
+    pl.set_background("white")
+    pl.add_mesh(surface(rest), color="lightgrey", opacity=0.35, label="rest")
+    bent = surface(deformed)
+    if "jacobian_determinant" in bent.point_data:
+        pl.add_mesh(
+            bent,
+            scalars="jacobian_determinant",
+            **measure_mesh_kwargs(
+                "determinant",
+                bent.point_data["jacobian_determinant"],
+                scalar_bar_args={
+                    "title": "det J (log)\nblack: fold",
+                    "below_label": "",
+                    "fmt": "%.3g",
+                    "vertical": True,
+                    "position_x": 0.8,
+                    "position_y": 0.15,
+                    "width": 0.08,
+                    "height": 0.7,
+                },
+            ),
+        )
+    else:
+        pl.add_mesh(bent, color="tan")
+    if cage is not None:
+        if not isinstance(cage, pv.DataSet):
+            cage = pv.PolyData.from_regular_faces(np.asarray(cage.vertices), np.asarray(cage.faces))
+        pl.add_mesh(cage, style="wireframe", color="black", opacity=0.25, lighting=False)
+    if title:
+        pl.add_text(title, font_size=12, color="black")
+    {"xz": pl.view_xz, "xy": pl.view_xy, "yz": pl.view_yz}[view]()
+    pl.reset_camera()
+    pl.camera.zoom(0.9)  # room for the colour bar on the right
+    if filename is not None:
+        pl.screenshot(os.fspath(filename))
+    return pl
+
+
 def mapped_boxes(boxes, harmonic_map):
     """Axis-aligned boxes ``(lo, hi)`` as hexahedra with their corners mapped.
 
@@ -418,8 +583,9 @@ def injectivity_figure(
 ):
     """The injectivity certificate on the Figure 4 slice, in the deformed shape.
 
-    The slice is coloured by ``det J`` (blue to red, white at 1; values ``<= 0`` are the
-    darkest blue); witnesses (points with ``det J <= 0``) are red spheres and the cubes left
+    The slice is coloured by ``det J`` by the convention of :mod:`vhm_viz.colours` (blue
+    to red on a log scale, white at 1; folds, ``det J <= 0``, black); witnesses (points
+    with ``det J <= 0``) are red spheres and the cubes left
     undecided are orange wireframes, both mapped by the deformation. The title states the
     answer: certified, not injective, or undecided.
 
@@ -446,8 +612,6 @@ def injectivity_figure(
     """
     import pyvista as pv
 
-    det = np.asarray(deformed_slice.point_data["jacobian_determinant"])
-    half = max(1.0, float(np.nanmax(np.abs(det - 1.0))) if det.size else 1.0)
     normal = np.asarray(
         deformed_slice.field_data.get("slice_normal", [0.0, 1.0, 0.0]), dtype=np.float64
     ).ravel()[:3]
@@ -456,10 +620,12 @@ def injectivity_figure(
     pl.add_mesh(
         deformed_slice.copy(),
         scalars="jacobian_determinant",
-        cmap="coolwarm",
-        clim=(1.0 - half, 1.0 + half),
         lighting=False,
-        scalar_bar_args={"title": "det J", "color": "black", "fmt": "%.2f", "vertical": False},
+        **measure_mesh_kwargs(
+            "determinant",
+            deformed_slice.point_data["jacobian_determinant"],
+            scalar_bar_args={"title": "det J (log; black: <= 0)", "fmt": "%.3g", "vertical": False},
+        ),
     )
     if deformed_surface is not None:
         outline = deformed_surface

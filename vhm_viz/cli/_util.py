@@ -27,7 +27,12 @@ class CLIError(ValueError):
 
 
 class Progress:
-    """A one-line text progress bar on stderr (``label [#####.....]  50%``).
+    """Progress on stderr: a bar on a terminal, plain lines elsewhere.
+
+    On a terminal, one line redrawn in place (``label [#####.....]  50%``, carriage
+    returns). When the stream is not a terminal (a pipe, a log file, CI), a plain line
+    every :attr:`LOG_STEP` percent (``label:  50%``) and never a carriage return, so logs
+    stay readable. Both end with the elapsed time.
 
     Parameters
     ----------
@@ -36,13 +41,20 @@ class Progress:
         Print nothing when False.
     stream : file, optional
         Default ``sys.stderr``.
+    tty : bool, optional
+        Draw the in-place bar; default: whether ``stream`` is a terminal.
     """
 
-    def __init__(self, label: str, *, enabled: bool = True, stream=None, width: int = 30):
+    #: Percent between the lines written when the stream is not a terminal.
+    LOG_STEP = 10
+
+    def __init__(self, label: str, *, enabled: bool = True, stream=None, width: int = 30, tty=None):
         self.label = label
         self.enabled = enabled
         self.stream = stream if stream is not None else sys.stderr
         self.width = width
+        self.tty = _is_terminal(self.stream) if tty is None else bool(tty)
+        self._step = 2 if self.tty else self.LOG_STEP
         self._last = -1
         self._t0 = time.perf_counter()
         self._done = False
@@ -51,12 +63,15 @@ class Progress:
         if not self.enabled or self._done or interrupts.pending() is not None:
             return
         pct = int(round(100 * min(max(float(fraction), 0.0), 1.0)))
-        if pct == self._last or (pct < 100 and pct - self._last < 2):
+        if pct <= self._last or (pct < 100 and pct // self._step == self._last // self._step):
             return
         self._last = pct
-        filled = int(self.width * pct / 100)
-        bar = "#" * filled + "." * (self.width - filled)
-        self.stream.write(f"\r{self.label:<9} [{bar}] {pct:3d}%")
+        if self.tty:
+            filled = int(self.width * pct / 100)
+            bar = "#" * filled + "." * (self.width - filled)
+            self.stream.write(f"\r{self.label:<9} [{bar}] {pct:3d}%")
+        else:
+            self.stream.write(f"{self.label}: {pct:3d}%" + ("" if pct >= 100 else "\n"))
         self.stream.flush()
         if pct >= 100:
             self.finish()
@@ -65,13 +80,19 @@ class Progress:
         """End the line (with the elapsed time)."""
         if not self.enabled or self._done or interrupts.pending() is not None:
             return
-        self._done = True
         if self._last < 100:
-            self._last = 99
-            self(1.0)
+            self(1.0)  # draws 100% and comes back here
             return
+        self._done = True
         self.stream.write(f" {time.perf_counter() - self._t0:.1f} s\n")
         self.stream.flush()
+
+
+def _is_terminal(stream) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError, OSError):  # no isatty, or a closed stream
+        return False
 
 
 def quiet_vtk() -> None:

@@ -72,12 +72,14 @@ def add_parser(subparsers) -> None:
         "--outside",
         choices=("error", "passthrough"),
         default="error",
-        help="points outside the cage: fail (default) or ignore them",
+        help="points outside the cage: fail or ignore them (default: error)",
     )
     p.add_argument(
         "--normal",
         default=None,
-        help="slice normal as x,y,z (default: the axis of least displacement)",
+        metavar="X,Y,Z",
+        help="normal of the Figure 4 slice through the data's centre, a direction (any "
+        "length) (default: the coordinate axis along which the data moves least)",
     )
     add_convergence_argument(p)
     p.add_argument(
@@ -91,7 +93,7 @@ def add_parser(subparsers) -> None:
         type=int,
         default=200_000,
         metavar="N",
-        help="--certify: cubes examined at most before answering 'undecided' (default 200000)",
+        help="--certify: cubes examined at most before answering 'undecided' (default: 200000)",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
     p.set_defaults(func=run)

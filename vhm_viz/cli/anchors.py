@@ -20,10 +20,23 @@ def add_parser(subparsers) -> None:
     p.add_argument("input", metavar="INPUT", help="dataset (any PyVista format, .mesh, .npy)")
     p.add_argument("--cage", "-c", required=True, metavar="CAGE", help="cage file (OBJ, ...)")
     p.add_argument("-o", "--output", required=True, metavar="ANCHORS.json", help="output JSON")
-    p.add_argument("--count", "-n", type=int, default=24, help="number of anchors (default 24)")
-    p.add_argument("--resolution", type=int, default=None, help="voxels along the longest side")
     p.add_argument(
-        "--threshold", default=None, help="volumes: the region above this value ('otsu' picks one)"
+        "--count", "-n", type=int, default=24, metavar="N", help="number of anchors (default: 24)"
+    )
+    p.add_argument(
+        "--resolution",
+        type=int,
+        default=None,
+        metavar="VOXELS",
+        help="voxels along the longest side of the grid the medial axis is computed on "
+        "(default: 96; volumes: one per image sample, at most 96)",
+    )
+    p.add_argument(
+        "--threshold",
+        default=None,
+        metavar="VALUE",
+        help="volumes: place anchors in the region above this value, in the units of the data "
+        "('otsu' picks one) (default: the whole volume)",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)

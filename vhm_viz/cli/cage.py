@@ -24,21 +24,38 @@ def add_parser(subparsers) -> None:
         type=int,
         default=500,
         metavar="N",
-        help="largest number of triangles (default 500)",
+        help="largest number of triangles (default: 500)",
     )
     p.add_argument(
         "--offset",
         type=float,
         default=None,
-        help="clearance in world units (default 1%% of the bounding-box diagonal)",
+        metavar="DISTANCE",
+        help="clearance between the data and the cage, in world units (the data's units) "
+        "(default: 1%% of the bounding-box diagonal)",
     )
-    p.add_argument("--resolution", type=int, default=None, help="voxels along the longest side")
-    p.add_argument("--method", choices=("auto", "offset", "voxel"), default="auto")
+    p.add_argument(
+        "--resolution",
+        type=int,
+        default=None,
+        metavar="VOXELS",
+        help="voxels along the longest bounding-box side of the extraction grid (default: "
+        "1.5 x that side / the offset, within 32-112; --method voxel: the finest that fits "
+        "--max-faces)",
+    )
+    p.add_argument(
+        "--method",
+        choices=("auto", "offset", "voxel"),
+        default="auto",
+        help="offset: a surface at the clearance, simplified; voxel: boxes of voxels; auto: "
+        "offset, retried at 2 and 4 times the clearance, then voxel (default: auto)",
+    )
     p.add_argument(
         "--threshold",
         default=None,
-        help="volumes: enclose the region above this value ('otsu' picks one); "
-        "default: the bounding box",
+        metavar="VALUE",
+        help="volumes: enclose the region above this value, in the units of the data "
+        "('otsu' picks one) (default: the volume's bounding box)",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)

@@ -65,22 +65,25 @@ def add_parser(subparsers) -> None:
         "--outside",
         choices=("error", "passthrough", "nan"),
         default="error",
-        help="points (voxels) outside the cage: fail (default), leave them in place "
-        "(flagged by the point array vhm_outside), or drop them (NaN positions; no data "
-        "in a resampled volume)",
+        help="points (voxels) outside the cage: fail, leave them in place (flagged by the "
+        "point array vhm_outside), or drop them (NaN positions; no data in a resampled "
+        "volume) (default: error)",
     )
     p.add_argument(
         "--arrays",
         default="",
+        metavar="LIST",
         help="comma-separated extra arrays: displacement, det, cond (point arrays), cells "
-        "(cell_jacobian_determinant, cell_condition_number, cell_inverted of 3D cells)",
+        "(cell_jacobian_determinant, cell_condition_number, cell_inverted of 3D cells) "
+        "(default: none)",
     )
     p.add_argument(
         "--fill-value",
         type=float,
         default=0.0,
+        metavar="VALUE",
         help="volume resampling: value of voxels without a pre-image, in the units of the "
-        "data (default 0; they also get 0 in the array vtkValidPointMask)",
+        "data (default: 0; they also get 0 in the array vtkValidPointMask)",
     )
     p.add_argument(
         "--tolerance",
@@ -88,23 +91,23 @@ def add_parser(subparsers) -> None:
         default=DEFAULT_TOLERANCE,
         metavar="VOXELS",
         help="volumes: largest position error of a mapped voxel, in voxels of the input "
-        f"spacing (default {DEFAULT_TOLERANCE})",
+        f"spacing (default: {DEFAULT_TOLERANCE} voxels)",
     )
     p.add_argument(
         "--interpolation",
         choices=INTERPOLATIONS,
         default="linear",
-        help="volume resampling: sampling of the input at the pre-images: trilinear "
-        "(default), nearest (label maps: values copied, integer type kept) or cubic "
-        "(Catmull-Rom)",
+        help="volume resampling: sampling of the input at the pre-images: linear "
+        "(trilinear), nearest (label maps: values copied, integer type kept) or cubic "
+        "(Catmull-Rom) (default: linear)",
     )
     p.add_argument(
         "--spacing",
         type=_spacing,
         default=None,
         metavar="SX,SY,SZ",
-        help="volume resampling: output voxel size in world units (default: the input "
-        "spacing); one number for cubic voxels",
+        help="volume resampling: output voxel size in world units (the data's units); one "
+        "number for cubic voxels (default: the input spacing)",
     )
     p.add_argument(
         "--reference",

@@ -8,8 +8,9 @@ variational harmonic map, then deforms through the VTK filters
 * a voxelised bar volume, as a warped structured grid and resampled back onto a regular
   grid (``.vti``, ready for volume rendering),
 
-and writes the figures (the paper's Figure 4 slices, Figure 12 histogram, energy plot),
-the scene file and a metrics summary into the output directory.
+and writes the figures (the paper's Figure 4 slices, Figure 12 histogram, energy plot, a
+3D view of the rest and the bent bar), the scene file and a metrics summary into the
+output directory (a relative one is taken from the current folder).
 """
 
 from __future__ import annotations
@@ -43,16 +44,22 @@ def add_parser(subparsers) -> None:
         "--output",
         default="vhm_viz_demo",
         metavar="DIR",
-        help="output directory (default: ./vhm_viz_demo)",
+        help="output directory, relative to the current folder (default: vhm_viz_demo)",
     )
     p.add_argument(
         "--resolution",
         type=int,
         default=39,
-        help="bar surface grid cells per unit length (39: 33,464 vertices)",
+        metavar="N",
+        help="bar surface grid cells per unit length (the bar is 1 x 1 x 5) (default: 39, "
+        "33,464 vertices)",
     )
     p.add_argument(
-        "--voxel", type=float, default=0.08, help="voxel size of the bar volume (default 0.08)"
+        "--voxel",
+        type=float,
+        default=0.08,
+        metavar="SIZE",
+        help="voxel size of the bar volume, in the bar's units (it is 1 wide) (default: 0.08)",
     )
     p.add_argument("--no-tets", action="store_true", help="skip the tetrahedral mesh")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
@@ -205,6 +212,11 @@ def demo(args: argparse.Namespace):
     written.append(("Figure 12: condition numbers", out / "figure12_condition_histogram.png"))
     plotting.energy_plot(reports, filename=out / "energy.png")
     written.append(("energy vs iteration", out / "energy.png"))
+    pl = plotting.deformation_view(
+        rest, bent, cage=dfm.cage, filename=out / "bar_bent.png", title="bar bent into a U"
+    )
+    pl.close()
+    written.append(("3D view: rest (grey) and bent bar by det J", out / "bar_bent.png"))
 
     jm = jacobian_measures(hm.jacobian(slice_.point_data["rest_points"]))
     metrics = {
