@@ -56,10 +56,14 @@ def bend_deformer(img, cage, threshold):
     from vhm_viz.core.deformer import Deformer
 
     anchors = vhm_viz.auto_anchors(img, cage, 24, threshold=threshold)
-    centre = anchors.mean(0)
-    _, _, vt = np.linalg.svd(anchors - centre)
-    t = (anchors - centre) @ vt[0]
-    lo, hi = anchors[np.argmin(t)], anchors[np.argmax(t)]
+    # bend the largest part: an automatic cage can have several shells (the embryo's has
+    # a 14-vertex one around a separate blob), and an end on a small shell would only
+    # move that shell rigidly, leaving the map the identity elsewhere
+    main = _main_shell_anchors(cage, anchors)
+    centre = main.mean(0)
+    _, _, vt = np.linalg.svd(main - centre)
+    t = (main - centre) @ vt[0]
+    lo, hi = main[np.argmin(t)], main[np.argmax(t)]
     axis = np.cross(vt[0], vt[1])
     a = np.radians(BEND_DEGREES)
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
@@ -73,6 +77,24 @@ def bend_deformer(img, cage, threshold):
     )
     report = dfm.solve()
     return dfm, report
+
+
+def _main_shell_anchors(cage, anchors):
+    """The anchors inside the shell of the cage with the most vertices."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    from vhm_viz.core.basis import inside_cage, winding_number
+
+    f = np.asarray(cage.faces)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    n = len(cage.vertices)
+    graph = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    big = np.argmax(np.bincount(label))
+    shell = f[label[f[:, 0]] == big]
+    w = winding_number(anchors, cage.vertices, shell)
+    return anchors[inside_cage(w)]
 
 
 def prepare(key, cache: Path):
