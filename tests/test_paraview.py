@@ -374,3 +374,24 @@ def test_volume_resample_in_pieces_equals_serial_equals_python(
     assert expected.valid.mean() > 0.3
     for a, values in ref.items():
         np.testing.assert_array_equal(serial.point_data[a], values)
+
+
+def test_measure_colours_follow_the_one_convention(paraview_env, tmp_path):
+    """det J: Cool to Warm on a log scale, symmetric about 1, folds in the below-range colour;
+    cond J: viridis from 1 -- the ranges of vhm_viz.colours, as in the explorer and figures."""
+    from vhm_viz import colours
+
+    result = tmp_path / "colours.json"
+    script = Path(__file__).parent / "paraview" / "colour_check.py"
+    out = subprocess.run(["pvpython", str(script), str(result)], capture_output=True,
+                         text=True, env=paraview_env, timeout=300)  # fmt: skip
+    assert out.returncode == 0, out.stderr[-3000:]
+    got = json.loads(result.read_text())
+    det, cond = got["jacobian_determinant"], got["condition_number"]
+    np.testing.assert_allclose(det["range"], got["det_expected"], rtol=1e-6)
+    assert det["range"][0] * det["range"][1] == pytest.approx(1.0)
+    assert det["log"] == 1 and det["below"] == [1, list(colours.FOLD_COLOUR)]
+    # 1 (no volume change) sits at the middle of the diverging map: near white
+    assert min(det["mid_rgb"]) > 0.75
+    np.testing.assert_allclose(cond["range"], got["cond_expected"], rtol=1e-6)
+    assert cond["log"] == 0
