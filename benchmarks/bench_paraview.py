@@ -15,7 +15,7 @@ its own process, ParaView itself included), median and min-max over ``--repeats`
 after one warm-up run (numba's cache). Ranks run one thread each (as the tests do); the
 serial run uses both cores' threads. The load average is printed: the machine is shared.
 
-Run: ``eval "$(bash plugins/paraview-env.sh)"; python benchmarks/bench_paraview.py
+Run: ``python benchmarks/bench_paraview.py
 [--repeats 3] [--only head|embryo]`` (from the project root, with the project's venv).
 """
 
