@@ -80,21 +80,13 @@ def bend_deformer(img, cage, threshold):
 
 
 def _main_shell_anchors(cage, anchors):
-    """The anchors inside the shell of the cage with the most vertices."""
-    import scipy.sparse as sp
-    from scipy.sparse.csgraph import connected_components
+    """The anchors inside the outward shell of the cage with the most vertices."""
+    from vhm_viz.core.basis import domain_columns, inside_cage, winding_number
 
-    from vhm_viz.core.basis import inside_cage, winding_number
-
-    f = np.asarray(cage.faces)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     n = len(cage.vertices)
-    graph = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    _, label = connected_components(graph, directed=False)
-    big = np.argmax(np.bincount(label))
-    shell = f[label[f[:, 0]] == big]
-    w = winding_number(anchors, cage.vertices, shell)
-    return anchors[inside_cage(w)]
+    main = max(domain_columns(cage.vertices, cage.faces), key=lambda cols: (cols < n).sum())
+    shell = np.asarray(cage.faces)[main[main >= n] - n]
+    return anchors[inside_cage(winding_number(anchors, cage.vertices, shell))]
 
 
 def prepare(key, cache: Path):
