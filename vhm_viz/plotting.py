@@ -244,9 +244,7 @@ def figure4(
     """
     import pyvista as pv
 
-    normal = np.asarray(
-        deformed_slice.field_data.get("slice_normal", [0.0, 1.0, 0.0]), dtype=np.float64
-    ).ravel()[:3]
+    normal = _slice_normal(deformed_slice)
     pl = pv.Plotter(
         shape=(1, 2), off_screen=off_screen, window_size=list(window_size), border=False
     )
@@ -290,6 +288,12 @@ def figure4(
     if filename is not None:
         pl.screenshot(os.fspath(filename))
     return pl
+
+
+def _slice_normal(deformed_slice) -> np.ndarray:
+    """The normal :func:`jacobian_slice` stored with the slice (default +y)."""
+    stored = deformed_slice.field_data.get("slice_normal", [0.0, 1.0, 0.0])
+    return np.asarray(stored, dtype=np.float64).ravel()[:3]
 
 
 def _view_along(mesh, normal):
@@ -612,9 +616,7 @@ def injectivity_figure(
     """
     import pyvista as pv
 
-    normal = np.asarray(
-        deformed_slice.field_data.get("slice_normal", [0.0, 1.0, 0.0]), dtype=np.float64
-    ).ravel()[:3]
+    normal = _slice_normal(deformed_slice)
     pl = pv.Plotter(off_screen=off_screen, window_size=list(window_size))
     pl.set_background("white")
     pl.add_mesh(
