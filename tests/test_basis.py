@@ -381,14 +381,40 @@ def test_fused_map_equals_basis_times_coefficients(order):
         np.testing.assert_allclose(jac[finite], ref[finite], rtol=1e-12, atol=1e-10)
     else:
         assert jac is None
-    # two shells: each point sees its own shell only, as in evaluate_basis
+
+
+@pytest.mark.parametrize("order", [0, 1])
+def test_fused_map_of_several_shells_equals_basis(order):
+    """Several outward shells and a hole: each point sees the shells containing it.
+
+    ``evaluate_map`` runs the fused kernel shell by shell; ``evaluate_basis`` zeroes the
+    columns of the shells that do not contain a point. Two boxes side by side, the second
+    with an inward box (a hole) inside it; points in both, in the hole, in the gap and
+    outside everything, and next to an edge of each (the per-point kernel).
+    """
+    rng = np.random.default_rng(7)
     v2, f2 = box_cage((0, 0, 0), (1, 1, 1), 2)
-    vv = np.vstack([v2, v2 + (2.0, 0, 0)])
-    ff = np.vstack([f2, f2 + len(v2)])
+    hv, hf = box_cage((2.4, 0.4, 0.4), (2.6, 0.6, 0.6), 1)
+    vv = np.vstack([v2, v2 + (2.0, 0, 0), hv])
+    ff = np.vstack([f2, f2 + len(v2), hf[:, ::-1] + 2 * len(v2)])
     z2 = rng.normal(size=(len(vv) + len(ff), 3))
-    p2 = rng.uniform((0.1, 0.1, 0.1), (2.9, 0.9, 0.9), (30, 3))
-    b2 = evaluate_basis(p2, vv, ff, order=order)
-    np.testing.assert_allclose(evaluate_map(p2, vv, ff, z2, order=order)[0], b2.values @ z2)
+    pts = np.vstack([
+        rng.uniform((-0.5, -0.5, -0.5), (3.5, 1.5, 1.5), (200, 3)),
+        [[0.5, 1e-7, 1e-7], [2.5, 1e-7, 1.0 - 1e-7], [2.5, 0.5, 0.5], [1.5, 0.5, 0.5]],
+    ])  # fmt: skip
+    n = len(vv)
+    values, jac, winding = evaluate_map(pts, vv, ff, z2, order=order)
+    b2 = evaluate_basis(pts, vv, ff, order=order)
+    scale = np.abs(z2).sum(0).max()
+    np.testing.assert_allclose(values, b2.values @ z2, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(winding, b2.values[:, :n].sum(1), atol=1e-12)
+    if order:
+        ref = np.swapaxes(b2.gradients @ z2, 1, 2)
+        np.testing.assert_allclose(jac, ref, rtol=1e-11, atol=1e-10 * scale)
+    # the classification is real: in the hole and in the gap nothing is inside
+    assert winding[-2] == pytest.approx(0.0, abs=1e-9)
+    assert winding[-1] == pytest.approx(0.0, abs=1e-9)
+    assert 0 < (winding > 0.5).sum() < len(pts)
 
 
 def test_bad_arguments():

@@ -123,10 +123,11 @@ def _prepare_cage(vertices: np.ndarray, faces: np.ndarray) -> _CageData:
         )
     # Maps and bindings evaluate the same cage chunk after chunk: keyed on the arrays'
     # contents, the edge table, normals and shells (~1.5 ms for 500 faces) are built once.
+    # (A cage of several shells also caches one entry per shell, see _shell_cages.)
     return _prepare_cage_cached(v.shape, v.tobytes(), f.shape, f.tobytes())
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=16)
 def _prepare_cage_cached(vshape, vbytes, fshape, fbytes) -> _CageData:
     v = np.frombuffer(vbytes, dtype=np.float64).reshape(vshape)
     f = np.frombuffer(fbytes, dtype=np.int64).reshape(fshape)
@@ -864,8 +865,9 @@ def evaluate_map(points, vertices, faces, coefficients, *, order: int = 1):
     but the basis of each group of points is contracted with the coefficients inside the
     kernel: nothing of size ``(N, n + m)`` is stored, which makes it several times faster
     for large cages. Points near a cage edge go through the careful per-point kernel, as
-    in :func:`evaluate_basis`. A cage of several outward shells takes the basis path
-    (the shells' functions are switched per point).
+    in :func:`evaluate_basis`. A cage of several outward shells is evaluated shell by
+    shell: each point keeps the shells that contain it (and the hole shells), as in
+    :func:`evaluate_basis`.
 
     Parameters
     ----------
@@ -895,12 +897,58 @@ def evaluate_map(points, vertices, faces, coefficients, *, order: int = 1):
     if z.shape != (n + m, 3):
         raise ValueError(f"coefficients must have shape ({n + m}, 3); got {z.shape}")
     npts = p.shape[0]
-    if cd.shells or npts == 0:
-        b = evaluate_basis(p, vertices, faces, order=order)
-        jac = None
+    if npts == 0:
+        return np.zeros((0, 3)), (np.zeros((0, 3, 3)) if order else None), np.zeros(0)
+    if not cd.shells:
+        return _evaluate_map_one(p, cd, z, order)
+    # Several outward shells: a shell's basis functions involve its own faces only, so
+    # each shell is a cage of its own for the fused kernel. A point keeps the shells whose
+    # own winding number puts it inside (the rule of _separate_shells) and every hole
+    # shell. Each face is evaluated once per point, as for one shell; the basis path this
+    # replaces was 3.5x slower on the 500-face embryo cage (100,000 points: 1.40 s against
+    # 0.40 s for its main shell alone).
+    values = np.zeros((npts, 3))
+    jac = np.zeros((npts, 3, 3)) if order else None
+    winding = np.zeros(npts)
+    for cols, sub, every_point in _shell_cages(cd):
+        v_s, j_s, w_s = _evaluate_map_one(p, sub, np.ascontiguousarray(z[cols]), order)
+        keep = slice(None) if every_point else w_s >= 0.5
+        values[keep] += v_s[keep]
+        winding[keep] += w_s[keep]
         if order:
-            jac = np.swapaxes((b.gradients.reshape(-1, n + m) @ z).reshape(npts, 3, 3), 1, 2)
-        return b.values @ z, jac, b.values[:, :n].sum(axis=1)
+            jac[keep] += j_s[keep]
+    return values, jac, winding
+
+
+def _shell_cages(cd: _CageData) -> list:
+    """``(columns, cage data, every point)`` of each outward shell, then of the holes.
+
+    ``columns`` are the shell's basis columns in the whole cage (its vertices, then ``n``
+    plus its faces); the hole shells, which every point keeps, form one cage.
+    """
+    n = cd.vertices.shape[0]
+    out = []
+    owned = np.zeros(cd.faces.shape[0], dtype=bool)
+    groups = []
+    for vids, fids in cd.shells:
+        owned[fids] = True
+        groups.append((fids, False))
+    holes = np.flatnonzero(~owned)
+    if holes.size:
+        groups.append((holes, True))
+    for fids, every_point in groups:
+        vids = np.unique(cd.faces[fids])
+        remap = np.full(n, -1, dtype=np.int64)
+        remap[vids] = np.arange(len(vids))
+        sub = _prepare_cage(cd.vertices[vids], remap[cd.faces[fids]])
+        out.append((np.concatenate([vids, n + fids]), sub, every_point))
+    return out
+
+
+def _evaluate_map_one(p, cd: _CageData, z, order: int):
+    """:func:`evaluate_map` for a cage of one outward shell (and any holes)."""
+    n, m = cd.vertices.shape[0], cd.faces.shape[0]
+    npts = p.shape[0]
     values = np.empty((npts, 3))
     jac = np.empty((npts, 3, 3)) if order else np.zeros((0, 3, 3))
     winding = np.empty(npts)
