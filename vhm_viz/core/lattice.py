@@ -699,6 +699,83 @@ def _cage_edges_in_index(lat_geo, cage):
     return np.ascontiguousarray(v[e[:, 0]]), np.ascontiguousarray(v[e[:, 1]])
 
 
+# Edges are binned in cubes of this many voxels for :meth:`HermiteLattice.near_cage_edges`.
+_EDGE_BIN = 4.0
+
+
+def _bin_edges(a, b, radius):
+    """Bins of the edges ``a b`` (voxel index units) grown by ``radius``, as CSR lists.
+
+    Returns ``lo`` (3,) the grid's first corner, ``shape`` (3,) bins per axis, ``start``
+    (nbins + 1,) and ``ids`` (edge ids), bin ``(x, y, z)`` being ``x + nx (y + ny z)``.
+    """
+    if not len(a):
+        return np.zeros(3), np.ones(3, np.int64), np.zeros(2, np.int64), np.zeros(0, np.int64)
+    lo = np.minimum(a, b).min(axis=0) - radius
+    hi = np.maximum(a, b).max(axis=0) + radius
+    shape = np.maximum(1, np.ceil((hi - lo) / _EDGE_BIN).astype(np.int64))
+    counts = np.zeros(int(np.prod(shape)) + 1, dtype=np.int64)
+    _edge_bin_entries(a, b, radius, lo, shape, counts, np.zeros(0, np.int64), False)
+    start = np.zeros(len(counts), dtype=np.int64)
+    start[1:] = np.cumsum(counts[:-1])
+    ids = np.empty(int(start[-1]), dtype=np.int64)
+    _edge_bin_entries(a, b, radius, lo, shape, start.copy(), ids, True)
+    return lo, shape, start, ids
+
+
+@numba.njit(cache=True)
+def _segment_distance2(px, py, pz, a, b, e):  # pragma: no cover - compiled
+    """Squared distance from a point to segment ``a[e] b[e]``."""
+    dx, dy, dz = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1], b[e, 2] - a[e, 2]
+    qx, qy, qz = px - a[e, 0], py - a[e, 1], pz - a[e, 2]
+    ll = dx * dx + dy * dy + dz * dz
+    s = 0.0 if ll == 0.0 else min(1.0, max(0.0, (qx * dx + qy * dy + qz * dz) / ll))
+    qx, qy, qz = qx - s * dx, qy - s * dy, qz - s * dz
+    return qx * qx + qy * qy + qz * qz
+
+
+@numba.njit(cache=True)
+def _edge_bin_entries(a, b, radius, lo, shape, cursor, ids, fill):  # pragma: no cover
+    """Count (``fill`` False) or write the edge ids of each bin the grown edge meets."""
+    reach = radius + 0.8660254037844386 * _EDGE_BIN  # bin centre to anything in it
+    for e in range(a.shape[0]):
+        r0 = np.empty(3, np.int64)
+        r1 = np.empty(3, np.int64)
+        for ax in range(3):
+            r0[ax] = max(0, int((min(a[e, ax], b[e, ax]) - radius - lo[ax]) // _EDGE_BIN))
+            r1[ax] = min(shape[ax] - 1,
+                         int((max(a[e, ax], b[e, ax]) + radius - lo[ax]) // _EDGE_BIN))
+        for z in range(r0[2], r1[2] + 1):
+            for y in range(r0[1], r1[1] + 1):
+                for x in range(r0[0], r1[0] + 1):
+                    cx = lo[0] + (x + 0.5) * _EDGE_BIN
+                    cy = lo[1] + (y + 0.5) * _EDGE_BIN
+                    cz = lo[2] + (z + 0.5) * _EDGE_BIN
+                    if _segment_distance2(cx, cy, cz, a, b, e) > reach * reach:
+                        continue
+                    k = x + shape[0] * (y + shape[1] * z)
+                    if fill:
+                        ids[cursor[k]] = e
+                    cursor[k] += 1
+
+
+@numba.njit(parallel=True, cache=True)
+def _near_binned_edges(u, a, b, radius, lo, shape, start, ids, out):  # pragma: no cover
+    """``out[p]``: point ``u[p]`` within ``radius`` of an edge of its bin."""
+    r2 = radius * radius
+    for p in numba.prange(u.shape[0]):
+        x = int(math.floor((u[p, 0] - lo[0]) / _EDGE_BIN))
+        y = int(math.floor((u[p, 1] - lo[1]) / _EDGE_BIN))
+        z = int(math.floor((u[p, 2] - lo[2]) / _EDGE_BIN))
+        if not (0 <= x < shape[0] and 0 <= y < shape[1] and 0 <= z < shape[2]):
+            continue  # bins cover every edge grown by radius: nothing out there
+        k = x + shape[0] * (y + shape[1] * z)
+        for q in range(start[k], start[k + 1]):
+            if _segment_distance2(u[p, 0], u[p, 1], u[p, 2], a, b, ids[q]) <= r2:
+                out[p] = True
+                break
+
+
 _CORNERS = np.array([[a, b, c] for c in (0, 1) for b in (0, 1) for a in (0, 1)])
 def _test_points(cells, h, lat_geo, vertices, faces):
     """Test points of each cell, as local coordinates (L, T, 3); NaN rows: no test.
@@ -866,7 +943,9 @@ def build_lattice(
             break
         cells = (cells[split][:, None, :] + _CORNERS[None] * (h // 2)).reshape(-1, 3)
         h //= 2
-    lattice = _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask, near)
+    lattice = _assemble(
+        leaves, level_data, n_root, root, geometry, tolerance, mask, near, (edge_a, edge_b)
+    )
     lattice.stats.update(
         evaluations=int(n_eval.sum()),
         evaluations_outside=int(n_eval[1]),
@@ -877,7 +956,7 @@ def build_lattice(
     return lattice
 
 
-def _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask, near):
+def _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask, near, edges):
     """Pack the levels into one data table and the leaves, grouped by root cell."""
     starts = np.cumsum([0] + [len(d) for d in level_data])
     data = np.concatenate(level_data) if level_data else np.zeros((0, _N_TERMS, 3))
@@ -922,6 +1001,8 @@ def _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask, near)
         rho=rho,
         mask=mask,
         near=near,
+        edge_a=edges[0],
+        edge_b=edges[1],
         stats=stats,
     )
 
@@ -1387,6 +1468,8 @@ class HermiteLattice:
     near : (Nz, Ny, Nx) bool
         Lattice points next to the cage surface (:func:`~vhm_viz.core.image.surface_mask`):
         pre-images in grid cubes touching them are checked with the winding number.
+    edge_a, edge_b : (E, 3) float64
+        End points of the cage's edges, in voxel indices (:meth:`near_cage_edges`).
     stats : dict
         ``evaluations`` (exact map evaluations), ``leaves``, ``leaves_per_size``,
         ``data_rows``, ``seconds``.
@@ -1396,6 +1479,7 @@ class HermiteLattice:
         self.__dict__.update(arrays)
         self.end = self.n_root * self.root  # index of the lattice's far corner per axis
         self._margins = None
+        self._edge_bins = None
 
     @property
     def nbytes(self) -> int:
@@ -1476,6 +1560,29 @@ class HermiteLattice:
         if len(u):
             _eval_points(self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, leaf, u, f, g)
         return (f, g) if gradient else f
+
+    def near_cage_edges(self, u, radius: float) -> np.ndarray:
+        """Whether each point lies within ``radius`` voxels of a cage edge.
+
+        Parameters
+        ----------
+        u : (P, 3) array_like
+            Continuous voxel indices.
+        radius : float
+            Euclidean distance in voxel index units.
+
+        Returns
+        -------
+        (P,) bool
+        """
+        u = np.ascontiguousarray(np.atleast_2d(u), dtype=np.float64)
+        if self._edge_bins is None or self._edge_bins[0] < radius:
+            self._edge_bins = (radius, *_bin_edges(self.edge_a, self.edge_b, radius))
+        _, lo, shape, start, ids = self._edge_bins
+        out = np.zeros(len(u), dtype=np.bool_)
+        if len(u) and len(self.edge_a):
+            _near_binned_edges(u, self.edge_a, self.edge_b, radius, lo, shape, start, ids, out)
+        return out
 
     def locate(self, u) -> np.ndarray:
         """Index of the leaf owning each point (``-1`` in cells without inside voxels)."""

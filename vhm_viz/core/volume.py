@@ -13,8 +13,9 @@ output arrays plus the lattice and one slab's working arrays.
 * **Resample** (:meth:`VolumeDeformation.resample`): the deformed volume on a regular
   grid. Each output voxel ``y`` is pulled back to ``x`` with ``f(x) = y``: the lattice's
   leaves are scattered into the output grid by the boxes of their images, and Newton's
-  method runs on each candidate leaf's polynomial. Where several pre-images exist (a fold)
-  the voxel is flagged. The input is then sampled at ``x`` (nearest, trilinear or cubic).
+  method runs on each candidate leaf's polynomial; pre-images within 1.5 voxels of a cage
+  edge, where the map has a logarithmic singularity, are then polished by Newton's method
+  on the exact map. Where several pre-images exist (a fold) the voxel is flagged. The input is then sampled at ``x`` (nearest, trilinear or cubic).
   As with ``vtkImageReslice``'s default border the input extends half a voxel beyond its
   outer grid points (with the boundary values): each voxel stands for a full cube.
 * **Analysis** (:meth:`VolumeDeformation.jacobians`): ``df/dx`` of every voxel from the
@@ -58,6 +59,18 @@ EXACT_VOXELS = 32768
 # outside flag, one sampled float64 component), and per voxel of a warp slab.
 _RESAMPLE_BYTES = 56
 _WARP_BYTES = 16
+# Pre-images closer than this (voxels) to a cage edge are polished by Newton's method on
+# the exact map: there the map has a logarithmic singularity that no cubic between voxels
+# follows, and a position error e moves a pre-image by e / s_min (s_min: the Jacobian's
+# smallest singular value in voxels). CT head, 500-face automatic cage, 208,841 random
+# output voxels: without polishing 5 pre-images were off by 0.05-0.067 voxel, all within
+# 1.5 voxels of an edge (one at s_min = 0.17, the others within 0.75 voxel); with 1.5 the
+# largest error is 0.033 (at s_min = 0.12, 4.7 voxels from the cage). On the 256^3 embryo
+# this polishes 63,433 pre-images in about 2 s.
+_EXACT_NEAR_EDGE = 1.5
+# Newton on the exact map starts from the lattice's pre-image, a few hundredths of a voxel
+# off: two or three steps converge; more means it left for another branch.
+_EXACT_ITERATIONS = 6
 
 
 @dataclass
@@ -659,6 +672,7 @@ class VolumeDeformation:
             fold = np.zeros(m, dtype=np.uint8)
             lat.pull_back(out_geo, slab, boxes, u, state, fold, np.zeros(m))
             self._confirm_tentative(u, state)
+            self._polish_next_to_edges(out_geo, slab, u, state)
             self._pass_through(out_geo, slab, u, state)
             lo = int((slab[4] - b[4]) * plane)
             yield slice(lo, lo + m), u, state, fold
@@ -672,6 +686,31 @@ class VolumeDeformation:
             cage = self.map.cage
             ins = inside_cage(winding_number(self.geometry.points(u[t]), cage.vertices, cage.faces))
             state[t] = np.where(ins, 1, 0)
+
+    def _polish_next_to_edges(self, out_geo, slab, u, state) -> int:
+        """Pre-images next to a cage edge: Newton's method on the exact map from there.
+
+        Kept where it converges within a voxel of the lattice's pre-image (the same
+        branch of a fold); elsewhere the lattice's pre-image stays. Returns how many were
+        replaced.
+        """
+        rows = np.nonzero(state == 1)[0]
+        if not rows.size:
+            return 0
+        rows = rows[self.lattice.near_cage_edges(u[rows], _EXACT_NEAR_EDGE)]
+        if not rows.size:
+            return 0
+        nx, ny = slab[1] - slab[0] + 1, slab[3] - slab[2] + 1
+        ijk = np.column_stack([rows % nx, (rows // nx) % ny, rows // (nx * ny)]) + slab[0::2]
+        geo = self.geometry
+        x, ok = exact_preimages(
+            self.map, out_geo.points(ijk.astype(np.float64)), geo.points(u[rows]),
+            tolerance=1e-4 * float(np.min(geo.spacing)), max_iterations=_EXACT_ITERATIONS,
+        )  # fmt: skip
+        rows, exact = rows[ok], geo.continuous_index(x[ok])
+        same = np.linalg.norm(exact - u[rows], axis=1) <= 1.0
+        u[rows[same]] = exact[same]
+        return int(same.sum())
 
     def _pass_through(self, out_geo, slab, u, state) -> int:
         """Outside voxels left in place: output voxels outside the cage with no pre-image."""
