@@ -9,11 +9,16 @@ explicit scene, since under MPI the automatic cage is refused), each of
 * ``resample``: VHM Resample To Image (each rank its piece of the output; the lattice is
   built whole on every rank, each rank reads only its input window)
 
-runs in ``pvbatch`` (1 rank) and ``mpiexec -n 2 pvbatch``: the filter's update time (the
-slowest rank's, between barriers) and each rank's peak resident memory (``ru_maxrss`` of
-its own process, ParaView itself included), median and min-max over ``--repeats`` runs,
+runs in ``pvbatch --symmetric`` (1 rank) and ``mpiexec -n 2 pvbatch --symmetric`` (every
+rank runs the script): the filter's update time (the
+slowest rank's, between barriers, from the filter's creation: the resample's information
+pass builds the lattice) and each rank's peak resident memory (``VmHWM`` of its own
+process, ParaView itself included, and the part of it above the resident memory before
+the filter ran: what the filter needs), median and min-max over ``--repeats`` runs,
 after one warm-up run (numba's cache). Ranks run one thread each (as the tests do); the
-serial run uses both cores' threads. The load average is printed: the machine is shared.
+serial run is timed with one thread (the MPI scaling) and with every core's threads
+(numba's default, what a user of serial pvbatch gets). The load average is printed: the
+machine is shared.
 
 Run: ``python benchmarks/bench_paraview.py
 [--repeats 3] [--only head|embryo]`` (from the project root, with the project's venv).
@@ -24,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -35,32 +41,37 @@ from _common import data, print_table, summary
 ROOT = Path(__file__).resolve().parents[1]
 
 SCRIPT = r"""
-import json, resource, sys, time
+import json, sys, time
 import paraview.simple as pvs
-from paraview import servermanager
 from vtkmodules.vtkParallelCore import vtkMultiProcessController as C
+
+def status(key):
+    with open("/proc/self/status") as fh:
+        return [int(ln.split()[1]) / 1024.0 for ln in fh if ln.startswith(key + ":")][0]
 
 cfg = json.load(open(sys.argv[1]))
 ctrl = C.GetGlobalController()
 rank = 0 if ctrl is None else ctrl.GetLocalProcessId()
 img = pvs.OpenDataFile(cfg["input"])
 cage = pvs.OpenDataFile(cfg["cage"])
-flt = getattr(pvs, cfg["filter"])(Input=img, Cage=cage)
-flt.SceneFile = cfg["scene"]
 pvs.UpdatePipeline(proxy=img)
 pvs.UpdatePipeline(proxy=cage)
+before = status("VmRSS")
 if ctrl is not None:
     ctrl.Barrier()
 t0 = time.perf_counter()
+# the filter is made inside the timed span: its information pass (the resample's output
+# grid, which needs the lattice) runs when its properties are set
+flt = getattr(pvs, cfg["filter"])(Input=img, Cage=cage)
+flt.SceneFile = cfg["scene"]
 pvs.UpdatePipeline(proxy=flt)
 if ctrl is not None:
     ctrl.Barrier()
 dt = time.perf_counter() - t0
 n = flt.GetDataInformation().GetNumberOfPoints()
-rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-print(f"bench-rank {rank} seconds {dt:.3f} rss_mb {rss:.0f} points {n}", flush=True)
+print(f"bench-rank {rank} seconds {dt:.3f} rss_mb {status('VmHWM'):.0f} "
+      f"before_mb {before:.0f} points {n}", flush=True)
 """
-
 
 def embryo_scene(folder: Path) -> tuple[Path, Path]:
     """The embryo bend of bench_volume.py as an explicit scene (inline cage) + cage file."""
@@ -81,19 +92,41 @@ def embryo_scene(folder: Path) -> tuple[Path, Path]:
     return scene, cage_path
 
 
-def run_once(cfg: dict, ranks: int, env: dict, folder: Path) -> list[tuple[float, float]]:
+def embryo_vti(folder: Path) -> Path:
+    """The embryo as .vti: ParaView 5.11 has no reader registered for .slc."""
+    path = folder / "embryo.vti"
+    if not path.exists():
+        from vhm_viz.io import read_dataset, write_dataset
+
+        write_dataset(path, read_dataset(data("volumes", "embryo.slc")))
+    return path
+
+
+def run_once(cfg: dict, ranks: int, env: dict, folder: Path, threads: int | None = None):
+    """Each rank's ``(seconds, peak RSS MB)`` of one pvbatch run.
+
+    ``threads``: numba/BLAS threads of a single process (default: all cores); MPI ranks
+    always run one thread each (:func:`~vhm_viz.filters._parallel.mpi_command`).
+    """
     path = folder / "cfg.json"
     path.write_text(json.dumps(cfg))
     script = folder / "bench_pv.py"
     script.write_text(SCRIPT)
     from vhm_viz.filters._parallel import mpi_command
 
-    cmd, env = mpi_command(["pvbatch", str(script), str(path)], ranks, env)
+    # --symmetric: every rank runs the script (without it only rank 0 does, and its
+    # barriers wait forever for the satellites, which serve the pipeline instead)
+    cmd, env = mpi_command(["pvbatch", "--symmetric", str(script), str(path)], ranks, env)
+    if ranks == 1 and threads is not None:
+        env = {**env, "NUMBA_NUM_THREADS": str(threads), "OMP_NUM_THREADS": str(threads),
+               "OPENBLAS_NUM_THREADS": str(threads)}  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
-    lines = [ln.split() for ln in done.stdout.splitlines() if ln.startswith("bench-rank")]
-    if done.returncode != 0 or len(lines) != ranks:
+    # ranks print at once: their lines may run into each other
+    found = re.findall(r"bench-rank (\d+) seconds ([\d.]+) rss_mb (\d+) before_mb (\d+)",
+                       done.stdout)  # fmt: skip
+    if done.returncode != 0 or len(found) != ranks:
         raise RuntimeError(done.stdout[-3000:] + done.stderr[-3000:])
-    return [(float(ln[3]), float(ln[5])) for ln in lines]
+    return [(float(t), float(m), float(m) - float(b)) for _, t, m, b in found]
 
 
 def paraview_env() -> dict:
@@ -125,7 +158,7 @@ def main() -> None:
                          ROOT / "docs/examples/head_cage.obj")  # fmt: skip
     if args.only in (None, "embryo"):
         scene, cage = embryo_scene(folder)
-        cases["embryo"] = (data("volumes", "embryo.slc"), scene, cage)
+        cases["embryo"] = (embryo_vti(folder), scene, cage)
     filters = {"warp": "VHMHarmonicDeformation", "resample": "VHMResampleToImage"}
     rows = []
     loads = [os.getloadavg()[0]]
@@ -134,20 +167,32 @@ def main() -> None:
             cfg = {"input": str(inp), "scene": str(scene), "cage": str(cage),
                    "filter": filters[op]}  # fmt: skip
             res = {}
-            for ranks in (1, 2):
-                run_once(cfg, ranks, env, folder)  # warm-up: numba's cache, file cache
-                runs = [run_once(cfg, ranks, env, folder) for _ in range(args.repeats)]
+            # serial with one thread (what each MPI rank gets), serial with every core's
+            # threads (numba's default), and 2 ranks of one thread each
+            for label, ranks, threads in (("1x1", 1, 1), ("1xN", 1, None), ("2x1", 2, 1)):
+                run_once(cfg, ranks, env, folder, threads)  # warm-up: numba's cache, files
+                runs = [run_once(cfg, ranks, env, folder, threads) for _ in range(args.repeats)]
                 loads.append(os.getloadavg()[0])
-                res[ranks] = (
-                    [max(t for t, _ in r) for r in runs],
-                    [max(m for _, m in r) for r in runs],
+                res[label] = (
+                    [max(t for t, *_ in r) for r in runs],
+                    [max(m for _, m, _ in r) for r in runs],
+                    [max(g for *_, g in r) for r in runs],
+                    [[round(t, 2) for t, *_ in r] for r in runs],
                 )
-            t1, t2 = np.median(res[1][0]), np.median(res[2][0])
-            m1, m2 = np.median(res[1][1]), np.median(res[2][1])
-            rows.append([key, op, summary(res[1][0]), summary(res[2][0]), f"{t1 / t2:.2f}x",
-                         f"{m1:.0f}", f"{m2:.0f}", f"{100 * m2 / m1:.0f}%"])  # fmt: skip
-    print_table(["volume", "operation", "1 rank (s)", "2 ranks (s)", "speed-up",
-                 "peak RSS 1 rank (MB)", "per rank, 2 ranks (MB)", "ratio"], rows)  # fmt: skip
+            t11, t1n, t2 = (np.median(res[k][0]) for k in ("1x1", "1xN", "2x1"))
+            m1, m2 = np.median(res["1x1"][1]), np.median(res["2x1"][1])
+            g1, g2 = np.median(res["1x1"][2]), np.median(res["2x1"][2])
+            rows.append([key, op, summary(res["1x1"][0]), summary(res["1xN"][0]),
+                         summary(res["2x1"][0]), f"{t11 / t2:.2f}x / {t1n / t2:.2f}x",
+                         f"{m1:.0f} / {m2:.0f} ({100 * m2 / m1:.0f}%)",
+                         f"{g1:.0f} / {g2:.0f} ({100 * g2 / g1:.0f}%)"])  # fmt: skip
+            print(f"{key} {op}: seconds per rank of the 2-rank runs {res['2x1'][3]}",
+                  flush=True)
+    print_table(["volume", "operation", "1 rank, 1 thread (s)",
+                 f"1 rank, {os.cpu_count()} threads (s)", "2 ranks, 1 thread each (s)",
+                 "speed-up vs 1 thread / vs all threads",
+                 "peak RSS (MB): 1 rank / per rank of 2",
+                 "of which the filter (MB): 1 rank / per rank of 2"], rows)  # fmt: skip
     print(f"load average (1 min) during the runs: {min(loads):.1f}-{max(loads):.1f} "
           f"on {os.cpu_count()} cores")
 
