@@ -930,7 +930,7 @@ def _shell_cages(cd: _CageData) -> list:
     out = []
     owned = np.zeros(cd.faces.shape[0], dtype=bool)
     groups = []
-    for vids, fids in cd.shells:
+    for _, fids in cd.shells:
         owned[fids] = True
         groups.append((fids, False))
     holes = np.flatnonzero(~owned)

@@ -15,9 +15,10 @@ output arrays plus the lattice and one slab's working arrays.
   leaves are scattered into the output grid by the boxes of their images, and Newton's
   method runs on each candidate leaf's polynomial; pre-images within 1.5 voxels of a cage
   edge, where the map has a logarithmic singularity, are then polished by Newton's method
-  on the exact map. Where several pre-images exist (a fold) the voxel is flagged. The input is then sampled at ``x`` (nearest, trilinear or cubic).
-  As with ``vtkImageReslice``'s default border the input extends half a voxel beyond its
-  outer grid points (with the boundary values): each voxel stands for a full cube.
+  on the exact map. Where several pre-images exist (a fold) the voxel is flagged. The
+  input is then sampled at ``x`` (nearest, trilinear or cubic). As with
+  ``vtkImageReslice``'s default border the input extends half a voxel beyond its outer
+  grid points (with the boundary values): each voxel stands for a full cube.
 * **Analysis** (:meth:`VolumeDeformation.jacobians`): ``df/dx`` of every voxel from the
   lattice's polynomials.
 
