@@ -681,12 +681,7 @@ def _near_edges(cells, h, a, b, band, out):  # pragma: no cover - compiled
                     or min(a[e, 1], b[e, 1]) > cy + reach or max(a[e, 1], b[e, 1]) < cy - reach
                     or min(a[e, 2], b[e, 2]) > cz + reach or max(a[e, 2], b[e, 2]) < cz - reach):
                 continue
-            dx, dy, dz = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1], b[e, 2] - a[e, 2]
-            px, py, pz = cx - a[e, 0], cy - a[e, 1], cz - a[e, 2]
-            ll = dx * dx + dy * dy + dz * dz
-            s = 0.0 if ll == 0.0 else min(1.0, max(0.0, (px * dx + py * dy + pz * dz) / ll))
-            qx, qy, qz = px - s * dx, py - s * dy, pz - s * dz
-            if qx * qx + qy * qy + qz * qz <= reach * reach:
+            if _segment_distance2(cx, cy, cz, a, b, e) <= reach * reach:
                 hit = True
                 break
         out[c] = hit
