@@ -64,11 +64,14 @@ t0 = time.perf_counter()
 # grid, which needs the lattice) runs when its properties are set
 flt = getattr(pvs, cfg["filter"])(Input=img, Cage=cage)
 flt.SceneFile = cfg["scene"]
+# the embryo's cage holds its body only: the voxels around it stay in place (as in
+# bench_volume.py); with the default (Error) the update would stop at the lattice
+flt.OutsidePolicy = "Pass through"
 pvs.UpdatePipeline(proxy=flt)
 if ctrl is not None:
     ctrl.Barrier()
 dt = time.perf_counter() - t0
-n = flt.GetDataInformation().GetNumberOfPoints()
+n = flt.GetDataInformation().GetNumberOfPoints()  # every rank's, gathered
 print(f"bench-rank {rank} seconds {dt:.3f} rss_mb {status('VmHWM'):.0f} "
       f"before_mb {before:.0f} points {n}", flush=True)
 """
@@ -102,6 +105,12 @@ def embryo_vti(folder: Path) -> Path:
     return path
 
 
+def voxel_count(path: Path) -> int:
+    from vhm_viz.io import read_dataset
+
+    return int(read_dataset(path).n_points)
+
+
 def run_once(cfg: dict, ranks: int, env: dict, folder: Path, threads: int | None = None):
     """Each rank's ``(seconds, peak RSS MB)`` of one pvbatch run.
 
@@ -122,10 +131,21 @@ def run_once(cfg: dict, ranks: int, env: dict, folder: Path, threads: int | None
                "OPENBLAS_NUM_THREADS": str(threads)}  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
     # ranks print at once: their lines may run into each other
-    found = re.findall(r"bench-rank (\d+) seconds ([\d.]+) rss_mb (\d+) before_mb (\d+)",
-                       done.stdout)  # fmt: skip
-    if done.returncode != 0 or len(found) != ranks:
+    found = re.findall(
+        r"bench-rank (\d+) seconds ([\d.]+) rss_mb (\d+) before_mb (\d+) points (\d+)",
+        done.stdout,
+    )
+    # a filter error leaves an empty output and pvbatch still exits 0: time only runs
+    # that made the whole output (an error used to be timed as a run)
+    points = {int(n) for *_, n in found}
+    if done.returncode != 0 or len(found) != ranks or len(points) != 1 or 0 in points:
         raise RuntimeError(done.stdout[-3000:] + done.stderr[-3000:])
+    # the same output in every run (per rank count: ParaView's count sums the pieces,
+    # whose shared planes count twice); a warp deforms every voxel
+    n = points.pop()
+    expected = cfg.setdefault(f"points_{ranks}", (ranks == 1 and cfg.get("voxels")) or n)
+    if n != expected:
+        raise RuntimeError(f"{cfg['filter']} made {n} points, not {expected}")
     return [(float(t), float(m), float(m) - float(b)) for _, t, m, b in found]
 
 
@@ -166,6 +186,8 @@ def main() -> None:
         for op in args.ops.split(","):
             cfg = {"input": str(inp), "scene": str(scene), "cage": str(cage),
                    "filter": filters[op]}  # fmt: skip
+            if op == "warp":  # one deformed point per voxel
+                cfg["voxels"] = voxel_count(inp)
             res = {}
             # serial with one thread (what each MPI rank gets), serial with every core's
             # threads (numba's default), and 2 ranks of one thread each
