@@ -703,3 +703,24 @@ def test_progress_events_and_abort():
     # stopped during the binding (progress 0.05 to 0.6), then VTK's closing 1.0
     assert chunks[-1] == 1.0 and 0.2 < max(chunks[:-1]) < 0.6
     assert len(chunks) < len(seen)
+
+
+def test_lattice_exchange_shares_even_out_the_ranks_busy_time():
+    """The MPI ranks' shares of a round's evaluations (filters._parallel._shares)."""
+    from vhm_viz.filters._parallel import _shares
+
+    def header(busy, seconds=1.0, points=1000):
+        return np.array([[1, 10, b, seconds, points] for b in busy], dtype=float)
+
+    # no cost measured yet: equal, the remainder to the first ranks
+    first = np.array([[1, 5, 0, 0, 0], [1, 5, 0, 0, 0], [1, 0, 0, 0, 0]], dtype=float)
+    assert _shares(10, first).tolist() == [4, 3, 3]
+    # equally busy: equal
+    assert _shares(1000, header([2.0, 2.0])).tolist() == [500, 500]
+    # at 1 ms a point, a rank 0.2 s behind takes 200 points fewer; all are dealt
+    assert _shares(1000, header([2.2, 2.0])).tolist() == [400, 600]
+    # one rank far behind: the others take every point
+    assert _shares(1000, header([9.0, 2.0, 2.0])).tolist() == [0, 500, 500]
+    for busy in ([3.0, 1.0, 2.5], [0.1, 0.0, 7.0, 0.3]):
+        share = _shares(777, header(busy))
+        assert share.sum() == 777 and (share >= 0).all()

@@ -346,6 +346,20 @@ def test_volume_warp_in_pieces_equals_serial_equals_python(paraview_env, head_sc
     assert np.abs(expected - img.points).max() > 0.05 * diag  # a real bend
     assert np.abs(np.asarray(mpi.points) - serial).max() <= 1e-9 * diag
     assert np.abs(serial - expected).max() <= 1e-9 * diag
+    _assert_evaluations_shared(pieces, pv.read(tmp_path / "serial.vts"))
+
+
+def _assert_evaluations_shared(pieces, serial):
+    """The ranks built their lattices together: each round's points evaluated once, by
+    one rank, in shares of at least a quarter (field ``vhm_lattice_evaluations``: this
+    rank's evaluations, and the distinct points they were shared among)."""
+    counts = np.array([p.field_data["vhm_lattice_evaluations"] for p in pieces])
+    alone = serial.field_data["vhm_lattice_evaluations"]
+    assert alone[0] == alone[1] > 0
+    assert (counts[:, 1] == counts[0, 1]).all()  # the ranks agree on the points
+    assert counts[:, 0].sum() == counts[0, 1]  # each evaluated once
+    assert counts[:, 0].min() > 0.25 * counts[0, 1]
+    assert alone[1] <= counts[0, 1] <= 1.1 * alone[1]  # (the pieces' shared boundary)
 
 
 @pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
@@ -374,6 +388,10 @@ def test_volume_resample_in_pieces_equals_serial_equals_python(
     assert expected.valid.mean() > 0.3
     for a, values in ref.items():
         np.testing.assert_array_equal(serial.point_data[a], values)
+    # each rank built the whole lattice (pre-images may lie anywhere), evaluating half
+    pieces = [pv.read(f) for f in sorted((tmp_path / "mpi").glob("*.vti"))]
+    _assert_evaluations_shared(pieces, serial)
+    assert pieces[0].field_data["vhm_lattice_evaluations"][1] == vol.lattice.stats["evaluations"]
 
 
 def test_measure_colours_follow_the_one_convention(paraview_env, tmp_path):

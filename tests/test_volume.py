@@ -734,6 +734,147 @@ def test_a_window_of_the_lattice_gives_the_whole_lattices_voxels():
             part.resample({"v": np.zeros(geo.n_points)})
 
 
+class _ThreadExchange:
+    """``build_lattice``'s exchange between builders in threads, as MPI ranks do it.
+
+    Every round the builders post their keys and meet; builder ``r`` evaluates every
+    ``n``-th of the distinct keys from the ``r``-th on; they meet again and each takes its
+    own keys' data. It records what each builder evaluated.
+    """
+
+    def __init__(self, n):
+        import threading
+
+        self.n = n
+        self.meet = threading.Barrier(n, timeout=60)
+        self.keys = [None] * n
+        self.data = [None] * n
+        self.failed = [False] * n
+        self.evaluated = [[] for _ in range(n)]
+
+    def builder(self, r):
+        exchange = self
+
+        class One:
+            def __call__(self, keys, evaluate):
+                exchange.keys[r] = keys
+                exchange.meet.wait()
+                if any(exchange.failed):
+                    raise RuntimeError("another builder failed")
+                distinct = np.unique(np.concatenate(exchange.keys))
+                mine = distinct[r :: exchange.n]
+                try:
+                    exchange.data[r] = (mine, evaluate(mine))
+                except BaseException:
+                    exchange.failed[r] = True
+                    exchange.meet.wait()
+                    raise
+                exchange.evaluated[r].append(mine)
+                exchange.meet.wait()
+                if any(exchange.failed):
+                    raise RuntimeError("another builder failed")
+                f = np.empty((len(distinct), 3))
+                fu = np.empty((len(distinct), 3, 3))
+                ins = np.empty(len(distinct), dtype=bool)
+                for got, (f_s, fu_s, ins_s) in exchange.data:
+                    at = np.searchsorted(distinct, got)
+                    f[at], fu[at], ins[at] = f_s, fu_s, ins_s
+                exchange.meet.wait()  # everyone has read the round's data
+                at = np.searchsorted(distinct, keys)
+                return f[at], fu[at], ins[at]
+
+            def abandon(self):
+                exchange.failed[r] = True
+                exchange.meet.wait()
+
+        return One()
+
+
+def _build_together(hm, geo, windows, **kw):
+    """Build ``VolumeDeformation`` lattices of ``windows`` in threads that share evaluations."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    exchange = _ThreadExchange(len(windows))
+    engines = [VolumeDeformation(hm, geo, outside="passthrough", window=w,
+                                 exchange=exchange.builder(r), **kw)
+               for r, w in enumerate(windows)]  # fmt: skip
+    with ThreadPoolExecutor(len(windows)) as pool:
+        done = [pool.submit(e.build) for e in engines]
+        errors = [f.exception(timeout=120) for f in done]
+    return engines, exchange, errors
+
+
+def test_builders_sharing_evaluations_build_the_serial_lattice():
+    """Two builders (MPI ranks) sharing their exact evaluations: each point is evaluated
+    once, by one of them, and each gets the lattice a builder alone makes, bit for bit --
+    two halves of the grid (the warp's pieces) and the whole grid twice (the resample's)."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
+    hm = _random_bend(_cage_around((0, 0, 0), (43, 39, 82.8), 0.03), 0.004, seed=2)
+    alone = VolumeDeformation(hm, geo, outside="passthrough")
+    halves = ([0, 43, 0, 39, 0, 34], [0, 43, 0, 39, 34, 69])
+    for windows in (halves, (None, None)):
+        engines, exchange, errors = _build_together(hm, geo, windows)
+        assert errors == [None, None]
+        for rounds in zip(*exchange.evaluated, strict=True):  # each round: a point once
+            both = np.concatenate(rounds)
+            assert len(np.unique(both)) == len(both)
+        evaluated = [np.concatenate(e) for e in exchange.evaluated]
+        both = np.concatenate(evaluated)
+        # shared about equally (interleaved shares of each round)
+        assert min(map(len, evaluated)) > 0.45 * len(both)
+        if windows is halves:  # the points both need in the same round: evaluated once
+            apart = [VolumeDeformation(hm, geo, outside="passthrough", window=w).lattice
+                     for w in windows]  # fmt: skip
+            assert len(both) < sum(a.stats["evaluations"] for a in apart)
+        for engine, window in zip(engines, windows, strict=True):
+            if window is None:  # the whole lattice: the same data, in the same rows
+                for name in ("data", "leaf_origin", "leaf_rows", "centre_f"):
+                    np.testing.assert_array_equal(
+                        getattr(engine.lattice, name), getattr(alone.lattice, name)
+                    )
+                continue
+            own = VolumeDeformation(hm, geo, outside="passthrough", window=window)
+            np.testing.assert_array_equal(engine.warp(), own.warp())
+            np.testing.assert_array_equal(engine.lattice.data, own.lattice.data)
+    # the whole lattice built twice together: its points evaluated once between them
+    assert len(both) == alone.lattice.stats["evaluations"]
+
+
+def test_a_builder_failing_stops_the_builders_sharing_with_it():
+    """An abort on one builder: every builder raises, none waits for the others."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
+    hm = _random_bend(_cage_around((0, 0, 0), (43, 39, 82.8), 0.03), 0.004, seed=2)
+    calls = []
+
+    def abort():  # the second builder aborts in its third chunk of evaluations
+        calls.append(1)
+        return len(calls) > 4
+
+    exchange = _ThreadExchange(2)
+    engines = [
+        VolumeDeformation(hm, geo, outside="passthrough", exchange=exchange.builder(0)),
+        VolumeDeformation(hm, geo, outside="passthrough", exchange=exchange.builder(1)),
+    ]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        done = [pool.submit(engines[0].build), pool.submit(engines[1].build, abort=abort)]
+        errors = [f.exception(timeout=120) for f in done]
+    assert isinstance(errors[1], AbortedError)
+    assert isinstance(errors[0], RuntimeError) and "another builder" in str(errors[0])
+    # failing between two rounds (here before the first): the others hear of it there
+    from vhm_viz.core.lattice import build_lattice
+
+    exchange = _ThreadExchange(2)
+    with ThreadPoolExecutor(2) as pool:
+        good = pool.submit(build_lattice, hm, geo, exchange=exchange.builder(0))
+        bad = pool.submit(build_lattice, hm, geo, window=[0, 99, 0, 9, 0, 9],
+                          exchange=exchange.builder(1))  # fmt: skip
+        errors = [good.exception(timeout=120), bad.exception(timeout=120)]
+    assert isinstance(errors[1], ValueError) and "not inside the grid" in str(errors[1])
+    assert isinstance(errors[0], RuntimeError) and "another builder" in str(errors[0])
+
+
 def test_resample_pieces_read_only_the_window_their_preimages_reach(tmp_path):
     """Streamed in 4 pieces from a reader, each piece reads only a window of the volume,
     holding its pre-images, and the pieces equal the whole."""

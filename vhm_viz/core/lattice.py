@@ -58,8 +58,9 @@ import numpy as np
 from vhm_viz.core.basis import chunk_rows, evaluate_map, inside_cage
 from vhm_viz.core.errors import AbortedError
 from vhm_viz.core.image import BORDER, ImageGeometry, inside_mask, surface_mask
+from vhm_viz.core.memory import release_free_memory
 
-__all__ = ["HermiteLattice", "build_lattice", "DEFAULT_ROOT"]
+__all__ = ["HermiteLattice", "build_lattice", "exchange_rounds", "DEFAULT_ROOT"]
 
 #: Root cell size in voxels (a power of two).
 DEFAULT_ROOT = 16
@@ -514,6 +515,10 @@ class _NodeTable:
 
     def __init__(self, dims):
         self.dims = np.asarray(dims, dtype=np.int64)  # lattice points per axis
+        self.clear()
+
+    def clear(self) -> None:
+        """Forget every node."""
         self.keys = np.zeros(0, dtype=np.int64)
         self.f = np.zeros((0, 3))
         self.fu = np.zeros((0, 3, 3))
@@ -579,64 +584,73 @@ def _level_data(table: _NodeTable, keys: np.ndarray, h: int) -> np.ndarray:
     window and the whole grid next to a root cell's border.
     """
     rows = table.find(keys)
-    ijk = table.ijk(keys)
-    top = table.dims - 1
     out = np.empty((len(keys), _N_TERMS, 3))
     out[:, 0] = table.f[rows]
     out[:, 1:4] = np.swapaxes(table.fu[rows], 1, 2)
+    # the nodes whose twists are read: the level's and their neighbours along the axes
+    # (f_uvw differences the twists of those), each looked up once
+    near = _axis_neighbours(table, rows, h)
+    around = np.unique(np.concatenate([rows, near[near >= 0]]))
+    slot = np.full(len(table.keys), -1, dtype=np.int64)
+    slot[around] = np.arange(len(around))
+    twists = _twists(table, around, _axis_neighbours(table, around, h), h)
+    here = slot[rows]
+    out[:, 4:7] = twists[here]
+    # f_uvw: differences along the third axis of each twist, averaged over the three
+    third = np.zeros((len(rows), 3))
+    for axis, pair in ((2, 0), (1, 1), (0, 2)):  # twist (0, 1) along w, ...
+        at = twists[:, pair]
+        third += _difference(at, here, _slot_of(slot, near[:, axis, 0]),
+                             _slot_of(slot, near[:, axis, 1]), h)  # fmt: skip
+    out[:, 7] = third / 3.0
+    return out
 
-    def shifted(base, axis, sign):
-        n = base.copy()
-        n[:, axis] += sign * h
-        ok = (n[:, axis] >= 0) & (n[:, axis] <= top[axis])
-        return np.where(ok, table.find(table.key(np.where(ok[:, None], n, 0))), -1)
 
-    def derivative(base, axis, values_at):
-        """d/du_axis of ``values_at(rows)`` at the points ``base`` (central where possible)."""
-        p, m = shifted(base, axis, 1), shifted(base, axis, -1)
-        here = table.find(table.key(base))
-        both = (p >= 0) & (m >= 0)
-        fwd = (p >= 0) & ~both
-        bwd = (m >= 0) & ~both
-        d = np.zeros((len(base), 3))
-        d[both] = (values_at(p[both]) - values_at(m[both])) / (2.0 * h)
-        d[fwd] = (values_at(p[fwd]) - values_at(here[fwd])) / h
-        d[bwd] = (values_at(here[bwd]) - values_at(m[bwd])) / h
-        return d
+def _slot_of(slot, rows):
+    """Positions in ``slot``'s numbering of table rows (-1 stays -1)."""
+    return np.where(rows >= 0, slot[np.maximum(rows, 0)], -1)
 
-    def fu(a):
-        return lambda r: table.fu[r][:, :, a]
 
-    def twist(base, a, b):
-        return 0.5 * (derivative(base, b, fu(a)) + derivative(base, a, fu(b)))
+def _axis_neighbours(table: _NodeTable, rows: np.ndarray, h: int) -> np.ndarray:
+    """Table rows ``(P, 3, 2)`` of the nodes ``+-h`` along each axis (-1: none there)."""
+    ijk = table.ijk(table.keys[rows])
+    top = table.dims - 1
+    out = np.full((len(rows), 3, 2), -1, dtype=np.int64)
+    for axis in range(3):
+        for side, sign in ((0, 1), (1, -1)):
+            n = ijk.copy()
+            n[:, axis] += sign * h
+            ok = (n[:, axis] >= 0) & (n[:, axis] <= top[axis])
+            out[ok, axis, side] = table.find(table.key(n[ok]))
+    return out
 
-    for (a, b), slot in (((0, 1), 4), ((0, 2), 5), ((1, 2), 6)):
-        out[:, slot] = twist(ijk, a, b)
 
-    # f_uvw: differences of the twists of the neighbours (which need their neighbours:
-    # twists at +-h of a node use points up to 2h away along two axes)
-    def twist_at(rows_ijk, a, b):
-        return twist(rows_ijk, a, b)
+def _difference(values, here, plus, minus, h):
+    """d/du of ``values`` at ``here`` from its neighbours: central, one-sided, else 0.
 
-    def third(axis, a, b):
-        p, m = ijk.copy(), ijk.copy()
-        p[:, axis] += h
-        m[:, axis] -= h
-        # neighbours inside the lattice and evaluated (all of them for h > 1)
-        okp = (p[:, axis] <= top[axis]) & (table.find(table.key(np.minimum(p, top))) >= 0)
-        okm = (m[:, axis] >= 0) & (table.find(table.key(np.maximum(m, 0))) >= 0)
-        both, fwd, bwd = okp & okm, okp & ~okm, okm & ~okp
-        d = np.zeros((len(ijk), 3))
-        t0 = out[:, {(0, 1): 4, (0, 2): 5, (1, 2): 6}[(a, b)]]
-        if both.any():
-            d[both] = (twist_at(p[both], a, b) - twist_at(m[both], a, b)) / (2.0 * h)
-        if fwd.any():
-            d[fwd] = (twist_at(p[fwd], a, b) - t0[fwd]) / h
-        if bwd.any():
-            d[bwd] = (t0[bwd] - twist_at(m[bwd], a, b)) / h
-        return d
+    ``here``, ``plus``, ``minus``: rows of ``values`` (-1: no neighbour on that side).
+    """
+    d = np.zeros((len(here),) + values.shape[1:])
+    both = (plus >= 0) & (minus >= 0)
+    fwd = (plus >= 0) & ~both
+    bwd = (minus >= 0) & ~both
+    d[both] = (values[plus[both]] - values[minus[both]]) / (2.0 * h)
+    d[fwd] = (values[plus[fwd]] - values[here[fwd]]) / h
+    d[bwd] = (values[here[bwd]] - values[minus[bwd]]) / h
+    return d
 
-    out[:, 7] = (third(2, 0, 1) + third(1, 0, 2) + third(0, 1, 2)) / 3.0
+
+def _twists(table: _NodeTable, rows: np.ndarray, near: np.ndarray, h: int) -> np.ndarray:
+    """Symmetrised mixed derivatives ``(P, 3, 3)`` (pairs uv, uw, vw) at table rows.
+
+    ``(d/du_b f_u_a + d/du_a f_u_b) / 2`` by :func:`_difference` of the exact Jacobians
+    at the neighbours ``near`` (:func:`_axis_neighbours`).
+    """
+    out = np.empty((len(rows), 3, 3))
+    for pair, (a, b) in enumerate(((0, 1), (0, 2), (1, 2))):
+        d_b = _difference(table.fu[:, :, a], rows, near[:, b, 0], near[:, b, 1], h)
+        d_a = _difference(table.fu[:, :, b], rows, near[:, a, 0], near[:, a, 1], h)
+        out[:, pair] = 0.5 * (d_b + d_a)
     return out
 
 
@@ -813,6 +827,7 @@ def build_lattice(
     progress=None,
     abort=None,
     window=None,
+    exchange=None,
 ) -> HermiteLattice:
     """Build the adaptive Hermite lattice of a map over an image grid.
 
@@ -837,7 +852,19 @@ def build_lattice(
         node's data depends on its position alone, so each root cell's subtree -- and
         every voxel of the window -- is the same as in the whole grid's lattice (to
         rounding: the exact evaluations run in other chunks). For pieces of a volume
-        (MPI ranks, streaming): each builds only its own part.
+        (MPI ranks, streaming): each builds only its own part. Within those root cells
+        only the cells that own a voxel of the box are refined.
+    exchange : callable(keys, evaluate) -> (f, fu, inside), optional
+        How the exact evaluations are shared by builders working together (MPI ranks):
+        called with the keys (int64, sorted; a key names the same lattice point on every
+        builder of the grid) of the points whose data this builder needs, and
+        ``evaluate``, which computes the data of any keys here; it returns this builder's
+        keys' data, computed wherever it likes (each point's data depends on the point
+        alone).
+        A collective: it is called exactly :func:`exchange_rounds` ``(root)`` times, in
+        the same order on every builder, with zero points where a builder needs none. If
+        it has an ``abandon()`` method, that is called when the build fails between two
+        calls, so that the others are not left waiting. Default: ``evaluate(points)``.
 
     Returns
     -------
@@ -854,7 +881,6 @@ def build_lattice(
     n_root = np.maximum(1, -(-last // root))  # root cells per axis
     lattice_dims = n_root * root + 1
     to_index = geometry.index_to_world
-    to_voxel = np.ascontiguousarray(geometry.world_to_index)
     cage = harmonic_map.cage
     V = np.asarray(cage.vertices, dtype=np.float64)
     Fc = np.asarray(cage.faces)
@@ -867,17 +893,77 @@ def build_lattice(
     n_eval = np.zeros(2, dtype=np.int64)  # inside, outside (continued)
     edge_a, edge_b = _cage_edges_in_index(lat_geo, cage)
 
+    def evaluate(keys):
+        points = lat_geo.points(table.ijk(keys).astype(np.float64))
+        return _exact_data(harmonic_map, points, to_index, shells, memory_budget, abort)
+
+    rounds, in_round = [0], [False]
+
     def ensure(ijk):
         keys = np.unique(table.key(ijk.reshape(-1, 3)))
         new = keys[table.find(keys) < 0]
-        if new.size:
-            pts = lat_geo.points(table.ijk(new).astype(np.float64))
-            f, fu, ins = _exact_data(harmonic_map, pts, to_index, shells, memory_budget, abort)
+        if new.size or exchange is not None:
+            if exchange is None:
+                f, fu, ins = evaluate(new)
+            else:
+                in_round[0] = True  # a round that raises has been agreed by everyone
+                f, fu, ins = exchange(new, evaluate)
+                in_round[0] = False
+                rounds[0] += 1
+            if not new.size:
+                return
             table.add(new, f, fu, ins)
             n_eval[0] += ins.sum()
             n_eval[1] += (~ins).sum()
 
+    try:
+        lattice = _build_levels(
+            ensure, table, harmonic_map, geometry, lat_geo, tolerance, root, last, n_root,
+            mask, near, (edge_a, edge_b), window, None if exchange is not None else abort,
+            progress,
+        )  # fmt: skip
+        # builders working together meet the same number of times
+        for _ in range(exchange_rounds(root) - rounds[0] if exchange is not None else 0):
+            ensure(np.zeros((0, 3), dtype=np.int64))
+    except BaseException:
+        # failed between two rounds: the others are waiting in the next one
+        if not in_round[0] and rounds[0] < exchange_rounds(root) and hasattr(
+            exchange, "abandon"
+        ):
+            exchange.abandon()
+        raise
+    release_free_memory()
+    lattice.stats.update(
+        evaluations=int(n_eval.sum()),
+        evaluations_outside=int(n_eval[1]),
+        seconds=time.perf_counter() - t0,
+    )
+    if progress is not None:
+        progress(1.0, "lattice")
+    return lattice
+
+
+def exchange_rounds(root: int) -> int:
+    """How many times :func:`build_lattice` calls its ``exchange`` for a root cell size.
+
+    Two per level with cells larger than a voxel (their corners and test points, then the
+    points the twists read), one for single-voxel cells.
+    """
+    return 2 * int(math.log2(int(root))) + 1
+
+
+def _build_levels(
+    ensure, table, harmonic_map, geometry, lat_geo, tolerance, root, last, n_root, mask,
+    near, edges, window, abort, progress,
+):  # fmt: skip
+    """The level loop of :func:`build_lattice`: refine cells until they fit the map."""
+    V = np.asarray(harmonic_map.cage.vertices, dtype=np.float64)
+    Fc = np.asarray(harmonic_map.cage.faces)
+    to_voxel = np.ascontiguousarray(geometry.world_to_index)
+    edge_a, edge_b = edges
+    end = n_root * root
     lo_root, hi_root = np.zeros(3, dtype=np.int64), n_root - 1
+    w = None
     if window is not None:
         w = np.asarray(window, dtype=np.int64).reshape(6)
         if (w[0::2] < 0).any() or (w[1::2] > last).any() or (w[1::2] < w[0::2]).any():
@@ -896,6 +982,10 @@ def build_lattice(
     while len(cells):
         if abort is not None and abort():
             raise AbortedError("aborted")
+        if w is not None and h < root:
+            # only cells that own a voxel of the window matter (each cell's refinement is
+            # its own: the window's leaves are the whole lattice's)
+            cells = cells[_owns_voxel_of(cells, h, end, w)]
         # only cells with a voxel inside the cage matter
         counts = np.zeros((len(cells), 3), dtype=np.int64)
         _count_inside(mask, near, cells, h, last, counts)
@@ -938,23 +1028,28 @@ def build_lattice(
             break
         cells = (cells[split][:, None, :] + _CORNERS[None] * (h // 2)).reshape(-1, 3)
         h //= 2
-    lattice = _assemble(
-        leaves, level_data, n_root, root, geometry, tolerance, mask, near, (edge_a, edge_b)
-    )
-    lattice.stats.update(
-        evaluations=int(n_eval.sum()),
-        evaluations_outside=int(n_eval[1]),
-        seconds=time.perf_counter() - t0,
-    )
-    if progress is not None:
-        progress(1.0, "lattice")
-    return lattice
+    # the levels hold their own copies of the node data: hand the table's memory back
+    # before the levels are packed
+    table.clear()
+    release_free_memory()
+    return _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask, near, edges)
+
+
+def _owns_voxel_of(cells, h, end, box) -> np.ndarray:
+    """Which cells of size ``h`` own a voxel of ``box`` (as :func:`_owned_range` counts)."""
+    far = cells + h - 1 + (cells + h == end)  # the lattice's far end: the last cell's
+    return np.all((cells <= box[1::2]) & (far >= box[0::2]), axis=1)
 
 
 def _assemble(leaves, level_data, n_root, root, geometry, tolerance, mask, near, edges):
     """Pack the levels into one data table and the leaves, grouped by root cell."""
     starts = np.cumsum([0] + [len(d) for d in level_data])
-    data = np.concatenate(level_data) if level_data else np.zeros((0, _N_TERMS, 3))
+    # packed level by level, each level freed once copied: the peak is the packed table
+    # plus one level, not twice the table
+    data = np.empty((int(starts[-1]), _N_TERMS, 3))
+    for lv in range(len(level_data)):
+        data[starts[lv] : starts[lv + 1]] = level_data[lv]
+        level_data[lv] = None
     origin = np.concatenate([c for c, *_ in leaves] or [np.zeros((0, 3), np.int64)])
     size = np.concatenate([np.full(len(c), s, np.int64) for c, s, *_ in leaves] or [[]])
     rows = np.concatenate(

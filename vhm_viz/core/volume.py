@@ -165,6 +165,10 @@ class VolumeDeformation:
         voxels only, aligned with the whole grid, so those voxels get the same values as
         with the whole lattice (to rounding). Resampling and :meth:`output_geometry` need
         the whole lattice (pre-images may lie anywhere): they refuse a window.
+    exchange : callable, optional
+        How the lattice's exact evaluations are shared with other builders (MPI ranks
+        that build their windows, or the whole lattice, together): see
+        :func:`~vhm_viz.core.lattice.build_lattice`. The values do not depend on it.
 
     Notes
     -----
@@ -182,8 +186,10 @@ class VolumeDeformation:
         memory_budget: int | None = None,
         root: int | None = None,
         window=None,
+        exchange=None,
     ):
         self.map = harmonic_map
+        self.exchange = exchange
         self.geometry = geometry
         self.tolerance = float(tolerance)
         if not (math.isfinite(self.tolerance) and self.tolerance > 0):
@@ -222,6 +228,7 @@ class VolumeDeformation:
                 progress=progress,
                 abort=abort,
                 window=None if self.window is None else self.window.tolist(),
+                exchange=self.exchange,
             )
         return self._lattice
 

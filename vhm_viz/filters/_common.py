@@ -32,6 +32,7 @@ from vhm_viz.core.binding import bind_map, check_outside_policy
 from vhm_viz.core.errors import AbortedError
 from vhm_viz.core.image import ImageGeometry
 from vhm_viz.core.limits import check_setting
+from vhm_viz.core.memory import release_free_memory
 from vhm_viz.core.volume import DEFAULT_TOLERANCE, VolumeDeformation
 from vhm_viz.filters import _parallel
 
@@ -595,6 +596,8 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 self._deformer = self._scene.build(data=mesh, cage=cage)
                 self._derived_key = key
                 self.solve_reports.extend(self._scene.solve(self._deformer, **self._solver))
+                # the build's transient basis matrices: before the data's own allocations
+                release_free_memory()
         elif self._parallel_reporting:
             raise RuntimeError("set SceneFile (a vhm_viz scene JSON)")
         else:
@@ -661,6 +664,10 @@ class DeformationSource(VTKPythonAlgorithmBase):
         )
         if key != self._volume_key or self._volume_engine is None:
             self._volume_engine = None  # free the old lattice first
+            release_free_memory()
+            # under MPI (ParaView) the ranks build their lattices together, each point
+            # evaluated once, in equal shares: the ranks update in step there
+            together = self._parallel_reporting and _parallel.process_count() > 1
             self._volume_engine = VolumeDeformation(
                 hm,
                 geometry,
@@ -668,9 +675,26 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 outside=outside,
                 memory_budget=self._memory_budget,
                 window=window,
+                exchange=_parallel.LatticeExchange() if together else None,
             )
             self._volume_key = key
         return self._volume_engine
+
+    @staticmethod
+    def _add_lattice_counts(out, vol) -> None:
+        """Field array ``vhm_lattice_evaluations`` of the volume's lattice build.
+
+        The exact evaluations made by this process, and the distinct points they were
+        shared among: the same two numbers without MPI; under MPI each rank's piece has
+        its own share.
+        """
+        exchange = vol.exchange
+        n = int(vol.lattice.stats["evaluations"])
+        here, among = (n, n) if exchange is None else (exchange.evaluated, exchange.distinct)
+        counts = ns.numpy_to_vtk(np.array([here, among], dtype=np.int64), deep=1)
+        counts.SetName("vhm_lattice_evaluations")
+        out.GetFieldData().RemoveArray(counts.GetName())
+        out.GetFieldData().AddArray(counts)
 
     def _progress(self, lo: float, hi: float):
         def cb(fraction, _message=""):

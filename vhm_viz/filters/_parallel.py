@@ -10,7 +10,12 @@ With one process (or without VTK's parallel module) every function here is a no-
 
 from __future__ import annotations
 
+import time
+
+import numpy as np
+
 __all__ = [
+    "LatticeExchange",
     "process_count",
     "rank",
     "all_ranks",
@@ -87,3 +92,143 @@ def min_max_over_ranks(value: int) -> tuple[int, int]:
     lo = _all_reduce([int(value)], "min")[0]
     hi = _all_reduce([int(value)], "max")[0]
     return lo, hi
+
+
+def _all_gather(values) -> np.ndarray:
+    """Every rank's float64 ``values``, concatenated in rank order (a collective)."""
+    from vtkmodules.util import numpy_support as ns
+    from vtkmodules.vtkCommonCore import vtkDoubleArray
+
+    send = ns.numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64).ravel(), deep=1)
+    receive = vtkDoubleArray()
+    _controller().AllGatherV(send, receive)
+    return ns.vtk_to_numpy(receive).copy() if receive.GetNumberOfTuples() else np.zeros(0)
+
+
+class LatticeExchange:
+    """Exact evaluations of a lattice build shared by the MPI ranks, once each.
+
+    The ``exchange`` of :func:`~vhm_viz.core.lattice.build_lattice`. Each round gathers
+    the lattice points (keys) every rank needs and drops the duplicates -- the same point
+    in two ranks' windows, or every point when each rank builds the whole lattice -- so
+    that each is evaluated once, by one rank; then it gathers the results. A point's data
+    depends on the point alone, so each rank gets the values a serial build computes, bit
+    for bit, whoever evaluated them.
+
+    **Shares.** The ranks' other work between rounds differs (a rank whose window holds
+    more of the cage refines more cells), and a rank that is behind would keep the others
+    waiting at the next round. So each round's points go to the ranks in proportion to
+    what evens out their busy time so far (measured, excluding the waits), at the exact
+    evaluations' measured cost per point; the first round splits them equally. Which
+    rank evaluates a point never changes its value. Points are dealt in a hashed order,
+    so that each share mixes points inside and outside the cage (which cost differently).
+
+    **Errors.** An error on one rank (an abort, memory) is agreed in the round it happens,
+    or in the next one (:meth:`abandon`, when the build failed between rounds): every rank
+    raises and none waits for the others. With one process every call evaluates locally.
+    """
+
+    def __init__(self):
+        self._over = False  # a failure every rank has seen: no more rounds
+        self._busy = 0.0  # seconds of work since the build began, waits excluded
+        self._left_at = None  # when this rank left the last round
+        self._seconds = 0.0  # exact evaluations here: seconds and points, for the cost
+        self._points = 0
+        #: Points this rank evaluated, and the distinct points of all rounds.
+        self.evaluated = 0
+        self.distinct = 0
+
+    def __call__(self, keys, evaluate):
+        if _controller() is None:
+            return evaluate(keys)
+        now = time.perf_counter()
+        if self._left_at is not None:
+            self._busy += now - self._left_at
+        keys = np.ascontiguousarray(keys, dtype=np.int64).ravel()
+        header = _all_gather(
+            [1.0, float(len(keys)), self._busy, self._seconds, float(self._points)]
+        ).reshape(-1, 5)
+        failed = np.nonzero(header[:, 0] == 0)[0]
+        if failed.size:
+            self._over = True
+            raise RuntimeError(f"rank {int(failed[0])} failed while building the lattice")
+        counts = header[:, 1].astype(np.int64)
+        if not counts.any():
+            self._left_at = time.perf_counter()
+            return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, dtype=bool)
+        me = rank()
+        # keys are below 2**53: exact as float64
+        everyone = _all_gather(keys.astype(np.float64)).astype(np.int64)
+        distinct, inverse = np.unique(everyone, return_inverse=True)
+        inverse = inverse.ravel()
+        order = np.argsort(_scramble(distinct), kind="stable")
+        bounds = np.concatenate([[0], np.cumsum(_shares(len(distinct), header))])
+        error = None
+        try:
+            t0 = time.perf_counter()
+            mine = order[bounds[me] : bounds[me + 1]]
+            f, fu, inside = evaluate(distinct[mine])
+            self._seconds += time.perf_counter() - t0
+            self._points += len(mine)
+            payload = np.concatenate([[1.0], np.column_stack(
+                [f, fu.reshape(-1, 9), inside.astype(np.float64)]).ravel()])  # fmt: skip
+        except BaseException as exc:  # noqa: BLE001 -- agreed below, then re-raised
+            error, payload = exc, np.zeros(1)
+        self._busy += time.perf_counter() - t0
+        gathered = _all_gather(payload)
+        results = np.empty((len(distinct), 13))
+        pos, bad = 0, []
+        for r in range(len(counts)):
+            share = order[bounds[r] : bounds[r + 1]]
+            if gathered[pos] == 0:
+                bad.append(r)
+                pos += 1
+                continue
+            results[share] = gathered[pos + 1 : pos + 1 + 13 * len(share)].reshape(-1, 13)
+            pos += 1 + 13 * len(share)
+        if bad:
+            self._over = True
+            if error is not None:
+                raise error
+            raise RuntimeError(f"rank {bad[0]} failed while building the lattice")
+        self.evaluated += int(bounds[me + 1] - bounds[me])
+        self.distinct += len(distinct)
+        start = int(counts[:me].sum())
+        own = results[inverse[start : start + len(keys)]]
+        self._left_at = time.perf_counter()
+        return own[:, :3], own[:, 3:12].reshape(-1, 3, 3), own[:, 12] > 0.5
+
+    def abandon(self) -> None:
+        """Tell the other ranks, in the next round, that this rank's build failed."""
+        if self._over or _controller() is None:
+            return
+        self._over = True
+        _all_gather([0.0, 0.0, 0.0, 0.0, 0.0])
+
+
+def _scramble(keys: np.ndarray) -> np.ndarray:
+    """A fixed pseudo-random order key of lattice keys (Fibonacci hashing)."""
+    return keys.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+
+
+def _shares(n: int, header: np.ndarray) -> np.ndarray:
+    """Points per rank that even out the ranks' busy seconds (see :class:`LatticeExchange`).
+
+    ``header`` rows: status, own points, busy seconds, seconds and points evaluated so far.
+    The same on every rank (gathered), so every rank computes the same shares.
+    """
+    n_ranks = len(header)
+    equal = np.full(n_ranks, n // n_ranks) + (np.arange(n_ranks) < n % n_ranks)
+    seconds, points = header[:, 3].sum(), header[:, 4].sum()
+    if points <= 0 or seconds <= 0:
+        return equal
+    cost = seconds / points  # per point
+    busy = header[:, 2]
+    target = (busy.sum() + n * cost) / n_ranks  # everyone's busy time after this round
+    want = np.clip((target - busy) / cost, 0.0, None)
+    if want.sum() <= 0:
+        return equal
+    scaled = want * (n / want.sum())
+    share = np.floor(scaled).astype(np.int64)
+    share[np.argsort(-(scaled - share), kind="stable")[: n - share.sum()]] += 1
+    return share

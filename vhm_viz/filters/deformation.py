@@ -315,6 +315,7 @@ class HarmonicDeformationFilter(DeformationSource):
                 _set_array(pd, pnormals.GetName() or "Normals", normals, normals=True)
         if self._displacement:
             _set_array(pd, "displacement", points - vol.geometry.sub(box).points())
+        self._add_lattice_counts(out, vol)
         self._finish(out, ~inside)
         return 1
 

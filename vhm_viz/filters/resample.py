@@ -225,6 +225,7 @@ class HarmonicResampleFilter(DeformationSource):
             abort=self._aborted,
         )
         self.stats = dict(res.counts)
+        self._add_lattice_counts(out, vol)
         for name, values in res.arrays.items():
             new = ns.numpy_to_vtk(values, deep=0, array_type=types[name])
             new.SetName(name)
