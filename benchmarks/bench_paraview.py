@@ -62,11 +62,11 @@ if ctrl is not None:
 t0 = time.perf_counter()
 # the filter is made inside the timed span: its information pass (the resample's output
 # grid, which needs the lattice) runs when its properties are set
-flt = getattr(pvs, cfg["filter"])(Input=img, Cage=cage)
-flt.SceneFile = cfg["scene"]
-# the embryo's cage holds its body only: the voxels around it stay in place (as in
-# bench_volume.py); with the default (Error) the update would stop at the lattice
-flt.OutsidePolicy = "Pass through"
+# every property at creation, as the GUI's Apply does (set one by one, each would run
+# the information pass). The embryo's cage holds its body only: the voxels around it stay
+# in place (as in bench_volume.py); with the default (Error) the update would stop
+flt = getattr(pvs, cfg["filter"])(Input=img, Cage=cage, SceneFile=cfg["scene"],
+                                  OutsidePolicy="Pass through")
 pvs.UpdatePipeline(proxy=flt)
 if ctrl is not None:
     ctrl.Barrier()

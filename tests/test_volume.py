@@ -875,6 +875,22 @@ def test_a_builder_failing_stops_the_builders_sharing_with_it():
     assert isinstance(errors[0], RuntimeError) and "another builder" in str(errors[0])
 
 
+def test_another_outside_policy_shares_the_lattice():
+    """Changing the outside policy keeps the lattice (ParaView sets properties one by one,
+    each with an information pass): the other policy's results, no second build."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (40, 36, 34))
+    hm = _random_bend(_cage_around((4, 4, 4), (30, 28, 26), 0.0), 0.004, seed=5)
+    kept = VolumeDeformation(hm, geo, outside="passthrough")
+    kept.build()
+    other = kept.with_outside("nan")
+    assert other.lattice is kept.lattice and other.outside == "nan"
+    fresh = VolumeDeformation(hm, geo, outside="nan").warp()
+    np.testing.assert_array_equal(other.warp(), fresh)
+    assert np.isnan(fresh).any() and not np.isnan(kept.warp()).any()
+    with pytest.raises(OutsideCageError):
+        kept.with_outside("error").warp()
+
+
 def test_resample_pieces_read_only_the_window_their_preimages_reach(tmp_path):
     """Streamed in 4 pieces from a reader, each piece reads only a window of the volume,
     holding its pre-images, and the pieces equal the whole."""

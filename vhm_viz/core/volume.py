@@ -232,6 +232,21 @@ class VolumeDeformation:
             )
         return self._lattice
 
+    def with_outside(self, outside: str) -> VolumeDeformation:
+        """The same engine with another outside policy, sharing the lattice (built or not).
+
+        The lattice covers the voxels inside the cage whatever the policy; only what
+        happens to the others changes.
+        """
+        other = VolumeDeformation(
+            self.map, self.geometry, tolerance=self.tolerance, outside=outside,
+            memory_budget=self.memory_budget, root=self.root,
+            window=None if self.window is None else self.window.tolist(),
+            exchange=self.exchange,
+        )  # fmt: skip
+        other._lattice = self._lattice
+        return other
+
     def _in_window(self, box) -> np.ndarray:
         """``box`` validated, and inside the window this engine was built for."""
         b = _box_of(self.geometry, box)

@@ -658,11 +658,15 @@ class DeformationSource(VTKPythonAlgorithmBase):
             tuple(geometry.spacing),
             tuple(geometry.direction.ravel()),
             self._tolerance,
-            outside,
             self._memory_budget,
             None if window is None else tuple(int(v) for v in window),
         )
-        if key != self._volume_key or self._volume_engine is None:
+        if self._volume_engine is not None and key == self._volume_key:
+            if self._volume_engine.outside != outside:
+                # the lattice does not depend on the policy: ParaView pushes properties one
+                # by one, each with an information pass, and would otherwise build it again
+                self._volume_engine = self._volume_engine.with_outside(outside)
+        else:
             self._volume_engine = None  # free the old lattice first
             release_free_memory()
             # under MPI (ParaView) the ranks build their lattices together, each point
