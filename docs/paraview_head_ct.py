@@ -7,6 +7,8 @@ anchors, computed once with ``vhm-viz cage`` / ``vhm-viz anchors``.
 
 import paraview.simple as pvs
 
+from vhm_viz.paraview import color_by_measure
+
 head = pvs.XMLImageDataReader(
     registrationName="headsq_64x64x93.vti",
     FileName=["../shared/data/volumes/headsq_64x64x93.vti"],
@@ -22,11 +24,9 @@ skin.ContourBy = ["POINTS", "ImageScalars"]
 skin.Isosurfaces = [1100.0]
 skin.ComputeScalars = 1
 view = pvs.GetActiveViewOrCreate("RenderView")
-shown = pvs.Show(skin, view)
-pvs.ColorBy(shown, ("POINTS", "jacobian_determinant"))
-lut = pvs.GetColorTransferFunction("jacobian_determinant")
-lut.ApplyPreset("Cool to Warm", True)
-lut.RescaleTransferFunction(0.6, 1.4)  # centred on det J = 1 (no volume change)
+# the one convention of the explorer and the figures: Cool to Warm on a log scale,
+# symmetric about det J = 1 (no volume change), folds below the range
+shown, lut = color_by_measure(skin, "jacobian_determinant", view)
 shown.SetScalarBarVisibility(view, True)
 pvs.Show(head, view).SetRepresentationType("Outline")
 pvs.Hide(bent, view)
