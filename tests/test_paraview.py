@@ -351,14 +351,15 @@ def test_volume_warp_in_pieces_equals_serial_equals_python(paraview_env, head_sc
 
 def _assert_evaluations_shared(pieces, serial):
     """The ranks built their lattices together: each round's points evaluated once, by
-    one rank, in shares of at least a quarter (field ``vhm_lattice_evaluations``: this
-    rank's evaluations, and the distinct points they were shared among)."""
+    one rank, every rank taking a share (field ``vhm_lattice_evaluations``: this rank's
+    evaluations, and the distinct points they were shared among). The sizes of the shares
+    follow the ranks' measured busy time; only the first round's halves are fixed."""
     counts = np.array([p.field_data["vhm_lattice_evaluations"] for p in pieces])
     alone = serial.field_data["vhm_lattice_evaluations"]
     assert alone[0] == alone[1] > 0
     assert (counts[:, 1] == counts[0, 1]).all()  # the ranks agree on the points
     assert counts[:, 0].sum() == counts[0, 1]  # each evaluated once
-    assert counts[:, 0].min() > 0.25 * counts[0, 1]
+    assert counts[:, 0].min() > 0
     assert alone[1] <= counts[0, 1] <= 1.1 * alone[1]  # (the pieces' shared boundary)
 
 
@@ -413,3 +414,28 @@ def test_measure_colours_follow_the_one_convention(paraview_env, tmp_path):
     assert min(det["mid_rgb"]) > 0.75
     np.testing.assert_allclose(cond["range"], got["cond_expected"], rtol=1e-6)
     assert cond["log"] == 0
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
+def test_volume_warp_with_more_ranks_than_planes_finishes(paraview_env, head_scene, tmp_path):
+    """3 ranks on a 2-voxel volume: a rank with an empty piece still takes its share of
+    the lattice's evaluations, so the others do not wait for it forever (they did)."""
+    scene, cage = head_scene
+    script = tmp_path / "empty_piece.py"
+    script.write_text(
+        "import paraview.simple as pvs\n"
+        f"img = pvs.OpenDataFile({str(data_path('volumes', 'headsq_64x64x93.vti'))!r})\n"
+        "two = pvs.ExtractSubset(Input=img, VOI=[30, 30, 30, 30, 40, 41])\n"
+        f"cage = pvs.OpenDataFile({str(cage)!r})\n"
+        "bent = pvs.VHMHarmonicDeformation(Input=two, Cage=cage, "
+        f"SceneFile={str(scene)!r}, OutsidePolicy='Pass through')\n"
+        "pvs.UpdatePipeline(proxy=bent)\n"
+        "print('vhm-points', bent.GetDataInformation().GetNumberOfPoints(), flush=True)\n"
+    )
+    from vhm_viz.filters._parallel import mpi_command
+
+    cmd, env = mpi_command(["pvbatch", str(script)], 3, paraview_env)
+    cmd.insert(1, "--oversubscribe")  # 3 ranks on a 2-core machine
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "vhm-points 2" in done.stdout

@@ -840,6 +840,29 @@ def test_builders_sharing_evaluations_build_the_serial_lattice():
     assert len(both) == alone.lattice.stats["evaluations"]
 
 
+def test_a_builder_of_an_empty_piece_only_shares_the_evaluations():
+    """An MPI rank with an empty piece (more ranks than planes) builds no cell but takes
+    its share of the other's evaluations, so that neither waits for the other."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from vhm_viz.core.lattice import build_lattice
+
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
+    hm = _random_bend(_cage_around((0, 0, 0), (43, 39, 82.8), 0.03), 0.004, seed=2)
+    alone = build_lattice(hm, geo)
+    exchange = _ThreadExchange(2)
+    with ThreadPoolExecutor(2) as pool:
+        full = pool.submit(build_lattice, hm, geo, exchange=exchange.builder(0))
+        empty = pool.submit(build_lattice, hm, geo, window=[0, -1, 0, 39, 0, 69],
+                            exchange=exchange.builder(1))  # fmt: skip
+        full, empty = full.result(timeout=120), empty.result(timeout=120)
+    np.testing.assert_array_equal(full.data, alone.data)
+    assert empty.stats["leaves"] == 0
+    assert len(np.concatenate(exchange.evaluated[1])) > 0.45 * alone.stats["evaluations"]
+    with pytest.raises(ValueError, match="not inside the grid"):  # alone: a mistake
+        build_lattice(hm, geo, window=[0, -1, 0, 39, 0, 69])
+
+
 def test_a_builder_failing_stops_the_builders_sharing_with_it():
     """An abort on one builder: every builder raises, none waits for the others."""
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))

@@ -853,7 +853,9 @@ def build_lattice(
         every voxel of the window -- is the same as in the whole grid's lattice (to
         rounding: the exact evaluations run in other chunks). For pieces of a volume
         (MPI ranks, streaming): each builds only its own part. Within those root cells
-        only the cells that own a voxel of the box are refined.
+        only the cells that own a voxel of the box are refined. With an ``exchange`` an
+        empty box (``i1 < i0``: an MPI rank's empty piece) builds no cell; the builder
+        only shares the others' evaluations.
     exchange : callable(keys, evaluate) -> (f, fu, inside), optional
         How the exact evaluations are shared by builders working together (MPI ranks):
         called with the keys (int64, sorted; a key names the same lattice point on every
@@ -920,7 +922,7 @@ def build_lattice(
         lattice = _build_levels(
             ensure, table, harmonic_map, geometry, lat_geo, tolerance, root, last, n_root,
             mask, near, (edge_a, edge_b), window, None if exchange is not None else abort,
-            progress,
+            progress, exchange_only=exchange is not None,
         )  # fmt: skip
         # builders working together meet the same number of times
         for _ in range(exchange_rounds(root) - rounds[0] if exchange is not None else 0):
@@ -954,7 +956,7 @@ def exchange_rounds(root: int) -> int:
 
 def _build_levels(
     ensure, table, harmonic_map, geometry, lat_geo, tolerance, root, last, n_root, mask,
-    near, edges, window, abort, progress,
+    near, edges, window, abort, progress, exchange_only=False,
 ):  # fmt: skip
     """The level loop of :func:`build_lattice`: refine cells until they fit the map."""
     V = np.asarray(harmonic_map.cage.vertices, dtype=np.float64)
@@ -966,9 +968,15 @@ def _build_levels(
     w = None
     if window is not None:
         w = np.asarray(window, dtype=np.int64).reshape(6)
-        if (w[0::2] < 0).any() or (w[1::2] > last).any() or (w[1::2] < w[0::2]).any():
+        if exchange_only and (w[1::2] < w[0::2]).any():
+            # an empty piece (more MPI ranks than planes): no cells of its own, but its
+            # builder still evaluates its share of the others' points
+            w = None
+            lo_root, hi_root = np.zeros(3, dtype=np.int64), np.full(3, -1, dtype=np.int64)
+        elif (w[0::2] < 0).any() or (w[1::2] > last).any() or (w[1::2] < w[0::2]).any():
             raise ValueError(f"window {w.tolist()} is not inside the grid of dimensions "
                              f"{tuple(geometry.dimensions)}")  # fmt: skip
+    if w is not None:
         # a root cell owns [o, o + root); the grid's last voxel belongs to the last cell
         lo_root = np.minimum(w[0::2] // root, n_root - 1)
         hi_root = np.minimum(w[1::2] // root, n_root - 1)

@@ -669,9 +669,6 @@ class DeformationSource(VTKPythonAlgorithmBase):
         else:
             self._volume_engine = None  # free the old lattice first
             release_free_memory()
-            # under MPI (ParaView) the ranks build their lattices together, each point
-            # evaluated once, in equal shares: the ranks update in step there
-            together = self._parallel_reporting and _parallel.process_count() > 1
             self._volume_engine = VolumeDeformation(
                 hm,
                 geometry,
@@ -679,10 +676,20 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 outside=outside,
                 memory_budget=self._memory_budget,
                 window=window,
-                exchange=_parallel.LatticeExchange() if together else None,
+                exchange=self._lattice_exchange(),
             )
             self._volume_key = key
         return self._volume_engine
+
+    def _lattice_exchange(self):
+        """A :class:`~vhm_viz.filters._parallel.LatticeExchange` under MPI, else None.
+
+        Under MPI (ParaView) the ranks build their lattices together, each point evaluated
+        once: the ranks update in step there.
+        """
+        if self._parallel_reporting and _parallel.process_count() > 1:
+            return _parallel.LatticeExchange()
+        return None
 
     @staticmethod
     def _add_lattice_counts(out, vol) -> None:

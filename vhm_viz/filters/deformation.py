@@ -16,7 +16,9 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearGridToPointSet
 
 from vhm_viz.core.binding import cofactor_normals
+from vhm_viz.core.lattice import build_lattice
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
+from vhm_viz.core.volume import VolumeDeformation
 from vhm_viz.filters._common import (
     DeformationSource,
     image_geometry,
@@ -280,6 +282,17 @@ class HarmonicDeformationFilter(DeformationSource):
         whole = inp.GetExtent() if whole is None else whole
         ext = inp.GetExtent()
         box = [ext[a] - whole[a - a % 2] for a in range(6)]
+        if any(box[2 * a + 1] < box[2 * a] for a in range(3)):
+            # an empty piece (more ranks than planes): nothing to warp, but under MPI the
+            # rank still evaluates its share of the others' lattice points
+            exchange = self._lattice_exchange()
+            if exchange is not None:
+                geometry = image_geometry(inp, whole)
+                root = VolumeDeformation(hm, geometry).root
+                build_lattice(hm, geometry, tolerance=self._tolerance, root=root, window=box,
+                              memory_budget=self._memory_budget, exchange=exchange)  # fmt: skip
+            out.SetExtent(ext)
+            return 1
         vol = self._volume(hm, image_geometry(inp, whole), self._outside, window=box)
         progress, abort = self._progress(0.0, 0.8), self._aborted
         points = vol.warp(box, progress=progress, abort=abort)
