@@ -904,16 +904,14 @@ def build_lattice(
     def ensure(ijk):
         keys = np.unique(table.key(ijk.reshape(-1, 3)))
         new = keys[table.find(keys) < 0]
-        if new.size or exchange is not None:
-            if exchange is None:
-                f, fu, ins = evaluate(new)
-            else:
-                in_round[0] = True  # a round that raises has been agreed by everyone
-                f, fu, ins = exchange(new, evaluate)
-                in_round[0] = False
-                rounds[0] += 1
-            if not new.size:
-                return
+        if exchange is not None:  # every round, with or without points of its own
+            in_round[0] = True  # a round that raises has been agreed by everyone
+            f, fu, ins = exchange(new, evaluate)
+            in_round[0] = False
+            rounds[0] += 1
+        elif new.size:
+            f, fu, ins = evaluate(new)
+        if new.size:
             table.add(new, f, fu, ins)
             n_eval[0] += ins.sum()
             n_eval[1] += (~ins).sum()
@@ -922,7 +920,7 @@ def build_lattice(
         lattice = _build_levels(
             ensure, table, harmonic_map, geometry, lat_geo, tolerance, root, last, n_root,
             mask, near, (edge_a, edge_b), window, None if exchange is not None else abort,
-            progress, exchange_only=exchange is not None,
+            progress, shared=exchange is not None,
         )  # fmt: skip
         # builders working together meet the same number of times
         for _ in range(exchange_rounds(root) - rounds[0] if exchange is not None else 0):
@@ -956,7 +954,7 @@ def exchange_rounds(root: int) -> int:
 
 def _build_levels(
     ensure, table, harmonic_map, geometry, lat_geo, tolerance, root, last, n_root, mask,
-    near, edges, window, abort, progress, exchange_only=False,
+    near, edges, window, abort, progress, shared=False,
 ):  # fmt: skip
     """The level loop of :func:`build_lattice`: refine cells until they fit the map."""
     V = np.asarray(harmonic_map.cage.vertices, dtype=np.float64)
@@ -968,7 +966,7 @@ def _build_levels(
     w = None
     if window is not None:
         w = np.asarray(window, dtype=np.int64).reshape(6)
-        if exchange_only and (w[1::2] < w[0::2]).any():
+        if shared and (w[1::2] < w[0::2]).any():
             # an empty piece (more MPI ranks than planes): no cells of its own, but its
             # builder still evaluates its share of the others' points
             w = None

@@ -164,7 +164,9 @@ class VolumeDeformation:
         rank's, a streamed piece): the lattice is built over the root cells that own its
         voxels only, aligned with the whole grid, so those voxels get the same values as
         with the whole lattice (to rounding). Resampling and :meth:`output_geometry` need
-        the whole lattice (pre-images may lie anywhere): they refuse a window.
+        the whole lattice (pre-images may lie anywhere): they refuse a window. With an
+        ``exchange`` the window may be empty (an MPI rank's empty piece): :meth:`build`
+        then only takes its share of the other builders' evaluations.
     exchange : callable, optional
         How the lattice's exact evaluations are shared with other builders (MPI ranks
         that build their windows, or the whole lattice, together): see
@@ -201,7 +203,13 @@ class VolumeDeformation:
         if root is None:
             root = 1 if geometry.n_points <= EXACT_VOXELS else DEFAULT_ROOT
         self.root = int(root)
-        self.window = None if window is None else _box_of(geometry, window)
+        w = None if window is None else np.asarray(window, dtype=np.int64).reshape(6)
+        if w is not None and exchange is not None and (w[1::2] < w[0::2]).any():
+            # an MPI rank's empty piece: its build makes no cell but shares the others'
+            # evaluations (see build_lattice)
+            self.window = w
+        else:
+            self.window = None if window is None else _box_of(geometry, window)
         if self.window is not None and self.window.tolist() == _box_of(geometry, None).tolist():
             self.window = None
         self._lattice: HermiteLattice | None = None

@@ -16,9 +16,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearGridToPointSet
 
 from vhm_viz.core.binding import cofactor_normals
-from vhm_viz.core.lattice import build_lattice
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
-from vhm_viz.core.volume import VolumeDeformation
 from vhm_viz.filters._common import (
     DeformationSource,
     image_geometry,
@@ -285,12 +283,8 @@ class HarmonicDeformationFilter(DeformationSource):
         if any(box[2 * a + 1] < box[2 * a] for a in range(3)):
             # an empty piece (more ranks than planes): nothing to warp, but under MPI the
             # rank still evaluates its share of the others' lattice points
-            exchange = self._lattice_exchange()
-            if exchange is not None:
-                geometry = image_geometry(inp, whole)
-                root = VolumeDeformation(hm, geometry).root
-                build_lattice(hm, geometry, tolerance=self._tolerance, root=root, window=box,
-                              memory_budget=self._memory_budget, exchange=exchange)  # fmt: skip
+            if self._lattice_exchange() is not None:
+                self._volume(hm, image_geometry(inp, whole), self._outside, window=box).build()
             out.SetExtent(ext)
             return 1
         vol = self._volume(hm, image_geometry(inp, whole), self._outside, window=box)
