@@ -724,3 +724,19 @@ def test_lattice_exchange_shares_even_out_the_ranks_busy_time():
     for busy in ([3.0, 1.0, 2.5], [0.1, 0.0, 7.0, 0.3]):
         share = _shares(777, header(busy))
         assert share.sum() == 777 and (share >= 0).all()
+
+
+def test_lattice_exchange_deals_runs_of_neighbours_in_a_mixed_order():
+    """Each rank's share is whole runs of consecutive keys, from all over the lattice."""
+    from vhm_viz.filters._parallel import _DEAL_RUN, _dealing_order
+
+    n = 20 * _DEAL_RUN + 123
+    order = _dealing_order(n)
+    assert np.array_equal(np.sort(order), np.arange(n))  # every key, once
+    # a run ascends by one; runs start on run boundaries (the odd-sized last one aside)
+    starts = order[np.flatnonzero(np.diff(order, prepend=-2) != 1)]
+    assert (starts % _DEAL_RUN == 0).all() and len(starts) == 21
+    # either half of the deal reaches both halves of the key range, not one end of it
+    for half in (order[: n // 2], order[n // 2 :]):
+        assert (half < n // 4).any() and (half > 3 * n // 4).any()
+    assert not np.array_equal(order, np.arange(n))

@@ -10,12 +10,14 @@ With one process (or without VTK's parallel module) every function here is a no-
 
 from __future__ import annotations
 
+import pickle
 import time
 
 import numpy as np
 
 __all__ = [
     "LatticeExchange",
+    "computed_on_root",
     "process_count",
     "rank",
     "all_ranks",
@@ -105,6 +107,38 @@ def _all_gather(values) -> np.ndarray:
     return ns.vtk_to_numpy(receive).copy() if receive.GetNumberOfTuples() else np.zeros(0)
 
 
+def computed_on_root(compute):
+    """``compute()`` run on rank 0 alone, its (picklable) result returned on every rank.
+
+    A collective: every rank calls it at the same point. Without MPI it just calls
+    ``compute``. An exception on rank 0 is raised there and, as a ``RuntimeError`` with
+    the same text, on every other rank, so that all ranks fail alike and none waits.
+    """
+    if _controller() is None:
+        return compute()
+    error = None
+    payload = b""
+    if rank() == 0:
+        try:
+            payload = pickle.dumps((True, compute()), protocol=pickle.HIGHEST_PROTOCOL)
+        except BaseException as exc:  # noqa: BLE001 -- re-raised below, after telling the others
+            error = exc
+            text = str(exc).strip() or type(exc).__name__
+            payload = pickle.dumps((False, text))
+    # rank 0 alone sends: a gather of variable length is a broadcast of unknown size
+    size = len(payload)
+    padded = payload + bytes(-size % 8)
+    mine = np.concatenate([[float(size)], np.frombuffer(padded, dtype=np.float64)])
+    received = _all_gather(mine if rank() == 0 else np.zeros(0))
+    if error is not None:
+        raise error
+    size = int(received[0])
+    ok, value = pickle.loads(received[1:].tobytes()[:size])
+    if not ok:
+        raise RuntimeError(value)
+    return value
+
+
 class LatticeExchange:
     """Exact evaluations of a lattice build shared by the MPI ranks, once each.
 
@@ -120,8 +154,9 @@ class LatticeExchange:
     waiting at the next round. So each round's points go to the ranks in proportion to
     what evens out their busy time so far (measured, excluding the waits), at the exact
     evaluations' measured cost per point; the first round splits them equally. Which
-    rank evaluates a point never changes its value. Points are dealt in a hashed order,
-    so that each share mixes points inside and outside the cage (which cost differently).
+    rank evaluates a point never changes its value. Points are dealt in runs of
+    neighbours taken in a hashed order (:func:`_dealing_order`), so that each share mixes
+    points inside and outside the cage (which cost differently).
 
     **Errors.** An error on one rank (an abort, memory) is agreed in the round it happens,
     or in the next one (:meth:`abandon`, when the build failed between rounds): every rank
@@ -161,7 +196,7 @@ class LatticeExchange:
         everyone = _all_gather(keys.astype(np.float64)).astype(np.int64)
         distinct, inverse = np.unique(everyone, return_inverse=True)
         inverse = inverse.ravel()
-        order = np.argsort(_scramble(distinct), kind="stable")
+        order = _dealing_order(len(distinct))
         bounds = np.concatenate([[0], np.cumsum(_shares(len(distinct), header))])
         error = None
         try:
@@ -206,9 +241,21 @@ class LatticeExchange:
         _all_gather([0.0, 0.0, 0.0, 0.0, 0.0])
 
 
-def _scramble(keys: np.ndarray) -> np.ndarray:
-    """A fixed pseudo-random order key of lattice keys (Fibonacci hashing)."""
-    return keys.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+#: Sorted lattice keys dealt together (neighbours along i, then j).
+_DEAL_RUN = 4096
+
+
+def _dealing_order(n: int) -> np.ndarray:
+    """The order in which ``n`` sorted lattice keys are dealt out to the ranks.
+
+    Runs of ``_DEAL_RUN`` consecutive keys in a fixed pseudo-random order of runs
+    (Fibonacci hashing). Runs of neighbours keep the exact evaluations' speed: the same
+    points in a fully hashed order take 11% longer (measured on the embryo's lattice, the
+    branches of the kernel following the geometry). The hashed order of the runs mixes
+    inside and outside points in every share.
+    """
+    run = np.arange(n, dtype=np.uint64) // np.uint64(_DEAL_RUN)
+    return np.argsort(run * np.uint64(0x9E3779B97F4A7C15), kind="stable")
 
 
 def _shares(n: int, header: np.ndarray) -> np.ndarray:
