@@ -439,3 +439,23 @@ def test_volume_warp_with_more_ranks_than_planes_finishes(paraview_env, head_sce
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "vhm-points 2" in done.stdout
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
+def test_a_solve_that_fails_on_rank_0_stops_every_rank_once(paraview_env, head_scene, tmp_path):
+    """Under MPI rank 0 alone solves the scene; when its solve fails, the others must not
+    wait for coefficients that never come: one message, no output, no hang."""
+    scene, cage = head_scene
+    broken = json.loads(scene.read_text())
+    c = broken["constraints"]
+    c["positions"].append(c["positions"][0])  # the same point twice
+    c["targets"].append(c["targets"][0])
+    (tmp_path / "broken.json").write_text(json.dumps(broken))
+    config = {"input": str(data_path("volumes", "headsq_64x64x93.vti")), "ids": False,
+              "filter": "VHMHarmonicDeformation", "scene": str(tmp_path / "broken.json"),
+              "cage": cage}  # fmt: skip
+    for ranks in (1, 2):
+        log = _run(paraview_env, config, tmp_path, ranks=ranks, name=f"broken{ranks}")
+        assert log.count("position constraints 0 and 2 are at the same point") == 1, log
+        assert "Traceback" not in log
+        assert "vhm-paraview-points: 0" in log
