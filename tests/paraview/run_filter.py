@@ -2,7 +2,8 @@
 
 Usage: ``[mpiexec -n N] pvbatch run_filter.py CONFIG.json`` where CONFIG holds
 ``input`` (a file ParaView reads), ``filter`` ("VHMHarmonicDeformation", ...), ``scene``,
-optional ``cage`` (a file connected to the Cage port), ``redistribute`` (spread a
+optional ``cage`` (a file connected to the Cage port; ``update_cage_first`` updates its
+reader before the filter exists), ``redistribute`` (spread a
 surface or mesh over the ranks first), ``properties`` (extra proxy properties) and
 ``output`` (a parallel VTK XML file: .pvtp, .pvtu, .pvts, .pvti). A point array
 ``vhm_id`` (the input point index) is added first, so that results can be matched point by
@@ -46,6 +47,8 @@ if config.get("cage"):
             "else:\n"
             "    self.GetOutput().Initialize()\n"
         )
+    if config.get("update_cage_first"):  # as a script that shows the cage first does
+        UpdatePipeline(proxy=cage)
     kwargs["Cage"] = cage
 flt = getattr(pvs, config["filter"])(**kwargs)
 if config.get("scene") is not None:

@@ -203,6 +203,24 @@ def _cage_from_polydata(pd):
     return cage_from_dataset(pd)
 
 
+def _cage_digest(pd) -> str:
+    """A digest of a cage surface's points and triangles: its content, not its identity.
+
+    A reader that re-runs gives the same digest for the same cage (no re-solve), and MPI
+    ranks holding the same cage agree on it (the identity and modification time of the
+    arrays differ between processes).
+    """
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    h.update(ns.vtk_to_numpy(pd.GetPoints().GetData()).astype(np.float64).tobytes())
+    polys = pd.GetPolys()
+    if polys is not None and polys.GetNumberOfCells():
+        h.update(ns.vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64).tobytes())
+        h.update(ns.vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64).tobytes())
+    return h.hexdigest()
+
+
 def _same_cage(a, b) -> bool:
     va, vb = np.asarray(a.vertices), np.asarray(b.vertices)
     if va.shape != vb.shape or np.shape(a.faces) != np.shape(b.faces):
@@ -552,8 +570,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 "the Cage input (port 1) is connected but empty: connect a closed triangle "
                 "surface, or disconnect it to use the scene's own cage"
             )
-        key = (geometry_key(pd), pd.GetPolys().GetMTime() if pd.GetPolys() else None)
-        return pd, key
+        return pd, _cage_digest(pd)
 
     def _resolve(self, in_info, data=None):
         """Return ``(harmonic_map, deformer_or_None)`` for the current settings and inputs."""
@@ -586,7 +603,12 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 cage_key,
                 geometry_key(data) if self._scene.needs_data else None,
             )
-            if key != self._derived_key:
+            stale = key != self._derived_key
+            if self._ranks_update_together():
+                # the ranks solve together or not at all: had one rank's cache held, the
+                # others would wait for it forever
+                stale = _parallel.any_rank(stale)
+            if stale:
                 cage = _cage_from_polydata(pd) if pd is not None else None
                 mesh = None
                 if self._scene.needs_data and pd is None:
