@@ -986,3 +986,36 @@ def test_cage_of_two_shells():
     np.testing.assert_array_equal(pts[~inside], geo.points()[~inside])
     res = vol.resample({"v": np.ones(geo.n_points)})
     assert res.counts["valid"] > 0.9 * geo.n_points
+
+
+def test_input_window_holds_every_preimage_of_its_box_and_is_computed_once():
+    """Each half of the output reads only its input window (brute force: every voxel's
+    pre-image, with the linear stencil around it), asked for again at no cost."""
+    geo, cage = _turned_box()
+    hm = _random_bend(cage, 0.01, seed=1)
+    vol = VolumeDeformation(hm, geo, tolerance=0.05, outside="passthrough")
+    out = vol.output_geometry()
+    assert vol.output_geometry() is out
+    nx, ny, nz = out.dimensions
+    scans = []
+    boxes = vol.lattice.candidate_boxes
+    vol.lattice.candidate_boxes = lambda g: scans.append(1) or boxes(g)
+    windows = []
+    for box in ([0, nx - 1, 0, ny - 1, 0, nz // 2], [0, nx - 1, 0, ny - 1, nz // 2 + 1, nz - 1]):
+        scans.clear()
+        w = vol.input_window(out, box)
+        assert len(scans) == 1
+        sub = out.sub(box)
+        ijk = sub.ijk() + np.array(box[0::2])
+        u, kind, _ = vol.preimages(out, ijk)
+        found = kind > 0
+        assert found.mean() > 0.3
+        assert (np.floor(u[found]) >= w[0::2]).all() and (np.ceil(u[found]) <= w[1::2]).all()
+        scans.clear()
+        again = vol.input_window(out, box)
+        assert not scans  # kept, not scanned again
+        np.testing.assert_array_equal(again, w)
+        again[:] = -1  # a copy: the kept window stays
+        np.testing.assert_array_equal(vol.input_window(out, box), w)
+        windows.append(w)
+    assert windows[0][5] < nz - 1 or windows[1][4] > 0  # the halves read less than all

@@ -105,6 +105,16 @@ def _check_abort(abort) -> None:
         raise AbortedError("aborted")
 
 
+def _geometry_key(geometry: ImageGeometry) -> tuple:
+    """A hashable key of a grid: equal grids, equal keys."""
+    return (
+        geometry.origin.tobytes(),
+        geometry.spacing.tobytes(),
+        tuple(int(n) for n in geometry.dimensions),
+        geometry.direction.tobytes(),
+    )
+
+
 def _box_of(geometry: ImageGeometry, box) -> np.ndarray:
     """A voxel box ``(i0, i1, j0, j1, k0, k1)`` (default: the whole grid), validated."""
     dims = geometry.dimensions
@@ -213,6 +223,9 @@ class VolumeDeformation:
         if self.window is not None and self.window.tolist() == _box_of(geometry, None).tolist():
             self.window = None
         self._lattice: HermiteLattice | None = None
+        # output grids and input windows, each a pass over every leaf: a pipeline asks
+        # for them again in each information and update-extent pass
+        self._memo: dict = {}
         #: Slabs processed by the last warp/resample/jacobians call (for tests of the
         #: memory bound) and the largest slab's voxel count.
         self.slab_count = 0
@@ -430,6 +443,13 @@ class VolumeDeformation:
         spacing : (3,) array_like, optional
             Output voxel size (world units); default the input spacing.
         """
+        key = ("output_geometry", None if spacing is None else
+               tuple(np.asarray(spacing, dtype=np.float64).ravel().tolist()))  # fmt: skip
+        if key not in self._memo:
+            self._memo[key] = self._output_geometry(spacing)
+        return self._memo[key]
+
+    def _output_geometry(self, spacing) -> ImageGeometry:
         self._whole("output_geometry")
         lat = self.lattice
         geo = self.geometry
@@ -561,9 +581,16 @@ class VolumeDeformation:
         (6,) int64 or None
             ``(i0, i1, j0, j1, k0, k1)`` inclusive, or None when nothing is read.
         """
+        b = _box_of(geometry, box)
+        key = ("input_window", _geometry_key(geometry), tuple(b.tolist()), interpolation)
+        if key not in self._memo:
+            self._memo[key] = self._input_window(geometry, b, interpolation)
+        window = self._memo[key]
+        return None if window is None else window.copy()
+
+    def _input_window(self, geometry: ImageGeometry, b, interpolation: str):
         self._whole("input_window")
         lat = self.lattice
-        b = _box_of(geometry, box)
         lo, hi = lat.candidate_boxes(geometry)
         hit = np.all((lo <= b[1::2]) & (hi >= b[0::2]), axis=1)
         # pre-images lie within the leaf grown by its margin; the stencil reaches one
