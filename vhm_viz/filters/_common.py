@@ -244,7 +244,6 @@ class DeformationSource(VTKPythonAlgorithmBase):
         )
         self._input_type = input_type
         self._deformer = None
-        self._shared_map = None  # under MPI: the scene's map as rank 0 solved it
         self._user_deformer = None
         self._scene = None
         self._hmap = None
@@ -344,7 +343,6 @@ class DeformationSource(VTKPythonAlgorithmBase):
         ``RequestData``. Leave it off in scripts whose ranks do not update together.
         """
         self._parallel_reporting = bool(value)
-        self._derived_key = None  # who solves the scene changes with it
         self.Modified()
 
     def _report(self, error: Exception) -> None:
@@ -538,10 +536,6 @@ class DeformationSource(VTKPythonAlgorithmBase):
         SolveReport or None
         """
         dfm = self._deformer or self._user_deformer
-        if dfm is None and self._shared_map is not None:
-            raise RuntimeError(
-                "under MPI rank 0 solves the scene at each update: change the scene's targets"
-            )
         if dfm is None:
             raise RuntimeError("UpdateTargets needs a deformer: call SetDeformer or SetScene")
         dfm.update_targets(targets=targets, jacobians=jacobians)
@@ -603,12 +597,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 cage_key,
                 geometry_key(data) if self._scene.needs_data else None,
             )
-            stale = key != self._derived_key
-            if self._ranks_update_together():
-                # the ranks solve together or not at all: had one rank's cache held, the
-                # others would wait for it forever
-                stale = _parallel.any_rank(stale)
-            if stale:
+            if key != self._derived_key:
                 cage = _cage_from_polydata(pd) if pd is not None else None
                 mesh = None
                 if self._scene.needs_data and pd is None:
@@ -621,17 +610,14 @@ class DeformationSource(VTKPythonAlgorithmBase):
                     import pyvista as pv
 
                     mesh = pv.wrap(data)
-                self._deformer = self._shared_map = None
-                if self._ranks_update_together():
-                    self._shared_map = self._solve_scene_on_root(mesh, cage)
-                else:
-                    self._deformer = self._scene.build(data=mesh, cage=cage)
-                    self.solve_reports.extend(self._scene.solve(self._deformer, **self._solver))
+                # every rank solves the same scene to the same map: tried, rank 0 solving
+                # alone and handing out the coefficients was no faster on the embryo and
+                # 0.1 s slower on the CT head (2 ranks on this 2-core machine)
+                self._deformer = self._scene.build(data=mesh, cage=cage)
                 self._derived_key = key
+                self.solve_reports.extend(self._scene.solve(self._deformer, **self._solver))
                 # the build's transient basis matrices: before the data's own allocations
                 release_free_memory()
-            if self._shared_map is not None:
-                return self._shared_map, None
         elif self._parallel_reporting:
             raise RuntimeError("set SceneFile (a vhm_viz scene JSON)")
         else:
@@ -718,29 +704,6 @@ class DeformationSource(VTKPythonAlgorithmBase):
     def _ranks_update_together(self) -> bool:
         """Under MPI in ParaView: the ranks update in step and may share work."""
         return self._parallel_reporting and _parallel.process_count() > 1
-
-    def _solve_scene_on_root(self, mesh, cage):
-        """The scene's map, solved once by rank 0 and handed to every rank.
-
-        Every rank would solve the same scene (the whole cage, the same anchors) to the
-        same map; the factorisation is the costliest part, and two ranks running it at
-        once also slow each other down (measured: 1.2 s each instead of 0.85 s on the
-        embryo). The other ranks wait for rank 0's coefficients and build the map from
-        their own copy of the cage, so every rank evaluates the same map.
-        """
-        from vhm_viz.core.harmonic_map import HarmonicMap
-
-        if cage is None:
-            cage = self._scene.build_cage(mesh)
-
-        def solve():
-            dfm = self._scene.build(data=mesh, cage=cage)
-            reports = self._scene.solve(dfm, **self._solver)
-            return np.asarray(dfm.coefficients), reports
-
-        coefficients, reports = _parallel.computed_on_root(solve)
-        self.solve_reports.extend(reports)
-        return HarmonicMap(cage, coefficients)
 
     def _lattice_exchange(self):
         """A :class:`~vhm_viz.filters._parallel.LatticeExchange` under MPI, else None.

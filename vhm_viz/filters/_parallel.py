@@ -10,14 +10,12 @@ With one process (or without VTK's parallel module) every function here is a no-
 
 from __future__ import annotations
 
-import pickle
 import time
 
 import numpy as np
 
 __all__ = [
     "LatticeExchange",
-    "computed_on_root",
     "process_count",
     "rank",
     "all_ranks",
@@ -105,38 +103,6 @@ def _all_gather(values) -> np.ndarray:
     receive = vtkDoubleArray()
     _controller().AllGatherV(send, receive)
     return ns.vtk_to_numpy(receive).copy() if receive.GetNumberOfTuples() else np.zeros(0)
-
-
-def computed_on_root(compute):
-    """``compute()`` run on rank 0 alone, its (picklable) result returned on every rank.
-
-    A collective: every rank calls it at the same point. Without MPI it just calls
-    ``compute``. An exception on rank 0 is raised there and, as a ``RuntimeError`` with
-    the same text, on every other rank, so that all ranks fail alike and none waits.
-    """
-    if _controller() is None:
-        return compute()
-    error = None
-    payload = b""
-    if rank() == 0:
-        try:
-            payload = pickle.dumps((True, compute()), protocol=pickle.HIGHEST_PROTOCOL)
-        except BaseException as exc:  # noqa: BLE001 -- re-raised below, after telling the others
-            error = exc
-            text = str(exc).strip() or type(exc).__name__
-            payload = pickle.dumps((False, text))
-    # rank 0 alone sends: a gather of variable length is a broadcast of unknown size
-    size = len(payload)
-    padded = payload + bytes(-size % 8)
-    mine = np.concatenate([[float(size)], np.frombuffer(padded, dtype=np.float64)])
-    received = _all_gather(mine if rank() == 0 else np.zeros(0))
-    if error is not None:
-        raise error
-    size = int(received[0])
-    ok, value = pickle.loads(received[1:].tobytes()[:size])
-    if not ok:
-        raise RuntimeError(value)
-    return value
 
 
 class LatticeExchange:
