@@ -104,6 +104,15 @@ class ImageGeometry:
         dims = [extent[2 * a + 1] - extent[2 * a] + 1 for a in range(3)]
         return ImageGeometry(self.points(start[None])[0], self.spacing, dims, self.direction)
 
+    def key(self) -> tuple:
+        """A hashable key of the grid: equal grids (bit for bit), equal keys."""
+        return (
+            self.origin.tobytes(),
+            self.spacing.tobytes(),
+            tuple(int(n) for n in self.dimensions),
+            self.direction.tobytes(),
+        )
+
     def same_as(self, other, rtol: float = 1e-9) -> bool:
         """Whether two geometries describe the same grid (up to rounding)."""
         scale = float(np.max(self.spacing))

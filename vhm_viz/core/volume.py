@@ -105,16 +105,6 @@ def _check_abort(abort) -> None:
         raise AbortedError("aborted")
 
 
-def _geometry_key(geometry: ImageGeometry) -> tuple:
-    """A hashable key of a grid: equal grids, equal keys."""
-    return (
-        geometry.origin.tobytes(),
-        geometry.spacing.tobytes(),
-        tuple(int(n) for n in geometry.dimensions),
-        geometry.direction.tobytes(),
-    )
-
-
 def _box_of(geometry: ImageGeometry, box) -> np.ndarray:
     """A voxel box ``(i0, i1, j0, j1, k0, k1)`` (default: the whole grid), validated."""
     dims = geometry.dimensions
@@ -254,7 +244,7 @@ class VolumeDeformation:
         return self._lattice
 
     def with_outside(self, outside: str) -> VolumeDeformation:
-        """The same engine with another outside policy, sharing the lattice (built or not).
+        """The same engine with another outside policy, sharing the lattice once built.
 
         The lattice covers the voxels inside the cage whatever the policy; only what
         happens to the others changes.
@@ -582,7 +572,7 @@ class VolumeDeformation:
             ``(i0, i1, j0, j1, k0, k1)`` inclusive, or None when nothing is read.
         """
         b = _box_of(geometry, box)
-        key = ("input_window", _geometry_key(geometry), tuple(b.tolist()), interpolation)
+        key = ("input_window", geometry.key(), tuple(b.tolist()), interpolation)
         if key not in self._memo:
             self._memo[key] = self._input_window(geometry, b, interpolation)
         window = self._memo[key]

@@ -673,10 +673,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         """
         key = (
             _map_key(hm),
-            geometry.dimensions,
-            tuple(geometry.origin),
-            tuple(geometry.spacing),
-            tuple(geometry.direction.ravel()),
+            geometry.key(),
             self._tolerance,
             self._memory_budget,
             None if window is None else tuple(int(v) for v in window),
@@ -701,17 +698,13 @@ class DeformationSource(VTKPythonAlgorithmBase):
             self._volume_key = key
         return self._volume_engine
 
-    def _ranks_update_together(self) -> bool:
-        """Under MPI in ParaView: the ranks update in step and may share work."""
-        return self._parallel_reporting and _parallel.process_count() > 1
-
     def _lattice_exchange(self):
         """A :class:`~vhm_viz.filters._parallel.LatticeExchange` under MPI, else None.
 
         Under MPI (ParaView) the ranks build their lattices together, each point evaluated
         once: the ranks update in step there.
         """
-        if self._ranks_update_together():
+        if self._parallel_reporting and _parallel.process_count() > 1:
             return _parallel.LatticeExchange()
         return None
 
