@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 
@@ -339,19 +340,56 @@ def test_saved_scene_is_compact_one_point_per_line(tmp_path):
     assert Scene.load(path) == scene
 
 
-def test_filter_with_scene_file(tmp_path):
+def _saved_scene(tmp_path):
+    """A solved deformer, its scene saved to a file, and a sphere inside its cage."""
     pv = pytest.importorskip("pyvista")
-    from vhm_viz.filters import HarmonicDeformationFilter, update
-
     dfm = _deformer()
     scene = Scene.from_deformer(dfm)
     path = tmp_path / "s.json"
     scene.save(path)
-    mesh = pv.Sphere(radius=0.45, theta_resolution=10, phi_resolution=8)
+    scene.solve(dfm)
+    return dfm, scene, path, pv.Sphere(radius=0.45, theta_resolution=10, phi_resolution=8)
+
+
+def test_filter_with_scene_file(tmp_path):
+    pv = pytest.importorskip("pyvista")
+    from vhm_viz.filters import HarmonicDeformationFilter, update
+
+    dfm, scene, path, mesh = _saved_scene(tmp_path)
     flt = HarmonicDeformationFilter()
     flt.SetInputData(mesh)
     flt.SetScene(str(path))
     out = pv.wrap(update(flt))
-    scene.solve(dfm)
     np.testing.assert_allclose(out.points, dfm.harmonic_map.map(mesh.points), atol=1e-8)
     assert len(flt.solve_reports) == 1
+
+
+def test_paraview_mode_keeps_the_solved_map_not_the_solver(tmp_path):
+    """Under ParaView (parallel reporting) nothing re-solves, so only the map is kept."""
+    pv = pytest.importorskip("pyvista")
+    from vhm_viz.filters import HarmonicDeformationFilter, JacobianAnalysisFilter, update
+
+    dfm, scene, path, mesh = _saved_scene(tmp_path)
+    for cls in (HarmonicDeformationFilter, JacobianAnalysisFilter):
+        flt = cls()
+        flt.SetParallelReporting(True)
+        flt.SetInputData(mesh)
+        flt.SetSceneFile(str(path))
+        out = pv.wrap(update(flt))
+        assert flt.GetDeformer() is None
+        if cls is HarmonicDeformationFilter:
+            np.testing.assert_allclose(out.points, dfm.harmonic_map.map(mesh.points), atol=1e-8)
+        else:
+            det = np.linalg.det(dfm.harmonic_map.jacobian(mesh.points))
+            np.testing.assert_allclose(out.point_data["jacobian_determinant"], det, rtol=1e-8)
+        # a setting that leaves the scene alone re-executes without solving again
+        flt.SetOutsidePolicy("passthrough")
+        update(flt)
+        assert len(flt.solve_reports) == 1
+        # a new scene file solves again
+        scene2 = dataclasses.replace(scene, mode="rigid")
+        path2 = tmp_path / f"{cls.__name__}.json"
+        scene2.save(path2)
+        flt.SetSceneFile(str(path2))
+        update(flt)
+        assert len(flt.solve_reports) == 2

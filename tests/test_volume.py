@@ -602,6 +602,15 @@ def test_surface_mask_catches_every_cube_the_cage_crosses():
     geo = ImageGeometry((lo + hi) / 2 - rot @ (sp * 22), sp, (44, 45, 41), rot)
     near = surface_mask(geo, cage.vertices, cage.faces)
     inside = inside_mask(geo, cage.vertices, cage.faces)
+    # some rows only (a window's): the same points as in the whole grid's masks
+    for rows in ((0, 45, 0, 41), (0, 45, 10, 27), (7, 30, 0, 41), (3, 44, 20, 21), (5, 5, 0, 9)):
+        j0, j1, k0, k1 = rows
+        got = surface_mask(geo, cage.vertices, cage.faces, rows=rows)
+        np.testing.assert_array_equal(got, near[k0:k1, j0:j1])
+        np.testing.assert_array_equal(
+            inside_mask(geo, cage.vertices, cage.faces, rows=rows), inside[k0:k1, j0:j1]
+        )
+    assert near[10:27].any() and near[:, 7:30].any()
 
     def cubes(a, op):
         """``op`` over the 8 corners of every grid cube."""
@@ -708,6 +717,37 @@ def test_vtk_filters_two_pieces_equal_one_on_the_lattice():
             assert whole.point_data["v"].dtype == np.uint8
 
 
+def test_a_lattice_for_the_voxels_only_gives_them_the_same_values():
+    """``pre_images=False`` (the warp's and analysis' lattice) skips the single-voxel cells'
+    twists and the leaves' pre-image summaries: the voxels' positions and Jacobians stay
+    those of the full lattice, bit for bit; what needs the polynomial between voxels is
+    refused."""
+    from vhm_viz import read_cage
+
+    cage = read_cage(data_path("armadillo", "cage_216f.obj"))
+    lo, hi = cage.vertices.min(0), cage.vertices.max(0)
+    geo = ImageGeometry(lo + 0.1 * (hi - lo), 0.8 * (hi - lo) / 47.0, (48, 48, 48))
+    hm = _random_bend(cage, 0.003, seed=5)
+    full = VolumeDeformation(hm, geo, outside="passthrough", root=8)
+    lean = VolumeDeformation(hm, geo, outside="passthrough", root=8, pre_images=False)
+    assert lean.lattice.stats["leaves_per_size"].get(1, 0) > 100  # cells next to the cage
+    assert (~lean.lattice.inside((0, 47, 0, 47, 0, 47))).any()
+    np.testing.assert_array_equal(lean.warp(), full.warp())
+    np.testing.assert_array_equal(lean.jacobians(), full.jacobians())
+    np.testing.assert_array_equal(lean.lattice.leaf_rows, full.lattice.leaf_rows)
+    ones = np.unique(lean.lattice.leaf_rows[lean.lattice.leaf_size == 1])
+    assert not lean.lattice.data[ones, 4:].any() and full.lattice.data[ones, 4:].any()
+    assert lean.lattice.nbytes < full.lattice.nbytes
+    with pytest.raises(ValueError, match="pre_images=False"):
+        lean.resample({"v": np.zeros(geo.n_points)})
+    with pytest.raises(ValueError, match="pre_images=False"):
+        lean.output_geometry()
+    with pytest.raises(ValueError, match="pre_images=False"):
+        lean.lattice.evaluate([[20.0, 20.0, 20.0]])
+    # the policy's copy keeps it
+    assert not lean.with_outside("nan").pre_images
+
+
 def test_a_window_of_the_lattice_gives_the_whole_lattices_voxels():
     """A piece's lattice (its root cells only) warps its voxels as the whole lattice does."""
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
@@ -728,6 +768,14 @@ def test_a_window_of_the_lattice_gives_the_whole_lattices_voxels():
             atol=1e-10,
         )  # fmt: skip
         assert part.lattice.stats["evaluations"] < whole.lattice.stats["evaluations"]
+        # its masks: the whole lattice's in its root cells' rows, untouched elsewhere
+        rows = np.zeros(part.lattice.mask.shape[:2], dtype=bool)
+        r = part.root
+        rows[k0 // r * r : (k1 // r + 1) * r + 1, j0 // r * r : (j1 // r + 1) * r + 1] = True
+        for name in ("mask", "near"):
+            mine, all_ = getattr(part.lattice, name), getattr(whole.lattice, name)
+            np.testing.assert_array_equal(mine[rows], all_[rows])
+            assert not mine[~rows].any()
         with pytest.raises(ValueError, match="not inside the window"):
             part.warp([0, 43, 0, 39, 0, 69])
         with pytest.raises(ValueError, match="needs the whole lattice"):

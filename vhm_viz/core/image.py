@@ -286,7 +286,7 @@ def _index_triangles(geometry: ImageGeometry, vertices, faces):
     return v, f
 
 
-def surface_mask(geometry: ImageGeometry, vertices, faces) -> np.ndarray:
+def surface_mask(geometry: ImageGeometry, vertices, faces, rows=None) -> np.ndarray:
     """Grid points next to the cage surface: an edge of the grid from them crosses it.
 
     Scan lines along each of the three axes record every crossing, also pairs that cancel
@@ -294,25 +294,50 @@ def surface_mask(geometry: ImageGeometry, vertices, faces) -> np.ndarray:
     A point is marked when the surface crosses the grid edge to one of its six neighbours;
     away from marked points, the inside of a grid cube is decided by its corners.
 
+    Parameters
+    ----------
+    geometry : ImageGeometry
+    vertices : (n, 3) array_like
+        Cage vertices (world).
+    faces : (m, 3) array_like of int
+        Outward-oriented triangles.
+    rows : (j0, j1, k0, k1), optional
+        Only the points with ``j0 <= j < j1``, ``k0 <= k < k1`` (default: all), as in
+        :func:`inside_mask`; their edges to neighbours outside these rows count too.
+
     Returns
     -------
-    (nz, ny, nx) bool
+    (k1 - k0, j1 - j0, nx) bool
     """
     v, f = _index_triangles(geometry, vertices, faces)
     dims = geometry.dimensions
-    near = np.zeros(dims[::-1], dtype=bool)
+    j0, j1, k0, k1 = (0, dims[1], 0, dims[2]) if rows is None else (int(r) for r in rows)
+    j0, k0 = max(j0, 0), max(k0, 0)
+    j1, k1 = max(min(j1, dims[1]), j0), max(min(k1, dims[2]), k0)
+    near = np.zeros((k1 - k0, j1 - j0, dims[0]), dtype=bool)
+    if not near.size:
+        return near
+    # per scan axis: its rows (the other two axes, cyclic order), restricted where the
+    # rows allow it, and the crop of the scan axis itself to the requested rows
+    spans = {
+        0: ((j0, j1, k0, k1), (slice(None), slice(None), slice(None))),
+        1: ((k0, k1, 0, dims[0]), (slice(None), slice(j0, j1), slice(None))),
+        2: ((0, dims[0], j0, j1), (slice(k0, k1), slice(None), slice(None))),
+    }
     for axis in range(3):
         # cyclic permutations keep the faces' orientation: axis ``axis`` becomes i
         order = [(axis + c) % 3 for c in range(3)]
-        n_i, n_j, n_k = (dims[a] for a in order)
+        n_i = dims[order[0]]
+        (a0, a1, b0, b1), crop = spans[axis]
         tri = np.ascontiguousarray(v[:, order][f])
-        out = np.zeros((n_k, n_j, n_i + 1), dtype=np.int16)
-        crossed = np.zeros((n_k, n_j, n_i + 1), dtype=np.uint8)
-        _scanline_winding(tri, f, n_i, 0, n_j, 0, n_k, out, crossed)
-        hit = crossed.astype(bool)
+        out = np.zeros((b1 - b0, a1 - a0, n_i + 1), dtype=np.int16)
+        crossed = np.zeros((b1 - b0, a1 - a0, n_i + 1), dtype=np.uint8)
+        _scanline_winding(tri, f, n_i, a0, a1, b0, b1, out, crossed)
+        del out
+        hit = crossed.view(bool)
         adjacent = hit[..., 1:] | hit[..., :-1]  # the points on both sides of a crossing
         back = {0: (0, 1, 2), 1: (1, 2, 0), 2: (2, 0, 1)}[axis]
-        near |= np.transpose(adjacent, back)
+        near |= np.transpose(adjacent, back)[crop]
     return near
 
 

@@ -171,6 +171,11 @@ class VolumeDeformation:
         How the lattice's exact evaluations are shared with other builders (MPI ranks
         that build their windows, or the whole lattice, together): see
         :func:`~vhm_viz.core.lattice.build_lattice`. The values do not depend on it.
+    pre_images : bool
+        False: this engine only warps and analyses voxels, so its lattice skips what only
+        pre-images need (faster and smaller: see
+        :func:`~vhm_viz.core.lattice.build_lattice`); the voxels' values are the same.
+        Resampling and :meth:`output_geometry` refuse it. A window implies it.
 
     Notes
     -----
@@ -189,6 +194,7 @@ class VolumeDeformation:
         root: int | None = None,
         window=None,
         exchange=None,
+        pre_images: bool = True,
     ):
         self.map = harmonic_map
         self.exchange = exchange
@@ -212,6 +218,8 @@ class VolumeDeformation:
             self.window = None if window is None else _box_of(geometry, window)
         if self.window is not None and self.window.tolist() == _box_of(geometry, None).tolist():
             self.window = None
+        # a window's engine refuses pre-images anyway (they may lie anywhere)
+        self.pre_images = bool(pre_images) and self.window is None
         self._lattice: HermiteLattice | None = None
         # output grids and input windows, each a pass over every leaf: a pipeline asks
         # for them again in each information and update-extent pass
@@ -240,6 +248,7 @@ class VolumeDeformation:
                 abort=abort,
                 window=None if self.window is None else self.window.tolist(),
                 exchange=self.exchange,
+                pre_images=self.pre_images,
             )
         return self._lattice
 
@@ -253,7 +262,7 @@ class VolumeDeformation:
             self.map, self.geometry, tolerance=self.tolerance, outside=outside,
             memory_budget=self.memory_budget, root=self.root,
             window=None if self.window is None else self.window.tolist(),
-            exchange=self.exchange,
+            exchange=self.exchange, pre_images=self.pre_images,
         )  # fmt: skip
         other._lattice = self._lattice
         return other
@@ -274,6 +283,11 @@ class VolumeDeformation:
             raise ValueError(
                 f"{what} needs the whole lattice: this volume engine was built for the window "
                 f"{self.window.tolist()} only"
+            )
+        if not self.pre_images:
+            raise ValueError(
+                f"{what} needs pre-images: this volume engine was built for warping and "
+                "analysing voxels only (pre_images=False)"
             )
 
     def outside_voxels(self, box=None) -> np.ndarray:

@@ -247,6 +247,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self._user_deformer = None
         self._scene = None
         self._hmap = None
+        self._solved_map = None  # a solved scene's map, when its deformer is not kept
         self._outside = "error"
         self._solver: dict = {}
         self._derived_key = None
@@ -613,11 +614,22 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 # every rank solves the same scene to the same map: tried, rank 0 solving
                 # alone and handing out the coefficients was no faster on the embryo and
                 # 0.1 s slower on the CT head (2 ranks on this 2-core machine)
-                self._deformer = self._scene.build(data=mesh, cage=cage)
+                self._deformer = self._solved_map = None  # free the old solver first
+                dfm = self._scene.build(data=mesh, cage=cage)
+                self.solve_reports.extend(self._scene.solve(dfm, **self._solver))
+                if self._parallel_reporting:
+                    # ParaView exposes no UpdateTargets, so nothing re-solves this deformer:
+                    # keep the map only, not the solver's matrices (50 MB on the embryo's
+                    # cage) through the data's own work
+                    self._solved_map = dfm.harmonic_map
+                else:
+                    self._deformer = dfm
+                del dfm
                 self._derived_key = key
-                self.solve_reports.extend(self._scene.solve(self._deformer, **self._solver))
                 # the build's transient basis matrices: before the data's own allocations
                 release_free_memory()
+            if self._deformer is None:
+                return self._solved_map, None
         elif self._parallel_reporting:
             raise RuntimeError("set SceneFile (a vhm_viz scene JSON)")
         else:
@@ -664,12 +676,13 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self.outside_count = binding.n_outside
         return binding
 
-    def _volume(self, hm, geometry: ImageGeometry, outside: str, window=None):
+    def _volume(self, hm, geometry: ImageGeometry, outside: str, window=None, pre_images=True):
         """The volume engine of ``hm`` on ``geometry``, kept while nothing changes.
 
         ``window`` (a box of voxels): a piece's engine, whose lattice covers the piece's
         root cells only (aligned with the whole grid: its voxels get the values the whole
         lattice gives them). None: the whole lattice, shared by the pieces of an update.
+        ``pre_images`` False: for warping and analysing voxels only (a faster lattice).
         """
         key = (
             _map_key(hm),
@@ -677,6 +690,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
             self._tolerance,
             self._memory_budget,
             None if window is None else tuple(int(v) for v in window),
+            bool(pre_images),
         )
         if self._volume_engine is not None and key == self._volume_key:
             if self._volume_engine.outside != outside:
@@ -694,6 +708,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 memory_budget=self._memory_budget,
                 window=window,
                 exchange=self._lattice_exchange(),
+                pre_images=pre_images,
             )
             self._volume_key = key
         return self._volume_engine

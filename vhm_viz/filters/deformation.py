@@ -77,8 +77,11 @@ def _as_point_set(inp):
     return conv.GetOutput()
 
 
-def _set_array(data, name: str, values: np.ndarray, *, normals: bool = False) -> None:
-    arr = ns.numpy_to_vtk(np.ascontiguousarray(values), deep=1)
+def _set_array(
+    data, name: str, values: np.ndarray, *, normals: bool = False, copy: bool = True
+) -> None:
+    # copy=False: ``values`` is this array's own (VTK keeps a reference to it)
+    arr = ns.numpy_to_vtk(np.ascontiguousarray(values), deep=1 if copy else 0)
     arr.SetName(name)
     data.RemoveArray(name)
     data.AddArray(arr)
@@ -260,7 +263,10 @@ class HarmonicDeformationFilter(DeformationSource):
     def _finish(self, out, outside: np.ndarray) -> None:
         """The outside flags (``vhm_outside``) and count (field ``vhm_outside_count``)."""
         if self._outside != "error":
-            _set_array(out.GetPointData(), "vhm_outside", outside.astype(np.uint8))
+            # uint8 flags are handed over (the image path makes them for this); others
+            # are converted into a new array, which is handed over
+            flags = np.asarray(outside).astype(np.uint8, copy=False)
+            _set_array(out.GetPointData(), "vhm_outside", flags, copy=False)
         count = ns.numpy_to_vtk(np.array([self.outside_count], dtype=np.int64), deep=1)
         count.SetName("vhm_outside_count")
         out.GetFieldData().RemoveArray("vhm_outside_count")
@@ -280,14 +286,16 @@ class HarmonicDeformationFilter(DeformationSource):
         whole = inp.GetExtent() if whole is None else whole
         ext = inp.GetExtent()
         box = [ext[a] - whole[a - a % 2] for a in range(6)]
+        geo = image_geometry(inp, whole)
         if any(box[2 * a + 1] < box[2 * a] for a in range(3)):
             # an empty piece (more ranks than planes): nothing to warp, but under MPI the
             # rank still evaluates its share of the others' lattice points
             if self._lattice_exchange() is not None:
-                self._volume(hm, image_geometry(inp, whole), self._outside, window=box).build()
+                self._volume(hm, geo, self._outside, window=box, pre_images=False).build()
             out.SetExtent(ext)
             return 1
-        vol = self._volume(hm, image_geometry(inp, whole), self._outside, window=box)
+        # the voxels only are warped: a lattice without pre-images (faster, smaller)
+        vol = self._volume(hm, geo, self._outside, window=box, pre_images=False)
         progress, abort = self._progress(0.0, 0.8), self._aborted
         points = vol.warp(box, progress=progress, abort=abort)
         inside = vol.lattice.inside(box).ravel()
@@ -323,7 +331,8 @@ class HarmonicDeformationFilter(DeformationSource):
         if self._displacement:
             _set_array(pd, "displacement", points - vol.geometry.sub(box).points())
         self._add_lattice_counts(out, vol)
-        self._finish(out, ~inside)
+        # one array for the flags, not three (a half of the embryo: 8 MB each)
+        self._finish(out, np.logical_not(inside, out=np.empty(inside.size, np.uint8)))
         return 1
 
 
