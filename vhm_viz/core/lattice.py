@@ -900,7 +900,6 @@ def build_lattice(
     shells = _Shells(V, Fc)
     # every lattice point's side of the cage (the lattice overhangs the volume)
     lat_geo = ImageGeometry(geometry.origin, geometry.spacing, lattice_dims, geometry.direction)
-    mask, near = _masks(lat_geo, V, Fc, _window_rows(window, root, n_root, last, exchange))
     table = _NodeTable(lattice_dims)
     n_eval = np.zeros(2, dtype=np.int64)  # inside, outside (continued)
     edge_a, edge_b = _cage_edges_in_index(lat_geo, cage)
@@ -927,10 +926,12 @@ def build_lattice(
             n_eval[1] += (~ins).sum()
 
     try:
+        roots = _window_roots(window, root, n_root, geometry, exchange is not None)
+        mask, near = _masks(lat_geo, V, Fc, _mask_rows(window, roots, root))
         lattice = _build_levels(
             ensure, table, harmonic_map, geometry, lat_geo, tolerance, root, last, n_root,
-            mask, near, (edge_a, edge_b), window, None if exchange is not None else abort,
-            progress, shared=exchange is not None, pre_images=pre_images,
+            mask, near, (edge_a, edge_b), roots, None if exchange is not None else abort,
+            progress, pre_images=pre_images,
         )  # fmt: skip
         # builders working together meet the same number of times
         for _ in range(exchange_rounds(root) - rounds[0] if exchange is not None else 0):
@@ -953,22 +954,39 @@ def build_lattice(
     return lattice
 
 
-def _window_rows(window, root, n_root, last, exchange):
+def _window_roots(window, root, n_root, geometry, shared):
+    """The window (validated) and the range of root cells it builds, per axis.
+
+    Returns ``(w, lo_root, hi_root)``: ``w`` None for the whole grid, or for an empty
+    piece of a shared build (more MPI ranks than planes: no cells of its own, but its
+    builder still evaluates its share of the others' points; then ``hi_root < lo_root``).
+    """
+    lo_root, hi_root = np.zeros(3, dtype=np.int64), n_root - 1
+    if window is None:
+        return None, lo_root, hi_root
+    w = np.asarray(window, dtype=np.int64).reshape(6)
+    if shared and (w[1::2] < w[0::2]).any():
+        return None, lo_root, np.full(3, -1, dtype=np.int64)
+    last = np.asarray(geometry.dimensions, dtype=np.int64) - 1
+    if (w[0::2] < 0).any() or (w[1::2] > last).any() or (w[1::2] < w[0::2]).any():
+        raise ValueError(f"window {w.tolist()} is not inside the grid of dimensions "
+                         f"{tuple(geometry.dimensions)}")  # fmt: skip
+    # a root cell owns [o, o + root); the grid's last voxel belongs to the last cell
+    return w, np.minimum(w[0::2] // root, n_root - 1), np.minimum(w[1::2] // root, n_root - 1)
+
+
+def _mask_rows(window, roots, root):
     """The lattice rows ``(j0, j1, k0, k1)`` of a window's root cells (None: every row).
 
     Outside them a window's build reads neither mask (its cells are those root cells).
     """
     if window is None:
         return None
-    w = np.asarray(window, dtype=np.int64).reshape(6)
-    if (w[1::2] < w[0::2]).any():
-        # an empty piece builds no cell; without an exchange _build_levels refuses it
-        return (0, 0, 0, 0) if exchange is not None else None
-    if (w[0::2] < 0).any() or (w[1::2] > last).any():
-        return None  # refused by _build_levels
-    lo = np.minimum(w[0::2] // root, n_root - 1) * root
-    hi = (np.minimum(w[1::2] // root, n_root - 1) + 1) * root  # the far corners
-    return (int(lo[1]), int(hi[1]) + 1, int(lo[2]), int(hi[2]) + 1)
+    _, lo_root, hi_root = roots
+    if (hi_root < lo_root).any():  # an empty piece: no cells, no rows
+        return (0, 0, 0, 0)
+    lo, hi = lo_root * root, (hi_root + 1) * root + 1  # up to the far corners
+    return (int(lo[1]), int(hi[1]), int(lo[2]), int(hi[2]))
 
 
 def _masks(lat_geo: ImageGeometry, vertices, faces, rows):
@@ -1001,7 +1019,7 @@ def exchange_rounds(root: int) -> int:
 
 def _build_levels(
     ensure, table, harmonic_map, geometry, lat_geo, tolerance, root, last, n_root, mask,
-    near, edges, window, abort, progress, shared=False, pre_images=True,
+    near, edges, roots, abort, progress, pre_images=True,
 ):  # fmt: skip
     """The level loop of :func:`build_lattice`: refine cells until they fit the map."""
     V = np.asarray(harmonic_map.cage.vertices, dtype=np.float64)
@@ -1009,22 +1027,7 @@ def _build_levels(
     to_voxel = np.ascontiguousarray(geometry.world_to_index)
     edge_a, edge_b = edges
     end = n_root * root
-    lo_root, hi_root = np.zeros(3, dtype=np.int64), n_root - 1
-    w = None
-    if window is not None:
-        w = np.asarray(window, dtype=np.int64).reshape(6)
-        if shared and (w[1::2] < w[0::2]).any():
-            # an empty piece (more MPI ranks than planes): no cells of its own, but its
-            # builder still evaluates its share of the others' points
-            w = None
-            lo_root, hi_root = np.zeros(3, dtype=np.int64), np.full(3, -1, dtype=np.int64)
-        elif (w[0::2] < 0).any() or (w[1::2] > last).any() or (w[1::2] < w[0::2]).any():
-            raise ValueError(f"window {w.tolist()} is not inside the grid of dimensions "
-                             f"{tuple(geometry.dimensions)}")  # fmt: skip
-    if w is not None:
-        # a root cell owns [o, o + root); the grid's last voxel belongs to the last cell
-        lo_root = np.minimum(w[0::2] // root, n_root - 1)
-        hi_root = np.minimum(w[1::2] // root, n_root - 1)
+    w, lo_root, hi_root = roots
     ranges = [np.arange(lo_root[a], hi_root[a] + 1) for a in range(3)]
     g = np.stack(np.meshgrid(*ranges[::-1], indexing="ij"), -1)
     cells = (g.reshape(-1, 3)[:, ::-1] * root).astype(np.int64)
