@@ -1067,3 +1067,70 @@ def test_input_window_holds_every_preimage_of_its_box_and_is_computed_once():
         np.testing.assert_array_equal(vol.input_window(out, box), w)
         windows.append(w)
     assert windows[0][5] < nz - 1 or windows[1][4] > 0  # the halves read less than all
+
+
+def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattice():
+    """MPI ranks resample without the whole lattice: each builds a window of root cells,
+    they agree on the output grid from their bounds, and each output piece is resampled
+    with the leaves (from every window) whose images reach it -- bit for bit the whole
+    lattice's result, with an input window that holds the one the whole lattice names."""
+    from vhm_viz.core.lattice import join_parts
+    from vhm_viz.core.volume import output_grid, window_of
+
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
+    hm = _random_bend(_cage_around((0, 0, 0), (43, 39, 82.8), 0.03), 0.02, seed=2)
+    whole = VolumeDeformation(hm, geo, outside="passthrough")
+    values = np.asarray(_smooth_volume(geo.dimensions, geo.spacing, geo.origin)["density"])
+    out_geo = whole.output_geometry()
+    # windows of whole root cells (16 voxels), each with one more root layer beyond the
+    # split: the twists of single-voxel cells read the neighbours there
+    windows = [
+        VolumeDeformation(hm, geo, outside="passthrough", window=w, pre_images=True)
+        for w in ([0, 43, 0, 39, 0, 47], [0, 43, 0, 39, 16, 69])
+    ]
+    own = [(0, 1), (2, 4)]  # each window's own root layers (along k)
+    layer = [w.lattice.root_keys() // int(np.prod(w.lattice.n_root[:2])) for w in windows]
+    bounds = [w.image_bounds() for w in windows]
+    lo = np.min([b[0] for b in bounds], axis=0)
+    hi = np.max([b[1] for b in bounds], axis=0)
+    any_outside = any(b[2] for b in bounds)
+    assert any_outside == (not whole.lattice.inside([0, 43, 0, 39, 0, 69]).all())
+    joined_geo = output_grid(geo, lo, hi, tolerance=whole.tolerance, keep_input=any_outside)
+    assert joined_geo.key() == out_geo.key()
+    table = np.concatenate([w.reach_table(out_geo) for w in windows])
+    n = out_geo.dimensions
+    # pieces across the windows' split (along j), so that each takes leaves from both
+    pieces = [[0, n[0] - 1, 0, n[1] // 2 - 1, 0, n[2] - 1],
+              [0, n[0] - 1, n[1] // 2, n[1] - 1, 0, n[2] - 1]]  # fmt: skip
+    for piece in pieces:
+        parts, sources = [], []
+        for w, (k0, k1), lay in zip(windows, own, layer, strict=True):
+            clo, chi = w.lattice.candidate_boxes(out_geo)
+            mine = (lay >= k0) & (lay <= k1)
+            hit = np.nonzero(mine & np.all((clo <= piece[1::2]) & (chi >= piece[0::2]), axis=1))[0]
+            parts.append(w.lattice.part(hit))
+            sources.append(len(hit))
+        assert min(sources) > 0
+        lat = join_parts(parts, hm, geo, tolerance=whole.tolerance, root=whole.root)
+        assert lat.stats["leaves"] < whole.lattice.stats["leaves"]
+        engine = VolumeDeformation.for_piece(
+            hm, geo, lat, out_geo, piece, any_outside=any_outside,
+            tolerance=whole.tolerance, outside="passthrough",
+        )  # fmt: skip
+        got = engine.resample({"v": values}, out_geo, box=piece)
+        ref = whole.resample({"v": values}, out_geo, box=piece)
+        assert ref.counts["valid"] > 0.3 * geo.n_points / 2
+        np.testing.assert_array_equal(got.arrays["v"], ref.arrays["v"])
+        np.testing.assert_array_equal(got.valid, ref.valid)
+        np.testing.assert_array_equal(got.foldover, ref.foldover)
+        assert got.counts == ref.counts
+        # the windows' root-cell tables name an input window that holds the leaves'
+        need = whole.input_window(out_geo, piece)
+        have = window_of(table, piece, geo, out_geo, margin=0.75, in_place=any_outside)
+        assert (have[0::2] <= need[0::2]).all() and (have[1::2] >= need[1::2]).all()
+        assert engine.input_window(out_geo, piece).tolist() == need.tolist()
+        with pytest.raises(ValueError, match="one output piece only"):
+            engine.warp()
+        other = pieces[1] if piece is pieces[0] else pieces[0]
+        with pytest.raises(ValueError, match="reach the output piece"):
+            engine.resample({"v": values}, out_geo, box=other)

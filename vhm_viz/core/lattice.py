@@ -954,6 +954,112 @@ def build_lattice(
     return lattice
 
 
+#: The arrays of :meth:`HermiteLattice.part`: per leaf (first axis: leaves) but ``data``
+#: (first axis: the data rows the leaves read); their trailing shapes and dtypes.
+PART_FIELDS = {
+    "order": ((2,), np.int64),
+    "origin": ((3,), np.int64),
+    "size": ((), np.int64),
+    "cut": ((), np.bool_),
+    "rows": ((8,), np.int64),
+    "data": ((_N_TERMS, 3), np.float64),
+    "centre_f": ((3,), np.float64),
+    "centre_ginv": ((3, 3), np.float64),
+    "rho": ((), np.float64),
+}
+
+
+def join_parts(parts, harmonic_map, geometry: ImageGeometry, *, tolerance: float,
+               root: int = DEFAULT_ROOT, stats=None) -> HermiteLattice:  # fmt: skip
+    """One lattice of the leaves of several lattices' parts (:meth:`HermiteLattice.part`).
+
+    The parts come from lattices of the same map and grid (windows of it: MPI ranks);
+    no leaf may be in two parts. The leaves are ordered as in the whole grid's lattice
+    (by root cell, then as each root cell's build made them), so that resampling with
+    the joined lattice visits the same leaves in the same order as with the whole one:
+    where those leaves are all the leaves whose images reach the output voxels
+    resampled, their pre-images are the whole lattice's, bit for bit. The inside and
+    surface masks are computed in the rows those pre-images read.
+
+    Parameters
+    ----------
+    parts : list of dict
+        :data:`PART_FIELDS` arrays; each is released (set to None) once joined, so that
+        the parts and the lattice are not held twice.
+    harmonic_map : HarmonicMap
+    geometry : ImageGeometry
+        The input grid.
+    tolerance : float
+        The lattices' tolerance (voxels).
+    root : int
+        Their root cell size.
+    stats : dict, optional
+        Build statistics to keep (evaluations...); leaf counts are the join's.
+    """
+    last = np.asarray(geometry.dimensions, dtype=np.int64) - 1
+    n_root = np.maximum(1, -(-last // root))
+    lat_geo = ImageGeometry(geometry.origin, geometry.spacing, n_root * root + 1,
+                            geometry.direction)  # fmt: skip
+    offsets = np.cumsum([0] + [len(p["data"]) for p in parts])
+    joined = {}
+    for name, (shape, dtype) in PART_FIELDS.items():
+        shift = offsets if name == "rows" else np.zeros(len(parts), dtype=np.int64)
+        joined[name] = np.concatenate(
+            [p[name] + shift[n] if name == "rows" else p[name] for n, p in enumerate(parts)]
+            or [np.zeros((0,) + shape, dtype=dtype)]
+        )
+        for p in parts:  # each part's arrays go as soon as they are joined
+            p[name] = None
+    order = joined.pop("order")
+    data = joined.pop("data")
+    perm = np.lexsort((order[:, 1], order[:, 0]))
+    leaf = {name: np.ascontiguousarray(a[perm]) for name, a in joined.items()}
+    rkey = order[perm, 0]
+    count = np.bincount(rkey, minlength=int(np.prod(n_root))).astype(np.int64)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
+    o, h = leaf["origin"], leaf["size"]
+    if len(o):
+        # a pre-image lies within its leaf grown by the margin and the border; the grid
+        # cube around it reaches one more point on each side
+        ny, nz = lat_geo.dimensions[1], lat_geo.dimensions[2]
+        rows = (max(int(o[:, 1].min()) - 1, 0), min(int((o[:, 1] + h).max()) + 2, ny),
+                max(int(o[:, 2].min()) - 1, 0), min(int((o[:, 2] + h).max()) + 2, nz))  # fmt: skip
+    else:
+        rows = (0, 0, 0, 0)
+    cage = harmonic_map.cage
+    V = np.asarray(cage.vertices, dtype=np.float64)
+    mask, near = _masks(lat_geo, V, np.asarray(cage.faces), rows)
+    edge_a, edge_b = _cage_edges_in_index(lat_geo, cage)
+    sizes, per_size = np.unique(h, return_counts=True)
+    return HermiteLattice(
+        geometry=geometry,
+        tolerance=float(tolerance),
+        root=int(root),
+        n_root=n_root.astype(np.int64),
+        data=data,
+        leaf_origin=leaf["origin"],
+        leaf_size=leaf["size"],
+        leaf_rows=leaf["rows"],
+        leaf_cut=leaf["cut"],
+        root_start=start,
+        root_count=count,
+        centre_f=leaf["centre_f"],
+        centre_ginv=leaf["centre_ginv"],
+        rho=leaf["rho"],
+        mask=mask,
+        near=near,
+        edge_a=edge_a,
+        edge_b=edge_b,
+        stats={
+            **(stats or {}),
+            "leaves": int(len(h)),
+            "leaves_per_size": {int(s): int(c) for s, c in zip(sizes, per_size, strict=True)},
+            "data_rows": int(len(data)),
+        },
+        pre_images=True,
+    )
+
+
 def _window_roots(window, root, n_root, geometry, shared):
     """The window (validated) and the range of root cells it builds, per axis.
 
@@ -1838,6 +1944,37 @@ class HermiteLattice:
                 geometry.origin, geometry.index_to_world, b, start, row_leaf, row_i0, row_i1,
                 u, state, fold, quality,
             )  # fmt: skip
+
+    def root_keys(self, leaves=None) -> np.ndarray:
+        """Root cell of each leaf (or of ``leaves``), as one int64 key (i fastest)."""
+        o = self.leaf_origin if leaves is None else self.leaf_origin[leaves]
+        rid = o // self.root
+        n = self.n_root
+        return rid[:, 0] + n[0] * (rid[:, 1] + n[1] * rid[:, 2])
+
+    def part(self, leaves) -> dict:
+        """Some leaves with the data they read, as plain arrays (:data:`PART_FIELDS`).
+
+        For lattices built in windows (MPI ranks) whose leaves are regrouped by
+        :func:`join_parts`: each leaf carries its place in the whole lattice's order (its
+        root cell, and its rank among that root cell's leaves, which a window's build
+        keeps), so that the joined lattice visits them as the whole lattice would.
+        """
+        self._need_pre_images("part")
+        leaves = np.asarray(leaves, dtype=np.int64).ravel()
+        used, inverse = np.unique(self.leaf_rows[leaves], return_inverse=True)
+        rkey = self.root_keys(leaves)
+        return {
+            "order": np.column_stack([rkey, leaves - self.root_start[rkey]]),
+            "origin": self.leaf_origin[leaves],
+            "size": self.leaf_size[leaves],
+            "cut": self.leaf_cut[leaves],
+            "rows": inverse.reshape(-1, 8).astype(np.int64),
+            "data": self.data[used],
+            "centre_f": self.centre_f[leaves],
+            "centre_ginv": self.centre_ginv[leaves],
+            "rho": self.rho[leaves],
+        }
 
     def __repr__(self) -> str:
         return (

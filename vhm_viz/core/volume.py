@@ -45,6 +45,8 @@ from vhm_viz.core.lattice import DEFAULT_ROOT, HermiteLattice, build_lattice
 __all__ = [
     "VolumeDeformation",
     "Resampled",
+    "output_grid",
+    "window_of",
     "exact_preimages",
     "DEFAULT_TOLERANCE",
     "EXACT_VOXELS",
@@ -164,9 +166,11 @@ class VolumeDeformation:
         rank's, a streamed piece): the lattice is built over the root cells that own its
         voxels only, aligned with the whole grid, so those voxels get the same values as
         with the whole lattice (to rounding). Resampling and :meth:`output_geometry` need
-        the whole lattice (pre-images may lie anywhere): they refuse a window. With an
-        ``exchange`` the window may be empty (an MPI rank's empty piece): :meth:`build`
-        then only takes its share of the other builders' evaluations.
+        the whole lattice (pre-images may lie anywhere): they refuse a window; MPI ranks
+        resample pieces with lattices joined from the windows' leaves
+        (:meth:`for_piece`). With an ``exchange`` the window may be empty (an MPI rank's
+        empty piece): :meth:`build` then only takes its share of the other builders'
+        evaluations.
     exchange : callable, optional
         How the lattice's exact evaluations are shared with other builders (MPI ranks
         that build their windows, or the whole lattice, together): see
@@ -175,7 +179,9 @@ class VolumeDeformation:
         False: this engine only warps and analyses voxels, so its lattice skips what only
         pre-images need (faster and smaller: see
         :func:`~vhm_viz.core.lattice.build_lattice`); the voxels' values are the same.
-        Resampling and :meth:`output_geometry` refuse it. A window implies it.
+        Resampling and :meth:`output_geometry` refuse it. Default: True without a
+        window, False with one (a window's engine only warps and analyses, unless its
+        leaves are to be joined for resampling: :meth:`for_piece`).
 
     Notes
     -----
@@ -194,7 +200,7 @@ class VolumeDeformation:
         root: int | None = None,
         window=None,
         exchange=None,
-        pre_images: bool = True,
+        pre_images: bool | None = None,
     ):
         self.map = harmonic_map
         self.exchange = exchange
@@ -218,8 +224,13 @@ class VolumeDeformation:
             self.window = None if window is None else _box_of(geometry, window)
         if self.window is not None and self.window.tolist() == _box_of(geometry, None).tolist():
             self.window = None
-        # a window's engine refuses pre-images anyway (they may lie anywhere)
-        self.pre_images = bool(pre_images) and self.window is None
+        # a window's engine refuses resampling: by default it skips what only that needs
+        self.pre_images = self.window is None if pre_images is None else bool(pre_images)
+        #: ``(output geometry, box)`` of a piece engine (:meth:`for_piece`), else None.
+        self.piece = None
+        # whether the whole volume has voxels outside the cage, where the lattice cannot
+        # tell (a piece engine's lattice holds the masks of its own rows only)
+        self._any_outside: bool | None = None
         self._lattice: HermiteLattice | None = None
         # output grids and input windows, each a pass over every leaf: a pipeline asks
         # for them again in each information and update-extent pass
@@ -252,6 +263,11 @@ class VolumeDeformation:
             )
         return self._lattice
 
+    def drop_lattice(self) -> None:
+        """Free the lattice (it is built again when next needed)."""
+        self._lattice = None
+        self._memo.clear()
+
     def with_outside(self, outside: str) -> VolumeDeformation:
         """The same engine with another outside policy, sharing the lattice once built.
 
@@ -269,6 +285,11 @@ class VolumeDeformation:
 
     def _in_window(self, box) -> np.ndarray:
         """``box`` validated, and inside the window this engine was built for."""
+        if self.piece is not None:
+            raise ValueError(
+                "this volume engine holds the leaves that reach one output piece only "
+                f"({self.piece[1].tolist()}): it resamples that piece, nothing else"
+            )
         b = _box_of(self.geometry, box)
         w = self.window
         if w is not None and ((b[0::2] < w[0::2]).any() or (b[1::2] > w[1::2]).any()):
@@ -278,7 +299,22 @@ class VolumeDeformation:
             )
         return b
 
-    def _whole(self, what: str) -> None:
+    def _whole(self, what: str, geometry: ImageGeometry | None = None, box=None) -> None:
+        if self.piece is not None:
+            geo, piece = self.piece
+            inside = (
+                geometry is not None
+                and box is not None
+                and geometry.key() == geo.key()
+                and (np.asarray(box)[0::2] >= piece[0::2]).all()
+                and (np.asarray(box)[1::2] <= piece[1::2]).all()
+            )
+            if not inside:
+                raise ValueError(
+                    f"{what} needs the whole lattice: this volume engine holds the leaves "
+                    f"that reach the output piece {piece.tolist()} only"
+                )
+            return
         if self.window is not None:
             raise ValueError(
                 f"{what} needs the whole lattice: this volume engine was built for the window "
@@ -302,6 +338,14 @@ class VolumeDeformation:
 
     def _refuse_outside(self, box=None) -> None:
         if self.outside != "error":
+            return
+        if self._any_outside is not None:  # a piece engine: agreed for the whole volume
+            if self._any_outside:
+                raise OutsideCageError(
+                    "voxels of the volume are outside the cage; use the 'passthrough' "
+                    "outside policy to leave them in place or 'nan' to drop them",
+                    np.zeros(0, dtype=np.int64),
+                )
             return
         bad = self.outside_voxels(box)
         if bad.size:
@@ -455,28 +499,79 @@ class VolumeDeformation:
 
     def _output_geometry(self, spacing) -> ImageGeometry:
         self._whole("output_geometry")
-        lat = self.lattice
+        lo, hi, outside = self.image_bounds()
+        return output_grid(self.geometry, lo, hi, tolerance=self.tolerance, spacing=spacing,
+                           keep_input=self.outside == "passthrough" and outside)  # fmt: skip
+
+    def image_bounds(self):
+        """Where this engine's leaves map to, and whether its voxels all lie inside the cage.
+
+        For :func:`output_grid`; MPI ranks combine their windows' bounds (the smallest
+        ``lo``, the largest ``hi``, any outside) into the whole volume's.
+
+        Returns
+        -------
+        lo, hi : (3,) float64
+            Bounds of the leaves' images (Bezier control point boxes) in continuous input
+            indices; ``+inf`` and ``-inf`` without leaves.
+        outside : bool
+            A voxel (of the window) is outside the cage.
+        """
+        if not self.pre_images:
+            self._whole("image_bounds")
+        lat = self.build()
         geo = self.geometry
-        if not len(lat.leaf_size):
-            raise ValueError("no voxel of the volume is inside the cage")
         lo, hi = lat.image_boxes(geo)
-        lo = lo.min(axis=0) - self.tolerance
-        hi = hi.max(axis=0) + self.tolerance
-        if self.outside == "passthrough" and not lat.inside(_box_of(geo, None)).all():
-            lo = np.minimum(lo, 0.0)
-            hi = np.maximum(hi, np.asarray(geo.dimensions) - 1.0)
-        if spacing is None:
-            lo, hi = np.floor(lo), np.ceil(hi)
-            dims = (hi - lo).astype(np.int64) + 1
-            return ImageGeometry(geo.points(lo[None])[0], geo.spacing, dims, geo.direction)
-        sp = np.asarray(spacing, dtype=np.float64).reshape(3)
-        if not (np.isfinite(sp).all() and (sp > 0).all()):
-            raise ValueError(f"spacing must be three positive numbers; got {spacing}")
-        extent = (hi - lo) * geo.spacing
-        dims = np.floor(extent / sp + 1e-9).astype(np.int64) + 1
-        # centre the output voxels on the deformed volume's box
-        start = lo * geo.spacing + 0.5 * (extent - (dims - 1) * sp)
-        return ImageGeometry(geo.origin + geo.direction @ start, sp, dims, geo.direction)
+        box = _box_of(geo, None) if self.window is None else self.window
+        outside = bool((box[1::2] >= box[0::2]).all() and not lat.inside(box).all())
+        return lo.min(axis=0, initial=np.inf), hi.max(axis=0, initial=-np.inf), outside
+
+    def reach_table(self, geometry: ImageGeometry, leaves=None) -> np.ndarray:
+        """Per root cell with leaves: where its leaves' pre-images may be, and their voxels.
+
+        Rows ``(out_lo, out_hi, in_lo, in_hi)`` (each 3 int64, inclusive): the output voxels
+        of ``geometry`` its leaves' images can reach (:meth:`HermiteLattice.candidate_boxes`)
+        and the input voxels its leaves span. MPI ranks share their windows' tables to find
+        each output piece's input window without the whole lattice (:func:`window_of`).
+        ``leaves``: only these (sorted) leaves' root cells (default all).
+        """
+        lat = self.build()
+        leaves = np.arange(len(lat.leaf_size)) if leaves is None else np.asarray(leaves)
+        if not len(leaves):
+            return np.zeros((0, 12), dtype=np.int64)
+        lo, hi = lat.candidate_boxes(geometry)
+        o = lat.leaf_origin[leaves]
+        table = np.column_stack([lo[leaves], hi[leaves], o, o + lat.leaf_size[leaves, None]])
+        # the leaves come grouped by root cell (in their order)
+        rkey = lat.root_keys(leaves)
+        starts = np.concatenate([[0], np.nonzero(np.diff(rkey))[0] + 1])
+        return np.column_stack([
+            np.minimum.reduceat(table[:, 0:3], starts), np.maximum.reduceat(table[:, 3:6], starts),
+            np.minimum.reduceat(table[:, 6:9], starts), np.maximum.reduceat(table[:, 9:12], starts),
+        ])  # fmt: skip
+
+    @classmethod
+    def for_piece(
+        cls, harmonic_map, geometry: ImageGeometry, lattice: HermiteLattice,
+        output_geometry: ImageGeometry, piece, *, any_outside: bool, tolerance: float,
+        outside: str, memory_budget: int | None = None, exchange=None,
+    ) -> VolumeDeformation:  # fmt: skip
+        """An engine that resamples one piece of an output grid with a partial lattice.
+
+        ``lattice`` must hold every leaf whose image can reach the ``piece`` (a box of
+        ``output_geometry``): :func:`~vhm_viz.core.lattice.join_parts` of the MPI ranks'
+        windows. Resampling the piece (or boxes within it) then gives the whole lattice's
+        result. ``any_outside``: whether the whole volume has voxels outside the cage
+        (the partial lattice's masks cannot tell).
+        """
+        engine = cls(harmonic_map, geometry, tolerance=tolerance, outside=outside,
+                     memory_budget=memory_budget, root=lattice.root, exchange=exchange)  # fmt: skip
+        engine._lattice = lattice
+        engine.piece = (output_geometry, _box_of(output_geometry, piece))
+        engine._any_outside = bool(any_outside)
+        engine._memo[("output_geometry", None)] = output_geometry
+        return engine
+
 
     # ------------------------------------------------------------------ resampling
     def resample(
@@ -593,35 +688,22 @@ class VolumeDeformation:
         return None if window is None else window.copy()
 
     def _input_window(self, geometry: ImageGeometry, b, interpolation: str):
-        self._whole("input_window")
+        self._whole("input_window", geometry, b)
         lat = self.lattice
         lo, hi = lat.candidate_boxes(geometry)
-        hit = np.all((lo <= b[1::2]) & (hi >= b[0::2]), axis=1)
-        # pre-images lie within the leaf grown by its margin; the stencil reaches one
-        # voxel beyond the cell holding them (linear), two for cubic
-        stencil = 2 if interpolation == "cubic" else 1
-        reach = stencil + int(math.ceil(lat.margins().max(initial=0.0)))
-        last = np.asarray(self.geometry.dimensions, dtype=np.int64) - 1
-        parts_lo, parts_hi = [], []
-        if hit.any():
-            o, h = lat.leaf_origin[hit], lat.leaf_size[hit][:, None]
-            parts_lo.append(o.min(axis=0) - reach)
-            parts_hi.append((o + h).max(axis=0) + reach)
-        if self.outside == "passthrough" and not lat.inside(_box_of(self.geometry, None)).all():
-            corners = np.array([[b[0 + a], b[2 + c], b[4 + d]] for a in (0, 1)
-                                for c in (0, 1) for d in (0, 1)], dtype=np.float64)  # fmt: skip
-            u = self.geometry.continuous_index(geometry.points(corners))
-            parts_lo.append(np.floor(u.min(axis=0)).astype(np.int64) - reach)
-            parts_hi.append(np.ceil(u.max(axis=0)).astype(np.int64) + reach)
-        if not parts_lo:
-            return None
-        w_lo = np.maximum(np.min(parts_lo, axis=0), 0)
-        w_hi = np.minimum(np.max(parts_hi, axis=0), last)
-        if (w_hi < w_lo).any():
-            return None
-        out = np.empty(6, dtype=np.int64)
-        out[0::2], out[1::2] = w_lo, w_hi
-        return out
+        o = lat.leaf_origin
+        table = np.column_stack([lo, hi, o, o + lat.leaf_size[:, None]])
+        return window_of(
+            table, b, self.geometry, geometry, interpolation=interpolation,
+            margin=lat.margins().max(initial=0.0),
+            in_place=self.outside == "passthrough" and self._has_outside(),
+        )  # fmt: skip
+
+    def _has_outside(self) -> bool:
+        """Whether the volume has voxels outside the cage."""
+        if self._any_outside is not None:
+            return self._any_outside
+        return not self.lattice.inside(_box_of(self.geometry, None)).all()
 
     def slice(
         self,
@@ -718,7 +800,7 @@ class VolumeDeformation:
             0 none, 1 inside the cage, 3 left in place (passthrough).
         fold : (P,) uint8
         """
-        self._whole("resampling")
+        self._whole("resampling", out_geo, b)
         lat = self.build(progress=_scaled(progress, 0.0, 0.5), abort=abort)
         self._refuse_outside()
         boxes = lat.candidate_boxes(out_geo)
@@ -809,6 +891,102 @@ class VolumeDeformation:
             f"VolumeDeformation(dimensions={self.geometry.dimensions}, "
             f"tolerance={self.tolerance}, outside={self.outside!r})"
         )
+
+
+
+def output_grid(geometry: ImageGeometry, lo, hi, *, tolerance: float, spacing=None,
+                keep_input: bool = False) -> ImageGeometry:  # fmt: skip
+    """The output grid over deformed voxels whose images lie within ``lo..hi``.
+
+    Parameters
+    ----------
+    geometry : ImageGeometry
+        The input grid.
+    lo, hi : (3,) array_like
+        Bounds of the images in continuous input indices (:meth:`VolumeDeformation.image_bounds`).
+    tolerance : float
+        Added on every side (voxels).
+    spacing : (3,) array_like, optional
+        Output voxel size; default the input spacing (voxels aligned with the input's).
+    keep_input : bool
+        Also cover the input's own box (voxels left in place).
+    """
+    geo = geometry
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise ValueError("no voxel of the volume is inside the cage")
+    lo = lo - tolerance
+    hi = hi + tolerance
+    if keep_input:
+        lo = np.minimum(lo, 0.0)
+        hi = np.maximum(hi, np.asarray(geo.dimensions) - 1.0)
+    if spacing is None:
+        lo, hi = np.floor(lo), np.ceil(hi)
+        dims = (hi - lo).astype(np.int64) + 1
+        return ImageGeometry(geo.points(lo[None])[0], geo.spacing, dims, geo.direction)
+    sp = np.asarray(spacing, dtype=np.float64).reshape(3)
+    if not (np.isfinite(sp).all() and (sp > 0).all()):
+        raise ValueError(f"spacing must be three positive numbers; got {spacing}")
+    extent = (hi - lo) * geo.spacing
+    dims = np.floor(extent / sp + 1e-9).astype(np.int64) + 1
+    # centre the output voxels on the deformed volume's box
+    start = lo * geo.spacing + 0.5 * (extent - (dims - 1) * sp)
+    return ImageGeometry(geo.origin + geo.direction @ start, sp, dims, geo.direction)
+
+
+def window_of(table, box, geometry: ImageGeometry, output: ImageGeometry, *,
+              interpolation: str = "linear", margin: float, in_place: bool):  # fmt: skip
+    """The input voxels that resampling the output ``box`` reads (see ``input_window``).
+
+    Parameters
+    ----------
+    table : (R, 12) int array_like
+        Rows ``(out_lo, out_hi, in_lo, in_hi)``: the output voxels a group of leaves (one
+        leaf, or a root cell's: :meth:`VolumeDeformation.reach_table`) can reach, and the
+        input voxels it spans.
+    box : (6,) int
+        The output box ``(i0, i1, j0, j1, k0, k1)``.
+    geometry, output : ImageGeometry
+        The input and output grids.
+    interpolation : str
+        Its stencil widens the window (one voxel, two for cubic).
+    margin : float
+        How far (voxels) outside its leaf a pre-image may lie (the largest of the leaves').
+    in_place : bool
+        Voxels outside the cage stay in place: the box's own position in the input is read.
+
+    Returns
+    -------
+    (6,) int64 or None
+        ``(i0, i1, j0, j1, k0, k1)`` inclusive, or None when nothing is read.
+    """
+    b = np.asarray(box, dtype=np.int64)
+    t = np.asarray(table, dtype=np.int64).reshape(-1, 12)
+    hit = np.all((t[:, 0:3] <= b[1::2]) & (t[:, 3:6] >= b[0::2]), axis=1)
+    # pre-images lie within the leaf grown by its margin; the stencil reaches one voxel
+    # beyond the cell holding them (linear), two for cubic
+    stencil = 2 if interpolation == "cubic" else 1
+    reach = stencil + int(math.ceil(margin))
+    last = np.asarray(geometry.dimensions, dtype=np.int64) - 1
+    parts_lo, parts_hi = [], []
+    if hit.any():
+        parts_lo.append(t[hit, 6:9].min(axis=0) - reach)
+        parts_hi.append(t[hit, 9:12].max(axis=0) + reach)
+    if in_place:
+        corners = np.array([[b[0 + a], b[2 + c], b[4 + d]] for a in (0, 1)
+                            for c in (0, 1) for d in (0, 1)], dtype=np.float64)  # fmt: skip
+        u = geometry.continuous_index(output.points(corners))
+        parts_lo.append(np.floor(u.min(axis=0)).astype(np.int64) - reach)
+        parts_hi.append(np.ceil(u.max(axis=0)).astype(np.int64) + reach)
+    if not parts_lo:
+        return None
+    w_lo = np.maximum(np.min(parts_lo, axis=0), 0)
+    w_hi = np.minimum(np.max(parts_hi, axis=0), last)
+    if (w_hi < w_lo).any():
+        return None
+    out = np.empty(6, dtype=np.int64)
+    out[0::2], out[1::2] = w_lo, w_hi
+    return out
 
 
 @numba.njit(parallel=True, cache=True)

@@ -22,6 +22,9 @@ __all__ = [
     "any_rank",
     "min_max_over_ranks",
     "mpi_command",
+    "gather_rows",
+    "gather_rows_of",
+    "send_parts",
 ]
 
 
@@ -103,6 +106,90 @@ def _all_gather(values) -> np.ndarray:
     receive = vtkDoubleArray()
     _controller().AllGatherV(send, receive)
     return ns.vtk_to_numpy(receive).copy() if receive.GetNumberOfTuples() else np.zeros(0)
+
+
+def gather_rows(rows, width: int, ok: bool = True) -> np.ndarray:
+    """Every rank's rows ``(n_r, width)`` stacked in rank order, agreeing on failure.
+
+    A collective. ``ok`` False (this rank failed before it): every rank raises, none is
+    left waiting. Values travel as float64 (integers below 2**53 exactly).
+    """
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, width) if ok else np.zeros((0, width))
+    got = _all_gather(np.concatenate([[1.0 if ok else 0.0, float(len(rows))], rows.ravel()]))
+    out, pos, failed = [], 0, []
+    for r in range(process_count()):
+        n = int(got[pos + 1])
+        if got[pos] == 0:
+            failed.append(r)
+        out.append(got[pos + 2 : pos + 2 + n * width].reshape(n, width))
+        pos += 2 + n * width
+    if failed:
+        raise RuntimeError(f"rank {failed[0]} failed")
+    return np.concatenate(out) if out else np.zeros((0, width))
+
+
+def gather_rows_of(compute, width: int) -> np.ndarray:
+    """:func:`gather_rows` of ``compute()``: an error on any rank stops every rank.
+
+    The failing rank raises its own error; the others a RuntimeError naming it.
+    """
+    error, rows = None, np.zeros((0, width))
+    try:
+        rows = compute()
+    except Exception as exc:  # noqa: BLE001 -- agreed with the other ranks, then raised
+        error = exc
+    try:
+        return gather_rows(rows, width, error is None)
+    except RuntimeError:
+        if error is not None:
+            raise error from None
+        raise
+
+
+def send_parts(make_part, fields: dict) -> list:
+    """Hand rank ``q`` its part ``make_part(q)`` (a dict of ``fields`` arrays); gather mine.
+
+    ``fields``: name -> (trailing shape, dtype); each field's leading length travels with
+    it. A collective: for each rank in turn the others send to it (point to point: each
+    part goes to its rank only, made just before it is sent and freed after). This
+    rank's own part is made last. Returns the parts for this rank, in rank order.
+    """
+    controller = _controller()
+    me, n = rank(), process_count()
+    if controller is None:
+        return [make_part(0)]
+    from vtkmodules.util import numpy_support as ns
+    from vtkmodules.vtkCommonCore import vtkDoubleArray
+
+    def pack(part):
+        pieces = []
+        for name in fields:
+            a = np.asarray(part[name])
+            pieces += [[float(len(a))], a.astype(np.float64).ravel()]
+        return np.concatenate(pieces)
+
+    def unpack(flat):
+        part, pos = {}, 0
+        for name, (shape, dtype) in fields.items():
+            m = int(flat[pos])
+            size = m * int(np.prod(shape, dtype=np.int64))
+            part[name] = flat[pos + 1 : pos + 1 + size].reshape((m,) + shape).astype(dtype)
+            pos += 1 + size
+        return part
+
+    got = [None] * n
+    for q in range(n):
+        if q == me:
+            for r in range(n):
+                if r != q:
+                    buffer = vtkDoubleArray()
+                    controller.Receive(buffer, r, 9317)
+                    got[r] = unpack(ns.vtk_to_numpy(buffer))
+                    del buffer
+        else:
+            controller.Send(ns.numpy_to_vtk(pack(make_part(q)), deep=1), q, 9317)
+    got[me] = make_part(me)
+    return got
 
 
 class LatticeExchange:

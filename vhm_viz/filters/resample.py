@@ -8,6 +8,10 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry
+from vhm_viz.core.lattice import PART_FIELDS, join_parts
+from vhm_viz.core.memory import release_free_memory
+from vhm_viz.core.volume import VolumeDeformation, output_grid, window_of
+from vhm_viz.filters import _parallel
 from vhm_viz.filters._common import (
     DeformationSource,
     image_geometry,
@@ -56,6 +60,17 @@ class HarmonicResampleFilter(DeformationSource):
     lattice is built whole (from the input's grid, before any voxel is read) and shared
     by the pieces of an update.
 
+    **MPI ranks** (ParaView) share the lattice instead of each building it whole. Each
+    rank builds the root cells of its share of the input's k-layers, one more root layer
+    on each side (the single-voxel cells' twists read neighbours there, so its own root
+    cells come out as in the whole lattice, bit for bit); the ranks agree on the output
+    grid from their leaves' bounds, and each rank reads the input window its output
+    piece may need, from every rank's table of where its root cells map to. At the
+    update each rank sends to every other the leaves whose images reach that rank's
+    piece, and resamples its piece with the leaves it gathered
+    (:func:`~vhm_viz.core.lattice.join_parts`): the serial result, bit for bit, with
+    about a rank's share of the lattice in memory.
+
     Input port 0: ``vtkImageData``; port 1: optional cage. The deformation is set as for
     :class:`~vhm_viz.filters.HarmonicDeformationFilter`.
     """
@@ -68,6 +83,11 @@ class HarmonicResampleFilter(DeformationSource):
         self._spacing = None
         self._interpolation = "linear"
         self._geometry: ImageGeometry | None = None
+        # MPI ranks: what the ranks agreed on in the information pass, and the engine of
+        # this rank's output piece
+        self._shared = None
+        self._piece_engine = None
+        self._piece_key = None
         #: Counts of the last execution: voxels, valid, identity, foldover.
         self.stats: dict = {}
 
@@ -143,8 +163,14 @@ class HarmonicResampleFilter(DeformationSource):
             if pd is None or pd.GetNumberOfPoints() == 0:
                 self.GetInputAlgorithm(1, 0).UpdatePiece(0, 1, 0)
 
+    def _mpi(self) -> bool:
+        return self._parallel_reporting and _parallel.process_count() > 1
+
     def _information(self, in_info, out_info):
         img = vtkImageData.GetData(in_info[0], 0)
+        if self._mpi():
+            geo = self._share_lattice(in_info, img)
+            return self._set_output_information(geo, out_info)
         vol = self._engine(in_info, img)
         if self._explicit is not None:
             geo = self._explicit
@@ -153,6 +179,9 @@ class HarmonicResampleFilter(DeformationSource):
         else:
             vol.build(progress=self._progress(0.0, 0.5), abort=self._aborted)
             geo = vol.output_geometry(self._spacing)
+        return self._set_output_information(geo, out_info)
+
+    def _set_output_information(self, geo, out_info):
         self._geometry = geo
         out = out_info.GetInformationObject(0)
         nx, ny, nz = geo.dimensions
@@ -177,8 +206,18 @@ class HarmonicResampleFilter(DeformationSource):
         ext = requested_extent(out)
         window = None
         if self._geometry is not None and ext is not None and ext[0] <= ext[1]:
-            vol = self._engine(in_info, vtkImageData.GetData(in_info[0], 0))
-            window = vol.input_window(self._geometry, ext, self._interpolation)
+            shared = self._shared
+            if self._mpi() and shared is None:
+                pass  # the information pass failed (RequestData will say so): read nothing
+            elif self._mpi():
+                window = window_of(
+                    shared["table"], ext, shared["input"], self._geometry,
+                    interpolation=self._interpolation, margin=shared["margin"],
+                    in_place=self._outside == "passthrough" and shared["any_outside"],
+                )  # fmt: skip
+            else:
+                vol = self._engine(in_info, vtkImageData.GetData(in_info[0], 0))
+                window = vol.input_window(self._geometry, ext, self._interpolation)
         if window is None:  # nothing to read: one voxel (an empty extent confuses readers)
             window = [0, 0, 0, 0, 0, 0]
         start = whole[0::2]
@@ -193,11 +232,11 @@ class HarmonicResampleFilter(DeformationSource):
         img = vtkImageData.GetData(in_info[0], 0)
         out = vtkImageData.GetData(out_info, 0)
         info = out_info.GetInformationObject(0)
-        vol = self._engine(in_info, img)
         geo = self._geometry
         ext = info.Get(_SDDP.UPDATE_EXTENT())
         if ext is None:
             ext = info.Get(_SDDP.WHOLE_EXTENT())
+        vol = self._piece(in_info, img, ext) if self._mpi() else self._engine(in_info, img)
         out.SetExtent(ext)
         out.SetOrigin(*geo.origin)
         out.SetSpacing(*geo.spacing)
@@ -244,3 +283,132 @@ class HarmonicResampleFilter(DeformationSource):
             fd.AddArray(count)
         self.UpdateProgress(1.0)
         return 1
+
+    # ------------------------------------------------------------------ MPI ranks
+    def _own_layers(self, n_layers: int):
+        """The root layers (along k) of this rank, ``[first, last]``, in equal shares."""
+        n, me = _parallel.process_count(), _parallel.rank()
+        cuts = [(n_layers * r) // n for r in range(n + 1)]
+        return cuts[me], cuts[me + 1] - 1
+
+    def _share_lattice(self, in_info, img) -> ImageGeometry:
+        """The information pass under MPI: build this rank's window, agree on the output.
+
+        Collective (the build and two gathers); returns the output grid.
+        """
+        geo_in = information_geometry(in_info[0].GetInformationObject(0))
+        if img is None or geo_in is None:
+            raise ValueError("HarmonicResampleFilter needs vtkImageData on input port 0")
+        self._cage_now(in_info)
+        hm, _ = self._resolve(in_info, img)
+        vol, own = self._window_engine(hm, geo_in)
+        key = (self._volume_key, self._outside, self._mode, self._spacing,
+               None if self._explicit is None else self._explicit.key())  # fmt: skip
+        if self._shared is not None and self._shared["key"] == key:
+            return self._shared["geometry"]
+
+        def bounds():
+            lo, hi, outside = vol.image_bounds()
+            margin = float(vol.lattice.margins()[own(vol.lattice)].max(initial=0.0))
+            return np.concatenate([lo, hi, [float(outside), margin]])
+
+        vol.build(progress=self._progress(0.0, 0.5), abort=self._aborted)
+        rows = _parallel.gather_rows_of(bounds, 8)
+        lo, hi = rows[:, 0:3].min(axis=0), rows[:, 3:6].max(axis=0)
+        # (with the "error" policy each piece refuses outside voxels when resampled)
+        any_outside = bool(rows[:, 6].max() > 0)
+        if self._explicit is not None:
+            geo = self._explicit
+        elif self._mode == "input":
+            geo = geo_in
+        else:
+            keep = self._outside == "passthrough" and any_outside
+            geo = output_grid(geo_in, lo, hi, tolerance=vol.tolerance, spacing=self._spacing,
+                              keep_input=keep)  # fmt: skip
+        table = _parallel.gather_rows_of(lambda: vol.reach_table(geo, own(vol.lattice)), 12)
+        table = table.astype(np.int64)
+        self._shared = {"key": key, "geometry": geo, "input": geo_in, "table": table,
+                        "any_outside": any_outside, "margin": float(rows[:, 7].max())}  # fmt: skip
+        self._piece_engine = self._piece_key = None
+        return geo
+
+    def _window_engine(self, hm, geo_in):
+        """The engine of this rank's window, and which of its leaves are its own (not the halo)."""
+        root = VolumeDeformation(hm, geo_in).root
+        last_k = geo_in.dimensions[2] - 1
+        n_layers = max(1, -(-last_k // root))
+        first, final = self._own_layers(n_layers)
+        nx, ny, _ = geo_in.dimensions
+        if final < first:  # more ranks than layers: no cells, a share of the evaluations
+            window = [0, -1, 0, -1, 0, -1]
+        else:
+            window = [0, nx - 1, 0, ny - 1, max(first - 1, 0) * root,
+                      min((final + 2) * root - 1, last_k)]  # fmt: skip
+        vol = self._volume(hm, geo_in, self._outside, window=window, pre_images=True)
+
+        def own(lattice):
+            per_layer = int(lattice.n_root[0] * lattice.n_root[1])
+            layer = lattice.root_keys() // per_layer
+            return np.nonzero((layer >= first) & (layer <= final))[0]
+
+        return vol, own
+
+    def _piece(self, in_info, img, ext):
+        """The engine of this rank's piece: the leaves reaching each rank's piece go there.
+
+        Collective: the ranks gather their pieces; unless every rank still has its
+        piece's engine, each rank (re)builds its window if need be and sends every other
+        rank the leaves of its own root cells whose images reach that rank's piece.
+        """
+        shared = self._shared
+        ext = np.asarray(ext, dtype=np.int64)
+        piece_key = None if shared is None else (shared["key"], tuple(ext.tolist()))
+        have = self._piece_engine is not None and self._piece_key == piece_key
+        if _parallel.all_ranks(have):
+            return self._piece_engine
+        self._piece_engine = self._piece_key = None
+        found = {}
+
+        def window_engine():
+            if shared is None:
+                raise RuntimeError("the information pass did not run on this rank")
+            hm, _ = self._resolve(in_info, img)
+            found["vol"], found["own"] = self._window_engine(hm, shared["input"])
+            return ext
+
+        pieces = _parallel.gather_rows_of(window_engine, 6).astype(np.int64)
+        vol, own = found["vol"], found["own"]
+
+        def leaves_for_each_rank():
+            lat = vol.lattice  # (built again if an earlier piece dropped it)
+            leaves = own(lat)
+            lo, hi = lat.candidate_boxes(shared["geometry"])
+            lo, hi = lo[leaves], hi[leaves]
+            found["leaves"] = []
+            for p in pieces:
+                empty = (p[1::2] < p[0::2]).any()
+                hit = ~empty & np.all((lo <= p[1::2]) & (hi >= p[0::2]), axis=1)
+                found["leaves"].append(leaves[hit])
+            return np.zeros((0, 1))
+
+        _parallel.gather_rows_of(leaves_for_each_rank, 1)
+        stats = dict(vol.lattice.stats)
+        leaves = found.pop("leaves")
+
+        def part_for(q):
+            return vol.lattice.part(leaves[q])
+
+        got = _parallel.send_parts(part_for, PART_FIELDS)
+        vol.drop_lattice()  # the window's lattice: this rank's piece now needs only its own
+        release_free_memory()
+        joined = join_parts(got, vol.map, vol.geometry, tolerance=vol.tolerance,
+                            root=vol.root, stats=stats)  # fmt: skip
+        del got
+        release_free_memory()
+        self._piece_engine = VolumeDeformation.for_piece(
+            vol.map, vol.geometry, joined, shared["geometry"], ext,
+            any_outside=shared["any_outside"], tolerance=vol.tolerance, outside=self._outside,
+            memory_budget=vol.memory_budget, exchange=vol.exchange,
+        )  # fmt: skip
+        self._piece_key = piece_key
+        return self._piece_engine
