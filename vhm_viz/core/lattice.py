@@ -1015,8 +1015,7 @@ def join_parts(parts, harmonic_map, geometry: ImageGeometry, *, tolerance: float
     perm = np.lexsort((order[:, 1], order[:, 0]))
     leaf = {name: np.ascontiguousarray(a[perm]) for name, a in joined.items()}
     rkey = order[perm, 0]
-    count = np.bincount(rkey, minlength=int(np.prod(n_root))).astype(np.int64)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
+    start, count = _root_index(rkey, n_root)
     o, h = leaf["origin"], leaf["size"]
     if len(o):
         # a pre-image lies within its leaf grown by the margin and the border; the grid
@@ -1030,7 +1029,6 @@ def join_parts(parts, harmonic_map, geometry: ImageGeometry, *, tolerance: float
     V = np.asarray(cage.vertices, dtype=np.float64)
     mask, near = _masks(lat_geo, V, np.asarray(cage.faces), rows)
     edge_a, edge_b = _cage_edges_in_index(lat_geo, cage)
-    sizes, per_size = np.unique(h, return_counts=True)
     return HermiteLattice(
         geometry=geometry,
         tolerance=float(tolerance),
@@ -1050,14 +1048,25 @@ def join_parts(parts, harmonic_map, geometry: ImageGeometry, *, tolerance: float
         near=near,
         edge_a=edge_a,
         edge_b=edge_b,
-        stats={
-            **(stats or {}),
-            "leaves": int(len(h)),
-            "leaves_per_size": {int(s): int(c) for s, c in zip(sizes, per_size, strict=True)},
-            "data_rows": int(len(data)),
-        },
+        stats={**(stats or {}), **_leaf_stats(h, len(data))},
         pre_images=True,
     )
+
+
+def _root_index(rkey, n_root):
+    """``(start, count)`` per root cell of leaves sorted by root key (:func:`_locate`)."""
+    count = np.bincount(rkey, minlength=int(np.prod(n_root))).astype(np.int64)
+    return np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64), count
+
+
+def _leaf_stats(size, data_rows: int) -> dict:
+    """A lattice's leaf counts (``stats``): leaves, leaves per size, data rows."""
+    sizes, per_size = np.unique(size, return_counts=True)
+    return {
+        "leaves": int(len(size)),
+        "leaves_per_size": {int(s): int(c) for s, c in zip(sizes, per_size, strict=True)},
+        "data_rows": int(data_rows),
+    }
 
 
 def _window_roots(window, root, n_root, geometry, shared):
@@ -1228,19 +1237,13 @@ def _assemble(
     origin, size, rows, cut, rkey = (
         a[order] for a in (origin, size.astype(np.int64), rows, cut, rkey)
     )
-    count = np.bincount(rkey, minlength=int(np.prod(n_root))).astype(np.int64)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
+    start, count = _root_index(rkey, n_root)
     n = len(origin)
     m = n if pre_images else 0
     centre_f, centre_ginv, rho = np.empty((m, 3)), np.empty((m, 3, 3)), np.empty(m)
     if m:
         _leaf_summaries(data, rows, size, centre_f, centre_ginv, rho)
-    sizes, per_size = np.unique(size, return_counts=True)
-    stats = {
-        "leaves": int(n),
-        "leaves_per_size": {int(s): int(c) for s, c in zip(sizes, per_size, strict=True)},
-        "data_rows": int(len(data)),
-    }
+    stats = _leaf_stats(size, len(data))
     return HermiteLattice(
         geometry=geometry,
         tolerance=tolerance,

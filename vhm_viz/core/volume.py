@@ -517,11 +517,9 @@ class VolumeDeformation:
         outside : bool
             A voxel (of the window) is outside the cage.
         """
-        if not self.pre_images:
-            self._whole("image_bounds")
         lat = self.build()
         geo = self.geometry
-        lo, hi = lat.image_boxes(geo)
+        lo, hi = lat.image_boxes(geo)  # (refuses a lattice for the voxels only)
         box = _box_of(geo, None) if self.window is None else self.window
         outside = bool((box[1::2] >= box[0::2]).all() and not lat.inside(box).all())
         return lo.min(axis=0, initial=np.inf), hi.max(axis=0, initial=-np.inf), outside
