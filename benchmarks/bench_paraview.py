@@ -7,9 +7,10 @@ explicit scene, since under MPI the automatic cage is refused), each of
 * ``warp``: VHM Harmonic Deformation of the image (a structured grid, each rank its piece
   of the extent, each building only its part of the lattice, the ranks sharing the exact
   evaluations);
-* ``resample``: VHM Resample To Image (each rank its piece of the output; every rank
-  builds the whole lattice, the ranks evaluating half of its points each, and reads only
-  its input window)
+* ``resample``: VHM Resample To Image (each rank its piece of the output; each rank
+  builds the lattice of its share of the input's layers, the ranks sharing the exact
+  evaluations, then gathers the leaves that reach its piece from the others, and reads
+  only its input window)
 
 runs in ``pvbatch --symmetric`` (1 rank) and ``mpiexec -n 2 pvbatch --symmetric`` (every
 rank runs the script): the filter's update time (the

@@ -314,6 +314,17 @@ def test_resampled_voxels_hold_the_input_at_their_preimage(bend):
     lin = vol.resample({"label": labels}, interpolation="linear", fill_value=-5)
     assert lin.arrays["label"].dtype == np.uint16  # rounded and clipped back
     assert (lin.arrays["label"][lin.valid == 0] == 0).all()  # -5 clipped to the type
+    # integer arrays hold the float result rounded and clipped (cubic overshoots 0..250)
+    steps = (rng.integers(0, 2, geo.n_points) * 250).astype(np.uint8)
+    cub = vol.resample({"b": steps, "f": steps.astype(np.float64)}, interpolation="cubic")
+    inside = cub.valid == 1
+    ref = np.clip(np.rint(cub.arrays["f"][inside]), 0, 255)
+    np.testing.assert_array_equal(cub.arrays["b"][inside], ref)
+    assert (cub.arrays["f"][inside] > 255.5).any() and (cub.arrays["f"][inside] < -0.5).any()
+    # 64-bit labels beyond float64's integers are copied exactly by "nearest"
+    huge = np.int64(2**62) + labels.astype(np.int64) + 1
+    near = vol.resample({"h": huge}, interpolation="nearest")
+    assert set(np.unique(near.arrays["h"][near.valid == 1])) <= set(np.unique(huge))
 
 
 def test_two_pieces_equal_one_piece(bend):
@@ -1134,3 +1145,40 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
         other = pieces[1] if piece is pieces[0] else pieces[0]
         with pytest.raises(ValueError, match="reach the output piece"):
             engine.resample({"v": values}, out_geo, box=other)
+
+
+def test_layer_shares_split_the_voxels_inside_the_cage_evenly():
+    """MPI ranks' root layers: cuts nearest to equal shares of the voxels inside the cage.
+
+    A pyramid cage (the voxels inside per layer fall with height) against the best cuts
+    found by brute force from every voxel's winding number.
+    """
+    from vhm_viz.core.volume import layer_shares
+
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (40, 40, 121))
+    verts = np.array([[2, 2, -1], [38, 2, -1], [38, 38, -1], [2, 38, -1], [20, 20, 119.5]],
+                     dtype=float)  # fmt: skip
+    faces = np.array([[0, 2, 1], [0, 3, 2], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    cage = Cage(verts, faces)
+    root = 16
+    n_layers = 8  # (121 - 1) / 16, rounded up
+    k = np.arange(geo.n_points) // (40 * 40)
+    inside = inside_cage(winding_number(geo.points(np.column_stack(
+        [np.arange(geo.n_points) % 40, (np.arange(geo.n_points) // 40) % 40, k])
+        .astype(float)), cage.vertices, cage.faces))  # fmt: skip
+    per_layer = np.bincount(np.minimum(k // root, n_layers - 1)[inside], minlength=n_layers)
+    assert (np.diff(per_layer) < 0).all()  # the work is uneven: equal layer counts are not
+    below = np.concatenate([[0], np.cumsum(per_layer)])
+    for parts in (2, 3, 4):
+        cuts = layer_shares(geo, cage, root, parts)
+        assert cuts[0] == 0 and cuts[-1] == n_layers and (np.diff(cuts) >= 0).all()
+        for r in range(1, parts):
+            target = below[-1] * r / parts
+            best = np.abs(below - target).min()
+            assert abs(below[cuts[r]] - target) <= best + 0.02 * below[-1]
+    # more parts than layers: some get none; every layer is somewhere
+    many = layer_shares(geo, cage, root, 12)
+    assert len(many) == 13 and many[-1] == n_layers and (np.diff(many) >= 0).all()
+    # no voxel inside: equal numbers of layers
+    far = Cage(verts + [0.0, 0.0, 1000.0], faces)
+    np.testing.assert_array_equal(layer_shares(geo, far, root, 2), [0, 4, 8])

@@ -28,6 +28,7 @@ from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from vhm_viz import interrupts
+from vhm_viz.core.basis import DEFAULT_MEMORY_BUDGET
 from vhm_viz.core.binding import bind_map, check_outside_policy
 from vhm_viz.core.errors import AbortedError
 from vhm_viz.core.image import ImageGeometry
@@ -505,6 +506,18 @@ class DeformationSource(VTKPythonAlgorithmBase):
             self._memory_budget = nbytes
             self.Modified()
 
+    def _budget(self) -> int | None:
+        """The working-memory budget of this process.
+
+        An explicit :meth:`SetMemoryBudget` is per process. The default is per machine:
+        MPI ranks sharing one (ParaView's ``mpiexec -n N pvbatch``) divide it, so that N
+        ranks work in the memory one process would.
+        """
+        if self._memory_budget is not None:
+            return self._memory_budget
+        shared = _parallel.ranks_on_this_machine() if self._parallel_reporting else 1
+        return None if shared <= 1 else max(DEFAULT_MEMORY_BUDGET // shared, 1 << 20)
+
     def SetTolerance(self, voxels: float) -> None:
         """Volumes: largest position error of a mapped voxel, in voxels (default 0.05).
 
@@ -652,21 +665,21 @@ class DeformationSource(VTKPythonAlgorithmBase):
         targets (:meth:`UpdateTargets`) re-uses it.
         """
         if dfm is None:
-            binding = bind_map(hm, points, outside=self._outside, memory_budget=self._memory_budget)
+            binding = bind_map(hm, points, outside=self._outside, memory_budget=self._budget())
         else:
             key = (
                 id(dfm),
                 dfm.n_factorizations,
                 geometry_key(data),
                 self._outside,
-                self._memory_budget,
+                self._budget(),
             )
             if key != self._binding_key or self._binding is None:
                 self._binding = None  # free the old F before computing the new one
                 self._binding = dfm.bind(
                     points,
                     outside=self._outside,
-                    memory_budget=self._memory_budget,
+                    memory_budget=self._budget(),
                     progress=self._progress(lo, hi),
                     abort=self._aborted,
                 )
@@ -688,7 +701,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
             _map_key(hm),
             geometry.key(),
             self._tolerance,
-            self._memory_budget,
+            self._budget(),
             None if window is None else tuple(int(v) for v in window),
             bool(pre_images),
         )
@@ -705,7 +718,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 geometry,
                 tolerance=self._tolerance,
                 outside=outside,
-                memory_budget=self._memory_budget,
+                memory_budget=self._budget(),
                 window=window,
                 exchange=self._lattice_exchange(),
                 pre_images=pre_images,

@@ -10,6 +10,7 @@ With one process (or without VTK's parallel module) every function here is a no-
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -24,6 +25,7 @@ __all__ = [
     "mpi_command",
     "gather_rows",
     "gather_rows_of",
+    "ranks_on_this_machine",
     "send_parts",
 ]
 
@@ -62,6 +64,23 @@ def rank() -> int:
     """Rank of the calling process (0 without MPI)."""
     controller = _controller()
     return 0 if controller is None else int(controller.GetLocalProcessId())
+
+
+def ranks_on_this_machine() -> int:
+    """How many MPI processes share this machine (its memory and cores).
+
+    From the launcher's environment (Open MPI's ``OMPI_COMM_WORLD_LOCAL_SIZE``, MPICH's
+    ``MPI_LOCALNRANKS``); without either, every process is taken to share it (the
+    cautious answer for sharing memory). 1 without MPI.
+    """
+    count = process_count()
+    if count <= 1:
+        return 1
+    for name in ("OMPI_COMM_WORLD_LOCAL_SIZE", "MPI_LOCALNRANKS"):
+        value = os.environ.get(name, "")
+        if value.isdigit() and int(value) >= 1:
+            return min(int(value), count)
+    return count
 
 
 def _all_reduce(values: list[int], operation: str) -> list[int]:

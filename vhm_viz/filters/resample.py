@@ -10,7 +10,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandD
 from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry
 from vhm_viz.core.lattice import PART_FIELDS, join_parts
 from vhm_viz.core.memory import release_free_memory
-from vhm_viz.core.volume import VolumeDeformation, output_grid, window_of
+from vhm_viz.core.volume import VolumeDeformation, layer_shares, output_grid, window_of
 from vhm_viz.filters import _parallel
 from vhm_viz.filters._common import (
     DeformationSource,
@@ -61,8 +61,9 @@ class HarmonicResampleFilter(DeformationSource):
     by the pieces of an update.
 
     **MPI ranks** (ParaView) share the lattice instead of each building it whole. Each
-    rank builds the root cells of its share of the input's k-layers, one more root layer
-    on each side (the single-voxel cells' twists read neighbours there, so its own root
+    rank builds the root cells of its share of the input's k-layers (shares of the
+    voxels inside the cage: :func:`~vhm_viz.core.volume.layer_shares`), one more root
+    layer on each side (the single-voxel cells' twists read neighbours there, so its own root
     cells come out as in the whole lattice, bit for bit); the ranks agree on the output
     grid from their leaves' bounds, and each rank reads the input window its output
     piece may need, from every rank's table of where its root cells map to. At the
@@ -285,12 +286,6 @@ class HarmonicResampleFilter(DeformationSource):
         return 1
 
     # ------------------------------------------------------------------ MPI ranks
-    def _own_layers(self, n_layers: int):
-        """The root layers (along k) of this rank, ``[first, last]``, in equal shares."""
-        n, me = _parallel.process_count(), _parallel.rank()
-        cuts = [(n_layers * r) // n for r in range(n + 1)]
-        return cuts[me], cuts[me + 1] - 1
-
     def _share_lattice(self, in_info, img) -> ImageGeometry:
         """The information pass under MPI: build this rank's window, agree on the output.
 
@@ -336,8 +331,11 @@ class HarmonicResampleFilter(DeformationSource):
         """The engine of this rank's window, and which of its leaves are its own (not the halo)."""
         root = VolumeDeformation(hm, geo_in).root
         last_k = geo_in.dimensions[2] - 1
-        n_layers = max(1, -(-last_k // root))
-        first, final = self._own_layers(n_layers)
+        # this rank's root k-layers: a share of the work, not of the layers (the cage
+        # holds more of the volume in some layers than in others)
+        cuts = layer_shares(geo_in, hm.cage, root, _parallel.process_count())
+        me = _parallel.rank()
+        first, final = int(cuts[me]), int(cuts[me + 1]) - 1
         nx, ny, _ = geo_in.dimensions
         if final < first:  # more ranks than layers: no cells, a share of the evaluations
             window = [0, -1, 0, -1, 0, -1]
