@@ -851,6 +851,7 @@ class VolumeDeformation:
         x, ok = exact_preimages(
             self.map, out_geo.points(ijk.astype(np.float64)), geo.points(u[rows]),
             tolerance=1e-4 * float(np.min(geo.spacing)), max_iterations=_EXACT_ITERATIONS,
+            memory_budget=self.memory_budget,
         )  # fmt: skip
         rows, exact = rows[ok], geo.continuous_index(x[ok])
         same = np.linalg.norm(exact - u[rows], axis=1) <= 1.0
@@ -1220,7 +1221,8 @@ def _store_rows(buf, rows, round_clip, lo, hi, out):  # pragma: no cover - compi
 
 
 def exact_preimages(
-    harmonic_map, targets, starts, *, tolerance: float, max_iterations: int = 30
+    harmonic_map, targets, starts, *, tolerance: float, max_iterations: int = 30,
+    memory_budget: int | None = None,
 ):
     """Solve ``f(x) = y`` by Newton's method on the exact (closed-form) map.
 
@@ -1237,6 +1239,9 @@ def exact_preimages(
     tolerance : float
         Stop when ``|f(x) - y| <= tolerance`` (world units).
     max_iterations : int
+    memory_budget : int, optional
+        Bytes of basis arrays per evaluation chunk (default
+        :data:`~vhm_viz.core.basis.DEFAULT_MEMORY_BUDGET`).
 
     Returns
     -------
@@ -1252,7 +1257,9 @@ def exact_preimages(
     for it in range(max_iterations + 1):
         if not active.size:
             break
-        f, jac, _ = harmonic_map.evaluate(x[active], order=1, outside="nan")
+        f, jac, _ = harmonic_map.evaluate(
+            x[active], order=1, outside="nan", memory_budget=memory_budget
+        )
         r = f - y[active]
         norm = np.linalg.norm(r, axis=1)
         conv = norm <= tolerance
