@@ -1093,11 +1093,11 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
     whole = VolumeDeformation(hm, geo, outside="passthrough")
     values = np.asarray(_smooth_volume(geo.dimensions, geo.spacing, geo.origin)["density"])
     out_geo = whole.output_geometry()
-    # windows of whole root cells (16 voxels), each with one more root layer beyond the
-    # split: the twists of single-voxel cells read the neighbours there
+    # windows of whole root cells (16 voxels), each with two voxels beyond the split: the
+    # twists of single-voxel cells read the neighbours there
     windows = [
         VolumeDeformation(hm, geo, outside="passthrough", window=w, pre_images=True)
-        for w in ([0, 43, 0, 39, 0, 47], [0, 43, 0, 39, 16, 69])
+        for w in ([0, 43, 0, 39, 0, 33], [0, 43, 0, 39, 30, 69])
     ]
     own = [(0, 1), (2, 4)]  # each window's own root layers (along k)
     layer = [w.lattice.root_keys() // int(np.prod(w.lattice.n_root[:2])) for w in windows]

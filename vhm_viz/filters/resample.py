@@ -23,6 +23,12 @@ __all__ = ["HarmonicResampleFilter", "image_geometry"]
 
 _SDDP = vtkStreamingDemandDrivenPipeline
 _MODES = ("deformed", "input")
+# Voxels beyond a rank's own root layers that its window holds: a single-voxel cell's
+# twists difference the node one voxel across (its own cells then come out as the whole
+# lattice's, bit for bit; with no voxel beyond, pre-images moved by up to 1e-5 voxel).
+# One would do; two keep a margin. (A whole root layer beyond, as before, cost rank 0 of
+# the embryo 21k more leaves.)
+_HALO = 2
 #: Point arrays the filter adds (never resampled from an input that already has them).
 _OWN_ARRAYS = ("vtkValidPointMask", "vhm_foldover")
 
@@ -62,9 +68,10 @@ class HarmonicResampleFilter(DeformationSource):
 
     **MPI ranks** (ParaView) share the lattice instead of each building it whole. Each
     rank builds the root cells of its share of the input's k-layers (shares of the
-    voxels inside the cage: :func:`~vhm_viz.core.volume.layer_shares`), one more root
-    layer on each side (the single-voxel cells' twists read neighbours there, so its own root
-    cells come out as in the whole lattice, bit for bit); the ranks agree on the output
+    voxels inside the cage: :func:`~vhm_viz.core.volume.layer_shares`) and the cells
+    holding the two voxels beyond them on each side (the single-voxel cells' twists read
+    neighbours there, so its own root cells come out as in the whole lattice, bit for
+    bit); the ranks agree on the output
     grid from their leaves' bounds, and each rank reads the input window its output
     piece may need, from every rank's table of where its root cells map to. At the
     update each rank sends to every other the leaves whose images reach that rank's
@@ -340,8 +347,11 @@ class HarmonicResampleFilter(DeformationSource):
         if final < first:  # more ranks than layers: no cells, a share of the evaluations
             window = [0, -1, 0, -1, 0, -1]
         else:
-            window = [0, nx - 1, 0, ny - 1, max(first - 1, 0) * root,
-                      min((final + 2) * root - 1, last_k)]  # fmt: skip
+            # its voxels and _HALO more on each side: the single-voxel cells' twists read
+            # the neighbours there (the root cells around are built, but refined only
+            # where they hold a voxel of the window)
+            window = [0, nx - 1, 0, ny - 1, max(first * root - _HALO, 0),
+                      min((final + 1) * root - 1 + _HALO, last_k)]  # fmt: skip
         vol = self._volume(hm, geo_in, self._outside, window=window, pre_images=True)
 
         def own(lattice):
