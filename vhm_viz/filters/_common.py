@@ -498,7 +498,8 @@ class DeformationSource(VTKPythonAlgorithmBase):
         """Bytes of basis arrays per chunk while binding, in [1, 2**40] (None: the default).
 
         Smaller budgets mean more, smaller chunks (finer progress and abort), never a
-        different result.
+        different result. An explicit budget is per process; the default is divided among
+        the MPI ranks that share a machine.
         """
         if nbytes is not None:
             nbytes = check_setting("memory_budget", nbytes)
