@@ -392,7 +392,7 @@ def test_volume_resample_in_pieces_equals_serial_equals_python(
     assert expected.valid.mean() > 0.3
     for a, values in ref.items():
         np.testing.assert_array_equal(serial.point_data[a], values)
-    # each rank built its share of the lattice (its root cells and a layer around them),
+    # each rank built its share of the lattice (its root cells and two voxels around),
     # evaluating a share of the points, and resampled its piece with the leaves of any
     # rank that reach it: the whole lattice's result above, bit for bit
     pieces = [pv.read(f) for f in sorted((tmp_path / "mpi").glob("*.vti"))]

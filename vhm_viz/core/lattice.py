@@ -1000,14 +1000,15 @@ def join_parts(parts, harmonic_map, geometry: ImageGeometry, *, tolerance: float
     n_root = np.maximum(1, -(-last // root))
     lat_geo = ImageGeometry(geometry.origin, geometry.spacing, n_root * root + 1,
                             geometry.direction)  # fmt: skip
+    # each part's rows index its own data: shifted past the parts joined before it
     offsets = np.cumsum([0] + [len(p["data"]) for p in parts])
     joined = {}
     for name, (shape, dtype) in PART_FIELDS.items():
-        shift = offsets if name == "rows" else np.zeros(len(parts), dtype=np.int64)
-        joined[name] = np.concatenate(
-            [p[name] + shift[n] if name == "rows" else p[name] for n, p in enumerate(parts)]
-            or [np.zeros((0,) + shape, dtype=dtype)]
-        )
+        arrays = [p[name] for p in parts]
+        if name == "rows":
+            arrays = [a + offsets[n] for n, a in enumerate(arrays)]
+        joined[name] = np.concatenate(arrays or [np.zeros((0,) + shape, dtype=dtype)])
+        del arrays
         for p in parts:  # each part's arrays go as soon as they are joined
             p[name] = None
     order = joined.pop("order")
@@ -1051,6 +1052,12 @@ def join_parts(parts, harmonic_map, geometry: ImageGeometry, *, tolerance: float
         stats={**(stats or {}), **_leaf_stats(h, len(data))},
         pre_images=True,
     )
+
+
+def _root_keys(origin, root, n_root) -> np.ndarray:
+    """Root cell of leaves at ``origin`` (voxels), as one int64 key (i fastest)."""
+    rid = origin // root
+    return rid[:, 0] + n_root[0] * (rid[:, 1] + n_root[1] * rid[:, 2])
 
 
 def _root_index(rkey, n_root):
@@ -1231,8 +1238,7 @@ def _assemble(
         [r + starts[lv] for _, _, lv, r, _ in leaves] or [np.zeros((0, 8), np.int64)]
     )
     cut = np.concatenate([c for *_, c in leaves] or [np.zeros(0, bool)])
-    rid = origin // root
-    rkey = rid[:, 0] + n_root[0] * (rid[:, 1] + n_root[1] * rid[:, 2])
+    rkey = _root_keys(origin, root, n_root)
     order = np.argsort(rkey, kind="stable")
     origin, size, rows, cut, rkey = (
         a[order] for a in (origin, size.astype(np.int64), rows, cut, rkey)
@@ -1951,9 +1957,7 @@ class HermiteLattice:
     def root_keys(self, leaves=None) -> np.ndarray:
         """Root cell of each leaf (or of ``leaves``), as one int64 key (i fastest)."""
         o = self.leaf_origin if leaves is None else self.leaf_origin[leaves]
-        rid = o // self.root
-        n = self.n_root
-        return rid[:, 0] + n[0] * (rid[:, 1] + n[1] * rid[:, 2])
+        return _root_keys(o, self.root, self.n_root)
 
     def part(self, leaves) -> dict:
         """Some leaves with the data they read, as plain arrays (:data:`PART_FIELDS`).

@@ -571,7 +571,6 @@ class VolumeDeformation:
         engine._memo[("output_geometry", None)] = output_geometry
         return engine
 
-
     # ------------------------------------------------------------------ resampling
     def resample(
         self,
@@ -893,7 +892,6 @@ class VolumeDeformation:
             f"VolumeDeformation(dimensions={self.geometry.dimensions}, "
             f"tolerance={self.tolerance}, outside={self.outside!r})"
         )
-
 
 
 def output_grid(geometry: ImageGeometry, lo, hi, *, tolerance: float, spacing=None,
