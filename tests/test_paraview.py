@@ -398,6 +398,12 @@ def test_volume_resample_in_pieces_equals_serial_equals_python(
     pieces = [pv.read(f) for f in sorted((tmp_path / "mpi").glob("*.vti"))]
     _assert_evaluations_shared(pieces, serial)
     assert serial.field_data["vhm_lattice_evaluations"][1] == vol.lattice.stats["evaluations"]
+    # the ranks pulled back shares of the work, not ParaView's halves of the output: each
+    # piece's voxels once (the pieces share a plane), some for the other rank's piece
+    pulled = [int(p.field_data["vhm_pulled_back_voxels"][0]) for p in pieces]
+    sizes = [p.n_points for p in pieces]
+    assert sum(pulled) == sum(sizes) and pulled != sizes
+    assert serial.field_data["vhm_pulled_back_voxels"][0] == serial.n_points
 
 
 def test_measure_colours_follow_the_one_convention(paraview_env, tmp_path):

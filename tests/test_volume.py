@@ -1180,3 +1180,81 @@ def test_layer_shares_split_the_voxels_inside_the_cage_evenly():
     # no voxel inside: equal numbers of layers
     far = Cage(verts + [0.0, 0.0, 1000.0], faces)
     np.testing.assert_array_equal(layer_shares(geo, far, root, 2), [0, 4, 8])
+
+
+def test_equal_cuts_are_the_nearest_boundaries_to_equal_shares():
+    """Against brute force: each cut is an item boundary nearest its share of the total."""
+    from vhm_viz.core.volume import equal_cuts
+
+    rng = np.random.default_rng(7)
+    for n, parts in ((1, 2), (5, 2), (40, 3), (200, 7), (3, 5)):
+        weight = rng.exponential(size=n) * (rng.random(n) < 0.8)
+        cuts = equal_cuts(weight, parts)
+        below = np.concatenate([[0.0], np.cumsum(weight)])
+        assert len(cuts) == parts + 1 and cuts[0] == 0 and cuts[-1] == n
+        assert (np.diff(cuts) >= 0).all()
+        for r in range(1, parts):
+            target = below[-1] * r / parts
+            assert abs(below[cuts[r]] - target) <= np.abs(below - target).min() + 1e-12
+    np.testing.assert_array_equal(equal_cuts(np.zeros(6), 3), [0, 2, 4, 6])
+
+
+def test_pull_back_pairs_count_every_voxels_candidate_leaves(bend):
+    """Per output plane, the (voxel, leaf) pairs that pulling back tries: against a count
+    volume incremented over every leaf's candidate box; leaves split among callers add up,
+    and the shares cut from them are equal shares of that work."""
+    from vhm_viz.core.volume import pull_back_shares
+
+    geo, _, _, vol = bend
+    out = vol.output_geometry()
+    lo, hi = vol.lattice.candidate_boxes(out)
+    count = np.zeros(out.dimensions[::-1], dtype=np.int64)  # (k, j, i)
+    for a, b in zip(lo, hi, strict=True):
+        a, b = np.maximum(a, 0), b + 1
+        count[a[2] : b[2], a[1] : b[1], a[0] : b[0]] += 1
+    per_plane = count.sum(axis=(1, 2))
+    pairs = vol.pull_back_pairs(out)
+    assert pairs.shape == (out.dimensions[2],) and per_plane.sum() > out.n_points
+    np.testing.assert_array_equal(pairs, per_plane)
+    leaves = np.arange(len(lo))
+    split = vol.pull_back_pairs(out, leaves[::2]) + vol.pull_back_pairs(out, leaves[1::2])
+    np.testing.assert_array_equal(split, per_plane)
+    cuts = pull_back_shares(pairs, out, 3)
+    work = per_plane + 0.2 * out.dimensions[0] * out.dimensions[1]
+    shares = [work[cuts[r] : cuts[r + 1]].sum() for r in range(3)]
+    assert max(shares) - min(shares) <= 2 * work.max()
+
+
+def test_resampling_boxes_into_one_set_of_arrays_equals_resampling_it_whole(bend):
+    """``out``: runs of planes resampled into views of one piece's arrays fill them as
+    resampling the piece does; arrays that do not fit are refused."""
+    from vhm_viz.core.volume import Resampled
+
+    geo, _, _, vol = bend
+    values = np.asarray(_smooth_volume(geo.dimensions, geo.spacing, geo.origin)["density"])
+    labels = (np.arange(geo.n_points) % 7).astype(np.int16)
+    arrays = {"v": values, "labels": labels}
+    out = vol.output_geometry()
+    nx, ny, nz = out.dimensions
+    piece = [0, nx - 1, 0, ny - 1, 3, nz - 4]
+    ref = vol.resample(arrays, out, box=piece)
+    n = len(ref.valid)
+    target = Resampled(None, {"v": np.full(n, -1.0), "labels": np.full(n, -1, np.int16)},
+                       np.full(n, 7, np.uint8), np.full(n, 7, np.uint8))  # fmt: skip
+    plane = nx * ny
+    cut = nz // 2
+    for k0, k1 in ((3, cut), (cut + 1, nz - 4)):
+        rows = slice((k0 - 3) * plane, (k1 - 2) * plane)
+        view = Resampled(None, {k: a[rows] for k, a in target.arrays.items()},
+                         target.valid[rows], target.foldover[rows])  # fmt: skip
+        got = vol.resample(arrays, out, box=[0, nx - 1, 0, ny - 1, k0, k1], out=view)
+        assert got is view and got.counts["voxels"] == (k1 - k0 + 1) * plane
+    for name in arrays:
+        np.testing.assert_array_equal(target.arrays[name], ref.arrays[name])
+    np.testing.assert_array_equal(target.valid, ref.valid)
+    np.testing.assert_array_equal(target.foldover, ref.foldover)
+    assert ref.counts["valid"] > 0.3 * n
+    wrong = Resampled(None, {"v": np.zeros(n, np.float32), "labels": labels[:n]},
+                      np.zeros(n, np.uint8), np.zeros(n, np.uint8))  # fmt: skip
+    with pytest.raises(ValueError, match="out array 'v' is float32"):
+        vol.resample(arrays, out, box=piece, out=wrong)

@@ -153,7 +153,7 @@ def _edge_sign(ay, az, by, bz, py, pz):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _scanline_winding(tri, vid, i_count, j0, j1, k0, k1, out, crossed):  # pragma: no cover
+def _scanline_winding(tri, vid, i_count, j0, j1, k0, k1, out, crossed, i_lo=0):  # pragma: no cover
     """Winding numbers of the integer grid points ``(i, j, k)`` in a block of rows.
 
     For every triangle and every row ``(j, k)`` whose (perturbed) projection falls inside
@@ -172,11 +172,15 @@ def _scanline_winding(tri, vid, i_count, j0, j1, k0, k1, out, crossed):  # pragm
         Points per row (``i = 0 .. i_count - 1``).
     j0, j1, k0, k1 : int
         Rows ``j0 <= j < j1``, ``k0 <= k < k1``.
-    out : (k1 - k0, j1 - j0, i_count + 1) int16
+    out : (k1 - k0, j1 - j0, i_count + 1) int16, or empty
         Zeroed on entry; winding numbers in ``[..., :i_count]`` on return.
-    crossed : (k1 - k0, j1 - j0, i_count + 1) uint8, or empty
-        Set to 1 at ``i0`` where the row crosses the surface between points ``i0 - 1`` and
-        ``i0`` (crossings that cancel, like a sliver between two points, included).
+    crossed : (k1 - k0, j1 - j0, n) uint8, or empty
+        Set to 1 at ``i0 - i_lo`` where the row crosses the surface between points
+        ``i0 - 1`` and ``i0`` (crossings that cancel, like a sliver between two points,
+        included), for ``i_lo <= i0 < i_lo + n``.
+    i_lo : int
+        The first crossing ``crossed`` holds (with an empty ``out``: a winding number
+        needs the whole row).
     """
     m = tri.shape[0]
     for t in range(m):
@@ -227,9 +231,11 @@ def _scanline_winding(tri, vid, i_count, j0, j1, k0, k1, out, crossed):  # pragm
                     i0 = 0
                 if i0 > i_count:
                     continue
-                out[k - k0, j - j0, i0] += d
-                if crossed.size:
-                    crossed[k - k0, j - j0, i0] = 1
+                if out.size:
+                    out[k - k0, j - j0, i0] += d
+                c = i0 - i_lo
+                if crossed.size and 0 <= c < crossed.shape[2]:
+                    crossed[k - k0, j - j0, c] = 1
     for k in range(out.shape[0]):
         for j in range(out.shape[1]):
             acc = 0
@@ -318,26 +324,26 @@ def surface_mask(geometry: ImageGeometry, vertices, faces, rows=None) -> np.ndar
     if not near.size:
         return near
     # per scan axis: its rows (the other two axes, cyclic order), restricted where the
-    # rows allow it, and the crop of the scan axis itself to the requested rows
+    # rows allow it, and the crossings along it that bound the requested points (the
+    # crossing at c lies between points c - 1 and c)
     spans = {
-        0: ((j0, j1, k0, k1), (slice(None), slice(None), slice(None))),
-        1: ((k0, k1, 0, dims[0]), (slice(None), slice(j0, j1), slice(None))),
-        2: ((0, dims[0], j0, j1), (slice(k0, k1), slice(None), slice(None))),
+        0: ((j0, j1, k0, k1), 0, dims[0]),
+        1: ((k0, k1, 0, dims[0]), j0, j1),
+        2: ((0, dims[0], j0, j1), k0, k1),
     }
+    empty = np.zeros((0, 0, 0), dtype=np.int16)
     for axis in range(3):
         # cyclic permutations keep the faces' orientation: axis ``axis`` becomes i
         order = [(axis + c) % 3 for c in range(3)]
-        n_i = dims[order[0]]
-        (a0, a1, b0, b1), crop = spans[axis]
+        (a0, a1, b0, b1), c0, c1 = spans[axis]
         tri = np.ascontiguousarray(v[:, order][f])
-        out = np.zeros((b1 - b0, a1 - a0, n_i + 1), dtype=np.int16)
-        crossed = np.zeros((b1 - b0, a1 - a0, n_i + 1), dtype=np.uint8)
-        _scanline_winding(tri, f, n_i, a0, a1, b0, b1, out, crossed)
-        del out
+        crossed = np.zeros((b1 - b0, a1 - a0, c1 - c0 + 1), dtype=np.uint8)
+        _scanline_winding(tri, f, dims[order[0]], a0, a1, b0, b1, empty, crossed, c0)
         hit = crossed.view(bool)
         adjacent = hit[..., 1:] | hit[..., :-1]  # the points on both sides of a crossing
+        del crossed, hit
         back = {0: (0, 1, 2), 1: (1, 2, 0), 2: (2, 0, 1)}[axis]
-        near |= np.transpose(adjacent, back)[crop]
+        near |= np.transpose(adjacent, back)
     return near
 
 

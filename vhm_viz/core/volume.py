@@ -47,6 +47,8 @@ __all__ = [
     "Resampled",
     "output_grid",
     "layer_shares",
+    "equal_cuts",
+    "pull_back_shares",
     "window_of",
     "exact_preimages",
     "DEFAULT_TOLERANCE",
@@ -63,6 +65,10 @@ EXACT_VOXELS = 32768
 # outside flag, one sampled float64 component), and per voxel of a warp slab.
 _RESAMPLE_BYTES = 56
 _WARP_BYTES = 16
+# The work of resampling a voxel beyond its leaf tests (its arrays, sampling,
+# pass-through), in leaf tests: 23 ns per voxel of an output slab that no leaf reaches
+# against 0.13 us per (voxel, candidate leaf) pair (the embryo's output, one thread).
+_PULL_BACK_VOXEL_WORK = 0.2
 # Pre-images closer than this (voxels) to a cage edge are polished by Newton's method on
 # the exact map: there the map has a logarithmic singularity that no cubic between voxels
 # follows, and a position error e moves a pre-image by e / s_min (s_min: the Jacobian's
@@ -117,6 +123,24 @@ def _box_of(geometry: ImageGeometry, box) -> np.ndarray:
     if (b[0::2] < 0).any() or (b[1::2] >= np.asarray(dims)).any() or (b[1::2] < b[0::2]).any():
         raise ValueError(f"box {b.tolist()} is not inside the grid of dimensions {dims}")
     return b
+
+
+def _check_out(arrays: dict, valid, foldover, shapes: dict, n: int) -> None:
+    """Refuse ``out`` arrays of :meth:`VolumeDeformation.resample` that do not fit."""
+    want = dict(shapes)
+    want["valid"] = ((n,), np.dtype(np.uint8))
+    want["foldover"] = ((n,), np.dtype(np.uint8))
+    got = dict(arrays)
+    got["valid"], got["foldover"] = valid, foldover
+    if set(got) != set(want):
+        raise ValueError(f"out holds the arrays {sorted(got)}, not {sorted(want)}")
+    for name, (shape, dtype) in want.items():
+        a = got[name]
+        if a.shape != shape or a.dtype != dtype or not a.flags.c_contiguous:
+            raise ValueError(
+                f"out array {name!r} is {a.dtype}{list(a.shape)}; the box needs a "
+                f"contiguous {np.dtype(dtype)}{list(shape)}"
+            )
 
 
 def _slabs(box: np.ndarray, bytes_per_voxel: int, memory_budget: int | None):
@@ -549,6 +573,41 @@ class VolumeDeformation:
             np.minimum.reduceat(table[:, 6:9], starts), np.maximum.reduceat(table[:, 9:12], starts),
         ])  # fmt: skip
 
+    def pull_back_pairs(self, geometry: ImageGeometry, leaves=None) -> np.ndarray:
+        """Per k-plane of an output grid: its (voxel, candidate leaf) pairs.
+
+        Pulling a voxel back tries every leaf whose candidate box holds it (Newton's
+        method on the leaf's polynomial, :meth:`HermiteLattice.pull_back`): most of the
+        work of resampling a plane. MPI ranks add up the pairs of their own leaves (each
+        leaf counted once) to cut the output into equal shares of work
+        (:func:`pull_back_shares`).
+
+        Parameters
+        ----------
+        geometry : ImageGeometry
+            The output grid.
+        leaves : (L,) int array_like, optional
+            Only these leaves (default all).
+
+        Returns
+        -------
+        (nz,) float64
+        """
+        lat = self.build()
+        lo, hi = lat.candidate_boxes(geometry)
+        if leaves is not None:
+            lo, hi = lo[np.asarray(leaves)], hi[np.asarray(leaves)]
+        dims = np.asarray(geometry.dimensions, dtype=np.int64)
+        lo, hi = np.maximum(lo, 0), np.minimum(hi, dims - 1)
+        size = np.clip(hi - lo + 1, 0, None)
+        area = (size[:, 0] * size[:, 1]).astype(np.float64)
+        area[size[:, 2] == 0] = 0.0
+        # each leaf adds its area to the planes k_lo..k_hi: a difference array
+        change = np.zeros(int(dims[2]) + 1)
+        np.add.at(change, np.minimum(lo[:, 2], dims[2]), area)
+        np.add.at(change, np.minimum(hi[:, 2] + 1, dims[2]), -area)
+        return np.cumsum(change[:-1])
+
     @classmethod
     def for_piece(
         cls, harmonic_map, geometry: ImageGeometry, lattice: HermiteLattice,
@@ -581,6 +640,7 @@ class VolumeDeformation:
         interpolation: str = "linear",
         fill_value: float = 0.0,
         input_box=None,
+        out: Resampled | None = None,
         progress=None,
         abort=None,
     ) -> Resampled:
@@ -603,13 +663,19 @@ class VolumeDeformation:
             ``arrays`` hold only this box of the input grid (default: all of it); it must
             contain :meth:`input_window` of the output box, the voxels the pre-images
             reach. The result is the same as with the whole input.
+        out : Resampled, optional
+            Write into these arrays instead of new ones: an array of each name with the
+            input's dtype and components, ``valid`` and ``foldover``, each a (C-contiguous)
+            row per voxel of the box -- say, views of the rows of a larger box that this
+            box's voxels occupy (an MPI rank's output piece, resampled in parts).
         progress, abort : callables, optional
 
         Returns
         -------
         Resampled
             Arrays keep their dtype: integer arrays interpolated linearly or cubically are
-            rounded and clipped to their type's range.
+            rounded and clipped to their type's range. With ``out``: ``out``, its arrays
+            filled and its counts set.
         """
         if interpolation not in INTERPOLATIONS:
             raise ValueError(
@@ -640,12 +706,15 @@ class VolumeDeformation:
                     "that the pre-images of this output box reach"
                 )
         n = int(np.prod(b[1::2] - b[0::2] + 1))
-        result = {
-            name: np.empty((n,) + v.shape[3:] if v.shape[3] > 1 else (n,), dtype=v.dtype)
-            for name, v in volumes.items()
-        }
-        valid = np.zeros(n, dtype=np.uint8)
-        foldover = np.zeros(n, dtype=np.uint8)
+        shapes = {name: ((n,) + v.shape[3:] if v.shape[3] > 1 else (n,), v.dtype)
+                  for name, v in volumes.items()}  # fmt: skip
+        if out is None:
+            result = {name: np.empty(shape, dtype=dt) for name, (shape, dt) in shapes.items()}
+            valid = np.zeros(n, dtype=np.uint8)
+            foldover = np.zeros(n, dtype=np.uint8)
+        else:
+            result, valid, foldover = out.arrays, out.valid, out.foldover
+            _check_out(result, valid, foldover, shapes, n)
         identity = 0
         for rows, u, state, fold in self._pull_back_slabs(out_geo, b, progress, abort):
             identity += int(np.count_nonzero(state == 3))
@@ -663,6 +732,9 @@ class VolumeDeformation:
             "identity": int(identity),
             "foldover": int(foldover.sum()),
         }
+        if out is not None:
+            out.geometry, out.counts = out_geo.sub(b), counts
+            return out
         return Resampled(out_geo.sub(b), result, valid, foldover, counts)
 
     def input_window(self, geometry: ImageGeometry, box=None, interpolation: str = "linear"):
@@ -970,18 +1042,68 @@ def layer_shares(geometry: ImageGeometry, cage, root: int, parts: int) -> np.nda
     # a root cell owns the voxels [o, o + root); the lattice's far end, the last cell
     layer = np.minimum(np.arange(len(inside)) * step // root, n_layers - 1)
     weight = np.bincount(layer, weights=inside, minlength=n_layers).astype(np.float64)
-    if weight.sum() <= 0:
-        weight[:] = 1.0
+    return equal_cuts(weight, parts)
+
+
+def equal_cuts(weight, parts: int) -> np.ndarray:
+    """Split a run of items into ``parts`` contiguous runs of about equal total weight.
+
+    Each cut falls at the item boundary nearest its target (``r / parts`` of the total),
+    so a part may be empty when one item outweighs a share. Deterministic: every MPI rank
+    computes the same cuts from the same weights.
+
+    Parameters
+    ----------
+    weight : (n,) array_like
+        Non-negative weights (work per item). All zero: equal numbers of items.
+    parts : int
+
+    Returns
+    -------
+    (parts + 1,) int64
+        Cuts: part ``r`` holds the items ``cuts[r] <= i < cuts[r + 1]``.
+    """
+    weight = np.asarray(weight, dtype=np.float64).ravel()
+    n = len(weight)
+    if not weight.sum() > 0:
+        weight = np.ones(n)
     total = np.concatenate([[0.0], np.cumsum(weight)])
     cuts = [0]
     for r in range(1, parts):
         target = total[-1] * r / parts
         at = int(np.searchsorted(total, target))
-        if at > 0 and target - total[at - 1] < total[min(at, n_layers)] - target:
-            at -= 1  # the nearer of the two layer boundaries around the target
-        cuts.append(min(max(at, cuts[-1]), n_layers))
-    cuts.append(n_layers)
+        if at > 0 and target - total[at - 1] < total[min(at, n)] - target:
+            at -= 1  # the nearer of the two item boundaries around the target
+        cuts.append(min(max(at, cuts[-1]), n))
+    cuts.append(n)
     return np.asarray(cuts, dtype=np.int64)
+
+
+def pull_back_shares(pairs, geometry: ImageGeometry, parts: int) -> np.ndarray:
+    """Cut the k-planes of an output grid into ``parts`` runs of about equal resampling work.
+
+    A plane's work is its (voxel, candidate leaf) pairs
+    (:meth:`VolumeDeformation.pull_back_pairs`) plus :data:`_PULL_BACK_VOXEL_WORK` per
+    voxel. On the 256^3 embryo bent as in ``bench_volume.py`` the output's lower half
+    holds 71% of the pairs: ParaView's halves of the output keep one MPI rank busy for
+    twice as long as the other, whereas these cuts share the work.
+
+    Parameters
+    ----------
+    pairs : (nz,) array_like
+        Pairs per k-plane of the whole lattice.
+    geometry : ImageGeometry
+        The output grid.
+    parts : int
+
+    Returns
+    -------
+    (parts + 1,) int64
+        Plane cuts: part ``r`` pulls back the planes ``cuts[r] <= k < cuts[r + 1]``.
+    """
+    nx, ny, _ = geometry.dimensions
+    work = np.asarray(pairs, dtype=np.float64) + _PULL_BACK_VOXEL_WORK * float(nx * ny)
+    return equal_cuts(work, parts)
 
 
 def window_of(table, box, geometry: ImageGeometry, output: ImageGeometry, *,

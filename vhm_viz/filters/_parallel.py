@@ -169,31 +169,35 @@ def send_parts(make_part, fields: dict) -> list:
     """Hand rank ``q`` its part ``make_part(q)`` (a dict of ``fields`` arrays); gather mine.
 
     ``fields``: name -> (trailing shape, dtype); each field's leading length travels with
-    it. A collective: for each rank in turn the others send to it (point to point: each
-    part goes to its rank only, made just before it is sent and freed after). This
-    rank's own part is made last. Returns the parts for this rank, in rank order.
+    it, and its values as they are (bytes: any dtype, 64-bit integers too, exactly). A
+    collective: for each rank in turn the others send to it (point to point: each part
+    goes to its rank only, made just before it is sent and freed after). This rank's own
+    part is made last. Returns the parts for this rank, in rank order.
     """
     controller = _controller()
     me, n = rank(), process_count()
     if controller is None:
         return [make_part(0)]
     from vtkmodules.util import numpy_support as ns
-    from vtkmodules.vtkCommonCore import vtkDoubleArray
+    from vtkmodules.vtkCommonCore import vtkUnsignedCharArray
 
     def pack(part):
         pieces = []
-        for name in fields:
-            a = np.asarray(part[name])
-            pieces += [[float(len(a))], a.astype(np.float64).ravel()]
-        return np.concatenate(pieces)
+        for name, (shape, dtype) in fields.items():
+            a = np.ascontiguousarray(part[name], dtype=dtype).reshape((-1,) + tuple(shape))
+            data = a.reshape(-1).view(np.uint8)
+            pad = np.zeros(-len(data) % 8, dtype=np.uint8)  # each field 8-byte aligned
+            pieces += [np.array([len(a)], dtype=np.int64).view(np.uint8), data, pad]
+        return np.concatenate(pieces) if pieces else np.zeros(0, dtype=np.uint8)
 
     def unpack(flat):
         part, pos = {}, 0
         for name, (shape, dtype) in fields.items():
-            m = int(flat[pos])
-            size = m * int(np.prod(shape, dtype=np.int64))
-            part[name] = flat[pos + 1 : pos + 1 + size].reshape((m,) + shape).astype(dtype)
-            pos += 1 + size
+            m = int(flat[pos : pos + 8].view(np.int64)[0])
+            size = m * int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+            values = flat[pos + 8 : pos + 8 + size].view(dtype)
+            part[name] = values.reshape((m,) + tuple(shape)).copy()
+            pos += 8 + size + (-size % 8)
         return part
 
     got = [None] * n
@@ -201,12 +205,14 @@ def send_parts(make_part, fields: dict) -> list:
         if q == me:
             for r in range(n):
                 if r != q:
-                    buffer = vtkDoubleArray()
+                    buffer = vtkUnsignedCharArray()
                     controller.Receive(buffer, r, 9317)
                     got[r] = unpack(ns.vtk_to_numpy(buffer))
                     del buffer
         else:
-            controller.Send(ns.numpy_to_vtk(pack(make_part(q)), deep=1), q, 9317)
+            packed = pack(make_part(q))  # (the part itself is gone once packed)
+            controller.Send(ns.numpy_to_vtk(packed, deep=0), q, 9317)
+            del packed
     got[me] = make_part(me)
     return got
 

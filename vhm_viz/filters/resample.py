@@ -10,7 +10,14 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandD
 from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry
 from vhm_viz.core.lattice import PART_FIELDS, join_parts
 from vhm_viz.core.memory import release_free_memory
-from vhm_viz.core.volume import VolumeDeformation, layer_shares, output_grid, window_of
+from vhm_viz.core.volume import (
+    Resampled,
+    VolumeDeformation,
+    layer_shares,
+    output_grid,
+    pull_back_shares,
+    window_of,
+)
 from vhm_viz.filters import _parallel
 from vhm_viz.filters._common import (
     DeformationSource,
@@ -72,12 +79,16 @@ class HarmonicResampleFilter(DeformationSource):
     holding the two voxels beyond them on each side (the single-voxel cells' twists read
     neighbours there, so its own root cells come out as in the whole lattice, bit for
     bit); the ranks agree on the output
-    grid from their leaves' bounds, and each rank reads the input window its output
-    piece may need, from every rank's table of where its root cells map to. At the
-    update each rank sends to every other the leaves whose images reach that rank's
-    piece, and resamples its piece with the leaves it gathered
-    (:func:`~vhm_viz.core.lattice.join_parts`): the serial result, bit for bit, with
-    about a rank's share of the lattice in memory.
+    grid from their leaves' bounds, and on a cut of the output's k-planes into equal
+    shares of the pull-back work (:func:`~vhm_viz.core.volume.pull_back_shares`: the
+    pieces ParaView asks for need not hold equal work -- on the embryo one half holds
+    71% of it). Each rank pulls back the voxels of its planes, whichever rank's piece
+    they belong to, and sends them there; it reads the input window those planes may
+    need, from every rank's table of where its root cells map to. At the update each
+    rank sends to every other the leaves whose images reach that rank's planes, and
+    pulls back with the leaves it gathered (:func:`~vhm_viz.core.lattice.join_parts`):
+    the serial result, bit for bit, with about a rank's share of the lattice in memory.
+    The field array ``vhm_pulled_back_voxels`` counts the voxels a rank pulled back.
 
     Input port 0: ``vtkImageData``; port 1: optional cage. The deformation is set as for
     :class:`~vhm_viz.filters.HarmonicDeformationFilter`.
@@ -213,19 +224,20 @@ class HarmonicResampleFilter(DeformationSource):
         out = out_info.GetInformationObject(0)
         ext = requested_extent(out)
         window = None
-        if self._geometry is not None and ext is not None and ext[0] <= ext[1]:
+        if self._mpi():
+            # the planes this rank pulls back (for whichever rank's piece holds them), not
+            # its own piece; nothing if the information pass failed (RequestData says so)
             shared = self._shared
-            if self._mpi() and shared is None:
-                pass  # the information pass failed (RequestData will say so): read nothing
-            elif self._mpi():
+            box = None if shared is None else _work_box(shared, _parallel.rank())
+            if box is not None:
                 window = window_of(
-                    shared["table"], ext, shared["input"], self._geometry,
+                    shared["table"], box, shared["input"], self._geometry,
                     interpolation=self._interpolation, margin=shared["margin"],
                     in_place=self._outside == "passthrough" and shared["any_outside"],
                 )  # fmt: skip
-            else:
-                vol = self._engine(in_info, vtkImageData.GetData(in_info[0], 0))
-                window = vol.input_window(self._geometry, ext, self._interpolation)
+        elif self._geometry is not None and ext is not None and ext[0] <= ext[1]:
+            vol = self._engine(in_info, vtkImageData.GetData(in_info[0], 0))
+            window = vol.input_window(self._geometry, ext, self._interpolation)
         if window is None:  # nothing to read: one voxel (an empty extent confuses readers)
             window = [0, 0, 0, 0, 0, 0]
         start = whole[0::2]
@@ -244,7 +256,6 @@ class HarmonicResampleFilter(DeformationSource):
         ext = info.Get(_SDDP.UPDATE_EXTENT())
         if ext is None:
             ext = info.Get(_SDDP.WHOLE_EXTENT())
-        vol = self._piece(in_info, img, ext) if self._mpi() else self._engine(in_info, img)
         out.SetExtent(ext)
         out.SetOrigin(*geo.origin)
         out.SetSpacing(*geo.spacing)
@@ -261,17 +272,16 @@ class HarmonicResampleFilter(DeformationSource):
                 continue
             arrays[arr.GetName()] = ns.vtk_to_numpy(arr)
             types[arr.GetName()] = arr.GetDataType()
-        res = vol.resample(
-            arrays,
-            geo,
-            box=ext,
-            interpolation=self._interpolation,
-            fill_value=self._fill,
-            input_box=input_box,
-            progress=self._progress(0.0, 0.98),
-            abort=self._aborted,
-        )
-        self.stats = dict(res.counts)
+        options = dict(interpolation=self._interpolation, fill_value=self._fill,
+                       input_box=input_box, abort=self._aborted)  # fmt: skip
+        if self._mpi():
+            vol, res, pulled = self._resample_shared(in_info, img, ext, arrays, options)
+        else:
+            vol = self._engine(in_info, img)
+            res = vol.resample(arrays, geo, box=ext, progress=self._progress(0.0, 0.98),
+                               **options)  # fmt: skip
+            pulled = res.counts["voxels"]
+        self.stats = {**res.counts, "pulled_back": int(pulled)}
         self._add_lattice_counts(out, vol)
         for name, values in res.arrays.items():
             new = ns.numpy_to_vtk(values, deep=0, array_type=types[name])
@@ -284,9 +294,10 @@ class HarmonicResampleFilter(DeformationSource):
             new.SetName(name)
             pd_out.AddArray(new)
         fd = out.GetFieldData()
-        for name in ("valid", "foldover"):
-            count = ns.numpy_to_vtk(np.array([res.counts[name]], dtype=np.int64), deep=1)
-            count.SetName(f"vhm_{name}_count")
+        for name, key in (("valid_count", "valid"), ("foldover_count", "foldover"),
+                          ("pulled_back_voxels", "pulled_back")):  # fmt: skip
+            count = ns.numpy_to_vtk(np.array([self.stats[key]], dtype=np.int64), deep=1)
+            count.SetName(f"vhm_{name}")
             fd.RemoveArray(count.GetName())
             fd.AddArray(count)
         self.UpdateProgress(1.0)
@@ -329,8 +340,16 @@ class HarmonicResampleFilter(DeformationSource):
                               keep_input=keep)  # fmt: skip
         table = _parallel.gather_rows_of(lambda: vol.reach_table(geo, own(vol.lattice)), 12)
         table = table.astype(np.int64)
+        # which output planes each rank pulls back: equal shares of the work, whichever
+        # pieces the pipeline asks for (the embryo's lower half holds 71% of it)
+        nz = int(geo.dimensions[2])
+        pairs = _parallel.gather_rows_of(
+            lambda: vol.pull_back_pairs(geo, own(vol.lattice))[None, :], nz
+        ).sum(axis=0)
+        cuts = pull_back_shares(pairs, geo, _parallel.process_count())
         self._shared = {"key": key, "geometry": geo, "input": geo_in, "table": table,
-                        "any_outside": any_outside, "margin": float(rows[:, 7].max())}  # fmt: skip
+                        "any_outside": any_outside, "margin": float(rows[:, 7].max()),
+                        "cuts": cuts}  # fmt: skip
         self._piece_engine = self._piece_key = None
         return geo
 
@@ -362,11 +381,13 @@ class HarmonicResampleFilter(DeformationSource):
         return vol, own
 
     def _piece(self, in_info, img, ext):
-        """The engine of this rank's piece: the leaves reaching each rank's piece go there.
+        """The engine that pulls back this rank's planes, and each rank's box of them.
 
         Collective: the ranks gather their pieces; unless every rank still has its
-        piece's engine, each rank (re)builds its window if need be and sends every other
-        rank the leaves of its own root cells whose images reach that rank's piece.
+        engine, each rank (re)builds its window if need be and sends every other rank
+        the leaves of its own root cells whose images reach that rank's boxes. Returns
+        ``(engine or None, boxes)``: ``boxes[q]``, the part of rank ``q``'s piece among
+        this rank's planes (None if empty).
         """
         shared = self._shared
         ext = np.asarray(ext, dtype=np.int64)
@@ -386,6 +407,9 @@ class HarmonicResampleFilter(DeformationSource):
 
         pieces = _parallel.gather_rows_of(window_engine, 6).astype(np.int64)
         vol, own = found["vol"], found["own"]
+        n = len(pieces)
+        # boxes[r][q]: what rank r pulls back for rank q
+        boxes = [[_meet(_work_box(shared, r), pieces[q]) for q in range(n)] for r in range(n)]
 
         def leaves_for_each_rank():
             lat = vol.lattice  # (built again if an earlier piece dropped it)
@@ -393,9 +417,11 @@ class HarmonicResampleFilter(DeformationSource):
             lo, hi = lat.candidate_boxes(shared["geometry"])
             lo, hi = lo[leaves], hi[leaves]
             found["leaves"] = []
-            for p in pieces:
-                empty = (p[1::2] < p[0::2]).any()
-                hit = ~empty & np.all((lo <= p[1::2]) & (hi >= p[0::2]), axis=1)
+            for r in range(n):
+                hit = np.zeros(len(leaves), dtype=bool)
+                for b in boxes[r]:
+                    if b is not None:
+                        hit |= np.all((lo <= b[1::2]) & (hi >= b[0::2]), axis=1)
                 found["leaves"].append(leaves[hit])
             return np.zeros((0, 1))
 
@@ -407,16 +433,136 @@ class HarmonicResampleFilter(DeformationSource):
             return vol.lattice.part(leaves[q])
 
         got = _parallel.send_parts(part_for, PART_FIELDS)
-        vol.drop_lattice()  # the window's lattice: this rank's piece now needs only its own
+        vol.drop_lattice()  # the window's lattice: this rank's boxes now need only their own
         release_free_memory()
         joined = join_parts(got, vol.map, vol.geometry, tolerance=vol.tolerance,
                             root=vol.root, stats=stats)  # fmt: skip
         del got
         release_free_memory()
-        self._piece_engine = VolumeDeformation.for_piece(
-            vol.map, vol.geometry, joined, shared["geometry"], ext,
-            any_outside=shared["any_outside"], tolerance=vol.tolerance, outside=self._outside,
-            memory_budget=vol.memory_budget, exchange=vol.exchange,
-        )  # fmt: skip
+        mine = [b for b in boxes[_parallel.rank()] if b is not None]
+        engine = None
+        if mine:
+            hull = np.empty(6, dtype=np.int64)
+            hull[0::2] = np.min([b[0::2] for b in mine], axis=0)
+            hull[1::2] = np.max([b[1::2] for b in mine], axis=0)
+            engine = VolumeDeformation.for_piece(
+                vol.map, vol.geometry, joined, shared["geometry"], hull,
+                any_outside=shared["any_outside"], tolerance=vol.tolerance,
+                outside=self._outside, memory_budget=vol.memory_budget,
+                exchange=vol.exchange,
+            )  # fmt: skip
+        self._piece_engine = (engine if engine is not None else vol, boxes)
         self._piece_key = piece_key
         return self._piece_engine
+
+    def _resample_shared(self, in_info, img, ext, arrays: dict, options: dict):
+        """The output piece of this rank under MPI, pulled back by the ranks in shares of work.
+
+        Each rank pulls back its planes (:func:`~vhm_viz.core.volume.pull_back_shares`):
+        first those of its own piece, straight into the output arrays, then those of the
+        other ranks' pieces, which it sends them. Collective. Returns ``(engine, result,
+        voxels this rank pulled back)``.
+        """
+        vol, boxes = self._piece(in_info, img, ext)
+        geo = self._geometry
+        me, n = _parallel.rank(), len(boxes)
+        ext = np.asarray(ext, dtype=np.int64)
+        empty = bool((ext[1::2] < ext[0::2]).any())
+        voxels = 0 if empty else int(np.prod(ext[1::2] - ext[0::2] + 1))
+        comps = {name: a.shape[1:] if a.ndim > 1 else () for name, a in arrays.items()}
+        piece = Resampled(
+            None if empty else geo.sub(ext),
+            {name: np.empty((voxels,) + comps[name], dtype=a.dtype) for name, a in arrays.items()},
+            np.zeros(voxels, dtype=np.uint8),
+            np.zeros(voxels, dtype=np.uint8),
+        )  # fmt: skip
+        fields = {"counts": ((4,), np.int64), "valid": ((), np.uint8),
+                  "foldover": ((), np.uint8)}  # fmt: skip
+        fields.update({"array " + name: (comps[name], a.dtype) for name, a in arrays.items()})
+        keys = ("voxels", "valid", "identity", "foldover")
+        counts = np.zeros(4, dtype=np.int64)
+        outgoing = [None] * n
+        order = [me] + [q for q in range(n) if q != me]
+        work = [boxes[me][q] for q in order if boxes[me][q] is not None]
+        total = sum(_voxels(b) for b in work) or 1
+        done = 0
+
+        def pull_back():
+            nonlocal done
+            # its own piece's planes first: the other ranks are pulling back theirs
+            for q in order:
+                b = boxes[me][q]
+                if b is None:
+                    continue
+                progress = self._progress(0.95 * done / total, 0.95 * (done + _voxels(b)) / total)
+                if q == me:
+                    res = vol.resample(arrays, geo, box=b, out=_rows_of(piece, ext, b),
+                                       progress=progress, **options)  # fmt: skip
+                    counts[:] += [res.counts[k] for k in keys]
+                else:
+                    res = vol.resample(arrays, geo, box=b, progress=progress, **options)
+                    part = {"array " + name: v for name, v in res.arrays.items()}
+                    part.update(valid=res.valid, foldover=res.foldover,
+                                counts=np.array([[res.counts[k] for k in keys]]))  # fmt: skip
+                    outgoing[q] = part
+                done += _voxels(b)
+            return np.zeros((0, 1))
+
+        # every rank pulls back before any sends: an error on one stops them all here
+        _parallel.gather_rows_of(pull_back, 1)
+        nothing = {name: np.zeros((0,) + shape, dtype=dtype)
+                   for name, (shape, dtype) in fields.items()}  # fmt: skip
+
+        def part_for(q):
+            part, outgoing[q] = outgoing[q], None
+            return nothing if part is None else part
+
+        for r, part in enumerate(_parallel.send_parts(part_for, fields)):
+            if r == me or boxes[r][me] is None:
+                continue
+            rows = _rows_of(piece, ext, boxes[r][me])
+            for name in arrays:
+                rows.arrays[name][...] = part["array " + name]
+            rows.valid[...] = part["valid"]
+            rows.foldover[...] = part["foldover"]
+            counts += part["counts"][0]
+        piece.counts = {k: int(c) for k, c in zip(keys, counts, strict=True)}
+        return vol, piece, done
+
+
+def _work_box(shared: dict, r: int):
+    """The output planes that rank ``r`` pulls back (a box of the whole grid), or None."""
+    k0, k1 = int(shared["cuts"][r]), int(shared["cuts"][r + 1]) - 1
+    if k1 < k0:
+        return None
+    nx, ny, _ = shared["geometry"].dimensions
+    return np.array([0, nx - 1, 0, ny - 1, k0, k1], dtype=np.int64)
+
+
+def _meet(a, b):
+    """The intersection of two voxel boxes, or None if empty (or either is None)."""
+    if a is None or b is None:
+        return None
+    out = np.empty(6, dtype=np.int64)
+    out[0::2] = np.maximum(a[0::2], b[0::2])
+    out[1::2] = np.minimum(a[1::2], b[1::2])
+    return None if (out[1::2] < out[0::2]).any() else out
+
+
+def _voxels(box) -> int:
+    return int(np.prod(np.asarray(box)[1::2] - np.asarray(box)[0::2] + 1))
+
+
+def _rows_of(piece: Resampled, ext, box) -> Resampled:
+    """Views of a piece's arrays at the voxels of ``box``: whole rows of its k-planes.
+
+    ``box`` spans the piece's i and j ranges (a run of its planes), so its voxels are
+    consecutive in the piece's arrays.
+    """
+    ext, box = np.asarray(ext), np.asarray(box)
+    assert (box[:4] == ext[:4]).all(), "a share of a piece is a run of its whole planes"
+    plane = int((ext[1] - ext[0] + 1) * (ext[3] - ext[2] + 1))
+    rows = slice(int(box[4] - ext[4]) * plane, int(box[5] - ext[4] + 1) * plane)
+    return Resampled(None, {name: a[rows] for name, a in piece.arrays.items()},
+                     piece.valid[rows], piece.foldover[rows])  # fmt: skip
+
