@@ -223,9 +223,10 @@ class LatticeExchange:
     The ``exchange`` of :func:`~vhm_viz.core.lattice.build_lattice`. Each round gathers
     the lattice points (keys) every rank needs and drops the duplicates -- the same point
     in two ranks' windows, or every point when each rank builds the whole lattice -- so
-    that each is evaluated once, by one rank; then it gathers the results. A point's data
-    depends on the point alone, so each rank gets the values a serial build computes, bit
-    for bit, whoever evaluated them.
+    that each is evaluated once, by one rank; then each rank receives the values of its
+    own points from the ranks that evaluated them (point to point: no rank holds the
+    whole round's values). A point's data depends on the point alone, so each rank gets
+    the values a serial build computes, bit for bit, whoever evaluated them.
 
     **Shares.** The ranks' other work between rounds differs (a rank whose window holds
     more of the cage refines more cells), and a rank that is behind would keep the others
@@ -269,45 +270,55 @@ class LatticeExchange:
         if not counts.any():
             self._left_at = time.perf_counter()
             return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, dtype=bool)
-        me = rank()
+        me, n = rank(), len(counts)
         # keys are below 2**53: exact as float64
         everyone = _all_gather(keys.astype(np.float64)).astype(np.int64)
         distinct, inverse = np.unique(everyone, return_inverse=True)
         inverse = inverse.ravel()
+        del everyone
         order = _dealing_order(len(distinct))
         bounds = np.concatenate([[0], np.cumsum(_shares(len(distinct), header))])
-        error = None
+        owner = np.empty(len(distinct), dtype=np.int32)  # who evaluates each point
+        for r in range(n):
+            owner[order[bounds[r] : bounds[r + 1]]] = r
+        mine = order[bounds[me] : bounds[me + 1]]
+        del order
+        error, values = None, None
+        t0 = time.perf_counter()
         try:
-            t0 = time.perf_counter()
-            mine = order[bounds[me] : bounds[me + 1]]
             f, fu, inside = evaluate(distinct[mine])
+            values = np.column_stack([f, fu.reshape(-1, 9), inside.astype(np.float64)])
             self._seconds += time.perf_counter() - t0
             self._points += len(mine)
-            payload = np.concatenate([[1.0], np.column_stack(
-                [f, fu.reshape(-1, 9), inside.astype(np.float64)]).ravel()])  # fmt: skip
         except BaseException as exc:  # noqa: BLE001 -- agreed below, then re-raised
-            error, payload = exc, np.zeros(1)
+            error = exc
         self._busy += time.perf_counter() - t0
-        gathered = _all_gather(payload)
-        results = np.empty((len(distinct), 13))
-        pos, bad = 0, []
-        for r in range(len(counts)):
-            share = order[bounds[r] : bounds[r + 1]]
-            if gathered[pos] == 0:
-                bad.append(r)
-                pos += 1
-                continue
-            results[share] = gathered[pos + 1 : pos + 1 + 13 * len(share)].reshape(-1, 13)
-            pos += 1 + 13 * len(share)
+        # each rank gets the values of its own keys only (not every rank's: on the embryo
+        # that held the whole round's results twice on every rank, the build's peak)
+        row = np.full(len(distinct), -1, dtype=np.int64)
+        row[mine] = np.arange(len(mine))
+        starts = np.concatenate([[0], np.cumsum(counts)])
+
+        def part_for(q):
+            if values is None:
+                return {"ok": np.zeros(1, dtype=np.uint8), "values": np.zeros((0, 13))}
+            need = inverse[starts[q] : starts[q + 1]]  # q's keys, in its order
+            return {"ok": np.ones(1, dtype=np.uint8),
+                    "values": values[row[need[owner[need] == me]]]}  # fmt: skip
+
+        got = send_parts(part_for, {"ok": ((), np.uint8), "values": ((13,), np.float64)})
+        bad = [r for r, part in enumerate(got) if not part["ok"][0]]
         if bad:
             self._over = True
             if error is not None:
                 raise error
             raise RuntimeError(f"rank {bad[0]} failed while building the lattice")
-        self.evaluated += int(bounds[me + 1] - bounds[me])
+        self.evaluated += len(mine)
         self.distinct += len(distinct)
-        start = int(counts[:me].sum())
-        own = results[inverse[start : start + len(keys)]]
+        who = owner[inverse[starts[me] : starts[me + 1]]]
+        own = np.empty((len(keys), 13))
+        for r, part in enumerate(got):
+            own[who == r] = part["values"]
         self._left_at = time.perf_counter()
         return own[:, :3], own[:, 3:12].reshape(-1, 3, 3), own[:, 12] > 0.5
 
