@@ -430,7 +430,8 @@ def test_measure_colours_follow_the_one_convention(paraview_env, tmp_path):
 @pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
 def test_volume_warp_with_more_ranks_than_planes_finishes(paraview_env, head_scene, tmp_path):
     """3 ranks on a 2-voxel volume: a rank with an empty piece still takes its share of
-    the lattice's evaluations, so the others do not wait for it forever (they did)."""
+    the lattice's evaluations, so the others do not wait for it forever (they did); the
+    resample of it finishes too."""
     scene, cage = head_scene
     script = tmp_path / "empty_piece.py"
     script.write_text(
@@ -442,6 +443,10 @@ def test_volume_warp_with_more_ranks_than_planes_finishes(paraview_env, head_sce
         f"SceneFile={str(scene)!r}, OutsidePolicy='Pass through')\n"
         "pvs.UpdatePipeline(proxy=bent)\n"
         "print('vhm-points', bent.GetDataInformation().GetNumberOfPoints(), flush=True)\n"
+        "flat = pvs.VHMResampleToImage(Input=two, Cage=cage, "
+        f"SceneFile={str(scene)!r}, OutsidePolicy='Pass through')\n"
+        "pvs.UpdatePipeline(proxy=flat)\n"
+        "print('vhm-resampled', flat.GetDataInformation().GetNumberOfPoints(), flush=True)\n"
     )
     from vhm_viz.filters._parallel import mpi_command
 
@@ -450,6 +455,10 @@ def test_volume_warp_with_more_ranks_than_planes_finishes(paraview_env, head_sce
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "vhm-points 2" in done.stdout
+    # the resample too, of 3 x 3 x 3 output voxels: 3 pieces (sharing their boundary
+    # planes: 45 points) and 3 shares of the work, which need not match them
+    assert "vhm-resampled 45" in done.stdout, done.stdout + done.stderr
+    assert "Traceback" not in done.stdout + done.stderr
 
 
 @pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
