@@ -414,7 +414,7 @@ class HarmonicResampleFilter(DeformationSource):
         def leaves_for_each_rank():
             lat = vol.lattice  # (built again if an earlier piece dropped it)
             leaves = own(lat)
-            lo, hi = lat.candidate_boxes(shared["geometry"])
+            lo, hi = vol.candidate_boxes(shared["geometry"])
             lo, hi = lo[leaves], hi[leaves]
             found["leaves"] = []
             for r in range(n):
