@@ -9,8 +9,9 @@ explicit scene, since under MPI the automatic cage is refused), each of
   evaluations);
 * ``resample``: VHM Resample To Image (each rank its piece of the output; each rank
   builds the lattice of its share of the input's layers, the ranks sharing the exact
-  evaluations, then gathers the leaves that reach its piece from the others, and reads
-  only its input window)
+  evaluations, then gathers from the others the leaves that reach its share of the
+  output planes -- equal shares of the pull-back work, whichever pieces they belong to --
+  reads only its input window, and sends the other ranks their voxels among its planes)
 
 runs in ``pvbatch --symmetric`` (1 rank) and ``mpiexec -n 2 pvbatch --symmetric`` (every
 rank runs the script): the filter's update time (the
