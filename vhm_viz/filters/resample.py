@@ -468,7 +468,7 @@ class HarmonicResampleFilter(DeformationSource):
         me, n = _parallel.rank(), len(boxes)
         ext = np.asarray(ext, dtype=np.int64)
         empty = bool((ext[1::2] < ext[0::2]).any())
-        voxels = 0 if empty else int(np.prod(ext[1::2] - ext[0::2] + 1))
+        voxels = 0 if empty else _voxels(ext)
         comps = {name: a.shape[1:] if a.ndim > 1 else () for name, a in arrays.items()}
         piece = Resampled(
             None if empty else geo.sub(ext),
@@ -483,8 +483,7 @@ class HarmonicResampleFilter(DeformationSource):
         counts = np.zeros(4, dtype=np.int64)
         outgoing = [None] * n
         order = [me] + [q for q in range(n) if q != me]
-        work = [boxes[me][q] for q in order if boxes[me][q] is not None]
-        total = sum(_voxels(b) for b in work) or 1
+        total = sum(_voxels(b) for b in boxes[me] if b is not None) or 1
         done = 0
 
         def pull_back():
