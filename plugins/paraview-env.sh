@@ -25,20 +25,35 @@ if ! command -v pvpython >/dev/null 2>&1 || ! command -v mpiexec >/dev/null 2>&1
         paraview python3-paraview openmpi-bin >&2
 fi
 
-# ParaView's Python is the system one: ask it for its version and numpy
-read -r pyver npver < <(pvpython -c 'import sys, numpy; print(f"{sys.version_info[0]}.{sys.version_info[1]}", numpy.__version__)' 2>/dev/null | tail -n 1)
+# ParaView's Python is the system one: ask it for its version, numpy, and the numba of
+# $site if any
+read -r pyver npver have < <(PYTHONPATH="$site" pvpython -c '
+import sys, numpy
+try:
+    import numba
+    have = numba.__version__
+except Exception:
+    have = "none"
+print(f"{sys.version_info[0]}.{sys.version_info[1]}", numpy.__version__, have)' 2>/dev/null | tail -n 1)
 mkdir -p "$site"
-if ! PYTHONPATH="$site" pvpython -c 'import numba' >/dev/null 2>&1; then
-    case "$npver" in
-        1.2[2-6].*) numba_pins="numba==0.58.1 llvmlite==0.41.1" ;;
-        *) say "no known numba for ParaView's numpy $npver"; exit 1 ;;
-    esac
+case "$npver" in
+    # numba 0.61 compiles the SIMD basis kernel (numba-level inlining) in about 10 s; 0.58
+    # took over 10 minutes and 5 GB for the first resample, each MPI rank on its own
+    1.2[4-6].*) numba_ver=0.61.2 llvmlite_ver=0.44.0 ;;
+    1.2[2-3].*) numba_ver=0.58.1 llvmlite_ver=0.41.1
+        say "numba 0.58 for numpy $npver: the first filter run compiles for over 10 minutes" ;;
+    *) say "no known numba for ParaView's numpy $npver"; exit 1 ;;
+esac
+if [ "$have" != "$numba_ver" ]; then
+    numba_pins="numba==$numba_ver llvmlite==$llvmlite_ver"
     pip_python=""
     for cand in "$root/.venv/bin/python" python3; do
         if "$cand" -m pip --version >/dev/null 2>&1; then pip_python="$cand"; break; fi
     done
     [ -n "$pip_python" ] || { say "no pip found (make the .venv first: bash .ci/setup)"; exit 1; }
     say "installing $numba_pins for Python $pyver into $site"
+    # another version's files would stay next to the new ones
+    rm -rf "$site"/numba "$site"/numba-*.dist-info "$site"/llvmlite "$site"/llvmlite-*.dist-info
     log="$(mktemp)"
     # shellcheck disable=SC2086
     if ! PIP_ROOT_USER_ACTION=ignore "$pip_python" -m pip install -q --no-deps \
@@ -48,6 +63,7 @@ if ! PYTHONPATH="$site" pvpython -c 'import numba' >/dev/null 2>&1; then
         cat "$log" >&2; rm -f "$log"; exit 1
     fi
     rm -f "$log"
+    rm -rf "$site/numba_cache"  # compiled by the numba this replaces
 fi
 cat > "$site/sitecustomize.py" <<'PY'
 # Written by plugins/paraview-env.sh: ParaView 5.11's Python plugin loader calls
