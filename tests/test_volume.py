@@ -369,6 +369,19 @@ def test_memory_bound_slabs_do_not_grow_with_the_volume():
     assert n128 >= 3 * n32  # more slabs instead
 
 
+def test_pull_back_slabs_stay_small_whatever_the_budget():
+    """A larger budget does not make the pull-back's slabs larger than 16 MB of arrays."""
+    geo = ImageGeometry((0, 0, 0), (1, 1, 1), (64, 64, 80))
+    cage = _cage_around((-1.0, -1.0, -1.0), (65.0, 65.0, 81.0), 0.0)
+    hm = _random_bend(cage, 0.002, seed=2)
+    plane = 64 * 64
+    for budget in (None, 2**30):
+        vol = VolumeDeformation(hm, geo, memory_budget=budget)
+        vol.resample({"v": np.zeros(geo.n_points, np.float32)}, geometry=geo)
+        assert vol.slab_count == 2  # 73 planes, then 7
+        assert vol.largest_slab * 56 <= 16 * 2**20 < (vol.largest_slab + plane) * 56
+
+
 def test_outside_policies_and_abort(bend):
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (40, 40, 40))
     cage = _cage_around((8, 8, 8), (30, 30, 30), 0.0)  # the volume sticks out
