@@ -1097,7 +1097,7 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
     they agree on the output grid from their bounds, and each output piece is resampled
     with the leaves (from every window) whose images reach it -- bit for bit the whole
     lattice's result, with an input window that holds the one the whole lattice names."""
-    from vhm_viz.core.lattice import join_parts
+    from vhm_viz.core.lattice import PART_FIELDS, join_parts
     from vhm_viz.core.volume import output_grid, window_of
 
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
@@ -1157,6 +1157,17 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
         other = pieces[1] if piece is pieces[0] else pieces[0]
         with pytest.raises(ValueError, match="reach the output piece"):
             engine.resample({"v": values}, out_geo, box=other)
+    # the last part taken from a window's lattice frees it as it is copied: same part
+    w = windows[1]
+    hit = np.arange(0, w.lattice.stats["leaves"], 3)
+    kept = w.lattice.part(hit)
+    lat = w.lattice
+    w.drop_lattice()
+    taken = lat.part(hit, release=True)
+    assert taken.keys() == kept.keys() == PART_FIELDS.keys()
+    for name in PART_FIELDS:
+        np.testing.assert_array_equal(taken[name], kept[name])
+    assert lat.data is None and lat.mask is None and lat.leaf_origin is None
 
 
 def test_layer_shares_split_the_voxels_inside_the_cage_evenly():

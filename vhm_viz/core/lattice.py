@@ -1011,6 +1011,7 @@ def join_parts(parts, harmonic_map, geometry: ImageGeometry, *, tolerance: float
         del arrays
         for p in parts:  # each part's arrays go as soon as they are joined
             p[name] = None
+        release_free_memory()  # their heap pages too: the next field may not fit them
     order = joined.pop("order")
     data = joined.pop("data")
     perm = np.lexsort((order[:, 1], order[:, 0]))
@@ -1959,29 +1960,39 @@ class HermiteLattice:
         o = self.leaf_origin if leaves is None else self.leaf_origin[leaves]
         return _root_keys(o, self.root, self.n_root)
 
-    def part(self, leaves) -> dict:
+    def part(self, leaves, *, release: bool = False) -> dict:
         """Some leaves with the data they read, as plain arrays (:data:`PART_FIELDS`).
 
         For lattices built in windows (MPI ranks) whose leaves are regrouped by
         :func:`join_parts`: each leaf carries its place in the whole lattice's order (its
         root cell, and its rank among that root cell's leaves, which a window's build
         keeps), so that the joined lattice visits them as the whole lattice would.
+
+        ``release``: free this lattice's arrays as the part is copied out of them, so
+        that the lattice and the part are not held together (the last part taken from
+        a lattice about to be dropped); the lattice cannot be used afterwards.
         """
         self._need_pre_images("part")
         leaves = np.asarray(leaves, dtype=np.int64).ravel()
         used, inverse = np.unique(self.leaf_rows[leaves], return_inverse=True)
         rkey = self.root_keys(leaves)
-        return {
-            "order": np.column_stack([rkey, leaves - self.root_start[rkey]]),
-            "origin": self.leaf_origin[leaves],
-            "size": self.leaf_size[leaves],
-            "cut": self.leaf_cut[leaves],
-            "rows": inverse.reshape(-1, 8).astype(np.int64),
-            "data": self.data[used],
-            "centre_f": self.centre_f[leaves],
-            "centre_ginv": self.centre_ginv[leaves],
-            "rho": self.rho[leaves],
-        }
+        out = {"order": np.column_stack([rkey, leaves - self.root_start[rkey]]),
+               "rows": inverse.reshape(-1, 8).astype(np.int64)}  # fmt: skip
+        if release:  # what no part needs goes first
+            for name in ("mask", "near", "leaf_rows", "root_start", "root_count"):
+                setattr(self, name, None)
+            self._margins = self._edge_bins = None
+            release_free_memory()
+        for name, attr in (("origin", "leaf_origin"), ("size", "leaf_size"),
+                           ("cut", "leaf_cut"), ("centre_f", "centre_f"),
+                           ("centre_ginv", "centre_ginv"), ("rho", "rho"),
+                           ("data", "data")):  # fmt: skip
+            out[name] = getattr(self, attr)[used if name == "data" else leaves]
+            if release:
+                setattr(self, attr, None)
+                # freed heap pages back to the system: the next copy may not fit them
+                release_free_memory()
+        return out
 
     def __repr__(self) -> str:
         return (

@@ -171,8 +171,9 @@ def send_parts(make_part, fields: dict) -> list:
     ``fields``: name -> (trailing shape, dtype); each field's leading length travels with
     it, and its values as they are (bytes: any dtype, 64-bit integers too, exactly). A
     collective: for each rank in turn the others send to it (point to point: each part
-    goes to its rank only, made just before it is sent and freed after). This rank's own
-    part is made last. Returns the parts for this rank, in rank order.
+    goes to its rank only, made just before it is sent and freed as it is packed). This
+    rank's own part is made last. Returns the parts for this rank, in rank order; a
+    received part's arrays are (writeable) views of the one buffer it came in.
     """
     controller = _controller()
     me, n = rank(), process_count()
@@ -182,21 +183,32 @@ def send_parts(make_part, fields: dict) -> list:
     from vtkmodules.vtkCommonCore import vtkUnsignedCharArray
 
     def pack(part):
-        pieces = []
-        for name, (shape, dtype) in fields.items():
-            a = np.ascontiguousarray(part[name], dtype=dtype).reshape((-1,) + tuple(shape))
-            data = a.reshape(-1).view(np.uint8)
-            pad = np.zeros(-len(data) % 8, dtype=np.uint8)  # each field 8-byte aligned
-            pieces += [np.array([len(a)], dtype=np.int64).view(np.uint8), data, pad]
-        return np.concatenate(pieces) if pieces else np.zeros(0, dtype=np.uint8)
+        # straight into one buffer, each field released once copied: a part is never
+        # held twice (on the embryo's resample, parts of 10-60 MB)
+        part = dict(part)
+        nbytes = [np.size(part[name]) * np.dtype(dtype).itemsize
+                  for name, (_, dtype) in fields.items()]  # fmt: skip
+        sizes = [8 + b + (-b % 8) for b in nbytes]
+        flat = np.empty(int(sum(sizes)), dtype=np.uint8)
+        pos = 0
+        for (name, (shape, dtype)), size in zip(fields.items(), sizes, strict=True):
+            a = np.asarray(part.pop(name), dtype=dtype).reshape((-1,) + tuple(shape))
+            flat[pos : pos + 8] = np.array([len(a)], dtype=np.int64).view(np.uint8)
+            flat[pos + 8 : pos + 8 + a.nbytes] = np.ascontiguousarray(a).reshape(-1).view(np.uint8)
+            flat[pos + 8 + a.nbytes : pos + size] = 0  # each field 8-byte aligned
+            pos += size
+            del a
+        return flat
 
     def unpack(flat):
+        # views of the received buffer (each field 8-byte aligned in it), no copies: the
+        # buffer lives as long as one of them does
         part, pos = {}, 0
         for name, (shape, dtype) in fields.items():
             m = int(flat[pos : pos + 8].view(np.int64)[0])
             size = m * int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
             values = flat[pos + 8 : pos + 8 + size].view(dtype)
-            part[name] = values.reshape((m,) + tuple(shape)).copy()
+            part[name] = values.reshape((m,) + tuple(shape))
             pos += 8 + size + (-size % 8)
         return part
 

@@ -429,17 +429,25 @@ class HarmonicResampleFilter(DeformationSource):
         stats = dict(vol.lattice.stats)
         leaves = found.pop("leaves")
 
+        me = _parallel.rank()
+
         def part_for(q):
-            return vol.lattice.part(leaves[q])
+            if q != me:
+                return vol.lattice.part(leaves[q])
+            # the last part (send_parts makes this rank's own last): the window's lattice
+            # is dropped as it is copied out, this rank's boxes then need only their own
+            lat = vol.lattice
+            vol.drop_lattice()
+            return lat.part(leaves[q], release=True)
 
         got = _parallel.send_parts(part_for, PART_FIELDS)
-        vol.drop_lattice()  # the window's lattice: this rank's boxes now need only their own
+        vol.drop_lattice()  # (already, unless a rank's part raised)
         release_free_memory()
         joined = join_parts(got, vol.map, vol.geometry, tolerance=vol.tolerance,
                             root=vol.root, stats=stats)  # fmt: skip
         del got
         release_free_memory()
-        mine = [b for b in boxes[_parallel.rank()] if b is not None]
+        mine = [b for b in boxes[me] if b is not None]
         engine = None
         if mine:
             hull = np.empty(6, dtype=np.int64)
