@@ -912,6 +912,23 @@ def test_builders_sharing_evaluations_build_the_serial_lattice():
     assert len(both) == alone.lattice.stats["evaluations"]
 
 
+def test_node_data_made_in_chunks_equals_one_pass(monkeypatch):
+    """The twists of a level are made in chunks of nodes (the build's peak memory): with
+    chunks of 7 nodes the lattice is bit for bit the one-chunk lattice."""
+    from vhm_viz.core import lattice as lattice_module
+
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (30, 28, 40))
+    hm = _random_bend(_cage_around((0, 0, 0), (29, 27, 46.8), 0.03), 0.02, seed=4)
+    monkeypatch.setattr(lattice_module, "_LEVEL_CHUNK", 10**9)
+    whole = lattice_module.build_lattice(hm, geo)
+    monkeypatch.setattr(lattice_module, "_LEVEL_CHUNK", 7)
+    chunked = lattice_module.build_lattice(hm, geo)
+    assert whole.stats["leaves_per_size"].get(1, 0) > 100  # a level of many small cells
+    assert np.abs(whole.data[:, 4:]).max() > 0  # twists made
+    np.testing.assert_array_equal(chunked.data, whole.data)
+    np.testing.assert_array_equal(chunked.leaf_rows, whole.leaf_rows)
+
+
 def test_a_builder_of_an_empty_piece_only_shares_the_evaluations():
     """An MPI rank with an empty piece (more ranks than planes) builds no cell but takes
     its share of the other's evaluations, so that neither waits for the other."""

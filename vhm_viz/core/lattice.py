@@ -557,6 +557,10 @@ _STENCIL = np.array(
 ) - 1
 
 
+# Nodes whose twists :func:`_level_data` computes at a time.
+_LEVEL_CHUNK = 32768
+
+
 def _stencil_points(table: _NodeTable, keys: np.ndarray, h: int) -> np.ndarray:
     """Lattice points (ijk) that :func:`_level_data` reads around ``keys`` at level ``h``."""
     ijk = table.ijk(keys)
@@ -590,22 +594,28 @@ def _level_data(table: _NodeTable, keys: np.ndarray, h: int, twists: bool = True
     if not twists:  # a lattice for the voxels only (see build_lattice's pre_images)
         out[:, 4:] = 0.0
         return out
-    # the nodes whose twists are read: the level's and their neighbours along the axes
-    # (f_uvw differences the twists of those), each looked up once
-    near = _axis_neighbours(table, rows, h)
-    around = np.unique(np.concatenate([rows, near[near >= 0]]))
+    # in chunks of nodes: a whole fine level's neighbour tables and twists (about 400
+    # bytes a node) were the build's peak, 94 MB on the embryo. A node's twists depend
+    # on the table alone, so the chunks give the same numbers
     slot = np.full(len(table.keys), -1, dtype=np.int64)
-    slot[around] = np.arange(len(around))
-    twists = _twists(table, around, _axis_neighbours(table, around, h), h)
-    here = slot[rows]
-    out[:, 4:7] = twists[here]
-    # f_uvw: differences along the third axis of each twist, averaged over the three
-    third = np.zeros((len(rows), 3))
-    for axis, pair in ((2, 0), (1, 1), (0, 2)):  # twist (0, 1) along w, ...
-        at = twists[:, pair]
-        third += _difference(at, here, _slot_of(slot, near[:, axis, 0]),
-                             _slot_of(slot, near[:, axis, 1]), h)  # fmt: skip
-    out[:, 7] = third / 3.0
+    for c0 in range(0, len(rows), _LEVEL_CHUNK):
+        chunk = rows[c0 : c0 + _LEVEL_CHUNK]
+        # the nodes whose twists are read: the chunk's and their neighbours along the
+        # axes (f_uvw differences the twists of those), each looked up once
+        near = _axis_neighbours(table, chunk, h)
+        around = np.unique(np.concatenate([chunk, near[near >= 0]]))
+        slot[around] = np.arange(len(around))
+        twists = _twists(table, around, _axis_neighbours(table, around, h), h)
+        here = slot[chunk]
+        out[c0 : c0 + len(chunk), 4:7] = twists[here]
+        # f_uvw: differences along the third axis of each twist, averaged over the three
+        third = np.zeros((len(chunk), 3))
+        for axis, pair in ((2, 0), (1, 1), (0, 2)):  # twist (0, 1) along w, ...
+            at = twists[:, pair]
+            third += _difference(at, here, _slot_of(slot, near[:, axis, 0]),
+                                 _slot_of(slot, near[:, axis, 1]), h)  # fmt: skip
+        out[c0 : c0 + len(chunk), 7] = third / 3.0
+        slot[around] = -1
     return out
 
 
@@ -1233,6 +1243,7 @@ def _assemble(
     for lv in range(len(level_data)):
         data[starts[lv] : starts[lv + 1]] = level_data[lv]
         level_data[lv] = None
+        release_free_memory()  # the level's heap pages too, not only its array
     origin = np.concatenate([c for c, *_ in leaves] or [np.zeros((0, 3), np.int64)])
     size = np.concatenate([np.full(len(c), s, np.int64) for c, s, *_ in leaves] or [[]])
     rows = np.concatenate(
