@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from vhm_viz.core.basis import DEFAULT_MEMORY_BUDGET, inside_cage, winding_number
+from vhm_viz.core.basis import DEFAULT_MEMORY_BUDGET, evaluate_map, inside_cage, winding_number
 from vhm_viz.core.binding import check_outside_policy
 from vhm_viz.core.errors import AbortedError, OutsideCageError, describe_indices
 from vhm_viz.core.image import BORDER, INTERPOLATIONS, ImageGeometry, inside_mask, sample
@@ -945,7 +945,6 @@ class VolumeDeformation:
         x, ok = exact_preimages(
             self.map, out_geo.points(ijk.astype(np.float64)), geo.points(u[rows]),
             tolerance=1e-4 * float(np.min(geo.spacing)), max_iterations=_EXACT_ITERATIONS,
-            memory_budget=self.memory_budget,
         )  # fmt: skip
         rows, exact = rows[ok], geo.continuous_index(x[ok])
         same = np.linalg.norm(exact - u[rows], axis=1) <= 1.0
@@ -1364,10 +1363,7 @@ def _store_rows(buf, rows, round_clip, lo, hi, out):  # pragma: no cover - compi
                 out[r, c] = buf[r, c]
 
 
-def exact_preimages(
-    harmonic_map, targets, starts, *, tolerance: float, max_iterations: int = 30,
-    memory_budget: int | None = None,
-):
+def exact_preimages(harmonic_map, targets, starts, *, tolerance: float, max_iterations: int = 30):
     """Solve ``f(x) = y`` by Newton's method on the exact (closed-form) map.
 
     The reference inverse (slow: one closed-form evaluation per point and iteration);
@@ -1383,9 +1379,6 @@ def exact_preimages(
     tolerance : float
         Stop when ``|f(x) - y| <= tolerance`` (world units).
     max_iterations : int
-    memory_budget : int, optional
-        Bytes of basis arrays per evaluation chunk (default
-        :data:`~vhm_viz.core.basis.DEFAULT_MEMORY_BUDGET`).
 
     Returns
     -------
@@ -1396,14 +1389,20 @@ def exact_preimages(
     """
     y = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
     x = np.array(starts, dtype=np.float64).reshape(-1, 3)
+    cage = harmonic_map.cage
+    V = np.ascontiguousarray(cage.vertices, dtype=np.float64)
+    F = np.ascontiguousarray(cage.faces, dtype=np.int64)
+    z = np.asarray(harmonic_map.coefficients)
     ok = np.zeros(len(y), bool)
     active = np.arange(len(y))
     for it in range(max_iterations + 1):
         if not active.size:
             break
-        f, jac, _ = harmonic_map.evaluate(
-            x[active], order=1, outside="nan", memory_budget=memory_budget
-        )
+        # the fused kernel: values and Jacobians without the (N, n + m) basis arrays
+        # (HarmonicMap.evaluate's chunks of them were 24 MB of a resample's peak)
+        f, jac, wind = evaluate_map(x[active], V, F, z, order=1)
+        out = ~inside_cage(wind)
+        f[out], jac[out] = np.nan, np.nan
         r = f - y[active]
         norm = np.linalg.norm(r, axis=1)
         conv = norm <= tolerance
