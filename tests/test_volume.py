@@ -912,6 +912,29 @@ def test_builders_sharing_evaluations_build_the_serial_lattice():
     assert len(both) == alone.lattice.stats["evaluations"]
 
 
+def test_lattice_masks_made_by_planes_equal_one_call():
+    """The lattice's masks are made 16 k-planes at a time (memory): the same as one call
+    over the rows, with False outside them."""
+    from vhm_viz.core.image import inside_mask, surface_mask
+    from vhm_viz.core.lattice import _masks
+
+    cage = _cage_around((2.0, 3.0, 1.0), (27.0, 24.0, 44.0), 0.0)
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (30, 28, 50))
+    V, F = cage.vertices, cage.faces
+    for rows in ((5, 25, 3, 41), None):
+        j0, j1, k0, k1 = (0, 28, 0, 50) if rows is None else rows
+        mask, near = _masks(geo, V, F, rows)
+        assert mask.shape == near.shape == (50, 28, 30)
+        inside = inside_mask(geo, V, F, rows=(j0, j1, k0, k1))
+        assert inside.any() and not inside.all()
+        np.testing.assert_array_equal(mask[k0:k1, j0:j1], inside)
+        surface = surface_mask(geo, V, F, rows=(j0, j1, k0, k1))
+        assert surface.any()
+        np.testing.assert_array_equal(near[k0:k1, j0:j1], surface)
+        mask[k0:k1, j0:j1] = near[k0:k1, j0:j1] = False
+        assert not mask.any() and not near.any()
+
+
 def test_node_data_made_in_chunks_equals_one_pass(monkeypatch):
     """The twists of a level are made in chunks of nodes (the build's peak memory): with
     chunks of 7 nodes the lattice is bit for bit the one-chunk lattice."""

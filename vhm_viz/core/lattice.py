@@ -1122,22 +1122,31 @@ def _mask_rows(window, roots, root):
     return (int(lo[1]), int(hi[1]), int(lo[2]), int(hi[2]))
 
 
+# k-planes of the lattice's masks computed at a time (see _masks).
+_MASK_PLANES = 16
+
+
 def _masks(lat_geo: ImageGeometry, vertices, faces, rows):
     """Inside and next-to-the-surface masks of the lattice points, computed in ``rows``.
 
-    Both have the whole lattice's shape. Outside ``rows`` they stay False and their zero
-    pages are never written, so a window's build holds the memory of its own rows only
-    (an MPI rank's half of the embryo: 17 MB less).
+    Both have the whole lattice's shape. Outside ``rows`` (default: all) they stay False
+    and their zero pages are never written, so a window's build holds the memory of its
+    own rows only (an MPI rank's half of the embryo: 17 MB less). They are made
+    ``_MASK_PLANES`` k-planes at a time: :func:`~vhm_viz.core.image.inside_mask` keeps
+    16-bit winding numbers of the points it is asked for, and a whole window's (26 MB on
+    the embryo) plus its copy into the masks were the joined lattice's peak. A row's
+    values do not depend on which others are computed with it; by planes it also ran
+    2.5x faster (0.06 s against 0.15 s for 200 planes of the embryo's lattice).
     """
-    if rows is None:
-        return inside_mask(lat_geo, vertices, faces), surface_mask(lat_geo, vertices, faces)
     nx, ny, nz = lat_geo.dimensions
-    j0, j1, k0, k1 = rows
+    j0, j1, k0, k1 = (0, ny, 0, nz) if rows is None else rows
     mask = np.zeros((nz, ny, nx), dtype=bool)
     near = np.zeros((nz, ny, nx), dtype=bool)
-    if j1 > j0 and k1 > k0:
-        mask[k0:k1, j0:j1] = inside_mask(lat_geo, vertices, faces, rows=rows)
-        near[k0:k1, j0:j1] = surface_mask(lat_geo, vertices, faces, rows=rows)
+    if j1 > j0:
+        for a in range(k0, k1, _MASK_PLANES):
+            b = min(k1, a + _MASK_PLANES)
+            mask[a:b, j0:j1] = inside_mask(lat_geo, vertices, faces, rows=(j0, j1, a, b))
+            near[a:b, j0:j1] = surface_mask(lat_geo, vertices, faces, rows=(j0, j1, a, b))
     return mask, near
 
 
