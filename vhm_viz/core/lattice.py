@@ -1227,7 +1227,8 @@ def _build_levels(
         cells = (cells[split][:, None, :] + _CORNERS[None] * (h // 2)).reshape(-1, 3)
         h //= 2
     # the levels hold their own copies of the node data: hand the table's memory back
-    # before the levels are packed
+    # before the levels are packed (and let go of the last level: _assemble grows it)
+    data = None
     table.clear()
     release_free_memory()
     return _assemble(
@@ -1245,12 +1246,26 @@ def _assemble(
     leaves, level_data, n_root, root, geometry, tolerance, mask, near, edges, pre_images=True
 ):
     """Pack the levels into one data table and the leaves, grouped by root cell."""
-    starts = np.cumsum([0] + [len(d) for d in level_data])
-    # packed level by level, each level freed once copied: the peak is the packed table
-    # plus one level, not twice the table
-    data = np.empty((int(starts[-1]), _N_TERMS, 3))
-    for lv in range(len(level_data)):
-        data[starts[lv] : starts[lv + 1]] = level_data[lv]
+    # packed level by level, each level freed once copied. The largest level (the
+    # finest, most of the table: 77 MB of the embryo's) comes first and is grown in place
+    # into the table (realloc remaps a large block rather than copying it), so that the
+    # peak is the packed table, not the table plus that level
+    sizes = [len(d) for d in level_data]
+    big = int(np.argmax(sizes)) if sizes else -1
+    packing = ([big] if sizes else []) + [lv for lv in range(len(sizes)) if lv != big]
+    starts = np.zeros(len(sizes), dtype=np.int64)
+    starts[packing] = np.cumsum([0] + [sizes[lv] for lv in packing])[:-1]
+    total = int(sum(sizes))
+    if sizes:
+        data, level_data[big] = level_data[big], None
+        try:
+            data.resize((total, _N_TERMS, 3))
+        except ValueError:  # held elsewhere too: copied after all
+            data = np.concatenate([data, np.empty((total - sizes[big], _N_TERMS, 3))])
+    else:
+        data = np.empty((0, _N_TERMS, 3))
+    for lv in packing[1:]:
+        data[starts[lv] : starts[lv] + sizes[lv]] = level_data[lv]
         level_data[lv] = None
         release_free_memory()  # the level's heap pages too, not only its array
     origin = np.concatenate([c for c, *_ in leaves] or [np.zeros((0, 3), np.int64)])
@@ -1261,9 +1276,13 @@ def _assemble(
     cut = np.concatenate([c for *_, c in leaves] or [np.zeros(0, bool)])
     rkey = _root_keys(origin, root, n_root)
     order = np.argsort(rkey, kind="stable")
-    origin, size, rows, cut, rkey = (
-        a[order] for a in (origin, size.astype(np.int64), rows, cut, rkey)
-    )
+    # one at a time, each old array freed before the next is reordered
+    origin = origin[order]
+    size = size.astype(np.int64)[order]
+    rows = rows[order]
+    cut = cut[order]
+    rkey = rkey[order]
+    release_free_memory()
     start, count = _root_index(rkey, n_root)
     n = len(origin)
     m = n if pre_images else 0
