@@ -192,9 +192,9 @@ def send_parts(make_part, fields: dict) -> list:
         flat = np.empty(int(sum(sizes)), dtype=np.uint8)
         pos = 0
         for (name, (shape, dtype)), size in zip(fields.items(), sizes, strict=True):
-            a = np.asarray(part.pop(name), dtype=dtype).reshape((-1,) + tuple(shape))
+            a = np.ascontiguousarray(part.pop(name), dtype=dtype).reshape((-1,) + tuple(shape))
             flat[pos : pos + 8] = np.array([len(a)], dtype=np.int64).view(np.uint8)
-            flat[pos + 8 : pos + 8 + a.nbytes] = np.ascontiguousarray(a).reshape(-1).view(np.uint8)
+            flat[pos + 8 : pos + 8 + a.nbytes] = a.reshape(-1).view(np.uint8)
             flat[pos + 8 + a.nbytes : pos + size] = 0  # each field 8-byte aligned
             pos += size
             del a
