@@ -952,6 +952,71 @@ def test_node_data_made_in_chunks_equals_one_pass(monkeypatch):
     np.testing.assert_array_equal(chunked.leaf_rows, whole.leaf_rows)
 
 
+def test_node_table_merges_new_nodes_in_place_in_key_order():
+    """The build's node table grows in place, the new rows merged in from the back (its
+    memory): the same table as concatenating and sorting by key, for sorted and unsorted
+    batches, an empty one, and keys before, between and after the old ones; an array
+    held elsewhere too is copied, not resized under its other holder."""
+    from vhm_viz.core.lattice import _NodeTable
+
+    rng = np.random.default_rng(7)
+    table = _NodeTable((40, 40, 40))
+    pool = rng.permutation(64000)
+    batches = [np.sort(pool[:500]), pool[500:501], pool[:0], np.sort(pool[1000:6000]),
+               pool[6000:9000], np.array([pool[9000:].min(), pool[9000:].max()])]  # fmt: skip
+    keys, f, fu, inside = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), []
+    for batch in batches:
+        bf, bfu = rng.normal(size=(len(batch), 3)), rng.normal(size=(len(batch), 3, 3))
+        bin_ = rng.random(len(batch)) > 0.5
+        table.add(batch, bf, bfu, bin_)
+        keys, f = np.concatenate([keys, batch]), np.concatenate([f, bf])
+        fu = np.concatenate([fu, bfu])
+        inside = np.concatenate([inside, bin_]).astype(bool)
+        order = np.argsort(keys, kind="stable")
+        np.testing.assert_array_equal(table.keys, keys[order])
+        np.testing.assert_array_equal(table.f, f[order])
+        np.testing.assert_array_equal(table.fu, fu[order])
+        np.testing.assert_array_equal(table.inside, inside[order])
+        np.testing.assert_array_equal(table.find(batch), np.searchsorted(table.keys, batch))
+    assert len(table.keys) == 8503
+    held = table.fu
+    new_key = np.setdiff1d(np.arange(64000), table.keys)[:1]
+    table.add(new_key, np.ones((1, 3)), np.ones((1, 3, 3)), np.ones(1, dtype=bool))
+    assert len(held) == 8503 and len(table.fu) == 8504
+    assert table.fu[table.find(new_key)[0]].sum() == 9.0
+
+
+def test_node_table_grows_without_holding_itself_twice():
+    """Adding rows to the node table allocates about the new rows, not a second table
+    (concatenating and reordering held each field three times at once)."""
+    import tracemalloc
+
+    from vhm_viz.core.lattice import _NodeTable
+
+    rng = np.random.default_rng(3)
+    keys = np.sort(rng.choice(10**7, size=250_000, replace=False))
+    old, new = keys[::5], np.setdiff1d(keys, keys[::5])[:50_000]
+    table = _NodeTable((1000, 1000, 1000))
+    table.add(np.array([1]), np.zeros((1, 3)), np.zeros((1, 3, 3)), np.zeros(1, bool))  # compiled
+    args = (new, rng.normal(size=(len(new), 3)), rng.normal(size=(len(new), 3, 3)),
+            np.ones(len(new), dtype=bool))  # fmt: skip
+    table = _NodeTable((1000, 1000, 1000))
+    tracemalloc.start()
+    try:
+        n = len(old)
+        table.add(old, np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros(n, dtype=bool))
+        start = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        table.add(*args)
+        peak = tracemalloc.get_traced_memory()[1] - start
+    finally:
+        tracemalloc.stop()
+    row = 8 + 24 + 72 + 1  # key, f, fu, inside
+    assert len(table.keys) == len(old) + len(new)
+    # the new rows, their positions and index temporaries; a second fu alone is 7.2 MB
+    assert peak < len(new) * (row + 40), peak
+
+
 def test_a_builder_of_an_empty_piece_only_shares_the_evaluations():
     """An MPI rank with an empty piece (more ranks than planes) builds no cell but takes
     its share of the other's evaluations, so that neither waits for the other."""
