@@ -171,9 +171,11 @@ def send_parts(make_part, fields: dict) -> list:
     ``fields``: name -> (trailing shape, dtype); each field's leading length travels with
     it, and its values as they are (bytes: any dtype, 64-bit integers too, exactly). A
     collective: for each rank in turn the others send to it (point to point: each part
-    goes to its rank only, made just before it is sent and freed as it is packed). This
-    rank's own part is made last. Returns the parts for this rank, in rank order; a
-    received part's arrays are (writeable) views of the one buffer it came in.
+    goes to its rank only, freed as it is packed, its buffer freed once sent). The parts
+    for the others are made first, then this rank's own part, then the exchange runs:
+    ``make_part(me)`` may release what the others' parts were taken from. Returns the
+    parts for this rank, in rank order; a received part's arrays are (writeable) views
+    of the one buffer it came in.
     """
     controller = _controller()
     me, n = rank(), process_count()
@@ -212,7 +214,13 @@ def send_parts(make_part, fields: dict) -> list:
             pos += 8 + size + (-size % 8)
         return part
 
+    # every part this rank sends is made (and packed) first, then its own part, and only
+    # then does anything arrive: a source that the own part releases (the window's
+    # lattice) is gone before the others' parts come in. Receiving them first held the
+    # lattice and the incoming parts together, an MPI rank's peak on the embryo
+    outgoing = {q: pack(make_part(q)) for q in range(n) if q != me}
     got = [None] * n
+    got[me] = make_part(me)
     for q in range(n):
         if q == me:
             for r in range(n):
@@ -222,10 +230,9 @@ def send_parts(make_part, fields: dict) -> list:
                     got[r] = unpack(ns.vtk_to_numpy(buffer))
                     del buffer
         else:
-            packed = pack(make_part(q))  # (the part itself is gone once packed)
+            packed = outgoing.pop(q)
             controller.Send(ns.numpy_to_vtk(packed, deep=0), q, 9317)
             del packed
-    got[me] = make_part(me)
     return got
 
 
