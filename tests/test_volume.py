@@ -979,16 +979,22 @@ def test_node_table_merges_new_nodes_in_place_in_key_order():
         np.testing.assert_array_equal(table.inside, inside[order])
         np.testing.assert_array_equal(table.find(batch), np.searchsorted(table.keys, batch))
     assert len(table.keys) == 8503
+    # the batches put keys before, between and after those already there
+    assert batches[-1].min() < batches[0].min() and batches[-1].max() > batches[0].max()
     held = table.fu
+    copy = table.fu.copy()
     new_key = np.setdiff1d(np.arange(64000), table.keys)[:1]
     table.add(new_key, np.ones((1, 3)), np.ones((1, 3, 3)), np.ones(1, dtype=bool))
-    assert len(held) == 8503 and len(table.fu) == 8504
-    assert table.fu[table.find(new_key)[0]].sum() == 9.0
+    np.testing.assert_array_equal(held, copy)  # the other holder's array is untouched
+    at = table.find(new_key)[0]
+    np.testing.assert_array_equal(np.delete(table.fu, at, axis=0), copy)
+    assert table.fu[at].sum() == 9.0
 
 
 def test_node_table_grows_without_holding_itself_twice():
     """Adding rows to the node table allocates about the new rows, not a second table
-    (concatenating and reordering held each field three times at once)."""
+    (concatenating and reordering held each field three times at once). What this code
+    allocates (tracemalloc), not what realloc may copy below glibc's mmap threshold."""
     import tracemalloc
 
     from vhm_viz.core.lattice import _NodeTable

@@ -545,9 +545,11 @@ class _NodeTable:
         """Add nodes not in the table yet (``keys`` distinct), keeping the keys sorted.
 
         Each array grows in place (realloc) and the new rows are merged into it from
-        the back, one field at a time: the table is never held twice. Concatenating
-        and reordering instead held each field three times at once, 42 MB on an MPI
-        rank's share of the embryo at its finest level, that rank's build peak.
+        the back, one field at a time, so that this code never makes a second table
+        (realloc itself may still copy a block below glibc's mmap threshold).
+        Concatenating and reordering instead held each field three times at once, 42 MB
+        on an MPI rank's share of the embryo at its finest level, that rank's build
+        peak. A failure part way leaves the table unusable (the build drops it).
         """
         keys = np.asarray(keys, dtype=np.int64).ravel()
         fields = [keys, np.asarray(f), np.asarray(fu), np.asarray(inside, dtype=bool)]
@@ -573,7 +575,7 @@ def _grown(owner, name: str, extra: int) -> np.ndarray:
     setattr(owner, name, None)  # the one reference left is ours: resize may run
     shape = (len(a) + extra,) + a.shape[1:]
     try:
-        a.resize(shape)  # realloc: a large block is remapped, not copied
+        a.resize(shape)  # realloc: a large (mmapped) block is remapped, not copied
         return a
     except ValueError:  # referenced elsewhere (or not its own memory): copied after all
         return np.concatenate([a, np.empty((extra,) + a.shape[1:], dtype=a.dtype)])

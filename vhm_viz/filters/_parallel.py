@@ -173,9 +173,12 @@ def send_parts(make_part, fields: dict) -> list:
     collective: for each rank in turn the others send to it (point to point: each part
     goes to its rank only, freed as it is packed, its buffer freed once sent). The parts
     for the others are made first, then this rank's own part, then the exchange runs:
-    ``make_part(me)`` may release what the others' parts were taken from. Returns the
-    parts for this rank, in rank order; a received part's arrays are (writeable) views
-    of the one buffer it came in.
+    ``make_part(me)`` may release what the others' parts were taken from. With more than
+    two ranks a rank thus holds all its outgoing parts (packed) at once, and receives
+    before it has sent them all. An error making a part, on any rank, stops every rank
+    before any part is sent (the failing rank raises its own error). Returns the parts
+    for this rank, in rank order; a received part's arrays are (writeable) views of the
+    one buffer it came in.
     """
     controller = _controller()
     me, n = rank(), process_count()
@@ -217,10 +220,20 @@ def send_parts(make_part, fields: dict) -> list:
     # every part this rank sends is made (and packed) first, then its own part, and only
     # then does anything arrive: a source that the own part releases (the window's
     # lattice) is gone before the others' parts come in. Receiving them first held the
-    # lattice and the incoming parts together, an MPI rank's peak on the embryo
-    outgoing = {q: pack(make_part(q)) for q in range(n) if q != me}
+    # lattice and the incoming parts together, an MPI rank's peak on the embryo. All the
+    # parts are made before any message: a rank failing to make one (memory) is agreed
+    # here, and every rank raises rather than waiting for its parts
+    outgoing = {}
     got = [None] * n
-    got[me] = make_part(me)
+
+    def make_all():
+        for q in range(n):
+            if q != me:
+                outgoing[q] = pack(make_part(q))
+        got[me] = make_part(me)
+        return np.zeros((0, 1))
+
+    gather_rows_of(make_all, 1)
     for q in range(n):
         if q == me:
             for r in range(n):

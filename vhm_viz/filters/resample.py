@@ -434,8 +434,9 @@ class HarmonicResampleFilter(DeformationSource):
         def part_for(q):
             if q != me:
                 return vol.lattice.part(leaves[q])
-            # the last part (send_parts makes this rank's own last): the window's lattice
-            # is dropped as it is copied out, this rank's boxes then need only their own
+            # the last part (send_parts makes this rank's own after packing the others',
+            # before receiving any): the window's lattice is dropped as it is copied out,
+            # this rank's boxes then need only their own
             lat = vol.lattice
             vol.drop_lattice()
             return lat.part(leaves[q], release=True)
