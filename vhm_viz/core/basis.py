@@ -955,7 +955,7 @@ def _evaluate_map_one(p, cd: _CageData, z, order: int):
     flagged = np.zeros(npts, dtype=np.bool_)
     kernel_args = _kernel_arrays(cd)
     lanes_map_kernel(
-        p, *kernel_args, _NEAR_EDGE, order, z, values, jac, winding, flagged
+        p, *kernel_args, _NEAR_EDGE, order, _read_only(z), values, jac, winding, flagged
     )
     rows = np.nonzero(flagged)[0]
     if rows.size:
@@ -1001,6 +1001,19 @@ def _evaluate_numba(p, cd: _CageData, order: int, host: np.ndarray):
             degenerate[rows] = sub[3]
         return values, gradients if order >= 1 else None, None, degenerate
     return _evaluate_per_point(p, kernel_args, cd, order, host)
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A read-only view of ``a``.
+
+    numba compiles a kernel once for each combination of writeable and read-only
+    arrays; the cage's arrays are read-only (cached), whereas a shell's coefficients or
+    a caller's vertices may not be: passed read-only everywhere, one compiled variant
+    serves them all (each other one cost about 7 s on a first run).
+    """
+    view = a.view()
+    view.flags.writeable = False
+    return view
 
 
 def _kernel_arrays(cd: _CageData) -> tuple:
@@ -1403,8 +1416,8 @@ def winding_number(points, vertices, faces, *, backend: str = "numba") -> np.nda
         1 inside, 0 outside (up to rounding); 1/2 exactly on a face.
     """
     p = _as_points(points)
-    v = np.ascontiguousarray(vertices, dtype=np.float64)
-    f = np.ascontiguousarray(faces, dtype=np.int64)
+    v = _read_only(np.ascontiguousarray(vertices, dtype=np.float64))
+    f = _read_only(np.ascontiguousarray(faces, dtype=np.int64))
     if backend == "numba":
         out = np.zeros(p.shape[0])
         if p.shape[0]:
