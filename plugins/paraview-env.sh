@@ -9,7 +9,9 @@
 #     .paraview-site/ (a pip install with dependencies would pull a vtk wheel, and pvpython
 #     then crashes on two VTKs); the project itself is used in place (PYTHONPATH);
 #   * a sitecustomize.py shim: ParaView 5.11's plugin loader calls inspect.getargspec,
-#     which Python 3.11 removed.
+#     which Python 3.11 removed;
+#   * the filters' numba kernels, compiled into ParaView's own numba cache
+#     (vhm_viz.filters.warm; a stamp file marks it done).
 # Then prints the export lines; everything else goes to stderr.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -73,6 +75,23 @@ import inspect
 if not hasattr(inspect, "getargspec"):
     inspect.getargspec = inspect.getfullargspec
 PY
+
+# numba compiles each kernel on its first call: about 70 s for the filters in a fresh
+# cache, on every MPI rank at once. Compile them once here, into ParaView's own cache
+# (kernels changed by a later edit of the project compile on their next first call)
+stamp="$site/numba_cache/.compiled-numba-$numba_ver"
+if [ ! -e "$stamp" ]; then
+    say "compiling the filters' numba kernels once (about a minute and a half)"
+    log="$(mktemp)"
+    if PYTHONPATH="$root:$site" NUMBA_CACHE_DIR="$site/numba_cache" \
+        pvpython -m vhm_viz.filters.warm >"$log" 2>&1; then
+        touch "$stamp"
+    else
+        tail -n 5 "$log" >&2
+        say "could not compile them ahead: the first filter run will (about 70 s)"
+    fi
+    rm -f "$log"
+fi
 
 echo "export PYTHONPATH=\"$root:$site\${PYTHONPATH:+:\$PYTHONPATH}\""
 echo "export PV_PLUGIN_PATH=\"$root/plugins\${PV_PLUGIN_PATH:+:\$PV_PLUGIN_PATH}\""

@@ -95,7 +95,9 @@ def handled(
     given to a nested use replaces the outer behaviour inside the block (``vhm-viz
     explore`` runs the explorer's event loop inside the command line's handling). Outside
     the main thread (where Python cannot install signal handlers) the block runs
-    unchanged.
+    unchanged, and so do signals whose handler was installed outside Python (ParaView's
+    ``pvpython`` installs its own for SIGINT): Python cannot put such a handler back, so
+    it is left in place.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -109,11 +111,13 @@ def handled(
         finally:
             _state["on_signal"] = outer
         return
-    previous = {s: signal.getsignal(s) for s in signals}
+    # getsignal gives None for a handler installed outside Python: signal.signal cannot
+    # restore it (TypeError), so that signal stays with its owner
+    previous = {s: h for s in signals if (h := signal.getsignal(s)) is not None}
     _state.update(pending=None, raised=False, defer=0, on_signal=on_signal)
     _state["depth"] = 1
     try:
-        for s in signals:
+        for s in previous:
             signal.signal(s, _handler)
         yield
     finally:
