@@ -79,9 +79,11 @@ PY
 # numba compiles each kernel on its first call: about 70 s for the filters in a fresh
 # cache, on every MPI rank at once. Compile them once here, into ParaView's own cache
 # (kernels changed by a later edit of the project compile on their next first call)
+# (tried once: a failure is reported, not retried on every eval)
 stamp="$site/numba_cache/.compiled-numba-$numba_ver"
 if [ ! -e "$stamp" ]; then
     say "compiling the filters' numba kernels once (about a minute and a half)"
+    mkdir -p "$site/numba_cache"
     log="$(mktemp)"
     if PYTHONPATH="$root:$site" NUMBA_CACHE_DIR="$site/numba_cache" \
         pvpython -m vhm_viz.filters.warm >"$log" 2>&1; then
@@ -89,6 +91,8 @@ if [ ! -e "$stamp" ]; then
     else
         tail -n 5 "$log" >&2
         say "could not compile them ahead: the first filter run will (about 70 s)"
+        echo "failed" > "$stamp"
+        say "(delete $stamp to try again)"
     fi
     rm -f "$log"
 fi

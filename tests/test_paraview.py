@@ -124,7 +124,6 @@ def test_pvpython_loads_the_three_filters(paraview_env, tmp_path):
     assert "SceneFile default: ''" in out.stdout
 
 
-@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
 def test_set_up_compiles_the_kernels_and_filters_update_in_pvpython(paraview_env):
     """The set-up compiled the filters' kernels (its stamp), and the warm-up runs the
     three filter classes with ``vhm_viz.filters.update`` in pvpython, whose own SIGINT
@@ -141,6 +140,7 @@ def test_set_up_compiles_the_kernels_and_filters_update_in_pvpython(paraview_env
     assert "Traceback" not in done.stderr
 
 
+@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
 def test_surface_two_ranks_equal_serial_equal_python(paraview_env, armadillo_scene, tmp_path):
     scene, rest, expected = armadillo_scene
     config = {

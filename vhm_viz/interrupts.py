@@ -17,6 +17,10 @@ interrupt leaves either the previous output or the complete new one, never a tem
 
 The exit status of an interrupted command is ``128 + signal number``: 130 for SIGINT,
 143 for SIGTERM (:attr:`Interrupted.exit_status`).
+
+A signal whose handler was installed outside Python is left to it: in ParaView's
+``pvpython`` and ``pvbatch`` SIGINT is ParaView's own, so there Ctrl-C during
+:func:`vhm_viz.filters.update` does what ParaView does with it, not the above.
 """
 
 from __future__ import annotations

@@ -955,7 +955,8 @@ def _evaluate_map_one(p, cd: _CageData, z, order: int):
     flagged = np.zeros(npts, dtype=np.bool_)
     kernel_args = _kernel_arrays(cd)
     lanes_map_kernel(
-        p, *kernel_args, _NEAR_EDGE, order, _read_only(z), values, jac, winding, flagged
+        _read_only(p), *kernel_args, _NEAR_EDGE, order, _read_only(z), values, jac, winding,
+        flagged,
     )
     rows = np.nonzero(flagged)[0]
     if rows.size:
@@ -1007,9 +1008,10 @@ def _read_only(a: np.ndarray) -> np.ndarray:
     """A read-only view of ``a``.
 
     numba compiles a kernel once for each combination of writeable and read-only
-    arrays; the cage's arrays are read-only (cached), whereas a shell's coefficients or
-    a caller's vertices may not be: passed read-only everywhere, one compiled variant
-    serves them all (each other one cost about 7 s on a first run).
+    arrays; the cage's vertices and faces are read-only (cached), whereas a shell's
+    coefficients, a caller's vertices or the points may not be: passed read-only
+    everywhere, one compiled variant serves them all (each other one cost about 7 s on
+    a first run). The kernels do not write to them.
     """
     view = a.view()
     view.flags.writeable = False
@@ -1421,7 +1423,7 @@ def winding_number(points, vertices, faces, *, backend: str = "numba") -> np.nda
     if backend == "numba":
         out = np.zeros(p.shape[0])
         if p.shape[0]:
-            winding_kernel(p, v, f, out)
+            winding_kernel(_read_only(p), v, f, out)
         return out
     if backend != "numpy":
         raise ValueError(f"backend must be 'numba' or 'numpy'; got {backend!r}")
