@@ -559,20 +559,21 @@ class _NodeTable:
         # where each new row goes in the merged table (ascending)
         at = np.searchsorted(self.keys, fields[0]) + np.arange(len(keys))
         for name, new in zip(("keys", "f", "fu", "inside"), fields, strict=True):
-            table = _grown(self, name, len(new))
+            table = _grown(vars(self), name, len(new))
             width = math.prod(table.shape[1:])
             rows = new.reshape(len(new), width).astype(table.dtype, copy=False)
             _merge_from_back(table.reshape(len(table), width), at, rows)
             setattr(self, name, table)
 
 
-def _grown(owner, name: str, extra: int) -> np.ndarray:
-    """Array attribute ``name`` of ``owner``, grown by ``extra`` rows (uninitialised).
+def _grown(holder, key, extra: int) -> np.ndarray:
+    """The array ``holder[key]``, grown by ``extra`` rows (uninitialised).
 
-    The array is taken from ``owner`` (set to None) and grown in place if it can be.
+    The array is taken out of ``holder`` (a dict or list; the slot is set to None) and
+    grown in place if it can be: a caller's reference would make ``resize`` refuse.
     """
-    a = getattr(owner, name)
-    setattr(owner, name, None)  # the one reference left is ours: resize may run
+    a = holder[key]
+    holder[key] = None  # the one reference left is ours: resize may run
     shape = (len(a) + extra,) + a.shape[1:]
     try:
         a.resize(shape)  # realloc: a large (mmapped) block is remapped, not copied
@@ -1304,14 +1305,7 @@ def _assemble(
     starts = np.zeros(len(sizes), dtype=np.int64)
     starts[packing] = np.cumsum([0] + [sizes[lv] for lv in packing])[:-1]
     total = int(sum(sizes))
-    if sizes:
-        data, level_data[big] = level_data[big], None
-        try:
-            data.resize((total, _N_TERMS, 3))
-        except ValueError:  # held elsewhere too: copied after all
-            data = np.concatenate([data, np.empty((total - sizes[big], _N_TERMS, 3))])
-    else:
-        data = np.empty((0, _N_TERMS, 3))
+    data = _grown(level_data, big, total - sizes[big]) if sizes else np.empty((0, _N_TERMS, 3))
     for lv in packing[1:]:
         data[starts[lv] : starts[lv] + sizes[lv]] = level_data[lv]
         level_data[lv] = None
