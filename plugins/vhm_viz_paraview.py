@@ -66,8 +66,9 @@ def _filter(name, label, data_type):
 
 
 def _scene_and_outside(cls):
-    """SceneFile and OutsidePolicy properties on ``cls`` itself (ParaView reads only a
-    class's own attributes, so a shared base class cannot carry them)."""
+    """SceneFile, OutsidePolicy and AllowUnconverged properties on ``cls`` itself
+    (ParaView reads only a class's own attributes, so a shared base class cannot carry
+    them)."""
 
     @smproperty.stringvector(name="SceneFile", default_values="", number_of_elements=1)
     @smdomain.filelist()
@@ -80,8 +81,19 @@ def _scene_and_outside(cls):
     def SetOutsidePolicyIndex(self, index):
         self.SetOutsidePolicy(_OUTSIDE[int(index)])
 
+    @smproperty.intvector(name="AllowUnconverged", default_values=0, number_of_elements=1)
+    @smdomain.xml(
+        '<BooleanDomain name="bool"/>'
+        "<Documentation>Deform even when the scene's solve stops at solver.max_iterations "
+        "before its tolerance (a warning says how far it stopped). Off: such an update "
+        "fails with that message and leaves no output.</Documentation>"
+    )
+    def SetAllowUnconvergedFlag(self, value):
+        self.SetAllowUnconverged(bool(int(value)))
+
     cls.SetSceneFile = SetSceneFile
     cls.SetOutsidePolicyIndex = SetOutsidePolicyIndex
+    cls.SetAllowUnconvergedFlag = SetAllowUnconvergedFlag
     return cls
 
 

@@ -332,6 +332,55 @@ def test_binding_cache_targets_vs_geometry():
     )
 
 
+def test_unconverged_solve_is_refused_unless_allowed():
+    """A solve the filter runs that stops at its iteration cap is no silent result:
+    refused by default, let through with one warning when allowed; a deformer the caller
+    solved is taken as it is (its report went to the caller)."""
+    import warnings
+
+    from vhm_viz.scene import Scene
+
+    mesh = pv.Sphere(radius=0.45, theta_resolution=16, phi_resolution=12)
+    dfm, positions = _small_deformer(mesh.bounds)
+    dfm.update_targets(targets=positions + [[0, 0, 0], [0.25, 0.1, 0.0]])
+    flt = _filter(mesh, dfm)  # unsolved: the filter solves it
+    flt.SetSolverSettings(max_iterations=1, tolerance=1e-12)
+    with pytest.raises(RuntimeError, match="not converged: the solver stopped at max_iterati"):
+        update(flt)
+    report = flt.solve_reports[-1]
+    assert not report.converged and report.shortfall() in str(flt.last_error)
+    assert f"{report.distance_estimate:.3g}" in report.shortfall()
+
+    flt.SetAllowUnconverged(True)
+    with pytest.warns(UserWarning, match="deforming with an unconverged solve") as seen:
+        out = pv.wrap(update(flt))
+        update(flt)  # the same solve: said once
+    assert len(seen) == 1 and flt.warnings == [str(seen[0].message)]
+    np.testing.assert_allclose(out.points, dfm.harmonic_map.map(mesh.points), atol=1e-9)
+
+    # UpdateTargets solves too (the filter's settings): refused again once not allowed
+    flt.SetAllowUnconverged(False)
+    assert not flt.UpdateTargets(targets=positions + [[0, 0, 0], [0.2, 0.1, 0.0]]).converged
+    with pytest.raises(RuntimeError, match="not converged"):
+        update(flt)
+
+    # solved by the caller, to convergence or not: no error, no warning
+    for cap in (10000, 1):
+        dfm.solve(max_iterations=cap, tolerance=1e-8)
+        flt.Modified()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            update(flt)
+        assert flt.warnings == []
+
+    # a scene's solve (the filter's own) with too few iterations
+    scene = Scene.from_deformer(dfm, solver={"max_iterations": 1, "tolerance": 1e-12})
+    flt2 = _filter(mesh, scene)
+    with pytest.raises(RuntimeError, match="no output .*AllowUnconverged"):
+        update(flt2)
+    assert not flt2.solve_reports[-1].converged
+
+
 def test_harmonic_map_rejects_other_cage():
     mesh = pv.Sphere(radius=0.4)
     hm = _random_map(_cage_around(mesh.bounds))

@@ -250,11 +250,10 @@ def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False
     bar.finish()
     last = reports[-1]
     if not last.converged and not allow_unconverged:
-        rho = last.contraction if np.isfinite(last.contraction) else 0.0
         raise NotConverged(
             f"not converged: the solver stopped at solver.max_iterations = "
             f"{scene.solver['max_iterations']} with the estimated distance to the solution "
-            f"{last.residuals[-1] / (1 - rho):.3g} above solver.tolerance = "
+            f"{last.distance_estimate:.3g} above solver.tolerance = "
             f"{scene.solver['tolerance']:g}; nothing written (raise max_iterations, or pass "
             "--allow-unconverged)"
         )

@@ -222,6 +222,10 @@ class SolveReport:
     contraction : float
         The last estimate of the iteration's contraction rate ``rho`` (NaN when fewer than
         three iterates were seen); stored with a saved solution (see ``Deformer.solve``).
+    max_iterations : int
+        The iteration cap of the solve.
+    tolerance : float
+        The stopping tolerance of the solve (see :attr:`distance_estimate`).
     """
 
     iterations: int
@@ -235,11 +239,33 @@ class SolveReport:
     init: str = "previous"
     contraction: float = float("nan")
     extra: dict = field(default_factory=dict)
+    max_iterations: int = 0
+    tolerance: float = float("nan")
 
     @property
     def energy_history(self) -> np.ndarray:
         """(iterations + 1, 3): columns total, rigidity, smoothness."""
         return np.column_stack([self.energy, self.rigidity, self.smoothness])
+
+    @property
+    def distance_estimate(self) -> float:
+        """Estimated distance of the returned local matrices to the fixed point.
+
+        ``|T(u) - u| / (1 - rho)`` (RMS per anchor), the quantity compared with the
+        tolerance; with no contraction estimate, the last residual itself.
+        """
+        rho = self.contraction if np.isfinite(self.contraction) else 0.0
+        return float(self.residuals[-1] / (1.0 - rho))
+
+    def shortfall(self) -> str:
+        """Why an unconverged solve stopped, in words (empty when it converged)."""
+        if self.converged:
+            return ""
+        return (
+            f"the solver stopped at max_iterations = {self.max_iterations} with the "
+            f"estimated distance to the solution {self.distance_estimate:.3g} above the "
+            f"tolerance {self.tolerance:g}"
+        )
 
     @property
     def final_energy(self) -> float:
@@ -901,6 +927,8 @@ class Deformer:
             rejected_steps=int(rejected),
             init=init_name,
             contraction=float(rho) if rho >= 0 else float("nan"),
+            max_iterations=int(max_iterations),
+            tolerance=float(tolerance),
         )
         self._last_report = rep
         return rep

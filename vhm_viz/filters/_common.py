@@ -19,6 +19,7 @@ its source), so the filters stream and run piece-wise.
 from __future__ import annotations
 
 import signal
+import warnings
 
 import numpy as np
 from vtkmodules.util import numpy_support as ns
@@ -268,6 +269,15 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self.bind_count = 0
         #: Solve reports of solves run by the filter (scene or unsolved deformer).
         self.solve_reports: list = []
+        self._allow_unconverged = False
+        # the last solve this filter ran itself (for a scene, an unsolved deformer, or
+        # UpdateTargets): what _check_converged looks at. A deformer its caller solved
+        # comes with that caller's own report
+        self._map_report = None
+        #: What the last update produced that is not what was asked for (an unconverged
+        #: solve let through): one line each, also shown in VTK's output window.
+        self.warnings: list = []
+        self._warned_report = None
 
     # ------------------------------------------------------------------ pipeline ports
     def FillInputPortInformation(self, port, info):
@@ -494,6 +504,44 @@ class DeformationSource(VTKPythonAlgorithmBase):
         """The outside policy."""
         return self._outside
 
+    def SetAllowUnconverged(self, allow: bool) -> None:
+        """Deform with a solve that stopped at its iteration cap (default: refuse).
+
+        By default an update whose deformation comes from a solve the filter ran (a
+        scene's, an unsolved deformer's, :meth:`UpdateTargets`) that did not converge
+        fails, naming how far the solve stopped from its tolerance; allowed, it runs and
+        says so in :attr:`warnings` (a ``UserWarning``; in ParaView, its output window).
+        A deformer solved by the caller is taken as it is: its report went to the caller.
+        """
+        if bool(allow) != self._allow_unconverged:
+            self._allow_unconverged = bool(allow)
+            self.Modified()
+
+    def GetAllowUnconverged(self) -> bool:
+        """Whether an unconverged solve is let through (with a warning)."""
+        return self._allow_unconverged
+
+    def _check_converged(self, report) -> None:
+        """Refuse (or, if allowed, warn about) a map from an unconverged solve."""
+        if report is None or report.converged:
+            self.warnings, self._warned_report = [], None
+            return
+        if not self._allow_unconverged:
+            raise RuntimeError(
+                f"not converged: {report.shortfall()}; no output (raise the scene's "
+                "solver.max_iterations, or allow unconverged solves: AllowUnconverged)"
+            )
+        if report is not self._warned_report:  # said once per solve, not per pass
+            self._warned_report = report
+            text = f"deforming with an unconverged solve: {report.shortfall()}"
+            self.warnings = [text]
+            if not self._parallel_reporting:
+                warnings.warn(text, UserWarning, stacklevel=2)
+            elif _parallel.rank() == 0:  # the same solve on every rank: said once
+                from vtkmodules.vtkCommonCore import vtkOutputWindow
+
+                vtkOutputWindow.GetInstance().DisplayWarningText(f"{self._label()}: {text}\n")
+
     def SetMemoryBudget(self, nbytes: int | None) -> None:
         """Bytes of basis arrays per chunk while binding, in [1, 2**40] (None: the default).
 
@@ -558,6 +606,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         if solve:
             report = dfm.solve(**self._solve_kwargs())
             self.solve_reports.append(report)
+            self._map_report = report
         self.Modified()
         return report
 
@@ -630,7 +679,9 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 # 0.1 s slower on the CT head (2 ranks on this 2-core machine)
                 self._deformer = self._solved_map = None  # free the old solver first
                 dfm = self._scene.build(data=mesh, cage=cage)
-                self.solve_reports.extend(self._scene.solve(dfm, **self._solver))
+                reports = self._scene.solve(dfm, **self._solver)
+                self.solve_reports.extend(reports)
+                self._map_report = reports[-1]
                 if self._parallel_reporting:
                     # ParaView exposes no UpdateTargets, so nothing re-solves this deformer:
                     # keep the map only, not the solver's matrices (50 MB on the embryo's
@@ -643,6 +694,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
                 # the build's transient basis matrices: before the data's own allocations
                 release_free_memory()
             if self._deformer is None:
+                self._check_converged(self._map_report)
                 return self._solved_map, None
         elif self._parallel_reporting:
             raise RuntimeError("set SceneFile (a vhm_viz scene JSON)")
@@ -653,7 +705,10 @@ class DeformationSource(VTKPythonAlgorithmBase):
             )
         dfm = self._deformer
         if dfm.last_report is None:
-            self.solve_reports.append(dfm.solve(**self._solve_kwargs()))
+            self._map_report = dfm.solve(**self._solve_kwargs())
+            self.solve_reports.append(self._map_report)
+        # (a later solve by the caller replaces the filter's: that one is theirs)
+        self._check_converged(self._map_report if dfm.last_report is self._map_report else None)
         return dfm.harmonic_map, dfm
 
     # ------------------------------------------------------------------ execution helpers
