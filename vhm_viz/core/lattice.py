@@ -1239,6 +1239,7 @@ def _build_levels(
         keep = counts[:, 0] > 0
         # cut: the cage passes through the cell (voxels outside, or next to the surface)
         cells, cut = cells[keep], (counts[keep, 1] > 0) | (counts[keep, 2] > 0)
+        del counts, keep
         if not len(cells):
             break
         corners = cells[:, None, :] + _CORNERS[None] * h
@@ -1249,14 +1250,20 @@ def _build_levels(
             ensure(np.concatenate([corners.reshape(-1, 3), tests[has]]))
         else:
             ensure(corners.reshape(-1, 3))
-        level_keys = np.unique(table.key(corners.reshape(-1, 3)))
+        # the corners as rows of the level's keys, (n, 8), before the level's data is
+        # made: the corners themselves, (n, 8, 3), were held through it, 40 MB of the
+        # serial embryo's build peak at its finest level
+        corner_keys = table.key(corners)
+        del corners
+        level_keys = np.unique(corner_keys)
+        rows = np.searchsorted(level_keys, corner_keys)
+        del corner_keys
         if h > 1:
             # single-voxel cells skip the stencil: their corners are voxels, which the
             # warp and the Jacobians read exactly whatever the twists; it saved 238,089
             # of 790,199 evaluations on the embryo (see _level_data)
             ensure(_stencil_points(table, level_keys, h))
         data = _level_data(table, level_keys, h, twists=pre_images or h > 1)
-        rows = np.searchsorted(level_keys, table.key(corners))
         split = np.zeros(len(cells), dtype=bool)
         if h > 1:
             test_rows = np.where(has, table.find(table.key(tests)), -1)
@@ -1267,6 +1274,8 @@ def _build_levels(
             near_edge = np.zeros(len(cells), dtype=np.bool_)
             _near_edges(cells, h, edge_a, edge_b, _EDGE_BAND, near_edge)
             split = (err > _SAFETY * tolerance) | near_edge
+            # (not carried into the next, finer level's peak)
+            del offsets, has, tests, test_rows, err, near_edge
         level_data.append(data)
         leaves.append((cells[~split], h, len(level_data) - 1, rows[~split], cut[~split]))
         if progress is not None:
