@@ -2,7 +2,9 @@
 
 For the CT head (``docs/examples/head_scene.json``) and the 256^3 embryo (the bend of
 ``bench_volume.py``: automatic cage and anchors computed once here, then written into an
-explicit scene, since under MPI the automatic cage is refused), each of
+explicit scene, since under MPI the automatic cage is refused), each scene holding its
+solved map as a scene saved after a solve does (``--solve``: without it, so that every
+process builds and solves the scene), each of
 
 * ``warp``: VHM Harmonic Deformation of the image (a structured grid, each rank its piece
   of the extent, each building only its part of the lattice, the ranks sharing the exact
@@ -24,8 +26,12 @@ serial run is timed with one thread (the MPI scaling) and with every core's thre
 (numba's default, what a user of serial pvbatch gets). The load average is printed: the
 machine is shared.
 
-Run: ``python benchmarks/bench_paraview.py
-[--repeats 3] [--only head|embryo]`` (from the project root, with the project's venv).
+Run: ``python benchmarks/bench_paraview.py [--repeats 3] [--only head|embryo]
+[--ops warp,resample] [--solve] [--env NAME=VALUE]`` (from the project root, with the
+project's venv). ``--env MALLOC_MMAP_THRESHOLD_=262144`` fixes glibc's mmap threshold: its
+default rises to 32 MB once a large block is freed, after which mid-sized arrays come from
+the heap, and what the heap keeps then depends on the order of earlier allocations (the
+serial embryo's peak varies by tens of MB between otherwise equal runs).
 """
 
 from __future__ import annotations
@@ -81,8 +87,12 @@ print(f"bench-rank {rank} seconds {dt:.3f} rss_mb {status('VmHWM'):.0f} "
 """
 
 def embryo_scene(folder: Path) -> tuple[Path, Path]:
-    """The embryo bend of bench_volume.py as an explicit scene (inline cage) + cage file."""
-    scene, cage_path = folder / "embryo_scene.json", folder / "embryo_cage.obj"
+    """The embryo bend of bench_volume.py as an explicit scene (inline cage) + cage file.
+
+    The scene holds its solved map (:meth:`Scene.record_map`), as one saved after a solve
+    does; :func:`without_map` makes the copy without it.
+    """
+    scene, cage_path = folder / "embryo_scene_map.json", folder / "embryo_cage.obj"
     if not scene.exists() or not cage_path.exists():
         sys.path.insert(0, str(Path(__file__).parent))
         from bench_volume import bend_deformer
@@ -95,8 +105,37 @@ def embryo_scene(folder: Path) -> tuple[Path, Path]:
         cage = auto_cage(img, threshold="otsu")
         dfm, _ = bend_deformer(img, cage, "otsu")
         write_cage(cage_path, cage)
-        Scene.from_deformer(dfm).save(scene)
+        sc = Scene.from_deformer(dfm)
+        assert sc.record_map(dfm), "the embryo's bend did not converge"
+        sc.save(scene)
     return scene, cage_path
+
+
+def with_map(scene: Path, folder: Path) -> Path:
+    """A copy of ``scene`` (cage and anchors made absolute) holding its solved map."""
+    from vhm_viz.scene import Scene
+
+    path = folder / f"{scene.stem}_map.json"
+    if not path.exists():
+        sc = Scene.load(scene)
+        for field in (sc.cage, sc.anchors):
+            if "path" in field:
+                field["path"] = str(sc._resolve_path(field["path"]))
+        dfm = sc.build()
+        assert sc.solve(dfm)[-1].converged and sc.record_map(dfm)
+        sc.save(path)
+    return path
+
+
+def without_map(scene: Path, folder: Path) -> Path:
+    """A copy of ``scene`` without its stored map: the filter builds and solves the scene."""
+    from vhm_viz.scene import Scene
+
+    path = folder / f"{scene.stem}_solve.json"
+    sc = Scene.load(scene)
+    sc.stored_map = None
+    sc.save(path)
+    return path
 
 
 def embryo_vti(folder: Path) -> Path:
@@ -169,19 +208,27 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--only", choices=["head", "embryo"])
     ap.add_argument("--ops", default="warp,resample")
+    ap.add_argument("--solve", action="store_true",
+                    help="scenes without their stored map: every process solves the scene")
+    ap.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
+                    help="extra environment of the pvbatch runs (e.g. "
+                         "MALLOC_MMAP_THRESHOLD_=262144: glibc's fixed mmap threshold)")
     ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "vhm_bench_paraview"))
     args = ap.parse_args()
     folder = Path(args.cache)
     folder.mkdir(parents=True, exist_ok=True)
     env = paraview_env()
+    env.update(kv.split("=", 1) for kv in args.env)
     cases = {}
     if args.only in (None, "head"):
         cases["head"] = (data("volumes", "headsq_64x64x93.vti"),
-                         ROOT / "docs/examples/head_scene.json",
+                         with_map(ROOT / "docs/examples/head_scene.json", folder),
                          ROOT / "docs/examples/head_cage.obj")  # fmt: skip
     if args.only in (None, "embryo"):
         scene, cage = embryo_scene(folder)
         cases["embryo"] = (embryo_vti(folder), scene, cage)
+    if args.solve:
+        cases = {k: (i, without_map(s, folder), c) for k, (i, s, c) in cases.items()}
     filters = {"warp": "VHMHarmonicDeformation", "resample": "VHMResampleToImage"}
     rows = []
     loads = [os.getloadavg()[0]]
@@ -218,8 +265,10 @@ def main() -> None:
                  "speed-up vs 1 thread / vs all threads",
                  "peak RSS (MB): 1 rank / per rank of 2",
                  "of which the filter (MB): 1 rank / per rank of 2"], rows)  # fmt: skip
+    scenes = "solved by every process" if args.solve else "with their stored map"
     print(f"load average (1 min) during the runs: {min(loads):.1f}-{max(loads):.1f} "
-          f"on {os.cpu_count()} cores")
+          f"on {os.cpu_count()} cores; scenes {scenes}; extra environment "
+          f"{args.env or 'none'}")
 
 
 if __name__ == "__main__":

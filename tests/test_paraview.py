@@ -514,3 +514,43 @@ def test_unconverged_solve_fails_unless_allowed(paraview_env, head_scene, tmp_pa
         assert log.count("deforming with an unconverged solve") == 1, log
         # every voxel (the ranks' pieces share their boundary plane)
         assert int(log.split("vhm-paraview-points: ")[1].split()[0]) >= voxels, log
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
+def test_stored_map_is_used_by_every_rank(paraview_env, head_scene, tmp_path):
+    """A scene holding its solved map (Scene.record_map): serial and 2 ranks deform with
+    it instead of solving -- shown with a stored map other than the solve's, whose digest
+    still matches -- and with the cage on the Cage port as read by ParaView."""
+    from vhm_viz import HarmonicMap
+    from vhm_viz.core.image import ImageGeometry
+    from vhm_viz.core.volume import VolumeDeformation
+    from vhm_viz.scene import Scene
+
+    scene_path, cage = head_scene
+    sc = Scene.load(scene_path)
+    dfm = sc.build()
+    assert sc.solve(dfm)[-1].converged and sc.record_map(dfm)
+    identity = np.asarray(HarmonicMap.identity(dfm.cage).coefficients)
+    half = identity + 0.5 * (np.asarray(dfm.harmonic_map.coefficients) - identity)
+    sc.stored_map["coefficients"] = half
+    sc.save(tmp_path / "stored.json")
+    img = pv.read(data_path("volumes", "headsq_64x64x93.vti"))
+    geo = ImageGeometry(img.origin, img.spacing, img.dimensions, img.direction_matrix)
+    expected = VolumeDeformation(HarmonicMap(dfm.cage, half), geo).warp()
+    config = {"input": str(data_path("volumes", "headsq_64x64x93.vti")), "ids": False,
+              "filter": "VHMHarmonicDeformation", "scene": str(tmp_path / "stored.json"),
+              "cage": cage}  # fmt: skip
+    _run(paraview_env, {**config, "output": str(tmp_path / "serial.pvts")}, tmp_path)
+    _run(paraview_env, {**config, "output": str(tmp_path / "mpi.pvts")}, tmp_path, ranks=2)
+    serial = np.asarray(pv.read(tmp_path / "serial.vts").points)
+    from vtkmodules.vtkIOXML import vtkXMLPStructuredGridReader
+
+    reader = vtkXMLPStructuredGridReader()
+    reader.SetFileName(str(tmp_path / "mpi.pvts"))
+    reader.Update()
+    mpi = np.asarray(pv.wrap(reader.GetOutput()).points)
+    diag = np.linalg.norm(np.ptp(expected, axis=0))
+    assert np.abs(serial - expected).max() <= 1e-9 * diag
+    assert np.abs(mpi - serial).max() <= 1e-9 * diag
+    solved = VolumeDeformation(dfm.harmonic_map, geo).warp()
+    assert np.abs(solved - expected).max() > 0.01 * diag  # (not what a solve gives)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 
 import numpy as np
@@ -179,6 +180,9 @@ def test_ramped_solve_reaches_the_direct_solution():
         ({"solver": {"iterations": 5}}, "solver.iterations"),
         ({"solver": {"init": "random"}}, "solver.init"),
         ({"solver": {"steps": 0}}, "solver.steps"),
+        ({"map": {"coefficients": [[0, 0, 0]]}}, "map"),
+        ({"map": {"coefficients": [[0, 0]], "inputs": "0" * 64}}, "map.coefficients[0]"),
+        ({"map": {"coefficients": [[0, 0, 0]], "inputs": "not a digest"}}, "map.inputs"),
     ],
 )
 def test_malformed_scene_names_the_field(change, field):
@@ -393,3 +397,75 @@ def test_paraview_mode_keeps_the_solved_map_not_the_solver(tmp_path):
         flt.SetSceneFile(str(path2))
         update(flt)
         assert len(flt.solve_reports) == 2
+
+
+def test_stored_map_round_trips_and_holds_only_for_its_inputs(tmp_path):
+    """record_map stores a converged solve's map with the digest of its inputs; map_for
+    gives it back, bit for bit, until anything the solve depended on changes."""
+    dfm = _deformer()
+    scene = Scene.from_deformer(dfm)
+    assert not scene.record_map(dfm) and scene.stored_map is None  # not solved yet
+    assert not scene.solve(dfm, max_iterations=1)[-1].converged
+    assert not scene.record_map(dfm)  # an unconverged solve is not stored
+    assert scene.solve(dfm)[-1].converged and scene.record_map(dfm)
+    scene.save(tmp_path / "s.json")
+    loaded = Scene.load(tmp_path / "s.json")
+    assert loaded == scene
+    cage = loaded.build_cage()
+    anchors = loaded.build_anchors(cage)
+    hm = loaded.map_for(cage, anchors)
+    np.testing.assert_array_equal(hm.coefficients, dfm.harmonic_map.coefficients)
+
+    def edited(**change):
+        s = Scene.loads(loaded.dumps())
+        for key, value in change.items():
+            setattr(s, key, value)
+        return s
+
+    targets = dict(loaded.constraints, targets=loaded.constraints["targets"] + 1e-12)
+    for s in (edited(constraints=targets), edited(alpha=0.03), edited(mode="rigid"),
+              edited(solver=dict(loaded.solver, tolerance=1e-7))):  # fmt: skip
+        assert s.map_for(cage, anchors) is None
+    assert loaded.map_for(cage, anchors + [1e-12, 0, 0]) is None
+    moved = Cage(np.asarray(cage.vertices) * (1 + 1e-12), cage.faces)
+    assert loaded.map_for(moved, anchors) is None
+    # a deformer whose constraints are not the scene's is not recorded
+    other = _deformer()
+    other.update_targets(targets=other.constraints["targets"] + 0.01)
+    other.solve()
+    assert not Scene.loads(loaded.dumps()).record_map(other)
+
+
+def test_paraview_mode_uses_the_stored_map_instead_of_solving(tmp_path):
+    """With parallel reporting (ParaView) a scene's stored map is used as it is -- shown
+    with a stored map that differs from what the solve gives -- and an edited scene is
+    solved again."""
+    pv = pytest.importorskip("pyvista")
+    from vhm_viz import HarmonicMap
+    from vhm_viz.filters import HarmonicDeformationFilter, update
+
+    dfm, scene, path, mesh = _saved_scene(tmp_path)
+    assert scene.record_map(dfm)
+    identity = np.asarray(HarmonicMap.identity(dfm.cage).coefficients)
+    half = identity + 0.5 * (np.asarray(dfm.harmonic_map.coefficients) - identity)
+    scene.stored_map["coefficients"] = half  # (the digest still matches the inputs)
+    scene.save(path)
+    flt = HarmonicDeformationFilter()
+    flt.SetParallelReporting(True)
+    flt.SetInputData(mesh)
+    flt.SetSceneFile(str(path))
+    out = pv.wrap(update(flt))
+    assert flt.solve_reports == []
+    np.testing.assert_allclose(
+        out.points, HarmonicMap(dfm.cage, half).map(mesh.points), rtol=0, atol=1e-12
+    )
+    assert np.abs(out.points - dfm.harmonic_map.map(mesh.points)).max() > 1e-3
+    # the same scene with an edited constraint: the stored map no longer applies
+    scene.constraints["targets"] = scene.constraints["targets"] * 1.01
+    scene.save(path)
+    st = path.stat()  # (a new modification time, as an editor's later save has)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    flt.Modified()
+    out = pv.wrap(update(flt))
+    assert len(flt.solve_reports) == 1
+    assert np.abs(out.points - HarmonicMap(dfm.cage, half).map(mesh.points)).max() > 1e-3

@@ -66,6 +66,11 @@ def test_explorer_scene_deformed_by_cli_reproduces_the_explorer_export(bar_file,
     assert saved["data"] == "bar.vtp"  # relative to the scene file
     assert saved["solver"]["init"] == "solution"
     assert not (tmp_path / "scene.explorer.json").exists()  # no second file
+    # with the solved map, which holds for the scene as loaded (ParaView's filters use it)
+    loaded = Scene.load(tmp_path / "scene.json")
+    cage = loaded.build_cage()
+    stored = loaded.map_for(cage, loaded.build_anchors(cage))
+    np.testing.assert_array_equal(stored.coefficients, ctrl.deformer.harmonic_map.coefficients)
 
     assert main(["deform", str(path), "--scene", str(tmp_path / "scene.json"),
                  "-o", str(tmp_path / "cli.vtp"), "-q"]) == 0  # fmt: skip

@@ -1177,7 +1177,7 @@ class ExplorerController:
             solver["init"] = "solution"
         elif solver["init"] == "solution":
             solver["init"] = "identity"
-        return Scene(
+        scene = Scene(
             cage={
                 "vertices": np.array(self.cage.vertices, dtype=np.float64),
                 "faces": np.array(self.cage.faces, dtype=np.int64),
@@ -1196,12 +1196,17 @@ class ExplorerController:
             solution=solution,
             solution_contraction=contraction,
         )
+        if solution is not None:
+            # the solved map too: ParaView's filters then use it instead of solving again
+            scene.record_map(self.deformer)
+        return scene
 
     def save_scene(self, path) -> None:
         """Write the scene (:mod:`vhm_viz.scene`'s format, the one ``vhm-viz deform`` reads).
 
         The data the scene was made for is referenced relative to the scene file, and a
-        converged solution is stored with ``"init": "solution"``.
+        converged solution is stored with ``"init": "solution"``, with its map
+        (:meth:`~vhm_viz.scene.Scene.record_map`).
         """
         path = Path(path)
         refuse_inputs(path, self.input_files)

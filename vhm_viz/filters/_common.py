@@ -674,10 +674,21 @@ class DeformationSource(VTKPythonAlgorithmBase):
                     import pyvista as pv
 
                     mesh = pv.wrap(data)
-                # every rank solves the same scene to the same map: tried, rank 0 solving
-                # alone and handing out the coefficients was no faster on the embryo and
-                # 0.1 s slower on the CT head (2 ranks on this 2-core machine)
                 self._deformer = self._solved_map = None  # free the old solver first
+                stored = None
+                if self._parallel_reporting and not self._solver:
+                    # the scene's stored map, while its inputs still hold: no deformer to
+                    # build and solve (ParaView keeps none anyway, having no UpdateTargets)
+                    if cage is None:
+                        cage = self._scene.build_cage(mesh)
+                    stored = self._scene.map_for(cage, self._scene.build_anchors(cage, mesh))
+                if stored is not None:
+                    self._solved_map, self._map_report = stored, None
+                    self._derived_key = key
+                    return self._solved_map, None
+                # otherwise every rank solves the same scene to the same map: tried, rank 0
+                # solving alone and handing out the coefficients was no faster on the
+                # embryo and 0.1 s slower on the CT head (2 ranks on this 2-core machine)
                 dfm = self._scene.build(data=mesh, cage=cage)
                 reports = self._scene.solve(dfm, **self._solver)
                 self.solve_reports.extend(reports)
