@@ -935,6 +935,54 @@ def test_lattice_masks_made_by_planes_equal_one_call():
         assert not mask.any() and not near.any()
 
 
+def test_cut_flags_cover_every_cube_the_pull_back_reads_and_equal_the_masks():
+    """The pull-back reads the inside/surface flags only in the grid cubes around pre-images
+    of the leaves the cage crosses; they are kept in blocks (_cut_blocks). Computed from
+    the cage (a joined lattice has no masks) they equal the masks in every kept block; every
+    cube a cut leaf's pre-image can lie in is kept; and the blocks answer as the masks do."""
+    from vhm_viz.core.lattice import _BLOCK, _cut_blocks, _inside_around, build_lattice
+
+    geo, cage = _turned_box()
+    hm = _random_bend(cage, 0.03, seed=5)
+    lat = build_lattice(hm, geo)
+    lat_geo = ImageGeometry(geo.origin, geo.spacing, lat.end + 1, geo.direction)
+    block_of, pool, dims = lat.cut_flags()
+    V, F = np.asarray(cage.vertices), np.asarray(cage.faces)
+    from_cage = _cut_blocks(lat, lat_geo, V, F)
+    np.testing.assert_array_equal(from_cage[0], block_of)
+    np.testing.assert_array_equal(from_cage[1], pool)
+    assert 0 < len(pool) < block_of.size  # some blocks, not all
+    flags = lat.mask.astype(np.uint8) | (lat.near.astype(np.uint8) << 1)
+    for kb, jb, ib in np.argwhere(block_of >= 0):
+        k, j, i = kb * _BLOCK, jb * _BLOCK, ib * _BLOCK
+        block = flags[k : k + _BLOCK, j : j + _BLOCK, i : i + _BLOCK]
+        got = pool[block_of[kb, jb, ib]]
+        np.testing.assert_array_equal(got[: block.shape[0], : block.shape[1], : block.shape[2]],
+                                      block)  # fmt: skip
+    # every corner of every cube around a cut leaf grown by its margin is kept
+    cut = np.nonzero(lat.leaf_cut)[0]
+    assert len(cut) > 50
+    m = lat.margins()[cut, None]
+    o, h = lat.leaf_origin[cut], lat.leaf_size[cut, None]
+    lo = np.clip(np.floor(o - m), 0, dims - 2).astype(int)
+    hi = np.clip(np.floor(o + h + m), 0, dims - 2).astype(int) + 1
+    for a, b in zip(lo, hi, strict=True):
+        blocks = block_of[a[2] // _BLOCK : b[2] // _BLOCK + 1, a[1] // _BLOCK : b[1] // _BLOCK + 1,
+                          a[0] // _BLOCK : b[0] // _BLOCK + 1]  # fmt: skip
+        assert (blocks >= 0).all()
+    # at points in those cubes, the blocks' answer is the masks' (brute force over corners)
+    rng = np.random.default_rng(2)
+    pick = rng.choice(cut, 400)
+    sel = np.searchsorted(cut, pick)
+    u = lo[sel] + rng.random((400, 3)) * (hi[sel] - lo[sel])
+    for p in u:
+        i0, j0, k0 = np.minimum(np.maximum(np.floor(p).astype(int), 0), dims - 2)
+        corners = (slice(k0, k0 + 2), slice(j0, j0 + 2), slice(i0, i0 + 2))
+        expected = -1 if lat.near[corners].any() else int(lat.mask[corners].sum())
+        expected = expected if expected in (-1, 0, 8) else -1
+        assert _inside_around(block_of, pool, dims, p) == expected
+
+
 def test_node_data_made_in_chunks_equals_one_pass(monkeypatch):
     """The twists of a level are made in chunks of nodes (the build's peak memory): with
     chunks of 7 nodes the lattice is bit for bit the one-chunk lattice."""
@@ -1021,6 +1069,51 @@ def test_node_table_grows_without_holding_itself_twice():
     assert len(table.keys) == len(old) + len(new)
     # the new rows, their positions and index temporaries; a second fu alone is 7.2 MB
     assert peak < len(new) * (row + 40), peak
+
+
+def test_taking_rows_in_place_equals_indexing_in_the_same_memory():
+    """A lattice's last part is taken out of its own arrays (_taken): the same rows as
+    fancy indexing, for every field's dtype and shape; in place (the same memory, no second
+    array) for an ascending index; copied when the index is not ascending or the array is
+    held elsewhere, which is then left untouched."""
+    import gc
+
+    from vhm_viz.core.lattice import _taken
+
+    rng = np.random.default_rng(11)
+    arrays = {"data": rng.normal(size=(5000, 8, 3)), "origin": rng.integers(0, 99, (5000, 3)),
+              "cut": rng.random(5000) > 0.5, "rho": rng.random(5000)}  # fmt: skip
+    index = np.sort(rng.choice(5000, size=3100, replace=False))
+    for a in arrays.values():  # compiled first: a first call's compiler may hold a
+        _taken({"x": a[:4].copy()}, "x", np.arange(2))  # reference (then it copies)
+    gc.collect()
+    for name, a in arrays.items():
+        expected = a[index]
+        holder = {name: a.copy()}
+        address = holder[name].ctypes.data
+        got = _taken(holder, name, index)
+        assert holder[name] is None
+        np.testing.assert_array_equal(got, expected)
+        assert got.ctypes.data == address  # the same memory, shrunk (realloc never moves
+        # a shrinking block), not a second array
+    holder = {"x": arrays["data"].copy()}
+    other = holder["x"]
+    before = other.copy()
+    np.testing.assert_array_equal(_taken(holder, "x", index), before[index])
+    np.testing.assert_array_equal(other, before)  # its other holder's array is untouched
+    shuffled = rng.permutation(index)
+    np.testing.assert_array_equal(_taken({"x": before.copy()}, "x", shuffled), before[shuffled])
+    for empty in (np.zeros(0, np.int64), index[:1]):
+        np.testing.assert_array_equal(_taken({"x": before.copy()}, "x", empty), before[empty])
+    nothing = np.zeros((0, 8, 3))  # (an MPI rank's empty window)
+    assert _taken({"x": nothing}, "x", np.zeros(0, np.int64)).shape == (0, 8, 3)
+
+    big = {"data": rng.normal(size=(200_000, 8, 3))}  # 38 MB: mmapped, shrunk by mremap
+    address = big["data"].ctypes.data
+    expected = big["data"][::3].copy()
+    part = _taken(big, "data", np.arange(0, 200_000, 3))
+    assert part.ctypes.data == address
+    np.testing.assert_array_equal(part, expected)
 
 
 def test_a_builder_of_an_empty_piece_only_shares_the_evaluations():

@@ -50,6 +50,7 @@ bound its image): a point whose linear pre-image estimate misses the cell by mor
 from __future__ import annotations
 
 import math
+import sys
 import time
 
 import numba
@@ -582,6 +583,44 @@ def _grown(holder, key, extra: int) -> np.ndarray:
         return np.concatenate([a, np.empty((extra,) + a.shape[1:], dtype=a.dtype)])
 
 
+def _taken(holder, key, index) -> np.ndarray:
+    """``holder[key][index]`` for ascending ``index``, made in place when it can.
+
+    The array is taken out of ``holder`` (a dict or list; the slot is set to None), its
+    rows ``index`` are moved to its front and it is shrunk (realloc), so that the array
+    and its selection are never held together. Where that cannot be done (not its own
+    contiguous memory, referenced elsewhere, an index not ascending) the rows are copied.
+    """
+    a = holder[key]
+    holder[key] = None  # the one reference left is ours: resize may run
+    index = np.asarray(index, dtype=np.int64).ravel()
+    if (
+        a.ndim == 0
+        or len(a) == 0
+        or sys.getrefcount(a) > 2  # held elsewhere too (or viewed): not moved under it
+        or not (a.flags.c_contiguous and a.flags.owndata)
+        or (len(index) > 1 and not (index[1:] > index[:-1]).all())
+        or (len(index) and (index[0] < 0 or index[-1] >= len(a)))
+    ):
+        return a[index]
+    rows = a.reshape(len(a), -1)
+    _move_rows_forward(rows, index)
+    del rows
+    try:
+        a.resize((len(index),) + a.shape[1:])
+        return a
+    except ValueError:  # referenced elsewhere after all
+        return a[: len(index)].copy()
+
+
+@numba.njit(cache=True)
+def _move_rows_forward(rows, index):  # pragma: no cover - compiled
+    """``rows[t] = rows[index[t]]`` for ascending ``index`` (no row read after it moved)."""
+    for t in range(index.shape[0]):
+        if index[t] != t:
+            rows[t] = rows[index[t]]
+
+
 @numba.njit(cache=True)
 def _merge_from_back(table, at, new):  # pragma: no cover - compiled
     """Merge rows ``new`` into ``table`` at rows ``at`` (ascending), in place.
@@ -1037,8 +1076,9 @@ def join_parts(parts, harmonic_map, geometry: ImageGeometry, *, tolerance: float
     (by root cell, then as each root cell's build made them), so that resampling with
     the joined lattice visits the same leaves in the same order as with the whole one:
     where those leaves are all the leaves whose images reach the output voxels
-    resampled, their pre-images are the whole lattice's, bit for bit. The inside and
-    surface masks are computed in the rows those pre-images read.
+    resampled, their pre-images are the whole lattice's, bit for bit. The joined lattice
+    has no masks, only the inside and surface flags around the leaves the cage crosses
+    (:meth:`HermiteLattice.cut_flags`), the only ones the pull-back reads.
 
     Parameters
     ----------
@@ -1077,20 +1117,10 @@ def join_parts(parts, harmonic_map, geometry: ImageGeometry, *, tolerance: float
     leaf = {name: np.ascontiguousarray(a[perm]) for name, a in joined.items()}
     rkey = order[perm, 0]
     start, count = _root_index(rkey, n_root)
-    o, h = leaf["origin"], leaf["size"]
-    if len(o):
-        # a pre-image lies within its leaf grown by the margin and the border; the grid
-        # cube around it reaches one more point on each side
-        ny, nz = lat_geo.dimensions[1], lat_geo.dimensions[2]
-        rows = (max(int(o[:, 1].min()) - 1, 0), min(int((o[:, 1] + h).max()) + 2, ny),
-                max(int(o[:, 2].min()) - 1, 0), min(int((o[:, 2] + h).max()) + 2, nz))  # fmt: skip
-    else:
-        rows = (0, 0, 0, 0)
+    h = leaf["size"]
     cage = harmonic_map.cage
-    V = np.asarray(cage.vertices, dtype=np.float64)
-    mask, near = _masks(lat_geo, V, np.asarray(cage.faces), rows)
     edge_a, edge_b = _cage_edges_in_index(lat_geo, cage)
-    return HermiteLattice(
+    joined = HermiteLattice(
         geometry=geometry,
         tolerance=float(tolerance),
         root=int(root),
@@ -1105,13 +1135,18 @@ def join_parts(parts, harmonic_map, geometry: ImageGeometry, *, tolerance: float
         centre_f=leaf["centre_f"],
         centre_ginv=leaf["centre_ginv"],
         rho=leaf["rho"],
-        mask=mask,
-        near=near,
+        mask=None,
+        near=None,
         edge_a=edge_a,
         edge_b=edge_b,
         stats={**(stats or {}), **_leaf_stats(h, len(data))},
         pre_images=True,
     )
+    # no masks: the pull-back reads flags only around the leaves the cage crosses. The
+    # masks over the rows of all the joined leaves were 23 MB of an MPI rank's pull-back
+    # peak on the embryo
+    joined.cut_flags(lat_geo, np.asarray(cage.vertices, dtype=np.float64), np.asarray(cage.faces))
+    return joined
 
 
 def _root_keys(origin, root, n_root) -> np.ndarray:
@@ -1610,32 +1645,102 @@ def _candidate_rows(leaves, ilo, ihi, box, row_start, row_leaf, row_i0, row_i1):
                     row_start[r + 1] += 1
 
 
+# Edge of the blocks in which the inside and surface flags around the leaves the cage
+# crosses are kept for the pull-back (:func:`_cut_blocks`): 8^3 lattice points, 512 bytes.
+_BLOCK = 8
+
+
 @numba.njit(cache=True)
-def _inside_around(mask, near, u):  # pragma: no cover - compiled
+def _mark_cut_blocks(origin, size, cut, margin, dims, marks):  # pragma: no cover
+    """Mark the blocks holding the grid cubes around the pre-images of the cut leaves.
+
+    A pre-image lies within its leaf grown by its margin (:meth:`HermiteLattice.margins`);
+    :func:`_inside_around` reads the 8 corners of the grid cube around it.
+    """
+    for n in range(origin.shape[0]):
+        if not cut[n]:
+            continue
+        lo = np.empty(3, dtype=np.int64)
+        hi = np.empty(3, dtype=np.int64)
+        for a in range(3):
+            lo[a] = min(max(int(math.floor(origin[n, a] - margin[n])), 0), dims[a] - 2)
+            hi[a] = min(max(int(math.floor(origin[n, a] + size[n] + margin[n])), 0), dims[a] - 2)
+            hi[a] += 1
+        for kb in range(lo[2] // _BLOCK, hi[2] // _BLOCK + 1):
+            for jb in range(lo[1] // _BLOCK, hi[1] // _BLOCK + 1):
+                for ib in range(lo[0] // _BLOCK, hi[0] // _BLOCK + 1):
+                    marks[kb, jb, ib] = True
+
+
+def _cut_blocks(lattice, lat_geo=None, vertices=None, faces=None):
+    """The inside and surface flags around the leaves the cage crosses, in blocks.
+
+    Returns ``(block_of, pool, dims)``: ``pool`` (B, 8, 8, 8) uint8 holds the flags of
+    blocks of ``_BLOCK``^3 lattice points (bit 0 inside, bit 1 next to the surface).
+    ``block_of[kb, jb, ib]``: the block's row of ``pool`` (-1: not kept); ``dims``: the
+    lattice's points per axis. Taken from the lattice's masks, or computed from the cage
+    (``lat_geo``, ``vertices``, ``faces``) for a lattice without them (a joined one): the
+    same values, a row's flags not depending on which other rows are computed.
+    """
+    dims = np.asarray(lattice.end + 1, dtype=np.int64)  # (nx, ny, nz)
+    nb = -(-dims // _BLOCK)
+    marks = np.zeros((nb[2], nb[1], nb[0]), dtype=np.bool_)
+    if len(lattice.leaf_size):
+        _mark_cut_blocks(lattice.leaf_origin, lattice.leaf_size, lattice.leaf_cut,
+                         lattice.margins(), dims, marks)  # fmt: skip
+    block_of = np.full(marks.shape, -1, dtype=np.int64)
+    block_of[marks] = np.arange(int(marks.sum()))
+    pool = np.zeros((int(marks.sum()), _BLOCK, _BLOCK, _BLOCK), dtype=np.uint8)
+    for kb in np.nonzero(marks.any(axis=(1, 2)))[0]:
+        kb_marks = marks[kb]
+        jbs = np.nonzero(kb_marks.any(axis=1))[0]
+        k0, k1 = kb * _BLOCK, min((kb + 1) * _BLOCK, dims[2])
+        j0, j1 = jbs[0] * _BLOCK, min((jbs[-1] + 1) * _BLOCK, dims[1])
+        if lattice.mask is not None:
+            inside = lattice.mask[k0:k1, j0:j1]
+            near = lattice.near[k0:k1, j0:j1]
+        else:
+            inside = inside_mask(lat_geo, vertices, faces, rows=(j0, j1, k0, k1))
+            near = surface_mask(lat_geo, vertices, faces, rows=(j0, j1, k0, k1))
+        flags = inside.astype(np.uint8) | (near.astype(np.uint8) << 1)
+        for jb, ib in zip(*np.nonzero(kb_marks), strict=True):
+            a, b = jb * _BLOCK - j0, ib * _BLOCK
+            block = flags[:, a : a + _BLOCK, b : b + _BLOCK]
+            pool[block_of[kb, jb, ib], : block.shape[0], : block.shape[1], : block.shape[2]] = block
+    return block_of, pool, dims
+
+
+@numba.njit(cache=True)
+def _inside_around(block_of, pool, dims, u):  # pragma: no cover - compiled
     """Whether ``u`` is inside the cage, from the grid cube around it.
 
     8 (inside) or 0 (outside) when the cage does not cross the cube's edges and the
-    corners agree; -1 (ask the winding number) when the surface runs next to the cube.
+    corners agree; -1 (ask the winding number) when the surface runs next to the cube, or
+    the cube's flags were not kept (:func:`_cut_blocks`).
     """
-    nz, ny, nx = mask.shape
-    i0 = min(max(int(math.floor(u[0])), 0), nx - 2)
-    j0 = min(max(int(math.floor(u[1])), 0), ny - 2)
-    k0 = min(max(int(math.floor(u[2])), 0), nz - 2)
+    i0 = min(max(int(math.floor(u[0])), 0), dims[0] - 2)
+    j0 = min(max(int(math.floor(u[1])), 0), dims[1] - 2)
+    k0 = min(max(int(math.floor(u[2])), 0), dims[2] - 2)
     count = 0
     for c in range(2):
         for b in range(2):
             for a in range(2):
-                if near[k0 + c, j0 + b, i0 + a]:
+                k, j, i = k0 + c, j0 + b, i0 + a
+                blk = block_of[k // _BLOCK, j // _BLOCK, i // _BLOCK]
+                if blk < 0:
                     return -1
-                if mask[k0 + c, j0 + b, i0 + a]:
+                flags = pool[blk, k % _BLOCK, j % _BLOCK, i % _BLOCK]
+                if flags & 2:
+                    return -1
+                if flags & 1:
                     count += 1
     return count if count == 0 or count == 8 else -1
 
 
 @numba.njit(parallel=True, cache=True)
 def _pull_back_rows(
-    data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, mask, near, last,
-    origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
+    data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, block_of, pool, dims,
+    last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
     u_out, state, fold, quality,
 ):  # pragma: no cover - compiled  # fmt: skip
     """Pre-images of the output voxels of a box: Newton on the leaves' polynomials.
@@ -1773,7 +1878,7 @@ def _pull_back_rows(
                     continue
                 s = 1
                 if cut[n]:
-                    around = _inside_around(mask, near, u)
+                    around = _inside_around(block_of, pool, dims, u)
                     if around == 0:
                         continue
                     if around < 0:
@@ -1820,10 +1925,12 @@ class HermiteLattice:
         Data rows of the corners (corner ``a + 2 b + 4 c`` at ``origin + (a, b, c) size``).
     leaf_cut : (L,) bool
         The cage passes through the cell (voxels outside it, or next to its surface).
-    mask : (Nz, Ny, Nx) bool
+    mask : (Nz, Ny, Nx) bool or None
         Inside the cage, for every lattice point (the volume's voxels and the lattice's
-        overhang beyond them); a window's lattice fills only its root cells' rows.
-    near : (Nz, Ny, Nx) bool
+        overhang beyond them); a window's lattice fills only its root cells' rows. None
+        in a joined lattice (:func:`join_parts`), which resamples only: its pull-back
+        reads :meth:`cut_flags`.
+    near : (Nz, Ny, Nx) bool or None
         Lattice points next to the cage surface (:func:`~vhm_viz.core.image.surface_mask`):
         pre-images in grid cubes touching them are checked with the winding number. Filled
         as ``mask`` is.
@@ -1841,6 +1948,19 @@ class HermiteLattice:
         self.end = self.n_root * self.root  # index of the lattice's far corner per axis
         self._margins = None
         self._edge_bins = None
+        self._cut_flags = None
+
+    def cut_flags(self, lat_geo=None, vertices=None, faces=None):
+        """The inside and surface flags the pull-back reads: :func:`_cut_blocks` (kept).
+
+        From the masks; a lattice without them (joined) is given them by
+        :func:`join_parts`, which passes the cage.
+        """
+        if self._cut_flags is None:
+            if self.mask is None and lat_geo is None:
+                raise ValueError("this lattice has no masks: its cut flags need the cage")
+            self._cut_flags = _cut_blocks(self, lat_geo, vertices, faces)
+        return self._cut_flags
 
     def _need_pre_images(self, what: str) -> None:
         if not self.pre_images:
@@ -2039,11 +2159,21 @@ class HermiteLattice:
             _candidate_rows(leaves, lo, hi, b, start, row_leaf, row_i0, row_i1)
             _pull_back_rows(
                 self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaf_cut,
-                self.centre_f, self.centre_ginv, self.rho, self.margins(), self.mask, self.near,
+                self.centre_f, self.centre_ginv, self.rho, self.margins(), *self.cut_flags(),
                 self.last,
                 geometry.origin, geometry.index_to_world, b, start, row_leaf, row_i0, row_i1,
                 u, state, fold, quality,
             )  # fmt: skip
+
+    def release_masks(self) -> None:
+        """Free the masks, which no part carries: afterwards only :meth:`part` may be used.
+
+        For a window's lattice about to hand out its leaves (an MPI rank's 17 MB of the
+        embryo, held while it packed the other ranks' parts).
+        """
+        self.mask = self.near = None
+        self._cut_flags = None
+        release_free_memory()
 
     def root_keys(self, leaves=None) -> np.ndarray:
         """Root cell of each leaf (or of ``leaves``), as one int64 key (i fastest)."""
@@ -2058,9 +2188,11 @@ class HermiteLattice:
         root cell, and its rank among that root cell's leaves, which a window's build
         keeps), so that the joined lattice visits them as the whole lattice would.
 
-        ``release``: free this lattice's arrays as the part is copied out of them, so
-        that the lattice and the part are not held together (the last part taken from
-        a lattice about to be dropped); the lattice cannot be used afterwards.
+        ``release``: make the part out of this lattice's own arrays (their rows moved
+        in place and the arrays shrunk, :func:`_taken`), so that the lattice and the
+        part are not held together (the last part taken from a lattice about to be
+        dropped); the lattice cannot be used afterwards. Copying instead held each field
+        twice: on the embryo's rank 0, 33 MB of node data at its peak.
         """
         self._need_pre_images("part")
         leaves = np.asarray(leaves, dtype=np.int64).ravel()
@@ -2077,11 +2209,12 @@ class HermiteLattice:
                            ("cut", "leaf_cut"), ("centre_f", "centre_f"),
                            ("centre_ginv", "centre_ginv"), ("rho", "rho"),
                            ("data", "data")):  # fmt: skip
-            out[name] = getattr(self, attr)[used if name == "data" else leaves]
+            index = used if name == "data" else leaves
             if release:
-                setattr(self, attr, None)
-                # freed heap pages back to the system: the next copy may not fit them
-                release_free_memory()
+                out[name] = _taken(self.__dict__, attr, index)
+                release_free_memory()  # (a shrunk heap block's tail)
+            else:
+                out[name] = getattr(self, attr)[index]
         return out
 
     def __repr__(self) -> str:

@@ -430,19 +430,22 @@ class HarmonicResampleFilter(DeformationSource):
         leaves = found.pop("leaves")
 
         me = _parallel.rank()
+        # the window's lattice now only hands out its leaves: the engine lets go of it
+        # (it is built again if ever needed) and its masks go before any part is made
+        lat = vol.lattice
+        vol.drop_lattice()
+        lat.release_masks()
 
         def part_for(q):
             if q != me:
-                return vol.lattice.part(leaves[q])
+                return lat.part(leaves[q])
             # the last part (send_parts makes this rank's own after packing the others',
-            # before receiving any): the window's lattice is dropped as it is copied out,
-            # this rank's boxes then need only their own
-            lat = vol.lattice
-            vol.drop_lattice()
+            # before receiving any): taken out of the lattice's own arrays, this rank's
+            # boxes then need only their own
             return lat.part(leaves[q], release=True)
 
         got = _parallel.send_parts(part_for, PART_FIELDS)
-        vol.drop_lattice()  # (already, unless a rank's part raised)
+        lat = None  # (what the own part left of it)
         release_free_memory()
         joined = join_parts(got, vol.map, vol.geometry, tolerance=vol.tolerance,
                             root=vol.root, stats=stats)  # fmt: skip
