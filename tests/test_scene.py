@@ -469,3 +469,26 @@ def test_paraview_mode_uses_the_stored_map_instead_of_solving(tmp_path):
     out = pv.wrap(update(flt))
     assert len(flt.solve_reports) == 1
     assert np.abs(out.points - HarmonicMap(dfm.cage, half).map(mesh.points)).max() > 1e-3
+
+
+def test_scene_file_rewritten_with_its_size_and_time_is_read_again(tmp_path):
+    """A scene file rewritten with the same size and modification time (a script writing
+    scenes in turn, within one tick of the file system's clock) is still read again."""
+    pv = pytest.importorskip("pyvista")
+    from vhm_viz.filters import HarmonicDeformationFilter, update
+
+    dfm, scene, path, mesh = _saved_scene(tmp_path)
+    flt = HarmonicDeformationFilter()
+    flt.SetInputData(mesh)
+    flt.SetSceneFile(str(path))
+    first = np.array(pv.wrap(update(flt)).points)
+    st = path.stat()
+    text = path.read_text()
+    assert '"alpha": 0.02' in text
+    path.write_text(text.replace('"alpha": 0.02', '"alpha": 0.03'))
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert (path.stat().st_size, path.stat().st_mtime_ns) == (st.st_size, st.st_mtime_ns)
+    flt.Modified()
+    second = np.array(pv.wrap(update(flt)).points)
+    assert len(flt.solve_reports) == 2
+    assert np.abs(second - first).max() > 1e-6

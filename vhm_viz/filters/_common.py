@@ -430,7 +430,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         """Use the scene in a JSON file; re-read when the file changes ("" for none).
 
         The ParaView property: the file is read at the next update, and again whenever its
-        modification time or size change, so editing the scene and re-applying works.
+        content changes, so editing the scene and re-applying works.
         """
         path = "" if path is None else str(path)
         if path != self._scene_file:
@@ -447,17 +447,20 @@ class DeformationSource(VTKPythonAlgorithmBase):
         return self._scene_file
 
     def _load_scene_file(self) -> None:
-        import os
+        import hashlib
 
         from vhm_viz.scene import Scene
 
         if not self._scene_file:
             return
         try:
-            st = os.stat(self._scene_file)
+            with open(self._scene_file, "rb") as fh:
+                text = fh.read()
         except OSError:
             raise FileNotFoundError(f"no such scene file: {self._scene_file}") from None
-        stamp = (self._scene_file, st.st_mtime_ns, st.st_size)
+        # by content: a rewrite of the same size within one tick of the file system's
+        # clock (a script writing scenes in turn) keeps its modification time and size
+        stamp = (self._scene_file, hashlib.sha256(text).hexdigest())
         if stamp != self._scene_stamp:
             self._scene = Scene.load(self._scene_file)
             self._user_deformer = self._deformer = self._hmap = None
