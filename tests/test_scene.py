@@ -434,6 +434,12 @@ def test_stored_map_round_trips_and_holds_only_for_its_inputs(tmp_path):
     other.update_targets(targets=other.constraints["targets"] + 0.01)
     other.solve()
     assert not Scene.loads(loaded.dumps()).record_map(other)
+    # nor one with another number of constraints
+    fewer = _deformer()
+    c = fewer.constraints
+    fewer.set_constraints(positions=c["positions"][:1], targets=c["targets"][:1])
+    fewer.solve()
+    assert not Scene.loads(loaded.dumps()).record_map(fewer)
 
 
 def test_paraview_mode_uses_the_stored_map_instead_of_solving(tmp_path):

@@ -590,8 +590,10 @@ class Scene:
             return False
         c, mine = deformer.constraints, self.constraints
         for name in _CONSTRAINT_FIELDS:
-            if not np.array_equal(np.asarray(c[name], dtype=np.float64).reshape(mine[name].shape),
-                                  mine[name]):  # fmt: skip
+            theirs = np.asarray(c[name], dtype=np.float64)
+            if theirs.size != mine[name].size or not np.array_equal(
+                theirs.reshape(mine[name].shape), mine[name]
+            ):
                 return False
         self.stored_map = {
             "coefficients": np.array(deformer.harmonic_map.coefficients, dtype=np.float64),
