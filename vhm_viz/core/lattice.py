@@ -1662,11 +1662,11 @@ def _mark_cut_blocks(origin, size, cut, margin, dims, marks):  # pragma: no cove
     A pre-image lies within its leaf grown by its margin (:meth:`HermiteLattice.margins`);
     :func:`_inside_around` reads the 8 corners of the grid cube around it.
     """
+    lo = np.empty(3, dtype=np.int64)
+    hi = np.empty(3, dtype=np.int64)
     for n in range(origin.shape[0]):
         if not cut[n]:
             continue
-        lo = np.empty(3, dtype=np.int64)
-        hi = np.empty(3, dtype=np.int64)
         for a in range(3):
             lo[a] = min(max(int(math.floor(origin[n, a] - margin[n])), 0), dims[a] - 2)
             hi[a] = min(max(int(math.floor(origin[n, a] + size[n] + margin[n])), 0), dims[a] - 2)
@@ -2206,10 +2206,9 @@ class HermiteLattice:
         out = {"order": np.column_stack([rkey, leaves - self.root_start[rkey]]),
                "rows": inverse.reshape(-1, 8).astype(np.int64)}  # fmt: skip
         if release:  # what no part needs goes first
-            for name in ("mask", "near", "leaf_rows", "root_start", "root_count"):
-                setattr(self, name, None)
+            self.leaf_rows = self.root_start = self.root_count = None
             self._margins = self._edge_bins = None
-            release_free_memory()
+            self.release_masks()
         for name, attr in (("origin", "leaf_origin"), ("size", "leaf_size"),
                            ("cut", "leaf_cut"), ("centre_f", "centre_f"),
                            ("centre_ginv", "centre_ginv"), ("rho", "rho"),
