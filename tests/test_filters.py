@@ -775,6 +775,37 @@ def test_lattice_exchange_shares_even_out_the_ranks_busy_time():
         assert share.sum() == 777 and (share >= 0).all()
 
 
+def test_parts_are_packed_with_their_values_and_rows_taken_straight_from_a_source():
+    """An MPI part's buffer (filters._parallel._pack / _unpack): every field's values come
+    back exactly (int64 beyond 2**53, bools, odd lengths between 8-byte aligned fields),
+    and an (array, index) field is the rows array[index], as if taken first."""
+    from vhm_viz.filters._parallel import _pack, _unpack
+
+    rng = np.random.default_rng(3)
+    source = rng.normal(size=(50, 8, 3))
+    index = np.array([7, 0, 49, 7, 3])
+    fields = {"ok": ((), np.uint8), "keys": ((2,), np.int64), "flag": ((), np.bool_),
+              "data": ((8, 3), np.float64), "none": ((3,), np.float64)}  # fmt: skip
+    keys = np.array([[2**62 + 1, -5], [3, 2**53 + 1], [0, 1]], dtype=np.int64)
+    flags = np.array([True, False, True])
+    part = {"ok": np.ones(1, dtype=np.uint8), "keys": keys, "flag": flags,
+            "data": (source, index), "none": np.zeros((0, 3))}  # fmt: skip
+    flat = _pack(part, fields)
+    assert flat.dtype == np.uint8 and len(flat) % 8 == 0
+    assert part["data"][0] is source  # the caller's part is left as it was
+    got = _unpack(flat.copy(), fields)
+    assert got.keys() == fields.keys()
+    np.testing.assert_array_equal(got["keys"], keys)
+    np.testing.assert_array_equal(got["flag"], flags)
+    np.testing.assert_array_equal(got["data"], source[index])
+    assert got["data"].shape == (5, 8, 3) and got["none"].shape == (0, 3)
+    assert got["ok"].tolist() == [1]
+    # rows taken from an array of another dtype are converted, as a copy would be
+    ints = np.arange(12).reshape(6, 2)
+    back = _unpack(_pack({**part, "keys": (ints, np.array([5, 1]))}, fields), fields)
+    np.testing.assert_array_equal(back["keys"], ints[[5, 1]])
+
+
 def test_lattice_exchange_deals_runs_of_neighbours_in_a_mixed_order():
     """Each rank's share is whole runs of consecutive keys, from all over the lattice."""
     from vhm_viz.filters._parallel import _DEAL_RUN, _dealing_order

@@ -1365,6 +1365,19 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
     w = windows[1]
     hit = np.arange(0, w.lattice.stats["leaves"], 3)
     kept = w.lattice.part(hit)
+    # the data rows the leaves read, once each and renumbered: each leaf reads the same
+    # node data as in its lattice
+    np.testing.assert_array_equal(kept["data"][kept["rows"]],
+                                  w.lattice.data[w.lattice.leaf_rows[hit]])  # fmt: skip
+    assert len(kept["data"]) == len(np.unique(w.lattice.leaf_rows[hit]))
+    # without copies: the same part, its lattice arrays' fields as (array, index) pairs
+    pairs = w.lattice.part(hit, copy=False)
+    assert isinstance(pairs["data"], tuple) and pairs["data"][0] is w.lattice.data
+    for name in PART_FIELDS:
+        value = pairs[name]
+        np.testing.assert_array_equal(
+            value[0][value[1]] if isinstance(value, tuple) else value, kept[name]
+        )
     lat = w.lattice
     w.drop_lattice()
     taken = lat.part(hit, release=True)

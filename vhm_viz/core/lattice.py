@@ -2185,7 +2185,7 @@ class HermiteLattice:
         o = self.leaf_origin if leaves is None else self.leaf_origin[leaves]
         return _root_keys(o, self.root, self.n_root)
 
-    def part(self, leaves, *, release: bool = False) -> dict:
+    def part(self, leaves, *, release: bool = False, copy: bool = True) -> dict:
         """Some leaves with the data they read, as plain arrays (:data:`PART_FIELDS`).
 
         For lattices built in windows (MPI ranks) whose leaves are regrouped by
@@ -2198,13 +2198,30 @@ class HermiteLattice:
         part are not held together (the last part taken from a lattice about to be
         dropped); the lattice cannot be used afterwards. Copying instead held each field
         twice: on the embryo's rank 0, 33 MB of node data at its peak.
+
+        ``copy`` False: the fields taken from the lattice's arrays are ``(array, index)``
+        pairs (the part's rows are ``array[index]``), for a caller that copies them
+        straight into a buffer (:func:`~vhm_viz.filters._parallel.send_parts`): a copy
+        of the part and its packed buffer were held together (rank 0 of the embryo,
+        27 MB).
         """
         self._need_pre_images("part")
         leaves = np.asarray(leaves, dtype=np.int64).ravel()
-        used, inverse = np.unique(self.leaf_rows[leaves], return_inverse=True)
+        # the data rows the leaves read, renumbered in their order: by marks over the
+        # data rows, not np.unique (whose sort of every corner's row held five copies of
+        # them at once, 30 MB of an MPI rank's part of the embryo, its exchange peak)
+        rows = self.leaf_rows[leaves]
+        read = np.zeros(len(self.data), dtype=bool)
+        read[rows] = True
+        used = np.flatnonzero(read)
+        del read
+        renumber = np.zeros(len(self.data), dtype=np.int64)
+        renumber[used] = np.arange(len(used))
+        rows = renumber[rows]
+        del renumber
         rkey = self.root_keys(leaves)
         out = {"order": np.column_stack([rkey, leaves - self.root_start[rkey]]),
-               "rows": inverse.reshape(-1, 8).astype(np.int64)}  # fmt: skip
+               "rows": rows}  # fmt: skip
         if release:  # what no part needs goes first
             self.leaf_rows = self.root_start = self.root_count = None
             self._margins = self._edge_bins = None
@@ -2217,6 +2234,8 @@ class HermiteLattice:
             if release:
                 out[name] = _taken(self.__dict__, attr, index)
                 release_free_memory()  # (a shrunk heap block's tail)
+            elif not copy:
+                out[name] = (getattr(self, attr), index)
             else:
                 out[name] = getattr(self, attr)[index]
         return out

@@ -170,6 +170,8 @@ def send_parts(make_part, fields: dict) -> list:
 
     ``fields``: name -> (trailing shape, dtype); each field's leading length travels with
     it, and its values as they are (bytes: any dtype, 64-bit integers too, exactly). A
+    field may also be an ``(array, index)`` pair, the rows ``array[index]``: they are
+    copied straight into the buffer (no copy of the part besides the buffer). A
     collective: for each rank in turn the others send to it (point to point: each part
     goes to its rank only, freed as it is packed, its buffer freed once sent). The parts
     for the others are made first, then this rank's own part, then the exchange runs:
@@ -177,8 +179,8 @@ def send_parts(make_part, fields: dict) -> list:
     two ranks a rank thus holds all its outgoing parts (packed) at once, and receives
     before it has sent them all. An error making a part, on any rank, stops every rank
     before any part is sent (the failing rank raises its own error). Returns the parts
-    for this rank, in rank order; a received part's arrays are (writeable) views of the
-    one buffer it came in.
+    for this rank, in rank order: its own part as ``make_part`` made it ((array, index)
+    pairs too), a received part's arrays (writeable) views of the one buffer it came in.
     """
     controller = _controller()
     me, n = rank(), process_count()
@@ -186,36 +188,6 @@ def send_parts(make_part, fields: dict) -> list:
         return [make_part(0)]
     from vtkmodules.util import numpy_support as ns
     from vtkmodules.vtkCommonCore import vtkUnsignedCharArray
-
-    def pack(part):
-        # straight into one buffer, each field released once copied: a part is never
-        # held twice (on the embryo's resample, parts of 10-60 MB)
-        part = dict(part)
-        nbytes = [np.size(part[name]) * np.dtype(dtype).itemsize
-                  for name, (_, dtype) in fields.items()]  # fmt: skip
-        sizes = [8 + b + (-b % 8) for b in nbytes]
-        flat = np.empty(int(sum(sizes)), dtype=np.uint8)
-        pos = 0
-        for (name, (shape, dtype)), size in zip(fields.items(), sizes, strict=True):
-            a = np.ascontiguousarray(part.pop(name), dtype=dtype).reshape((-1,) + tuple(shape))
-            flat[pos : pos + 8] = np.array([len(a)], dtype=np.int64).view(np.uint8)
-            flat[pos + 8 : pos + 8 + a.nbytes] = a.reshape(-1).view(np.uint8)
-            flat[pos + 8 + a.nbytes : pos + size] = 0  # each field 8-byte aligned
-            pos += size
-            del a
-        return flat
-
-    def unpack(flat):
-        # views of the received buffer (each field 8-byte aligned in it), no copies: the
-        # buffer lives as long as one of them does
-        part, pos = {}, 0
-        for name, (shape, dtype) in fields.items():
-            m = int(flat[pos : pos + 8].view(np.int64)[0])
-            size = m * int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
-            values = flat[pos + 8 : pos + 8 + size].view(dtype)
-            part[name] = values.reshape((m,) + tuple(shape))
-            pos += 8 + size + (-size % 8)
-        return part
 
     # every part this rank sends is made (and packed) first, then its own part, and only
     # then does anything arrive: a source that the own part releases (the window's
@@ -229,7 +201,7 @@ def send_parts(make_part, fields: dict) -> list:
     def make_all():
         for q in range(n):
             if q != me:
-                outgoing[q] = pack(make_part(q))
+                outgoing[q] = _pack(make_part(q), fields)
         got[me] = make_part(me)
         return np.zeros((0, 1))
 
@@ -240,13 +212,68 @@ def send_parts(make_part, fields: dict) -> list:
                 if r != q:
                     buffer = vtkUnsignedCharArray()
                     controller.Receive(buffer, r, 9317)
-                    got[r] = unpack(ns.vtk_to_numpy(buffer))
+                    got[r] = _unpack(ns.vtk_to_numpy(buffer), fields)
                     del buffer
         else:
             packed = outgoing.pop(q)
             controller.Send(ns.numpy_to_vtk(packed, deep=0), q, 9317)
             del packed
     return got
+
+
+def _pack(part: dict, fields: dict) -> np.ndarray:
+    """A part of :func:`send_parts` in one uint8 buffer: per field its length, then its bytes.
+
+    Straight into the buffer, each field released once copied: a part is never held
+    twice (on the embryo's resample, parts of 10-60 MB). Each field starts 8-byte
+    aligned.
+    """
+    part = dict(part)
+    rows = {name: _row_count(part[name], shape) for name, (shape, _) in fields.items()}
+    nbytes = [rows[name] * int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+              for name, (shape, dtype) in fields.items()]  # fmt: skip
+    sizes = [8 + b + (-b % 8) for b in nbytes]
+    flat = np.empty(int(sum(sizes)), dtype=np.uint8)
+    pos = 0
+    for (name, (shape, dtype)), size, b in zip(fields.items(), sizes, nbytes, strict=True):
+        flat[pos : pos + 8] = np.array([rows[name]], dtype=np.int64).view(np.uint8)
+        view = flat[pos + 8 : pos + 8 + b].view(dtype).reshape((rows[name],) + tuple(shape))
+        value = part.pop(name)
+        if isinstance(value, tuple):  # rows of an array: taken straight into the buffer
+            source, index = value
+            if source.dtype == view.dtype:
+                # (mode "clip": "raise" would take through a temporary copy)
+                np.take(source, index, axis=0, out=view, mode="clip")
+            else:
+                view[...] = source[index]
+        else:
+            view[...] = np.asarray(value, dtype=dtype).reshape(view.shape)
+        flat[pos + 8 + b : pos + size] = 0  # each field 8-byte aligned
+        pos += size
+        del value, view
+    return flat
+
+
+def _unpack(flat: np.ndarray, fields: dict) -> dict:
+    """The part packed by :func:`_pack` into ``flat``, as views of it (no copies).
+
+    The buffer lives as long as one of them does.
+    """
+    part, pos = {}, 0
+    for name, (shape, dtype) in fields.items():
+        m = int(flat[pos : pos + 8].view(np.int64)[0])
+        size = m * int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+        values = flat[pos + 8 : pos + 8 + size].view(dtype)
+        part[name] = values.reshape((m,) + tuple(shape))
+        pos += 8 + size + (-size % 8)
+    return part
+
+
+def _row_count(value, shape) -> int:
+    """Leading length of a field of :func:`send_parts` (an array or an (array, index) pair)."""
+    if isinstance(value, tuple):
+        return len(value[1])
+    return int(np.size(value) // max(int(np.prod(shape, dtype=np.int64)), 1))
 
 
 class LatticeExchange:

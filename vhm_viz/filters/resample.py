@@ -437,8 +437,8 @@ class HarmonicResampleFilter(DeformationSource):
         lat.release_masks()
 
         def part_for(q):
-            if q != me:
-                return lat.part(leaves[q])
+            if q != me:  # its rows copied straight into the send buffer
+                return lat.part(leaves[q], copy=False)
             # the last part (send_parts makes this rank's own after packing the others',
             # before receiving any): taken out of the lattice's own arrays, this rank's
             # boxes then need only their own
