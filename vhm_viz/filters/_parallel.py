@@ -346,26 +346,33 @@ class LatticeExchange:
         t0 = time.perf_counter()
         try:
             f, fu, inside = evaluate(distinct[mine])
-            values = np.column_stack([f, fu.reshape(-1, 9), inside.astype(np.float64)])
+            values = {"f": f, "fu": fu.reshape(-1, 9), "inside": inside}
+            del f, fu, inside
             self._seconds += time.perf_counter() - t0
             self._points += len(mine)
         except BaseException as exc:  # noqa: BLE001 -- agreed below, then re-raised
             error = exc
         self._busy += time.perf_counter() - t0
         # each rank gets the values of its own keys only (not every rank's: on the embryo
-        # that held the whole round's results twice on every rank, the build's peak)
+        # that held the whole round's results twice on every rank, the build's peak); the
+        # values go out as rows of the evaluated arrays, taken straight into the send
+        # buffers and into this rank's own arrays (stacked into one table first, then
+        # copied, they were 27 MB of an MPI rank's build peak on the embryo)
         row = np.full(len(distinct), -1, dtype=np.int64)
         row[mine] = np.arange(len(mine))
         starts = np.concatenate([[0], np.cumsum(counts)])
 
         def part_for(q):
             if values is None:
-                return {"ok": np.zeros(1, dtype=np.uint8), "values": np.zeros((0, 13))}
+                return {"ok": np.zeros(1, dtype=np.uint8), "f": np.zeros((0, 3)),
+                        "fu": np.zeros((0, 9)), "inside": np.zeros(0, dtype=bool)}  # fmt: skip
             need = inverse[starts[q] : starts[q + 1]]  # q's keys, in its order
+            at = row[need[owner[need] == me]]
             return {"ok": np.ones(1, dtype=np.uint8),
-                    "values": values[row[need[owner[need] == me]]]}  # fmt: skip
+                    **{name: (a, at) for name, a in values.items()}}  # fmt: skip
 
-        got = send_parts(part_for, {"ok": ((), np.uint8), "values": ((13,), np.float64)})
+        got = send_parts(part_for, _VALUE_FIELDS)
+        values = None  # (this rank's own part still holds what it takes of them)
         bad = [r for r, part in enumerate(got) if not part["ok"][0]]
         if bad:
             self._over = True
@@ -375,11 +382,17 @@ class LatticeExchange:
         self.evaluated += len(mine)
         self.distinct += len(distinct)
         who = owner[inverse[starts[me] : starts[me + 1]]]
-        own = np.empty((len(keys), 13))
-        for r, part in enumerate(got):
-            own[who == r] = part["values"]
+        m = len(keys)
+        f, fu, inside = np.empty((m, 3)), np.empty((m, 9)), np.empty(m, dtype=bool)
+        for r in range(n):
+            part, got[r] = got[r], None
+            at = np.flatnonzero(who == r)
+            for name, out in (("f", f), ("fu", fu), ("inside", inside)):
+                value = part.pop(name)
+                out[at] = value[0][value[1]] if isinstance(value, tuple) else value
+            del part, value
         self._left_at = time.perf_counter()
-        return own[:, :3], own[:, 3:12].reshape(-1, 3, 3), own[:, 12] > 0.5
+        return f, fu.reshape(-1, 3, 3), inside
 
     def abandon(self) -> None:
         """Tell the other ranks, in the next round, that this rank's build failed."""
@@ -388,6 +401,11 @@ class LatticeExchange:
         self._over = True
         _all_gather([0.0, 0.0, 0.0, 0.0, 0.0])
 
+
+#: What :class:`LatticeExchange` sends: a status, then each point's value, u-Jacobian
+#: (row-major) and side of the cage.
+_VALUE_FIELDS = {"ok": ((), np.uint8), "f": ((3,), np.float64), "fu": ((9,), np.float64),
+                 "inside": ((), np.bool_)}  # fmt: skip
 
 #: Sorted lattice keys dealt together (neighbours along i, then j).
 _DEAL_RUN = 4096
