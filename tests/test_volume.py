@@ -998,6 +998,12 @@ def test_node_data_made_in_chunks_equals_one_pass(monkeypatch):
     assert np.abs(whole.data[:, 4:]).max() > 0  # twists made
     np.testing.assert_array_equal(chunked.data, whole.data)
     np.testing.assert_array_equal(chunked.leaf_rows, whole.leaf_rows)
+    # and for the voxels only (no twists at single-voxel cells)
+    chunked = lattice_module.build_lattice(hm, geo, pre_images=False)
+    monkeypatch.setattr(lattice_module, "_LEVEL_CHUNK", 10**9)
+    whole = lattice_module.build_lattice(hm, geo, pre_images=False)
+    np.testing.assert_array_equal(chunked.data, whole.data)
+    assert not chunked.data[chunked.leaf_rows[chunked.leaf_size == 1], 4:].any()
 
 
 def test_node_table_merges_new_nodes_in_place_in_key_order():

@@ -677,29 +677,30 @@ def _level_data(table: _NodeTable, keys: np.ndarray, h: int, twists: bool = True
     """
     rows = table.find(keys)
     out = np.empty((len(keys), _N_TERMS, 3))
-    out[:, 0] = table.f[rows]
-    out[:, 1:4] = np.swapaxes(table.fu[rows], 1, 2)
-    if not twists:  # a lattice for the voxels only (see build_lattice's pre_images)
-        out[:, 4:] = 0.0
-        return out
     # in chunks of nodes: a whole fine level's neighbour tables and twists (about 400
-    # bytes a node) were the build's peak, 94 MB on the embryo. A node's twists depend
-    # on the table alone, so the chunks give the same numbers
-    slot = np.full(len(table.keys), -1, dtype=np.int64)
+    # bytes a node) were the build's peak, 94 MB on the embryo; its exact Jacobians
+    # gathered at once, 14 MB more. A node's twists depend on the table alone, so the
+    # chunks give the same numbers
+    slot = np.full(len(table.keys), -1, dtype=np.int64) if twists else None
     for c0 in range(0, len(rows), _LEVEL_CHUNK):
         chunk = rows[c0 : c0 + _LEVEL_CHUNK]
+        out[c0 : c0 + len(chunk), 0] = table.f[chunk]
+        out[c0 : c0 + len(chunk), 1:4] = np.swapaxes(table.fu[chunk], 1, 2)
+        if not twists:  # a lattice for the voxels only (see build_lattice's pre_images)
+            out[c0 : c0 + len(chunk), 4:] = 0.0
+            continue
         # the nodes whose twists are read: the chunk's and their neighbours along the
         # axes (f_uvw differences the twists of those), each looked up once
         near = _axis_neighbours(table, chunk, h)
         around = np.unique(np.concatenate([chunk, near[near >= 0]]))
         slot[around] = np.arange(len(around))
-        twists = _twists(table, around, _axis_neighbours(table, around, h), h)
+        mixed = _twists(table, around, _axis_neighbours(table, around, h), h)
         here = slot[chunk]
-        out[c0 : c0 + len(chunk), 4:7] = twists[here]
+        out[c0 : c0 + len(chunk), 4:7] = mixed[here]
         # f_uvw: differences along the third axis of each twist, averaged over the three
         third = np.zeros((len(chunk), 3))
         for axis, pair in ((2, 0), (1, 1), (0, 2)):  # twist (0, 1) along w, ...
-            at = twists[:, pair]
+            at = mixed[:, pair]
             third += _difference(at, here, _slot_of(slot, near[:, axis, 0]),
                                  _slot_of(slot, near[:, axis, 1]), h)  # fmt: skip
         out[c0 : c0 + len(chunk), 7] = third / 3.0
