@@ -1006,6 +1006,34 @@ def test_node_data_made_in_chunks_equals_one_pass(monkeypatch):
     assert not chunked.data[chunked.leaf_rows[chunked.leaf_size == 1], 4:].any()
 
 
+def test_finest_level_is_made_from_the_nodes_it_reads_only(monkeypatch):
+    """Before the finest level's node data the table keeps the nodes that data reads
+    (the build's peak memory): the lattice is bit for bit the one made from the whole
+    table, with and without twists, and the table did shrink."""
+    from vhm_viz.core import lattice as lattice_module
+
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (30, 28, 40))
+    hm = _random_bend(_cage_around((0, 0, 0), (29, 27, 46.8), 0.03), 0.02, seed=4)
+    keep = lattice_module._NodeTable.keep
+    sizes = []
+
+    def recorded(table, rows):
+        sizes.append((len(table.keys), len(rows)))
+        keep(table, rows)
+        assert len(table.keys) == len(rows) and (np.diff(table.keys) > 0).all()
+
+    for pre_images in (True, False):
+        monkeypatch.setattr(lattice_module._NodeTable, "keep", recorded)
+        kept = lattice_module.build_lattice(hm, geo, pre_images=pre_images)
+        monkeypatch.setattr(lattice_module._NodeTable, "keep", lambda table, rows: None)
+        whole = lattice_module.build_lattice(hm, geo, pre_images=pre_images)
+        np.testing.assert_array_equal(kept.data, whole.data)
+        np.testing.assert_array_equal(kept.leaf_rows, whole.leaf_rows)
+        assert kept.stats["leaves_per_size"].get(1, 0) > 100
+    (all_twists, kept_twists), (all_voxels, kept_voxels) = sizes
+    assert kept_twists < all_twists and kept_voxels < kept_twists and all_voxels == all_twists
+
+
 def test_node_table_merges_new_nodes_in_place_in_key_order():
     """The build's node table grows in place, the new rows merged in from the back (its
     memory): the same table as concatenating and sorting by key, for sorted and unsorted

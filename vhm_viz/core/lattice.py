@@ -542,6 +542,18 @@ class _NodeTable:
         pos = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
         return np.where(self.keys[pos] == keys, pos, -1)
 
+    def keep(self, rows) -> None:
+        """Keep only the nodes at ``rows`` (ascending table rows), each field in place.
+
+        The rows move to the front of each array, which is then shrunk (:func:`_taken`),
+        and the heap's freed pages go back to the system: the kept table is never held
+        beside the whole one.
+        """
+        rows = np.asarray(rows, dtype=np.int64)
+        for name in ("keys", "f", "fu", "inside"):
+            setattr(self, name, _taken(vars(self), name, rows))
+        release_free_memory()
+
     def add(self, keys, f, fu, inside) -> None:
         """Add nodes not in the table yet (``keys`` distinct), keeping the keys sorted.
 
@@ -646,7 +658,7 @@ _STENCIL = np.array(
 
 
 # Nodes whose twists :func:`_level_data` computes at a time.
-_LEVEL_CHUNK = 32768
+_LEVEL_CHUNK = 8192
 
 
 def _stencil_points(table: _NodeTable, keys: np.ndarray, h: int) -> np.ndarray:
@@ -655,6 +667,25 @@ def _stencil_points(table: _NodeTable, keys: np.ndarray, h: int) -> np.ndarray:
     pts = (ijk[:, None, :] + h * _STENCIL[None]).reshape(-1, 3)
     ok = np.all((pts >= 0) & (pts <= table.dims - 1), axis=1)
     return pts[ok]
+
+
+def _rows_read(table: _NodeTable, keys: np.ndarray, h: int, twists: bool = True) -> np.ndarray:
+    """Table rows that :func:`_level_data` reads for ``keys`` (ascending).
+
+    The nodes themselves and, for their twists, the nodes one and two steps ``h`` away
+    along the axes (the differences of the neighbours' twists); absent ones are absent
+    either way. In chunks of :data:`_LEVEL_CHUNK` nodes.
+    """
+    read = np.zeros(len(table.keys), dtype=bool)
+    rows = table.find(keys)
+    read[rows] = True
+    if twists:
+        for step in range(2):
+            ring = np.flatnonzero(read) if step else rows
+            for c0 in range(0, len(ring), _LEVEL_CHUNK):
+                near = _axis_neighbours(table, ring[c0 : c0 + _LEVEL_CHUNK], h)
+                read[near[near >= 0]] = True
+    return np.flatnonzero(read)
 
 
 def _level_data(table: _NodeTable, keys: np.ndarray, h: int, twists: bool = True) -> np.ndarray:
@@ -1304,6 +1335,11 @@ def _build_levels(
             # warp and the Jacobians read exactly whatever the twists; it saved 238,089
             # of 790,199 evaluations on the embryo (see _level_data)
             ensure(_stencil_points(table, level_keys, h))
+        if h == 1:
+            # the finest level, the last: the table keeps only the nodes its data reads
+            # before that data is made beside it. The others (corners and test points of
+            # coarser levels) were 11 MB of an MPI rank's build peak on the embryo
+            table.keep(_rows_read(table, level_keys, h, twists=pre_images))
         data = _level_data(table, level_keys, h, twists=pre_images or h > 1)
         split = np.zeros(len(cells), dtype=bool)
         if h > 1:
