@@ -7,6 +7,8 @@ SimpleITK (MetaImage/NIfTI geometry, when installed).
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -1476,7 +1478,8 @@ def test_equal_cuts_are_the_nearest_boundaries_to_equal_shares():
 def test_pull_back_pairs_count_every_voxels_candidate_leaves(bend):
     """Per output plane, the (voxel, leaf) pairs that pulling back tries: against a count
     volume incremented over every leaf's candidate box; leaves split among callers add up,
-    and the shares cut from them are equal shares of that work."""
+    and the shares cut from them are equal shares of that work. With the leaves' spans,
+    the cuts give the smallest largest share of work or of leaves (brute force)."""
     from vhm_viz.core.volume import pull_back_shares
 
     geo, _, _, vol = bend
@@ -1497,6 +1500,32 @@ def test_pull_back_pairs_count_every_voxels_candidate_leaves(bend):
     work = per_plane + 0.2 * out.dimensions[0] * out.dimensions[1]
     shares = [work[cuts[r] : cuts[r + 1]].sum() for r in range(3)]
     assert max(shares) - min(shares) <= 2 * work.max()
+    # the leaves each run of planes needs: against the boxes reaching it, counted leaf by
+    # leaf; split leaves add up
+    spans = vol.pull_back_spans(out)
+    split = [vol.pull_back_spans(out, leaves[::2]), vol.pull_back_spans(out, leaves[1::2])]
+    for a, b in zip(spans, np.add(*split), strict=True):
+        np.testing.assert_array_equal(a, b)
+    nz = out.dimensions[2]
+    reach = np.all((lo <= np.asarray(out.dimensions) - 1) & (hi >= 0), axis=1)
+
+    def needed(a, b):  # leaves whose boxes reach planes a..b-1
+        return int((reach & (lo[:, 2] <= b - 1) & (hi[:, 2] >= a)).sum())
+
+    starts, ends = spans
+    for a, b in ((0, nz), (3, 9), (nz // 2, nz), (5, 6)):
+        assert np.cumsum(starts)[b - 1] - ends[:a].sum() == needed(a, b)
+
+    # cuts by work and leaves: the smallest largest share of the two, by brute force
+    def largest(cuts):
+        return max(max(work[a:b].sum() / work.sum(), needed(a, b) / reach.sum())
+                   for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a)  # fmt: skip
+
+    for parts in (2, 3):
+        cuts = pull_back_shares(pairs, out, parts, spans)
+        assert cuts[0] == 0 and cuts[-1] == nz and (np.diff(cuts) >= 0).all()
+        best = min(largest([0, *c, nz]) for c in itertools.combinations(range(1, nz), parts - 1))
+        assert largest(cuts) == pytest.approx(best, rel=1e-9)
 
 
 def test_resampling_boxes_into_one_set_of_arrays_equals_resampling_it_whole(bend):

@@ -631,6 +631,37 @@ class VolumeDeformation:
         np.add.at(change, np.minimum(hi[:, 2] + 1, dims[2]), -area)
         return np.cumsum(change[:-1])
 
+    def pull_back_spans(self, geometry: ImageGeometry, leaves=None):
+        """Per k-plane of an output grid: the leaves whose candidate boxes start and end there.
+
+        The leaves that resampling a run of planes ``a..b`` needs (whose candidate boxes
+        reach it) are those started by plane ``b`` less those ended before ``a``: how
+        :func:`pull_back_shares` weighs the MPI ranks' memory. Leaves whose boxes miss the
+        grid are not counted; boxes are clipped to it. Like :meth:`pull_back_pairs`, ranks
+        add up the counts of their own leaves.
+
+        Parameters
+        ----------
+        geometry : ImageGeometry
+            The output grid.
+        leaves : (L,) int array_like, optional
+            Only these leaves (default all).
+
+        Returns
+        -------
+        starts, ends : (nz,) float64
+        """
+        lo, hi = self.candidate_boxes(geometry)
+        if leaves is not None:
+            lo, hi = lo[np.asarray(leaves)], hi[np.asarray(leaves)]
+        dims = np.asarray(geometry.dimensions, dtype=np.int64)
+        reach = np.all((lo <= dims - 1) & (hi >= 0) & (lo <= hi), axis=1)
+        nz = int(dims[2])
+        k_lo = np.clip(lo[reach, 2], 0, nz - 1)
+        k_hi = np.clip(hi[reach, 2], 0, nz - 1)
+        return (np.bincount(k_lo, minlength=nz).astype(np.float64),
+                np.bincount(k_hi, minlength=nz).astype(np.float64))  # fmt: skip
+
     @classmethod
     def for_piece(
         cls, harmonic_map, geometry: ImageGeometry, lattice: HermiteLattice,
@@ -1106,14 +1137,22 @@ def equal_cuts(weight, parts: int) -> np.ndarray:
     return np.asarray(cuts, dtype=np.int64)
 
 
-def pull_back_shares(pairs, geometry: ImageGeometry, parts: int) -> np.ndarray:
-    """Cut the k-planes of an output grid into ``parts`` runs of about equal resampling work.
+def pull_back_shares(pairs, geometry: ImageGeometry, parts: int, spans=None) -> np.ndarray:
+    """Cut the k-planes of an output grid into ``parts`` runs: shares of work and of leaves.
 
     A plane's work is its (voxel, candidate leaf) pairs
     (:meth:`VolumeDeformation.pull_back_pairs`) plus :data:`_PULL_BACK_VOXEL_WORK` per
-    voxel. On the 256^3 embryo bent as in ``bench_volume.py`` the output's lower half
-    holds 71% of the pairs: ParaView's halves of the output keep one MPI rank busy for
-    twice as long as the other, whereas these cuts share the work.
+    voxel: an MPI rank's time. On the 256^3 embryo bent as in ``bench_volume.py`` the
+    output's lower half holds 71% of the pairs: ParaView's halves of the output keep one
+    MPI rank busy for twice as long as the other.
+
+    The leaves that a run of planes needs (those whose candidate boxes reach it:
+    ``spans``) are most of an MPI rank's memory while it pulls back. They are not spread
+    as the work is: on the embryo, equal shares of the work need 111k and 146k of the
+    249k leaves. With ``spans`` the cuts make the largest of every part's two shares --
+    of the work, of the leaves -- as small as it can be: there 54% of the work for one
+    part, 54% of the leaves (134k; the other 123k) for the other. Without, equal shares
+    of the work.
 
     Parameters
     ----------
@@ -1122,15 +1161,50 @@ def pull_back_shares(pairs, geometry: ImageGeometry, parts: int) -> np.ndarray:
     geometry : ImageGeometry
         The output grid.
     parts : int
+    spans : ((nz,), (nz,)) array_like, optional
+        Per k-plane, the leaves whose candidate boxes start there and those that end
+        there (:meth:`VolumeDeformation.pull_back_spans`).
 
     Returns
     -------
     (parts + 1,) int64
         Plane cuts: part ``r`` pulls back the planes ``cuts[r] <= k < cuts[r + 1]``.
+        Deterministic: every MPI rank computes the same cuts from the same sums.
     """
-    nx, ny, _ = geometry.dimensions
+    nx, ny, nz = (int(n) for n in geometry.dimensions)
     work = np.asarray(pairs, dtype=np.float64) + _PULL_BACK_VOXEL_WORK * float(nx * ny)
-    return equal_cuts(work, parts)
+    if spans is None or parts <= 1:
+        return equal_cuts(work, parts)
+    starts, ends = (np.asarray(a, dtype=np.float64).reshape(nz) for a in spans)
+    done_work = np.concatenate([[0.0], np.cumsum(work)])
+    started = np.cumsum(starts)  # leaves reaching a plane <= k
+    ended = np.concatenate([[0.0], np.cumsum(ends)])  # leaves ending below plane k
+    total_work, total_leaves = done_work[-1], max(started[-1], 1.0)
+
+    def share(a, b):  # the larger of planes a..b-1's shares
+        return max((done_work[b] - done_work[a]) / total_work,
+                   (started[b - 1] - ended[a]) / total_leaves)  # fmt: skip
+
+    def greedy(limit):  # the longest runs within the limit, or None if more than parts
+        cuts = [0]
+        while cuts[-1] < nz:
+            a, b = cuts[-1], cuts[-1] + 1  # (a plane over the limit makes a run alone)
+            while b < nz and share(a, b + 1) <= limit:
+                b += 1
+            cuts.append(b)
+            if len(cuts) > parts + 1:
+                return None
+        return cuts + [nz] * (parts + 1 - len(cuts))
+
+    # bisection on the largest share: greedy runs fit within a limit iff it can be met
+    lo, hi = 0.0, 1.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if greedy(mid) is None:
+            lo = mid
+        else:
+            hi = mid
+    return np.asarray(greedy(hi), dtype=np.int64)
 
 
 def window_of(table, box, geometry: ImageGeometry, output: ImageGeometry, *,

@@ -78,13 +78,13 @@ class HarmonicResampleFilter(DeformationSource):
     voxels inside the cage: :func:`~vhm_viz.core.volume.layer_shares`) and the cells
     holding the two voxels beyond them on each side (the single-voxel cells' twists read
     neighbours there, so its own root cells come out as in the whole lattice, bit for
-    bit); the ranks agree on the output
-    grid from their leaves' bounds, and on a cut of the output's k-planes into equal
-    shares of the pull-back work (:func:`~vhm_viz.core.volume.pull_back_shares`: the
-    pieces ParaView asks for need not hold equal work -- on the embryo one half holds
-    71% of it). Each rank pulls back the voxels of its planes, whichever rank's piece
-    they belong to, and sends them there; it reads the input window those planes may
-    need, from every rank's table of where its root cells map to. At the update each
+    bit); the ranks agree on the output grid from their leaves' bounds, and on a cut of
+    the output's k-planes into shares of the pull-back work and of the leaves it needs
+    (:func:`~vhm_viz.core.volume.pull_back_shares`: the pieces ParaView asks for need not
+    hold equal work -- on the embryo one half holds 71% of it). Each rank pulls back the
+    voxels of its planes, whichever rank's piece they belong to, and sends them there; it
+    reads the input window those planes may need, from every rank's table of where its
+    root cells map to. At the update each
     rank sends to every other the leaves whose images reach that rank's planes, and
     pulls back with the leaves it gathered (:func:`~vhm_viz.core.lattice.join_parts`):
     the serial result, bit for bit, with about a rank's share of the lattice in memory.
@@ -340,13 +340,18 @@ class HarmonicResampleFilter(DeformationSource):
                               keep_input=keep)  # fmt: skip
         table = _parallel.gather_rows_of(lambda: vol.reach_table(geo, own(vol.lattice)), 12)
         table = table.astype(np.int64)
-        # which output planes each rank pulls back: equal shares of the work, whichever
-        # pieces the pipeline asks for (the embryo's lower half holds 71% of it)
+        # which output planes each rank pulls back: shares of the work and of the leaves,
+        # whichever pieces the pipeline asks for (the embryo's lower half holds 71% of the
+        # work)
         nz = int(geo.dimensions[2])
-        pairs = _parallel.gather_rows_of(
-            lambda: vol.pull_back_pairs(geo, own(vol.lattice))[None, :], nz
-        ).sum(axis=0)
-        cuts = pull_back_shares(pairs, geo, _parallel.process_count())
+
+        def counts():
+            mine = own(vol.lattice)
+            return np.concatenate([vol.pull_back_pairs(geo, mine),
+                                   *vol.pull_back_spans(geo, mine)])[None, :]  # fmt: skip
+
+        pairs, *spans = _parallel.gather_rows_of(counts, 3 * nz).sum(axis=0).reshape(3, nz)
+        cuts = pull_back_shares(pairs, geo, _parallel.process_count(), spans)
         self._shared = {"key": key, "geometry": geo, "input": geo_in, "table": table,
                         "any_outside": any_outside, "margin": float(rows[:, 7].max()),
                         "cuts": cuts}  # fmt: skip
