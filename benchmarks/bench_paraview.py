@@ -12,7 +12,8 @@ process builds and solves the scene), each of
 * ``resample``: VHM Resample To Image (each rank its piece of the output; each rank
   builds the lattice of its share of the input's layers, the ranks sharing the exact
   evaluations, then gathers from the others the leaves that reach its share of the
-  output planes -- equal shares of the pull-back work, whichever pieces they belong to --
+  output planes -- shares of the pull-back work and of the leaves it needs, whichever
+  pieces they belong to --
   reads only its input window, and sends the other ranks their voxels among its planes)
 
 runs in ``pvbatch --symmetric`` (1 rank) and ``mpiexec -n 2 pvbatch --symmetric`` (every

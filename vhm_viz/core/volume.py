@@ -603,7 +603,7 @@ class VolumeDeformation:
         Pulling a voxel back tries every leaf whose candidate box holds it (Newton's
         method on the leaf's polynomial, :meth:`HermiteLattice.pull_back`): most of the
         work of resampling a plane. MPI ranks add up the pairs of their own leaves (each
-        leaf counted once) to cut the output into equal shares of work
+        leaf counted once) to cut the output into shares of work
         (:func:`pull_back_shares`).
 
         Parameters
