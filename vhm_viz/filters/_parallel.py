@@ -357,7 +357,7 @@ class LatticeExchange:
         # that held the whole round's results twice on every rank, the build's peak); the
         # values go out as rows of the evaluated arrays, taken straight into the send
         # buffers and into this rank's own arrays (stacked into one table first, then
-        # copied, they were 27 MB of an MPI rank's build peak on the embryo)
+        # copied: 22 MB more at the finest round on an MPI rank of the embryo)
         row = np.full(len(distinct), -1, dtype=np.int64)
         row[mine] = np.arange(len(mine))
         starts = np.concatenate([[0], np.cumsum(counts)])
