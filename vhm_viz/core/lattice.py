@@ -677,14 +677,15 @@ def _rows_read(table: _NodeTable, keys: np.ndarray, h: int, twists: bool = True)
     either way. In chunks of :data:`_LEVEL_CHUNK` nodes.
     """
     read = np.zeros(len(table.keys), dtype=bool)
-    rows = table.find(keys)
-    read[rows] = True
-    if twists:
-        for step in range(2):
-            ring = np.flatnonzero(read) if step else rows
-            for c0 in range(0, len(ring), _LEVEL_CHUNK):
-                near = _axis_neighbours(table, ring[c0 : c0 + _LEVEL_CHUNK], h)
-                read[near[near >= 0]] = True
+    ring = table.find(keys)
+    read[ring] = True
+    for _ in range(2 if twists else 0):
+        # the neighbours of the nodes marked last, only: the others' are marked already
+        before = read.copy()
+        for c0 in range(0, len(ring), _LEVEL_CHUNK):
+            near = _axis_neighbours(table, ring[c0 : c0 + _LEVEL_CHUNK], h)
+            read[near[near >= 0]] = True
+        ring = np.flatnonzero(read & ~before)
     return np.flatnonzero(read)
 
 
@@ -2246,7 +2247,7 @@ class HermiteLattice:
         leaves = np.asarray(leaves, dtype=np.int64).ravel()
         # the data rows the leaves read, renumbered in their order: by marks over the
         # data rows, not np.unique (whose sort of every corner's row held five copies of
-        # them at once, 30 MB of an MPI rank's part of the embryo, its exchange peak)
+        # them at once, 48 MB of an MPI rank's exchange peak on the embryo)
         rows = self.leaf_rows[leaves]
         read = np.zeros(len(self.data), dtype=bool)
         read[rows] = True

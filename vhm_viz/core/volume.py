@@ -585,17 +585,25 @@ class VolumeDeformation:
         leaves = np.arange(len(lat.leaf_size)) if leaves is None else np.asarray(leaves)
         if not len(leaves):
             return np.zeros((0, 12), dtype=np.int64)
-        lo, hi = self.candidate_boxes(geometry)
+        lo, hi = self._boxes_of(geometry, leaves)
         # the leaves come grouped by root cell (in their order); reduced column group by
         # column group, without a table of every leaf's (L, 12)
         rkey = lat.root_keys(leaves)
         starts = np.concatenate([[0], np.nonzero(np.diff(rkey))[0] + 1])
         o = lat.leaf_origin[leaves]
         return np.column_stack([
-            np.minimum.reduceat(lo[leaves], starts), np.maximum.reduceat(hi[leaves], starts),
+            np.minimum.reduceat(lo, starts), np.maximum.reduceat(hi, starts),
             np.minimum.reduceat(o, starts),
             np.maximum.reduceat(o + lat.leaf_size[leaves, None], starts),
         ])  # fmt: skip
+
+    def _boxes_of(self, geometry: ImageGeometry, leaves=None):
+        """:meth:`candidate_boxes` of ``leaves`` only (default all)."""
+        lo, hi = self.candidate_boxes(geometry)
+        if leaves is None:
+            return lo, hi
+        leaves = np.asarray(leaves)
+        return lo[leaves], hi[leaves]
 
     def pull_back_pairs(self, geometry: ImageGeometry, leaves=None) -> np.ndarray:
         """Per k-plane of an output grid: its (voxel, candidate leaf) pairs.
@@ -617,9 +625,7 @@ class VolumeDeformation:
         -------
         (nz,) float64
         """
-        lo, hi = self.candidate_boxes(geometry)
-        if leaves is not None:
-            lo, hi = lo[np.asarray(leaves)], hi[np.asarray(leaves)]
+        lo, hi = self._boxes_of(geometry, leaves)
         dims = np.asarray(geometry.dimensions, dtype=np.int64)
         lo, hi = np.maximum(lo, 0), np.minimum(hi, dims - 1)
         size = np.clip(hi - lo + 1, 0, None)
@@ -651,9 +657,7 @@ class VolumeDeformation:
         -------
         starts, ends : (nz,) float64
         """
-        lo, hi = self.candidate_boxes(geometry)
-        if leaves is not None:
-            lo, hi = lo[np.asarray(leaves)], hi[np.asarray(leaves)]
+        lo, hi = self._boxes_of(geometry, leaves)
         dims = np.asarray(geometry.dimensions, dtype=np.int64)
         reach = np.all((lo <= dims - 1) & (hi >= 0) & (lo <= hi), axis=1)
         nz = int(dims[2])

@@ -84,10 +84,10 @@ class HarmonicResampleFilter(DeformationSource):
     hold equal work -- on the embryo one half holds 71% of it). Each rank pulls back the
     voxels of its planes, whichever rank's piece they belong to, and sends them there; it
     reads the input window those planes may need, from every rank's table of where its
-    root cells map to. At the update each
-    rank sends to every other the leaves whose images reach that rank's planes, and
-    pulls back with the leaves it gathered (:func:`~vhm_viz.core.lattice.join_parts`):
-    the serial result, bit for bit, with about a rank's share of the lattice in memory.
+    root cells map to. At the update each rank sends to every other the leaves whose
+    images reach that rank's planes, and pulls back with the leaves it gathered
+    (:func:`~vhm_viz.core.lattice.join_parts`): the serial result, bit for bit, with about
+    a rank's share of the lattice in memory.
     The field array ``vhm_pulled_back_voxels`` counts the voxels a rank pulled back.
 
     Input port 0: ``vtkImageData``; port 1: optional cage. The deformation is set as for
