@@ -1480,7 +1480,7 @@ def test_pull_back_pairs_count_every_voxels_candidate_leaves(bend):
     volume incremented over every leaf's candidate box; leaves split among callers add up,
     and the shares cut from them are equal shares of that work. With the leaves' spans,
     the cuts give the smallest largest share of work or of leaves (brute force)."""
-    from vhm_viz.core.volume import pull_back_shares
+    from vhm_viz.core.volume import lattice_build_work, pull_back_shares
 
     geo, _, _, vol = bend
     out = vol.output_geometry()
@@ -1516,16 +1516,32 @@ def test_pull_back_pairs_count_every_voxels_candidate_leaves(bend):
     for a, b in ((0, nz), (3, 9), (nz // 2, nz), (5, 6)):
         assert np.cumsum(starts)[b - 1] - ends[:a].sum() == needed(a, b)
 
-    # cuts by work and leaves: the smallest largest share of the two, by brute force
-    def largest(cuts):
-        return max(max(work[a:b].sum() / work.sum(), needed(a, b) / reach.sum())
+    # cuts by work and leaves: the smallest largest share of the two, by brute force; with
+    # work shared evenly besides the planes (a build), a part's share of the work counts
+    # its share of that too
+    def largest(cuts, shared):
+        parts = len(cuts) - 1
+        return max(max((shared / parts + work[a:b].sum()) / (shared + work.sum()),
+                       needed(a, b) / reach.sum())
                    for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a)  # fmt: skip
 
     for parts in (2, 3):
-        cuts = pull_back_shares(pairs, out, parts, spans)
-        assert cuts[0] == 0 and cuts[-1] == nz and (np.diff(cuts) >= 0).all()
-        best = min(largest([0, *c, nz]) for c in itertools.combinations(range(1, nz), parts - 1))
-        assert largest(cuts) == pytest.approx(best, rel=1e-9)
+        for shared in (0.0, 2.0 * work.sum()):
+            cuts = pull_back_shares(pairs, out, parts, spans, shared)
+            assert cuts[0] == 0 and cuts[-1] == nz and (np.diff(cuts) >= 0).all()
+            best = min(largest([0, *c, nz], shared)
+                       for c in itertools.combinations(range(1, nz), parts - 1))  # fmt: skip
+            assert largest(cuts, shared) == pytest.approx(best, rel=1e-9)
+
+    # work in the first planes, leaves in the last: counting the work every part does
+    # alike (the build), the cuts lean on the leaves
+    line = ImageGeometry((0, 0, 0), (1, 1, 1), (1, 1, 6))
+    per_plane = np.array([1.0, 1, 1, 5, 5, 5])  # leaves, each in one plane
+    spans = (per_plane, per_plane)
+    pairs = np.array([10.0, 10, 1, 1, 1, 1])
+    np.testing.assert_array_equal(pull_back_shares(pairs, line, 2, spans), [0, 3, 6])
+    np.testing.assert_array_equal(pull_back_shares(pairs, line, 2, spans, 30.0), [0, 4, 6])
+    assert lattice_build_work(2000, 754) == 2 * lattice_build_work(1000, 754) > 0
 
 
 def test_resampling_boxes_into_one_set_of_arrays_equals_resampling_it_whole(bend):

@@ -41,6 +41,7 @@ from vhm_viz.core.binding import check_outside_policy
 from vhm_viz.core.errors import AbortedError, OutsideCageError, describe_indices
 from vhm_viz.core.image import BORDER, INTERPOLATIONS, ImageGeometry, inside_mask, sample
 from vhm_viz.core.lattice import DEFAULT_ROOT, HermiteLattice, build_lattice
+from vhm_viz.core.memory import release_free_memory
 
 __all__ = [
     "VolumeDeformation",
@@ -49,6 +50,7 @@ __all__ = [
     "layer_shares",
     "equal_cuts",
     "pull_back_shares",
+    "lattice_build_work",
     "window_of",
     "exact_preimages",
     "DEFAULT_TOLERANCE",
@@ -73,6 +75,11 @@ _WARP_BYTES = 16
 # pass-through), in leaf tests: 23 ns per voxel of an output slab that no leaf reaches
 # against 0.13 us per (voxel, candidate leaf) pair (the embryo's output, one thread).
 _PULL_BACK_VOXEL_WORK = 0.2
+# The work of a lattice build per exact evaluation and basis function of the map (cage
+# vertex or face), the build's bookkeeping included, in leaf tests: the embryo's build
+# took 8.1 s per MPI rank of 2 for 790,199 evaluations of 754 functions (20 us each,
+# one thread) against 0.13 us per (voxel, candidate leaf) pair.
+_EVALUATION_WORK_PER_BASIS = 0.2
 # Pre-images closer than this (voxels) to a cage edge are polished by Newton's method on
 # the exact map: there the map has a logarithmic singularity that no cubic between voxels
 # follows, and a position error e moves a pre-image by e / s_min (s_min: the Jacobian's
@@ -955,6 +962,11 @@ class VolumeDeformation:
             lo = int((slab[4] - b[4]) * plane)
             yield slice(lo, lo + m), u, state, fold
             del u, state, fold  # one slab's arrays at a time
+            # and their heap pages handed back: glibc serves them from the heap (below its
+            # dynamic mmap threshold), and the holes they leave stay resident while the
+            # next slabs' arrays, of other sizes, land elsewhere. The embryo's serial
+            # resample peaked 25 MB higher without, the same time.
+            release_free_memory()
             if progress is not None:
                 progress(0.5 + 0.5 * (s + 1) / len(slabs), "resample")
 
@@ -1141,22 +1153,38 @@ def equal_cuts(weight, parts: int) -> np.ndarray:
     return np.asarray(cuts, dtype=np.int64)
 
 
-def pull_back_shares(pairs, geometry: ImageGeometry, parts: int, spans=None) -> np.ndarray:
+def lattice_build_work(evaluations: int, basis_functions: int) -> float:
+    """The work of a lattice build of ``evaluations`` exact evaluations, in leaf tests.
+
+    In the units of :func:`pull_back_shares` (a (voxel, candidate leaf) pair of a
+    pull-back), for a map of ``basis_functions`` functions (cage vertices plus faces).
+    """
+    return float(evaluations) * float(basis_functions) * _EVALUATION_WORK_PER_BASIS
+
+
+def pull_back_shares(pairs, geometry: ImageGeometry, parts: int, spans=None,
+                     shared_work: float = 0.0) -> np.ndarray:  # fmt: skip
     """Cut the k-planes of an output grid into ``parts`` runs: shares of work and of leaves.
 
     A plane's work is its (voxel, candidate leaf) pairs
     (:meth:`VolumeDeformation.pull_back_pairs`) plus :data:`_PULL_BACK_VOXEL_WORK` per
     voxel: an MPI rank's time. On the 256^3 embryo bent as in ``bench_volume.py`` the
     output's lower half holds 71% of the pairs: ParaView's halves of the output keep one
-    MPI rank busy for twice as long as the other.
+    MPI rank busy for twice as long as the other. A part's share of the work counts its
+    even share of ``shared_work`` too: the work every part does alike, whatever the cuts
+    (the ranks' lattice build, :func:`lattice_build_work`), so that the cuts weigh a
+    plane by its part of a rank's whole update.
 
     The leaves that a run of planes needs (those whose candidate boxes reach it:
     ``spans``) are most of an MPI rank's memory while it pulls back. They are not spread
     as the work is: on the embryo, equal shares of the work need 111k and 146k of the
     249k leaves. With ``spans`` the cuts make the largest of every part's two shares --
-    of the work, of the leaves -- as small as it can be: there 54% of the work for one
-    part, 54% of the leaves (134k; the other 123k) for the other. Without, equal shares
-    of the work.
+    of the work, of the leaves -- as small as it can be. Without ``shared_work`` that
+    was, on the embryo, 54% of the pull-back's work for one rank and 54% of the leaves
+    (134k; the other 123k) for the other. With the build counted (twice the pull-back's
+    work there), 52% of the update's work (55% of the pull-back's) for one, 52% of the
+    leaves (129k; the other 128k) for the other: the second rank's peak fell by about
+    5 MB, and the update took no longer. Without ``spans``, equal shares of the work.
 
     Parameters
     ----------
@@ -1168,6 +1196,8 @@ def pull_back_shares(pairs, geometry: ImageGeometry, parts: int, spans=None) -> 
     spans : ((nz,), (nz,)) array_like, optional
         Per k-plane, the leaves whose candidate boxes start there and those that end
         there (:meth:`VolumeDeformation.pull_back_spans`).
+    shared_work : float
+        Work shared evenly by the parts besides their planes, in leaf tests (>= 0).
 
     Returns
     -------
@@ -1183,10 +1213,11 @@ def pull_back_shares(pairs, geometry: ImageGeometry, parts: int, spans=None) -> 
     done_work = np.concatenate([[0.0], np.cumsum(work)])
     started = np.cumsum(starts)  # leaves reaching a plane <= k
     ended = np.concatenate([[0.0], np.cumsum(ends)])  # leaves ending below plane k
-    total_work, total_leaves = done_work[-1], max(started[-1], 1.0)
+    shared = max(float(shared_work), 0.0)
+    total_work, total_leaves = done_work[-1] + shared, max(started[-1], 1.0)
 
     def share(a, b):  # the larger of planes a..b-1's shares
-        return max((done_work[b] - done_work[a]) / total_work,
+        return max((shared / parts + done_work[b] - done_work[a]) / total_work,
                    (started[b - 1] - ended[a]) / total_leaves)  # fmt: skip
 
     def greedy(limit):  # the longest runs within the limit, or None if more than parts
