@@ -259,8 +259,9 @@ def main() -> None:
                          summary(res["2x1"][0]), f"{t11 / t2:.2f}x / {t1n / t2:.2f}x",
                          f"{m1:.0f} / {m2:.0f} ({100 * m2 / m1:.0f}%)",
                          f"{g1:.0f} / {g2:.0f} ({100 * g2 / g1:.0f}%)"])  # fmt: skip
-            print(f"{key} {op}: seconds per rank of the 2-rank runs {res['2x1'][3]}",
-                  flush=True)
+            print(f"{key} {op}: seconds per rank of the 2-rank runs {res['2x1'][3]}; "
+                  f"the filter's MB per run, 1 rank {res['1x1'][2]}, largest rank of 2 "
+                  f"{res['2x1'][2]}", flush=True)  # fmt: skip
     print_table(["volume", "operation", "1 rank, 1 thread (s)",
                  f"1 rank, {os.cpu_count()} threads (s)", "2 ranks, 1 thread each (s)",
                  "speed-up vs 1 thread / vs all threads",
