@@ -925,6 +925,7 @@ class VolumeDeformation:
             u[pick[found]] = us[local[found]]
             kind[pick] = state[local]
             fold_out[pick] = fold[local]
+            del us, state, fold  # before the next slab's arrays are made
         return u, kind, fold_out
 
     def _pull_back_slabs(self, out_geo, b, progress, abort):
@@ -965,7 +966,7 @@ class VolumeDeformation:
             # and their heap pages handed back: glibc serves them from the heap (below its
             # dynamic mmap threshold), and the holes they leave stay resident while the
             # next slabs' arrays, of other sizes, land elsewhere. The embryo's serial
-            # resample peaked 25 MB higher without, the same time.
+            # resample peaked 15-17 MB higher without (331-333 MB, now 316), the same time.
             release_free_memory()
             if progress is not None:
                 progress(0.5 + 0.5 * (s + 1) / len(slabs), "resample")
@@ -1183,8 +1184,8 @@ def pull_back_shares(pairs, geometry: ImageGeometry, parts: int, spans=None,
     was, on the embryo, 54% of the pull-back's work for one rank and 54% of the leaves
     (134k; the other 123k) for the other. With the build counted (twice the pull-back's
     work there), 52% of the update's work (55% of the pull-back's) for one, 52% of the
-    leaves (129k; the other 128k) for the other: the second rank's peak fell by about
-    5 MB, and the update took no longer. Without ``spans``, equal shares of the work.
+    leaves (129k; the other 128k) for the other: the second rank peaked at 194-201 MB
+    against 198-203 MB, and the update took no longer. Without ``spans``, equal shares of the work.
 
     Parameters
     ----------

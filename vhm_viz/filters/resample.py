@@ -355,7 +355,10 @@ class HarmonicResampleFilter(DeformationSource):
         summed = _parallel.gather_rows_of(counts, 3 * nz + 1).sum(axis=0)
         pairs, *spans = summed[:-1].reshape(3, nz)
         # each rank's even share of the build counts in its time: the cuts lean on the
-        # leaves, most of its memory (the embryo's build is twice its pull-back's work)
+        # leaves, most of its memory (the embryo's build is twice its pull-back's work).
+        # The ranks' counts include the halo points each needed from the others: a few
+        # percent over the distinct evaluations, whose cost the constant was measured on
+        # (LatticeExchange.distinct would add up the builds again if a rank rebuilt)
         build = lattice_build_work(summed[-1], len(hm.cage.vertices) + len(hm.cage.faces))
         cuts = pull_back_shares(pairs, geo, _parallel.process_count(), spans, build)
         self._shared = {"key": key, "geometry": geo, "input": geo_in, "table": table,
