@@ -14,7 +14,7 @@ from conftest import box_cage
 from vhm_viz import Cage
 from vhm_viz.core.deformer import Deformer
 from vhm_viz.io import write_cage
-from vhm_viz.scene import SCENE_FORMAT, Scene, SceneError
+from vhm_viz.scene import SCENE_FORMAT, NotConverged, Scene, SceneError
 
 
 def _deformer():
@@ -115,6 +115,32 @@ def test_ramped_solve_reaches_the_direct_solution():
     reports = ramped.solve(dfm2)
     assert len(reports) == 3
     np.testing.assert_allclose(dfm2.coefficients, ref, atol=1e-5)
+
+
+def test_solve_map_solves_then_reuses_the_stored_map():
+    dfm = _deformer()
+    scene = Scene.from_deformer(dfm, solver={"tolerance": 1e-9, "max_iterations": 5000})
+    solved = scene.solve_map()
+    assert not solved.reused and solved.converged and solved.reports
+    probe = np.array([[0.1, -0.2, 0.3], [0.0, 0.25, -0.35]])
+    # the same map as solving the deformer directly
+    scene.solve(dfm)
+    np.testing.assert_allclose(solved.harmonic_map.map(probe), dfm.harmonic_map.map(probe))
+    assert scene.record_map(solved.deformer)
+    again = Scene.loads(scene.dumps()).solve_map()
+    assert again.reused and again.deformer is None and again.converged
+    np.testing.assert_array_equal(again.harmonic_map.map(probe), solved.harmonic_map.map(probe))
+    # solver overrides always solve anew
+    assert not Scene.loads(scene.dumps()).solve_map(max_iterations=5000).reused
+
+
+def test_solve_map_reports_an_unconverged_solve_and_callers_decide():
+    scene = Scene.from_deformer(_deformer(), solver={"tolerance": 1e-14, "max_iterations": 2})
+    solved = scene.solve_map()
+    assert not solved.converged and "max_iterations = 2" in solved.shortfall()
+    solved.require_converged(allow=True)
+    with pytest.raises(NotConverged, match="not converged: .*; raise it"):
+        solved.require_converged(remedy="raise it")
 
 
 @pytest.mark.parametrize(

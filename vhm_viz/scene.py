@@ -73,9 +73,18 @@ from typing import Any
 
 import numpy as np
 
+from vhm_viz.core.cage import MIN_FACE_ANGLE
 from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW
 
-__all__ = ["Scene", "SceneError", "SCENE_FORMAT", "SCENE_VERSION", "DEFAULT_SOLVER"]
+__all__ = [
+    "Scene",
+    "SceneError",
+    "SolvedMap",
+    "NotConverged",
+    "SCENE_FORMAT",
+    "SCENE_VERSION",
+    "DEFAULT_SOLVER",
+]
 
 SCENE_FORMAT = "vhm_viz.scene"
 SCENE_VERSION = 1
@@ -524,7 +533,7 @@ class Scene:
             pts, edges = read_tgf(self._resolve_path(a["skeleton"]))
         return anchors_from_polylines(pts, edges, int(a["count"]))
 
-    def build(self, data=None, cage=None):
+    def build(self, data=None, cage=None, anchors=None):
         """A :class:`~vhm_viz.Deformer` with the scene's constraints (not solved).
 
         Parameters
@@ -533,12 +542,16 @@ class Scene:
             The data to deform (needed for automatic cages and anchors).
         cage : Cage, optional
             Use this cage instead of the scene's (e.g. the cage on a filter's port 1).
+        anchors : (d, 3) float array, optional
+            The anchors as :meth:`build_anchors` gives them for ``cage``, when the caller
+            has them already.
         """
         from vhm_viz.core.deformer import Deformer
 
         if cage is None:
             cage = self.build_cage(data)
-        anchors = self.build_anchors(cage, data)
+        if anchors is None:
+            anchors = self.build_anchors(cage, data)
         dfm = Deformer(
             cage,
             anchors,
@@ -548,6 +561,54 @@ class Scene:
         )
         dfm.set_constraints(**self.constraint_arguments())
         return dfm
+
+    def solve_map(
+        self, data=None, cage=None, *, progress=None, reuse_stored: bool = True, **overrides
+    ) -> SolvedMap:
+        """The scene's solved map: the one path from a scene to a deformation.
+
+        Builds the cage (or takes ``cage``) and the anchors, then either takes the map
+        stored in the scene, while its inputs still hold (:meth:`map_for`), or builds the
+        deformer and solves it with the scene's settings (:meth:`solve`). A solve that
+        does not converge is returned as it is: callers decide with
+        :meth:`SolvedMap.require_converged`.
+
+        Parameters
+        ----------
+        data : pyvista.DataSet, optional
+            The data to deform (needed for automatic cages and anchors).
+        cage : Cage, optional
+            Use this cage instead of the scene's.
+        progress : callable(fraction, message), optional
+            Called after each solve step.
+        reuse_stored : bool
+            Use the stored map when it holds (no deformer is built then). Solver
+            ``overrides`` always solve anew.
+        **overrides
+            Solver settings, as for :meth:`solve`.
+
+        Returns
+        -------
+        SolvedMap
+        """
+        if cage is None:
+            cage = self.build_cage(data)
+        notes = [*self.notes, *(f"cage repaired: {r}" for r in cage.repairs)]
+        thin = cage.thin_faces
+        if len(thin):
+            notes.append(
+                f"the cage has {len(thin)} faces with an angle below {MIN_FACE_ANGLE:g} "
+                f"degrees (e.g. face {int(thin[0])}): the smoothness weight collapses on "
+                "them and the result may be poor"
+            )
+        anchors = self.build_anchors(cage, data)
+        if reuse_stored and not overrides:
+            stored = self.map_for(cage, anchors)
+            if stored is not None:
+                return SolvedMap(self, stored, None, [], notes)
+        deformer = self.build(data=data, cage=cage, anchors=anchors)
+        reports = self.solve(deformer, progress=progress, **overrides)
+        return SolvedMap(self, deformer.harmonic_map, deformer, reports, notes)
 
     def map_inputs(self, cage, anchors) -> str:
         """Digest (sha256, hex) of what a solve of this scene depends on.
@@ -690,6 +751,75 @@ class Scene:
             if progress is not None:
                 progress(k / steps, "solving")
         return reports
+
+
+class NotConverged(RuntimeError):
+    """A solve stopped at ``solver.max_iterations`` and the caller did not allow it."""
+
+
+@dataclass
+class SolvedMap:
+    """A scene's solved map, as :meth:`Scene.solve_map` returns it.
+
+    Attributes
+    ----------
+    scene : Scene
+        The scene it was solved for.
+    harmonic_map : HarmonicMap
+        The map.
+    deformer : Deformer or None
+        The solved deformer (None when the scene's stored map was used).
+    reports : list of SolveReport
+        One per solve step (empty when the stored map was used).
+    notes : list of str
+        What loading had to change or warns of (old scene format, cage repairs, thin
+        cage faces), one line each.
+    """
+
+    scene: Scene
+    harmonic_map: Any
+    deformer: Any
+    reports: list
+    notes: list
+
+    @property
+    def reused(self) -> bool:
+        """Whether the scene's stored map was used instead of a solve."""
+        return self.deformer is None
+
+    @property
+    def last_report(self):
+        """The last solve step's report (None when the stored map was used)."""
+        return self.reports[-1] if self.reports else None
+
+    @property
+    def converged(self) -> bool:
+        """Whether the map is a converged solve (a stored map always is)."""
+        report = self.last_report
+        return report is None or bool(report.converged)
+
+    def shortfall(self) -> str:
+        """Why the solve stopped short, in words (empty when it converged)."""
+        report = self.last_report
+        return "" if report is None else report.shortfall()
+
+    def require_converged(self, allow: bool = False, remedy: str = "") -> None:
+        """Raise :class:`NotConverged` for an unconverged solve unless ``allow``.
+
+        Parameters
+        ----------
+        allow : bool
+            Let an unconverged solve through.
+        remedy : str
+            What the caller's user can do, appended to the message (e.g. the command
+            line's ``--allow-unconverged``).
+        """
+        if self.converged or allow:
+            return
+        text = f"not converged: {self.shortfall()}"
+        if remedy:
+            text += f"; {remedy}"
+        raise NotConverged(text)
 
 
 # ----------------------------------------------------------------------------------------
