@@ -12,62 +12,9 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["closest_point_on_triangles", "NearDistance", "near_signed_distance"]
+from vhm_viz.core.geometry import closest_points_on_triangles
 
-
-def closest_point_on_triangles(p, a, b, c):
-    """Closest points of triangles ``(a, b, c)`` to points ``p`` (all (k, 3), row-wise).
-
-    Returns
-    -------
-    q : (k, 3) float64
-        Closest points.
-    region : (k,) int8
-        0 face interior, 1 edge ab, 2 edge bc, 3 edge ca, 4 vertex a, 5 vertex b, 6 vertex c.
-    """
-    ab = b - a
-    ac = c - a
-    ap = p - a
-    d1 = np.einsum("ij,ij->i", ab, ap)
-    d2 = np.einsum("ij,ij->i", ac, ap)
-    bp = p - b
-    d3 = np.einsum("ij,ij->i", ab, bp)
-    d4 = np.einsum("ij,ij->i", ac, bp)
-    cp = p - c
-    d5 = np.einsum("ij,ij->i", ab, cp)
-    d6 = np.einsum("ij,ij->i", ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = va + vb + vc
-        v = np.where(denom != 0, vb / np.where(denom != 0, denom, 1), 1 / 3)
-        w = np.where(denom != 0, vc / np.where(denom != 0, denom, 1), 1 / 3)
-        q = a + ab * v[:, None] + ac * w[:, None]
-        region = np.zeros(len(p), dtype=np.int8)
-        # the sequential tests of Ericson's algorithm, applied last-wins in reverse order
-        m = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-        t = (d4 - d3) / np.where(m, (d4 - d3) + (d5 - d6), 1)
-        q = np.where(m[:, None], b + (c - b) * t[:, None], q)
-        region[m] = 2
-        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-        t = d2 / np.where(m, d2 - d6, 1)
-        q = np.where(m[:, None], a + ac * t[:, None], q)
-        region[m] = 3
-        m = (d6 >= 0) & (d5 <= d6)
-        q = np.where(m[:, None], c, q)
-        region[m] = 6
-        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-        t = d1 / np.where(m, d1 - d3, 1)
-        q = np.where(m[:, None], a + ab * t[:, None], q)
-        region[m] = 1
-        m = (d3 >= 0) & (d4 <= d3)
-        q = np.where(m[:, None], b, q)
-        region[m] = 5
-        m = (d1 <= 0) & (d2 <= 0)
-        q = np.where(m[:, None], a, q)
-        region[m] = 4
-    return q, region
+__all__ = ["NearDistance", "near_signed_distance"]
 
 
 class NearDistance:
@@ -155,7 +102,7 @@ class NearDistance:
         for s in range(0, len(pi), step):
             p_ = pi[s : s + step]
             f_ = fi[s : s + step]
-            q, _ = closest_point_on_triangles(P[p_], tri[f_, 0], tri[f_, 1], tri[f_, 2])
+            q, _ = closest_points_on_triangles(P[p_], tri[f_, 0], tri[f_, 1], tri[f_, 2])
             d = np.linalg.norm(P[p_] - q, axis=1)
             order = np.lexsort((d, p_))
             first = np.ones(len(order), dtype=bool)
@@ -167,7 +114,7 @@ class NearDistance:
         index = np.flatnonzero(best_pair >= 0)
         pair = best_pair[index]
         f = fi[pair]
-        q, region = closest_point_on_triangles(P[index], tri[f, 0], tri[f, 1], tri[f, 2])
+        q, region = closest_points_on_triangles(P[index], tri[f, 0], tri[f, 1], tri[f, 2])
         normal = self.fn[f].copy()
         for r, k in ((1, 0), (2, 1), (3, 2)):
             m = region == r

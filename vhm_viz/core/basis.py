@@ -49,7 +49,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from vhm_viz.core.basis_lanes import lanes_kernel, lanes_map_kernel, winding_kernel
-from vhm_viz.core.geometry import face_normals_and_areas
+from vhm_viz.core.geometry import face_normals_and_areas, point_triangle_distance2
 from vhm_viz.core.limits import check_setting
 
 HESSIAN_COMPONENTS = ("xx", "xy", "xz", "yy", "yz")
@@ -1214,59 +1214,11 @@ def _surface_host_kernel(points, V, F, cell, start, members, cells, tol, host): 
         found = -1
         for s in range(start[c], start[c + 1]):
             t = members[s]  # ascending: the lowest-numbered face within reach is the host
-            d2 = _point_triangle_distance2(points[k], V[F[t, 0]], V[F[t, 1]], V[F[t, 2]])
+            d2 = point_triangle_distance2(points[k], V[F[t, 0]], V[F[t, 1]], V[F[t, 2]])
             if d2 <= tol2:
                 found = t
                 break
         host[k] = found
-
-
-@numba.njit(cache=True, inline="always")
-def _sub3(u, v):  # pragma: no cover - compiled
-    return (u[0] - v[0], u[1] - v[1], u[2] - v[2])
-
-
-@numba.njit(cache=True, inline="always")
-def _dot3(u, v):  # pragma: no cover - compiled
-    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-
-
-@numba.njit(cache=True, inline="always")
-def _off3(w, s, u):  # pragma: no cover - compiled
-    """``|w - s u|^2``."""
-    x, y, z = w[0] - s * u[0], w[1] - s * u[1], w[2] - s * u[2]
-    return x * x + y * y + z * z
-
-
-@numba.njit(cache=True, inline="always")
-def _point_triangle_distance2(p, a, b, c):  # pragma: no cover - compiled
-    """Squared distance from ``p`` to triangle ``abc``.
-
-    Ericson, Real-Time Collision Detection, 5.1.5 (the Voronoi regions of the corners,
-    edges and face); computed from differences so that it is accurate next to the face.
-    """
-    ab, ac = _sub3(b, a), _sub3(c, a)
-    ap, bp, cp = _sub3(p, a), _sub3(p, b), _sub3(p, c)
-    d1, d2, d3 = _dot3(ab, ap), _dot3(ac, ap), _dot3(ab, bp)
-    d4, d5, d6 = _dot3(ac, bp), _dot3(ab, cp), _dot3(ac, cp)
-    # the regions are disjoint: corners, then edges, then the face
-    if d1 <= 0.0 and d2 <= 0.0:
-        return _dot3(ap, ap)
-    if d3 >= 0.0 and d4 <= d3:
-        return _dot3(bp, bp)
-    if d6 >= 0.0 and d5 <= d6:
-        return _dot3(cp, cp)
-    if d1 * d4 - d3 * d2 <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        return _off3(ap, d1 / (d1 - d3), ab)
-    if d5 * d2 - d1 * d6 <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        return _off3(ap, d2 / (d2 - d6), ac)
-    if d3 * d6 - d5 * d4 <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
-        return _off3(bp, (d4 - d3) / ((d4 - d3) + (d5 - d6)), _sub3(c, b))
-    nx = ab[1] * ac[2] - ab[2] * ac[1]
-    ny = ab[2] * ac[0] - ab[0] * ac[2]
-    nz = ab[0] * ac[1] - ab[1] * ac[0]
-    h = ap[0] * nx + ap[1] * ny + ap[2] * nz
-    return h * h / (nx * nx + ny * ny + nz * nz)
 
 
 #: Points on the surface that rounding put outside are evaluated this many
@@ -1310,7 +1262,7 @@ def _reach_normals(points, V, F, normals, reach, out):  # pragma: no cover - com
     r2 = reach * reach
     for k in numba.prange(points.shape[0]):
         for t in range(F.shape[0]):
-            if _point_triangle_distance2(points[k], V[F[t, 0]], V[F[t, 1]], V[F[t, 2]]) <= r2:
+            if point_triangle_distance2(points[k], V[F[t, 0]], V[F[t, 1]], V[F[t, 2]]) <= r2:
                 out[k, 0] += normals[t, 0]
                 out[k, 1] += normals[t, 1]
                 out[k, 2] += normals[t, 2]

@@ -160,12 +160,15 @@ def triangulate_polygons(points: np.ndarray, polygons) -> np.ndarray:
 def closest_point_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):  # pragma: no cover
     """Closest point of the triangle ``(a, b, c)`` to ``p``, compiled, scalar coordinates.
 
-    The Voronoi-region tests of Ericson (Real-Time Collision Detection, 2004, 5.1.5).
+    The Voronoi-region tests of Ericson (Real-Time Collision Detection, 2004, 5.1.5). The
+    one closest-point routine of the package: every distance to a triangle and every
+    nearest-face search is built on it. A degenerate triangle whose regions all fail
+    (zero area) gives its centroid's region 0.
 
     Returns
     -------
     qx, qy, qz : float
-        The closest point.
+        The closest point (a corner is returned exactly).
     region : int
         0 face interior, 1 edge ab, 2 edge bc, 3 edge ca, 4 vertex a, 5 vertex b, 6 vertex c.
     """
@@ -198,18 +201,136 @@ def closest_point_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):  
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
         w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
         return bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz), 2
-    s = 1.0 / (va + vb + vc)
-    v = vb * s
-    w = vc * s
+    den = va + vb + vc
+    if den == 0.0:
+        v = w = 1.0 / 3.0
+    else:
+        v = vb / den
+        w = vc / den
     return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w, 0
+
+
+@numba.njit(cache=True, inline="always")
+def triangle_distance2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):  # pragma: no cover
+    """Squared distance from ``p`` to the triangle ``(a, b, c)`` (compiled, scalar coordinates).
+
+    Over the face interior it is the distance to the triangle's plane, which stays
+    accurate for points next to a large face; elsewhere the distance to the closest point
+    of :func:`closest_point_on_triangle`.
+    """
+    qx, qy, qz, region = closest_point_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
+    if region == 0:
+        abx, aby, abz = bx - ax, by - ay, bz - az
+        acx, acy, acz = cx - ax, cy - ay, cz - az
+        nx = aby * acz - abz * acy
+        ny = abz * acx - abx * acz
+        nz = abx * acy - aby * acx
+        nn = nx * nx + ny * ny + nz * nz
+        if nn > 0.0:
+            h = (px - ax) * nx + (py - ay) * ny + (pz - az) * nz
+            return h * h / nn
+    dx, dy, dz = px - qx, py - qy, pz - qz
+    return dx * dx + dy * dy + dz * dz
 
 
 @numba.njit(cache=True, inline="always")
 def triangle_distance(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):  # pragma: no cover
     """Distance from ``p`` to the triangle ``(a, b, c)`` (compiled, scalar coordinates)."""
-    qx, qy, qz, _ = closest_point_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
-    dx, dy, dz = px - qx, py - qy, pz - qz
-    return math.sqrt(dx * dx + dy * dy + dz * dz)
+    return math.sqrt(triangle_distance2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz))
+
+
+@numba.njit(cache=True, inline="always")
+def point_triangle_distance2(p, a, b, c):  # pragma: no cover - compiled
+    """:func:`triangle_distance2` with the points as 3-vectors ``p``, ``a``, ``b``, ``c``."""
+    return triangle_distance2(
+        p[0], p[1], p[2], a[0], a[1], a[2], b[0], b[1], b[2], c[0], c[1], c[2]
+    )
+
+
+@numba.njit(cache=True, parallel=True)
+def _closest_rows(p, a, b, c, q, region):  # pragma: no cover - compiled
+    for k in numba.prange(p.shape[0]):
+        qx, qy, qz, r = closest_point_on_triangle(
+            p[k, 0], p[k, 1], p[k, 2], a[k, 0], a[k, 1], a[k, 2],
+            b[k, 0], b[k, 1], b[k, 2], c[k, 0], c[k, 1], c[k, 2],
+        )  # fmt: skip
+        q[k, 0], q[k, 1], q[k, 2] = qx, qy, qz
+        region[k] = r
+
+
+def closest_points_on_triangles(p, a, b, c):
+    """Closest points of triangles ``(a, b, c)`` to points ``p``, row by row.
+
+    Parameters
+    ----------
+    p, a, b, c : (k, 3) float arrays
+        Row ``i`` asks for the point of triangle ``(a[i], b[i], c[i])`` nearest ``p[i]``.
+
+    Returns
+    -------
+    q : (k, 3) float64
+        Closest points.
+    region : (k,) int8
+        As :func:`closest_point_on_triangle`.
+    """
+    rows = [np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 3) for x in (p, a, b, c)]
+    q = np.empty((len(rows[0]), 3))
+    region = np.empty(len(rows[0]), dtype=np.int8)
+    if len(q):
+        _closest_rows(*rows, q, region)
+    return q, region
+
+
+@numba.njit(parallel=True, cache=True)
+def _nearest_triangles(points, tri, out_face, out_point):  # pragma: no cover - compiled
+    """Brute force over the triangles: the nearest one to each point, ties to the lowest."""
+    for p in numba.prange(points.shape[0]):
+        best = np.inf
+        bi = -1
+        bx, by, bz = 0.0, 0.0, 0.0
+        px, py, pz = points[p, 0], points[p, 1], points[p, 2]
+        for t in range(tri.shape[0]):
+            qx, qy, qz, _ = closest_point_on_triangle(
+                px, py, pz, tri[t, 0, 0], tri[t, 0, 1], tri[t, 0, 2],
+                tri[t, 1, 0], tri[t, 1, 1], tri[t, 1, 2], tri[t, 2, 0], tri[t, 2, 1], tri[t, 2, 2],
+            )  # fmt: skip
+            d = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
+            if d < best:
+                best = d
+                bi = t
+                bx, by, bz = qx, qy, qz
+        out_face[p] = bi
+        out_point[p, 0] = bx
+        out_point[p, 1] = by
+        out_point[p, 2] = bz
+
+
+def nearest_points_on_mesh(points, vertices, faces):
+    """The nearest triangle of a mesh to each point and the closest point on it.
+
+    A brute force over the triangles (compiled, parallel over the points): meant for
+    cages, whose faces are few.
+
+    Parameters
+    ----------
+    points : (P, 3) float array
+    vertices : (n, 3) float array
+    faces : (m, 3) int array
+
+    Returns
+    -------
+    face : (P,) int64
+        Index of the nearest triangle (the lowest one on ties).
+    closest : (P, 3) float64
+        The closest point on it.
+    """
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    tri = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64)[np.asarray(faces)])
+    face = np.empty(len(p), dtype=np.int64)
+    closest = np.empty((len(p), 3))
+    if len(p):
+        _nearest_triangles(p, tri, face, closest)
+    return face, closest
 
 
 def ray_depth(origins, directions, vertices, faces, skip_faces=None) -> np.ndarray:

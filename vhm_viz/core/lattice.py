@@ -58,6 +58,7 @@ import numpy as np
 
 from vhm_viz.core.basis import chunk_rows, evaluate_map, inside_cage
 from vhm_viz.core.errors import AbortedError
+from vhm_viz.core.geometry import nearest_points_on_mesh
 from vhm_viz.core.image import BORDER, ImageGeometry, inside_mask, surface_mask
 from vhm_viz.core.memory import release_free_memory
 
@@ -284,81 +285,6 @@ def _leaf_summaries(data, rows, size, centre_f, centre_ginv, rho):  # pragma: no
 # --------------------------------------------------------------------------------------
 # exact node data, continued across the cage
 # --------------------------------------------------------------------------------------
-@numba.njit(parallel=True, cache=True)
-def _nearest_faces(points, tri, out_face, out_point):  # pragma: no cover - compiled
-    """The cage triangle nearest to each point and the closest point on it.
-
-    Closest point on a triangle by its Voronoi regions (Ericson, *Real-Time Collision
-    Detection*, 2005, section 5.1.5); brute force over the triangles.
-    """
-    for p in numba.prange(points.shape[0]):
-        best = np.inf
-        bi = -1
-        bx, by, bz = 0.0, 0.0, 0.0
-        px, py, pz = points[p, 0], points[p, 1], points[p, 2]
-        for t in range(tri.shape[0]):
-            ax, ay, az = tri[t, 0, 0], tri[t, 0, 1], tri[t, 0, 2]
-            abx, aby, abz = tri[t, 1, 0] - ax, tri[t, 1, 1] - ay, tri[t, 1, 2] - az
-            acx, acy, acz = tri[t, 2, 0] - ax, tri[t, 2, 1] - ay, tri[t, 2, 2] - az
-            apx, apy, apz = px - ax, py - ay, pz - az
-            d1 = abx * apx + aby * apy + abz * apz
-            d2 = acx * apx + acy * apy + acz * apz
-            bpx, bpy, bpz = px - tri[t, 1, 0], py - tri[t, 1, 1], pz - tri[t, 1, 2]
-            d3 = abx * bpx + aby * bpy + abz * bpz
-            d4 = acx * bpx + acy * bpy + acz * bpz
-            cpx, cpy, cpz = px - tri[t, 2, 0], py - tri[t, 2, 1], pz - tri[t, 2, 2]
-            d5 = abx * cpx + aby * cpy + abz * cpz
-            d6 = acx * cpx + acy * cpy + acz * cpz
-            va = d3 * d6 - d5 * d4
-            vb = d5 * d2 - d1 * d6
-            vc = d1 * d4 - d3 * d2
-            if d1 <= 0.0 and d2 <= 0.0:
-                v, w = 0.0, 0.0
-            elif d3 >= 0.0 and d4 <= d3:
-                v, w = 1.0, 0.0
-            elif d6 >= 0.0 and d5 <= d6:
-                v, w = 0.0, 1.0
-            elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-                v, w = d1 / (d1 - d3), 0.0
-            elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-                v, w = 0.0, d2 / (d2 - d6)
-            elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-                w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-                v = 1.0 - w
-            else:
-                den = 1.0 / (va + vb + vc)
-                v, w = vb * den, vc * den
-            qx = ax + v * abx + w * acx
-            qy = ay + v * aby + w * acy
-            qz = az + v * abz + w * acz
-            d = (qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2
-            if d < best:
-                best = d
-                bi = t
-                bx, by, bz = qx, qy, qz
-        out_face[p] = bi
-        out_point[p, 0] = bx
-        out_point[p, 1] = by
-        out_point[p, 2] = bz
-
-
-def nearest_cage_points(points, vertices, faces):
-    """The nearest cage face of each point and the closest point on it.
-
-    Returns
-    -------
-    face : (P,) int64
-    closest : (P, 3) float64
-    """
-    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    tri = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64)[np.asarray(faces)])
-    face = np.empty(len(p), dtype=np.int64)
-    closest = np.empty((len(p), 3))
-    if len(p):
-        _nearest_faces(p, tri, face, closest)
-    return face, closest
-
-
 def _continuation_terms(points, faces, vertices, face_ids, a, b, normals):
     """Affine term of the map continued across each point's face, and its gradient.
 
@@ -479,7 +405,7 @@ def _exact_data(hm, points, to_index, shells, memory_budget=None, abort=None):
         inside[s:e] = inside_cage(wind)
     out = np.nonzero(~inside)[0]
     if out.size:
-        face, _ = nearest_cage_points(points[out], V, F)
+        face, _ = nearest_points_on_mesh(points[out], V, F)
         if shells.several:
             # outside every shell the basis drops all outward shells: evaluate the nearest
             # face's shell (with the holes) as a cage of its own
@@ -935,7 +861,7 @@ def _test_points(cells, h, lat_geo, vertices, faces):
     out = np.full((L, 3, 3), np.nan)
     out[:, 0] = 0.5
     centres = lat_geo.points(cells + h / 2.0)
-    _, q = nearest_cage_points(centres, vertices, faces)
+    _, q = nearest_points_on_mesh(centres, vertices, faces)
     rel = (lat_geo.continuous_index(q) - cells) / h  # nearest cage point, local coordinates
     near = np.linalg.norm(rel - 0.5, axis=1) < 2.0
     cl = np.clip(rel, 0.0, 1.0)
