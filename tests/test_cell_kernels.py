@@ -1,0 +1,152 @@
+"""Compiled per-cell measures against numpy's SVD, determinants and brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vhm_viz.core.cell_kernels import (
+    hexahedron_corner_determinants,
+    singular_values_3x3,
+    tetrahedron_measures,
+)
+
+
+def _near_flat(rng, n, thickness):
+    """Matrices with one direction squashed to ``thickness``, randomly rotated."""
+    q1 = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]
+    q2 = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]
+    s = np.column_stack([1 + rng.random(n), 0.5 + rng.random(n), np.full(n, thickness)])
+    return q1 @ (s[:, :, None] * q2)
+
+
+@pytest.mark.parametrize("kind", ["random", "near-flat", "inverted", "rank-deficient"])
+def test_singular_values_match_numpy(kind):
+    rng = np.random.default_rng(5)
+    if kind == "random":
+        m = rng.normal(size=(2000, 3, 3))
+    elif kind == "near-flat":
+        m = _near_flat(rng, 2000, 1e-6)
+    elif kind == "inverted":
+        m = rng.normal(size=(2000, 3, 3))
+        m[np.linalg.det(m) > 0, :, 0] *= -1
+    else:
+        m = rng.normal(size=(500, 3, 3))
+        m[:, :, 2] = m[:, :, 0] + 2 * m[:, :, 1]
+    s = singular_values_3x3(m)
+    ref = np.linalg.svd(m, compute_uv=False)
+    # both are accurate relative to the largest singular value (backward stable)
+    assert np.all(np.abs(s - ref) <= 1e-12 * ref[:, :1])
+    if kind == "random":
+        np.testing.assert_allclose(s, ref, rtol=1e-12)
+
+
+def test_singular_values_of_nan_matrices_are_nan():
+    m = np.eye(3)[None].repeat(2, axis=0)
+    m[1, 0, 1] = np.nan
+    s = singular_values_3x3(m)
+    np.testing.assert_array_equal(s[0], [1, 1, 1])
+    assert np.isnan(s[1]).all()
+
+
+def _numpy_measures(x, y, tets):
+    """Per tet det F and cond F straight from numpy (solve, det, svd)."""
+    dr = np.stack([x[tets[:, i]] - x[tets[:, 0]] for i in (1, 2, 3)], axis=2)
+    dd = np.stack([y[tets[:, i]] - y[tets[:, 0]] for i in (1, 2, 3)], axis=2)
+    f = np.swapaxes(np.linalg.solve(np.swapaxes(dr, 1, 2), np.swapaxes(dd, 1, 2)), 1, 2)
+    s = np.linalg.svd(f, compute_uv=False)
+    with np.errstate(divide="ignore"):
+        return np.linalg.det(f), s[:, 0] / s[:, 2]
+
+
+def test_tetrahedra_match_numpy_on_random_flat_and_inverted_tets():
+    rng = np.random.default_rng(9)
+    n = 3000
+    x = rng.normal(size=(4 * n, 3))
+    tets = np.arange(4 * n).reshape(n, 4)
+    # a mix: random affine images, nearly flattened ones and inverted ones
+    a = rng.normal(size=(n, 3, 3))
+    a[n // 3 : 2 * n // 3] = _near_flat(rng, 2 * n // 3 - n // 3, 1e-5)
+    y = np.einsum("tij,tkj->tki", a, x.reshape(n, 4, 3)).reshape(-1, 3)
+    m = tetrahedron_measures(x, y, tets)
+    det, cond = _numpy_measures(x, y, tets)
+    # both are accurate relative to |F|^3 (det) and to cond F times rounding (cond)
+    scale = np.linalg.svd(a, compute_uv=False)[:, 0] ** 3
+    assert np.all(np.abs(m["determinant"] - det) <= 1e-12 * scale)
+    assert np.all(np.abs(m["condition_number"] - cond) <= 1e-13 * cond**2)
+    # det F of a tet is the determinant of the affine map that made it
+    assert np.all(np.abs(m["determinant"] - np.linalg.det(a)) <= 1e-12 * scale)
+    assert (m["determinant"] < 0).sum() == (np.linalg.det(a) < 0).sum() > 0
+    well = np.abs(np.linalg.det(a)) > 0.1
+    np.testing.assert_allclose(m["condition_number"][well], cond[well], rtol=1e-12)
+
+
+def test_cells_take_the_worst_tet_and_flag_rest_problems():
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [2, 2, 2]], float)
+    y = x.copy()
+    y[4] = [0.1, 0.1, 0.1]  # tet 1 (0, 1, 2, 4) comes back inverted? its rest is (1,1,1)
+    tets = np.array(
+        [
+            [0, 1, 2, 3],  # cell 0: identity
+            [0, 1, 2, 4],  # cell 0: squashed, still positive
+            [0, 2, 1, 3],  # cell 1: stored inverted at rest
+            [0, 4, 5, 1],  # cell 2: degenerate at rest (0, 4, 5 collinear)
+            [0, 1, 2, 3],  # cell 3: a NaN corner below
+        ]
+    )
+    y_nan = y.copy()
+    m = tetrahedron_measures(x, y_nan, tets[:4], owner=[0, 0, 1, 2], n_cells=4)
+    assert m["determinant"][0] == pytest.approx(0.1)
+    assert m["determinant"][1] == pytest.approx(1.0)
+    assert np.isnan(m["determinant"][2]) and np.isnan(m["determinant"][3])
+    np.testing.assert_array_equal(m["rest_inverted"], [False, True, False, False])
+    np.testing.assert_array_equal(m["degenerate"], [False, False, True, False])
+    y_nan[3] = np.nan
+    m = tetrahedron_measures(x, y_nan, tets[4:])
+    assert np.isnan(m["determinant"][0]) and not m["degenerate"][0]
+    m = tetrahedron_measures(x, y, tets[:1], condition=False)
+    assert m["determinant"][0] == 1.0 and np.isnan(m["condition_number"][0])
+
+
+def _trilinear_corner_dets(p):
+    """Brute force: the trilinear Jacobian at each corner of each cell, numpy."""
+    nz, ny, nx = (d - 1 for d in p.shape[:3])
+    out = np.full((nz, ny, nx), np.inf)
+    for c in (0, 1):
+        for b in (0, 1):
+            for a in (0, 1):
+                ex = p[c : c + nz, b : b + ny, 1:] - p[c : c + nz, b : b + ny, :-1]
+                ey = p[c : c + nz, 1:, a : a + nx] - p[c : c + nz, :-1, a : a + nx]
+                ez = p[1:, b : b + ny, a : a + nx] - p[:-1, b : b + ny, a : a + nx]
+                with np.errstate(invalid="ignore"):
+                    d = np.linalg.det(np.stack([ex, ey, ez], axis=-1))
+                out = np.minimum(out, d)
+    return out.reshape(-1)
+
+
+def test_hexahedra_of_an_affine_map_have_its_determinant():
+    dims = (5, 4, 3)
+    spacing = np.array([0.5, 0.7, 1.1])
+    k, j, i = np.meshgrid(*(np.arange(n) for n in dims[::-1]), indexing="ij")
+    rest = np.stack([i, j, k], axis=-1).reshape(-1, 3) * spacing
+    a = np.array([[1.2, 0.3, 0.0], [-0.2, 0.9, 0.1], [0.05, 0.0, 1.4]])
+    out = hexahedron_corner_determinants(rest @ a.T + 3.0, dims, float(np.prod(spacing)))
+    assert out.shape == (4 * 3 * 2,)
+    np.testing.assert_allclose(out, np.linalg.det(a), rtol=1e-12)
+
+
+def test_hexahedra_match_brute_force_and_find_inverted_cells():
+    rng = np.random.default_rng(2)
+    dims = (6, 5, 7)
+    k, j, i = np.meshgrid(*(np.arange(n) for n in dims[::-1]), indexing="ij")
+    p = np.stack([i, j, k], axis=-1).astype(float)
+    p += 0.15 * rng.normal(size=p.shape)
+    p[3, 2, 2] += [2.0, 0.0, 0.0]  # pushed through its neighbours: folds cells around it
+    p[5, 4, 5] = np.nan
+    out = hexahedron_corner_determinants(p.reshape(-1, 3), dims, -2.0)
+    ref = _trilinear_corner_dets(p) / -2.0
+    np.testing.assert_allclose(out, ref, rtol=1e-12)
+    assert np.isnan(out).sum() == np.isnan(ref).sum() > 0
+    assert (out[np.isfinite(out)] >= 0).any() and (out[np.isfinite(out)] < 0).any()
+    with pytest.raises(ValueError, match="rest_det"):
+        hexahedron_corner_determinants(p.reshape(-1, 3), dims, 0.0)

@@ -1,0 +1,340 @@
+"""Compiled per-cell measures of a deformation: tetrahedra and voxel hexahedra.
+
+Two kernels, one thread per cell, no per-cell Python and no temporary ``(T, 3, 3)``
+arrays:
+
+* :func:`tetrahedron_measures` -- the deformation gradient ``F = D_def D_rest^-1`` of each
+  linear tetrahedron, its determinant and (where asked) its condition number
+  ``s_max / s_min`` from a one-sided Jacobi SVD (Hestenes), which keeps the singular
+  values accurate relative to the largest one, like LAPACK's;
+* :func:`hexahedron_corner_determinants` -- for a deformed voxel grid (a warped image),
+  the determinant of the trilinear cell's Jacobian at each of its eight corners, relative
+  to the rest voxel's. A trilinear cell is inverted where one of them is ``<= 0``; the
+  smallest one per cell is returned.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+__all__ = [
+    "DEGENERATE_RTOL",
+    "singular_values_3x3",
+    "tetrahedron_measures",
+    "hexahedron_corner_determinants",
+]
+
+#: A rest tetrahedron is degenerate (its ``F`` undefined) when ``|det D_rest|`` is at most
+#: this times its longest edge cubed.
+DEGENERATE_RTOL = 1e-12
+
+#: Sweeps of the one-sided Jacobi SVD at most (it converges quadratically: 3 x 3 matrices
+#: need a handful).
+_JACOBI_SWEEPS = 30
+
+
+@numba.njit(cache=True, inline="always")
+def _rotate_columns(x0, x1, x2, y0, y1, y2):  # pragma: no cover - compiled
+    """One Jacobi rotation making columns ``x`` and ``y`` orthogonal.
+
+    Returns the rotated columns and whether they were not orthogonal already (to
+    rounding).
+    """
+    alpha = x0 * x0 + x1 * x1 + x2 * x2
+    beta = y0 * y0 + y1 * y1 + y2 * y2
+    gamma = x0 * y0 + x1 * y1 + x2 * y2
+    if gamma == 0.0 or abs(gamma) <= 2.220446049250313e-16 * math.sqrt(alpha * beta):
+        return x0, x1, x2, y0, y1, y2, False
+    zeta = (beta - alpha) / (2.0 * gamma)
+    t = math.copysign(1.0, zeta) / (abs(zeta) + math.sqrt(1.0 + zeta * zeta))
+    c = 1.0 / math.sqrt(1.0 + t * t)
+    s = c * t
+    return (
+        c * x0 - s * y0, c * x1 - s * y1, c * x2 - s * y2,
+        s * x0 + c * y0, s * x1 + c * y1, s * x2 + c * y2, True,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, inline="always")
+def _jacobi_singular_values(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pragma: no cover
+    """Singular values of a 3 x 3 matrix by one-sided Jacobi rotations of its columns.
+
+    Returns ``(s_max, s_mid, s_min)``; NaN for a matrix with a NaN entry.
+    """
+    u0, u1, u2 = a00, a10, a20
+    v0, v1, v2 = a01, a11, a21
+    w0, w1, w2 = a02, a12, a22
+    for _ in range(_JACOBI_SWEEPS):
+        u0, u1, u2, v0, v1, v2, r1 = _rotate_columns(u0, u1, u2, v0, v1, v2)
+        u0, u1, u2, w0, w1, w2, r2 = _rotate_columns(u0, u1, u2, w0, w1, w2)
+        v0, v1, v2, w0, w1, w2, r3 = _rotate_columns(v0, v1, v2, w0, w1, w2)
+        if not (r1 or r2 or r3):
+            break
+    s0 = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    s1 = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    s2 = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    if s0 < s1:
+        s0, s1 = s1, s0
+    if s1 < s2:
+        s1, s2 = s2, s1
+    if s0 < s1:
+        s0, s1 = s1, s0
+    return s0, s1, s2
+
+
+@numba.njit(cache=True, parallel=True)
+def _singular_values_rows(m, out):  # pragma: no cover - compiled
+    for k in numba.prange(m.shape[0]):
+        out[k, 0], out[k, 1], out[k, 2] = _jacobi_singular_values(
+            m[k, 0, 0], m[k, 0, 1], m[k, 0, 2], m[k, 1, 0], m[k, 1, 1], m[k, 1, 2],
+            m[k, 2, 0], m[k, 2, 1], m[k, 2, 2],
+        )  # fmt: skip
+
+
+def singular_values_3x3(matrices) -> np.ndarray:
+    """Singular values of 3 x 3 matrices, largest first (compiled one-sided Jacobi).
+
+    Parameters
+    ----------
+    matrices : (N, 3, 3) array_like
+
+    Returns
+    -------
+    (N, 3) float64
+        ``s_max, s_mid, s_min`` per matrix; NaN rows for matrices with a NaN entry.
+    """
+    m = np.ascontiguousarray(matrices, dtype=np.float64).reshape(-1, 3, 3)
+    out = np.empty((len(m), 3))
+    if len(m):
+        _singular_values_rows(m, out)
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _tet_kernel(x, y, tets, rtol, want_cond, det, cond, rest_det, state):  # pragma: no cover
+    """Per tet: ``det F``, ``cond F``, ``det D_rest`` and a state code.
+
+    ``state``: 0 measured, 1 degenerate at rest, 2 a corner not finite (deformed).
+    """
+    for t in numba.prange(tets.shape[0]):
+        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        # rest edge matrix R = [x1 - x0 | x2 - x0 | x3 - x0] (columns)
+        r00, r10, r20 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
+        r01, r11, r21 = x[i2, 0] - x[i0, 0], x[i2, 1] - x[i0, 1], x[i2, 2] - x[i0, 2]
+        r02, r12, r22 = x[i3, 0] - x[i0, 0], x[i3, 1] - x[i0, 1], x[i3, 2] - x[i0, 2]
+        # cofactors of R (rows of adj(R)^T)
+        k00 = r11 * r22 - r12 * r21
+        k01 = r12 * r20 - r10 * r22
+        k02 = r10 * r21 - r11 * r20
+        k10 = r02 * r21 - r01 * r22
+        k11 = r00 * r22 - r02 * r20
+        k12 = r01 * r20 - r00 * r21
+        k20 = r01 * r12 - r02 * r11
+        k21 = r02 * r10 - r00 * r12
+        k22 = r00 * r11 - r01 * r10
+        dr = r00 * k00 + r01 * k01 + r02 * k02
+        rest_det[t] = dr
+        e0 = math.sqrt(r00 * r00 + r10 * r10 + r20 * r20)
+        e1 = math.sqrt(r01 * r01 + r11 * r11 + r21 * r21)
+        e2 = math.sqrt(r02 * r02 + r12 * r12 + r22 * r22)
+        edge = max(e0, max(e1, e2))
+        if not abs(dr) > rtol * edge * edge * edge:
+            det[t] = np.nan
+            cond[t] = np.nan
+            state[t] = 1
+            continue
+        # deformed edge matrix D
+        d00, d10, d20 = y[i1, 0] - y[i0, 0], y[i1, 1] - y[i0, 1], y[i1, 2] - y[i0, 2]
+        d01, d11, d21 = y[i2, 0] - y[i0, 0], y[i2, 1] - y[i0, 1], y[i2, 2] - y[i0, 2]
+        d02, d12, d22 = y[i3, 0] - y[i0, 0], y[i3, 1] - y[i0, 1], y[i3, 2] - y[i0, 2]
+        s = d00 + d10 + d20 + d01 + d11 + d21 + d02 + d12 + d22
+        if not math.isfinite(s):
+            det[t] = np.nan
+            cond[t] = np.nan
+            state[t] = 2
+            continue
+        # F = D R^-1, R^-1 = adj(R) / det R, adj(R)[i][j] = cofactor k_ji
+        inv = 1.0 / dr
+        f00 = (d00 * k00 + d01 * k01 + d02 * k02) * inv
+        f01 = (d00 * k10 + d01 * k11 + d02 * k12) * inv
+        f02 = (d00 * k20 + d01 * k21 + d02 * k22) * inv
+        f10 = (d10 * k00 + d11 * k01 + d12 * k02) * inv
+        f11 = (d10 * k10 + d11 * k11 + d12 * k12) * inv
+        f12 = (d10 * k20 + d11 * k21 + d12 * k22) * inv
+        f20 = (d20 * k00 + d21 * k01 + d22 * k02) * inv
+        f21 = (d20 * k10 + d21 * k11 + d22 * k12) * inv
+        f22 = (d20 * k20 + d21 * k21 + d22 * k22) * inv
+        # det F = det D / det R, from the deformed edges directly
+        dd = (
+            d00 * (d11 * d22 - d12 * d21)
+            - d01 * (d10 * d22 - d12 * d20)
+            + d02 * (d10 * d21 - d11 * d20)
+        )
+        det[t] = dd * inv
+        state[t] = 0
+        if want_cond:
+            s0, _, s2 = _jacobi_singular_values(f00, f01, f02, f10, f11, f12, f20, f21, f22)
+            cond[t] = s0 / s2 if s2 > 0.0 else np.inf
+        else:
+            cond[t] = np.nan
+
+
+@numba.njit(cache=True)
+def _reduce_cells(  # pragma: no cover - compiled
+    owner, det, cond, rest_det, state, n_cells, out_det, out_cond, flags
+):
+    """Smallest ``det`` and largest ``cond`` of each cell's measured tets (serial, O(T)).
+
+    ``flags``: bit 0 a tet of the cell is stored inverted at rest, bit 1 a tet of the cell
+    is degenerate at rest, bit 2 the cell has a measured tet.
+    """
+    for c in range(n_cells):
+        out_det[c] = np.inf
+        out_cond[c] = -np.inf
+        flags[c] = 0
+    for t in range(owner.shape[0]):
+        c = owner[t]
+        if rest_det[t] < 0.0:
+            flags[c] |= 1
+        if state[t] == 1:
+            flags[c] |= 2
+        elif state[t] == 0:
+            flags[c] |= 4
+            if det[t] < out_det[c]:
+                out_det[c] = det[t]
+            if cond[t] > out_cond[c]:
+                out_cond[c] = cond[t]
+    for c in range(n_cells):
+        if not flags[c] & 4:
+            out_det[c] = np.nan
+            out_cond[c] = np.nan
+
+
+def tetrahedron_measures(
+    rest_points, deformed_points, tets, owner=None, n_cells=None, *, condition=True
+) -> dict:
+    """Per-cell ``det F`` and ``cond F`` of a deformed mesh split into tetrahedra.
+
+    ``F = D_def D_rest^-1`` is the Jacobian of the affine map taking a rest tetrahedron
+    (edge matrix ``D_rest = [x1 - x0 | x2 - x0 | x3 - x0]``) onto its deformed one, so
+    ``det F`` is the volume ratio, whatever order the vertices are stored in.
+
+    Parameters
+    ----------
+    rest_points, deformed_points : (N, 3) array_like
+        Positions at rest and after the deformation (NaN rows: not mapped).
+    tets : (T, 4) array_like of int
+        Vertex indices, each in ``[0, N)`` (checked by the caller).
+    owner : (T,) array_like of int, optional
+        The cell each tet belongs to, in ``[0, n_cells)``; default: each tet is a cell.
+    n_cells : int, optional
+        Number of cells; default ``T`` (cells without tets get NaN).
+    condition : bool
+        Compute ``cond F`` (skipped work when False: NaN).
+
+    Returns
+    -------
+    dict
+        ``determinant`` (n_cells,): the smallest ``det F`` of the cell's tets;
+        ``condition_number`` (n_cells,): the largest ``s_max / s_min`` (inf for a
+        flattened tet); ``rest_inverted`` (n_cells, bool): a tet stored with negative
+        volume at rest; ``degenerate`` (n_cells, bool): a tet of the cell has no volume at
+        rest (:data:`DEGENERATE_RTOL`). Cells with no measured tet get NaN measures.
+    """
+    x = np.ascontiguousarray(rest_points, dtype=np.float64).reshape(-1, 3)
+    y = np.ascontiguousarray(deformed_points, dtype=np.float64).reshape(-1, 3)
+    t = np.ascontiguousarray(tets, dtype=np.int64).reshape(-1, 4)
+    n_tets = len(t)
+    own = (
+        np.arange(n_tets, dtype=np.int64)
+        if owner is None
+        else np.ascontiguousarray(owner, dtype=np.int64).reshape(-1)
+    )
+    n = n_tets if n_cells is None else int(n_cells)
+    det = np.empty(n_tets)
+    cond = np.empty(n_tets)
+    rest_det = np.empty(n_tets)
+    state = np.empty(n_tets, dtype=np.int8)
+    if n_tets:
+        _tet_kernel(x, y, t, DEGENERATE_RTOL, bool(condition), det, cond, rest_det, state)
+    out_det = np.empty(n)
+    out_cond = np.empty(n)
+    flags = np.empty(n, dtype=np.int8)
+    _reduce_cells(own, det, cond, rest_det, state, n, out_det, out_cond, flags)
+    if not condition:
+        out_cond[:] = np.nan
+    return {
+        "determinant": out_det,
+        "condition_number": out_cond,
+        "rest_inverted": (flags & 1).astype(bool),
+        "degenerate": (flags & 2).astype(bool),
+    }
+
+
+@numba.njit(cache=True, parallel=True)
+def _hex_kernel(p, rest_det, out):  # pragma: no cover - compiled
+    nz, ny, nx = p.shape[0] - 1, p.shape[1] - 1, p.shape[2] - 1
+    for k in numba.prange(nz):
+        for j in range(ny):
+            for i in range(nx):
+                low = np.inf
+                for c in range(2):
+                    for b in range(2):
+                        for a in range(2):
+                            ex0 = p[k + c, j + b, i + 1, 0] - p[k + c, j + b, i, 0]
+                            ex1 = p[k + c, j + b, i + 1, 1] - p[k + c, j + b, i, 1]
+                            ex2 = p[k + c, j + b, i + 1, 2] - p[k + c, j + b, i, 2]
+                            ey0 = p[k + c, j + 1, i + a, 0] - p[k + c, j, i + a, 0]
+                            ey1 = p[k + c, j + 1, i + a, 1] - p[k + c, j, i + a, 1]
+                            ey2 = p[k + c, j + 1, i + a, 2] - p[k + c, j, i + a, 2]
+                            ez0 = p[k + 1, j + b, i + a, 0] - p[k, j + b, i + a, 0]
+                            ez1 = p[k + 1, j + b, i + a, 1] - p[k, j + b, i + a, 1]
+                            ez2 = p[k + 1, j + b, i + a, 2] - p[k, j + b, i + a, 2]
+                            d = (
+                                ex0 * (ey1 * ez2 - ey2 * ez1)
+                                - ex1 * (ey0 * ez2 - ey2 * ez0)
+                                + ex2 * (ey0 * ez1 - ey1 * ez0)
+                            )
+                            if math.isnan(d):
+                                low = d
+                            elif d < low:
+                                low = d
+                out[k, j, i] = low / rest_det
+
+
+def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
+    """Smallest corner Jacobian determinant of each cell of a deformed voxel grid.
+
+    The grid's cell ``(i, j, k)`` is the trilinear image of a rest voxel; at each of its
+    eight corners the Jacobian of the trilinear map has the cell's three edges from that
+    corner (along i, j and k) as columns. Its determinant, divided by the rest voxel's
+    (``rest_det``), is the local volume ratio there; the cell is inverted where one is
+    ``<= 0``.
+
+    Parameters
+    ----------
+    points : (nx * ny * nz, 3) array_like
+        Deformed positions in VTK's point order (i fastest, then j, then k).
+    dimensions : (3,) int
+        Points along i, j and k (``nx, ny, nz``).
+    rest_det : float
+        ``det`` of the rest voxel's edge matrix: ``sx * sy * sz * det(direction)`` for an
+        image with spacing ``s`` and direction matrix ``direction``; not 0.
+
+    Returns
+    -------
+    ((nx - 1) * (ny - 1) * (nz - 1),) float64
+        Per cell in VTK's cell order; NaN where a corner is not finite.
+    """
+    nx, ny, nz = (int(d) for d in dimensions)
+    if not rest_det or not math.isfinite(rest_det):
+        raise ValueError(f"rest_det must be finite and non-zero; got {rest_det}")
+    p = np.asarray(points, dtype=np.float64).reshape(nz, ny, nx, 3)
+    cells = (max(nz - 1, 0), max(ny - 1, 0), max(nx - 1, 0))
+    out = np.empty(cells)
+    if out.size:
+        _hex_kernel(np.ascontiguousarray(p), float(rest_det), out)
+    return out.reshape(-1)
