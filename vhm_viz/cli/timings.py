@@ -1,0 +1,53 @@
+"""Where a command's time goes: the stage breakdown that ``--timings`` prints."""
+
+from __future__ import annotations
+
+import sys
+import time
+from contextlib import contextmanager
+
+__all__ = ["STAGES", "StageTimer"]
+
+#: The stages of a command, in the order they run.
+STAGES = ("read", "solve", "map", "checks", "write")
+
+
+class StageTimer:
+    """Wall-clock seconds per stage of one command, from its start.
+
+    Use :meth:`stage` around each stage's work; :meth:`line` gives the breakdown, with
+    the time outside every stage (start-up, imports, argument checks) as ``other``.
+    """
+
+    def __init__(self) -> None:
+        self.start = time.perf_counter()
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def stage(self, name: str):
+        """Add the time spent in the ``with`` block to stage ``name``."""
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+    @property
+    def total(self) -> float:
+        """Seconds since the timer was made."""
+        return time.perf_counter() - self.start
+
+    def line(self) -> str:
+        """``timings: read 0.12 s, solve 0.30 s, ..., other 0.05 s, total 1.79 s``."""
+        total = self.total
+        names = [s for s in STAGES if s in self.seconds]
+        names += sorted(set(self.seconds) - set(STAGES))
+        parts = [f"{n} {self.seconds[n]:.2f} s" for n in names]
+        other = max(0.0, total - sum(self.seconds.values()))
+        parts += [f"other {other:.2f} s", f"total {total:.2f} s"]
+        return "timings: " + ", ".join(parts)
+
+    def report(self, enabled: bool, stream=None) -> None:
+        """Print :meth:`line` as ``vhm-viz: timings: ...`` on ``stream`` (stderr) if enabled."""
+        if enabled:
+            print(f"vhm-viz: {self.line()}", file=stream or sys.stderr)
