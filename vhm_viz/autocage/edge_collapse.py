@@ -75,6 +75,7 @@ def _star(vf, cnt, u, v, fmark, token, out):
 
 @numba.njit(cache=True)
 def _cost(q, p):
+    """Quadric error ``[p, 1] @ q @ [p, 1]`` of position ``p``."""
     c = q[3, 3]
     for i in range(3):
         c += 2.0 * q[i, 3] * p[i]
@@ -85,6 +86,12 @@ def _cost(q, p):
 
 @numba.njit(cache=True)
 def _best_position(u, v, V, F, Q, vf, cnt, outside, fmark, token, star, nn, off):
+    """Cheapest allowed position of the collapsed edge ``(u, v)`` and its quadric error.
+
+    Candidates: both ends, the midpoint and the quadric optimum (when it lies near the
+    edge); with ``outside`` each is moved outside the planes around the edge or dropped.
+    Returns ``(inf, any point)`` when none is allowed.
+    """
     q = Q[u] + Q[v]
     a = q[:3, :3]
     det = (
