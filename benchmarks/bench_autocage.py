@@ -23,12 +23,17 @@ import sys
 import time
 
 import numpy as np
+import pyvista as pv
 from _common import data, print_table, summary
+from scipy.spatial import cKDTree
+
+from vhm_viz.autocage import auto_anchors, auto_cage, otsu_threshold
+from vhm_viz.core.basis import winding_number
+from vhm_viz.core.deformer import Deformer
+from vhm_viz.io import read_cage, read_dataset
 
 
 def load(path):
-    from vhm_viz.io import read_dataset
-
     return read_dataset(path)
 
 
@@ -66,23 +71,16 @@ MODELS = [
 
 def _points(dataset, kw) -> np.ndarray:
     """What the cage must enclose, computed here: every point, or every voxel above."""
-    from vhm_viz.autocage.cage import _otsu
-
     if isinstance(dataset, tuple):
         return dataset[0]
     pts = np.asarray(dataset.points, dtype=np.float64)
     if "threshold" in kw:
         vals = np.asarray(dataset.active_scalars)
-        pts = pts[vals > _otsu(vals)]
+        pts = pts[vals > otsu_threshold(vals)]
     return pts
 
 
 def cage_table(quick: bool, repeat: int) -> None:
-    from scipy.spatial import cKDTree
-
-    from vhm_viz.autocage import auto_anchors, auto_cage
-    from vhm_viz.core.basis import winding_number
-
     rows = []
     for name, kind, what, kw in MODELS:
         if quick and ("173k" in name or "0.5%" in name or "2%" in name):
@@ -151,13 +149,6 @@ def cage_table(quick: bool, repeat: int) -> None:
 
 
 def beast_quality() -> None:
-    import pyvista as pv
-
-    from vhm_viz.autocage import auto_cage
-    from vhm_viz.autocage.anchors import auto_anchors
-    from vhm_viz.core.deformer import Deformer
-    from vhm_viz.io import read_cage
-
     mesh = pv.read(data("beast", "beast.obj"))
     pts = np.asarray(mesh.points, dtype=np.float64)
     diag = float(np.linalg.norm(np.ptp(pts, axis=0)))

@@ -8,9 +8,10 @@ from conftest import box_cage, data_path
 
 pv = pytest.importorskip("pyvista")
 
-from vhm_viz.autocage.anchors import auto_anchors  # noqa: E402
+from vhm_viz.autocage import auto_anchors, auto_cage, otsu_threshold  # noqa: E402
 from vhm_viz.core.basis import winding_number  # noqa: E402
 from vhm_viz.core.cage import Cage  # noqa: E402
+from vhm_viz.io import read_cage  # noqa: E402
 
 
 def test_bar_anchors_lie_on_the_centre_line_and_are_spread():
@@ -31,8 +32,6 @@ def test_hand_anchors_inside_shape_and_cage():
     mesh = pv.read(data_path("hand", "hand.obj")).triangulate()
     v = np.asarray(mesh.points)
     f = np.asarray(mesh.faces).reshape(-1, 4)[:, 1:]
-    from vhm_viz.io import read_cage
-
     cage = read_cage(data_path("hand", "cage.obj"))
     anchors, report = auto_anchors(mesh, cage, 40, return_report=True)
     assert anchors.shape == (40, 3)
@@ -48,8 +47,6 @@ def test_hand_anchors_inside_shape_and_cage():
 
 @pytest.mark.data
 def test_volume_anchors_inside_the_thresholded_region():
-    from vhm_viz.autocage.cage import _otsu, auto_cage
-
     vol = pv.read(data_path("volumes", "headsq_64x64x93.vti"))
     cage = auto_cage(vol, threshold="otsu", max_faces=300)
     anchors = auto_anchors(vol, cage, 12, threshold="otsu")
@@ -58,7 +55,7 @@ def test_volume_anchors_inside_the_thresholded_region():
     # the image sample nearest to each anchor is in the region above the threshold
     nearest = vol.find_closest_point
     idx = np.array([nearest(a) for a in anchors])
-    assert (vals[idx] > _otsu(vals)).all()
+    assert (vals[idx] > otsu_threshold(vals)).all()
 
 
 def test_bad_counts_and_inputs():

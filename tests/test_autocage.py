@@ -10,12 +10,13 @@ from vhm_viz.autocage import voxel as vx
 from vhm_viz.autocage.meshcheck import edge_problems
 from vhm_viz.autocage.proximity import NearDistance, grid_signed_distance
 from vhm_viz.autocage.simplify import simplify
+from vhm_viz.autocage.voxel_surface import cage_surface, count_cage_faces, triangulate_polygon
 from vhm_viz.core.basis import winding_number
 from vhm_viz.core.geometry import signed_volume
 
 pv = pytest.importorskip("pyvista")
 
-from vhm_viz.autocage import auto_cage  # noqa: E402
+from vhm_viz.autocage import auto_anchors, auto_cage, otsu_threshold  # noqa: E402
 from vhm_viz.core.cage import Cage, validate_cage  # noqa: E402
 
 
@@ -30,25 +31,25 @@ def test_union_of_cubes_surface_is_a_closed_manifold_with_the_voxel_volume():
         assert (solid | occ).sum() == solid.sum()  # only adds voxels
         if not solid.any():
             continue
-        V, F = vx.cage_surface(solid)
+        V, F = cage_surface(solid)
         assert not any(edge_problems(F).values())
         # merged coplanar faces: exactly the union's volume, and fewer faces than squares
         assert signed_volume(V.astype(float), F) == pytest.approx(solid.sum(), abs=1e-9)
-        assert len(F) == vx.count_cage_faces(solid)
+        assert len(F) == count_cage_faces(solid)
         Cage(V.astype(float), F)  # full validation, self-intersection included
 
 
 def test_coplanar_merging_gives_a_box_12_triangles():
     occ = np.zeros((9, 9, 9), dtype=bool)
     occ[2:7, 2:6, 2:5] = True
-    V, F = vx.cage_surface(vx.make_well_composed(occ))
+    V, F = cage_surface(vx.make_well_composed(occ))
     assert len(F) == 12 and len(V) == 8
 
 
 def test_ear_clipping_keeps_collinear_vertices_and_never_degenerates():
     # an L shape with extra collinear points on its sides (T-junctions)
     uv = np.array([[0, 0], [1, 0], [2, 0], [3, 0], [3, 1], [1, 1], [1, 2], [1, 3], [0, 3], [0, 1]])
-    t = vx.triangulate_polygon(uv)
+    t = triangulate_polygon(uv)
     assert len(t) == len(uv) - 2
     p = uv[t]
     cross = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 1, 1] - p[:, 0, 1]) * (
@@ -74,12 +75,17 @@ def test_near_signed_distance_matches_brute_force():
     np.testing.assert_allclose(sd[near], ref[near], atol=1e-12)
 
 
-def test_simplify_keeps_a_closed_manifold_and_stays_outside():
-    sphere = pv.Sphere(radius=1.0, theta_resolution=20, phi_resolution=20).triangulate().clean()
+def _outward_sphere(resolution):
+    """A triangulated unit sphere, (vertices, faces) outward oriented."""
+    sphere = pv.Sphere(radius=1.0, theta_resolution=resolution, phi_resolution=resolution)
+    sphere = sphere.triangulate().clean()
     V = np.asarray(sphere.points, dtype=float)
     F = np.asarray(sphere.faces).reshape(-1, 4)[:, 1:]
-    if signed_volume(V, F) < 0:
-        F = F[:, ::-1]
+    return V, (F[:, ::-1] if signed_volume(V, F) < 0 else F)
+
+
+def test_simplify_keeps_a_closed_manifold_and_stays_outside():
+    V, F = _outward_sphere(20)
     V2, F2 = simplify(V, F, 100, outside=True)
     assert len(F2) <= 100
     assert not any(edge_problems(F2).values())
@@ -90,11 +96,7 @@ def test_simplify_keeps_a_closed_manifold_and_stays_outside():
 
 def test_compiled_simplify_matches_the_python_reference():
     # a bumpy sphere (no symmetric ties in the collapse order)
-    sphere = pv.Sphere(radius=1.0, theta_resolution=16, phi_resolution=16).triangulate().clean()
-    V = np.asarray(sphere.points, dtype=float)
-    F = np.asarray(sphere.faces).reshape(-1, 4)[:, 1:]
-    if signed_volume(V, F) < 0:
-        F = F[:, ::-1]
+    V, F = _outward_sphere(16)
     V = V * (1 + 0.1 * np.random.default_rng(5).random((len(V), 1)))
     a = simplify(V, F, 80)
     b = simplify(V, F, 80, backend="python")
@@ -112,6 +114,42 @@ def test_compiled_simplify_matches_the_python_reference():
         assert signed_volume(V2, F2) > 0
     with pytest.raises(ValueError, match="backend"):
         simplify(V, F, 80, backend="fortran")
+
+
+# ------------------------------------------------------------------ Otsu's threshold
+def _otsu_brute_force(values, bins=256):
+    """The split of the histogram with the largest between-class variance, split by split."""
+    hist, edges = np.histogram(values, bins=bins)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    best, best_edge = -1.0, None
+    for k in range(bins):
+        low, high = hist[: k + 1], hist[k + 1 :]
+        w0, w1 = low.sum(), high.sum()
+        if w0 == 0 or w1 == 0:
+            between = 0.0
+        else:
+            mu0 = (low * centres[: k + 1]).sum() / w0
+            mu1 = (high * centres[k + 1 :]).sum() / w1
+            between = w0 * w1 * (mu0 - mu1) ** 2
+        if between > best:
+            best, best_edge = between, edges[k + 1]
+    return float(best_edge)
+
+
+def test_otsu_threshold_maximises_the_between_class_variance():
+    rng = np.random.default_rng(3)
+    dark = rng.normal(20.0, 4.0, 5_000)
+    bright = rng.normal(70.0, 9.0, 2_000)
+    values = np.concatenate([dark, bright])
+    t = otsu_threshold(values)
+    assert t == pytest.approx(_otsu_brute_force(values), rel=1e-12)
+    # it separates the two populations
+    assert np.mean(dark > t) < 0.01 and np.mean(bright <= t) < 0.01
+    # non-finite samples are ignored, the shape of the array does not matter
+    noisy = np.concatenate([values, [np.nan, np.inf, -np.inf]]).reshape(-1, 1)
+    assert otsu_threshold(noisy) == t
+    skewed = rng.gamma(2.0, 3.0, 4_000).astype(np.float32)
+    assert otsu_threshold(skewed) == pytest.approx(_otsu_brute_force(skewed), rel=1e-6)
 
 
 # ------------------------------------------------------------------ models
@@ -180,9 +218,7 @@ def test_volume_threshold_region_and_bounding_box():
     vol = pv.read(data_path("volumes", "headsq_64x64x93.vti"))
     cage, report = auto_cage(vol, threshold="otsu", max_faces=400, return_report=True)
     vals = np.asarray(vol.active_scalars)
-    from vhm_viz.autocage.cage import _otsu
-
-    region = np.asarray(vol.points)[vals > _otsu(vals)]
+    region = np.asarray(vol.points)[vals > otsu_threshold(vals)]
     _check(cage, report, region, 400)
     box = auto_cage(vol)
     assert box.n_faces == 12
@@ -254,7 +290,6 @@ def test_two_bars_are_not_bridged(bars_cage):
 
 def test_moving_one_bar_barely_moves_the_other(bars_cage):
     deformer = pytest.importorskip("vhm_viz.core.deformer")
-    from vhm_viz.autocage.anchors import auto_anchors
 
     v, f, gap, (cage, _) = bars_cage
     diag = float(np.linalg.norm(np.ptp(v, axis=0)))

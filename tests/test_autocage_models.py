@@ -16,11 +16,14 @@ from scipy.spatial import cKDTree
 
 pv = pytest.importorskip("pyvista")
 
-from vhm_viz.autocage import auto_anchors, auto_cage  # noqa: E402
-from vhm_viz.autocage.cage import _otsu  # noqa: E402
-from vhm_viz.core.basis import winding_number  # noqa: E402
+from vhm_viz.app.controller import ExplorerController  # noqa: E402
+from vhm_viz.autocage import auto_anchors, auto_cage, otsu_threshold  # noqa: E402
+from vhm_viz.cli import main  # noqa: E402
+from vhm_viz.core.basis import domain_columns, winding_number  # noqa: E402
 from vhm_viz.core.cage import validate_cage  # noqa: E402
-from vhm_viz.io import read_dataset  # noqa: E402
+from vhm_viz.core.deformer import Deformer  # noqa: E402
+from vhm_viz.core.errors import CageError  # noqa: E402
+from vhm_viz.io import read_cage, read_dataset  # noqa: E402
 
 pytestmark = pytest.mark.data
 
@@ -49,7 +52,7 @@ def _points(data, kw) -> np.ndarray:
     pts = np.asarray(data.points, dtype=np.float64)
     if "threshold" in kw:
         vals = np.asarray(data.active_scalars)
-        pts = pts[vals > _otsu(vals)]
+        pts = pts[vals > otsu_threshold(vals)]
     return pts
 
 
@@ -95,13 +98,11 @@ def test_24_anchors_cover_the_shape(name, setups):
     if "threshold" in kw:  # in the region: the nearest voxel is above the threshold
         vals = np.asarray(data.active_scalars)
         near = cKDTree(np.asarray(data.points)).query(anchors)[1]
-        assert (vals[near] > _otsu(vals)).all()
+        assert (vals[near] > otsu_threshold(vals)).all()
 
 
 @pytest.mark.parametrize("name", TET_MESHES)
 def test_tet_mesh_default_pipeline_deforms_every_point(name, setups):
-    from vhm_viz.core.deformer import Deformer
-
     data, _, cage, anchors = setups(name)
     pts = np.asarray(data.points, dtype=np.float64)
     diag = float(np.linalg.norm(np.ptp(pts, axis=0)))
@@ -120,24 +121,20 @@ def test_tet_mesh_default_pipeline_deforms_every_point(name, setups):
 
 def test_cli_otsu_cage_of_a_volume_is_accepted_by_the_explorer(tmp_path):
     """The CLI, the explorer and Python agree on which voxels the Otsu cage encloses."""
-    from vhm_viz.app.controller import ExplorerController
-    from vhm_viz.cli import main
-    from vhm_viz.io import read_cage
-
     path = data_path("volumes", "headsq_64x64x93.vti")
     out = tmp_path / "ct_otsu.obj"
     assert main(["cage", str(path), "-o", str(out), "--threshold", "otsu", "-q"]) == 0
     cage = read_cage(out)
     data = read_dataset(path)
     vals = np.asarray(data.active_scalars)
-    region = vals > _otsu(vals)
+    region = vals > otsu_threshold(vals)
     assert cage.contains(np.asarray(data.points)[region]).all()  # Python: every voxel above
 
     ctrl = ExplorerController()
     ctrl.load_file(path)
-    ctrl.load_cage(out)  # raised "does not enclose the shape" before
+    ctrl.load_cage(out)  # the explorer finds its shape enclosed by the CLI's Otsu cage
     assert ctrl.cage is not None and ctrl.threshold is not None
-    assert ctrl.threshold <= _otsu(vals)  # it encloses at least the Otsu region
+    assert ctrl.threshold <= otsu_threshold(vals)  # it encloses at least the Otsu region
     assert any("voxels above" in n for n in ctrl.notes)
     # asked for the Otsu region explicitly, the explorer accepts it too
     ctrl2 = ExplorerController()
@@ -148,16 +145,12 @@ def test_cli_otsu_cage_of_a_volume_is_accepted_by_the_explorer(tmp_path):
     ctrl3 = ExplorerController()
     ctrl3.load_file(path)
     ctrl3.threshold = float(vals.min()) - 1.0  # every voxel
-    from vhm_viz.core.errors import CageError
-
     with pytest.raises(CageError, match="region above"):
         ctrl3.load_cage(out)
 
 
 def test_a_volume_shell_nobody_constrains_stays_put():
     """The CT head above 500 has a one-voxel speck: its shell is pinned, not singular."""
-    from vhm_viz.core.deformer import Deformer
-
     data = read_dataset(data_path("volumes", "headsq_64x64x93.vti"))
     cage, report = auto_cage(data, threshold=500, return_report=True)
     assert report.n_components >= 2
@@ -174,8 +167,6 @@ def test_a_volume_shell_nobody_constrains_stays_put():
     out = deformer.bind(pts).deform()
     assert np.isfinite(out).all()
     # the points of pinned shells do not move
-    from vhm_viz.core.basis import domain_columns
-
     n = len(cage.vertices)
     cols = domain_columns(cage.vertices, cage.faces)
     for k in deformer.pinned_shells:

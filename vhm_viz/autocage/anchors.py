@@ -34,8 +34,11 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from vhm_viz import io
 from vhm_viz.autocage import voxel as vx
-from vhm_viz.autocage.cage import _point_spacing, collect_samples
+from vhm_viz.autocage.samples import collect_samples, point_spacing
+from vhm_viz.core.basis import domain_columns, inside_cage, winding_number
+from vhm_viz.core.cage import Cage
 
 __all__ = ["auto_anchors", "AnchorReport"]
 
@@ -116,9 +119,7 @@ def _medial(depth: np.ndarray, interior: np.ndarray) -> np.ndarray:
 
 
 def _as_cage(cage):
-    from vhm_viz import io
-    from vhm_viz.core.cage import Cage
-
+    """The cage argument of :func:`auto_anchors` as a :class:`vhm_viz.Cage`."""
     if isinstance(cage, Cage):
         return cage
     if isinstance(cage, (str, os.PathLike)):
@@ -132,32 +133,22 @@ def _as_cage(cage):
 
 def _shape_voxels(samples, grid):
     """(inside, surface) voxel masks of the shape on ``grid``."""
-    h = grid.h
     pts = samples.points
     if samples.kind == "volume-box":
         inside = np.zeros(grid.shape, dtype=bool)
         i0, i1 = grid.voxel_of(pts.min(axis=0)[None])[0], grid.voxel_of(pts.max(axis=0)[None])[0]
         inside[i0[0] : i1[0] + 1, i0[1] : i1[1] + 1, i0[2] : i1[2] + 1] = True
         return inside, inside & ~ndimage.binary_erosion(inside)
-    allp = [pts]
-    if samples.tri_faces is not None and len(samples.tri_faces):
-        allp.append(vx.sample_triangles(samples.tri_vertices, samples.tri_faces, 0.5 * h))
-    surface = vx.splat(grid, np.concatenate(allp))
-    if samples.spacing is not None:
-        factor = 1 if samples.kind == "volume" else 2
-        surface = vx.close_shell(surface, int(np.ceil(factor * samples.spacing / h)) - 1)
+    surface = samples.voxelise(grid, closing=1.0 if samples.kind == "volume" else 2.0)
     if samples.kind == "volume":
         # the region itself is the shape (cavities below the threshold stay out)
         return surface, surface & ~ndimage.binary_erosion(surface)
-    inside = ndimage.binary_fill_holes(vx.grow(surface, 1.0))
-    inside = ndimage.binary_erosion(inside, structure=np.ones((3, 3, 3), bool)) | surface
+    inside = vx.fill_inside(surface)
     return inside, surface
 
 
 def _shell_of(cage, points: np.ndarray) -> np.ndarray:
     """Index of the cage shell (domain) holding each point; -1 outside the cage."""
-    from vhm_viz.core.basis import domain_columns, inside_cage, winding_number
-
     V, F = np.asarray(cage.vertices), np.asarray(cage.faces)
     out = np.full(len(points), -1, dtype=np.int64)
     n = len(V)
@@ -337,8 +328,6 @@ def _inside_shape(samples, points: np.ndarray) -> np.ndarray:
     """Exact check that points lie inside the input's surface (surfaces, tet meshes)."""
     if samples.tri_faces is None or not len(samples.tri_faces) or not len(points):
         return np.ones(len(points), dtype=bool)
-    from vhm_viz.core.basis import winding_number
-
     # inconsistently oriented inputs give -1 inside: only the magnitude is trusted
     return np.abs(winding_number(points, samples.tri_vertices, samples.tri_faces)) > 0.5
 
@@ -401,7 +390,7 @@ def auto_anchors(
     if r < 4:
         raise ValueError(f"auto_anchors: resolution must be >= 4, got {r}")
     if samples.kind == "points" and samples.spacing is None:
-        samples.spacing = _point_spacing(pts)
+        samples.spacing = point_spacing(pts)
     grid = vx.make_grid(lo, hi, r, 2)
     inside, surface = _shape_voxels(samples, grid)
     depth = ndimage.distance_transform_edt(inside)  # voxels to the nearest outside centre
@@ -411,11 +400,11 @@ def auto_anchors(
     # (a voxel or two of a volume) its voxels. So thin limbs and small parts can hold
     # anchors too.
     pieces, n_pieces = ndimage.label(inside, structure=np.ones((3, 3, 3), dtype=bool))
-    interior = inside & ~vx._cube_dilate(surface, 1)
+    interior = inside & ~vx.cube_dilate(surface, 1)
     loose = inside & ~surface
     held = np.zeros(n_pieces + 1, dtype=bool)
     held[np.unique(pieces[loose])] = True
-    cand_mask = interior | (loose & ~vx._cube_dilate(interior, 2)) | (inside & ~held[pieces])
+    cand_mask = interior | (loose & ~vx.cube_dilate(interior, 2)) | (inside & ~held[pieces])
     cand = np.argwhere(cand_mask)
     if len(cand) == 0:
         raise ValueError(

@@ -22,11 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from vhm_viz.autocage import voxel as vx
+from vhm_viz.autocage.mesh import edge_components
 
 __all__ = ["ShapeSamples", "shape_samples", "group_parts", "gap_to_other_groups"]
 
@@ -55,8 +54,8 @@ class ShapeSamples:
 
 
 def _components(n: int, edges: np.ndarray) -> np.ndarray:
-    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    return csgraph.connected_components(graph, directed=False)[1]
+    """Connected component of each of ``n`` vertices joined by ``edges``."""
+    return edge_components(n, edges)[1]
 
 
 def _compact_labels(labels: np.ndarray) -> tuple[np.ndarray, int]:

@@ -12,7 +12,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vhm_viz.core.geometry import closest_points_on_triangles
+from vhm_viz.core.geometry import closest_point_on_triangle, closest_points_on_triangles
 
 __all__ = ["NearDistance", "near_signed_distance"]
 
@@ -184,50 +184,11 @@ def _grid_query(P, V, F, fn, en, vn, start, faces_in_cell, origin, cs, dims, rad
         breg = 0
         for s in range(start[c], start[c + 1]):
             f = faces_in_cell[s]
-            a0, a1, a2 = V[F[f, 0], 0], V[F[f, 0], 1], V[F[f, 0], 2]
-            b0, b1, b2 = V[F[f, 1], 0], V[F[f, 1], 1], V[F[f, 1], 2]
-            c0, c1, c2 = V[F[f, 2], 0], V[F[f, 2], 1], V[F[f, 2], 2]
-            ab0, ab1, ab2 = b0 - a0, b1 - a1, b2 - a2
-            ac0, ac1, ac2 = c0 - a0, c1 - a1, c2 - a2
-            ap0, ap1, ap2 = px - a0, py - a1, pz - a2
-            d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
-            d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
-            reg = 0
-            if d1 <= 0 and d2 <= 0:
-                q0, q1, q2, reg = a0, a1, a2, 4
-            else:
-                bp0, bp1, bp2 = px - b0, py - b1, pz - b2
-                d3 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2
-                d4 = ac0 * bp0 + ac1 * bp1 + ac2 * bp2
-                vc = d1 * d4 - d3 * d2
-                cp0, cp1, cp2 = px - c0, py - c1, pz - c2
-                d5 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2
-                d6 = ac0 * cp0 + ac1 * cp1 + ac2 * cp2
-                vb = d5 * d2 - d1 * d6
-                va = d3 * d6 - d5 * d4
-                if d3 >= 0 and d4 <= d3:
-                    q0, q1, q2, reg = b0, b1, b2, 5
-                elif vc <= 0 and d1 >= 0 and d3 <= 0:
-                    t = d1 / (d1 - d3)
-                    q0, q1, q2, reg = a0 + t * ab0, a1 + t * ab1, a2 + t * ab2, 1
-                elif d6 >= 0 and d5 <= d6:
-                    q0, q1, q2, reg = c0, c1, c2, 6
-                elif vb <= 0 and d2 >= 0 and d6 <= 0:
-                    t = d2 / (d2 - d6)
-                    q0, q1, q2, reg = a0 + t * ac0, a1 + t * ac1, a2 + t * ac2, 3
-                elif va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
-                    t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-                    q0 = b0 + t * (c0 - b0)
-                    q1 = b1 + t * (c1 - b1)
-                    q2 = b2 + t * (c2 - b2)
-                    reg = 2
-                else:
-                    den = 1.0 / (va + vb + vc)
-                    v = vb * den
-                    w = vc * den
-                    q0 = a0 + ab0 * v + ac0 * w
-                    q1 = a1 + ab1 * v + ac1 * w
-                    q2 = a2 + ab2 * v + ac2 * w
+            va, vb, vc = F[f, 0], F[f, 1], F[f, 2]
+            q0, q1, q2, reg = closest_point_on_triangle(
+                px, py, pz, V[va, 0], V[va, 1], V[va, 2],
+                V[vb, 0], V[vb, 1], V[vb, 2], V[vc, 0], V[vc, 1], V[vc, 2],
+            )  # fmt: skip
             dd = (px - q0) ** 2 + (py - q1) ** 2 + (pz - q2) ** 2
             if dd < best:
                 best = dd

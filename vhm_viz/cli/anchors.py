@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+from vhm_viz.cli._dataset_input import add_dataset_argument, add_threshold_argument, threshold_of
 from vhm_viz.cli._util import check_input, check_output
+from vhm_viz.io import CAGE_SUFFIXES, read_cage, read_dataset, write_anchors
 
 
 def add_parser(subparsers) -> None:
@@ -17,7 +19,7 @@ def add_parser(subparsers) -> None:
         "of INPUT, strictly inside INPUT and CAGE, and write them as JSON: "
         '{"anchors": [[x, y, z], ...], "count": d, "min_pairwise_distance": ...}.',
     )
-    p.add_argument("input", metavar="INPUT", help="dataset (any PyVista format, .mesh, .npy)")
+    add_dataset_argument(p)
     p.add_argument("--cage", "-c", required=True, metavar="CAGE", help="cage file (OBJ, ...)")
     p.add_argument("-o", "--output", required=True, metavar="ANCHORS.json", help="output JSON")
     p.add_argument(
@@ -31,37 +33,25 @@ def add_parser(subparsers) -> None:
         help="voxels along the longest side of the grid the medial axis is computed on "
         "(default: 96; volumes: one per image sample, at most 96)",
     )
-    p.add_argument(
-        "--threshold",
-        default=None,
-        metavar="VALUE",
-        help="volumes: place anchors in the region above this value, in the units of the data "
-        "('otsu' picks one) (default: the whole volume)",
-    )
+    add_threshold_argument(p, "place anchors in the region", "the whole volume")
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``anchors``; returns the exit status."""
+    # loaded when the command runs, so that the other commands start without it
     from vhm_viz.autocage import auto_anchors
-    from vhm_viz.io import CAGE_SUFFIXES, read_cage, read_dataset, write_anchors
 
     src = check_input(args.input)
     cage_path = check_input(args.cage, CAGE_SUFFIXES)
     dst = check_output(args.output, (".json",), inputs=[src, cage_path])
-    threshold = args.threshold
-    if threshold is not None and threshold.lower() != "otsu":
-        try:
-            threshold = float(threshold)
-        except ValueError as exc:
-            raise ValueError(f"--threshold must be a number or 'otsu', got {threshold!r}") from exc
     anchors, report = auto_anchors(
         read_dataset(src),
         read_cage(cage_path),
         args.count,
         resolution=args.resolution,
-        threshold=threshold,
+        threshold=threshold_of(args),
         return_report=True,
     )
     write_anchors(

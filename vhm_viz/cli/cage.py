@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+from vhm_viz.cli._dataset_input import add_dataset_argument, add_threshold_argument, threshold_of
 from vhm_viz.cli._util import check_input, check_output
+from vhm_viz.io import read_dataset, write_cage
 
 
 def add_parser(subparsers) -> None:
@@ -17,7 +19,7 @@ def add_parser(subparsers) -> None:
         "mesh or volume) and follows its shape, with at most --max-faces triangles; write "
         "it as OBJ. Prints the face count, clearance and enclosure check.",
     )
-    p.add_argument("input", metavar="INPUT", help="dataset (any PyVista format, .mesh, .npy)")
+    add_dataset_argument(p)
     p.add_argument("-o", "--output", required=True, metavar="CAGE.obj", help="output OBJ")
     p.add_argument(
         "--max-faces",
@@ -50,37 +52,25 @@ def add_parser(subparsers) -> None:
         help="offset: a surface at the clearance, simplified; voxel: boxes of voxels; auto: "
         "offset, retried at 2 and 4 times the clearance, then voxel (default: auto)",
     )
-    p.add_argument(
-        "--threshold",
-        default=None,
-        metavar="VALUE",
-        help="volumes: enclose the region above this value, in the units of the data "
-        "('otsu' picks one) (default: the volume's bounding box)",
-    )
+    add_threshold_argument(p, "enclose the region", "the volume's bounding box")
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cage``; returns the exit status."""
+    # loaded when the command runs, so that the other commands start without it
     from vhm_viz.autocage import auto_cage
-    from vhm_viz.io import read_dataset, write_cage
 
     src = check_input(args.input)
     dst = check_output(args.output, (".obj",), inputs=[src])
-    threshold = args.threshold
-    if threshold is not None and threshold.lower() != "otsu":
-        try:
-            threshold = float(threshold)
-        except ValueError as exc:
-            raise ValueError(f"--threshold must be a number or 'otsu', got {threshold!r}") from exc
     cage, report = auto_cage(
         read_dataset(src),
         offset=args.offset,
         max_faces=args.max_faces,
         resolution=args.resolution,
         method=args.method,
-        threshold=threshold,
+        threshold=threshold_of(args),
         return_report=True,
     )
     write_cage(dst, cage, comment=f"vhm-viz cage of {src.name}\n{report}")
