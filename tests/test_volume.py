@@ -241,9 +241,8 @@ def test_lattice_finds_the_points_next_to_cage_edges():
 
 def test_preimages_next_to_a_cage_edge_solve_the_exact_map():
     """Pre-images next to a cage edge come from Newton's method on the exact map: there
-    no cubic between voxels follows the map's logarithmic singularity (the CT head had
-    pre-image errors up to 0.094 voxel within 0.26 voxel of an edge; here up to 0.21)."""
-
+    no cubic between voxels follows the map's logarithmic singularity, whose pre-image
+    errors there can exceed the tolerance."""
     geo, cage = _turned_box()
     hm = _random_bend(cage, 0.01, seed=1)
     vol = VolumeDeformation(hm, geo, tolerance=0.05, outside="passthrough")
@@ -637,7 +636,6 @@ def test_slice_is_the_plane_of_the_resampled_volume(bend):
 
 def test_surface_mask_catches_every_cube_the_cage_crosses():
     """Cubes whose corners agree and touch no marked point are entirely on one side."""
-
     cage = read_cage(data_path("armadillo", "cage_216f.obj"))
     lo, hi = cage.vertices.min(0), cage.vertices.max(0)
     sp = (hi - lo).max() / np.array([40.0, 47.0, 43.0])
@@ -678,7 +676,6 @@ def test_surface_mask_catches_every_cube_the_cage_crosses():
 
 def test_fast_jacobian_measures_equal_the_svd_ones(bend):
     """Closed-form singular values and Higham's polar iteration against numpy's SVD."""
-
     geo, cage, hm, vol = bend
     box = (10, 50, 5, 45, 8, 40)
     got = vol.jacobian_measures(box)
@@ -726,7 +723,6 @@ def test_cubic_sampling_reproduces_quadratics():
 
 def test_vtk_filters_two_pieces_equal_one_on_the_lattice():
     """Warp and resample filters on a volume large enough for the lattice (not exact)."""
-
     img = pv.ImageData(dimensions=(44, 40, 36), spacing=(1.0, 1.0, 1.2))
     rng = np.random.default_rng(7)
     img.point_data["v"] = rng.integers(0, 200, img.n_points).astype(np.uint8)
@@ -766,7 +762,6 @@ def test_a_lattice_for_the_voxels_only_gives_them_the_same_values():
     twists and the leaves' pre-image summaries: the voxels' positions and Jacobians stay
     those of the full lattice, bit for bit; what needs the polynomial between voxels is
     refused."""
-
     cage = read_cage(data_path("armadillo", "cage_216f.obj"))
     lo, hi = cage.vertices.min(0), cage.vertices.max(0)
     geo = ImageGeometry(lo + 0.1 * (hi - lo), 0.8 * (hi - lo) / 47.0, (48, 48, 48))
@@ -933,7 +928,6 @@ def test_lattice_masks_made_by_planes_equal_one_call():
     """A lattice's masks are made 16 k-planes at a time (memory), over the lattice rows of
     its window's root cells only: the same as one call over those rows, with False
     outside them."""
-
     cage = _cage_around((2.0, 3.0, 1.0), (27.0, 24.0, 44.0), 0.0)
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (30, 28, 50))
     hm = HarmonicMap.affine(cage, np.eye(3), np.zeros(3))
@@ -962,7 +956,6 @@ def test_cut_flags_cover_every_cube_the_pull_back_reads_and_equal_the_masks():
     of the leaves the cage crosses; they are kept in blocks (cut_flags). Computed from
     the cage (a joined lattice has no masks) they equal the masks in every kept block; every
     cube a cut leaf's pre-image can lie in is kept; and the blocks answer as the masks do."""
-
     geo, cage = _turned_box()
     hm = _random_bend(cage, 0.03, seed=5)
     lat = build_lattice(hm, geo)
@@ -1012,7 +1005,6 @@ def test_cut_flags_cover_every_cube_the_pull_back_reads_and_equal_the_masks():
 def test_node_data_made_in_chunks_equals_one_pass(monkeypatch):
     """The twists of a level are made in chunks of nodes (the build's peak memory): with
     chunks of 7 nodes the lattice is bit for bit the one-chunk lattice."""
-
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (30, 28, 40))
     hm = _random_bend(_cage_around((0, 0, 0), (29, 27, 46.8), 0.03), 0.02, seed=4)
     monkeypatch.setattr(nodes, "LEVEL_CHUNK", 10**9)
@@ -1035,7 +1027,6 @@ def test_finest_level_is_made_from_the_nodes_it_reads_only(monkeypatch):
     """Before the finest level's node data the table keeps the nodes that data reads
     (the build's peak memory): the lattice is bit for bit the one made from the whole
     table, with and without twists, and the table did shrink."""
-
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (30, 28, 40))
     hm = _random_bend(_cage_around((0, 0, 0), (29, 27, 46.8), 0.03), 0.02, seed=4)
     keep = NodeTable.keep
@@ -1063,7 +1054,6 @@ def test_node_table_merges_new_nodes_in_place_in_key_order():
     memory): the same table as concatenating and sorting by key, for sorted and unsorted
     batches, an empty one, and keys before, between and after the old ones; an array
     held elsewhere too is copied, not resized under its other holder."""
-
     rng = np.random.default_rng(7)
     table = NodeTable((40, 40, 40))
     pool = rng.permutation(64000)
@@ -1350,7 +1340,6 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
     they agree on the output grid from their bounds, and each output piece is resampled
     with the leaves (from every window) whose images reach it -- bit for bit the whole
     lattice's result, with an input window that holds the one the whole lattice names."""
-
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
     hm = _random_bend(_cage_around((0, 0, 0), (43, 39, 82.8), 0.03), 0.02, seed=2)
     whole = VolumeDeformation(hm, geo, outside="passthrough")
@@ -1470,7 +1459,6 @@ def test_layer_shares_split_the_voxels_inside_the_cage_evenly():
 
 def test_equal_cuts_are_the_nearest_boundaries_to_equal_shares():
     """Against brute force: each cut is an item boundary nearest its share of the total."""
-
     rng = np.random.default_rng(7)
     for n, parts in ((1, 2), (5, 2), (40, 3), (200, 7), (3, 5)):
         weight = rng.exponential(size=n) * (rng.random(n) < 0.8)
@@ -1489,7 +1477,6 @@ def test_pull_back_pairs_count_every_voxels_candidate_leaves(bend):
     volume incremented over every leaf's candidate box; leaves split among callers add up,
     and the shares cut from them are equal shares of that work. With the leaves' spans,
     the cuts give the smallest largest share of work or of leaves (brute force)."""
-
     geo, _, _, vol = bend
     out = vol.output_geometry()
     lo, hi = vol.lattice.candidate_boxes(out)
@@ -1555,7 +1542,6 @@ def test_pull_back_pairs_count_every_voxels_candidate_leaves(bend):
 def test_resampling_boxes_into_one_set_of_arrays_equals_resampling_it_whole(bend):
     """``out``: runs of planes resampled into views of one piece's arrays fill them as
     resampling the piece does; arrays that do not fit are refused."""
-
     geo, _, _, vol = bend
     values = np.asarray(_smooth_volume(geo.dimensions, geo.spacing, geo.origin)["density"])
     labels = (np.arange(geo.n_points) % 7).astype(np.int16)
