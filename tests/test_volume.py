@@ -25,6 +25,7 @@ from scipy.optimize import root as find_root  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 from vtkmodules.vtkIOXML import vtkXMLImageDataReader  # noqa: E402
 
+import vhm_viz.core.lattice as lattice_package  # noqa: E402
 from vhm_viz import Cage, HarmonicMap, read_cage  # noqa: E402
 from vhm_viz.cli import main  # noqa: E402
 from vhm_viz.core.basis import inside_cage, winding_number  # noqa: E402
@@ -36,8 +37,10 @@ from vhm_viz.core.lattice.pullback import inside_around  # noqa: E402
 from vhm_viz.core.memory import take_in_place  # noqa: E402
 from vhm_viz.core.metrics import jacobian_measures  # noqa: E402
 from vhm_viz.core.volume import (  # noqa: E402
+    DEFAULT_TOLERANCE,
     Resampled,
     VolumeDeformation,
+    check_tolerance,
     equal_cuts,
     exact_preimages,
     fast_jacobian_measures,
@@ -154,6 +157,23 @@ def _near_cage_voxels(geo, cage, count, rng):
     band = inside & ~binary_erosion(inside, iterations=2, border_value=0)
     ijk = np.argwhere(band)[:, ::-1]
     return ijk[rng.choice(len(ijk), min(count, len(ijk)), replace=False)]
+
+
+def test_tolerance_has_one_default_and_is_refused_unless_positive():
+    """The volume tolerance's one default; the engine and the lattice builder refuse a
+    tolerance that is not a positive number of voxels, before any work."""
+    assert lattice_package.DEFAULT_TOLERANCE is DEFAULT_TOLERANCE
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (6, 6, 6))
+    hm = HarmonicMap.identity(_cage_around((0, 0, 0), (5, 5, 5), 0.1, divisions=1))
+    assert VolumeDeformation(hm, geo).tolerance == DEFAULT_TOLERANCE
+    assert VolumeDeformation(hm, geo, tolerance=1).tolerance == 1.0
+    for bad in (0.0, -0.05, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="positive number of voxels"):
+            VolumeDeformation(hm, geo, tolerance=bad)
+        with pytest.raises(ValueError, match="positive number of voxels"):
+            build_lattice(hm, geo, tolerance=bad)
+        with pytest.raises(ValueError, match="positive number of voxels"):
+            check_tolerance(bad)
 
 
 def test_warp_matches_exact_map_within_tolerance(bend):
@@ -1360,6 +1380,8 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
     assert any_outside == (not whole.lattice.inside([0, 43, 0, 39, 0, 69]).all())
     joined_geo = output_grid(geo, lo, hi, tolerance=whole.tolerance, keep_input=any_outside)
     assert joined_geo.key() == out_geo.key()
+    # (an engine's own grid over the bounds: with its tolerance)
+    assert windows[0].grid_over(lo, hi, keep_input=any_outside).key() == out_geo.key()
     table = np.concatenate([w.reach_table(out_geo) for w in windows])
     n = out_geo.dimensions
     # pieces across the windows' split (along j), so that each takes leaves from both
@@ -1374,12 +1396,17 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
             parts.append(w.lattice.part(hit))
             sources.append(len(hit))
         assert min(sources) > 0
-        lat = join_parts(parts, hm, geo, tolerance=whole.tolerance, root=whole.root)
+        if piece is pieces[0]:
+            lat = join_parts(parts, hm, geo, tolerance=whole.tolerance, root=whole.root)
+            engine = VolumeDeformation.for_piece(
+                hm, geo, lat, out_geo, piece, any_outside=any_outside,
+                tolerance=whole.tolerance, outside="passthrough",
+            )  # fmt: skip
+        else:  # the same through a window engine, with its own map, tolerance and policy
+            lat = windows[1].join_parts(parts)
+            engine = windows[1].piece_engine(lat, out_geo, piece, any_outside=any_outside)
+            assert (engine.tolerance, engine.outside) == (whole.tolerance, "passthrough")
         assert lat.stats["leaves"] < whole.lattice.stats["leaves"]
-        engine = VolumeDeformation.for_piece(
-            hm, geo, lat, out_geo, piece, any_outside=any_outside,
-            tolerance=whole.tolerance, outside="passthrough",
-        )  # fmt: skip
         got = engine.resample({"v": values}, out_geo, box=piece)
         ref = whole.resample({"v": values}, out_geo, box=piece)
         assert ref.counts["valid"] > 0.3 * geo.n_points / 2

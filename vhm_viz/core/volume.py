@@ -91,6 +91,7 @@ __all__ = [
     "exact_preimages",
     "fast_jacobian_measures",
     "DEFAULT_TOLERANCE",
+    "check_tolerance",
     "EXACT_VOXELS",
     "INTERPOLATIONS",
 ]
