@@ -28,8 +28,8 @@ Voxels outside the cage follow the outside policy (:data:`~vhm_viz.core.binding.
 Output voxels without a pre-image get the fill value and 0 in ``vtkValidPointMask``.
 
 The engine's parts live beside it: the lattice (:mod:`vhm_viz.core.lattice`), the
-per-voxel kernels (:mod:`vhm_viz.core.volume_kernels`), where the leaves reach (output
-grid, candidate boxes, input windows: :mod:`vhm_viz.core.volume_reach`), the pre-images
+per-voxel kernels (:mod:`vhm_viz.core.volume_kernels`), where the leaves reach and the
+engines of output pieces (:mod:`vhm_viz.core.volume_pieces`), the pre-images
 found besides the lattice's (:mod:`vhm_viz.core.preimages`) and the cutting of the work
 into MPI ranks' shares (:mod:`vhm_viz.core.partition`); their public names are importable
 from here too.
@@ -51,7 +51,6 @@ from vhm_viz.core.lattice import (
     HermiteLattice,
     build_lattice,
     check_tolerance,
-    join_parts,
 )
 from vhm_viz.core.memory import release_free_memory
 from vhm_viz.core.partition import (
@@ -77,7 +76,7 @@ from vhm_viz.core.volume_kernels import (
     scaled_progress,
     slabs_of,
 )
-from vhm_viz.core.volume_reach import LeafReach, output_grid
+from vhm_viz.core.volume_pieces import VolumePieces, output_grid
 
 __all__ = [
     "VolumeDeformation",
@@ -139,7 +138,7 @@ def _check_abort(abort) -> None:
         raise AbortedError("aborted")
 
 
-class VolumeDeformation(LeafReach):
+class VolumeDeformation(VolumePieces):
     """A harmonic map applied to the voxels of an image grid.
 
     Parameters
@@ -466,50 +465,6 @@ class VolumeDeformation(LeafReach):
             "rotation_angle": angle,
             "foldover": det <= 0,
         }
-
-    @classmethod
-    def for_piece(
-        cls, harmonic_map, geometry: ImageGeometry, lattice: HermiteLattice,
-        output_geometry: ImageGeometry, piece, *, any_outside: bool, tolerance: float,
-        outside: str, memory_budget: int | None = None, exchange=None,
-    ) -> VolumeDeformation:  # fmt: skip
-        """An engine that resamples one piece of an output grid with a partial lattice.
-
-        ``lattice`` must hold every leaf whose image can reach the ``piece`` (a box of
-        ``output_geometry``): :func:`~vhm_viz.core.lattice.join_parts` of the MPI ranks'
-        windows. Resampling the piece (or boxes within it) then gives the whole lattice's
-        result. ``any_outside``: whether the whole volume has voxels outside the cage
-        (the partial lattice's masks cannot tell).
-        """
-        engine = cls(harmonic_map, geometry, tolerance=tolerance, outside=outside,
-                     memory_budget=memory_budget, root=lattice.root, exchange=exchange)  # fmt: skip
-        engine._lattice = lattice
-        engine.piece = (output_geometry, box_of(output_geometry, piece))
-        engine._any_outside = bool(any_outside)
-        engine._memo[("output_geometry", None)] = output_geometry
-        return engine
-
-    def piece_engine(self, lattice: HermiteLattice, output_geometry: ImageGeometry, piece, *,
-                     any_outside: bool) -> VolumeDeformation:  # fmt: skip
-        """:meth:`for_piece` with this engine's map, grid, tolerance and settings.
-
-        For an MPI rank whose window engine this is: its piece's engine then resamples
-        with the same tolerance, outside policy, memory budget and exchange.
-        """
-        return self.for_piece(
-            self.map, self.geometry, lattice, output_geometry, piece, any_outside=any_outside,
-            tolerance=self.tolerance, outside=self.outside, memory_budget=self.memory_budget,
-            exchange=self.exchange,
-        )  # fmt: skip
-
-    def join_parts(self, parts, stats=None) -> HermiteLattice:
-        """:func:`~vhm_viz.core.lattice.join_parts` of parts of lattices like this one's.
-
-        The parts (:meth:`HermiteLattice.part`) of the MPI ranks' window lattices of this
-        map and grid, joined with this engine's tolerance and root cell size.
-        """
-        return join_parts(parts, self.map, self.geometry, tolerance=self.tolerance,
-                          root=self.root, stats=stats)  # fmt: skip
 
     # ------------------------------------------------------------------ resampling
     def resample(

@@ -1,11 +1,12 @@
-"""Where a volume engine's leaves reach: the output grid, candidate boxes, pieces' windows.
+"""Pieces of a volume's work: where the leaves reach, and engines for output pieces.
 
 Each leaf of the lattice maps into a box of the output grid (its Bezier control points
 bound its image). From those boxes come the grid that covers the deformed volume
 (:func:`output_grid`), the output voxels where a leaf may hold pre-images, the input
 voxels that resampling an output piece reads, and the per-plane sums by which MPI ranks
-cut the work (:mod:`vhm_viz.core.partition`). :class:`LeafReach` holds these queries of
-:class:`~vhm_viz.core.volume.VolumeDeformation`.
+cut the work (:mod:`vhm_viz.core.partition`). :class:`VolumePieces` holds these queries of
+:class:`~vhm_viz.core.volume.VolumeDeformation`, with the engines that resample one
+piece of the output from the leaves joined from several windows (MPI ranks).
 """
 
 from __future__ import annotations
@@ -13,17 +14,19 @@ from __future__ import annotations
 import numpy as np
 
 from vhm_viz.core.image import ImageGeometry
+from vhm_viz.core.lattice import HermiteLattice, join_parts
 from vhm_viz.core.partition import pull_back_pairs, pull_back_spans, window_of
 from vhm_viz.core.volume_kernels import box_of
 
-__all__ = ["LeafReach", "output_grid"]
+__all__ = ["VolumePieces", "output_grid"]
 
 
-class LeafReach:
-    """The queries of :class:`~vhm_viz.core.volume.VolumeDeformation` about its leaves' reach.
+class VolumePieces:
+    """What :class:`~vhm_viz.core.volume.VolumeDeformation` answers about pieces of its work.
 
     A base class of the engine, which provides ``geometry`` (the input grid),
-    ``tolerance``, ``outside``, ``window``, ``build()``, ``lattice``, ``_memo`` (answers
+    ``map``, ``tolerance``, ``outside``, ``root``, ``memory_budget``, ``exchange``,
+    ``window``, ``build()``, ``lattice``, ``_lattice``, ``piece``, ``_memo`` (answers
     kept per output grid, dropped with the lattice), ``_any_outside`` and ``_whole(what,
     geometry, box)`` (refuses a query that needs the whole lattice).
     """
@@ -53,6 +56,50 @@ class LeafReach:
         lo, hi, outside = self.image_bounds()
         return output_grid(self.geometry, lo, hi, tolerance=self.tolerance, spacing=spacing,
                            keep_input=self.outside == "passthrough" and outside)  # fmt: skip
+
+    @classmethod
+    def for_piece(
+        cls, harmonic_map, geometry: ImageGeometry, lattice: HermiteLattice,
+        output_geometry: ImageGeometry, piece, *, any_outside: bool, tolerance: float,
+        outside: str, memory_budget: int | None = None, exchange=None,
+    ) -> VolumePieces:  # fmt: skip
+        """An engine that resamples one piece of an output grid with a partial lattice.
+
+        ``lattice`` must hold every leaf whose image can reach the ``piece`` (a box of
+        ``output_geometry``): :func:`~vhm_viz.core.lattice.join_parts` of the MPI ranks'
+        windows. Resampling the piece (or boxes within it) then gives the whole lattice's
+        result. ``any_outside``: whether the whole volume has voxels outside the cage
+        (the partial lattice's masks cannot tell).
+        """
+        engine = cls(harmonic_map, geometry, tolerance=tolerance, outside=outside,
+                     memory_budget=memory_budget, root=lattice.root, exchange=exchange)  # fmt: skip
+        engine._lattice = lattice
+        engine.piece = (output_geometry, box_of(output_geometry, piece))
+        engine._any_outside = bool(any_outside)
+        engine._memo[("output_geometry", None)] = output_geometry
+        return engine
+
+    def piece_engine(self, lattice: HermiteLattice, output_geometry: ImageGeometry, piece, *,
+                     any_outside: bool) -> VolumePieces:  # fmt: skip
+        """:meth:`for_piece` with this engine's map, grid, tolerance and settings.
+
+        For an MPI rank whose window engine this is: its piece's engine then resamples
+        with the same tolerance, outside policy, memory budget and exchange.
+        """
+        return self.for_piece(
+            self.map, self.geometry, lattice, output_geometry, piece, any_outside=any_outside,
+            tolerance=self.tolerance, outside=self.outside, memory_budget=self.memory_budget,
+            exchange=self.exchange,
+        )  # fmt: skip
+
+    def join_parts(self, parts, stats=None) -> HermiteLattice:
+        """:func:`~vhm_viz.core.lattice.join_parts` of parts of lattices like this one's.
+
+        The parts (:meth:`HermiteLattice.part`) of the MPI ranks' window lattices of this
+        map and grid, joined with this engine's tolerance and root cell size.
+        """
+        return join_parts(parts, self.map, self.geometry, tolerance=self.tolerance,
+                          root=self.root, stats=stats)  # fmt: skip
 
     def grid_over(self, lo, hi, *, spacing=None, keep_input: bool = False) -> ImageGeometry:
         """:func:`output_grid` over image bounds, with this engine's tolerance.
