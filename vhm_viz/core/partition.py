@@ -280,14 +280,8 @@ def pull_back_spans(lo, hi, geometry: ImageGeometry):
 
     The leaves that resampling a run of planes ``a..b`` needs (whose candidate boxes
     reach it) are those started by plane ``b`` less those ended before ``a``. Leaves whose
-    boxes miss the grid are not counted; boxes are clipped to it.
-
-    Parameters
-    ----------
-    lo, hi : (L, 3) int array_like
-        The leaves' candidate boxes of output voxels (inclusive).
-    geometry : ImageGeometry
-        The output grid.
+    boxes miss the grid are not counted; boxes are clipped to it. ``lo``, ``hi`` and
+    ``geometry`` as for :func:`pull_back_pairs`.
 
     Returns
     -------

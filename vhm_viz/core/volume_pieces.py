@@ -211,15 +211,8 @@ class VolumePieces:
         The leaves that resampling a run of planes ``a..b`` needs (whose candidate boxes
         reach it) are those started by plane ``b`` less those ended before ``a``: how
         :func:`pull_back_shares` weighs the MPI ranks' memory. Leaves whose boxes miss the
-        grid are not counted; boxes are clipped to it. Like :meth:`pull_back_pairs`, ranks
-        add up the counts of their own leaves.
-
-        Parameters
-        ----------
-        geometry : ImageGeometry
-            The output grid.
-        leaves : (L,) int array_like, optional
-            Only these leaves (default all).
+        grid are not counted; boxes are clipped to it. Like :meth:`pull_back_pairs` (and
+        with its parameters), ranks add up the counts of their own leaves.
 
         Returns
         -------
