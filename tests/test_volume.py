@@ -7,7 +7,12 @@ SimpleITK (MetaImage/NIfTI geometry, when installed).
 
 from __future__ import annotations
 
+import gc
 import itertools
+import json
+import threading
+import tracemalloc
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -15,13 +20,37 @@ import pytest
 pv = pytest.importorskip("pyvista")
 
 from conftest import affine_resampled, box_cage, data_path  # noqa: E402
+from scipy.ndimage import binary_erosion  # noqa: E402
+from scipy.optimize import root as find_root  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
+from vtkmodules.vtkIOXML import vtkXMLImageDataReader  # noqa: E402
 
-from vhm_viz import Cage, HarmonicMap  # noqa: E402
+import vhm_viz.core.lattice as lattice_package  # noqa: E402
+from vhm_viz import Cage, HarmonicMap, read_cage  # noqa: E402
+from vhm_viz.cli import main  # noqa: E402
 from vhm_viz.core.basis import inside_cage, winding_number  # noqa: E402
 from vhm_viz.core.errors import AbortedError, OutsideCageError  # noqa: E402
-from vhm_viz.core.image import ImageGeometry, inside_mask  # noqa: E402
-from vhm_viz.core.volume import VolumeDeformation  # noqa: E402
+from vhm_viz.core.image import ImageGeometry, inside_mask, surface_mask  # noqa: E402
+from vhm_viz.core.lattice import PART_FIELDS, build_lattice, join_parts, nodes  # noqa: E402
+from vhm_viz.core.lattice.nodes import NodeTable  # noqa: E402
+from vhm_viz.core.lattice.pullback import inside_around  # noqa: E402
+from vhm_viz.core.memory import take_in_place  # noqa: E402
+from vhm_viz.core.metrics import jacobian_measures  # noqa: E402
+from vhm_viz.core.volume import (  # noqa: E402
+    DEFAULT_TOLERANCE,
+    Resampled,
+    VolumeDeformation,
+    check_tolerance,
+    equal_cuts,
+    exact_preimages,
+    fast_jacobian_measures,
+    lattice_build_work,
+    layer_shares,
+    output_grid,
+    pull_back_shares,
+    window_of,
+)
+from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update  # noqa: E402
 from vhm_viz.io import read_dataset, write_dataset  # noqa: E402
 
 
@@ -48,7 +77,6 @@ def _voxel_error(geo, delta):
 
 
 def test_scan_line_mask_equals_winding_number_on_a_rotated_mirrored_grid():
-    from vhm_viz import read_cage
 
     cage = read_cage(data_path("armadillo", "cage_216f.obj"))
     lo, hi = cage.vertices.min(0), cage.vertices.max(0)
@@ -123,13 +151,29 @@ def bend():
 
 def _near_cage_voxels(geo, cage, count, rng):
     """Voxels within two voxels of the cage (the hard ones), by the scan-line mask."""
-    from scipy.ndimage import binary_erosion
 
     nx, ny, nz = geo.dimensions
     inside = inside_mask(geo, cage.vertices, cage.faces)
     band = inside & ~binary_erosion(inside, iterations=2, border_value=0)
     ijk = np.argwhere(band)[:, ::-1]
     return ijk[rng.choice(len(ijk), min(count, len(ijk)), replace=False)]
+
+
+def test_tolerance_has_one_default_and_is_refused_unless_positive():
+    """The volume tolerance's one default; the engine and the lattice builder refuse a
+    tolerance that is not a positive number of voxels, before any work."""
+    assert lattice_package.DEFAULT_TOLERANCE is DEFAULT_TOLERANCE
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (6, 6, 6))
+    hm = HarmonicMap.identity(_cage_around((0, 0, 0), (5, 5, 5), 0.1, divisions=1))
+    assert VolumeDeformation(hm, geo).tolerance == DEFAULT_TOLERANCE
+    assert VolumeDeformation(hm, geo, tolerance=1).tolerance == 1.0
+    for bad in (0.0, -0.05, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="positive number of voxels"):
+            VolumeDeformation(hm, geo, tolerance=bad)
+        with pytest.raises(ValueError, match="positive number of voxels"):
+            build_lattice(hm, geo, tolerance=bad)
+        with pytest.raises(ValueError, match="positive number of voxels"):
+            check_tolerance(bad)
 
 
 def test_warp_matches_exact_map_within_tolerance(bend):
@@ -175,8 +219,8 @@ def _edge_distance(geo, cage, u):
 def test_every_voxel_next_to_a_cage_edge_is_within_tolerance():
     """All inside voxels within two voxels of a cage edge (brute force), for a cage whose
     edges cross the voxel rows obliquely: next to an edge the map has a logarithmic
-    singularity that a large cell's test points can miss (before: errors up to 0.070 voxel
-    here, and at 4 of the CT head's voxels 0.2-0.35 voxel from an edge)."""
+    singularity that a large cell's test points can miss: the cells there split down to
+    single voxels)."""
     geo, cage = _turned_box()
     worst = 0.0
     for seed in range(3):
@@ -217,10 +261,8 @@ def test_lattice_finds_the_points_next_to_cage_edges():
 
 def test_preimages_next_to_a_cage_edge_solve_the_exact_map():
     """Pre-images next to a cage edge come from Newton's method on the exact map: there
-    no cubic between voxels follows the map's logarithmic singularity (the CT head had
-    pre-image errors up to 0.094 voxel within 0.26 voxel of an edge; here up to 0.21)."""
-    from vhm_viz.core.volume import exact_preimages
-
+    no cubic between voxels follows the map's logarithmic singularity, whose pre-image
+    errors there can exceed the tolerance."""
     geo, cage = _turned_box()
     hm = _random_bend(cage, 0.01, seed=1)
     vol = VolumeDeformation(hm, geo, tolerance=0.05, outside="passthrough")
@@ -255,7 +297,6 @@ def test_resample_preimages_match_exact_inverse(bend):
     singular value of the Jacobian in voxel units), so the bound is the tolerance divided
     by ``min(1, s_min)``: this bend folds space in places, where no inverse is accurate.
     """
-    from scipy.optimize import root
 
     geo, cage, hm, vol = bend
     out = vol.output_geometry()
@@ -275,7 +316,7 @@ def test_resample_preimages_match_exact_inverse(bend):
     scaled, plain = [], []
     for p in found:
         y = out.points(voxels[p][None].astype(float))[0]
-        sol = root(lambda x, y=y: hm.map(x[None])[0] - y, geo.points(u[p][None])[0], tol=1e-12)
+        sol = find_root(lambda x, y=y: hm.map(x[None])[0] - y, geo.points(u[p][None])[0], tol=1e-12)
         assert np.linalg.norm(hm.map(sol.x[None])[0] - y) < 1e-9  # (success may be False
         # when the start is already the root to rounding)
         err = np.linalg.norm(geo.continuous_index(sol.x[None])[0] - u[p])
@@ -467,7 +508,6 @@ def _write_slc(path, vol, spacing):
 
 def _bend_scene(folder, lo, hi):
     """A scene file: box cage around [lo, hi], the far end turned by 20 degrees."""
-    import json
 
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     pad = 0.08 * (hi - lo)
@@ -513,7 +553,6 @@ def cli_volume(tmp_path_factory):
 
 
 def _cli(capsys, *argv):
-    from vhm_viz.cli import main
 
     rc = main([str(a) for a in argv])
     out, err = capsys.readouterr()
@@ -584,7 +623,6 @@ def test_cli_resampling_options(cli_volume, tmp_path, capsys):
 
 
 def test_cli_volume_outside_the_cage(cli_volume, tmp_path, capsys):
-    import json
 
     folder, img, files, scene = cli_volume
     data = json.loads(scene.read_text())
@@ -618,9 +656,6 @@ def test_slice_is_the_plane_of_the_resampled_volume(bend):
 
 def test_surface_mask_catches_every_cube_the_cage_crosses():
     """Cubes whose corners agree and touch no marked point are entirely on one side."""
-    from vhm_viz import read_cage
-    from vhm_viz.core.image import surface_mask
-
     cage = read_cage(data_path("armadillo", "cage_216f.obj"))
     lo, hi = cage.vertices.min(0), cage.vertices.max(0)
     sp = (hi - lo).max() / np.array([40.0, 47.0, 43.0])
@@ -661,8 +696,6 @@ def test_surface_mask_catches_every_cube_the_cage_crosses():
 
 def test_fast_jacobian_measures_equal_the_svd_ones(bend):
     """Closed-form singular values and Higham's polar iteration against numpy's SVD."""
-    from vhm_viz.core.metrics import jacobian_measures
-
     geo, cage, hm, vol = bend
     box = (10, 50, 5, 45, 8, 40)
     got = vol.jacobian_measures(box)
@@ -675,14 +708,17 @@ def test_fast_jacobian_measures_equal_the_svd_ones(bend):
     exact = hm.jacobian(geo.sub(box).points())
     scale = np.abs(exact).max()
     assert np.median(np.abs(jac - exact)) < 1e-4 * scale
-    # degenerate and mirrored matrices take the SVD's values
-    odd = np.array([np.diag([1.0, 1.0, -1.0]), np.diag([1.0, 1.0, 1e-15]), np.eye(3)])
-    from vhm_viz.core.volume import _measures
+    # mirrored and degenerate matrices take the SVD's values (the closed form gives NaN or
+    # loses s_min there); the identity the closed form's exact ones
 
-    det, cond, angle = np.empty(3), np.empty(3), np.empty(3)
-    hard = np.zeros(3, dtype=bool)
-    _measures(odd, det, cond, angle, hard)
-    assert hard.tolist() == [True, True, False] and cond[2] == 1.0 and angle[2] == 0.0
+    odd = np.array([np.diag([1.0, 1.0, -1.0]), np.diag([1.0, 1.0, 1e-15]), np.eye(3)])
+    fast, svd = fast_jacobian_measures(odd), jacobian_measures(odd)
+    np.testing.assert_allclose(fast["determinant"], svd["determinant"], rtol=1e-12)
+    np.testing.assert_allclose(fast["condition_number"], svd["condition_number"], rtol=1e-7)
+    np.testing.assert_allclose(fast["rotation_angle"], svd["rotation_angle"], atol=1e-9)
+    assert np.isfinite(fast["condition_number"]).all()
+    assert fast["condition_number"][1] > 1e14  # s_min kept, not lost to rounding
+    assert fast["condition_number"][2] == 1.0 and fast["rotation_angle"][2] == 0.0
 
 
 def test_cubic_sampling_reproduces_quadratics():
@@ -707,8 +743,6 @@ def test_cubic_sampling_reproduces_quadratics():
 
 def test_vtk_filters_two_pieces_equal_one_on_the_lattice():
     """Warp and resample filters on a volume large enough for the lattice (not exact)."""
-    from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
-
     img = pv.ImageData(dimensions=(44, 40, 36), spacing=(1.0, 1.0, 1.2))
     rng = np.random.default_rng(7)
     img.point_data["v"] = rng.integers(0, 200, img.n_points).astype(np.uint8)
@@ -748,8 +782,6 @@ def test_a_lattice_for_the_voxels_only_gives_them_the_same_values():
     twists and the leaves' pre-image summaries: the voxels' positions and Jacobians stay
     those of the full lattice, bit for bit; what needs the polynomial between voxels is
     refused."""
-    from vhm_viz import read_cage
-
     cage = read_cage(data_path("armadillo", "cage_216f.obj"))
     lo, hi = cage.vertices.min(0), cage.vertices.max(0)
     geo = ImageGeometry(lo + 0.1 * (hi - lo), 0.8 * (hi - lo) / 47.0, (48, 48, 48))
@@ -817,7 +849,6 @@ class _ThreadExchange:
     """
 
     def __init__(self, n):
-        import threading
 
         self.n = n
         self.meet = threading.Barrier(n, timeout=60)
@@ -866,7 +897,6 @@ class _ThreadExchange:
 
 def _build_together(hm, geo, windows, **kw):
     """Build ``VolumeDeformation`` lattices of ``windows`` in threads that share evaluations."""
-    from concurrent.futures import ThreadPoolExecutor
 
     exchange = _ThreadExchange(len(windows))
     engines = [VolumeDeformation(hm, geo, outside="passthrough", window=w,
@@ -915,22 +945,26 @@ def test_builders_sharing_evaluations_build_the_serial_lattice():
 
 
 def test_lattice_masks_made_by_planes_equal_one_call():
-    """The lattice's masks are made 16 k-planes at a time (memory): the same as one call
-    over the rows, with False outside them."""
-    from vhm_viz.core.image import inside_mask, surface_mask
-    from vhm_viz.core.lattice import _masks
-
+    """A lattice's masks are made 16 k-planes at a time (memory), over the lattice rows of
+    its window's root cells only: the same as one call over those rows, with False
+    outside them."""
     cage = _cage_around((2.0, 3.0, 1.0), (27.0, 24.0, 44.0), 0.0)
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (30, 28, 50))
+    hm = HarmonicMap.affine(cage, np.eye(3), np.zeros(3))
     V, F = cage.vertices, cage.faces
-    for rows in ((5, 25, 3, 41), None):
-        j0, j1, k0, k1 = (0, 28, 0, 50) if rows is None else rows
-        mask, near = _masks(geo, V, F, rows)
-        assert mask.shape == near.shape == (50, 28, 30)
-        inside = inside_mask(geo, V, F, rows=(j0, j1, k0, k1))
+    # root cells of 16 voxels: the lattice has 33 x 33 x 65 points; the window's k-voxels
+    # 20..35 lie in the root layers 1 and 2, the lattice's k-rows 16..48 (33 planes)
+    for window, rows in (((0, 29, 0, 27, 20, 35), (0, 33, 16, 49)), (None, None)):
+        lat = build_lattice(hm, geo, root=16, window=window)
+        lat_geo = ImageGeometry(geo.origin, geo.spacing, lat.end + 1, geo.direction)
+        assert tuple(lat_geo.dimensions) == (33, 33, 65)
+        j0, j1, k0, k1 = (0, 33, 0, 65) if rows is None else rows
+        mask, near = lat.mask, lat.near
+        assert mask.shape == near.shape == (65, 33, 33)
+        inside = inside_mask(lat_geo, V, F, rows=(j0, j1, k0, k1))
         assert inside.any() and not inside.all()
         np.testing.assert_array_equal(mask[k0:k1, j0:j1], inside)
-        surface = surface_mask(geo, V, F, rows=(j0, j1, k0, k1))
+        surface = surface_mask(lat_geo, V, F, rows=(j0, j1, k0, k1))
         assert surface.any()
         np.testing.assert_array_equal(near[k0:k1, j0:j1], surface)
         mask[k0:k1, j0:j1] = near[k0:k1, j0:j1] = False
@@ -939,20 +973,23 @@ def test_lattice_masks_made_by_planes_equal_one_call():
 
 def test_cut_flags_cover_every_cube_the_pull_back_reads_and_equal_the_masks():
     """The pull-back reads the inside/surface flags only in the grid cubes around pre-images
-    of the leaves the cage crosses; they are kept in blocks (_cut_blocks). Computed from
+    of the leaves the cage crosses; they are kept in blocks (cut_flags). Computed from
     the cage (a joined lattice has no masks) they equal the masks in every kept block; every
     cube a cut leaf's pre-image can lie in is kept; and the blocks answer as the masks do."""
-    from vhm_viz.core.lattice import _BLOCK, _cut_blocks, _inside_around, build_lattice
-
     geo, cage = _turned_box()
     hm = _random_bend(cage, 0.03, seed=5)
     lat = build_lattice(hm, geo)
-    lat_geo = ImageGeometry(geo.origin, geo.spacing, lat.end + 1, geo.direction)
     block_of, pool, dims = lat.cut_flags()
-    V, F = np.asarray(cage.vertices), np.asarray(cage.faces)
-    from_cage = _cut_blocks(lat, lat_geo, V, F)
+    _BLOCK = pool.shape[1]  # blocks of _BLOCK^3 lattice points
+    assert pool.shape[1:] == (_BLOCK, _BLOCK, _BLOCK)
+    # all the leaves, joined: the same leaves without the masks
+    joined = join_parts([lat.part(np.arange(len(lat.leaf_size)))], hm, geo,
+                        tolerance=lat.tolerance, root=lat.root)  # fmt: skip
+    assert joined.mask is None
+    from_cage = joined.cut_flags()
     np.testing.assert_array_equal(from_cage[0], block_of)
     np.testing.assert_array_equal(from_cage[1], pool)
+    np.testing.assert_array_equal(from_cage[2], dims)
     assert 0 < len(pool) < block_of.size  # some blocks, not all
     flags = lat.mask.astype(np.uint8) | (lat.near.astype(np.uint8) << 1)
     for kb, jb, ib in np.argwhere(block_of >= 0):
@@ -982,28 +1019,26 @@ def test_cut_flags_cover_every_cube_the_pull_back_reads_and_equal_the_masks():
         corners = (slice(k0, k0 + 2), slice(j0, j0 + 2), slice(i0, i0 + 2))
         expected = -1 if lat.near[corners].any() else int(lat.mask[corners].sum())
         expected = expected if expected in (-1, 0, 8) else -1
-        assert _inside_around(block_of, pool, dims, p) == expected
+        assert inside_around(block_of, pool, dims, p) == expected
 
 
 def test_node_data_made_in_chunks_equals_one_pass(monkeypatch):
     """The twists of a level are made in chunks of nodes (the build's peak memory): with
     chunks of 7 nodes the lattice is bit for bit the one-chunk lattice."""
-    from vhm_viz.core import lattice as lattice_module
-
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (30, 28, 40))
     hm = _random_bend(_cage_around((0, 0, 0), (29, 27, 46.8), 0.03), 0.02, seed=4)
-    monkeypatch.setattr(lattice_module, "_LEVEL_CHUNK", 10**9)
-    whole = lattice_module.build_lattice(hm, geo)
-    monkeypatch.setattr(lattice_module, "_LEVEL_CHUNK", 7)
-    chunked = lattice_module.build_lattice(hm, geo)
+    monkeypatch.setattr(nodes, "LEVEL_CHUNK", 10**9)
+    whole = build_lattice(hm, geo)
+    monkeypatch.setattr(nodes, "LEVEL_CHUNK", 7)
+    chunked = build_lattice(hm, geo)
     assert whole.stats["leaves_per_size"].get(1, 0) > 100  # a level of many small cells
     assert np.abs(whole.data[:, 4:]).max() > 0  # twists made
     np.testing.assert_array_equal(chunked.data, whole.data)
     np.testing.assert_array_equal(chunked.leaf_rows, whole.leaf_rows)
     # and for the voxels only (no twists at single-voxel cells)
-    chunked = lattice_module.build_lattice(hm, geo, pre_images=False)
-    monkeypatch.setattr(lattice_module, "_LEVEL_CHUNK", 10**9)
-    whole = lattice_module.build_lattice(hm, geo, pre_images=False)
+    chunked = build_lattice(hm, geo, pre_images=False)
+    monkeypatch.setattr(nodes, "LEVEL_CHUNK", 10**9)
+    whole = build_lattice(hm, geo, pre_images=False)
     np.testing.assert_array_equal(chunked.data, whole.data)
     assert not chunked.data[chunked.leaf_rows[chunked.leaf_size == 1], 4:].any()
 
@@ -1012,11 +1047,9 @@ def test_finest_level_is_made_from_the_nodes_it_reads_only(monkeypatch):
     """Before the finest level's node data the table keeps the nodes that data reads
     (the build's peak memory): the lattice is bit for bit the one made from the whole
     table, with and without twists, and the table did shrink."""
-    from vhm_viz.core import lattice as lattice_module
-
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (30, 28, 40))
     hm = _random_bend(_cage_around((0, 0, 0), (29, 27, 46.8), 0.03), 0.02, seed=4)
-    keep = lattice_module._NodeTable.keep
+    keep = NodeTable.keep
     sizes = []
 
     def recorded(table, rows):
@@ -1025,10 +1058,10 @@ def test_finest_level_is_made_from_the_nodes_it_reads_only(monkeypatch):
         assert len(table.keys) == len(rows) and (np.diff(table.keys) > 0).all()
 
     for pre_images in (True, False):
-        monkeypatch.setattr(lattice_module._NodeTable, "keep", recorded)
-        kept = lattice_module.build_lattice(hm, geo, pre_images=pre_images)
-        monkeypatch.setattr(lattice_module._NodeTable, "keep", lambda table, rows: None)
-        whole = lattice_module.build_lattice(hm, geo, pre_images=pre_images)
+        monkeypatch.setattr(NodeTable, "keep", recorded)
+        kept = build_lattice(hm, geo, pre_images=pre_images)
+        monkeypatch.setattr(NodeTable, "keep", lambda table, rows: None)
+        whole = build_lattice(hm, geo, pre_images=pre_images)
         np.testing.assert_array_equal(kept.data, whole.data)
         np.testing.assert_array_equal(kept.leaf_rows, whole.leaf_rows)
         assert kept.stats["leaves_per_size"].get(1, 0) > 100
@@ -1041,10 +1074,8 @@ def test_node_table_merges_new_nodes_in_place_in_key_order():
     memory): the same table as concatenating and sorting by key, for sorted and unsorted
     batches, an empty one, and keys before, between and after the old ones; an array
     held elsewhere too is copied, not resized under its other holder."""
-    from vhm_viz.core.lattice import _NodeTable
-
     rng = np.random.default_rng(7)
-    table = _NodeTable((40, 40, 40))
+    table = NodeTable((40, 40, 40))
     pool = rng.permutation(64000)
     batches = [np.sort(pool[:500]), pool[500:501], pool[:0], np.sort(pool[1000:6000]),
                pool[6000:9000], np.array([pool[9000:].min(), pool[9000:].max()])]  # fmt: skip
@@ -1079,18 +1110,16 @@ def test_node_table_grows_without_holding_itself_twice():
     """Adding rows to the node table allocates about the new rows, not a second table
     (concatenating and reordering held each field three times at once). What this code
     allocates (tracemalloc), not what realloc may copy below glibc's mmap threshold."""
-    import tracemalloc
 
-    from vhm_viz.core.lattice import _NodeTable
 
     rng = np.random.default_rng(3)
     keys = np.sort(rng.choice(10**7, size=250_000, replace=False))
     old, new = keys[::5], np.setdiff1d(keys, keys[::5])[:50_000]
-    table = _NodeTable((1000, 1000, 1000))
+    table = NodeTable((1000, 1000, 1000))
     table.add(np.array([1]), np.zeros((1, 3)), np.zeros((1, 3, 3)), np.zeros(1, bool))  # compiled
     args = (new, rng.normal(size=(len(new), 3)), rng.normal(size=(len(new), 3, 3)),
             np.ones(len(new), dtype=bool))  # fmt: skip
-    table = _NodeTable((1000, 1000, 1000))
+    table = NodeTable((1000, 1000, 1000))
     tracemalloc.start()
     try:
         n = len(old)
@@ -1108,26 +1137,24 @@ def test_node_table_grows_without_holding_itself_twice():
 
 
 def test_taking_rows_in_place_equals_indexing_in_the_same_memory():
-    """A lattice's last part is taken out of its own arrays (_taken): the same rows as
+    """A lattice's last part is taken out of its own arrays (take_in_place): the same rows as
     fancy indexing, for every field's dtype and shape; in place (the same memory, no second
     array) for an ascending index; copied when the index is not ascending or the array is
     held elsewhere, which is then left untouched."""
-    import gc
 
-    from vhm_viz.core.lattice import _taken
 
     rng = np.random.default_rng(11)
     arrays = {"data": rng.normal(size=(5000, 8, 3)), "origin": rng.integers(0, 99, (5000, 3)),
               "cut": rng.random(5000) > 0.5, "rho": rng.random(5000)}  # fmt: skip
     index = np.sort(rng.choice(5000, size=3100, replace=False))
     for a in arrays.values():  # compiled first: a first call's compiler may hold a
-        _taken({"x": a[:4].copy()}, "x", np.arange(2))  # reference (then it copies)
+        take_in_place({"x": a[:4].copy()}, "x", np.arange(2))  # reference (then it copies)
     gc.collect()
     for name, a in arrays.items():
         expected = a[index]
         holder = {name: a.copy()}
         address = holder[name].ctypes.data
-        got = _taken(holder, name, index)
+        got = take_in_place(holder, name, index)
         assert holder[name] is None
         np.testing.assert_array_equal(got, expected)
         assert got.ctypes.data == address  # the same memory, shrunk (realloc never moves
@@ -1135,19 +1162,21 @@ def test_taking_rows_in_place_equals_indexing_in_the_same_memory():
     holder = {"x": arrays["data"].copy()}
     other = holder["x"]
     before = other.copy()
-    np.testing.assert_array_equal(_taken(holder, "x", index), before[index])
+    np.testing.assert_array_equal(take_in_place(holder, "x", index), before[index])
     np.testing.assert_array_equal(other, before)  # its other holder's array is untouched
     shuffled = rng.permutation(index)
-    np.testing.assert_array_equal(_taken({"x": before.copy()}, "x", shuffled), before[shuffled])
+    got = take_in_place({"x": before.copy()}, "x", shuffled)
+    np.testing.assert_array_equal(got, before[shuffled])
     for empty in (np.zeros(0, np.int64), index[:1]):
-        np.testing.assert_array_equal(_taken({"x": before.copy()}, "x", empty), before[empty])
+        got = take_in_place({"x": before.copy()}, "x", empty)
+        np.testing.assert_array_equal(got, before[empty])
     nothing = np.zeros((0, 8, 3))  # (an MPI rank's empty window)
-    assert _taken({"x": nothing}, "x", np.zeros(0, np.int64)).shape == (0, 8, 3)
+    assert take_in_place({"x": nothing}, "x", np.zeros(0, np.int64)).shape == (0, 8, 3)
 
     big = {"data": rng.normal(size=(200_000, 8, 3))}  # 38 MB: mmapped, shrunk by mremap
     address = big["data"].ctypes.data
     expected = big["data"][::3].copy()
-    part = _taken(big, "data", np.arange(0, 200_000, 3))
+    part = take_in_place(big, "data", np.arange(0, 200_000, 3))
     assert part.ctypes.data == address
     np.testing.assert_array_equal(part, expected)
 
@@ -1155,9 +1184,7 @@ def test_taking_rows_in_place_equals_indexing_in_the_same_memory():
 def test_a_builder_of_an_empty_piece_only_shares_the_evaluations():
     """An MPI rank with an empty piece (more ranks than planes) builds no cell but takes
     its share of the other's evaluations, so that neither waits for the other."""
-    from concurrent.futures import ThreadPoolExecutor
 
-    from vhm_viz.core.lattice import build_lattice
 
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
     hm = _random_bend(_cage_around((0, 0, 0), (43, 39, 82.8), 0.03), 0.004, seed=2)
@@ -1193,7 +1220,6 @@ def test_a_builder_failing_stops_the_builders_sharing_with_it():
         VolumeDeformation(hm, geo, outside="passthrough", exchange=exchange.builder(0)),
         VolumeDeformation(hm, geo, outside="passthrough", exchange=exchange.builder(1)),
     ]
-    from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(2) as pool:
         done = [pool.submit(engines[0].build), pool.submit(engines[1].build, abort=abort)]
@@ -1201,7 +1227,6 @@ def test_a_builder_failing_stops_the_builders_sharing_with_it():
     assert isinstance(errors[1], AbortedError)
     assert isinstance(errors[0], RuntimeError) and "another builder" in str(errors[0])
     # failing between two rounds (here before the first): the others hear of it there
-    from vhm_viz.core.lattice import build_lattice
 
     exchange = _ThreadExchange(2)
     with ThreadPoolExecutor(2) as pool:
@@ -1232,9 +1257,7 @@ def test_another_outside_policy_shares_the_lattice():
 def test_resample_pieces_read_only_the_window_their_preimages_reach(tmp_path):
     """Streamed in 4 pieces from a reader, each piece reads only a window of the volume,
     holding its pre-images, and the pieces equal the whole."""
-    from vtkmodules.vtkIOXML import vtkXMLImageDataReader
 
-    from vhm_viz.filters import HarmonicResampleFilter, update
 
     img = pv.ImageData(dimensions=(30, 28, 80), spacing=(1.0, 1.0, 1.0))
     rng = np.random.default_rng(5)
@@ -1337,9 +1360,6 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
     they agree on the output grid from their bounds, and each output piece is resampled
     with the leaves (from every window) whose images reach it -- bit for bit the whole
     lattice's result, with an input window that holds the one the whole lattice names."""
-    from vhm_viz.core.lattice import PART_FIELDS, join_parts
-    from vhm_viz.core.volume import output_grid, window_of
-
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
     hm = _random_bend(_cage_around((0, 0, 0), (43, 39, 82.8), 0.03), 0.02, seed=2)
     whole = VolumeDeformation(hm, geo, outside="passthrough")
@@ -1360,6 +1380,8 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
     assert any_outside == (not whole.lattice.inside([0, 43, 0, 39, 0, 69]).all())
     joined_geo = output_grid(geo, lo, hi, tolerance=whole.tolerance, keep_input=any_outside)
     assert joined_geo.key() == out_geo.key()
+    # (an engine's own grid over the bounds: with its tolerance)
+    assert windows[0].grid_over(lo, hi, keep_input=any_outside).key() == out_geo.key()
     table = np.concatenate([w.reach_table(out_geo) for w in windows])
     n = out_geo.dimensions
     # pieces across the windows' split (along j), so that each takes leaves from both
@@ -1374,12 +1396,17 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
             parts.append(w.lattice.part(hit))
             sources.append(len(hit))
         assert min(sources) > 0
-        lat = join_parts(parts, hm, geo, tolerance=whole.tolerance, root=whole.root)
+        if piece is pieces[0]:
+            lat = join_parts(parts, hm, geo, tolerance=whole.tolerance, root=whole.root)
+            engine = VolumeDeformation.for_piece(
+                hm, geo, lat, out_geo, piece, any_outside=any_outside,
+                tolerance=whole.tolerance, outside="passthrough",
+            )  # fmt: skip
+        else:  # the same through a window engine, with its own map, tolerance and policy
+            lat = windows[1].join_parts(parts)
+            engine = windows[1].piece_engine(lat, out_geo, piece, any_outside=any_outside)
+            assert (engine.tolerance, engine.outside) == (whole.tolerance, "passthrough")
         assert lat.stats["leaves"] < whole.lattice.stats["leaves"]
-        engine = VolumeDeformation.for_piece(
-            hm, geo, lat, out_geo, piece, any_outside=any_outside,
-            tolerance=whole.tolerance, outside="passthrough",
-        )  # fmt: skip
         got = engine.resample({"v": values}, out_geo, box=piece)
         ref = whole.resample({"v": values}, out_geo, box=piece)
         assert ref.counts["valid"] > 0.3 * geo.n_points / 2
@@ -1429,7 +1456,6 @@ def test_layer_shares_split_the_voxels_inside_the_cage_evenly():
     A pyramid cage (the voxels inside per layer fall with height) against the best cuts
     found by brute force from every voxel's winding number.
     """
-    from vhm_viz.core.volume import layer_shares
 
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (40, 40, 121))
     verts = np.array([[2, 2, -1], [38, 2, -1], [38, 38, -1], [2, 38, -1], [20, 20, 119.5]],
@@ -1460,8 +1486,6 @@ def test_layer_shares_split_the_voxels_inside_the_cage_evenly():
 
 def test_equal_cuts_are_the_nearest_boundaries_to_equal_shares():
     """Against brute force: each cut is an item boundary nearest its share of the total."""
-    from vhm_viz.core.volume import equal_cuts
-
     rng = np.random.default_rng(7)
     for n, parts in ((1, 2), (5, 2), (40, 3), (200, 7), (3, 5)):
         weight = rng.exponential(size=n) * (rng.random(n) < 0.8)
@@ -1480,8 +1504,6 @@ def test_pull_back_pairs_count_every_voxels_candidate_leaves(bend):
     volume incremented over every leaf's candidate box; leaves split among callers add up,
     and the shares cut from them are equal shares of that work. With the leaves' spans,
     the cuts give the smallest largest share of work or of leaves (brute force)."""
-    from vhm_viz.core.volume import lattice_build_work, pull_back_shares
-
     geo, _, _, vol = bend
     out = vol.output_geometry()
     lo, hi = vol.lattice.candidate_boxes(out)
@@ -1547,8 +1569,6 @@ def test_pull_back_pairs_count_every_voxels_candidate_leaves(bend):
 def test_resampling_boxes_into_one_set_of_arrays_equals_resampling_it_whole(bend):
     """``out``: runs of planes resampled into views of one piece's arrays fill them as
     resampling the piece does; arrays that do not fit are refused."""
-    from vhm_viz.core.volume import Resampled
-
     geo, _, _, vol = bend
     values = np.asarray(_smooth_volume(geo.dimensions, geo.spacing, geo.origin)["density"])
     labels = (np.arange(geo.n_points) % 7).astype(np.int16)

@@ -1,11 +1,15 @@
-"""Freed heap memory handed back to the operating system.
+"""Freed heap memory handed back to the operating system, and arrays changed in place.
 
 Building a lattice or a deformer allocates and frees many mid-sized arrays (node tables,
 level data, evaluation chunks). glibc serves arrays below its dynamic mmap threshold
 (which grows up to 32 MiB once a large block has been freed) from the heap, and freed
-heap memory stays in the process: on the 256^3 embryo about 140 MiB of it, which would
-add to the peak when the output is allocated next. :func:`release_free_memory` asks the
+heap memory stays in the process (on a large volume, a hundred MiB or more), which
+would add to the peak when the output is allocated next. :func:`release_free_memory` asks the
 allocator to return it (``malloc_trim``), a few milliseconds.
+
+:func:`grow_in_place` and :func:`take_in_place` grow an array or keep some of its rows
+without holding the array and its new version at once (``ndarray.resize``, a realloc:
+a large mmapped block is remapped rather than copied).
 """
 
 from __future__ import annotations
@@ -14,7 +18,10 @@ import ctypes
 import ctypes.util
 import sys
 
-__all__ = ["release_free_memory"]
+import numba
+import numpy as np
+
+__all__ = ["release_free_memory", "grow_in_place", "take_in_place"]
 
 _LIBC = None
 
@@ -39,3 +46,83 @@ def release_free_memory() -> bool:
     if not _LIBC:
         return False
     return bool(_LIBC.malloc_trim(0))
+
+
+def grow_in_place(holder, key, extra: int) -> np.ndarray:
+    """The array ``holder[key]``, grown by ``extra`` rows (uninitialised).
+
+    The array is taken out of ``holder`` (a dict or list; the slot is set to None) and
+    grown in place if it can be: a caller's reference would make ``resize`` refuse.
+
+    Parameters
+    ----------
+    holder : dict or list
+        Holds the array ``(N, ...)``, its only reference; ``holder[key]`` becomes None.
+    key : hashable or int
+    extra : int
+        Rows to add.
+
+    Returns
+    -------
+    (N + extra, ...) ndarray
+        The old rows first, then ``extra`` uninitialised ones.
+    """
+    a = holder[key]
+    holder[key] = None  # the one reference left is ours: resize may run
+    shape = (len(a) + extra,) + a.shape[1:]
+    try:
+        a.resize(shape)  # realloc: a large (mmapped) block is remapped, not copied
+        return a
+    except ValueError:  # referenced elsewhere (or not its own memory): copied after all
+        return np.concatenate([a, np.empty((extra,) + a.shape[1:], dtype=a.dtype)])
+
+
+def take_in_place(holder, key, index) -> np.ndarray:
+    """``holder[key][index]`` for ascending ``index``, made in place when it can.
+
+    The array is taken out of ``holder`` (a dict or list; the slot is set to None), its
+    rows ``index`` are moved to its front and it is shrunk (realloc), so that the array
+    and its selection are never held together. Where that cannot be done (not its own
+    contiguous memory, referenced elsewhere, an index not ascending) the rows are copied.
+
+    Parameters
+    ----------
+    holder : dict or list
+        Holds the array ``(N, ...)``; ``holder[key]`` becomes None.
+    key : hashable or int
+    index : (M,) int array_like
+        Rows to keep, ascending for the move to be in place.
+
+    Returns
+    -------
+    (M, ...) ndarray
+        ``holder[key][index]``: in the array's own memory where it could be moved.
+    """
+    a = holder[key]
+    holder[key] = None  # the one reference left is ours: resize may run
+    index = np.asarray(index, dtype=np.int64).ravel()
+    if (
+        a.ndim == 0
+        or len(a) == 0
+        or sys.getrefcount(a) > 2  # held elsewhere too (or viewed): not moved under it
+        or not (a.flags.c_contiguous and a.flags.owndata)
+        or (len(index) > 1 and not (index[1:] > index[:-1]).all())
+        or (len(index) and (index[0] < 0 or index[-1] >= len(a)))
+    ):
+        return a[index]
+    rows = a.reshape(len(a), -1)
+    _move_rows_forward(rows, index)
+    del rows
+    try:
+        a.resize((len(index),) + a.shape[1:])
+        return a
+    except ValueError:  # referenced elsewhere after all
+        return a[: len(index)].copy()
+
+
+@numba.njit(cache=True)
+def _move_rows_forward(rows, index):  # pragma: no cover - compiled
+    """``rows[t] = rows[index[t]]`` for ascending ``index`` (no row read after it moved)."""
+    for t in range(index.shape[0]):
+        if index[t] != t:
+            rows[t] = rows[index[t]]

@@ -1,0 +1,285 @@
+"""Tricubic Hermite cells: a cell's polynomial, its Bezier net, and its voxels (compiled).
+
+A cell of size ``h`` (voxels) has 8 corners, each with a row of node data: the value
+``f``, the first derivatives ``f_u, f_v, f_w`` in voxel index coordinates and the mixed
+derivatives ``f_uv, f_uw, f_vw, f_uvw`` (:data:`N_TERMS` terms of 3 components). The
+tensor product of cubic Hermite segments interpolates them; its 64 Bezier control points
+contain the cell's image.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+#: Node data terms, in order: f, f_u, f_v, f_w, f_uv, f_uw, f_vw, f_uvw.
+N_TERMS = 8
+
+
+@numba.njit(inline="always", cache=True)
+def _term(du, dv, dw):  # pragma: no cover - compiled
+    """Index of the node term ``d^(du+dv+dw) f / du^du dv^dv dw^dw``."""
+    if du + dv + dw == 0:
+        return 0
+    if du + dv + dw == 1:
+        return 1 if du else (2 if dv else 3)
+    if du + dv + dw == 2:
+        return 6 if du == 0 else (5 if dv == 0 else 4)
+    return 7
+
+
+@numba.njit(inline="always", cache=True)
+def _weights(t, h):  # pragma: no cover - compiled
+    """Cubic Hermite weights on ``[0, h]`` at ``t * h`` and their u-derivatives.
+
+    Returns ``(w0, w1, w2, w3, d0, d1, d2, d3)``: the left value, left derivative (times
+    ``h``, so that it multiplies ``df/du``), right value and right derivative weights,
+    then their derivatives in ``u``.
+    """
+    t2 = t * t
+    t3 = t2 * t
+    return (
+        2.0 * t3 - 3.0 * t2 + 1.0,
+        h * (t3 - 2.0 * t2 + t),
+        -2.0 * t3 + 3.0 * t2,
+        h * (t3 - t2),
+        (6.0 * t2 - 6.0 * t) / h,
+        3.0 * t2 - 4.0 * t + 1.0,
+        (-6.0 * t2 + 6.0 * t) / h,
+        3.0 * t2 - 2.0 * t,
+    )
+
+
+@numba.njit(cache=True)
+def cell_eval(data, rows, h, tu, tv, tw, f, grad, want_grad):  # pragma: no cover
+    """Value (and u-gradient) of a cell's tricubic Hermite polynomial.
+
+    Parameters
+    ----------
+    data : (Q, 8, 3) float64
+        Node data rows.
+    rows : (8,) int
+        Data rows of the corners, corner ``a + 2 b + 4 c`` at offset ``(a, b, c) * h``.
+    h : float
+        Cell size (voxels).
+    tu, tv, tw : float
+        Local coordinates (0..1 inside the cell; the polynomial extrapolates outside).
+    f : (3,) out
+    grad : (3, 3) out
+        ``grad[i, j] = d f_i / d u_j`` when ``want_grad``.
+    want_grad : bool
+    """
+    u0, u1, u2, u3, du0, du1, du2, du3 = _weights(tu, h)
+    v0, v1, v2, v3, dv0, dv1, dv2, dv3 = _weights(tv, h)
+    w0, w1, w2, w3, dw0, dw1, dw2, dw3 = _weights(tw, h)
+    for i in range(3):
+        f[i] = 0.0
+        if want_grad:
+            grad[i, 0] = 0.0
+            grad[i, 1] = 0.0
+            grad[i, 2] = 0.0
+    for corner in range(8):
+        a = corner & 1
+        b = (corner >> 1) & 1
+        c = corner >> 2
+        # value / derivative weights of this corner along each axis, and their u-derivatives
+        x0, x1, dx0, dx1 = (u0, u1, du0, du1) if a == 0 else (u2, u3, du2, du3)
+        y0, y1, dy0, dy1 = (v0, v1, dv0, dv1) if b == 0 else (v2, v3, dv2, dv3)
+        z0, z1, dz0, dz1 = (w0, w1, dw0, dw1) if c == 0 else (w2, w3, dw2, dw3)
+        r = rows[corner]
+        for i in range(3):
+            d0 = data[r, 0, i]
+            d1 = data[r, 1, i]
+            d2 = data[r, 2, i]
+            d3 = data[r, 3, i]
+            d4 = data[r, 4, i]
+            d5 = data[r, 5, i]
+            d6 = data[r, 6, i]
+            d7 = data[r, 7, i]
+            # sum over the 8 terms: (kind in u) x (kind in v) x (kind in w)
+            g00 = y0 * z0 * d0 + y1 * z0 * d2 + y0 * z1 * d3 + y1 * z1 * d6  # u-value part
+            g10 = y0 * z0 * d1 + y1 * z0 * d4 + y0 * z1 * d5 + y1 * z1 * d7  # u-derivative part
+            f[i] += x0 * g00 + x1 * g10
+            if want_grad:
+                grad[i, 0] += dx0 * g00 + dx1 * g10
+                grad[i, 1] += (
+                    x0 * (dy0 * z0 * d0 + dy1 * z0 * d2 + dy0 * z1 * d3 + dy1 * z1 * d6)
+                    + x1 * (dy0 * z0 * d1 + dy1 * z0 * d4 + dy0 * z1 * d5 + dy1 * z1 * d7)
+                )
+                grad[i, 2] += (
+                    x0 * (y0 * dz0 * d0 + y1 * dz0 * d2 + y0 * dz1 * d3 + y1 * dz1 * d6)
+                    + x1 * (y0 * dz0 * d1 + y1 * dz0 * d4 + y0 * dz1 * d5 + y1 * dz1 * d7)
+                )
+
+
+@numba.njit(cache=True)
+def control_points(data, rows, h, cp):  # pragma: no cover - compiled
+    """The 64 Bezier control points of a cell's polynomial (convex hull of its image).
+
+    A cubic Hermite segment with end values ``p0, p1`` and end derivatives ``m0, m1``
+    (per unit of ``t``) has Bezier points ``p0, p0 + m0/3, p1 - m1/3, p1``; the tensor
+    product gives ``P[a, b, c] = f + s_a (h/3) f_u + ... + s_a s_b s_c (h/3)^3 f_uvw`` at
+    the corner nearest to ``(a, b, c) / 3``, with ``s = 0, +1, -1, 0`` for 0..3.
+    """
+    k3 = h / 3.0
+    for c in range(4):
+        for b in range(4):
+            for a in range(4):
+                r = rows[(a >= 2) + 2 * (b >= 2) + 4 * (c >= 2)]
+                sa = k3 * (1.0 if a == 1 else (-1.0 if a == 2 else 0.0))
+                sb = k3 * (1.0 if b == 1 else (-1.0 if b == 2 else 0.0))
+                sc = k3 * (1.0 if c == 1 else (-1.0 if c == 2 else 0.0))
+                n = a + 4 * b + 16 * c
+                for i in range(3):
+                    cp[n, i] = (
+                        data[r, 0, i]
+                        + sa * data[r, 1, i]
+                        + sb * data[r, 2, i]
+                        + sc * data[r, 3, i]
+                        + sa * sb * data[r, 4, i]
+                        + sa * sc * data[r, 5, i]
+                        + sb * sc * data[r, 6, i]
+                        + sa * sb * sc * data[r, 7, i]
+                    )
+
+
+@numba.njit(parallel=True, cache=True)
+def leaf_summaries(data, rows, size, centre_f, centre_ginv, rho):  # pragma: no cover
+    """Per leaf: value and inverse u-Jacobian at the centre, and the nonlinearity ``rho``.
+
+    ``rho`` bounds ``|G_c^-1 (f(u) - f_c) - (u - u_c)|_inf`` over the cell: the control
+    points of that tricubic minus those of the linear function ``u - u_c`` (at the cell's
+    thirds) bound it. A point whose linear pre-image estimate is farther than ``rho`` from
+    the cell has no pre-image in it.
+    """
+    for n in numba.prange(rows.shape[0]):
+        h = float(size[n])
+        g = np.empty((3, 3))
+        f = np.empty(3)
+        cell_eval(data, rows[n], h, 0.5, 0.5, 0.5, f, g, True)
+        if abs(np.linalg.det(g)) > 1e-300:
+            gi = np.linalg.inv(g)
+        else:
+            gi = np.full((3, 3), np.nan)
+        centre_f[n] = f
+        centre_ginv[n] = gi
+        cp = np.empty((64, 3))
+        control_points(data, rows[n], h, cp)
+        worst = 0.0
+        for q in range(64):
+            lin = ((q % 4) / 3.0 - 0.5, ((q // 4) % 4) / 3.0 - 0.5, (q // 16) / 3.0 - 0.5)
+            for i in range(3):
+                d = -lin[i] * h
+                for j in range(3):
+                    d += gi[i, j] * (cp[q, j] - f[j])
+                worst = max(worst, abs(d))
+        rho[n] = worst if np.isfinite(worst) else np.inf
+
+
+@numba.njit(cache=True)
+def _owned_range(o, h, end, lo, hi):  # pragma: no cover - compiled
+    """Voxels ``[a, b]`` (inclusive) of one axis owned by a leaf, within ``[lo, hi]``.
+
+    A leaf owns ``[o, o + h)``; the lattice's far end belongs to the last leaf.
+    """
+    a = max(o, lo)
+    b = o + h - 1
+    if o + h == end:
+        b = o + h
+    return a, min(b, hi)
+
+
+@numba.njit(inline="always", cache=True)
+def _owned_box(origin, h, end, box, n):  # pragma: no cover - compiled
+    """The voxels of ``box`` owned by leaf ``n``: ``(ia, ib, ja, jb, ka, kb)`` inclusive."""
+    ia, ib = _owned_range(origin[n, 0], h, end[0], box[0], box[1])
+    ja, jb = _owned_range(origin[n, 1], h, end[1], box[2], box[3])
+    ka, kb = _owned_range(origin[n, 2], h, end[2], box[4], box[5])
+    return ia, ib, ja, jb, ka, kb
+
+
+@numba.njit(parallel=True, cache=True)
+def leaf_voxels(data, rows, origin, size, leaves, end, box, mask, jacobians, to_index, out):
+    """Interpolated positions (or u-Jacobians) of the inside voxels of a box, leaf by leaf.
+
+    ``box = (i0, i1, j0, j1, k0, k1)`` (inclusive voxel ranges); ``out`` is the box's
+    (P, 3) positions or (P, 3, 3) world Jacobians ``df/du @ to_index`` (``jacobians``;
+    ``to_index`` = du/dx), i fastest. Positions are
+    evaluated separably: per voxel row the polynomial is reduced to 4 cubic terms in u,
+    then each voxel costs 12 products.
+    """
+    nx = box[1] - box[0] + 1
+    ny = box[3] - box[2] + 1
+    for q in numba.prange(leaves.shape[0]):
+        n = leaves[q]
+        h = size[n]
+        hf = float(h)
+        ia, ib, ja, jb, ka, kb = _owned_box(origin, h, end, box, n)
+        wv = np.empty(4)
+        ww = np.empty(4)
+        qrow = np.empty((2, 2, 3))
+        f = np.empty(3)
+        g = np.empty((3, 3))
+        gw = np.empty((3, 3))
+        r = rows[n]
+        for k in range(ka, kb + 1):
+            ww[0], ww[1], ww[2], ww[3], _, _, _, _ = _weights((k - origin[n, 2]) / hf, hf)
+            for j in range(ja, jb + 1):
+                base = ((k - box[4]) * ny + (j - box[2])) * nx - box[0]
+                if jacobians:
+                    for i_ in range(ia, ib + 1):
+                        if mask[k, j, i_]:
+                            cell_eval(
+                                data, r, hf, (i_ - origin[n, 0]) / hf, (j - origin[n, 1]) / hf,
+                                (k - origin[n, 2]) / hf, f, g, True,
+                            )  # fmt: skip
+                            for a in range(3):
+                                for b in range(3):
+                                    gw[a, b] = (
+                                        g[a, 0] * to_index[0, b]
+                                        + g[a, 1] * to_index[1, b]
+                                        + g[a, 2] * to_index[2, b]
+                                    )
+                            out[base + i_] = gw
+                    continue
+                wv[0], wv[1], wv[2], wv[3], _, _, _, _ = _weights((j - origin[n, 1]) / hf, hf)
+                # reduce to 4 terms in u: qrow[a, ku] = sum over (b, c, kv, kw)
+                qrow[:] = 0.0
+                for c in range(2):
+                    for b in range(2):
+                        for kw in range(2):
+                            for kv in range(2):
+                                s = wv[2 * b + kv] * ww[2 * c + kw]
+                                for a in range(2):
+                                    node = r[a + 2 * b + 4 * c]
+                                    for ku in range(2):
+                                        t = _term(ku, kv, kw)
+                                        for i in range(3):
+                                            qrow[a, ku, i] += s * data[node, t, i]
+                for i_ in range(ia, ib + 1):
+                    if not mask[k, j, i_]:
+                        continue
+                    a0, a1, a2, a3, _, _, _, _ = _weights((i_ - origin[n, 0]) / hf, hf)
+                    for i in range(3):
+                        out[base + i_, i] = (
+                            a0 * qrow[0, 0, i]
+                            + a1 * qrow[0, 1, i]
+                            + a2 * qrow[1, 0, i]
+                            + a3 * qrow[1, 1, i]
+                        )
+
+
+@numba.njit(parallel=True, cache=True)
+def eval_points(data, rows, origin, size, leaf, u, f, g):  # pragma: no cover - compiled
+    """Value ``f`` (P, 3) and u-gradient ``g`` (P, 3, 3) at points ``u`` of leaves ``leaf``."""
+    for p in numba.prange(u.shape[0]):
+        n = leaf[p]
+        h = float(size[n])
+        fp = np.empty(3)
+        gp = np.empty((3, 3))
+        cell_eval(
+            data, rows[n], h, (u[p, 0] - origin[n, 0]) / h, (u[p, 1] - origin[n, 1]) / h,
+            (u[p, 2] - origin[n, 2]) / h, fp, gp, True,
+        )  # fmt: skip
+        f[p] = fp
+        g[p] = gp

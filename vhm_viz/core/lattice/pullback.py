@@ -1,0 +1,387 @@
+"""Pre-images on the lattice: where each leaf's image reaches, and Newton on its polynomial.
+
+Each leaf keeps its value and inverse Jacobian at the centre and a bound ``rho`` of its
+nonlinearity (:func:`~vhm_viz.core.lattice.hermite.leaf_summaries`): an output voxel
+whose linear pre-image estimate misses the leaf by more than ``rho`` has no pre-image in
+it; Newton's method on the leaf's polynomial finds the others. Pre-images in leaves the
+cage crosses are checked against the inside and surface flags of the grid cube around
+them (:func:`cut_blocks`), or the winding number where those cannot tell.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from vhm_viz.core.image import BORDER, inside_mask, surface_mask
+from vhm_viz.core.lattice.hermite import cell_eval, control_points
+
+# Newton on a cell's polynomial: converged when the step is below this (voxels; the step
+# is applied, and convergence is quadratic, so the pre-image is then good to ~1e-10) ...
+_NEWTON_STEP = 1e-4
+# ... within this many iterations.
+_NEWTON_ITERATIONS = 12
+#: How far (voxels) outside its cell a pre-image may lie: cells of different sizes meet
+#: with mismatches of the order of the tolerance, which would otherwise leave gaps.
+MARGIN = 0.25
+
+
+@numba.njit(cache=True)
+def _clip_net(cp, axis, t0, t1):  # pragma: no cover - compiled
+    """Restrict a tricubic Bezier net to ``t0 <= t <= t1`` along one axis (de Casteljau).
+
+    The new net's control points bound the image of the restricted cell only.
+    """
+    b = np.empty((4, 3))
+    for line in range(16):
+        # the 4 control points of this line along ``axis``
+        idx = np.empty(4, dtype=np.int64)
+        for q in range(4):
+            if axis == 0:
+                idx[q] = q + 4 * (line % 4) + 16 * (line // 4)
+            elif axis == 1:
+                idx[q] = (line % 4) + 4 * q + 16 * (line // 4)
+            else:
+                idx[q] = (line % 4) + 4 * (line // 4) + 16 * q
+        for q in range(4):
+            b[q] = cp[idx[q]]
+        # keep [0, t1]: the left half of a split at t1
+        for r in range(1, 4):
+            for q in range(3, r - 1, -1):
+                b[q] = (1.0 - t1) * b[q - 1] + t1 * b[q]
+        # keep [t0 / t1, 1] of that: the right half of a split
+        s = t0 / t1 if t1 > 0.0 else 0.0
+        for r in range(1, 4):
+            for q in range(0, 4 - r):
+                b[q] = (1.0 - s) * b[q] + s * b[q + 1]
+        for q in range(4):
+            cp[idx[q]] = b[q]
+
+
+@numba.njit(parallel=True, cache=True)
+def output_boxes(data, rows, origin, size, lower, upper, origin_out, to_out, margin, lo, hi):
+    """Per leaf: the box of output-grid indices its image can reach.
+
+    The control points bound the image of the cell, restricted to the input region
+    ``lower <= u <= upper`` (the volume: cells overhang it); ``margin[n]`` (input voxels)
+    around that adds at most that times the largest corner Jacobian (output voxels per
+    input voxel), a first-order bound that the rounding of the box to whole voxels covers.
+    """  # noqa: D401
+    for n in numba.prange(rows.shape[0]):
+        h = float(size[n])
+        cp = np.empty((64, 3))
+        control_points(data, rows[n], h, cp)
+        for a in range(3):
+            t0 = max((lower[a] - origin[n, a]) / h, 0.0)
+            t1 = min((upper[a] - origin[n, a]) / h, 1.0)
+            if t0 > 0.0 or t1 < 1.0:
+                _clip_net(cp, a, t0, max(t1, t0))
+        for a in range(3):
+            lo[n, a] = np.inf
+            hi[n, a] = -np.inf
+        for q in range(64):
+            for a in range(3):
+                v = 0.0
+                for b in range(3):
+                    v += to_out[a, b] * (cp[q, b] - origin_out[b])
+                lo[n, a] = min(lo[n, a], v)
+                hi[n, a] = max(hi[n, a], v)
+        for a in range(3):
+            pad = 0.0
+            for corner in range(8):
+                r = rows[n, corner]
+                s = 0.0
+                for t in range(1, 4):  # |d(out_a)/du_t| summed over t
+                    d = 0.0
+                    for b in range(3):
+                        d += to_out[a, b] * data[r, t, b]
+                    s += abs(d)
+                pad = max(pad, s)
+            lo[n, a] -= margin[n] * pad
+            hi[n, a] += margin[n] * pad
+
+
+@numba.njit(cache=True)
+def candidate_rows(leaves, ilo, ihi, box, row_start, row_leaf, row_i0, row_i1):  # pragma: no cover
+    """Rows of an output box and the leaves whose image boxes cross each (CSR).
+
+    ``ilo, ihi`` (L, 3) int: inclusive output index boxes of the leaves; the box is
+    ``(i0, i1, j0, j1, k0, k1)``. First call with ``row_leaf`` empty counts into
+    ``row_start`` (length rows + 1); the second fills.
+    """
+    ny = box[3] - box[2] + 1
+    fill = row_leaf.shape[0] > 0
+    pos = row_start.copy()
+    for q in range(leaves.shape[0]):
+        n = leaves[q]
+        a = max(ilo[n, 0], box[0])
+        b = min(ihi[n, 0], box[1])
+        if a > b:
+            continue
+        for k in range(max(ilo[n, 2], box[4]), min(ihi[n, 2], box[5]) + 1):
+            for j in range(max(ilo[n, 1], box[2]), min(ihi[n, 1], box[3]) + 1):
+                r = (k - box[4]) * ny + (j - box[2])
+                if fill:
+                    row_leaf[pos[r]] = n
+                    row_i0[pos[r]] = a
+                    row_i1[pos[r]] = b
+                    pos[r] += 1
+                else:
+                    row_start[r + 1] += 1
+
+
+#: Edge of the blocks in which the inside and surface flags around the leaves the cage
+#: crosses are kept for the pull-back (:func:`cut_blocks`): 8^3 lattice points, 512 bytes.
+FLAG_BLOCK = 8
+
+
+@numba.njit(cache=True)
+def _mark_cut_blocks(origin, size, cut, margin, dims, marks):  # pragma: no cover
+    """Mark the blocks holding the grid cubes around the pre-images of the cut leaves.
+
+    A pre-image lies within its leaf grown by its margin (:meth:`HermiteLattice.margins`);
+    :func:`inside_around` reads the 8 corners of the grid cube around it.
+    """
+    lo = np.empty(3, dtype=np.int64)
+    hi = np.empty(3, dtype=np.int64)
+    for n in range(origin.shape[0]):
+        if not cut[n]:
+            continue
+        for a in range(3):
+            lo[a] = min(max(int(math.floor(origin[n, a] - margin[n])), 0), dims[a] - 2)
+            hi[a] = min(max(int(math.floor(origin[n, a] + size[n] + margin[n])), 0), dims[a] - 2)
+            hi[a] += 1
+        for kb in range(lo[2] // FLAG_BLOCK, hi[2] // FLAG_BLOCK + 1):
+            for jb in range(lo[1] // FLAG_BLOCK, hi[1] // FLAG_BLOCK + 1):
+                for ib in range(lo[0] // FLAG_BLOCK, hi[0] // FLAG_BLOCK + 1):
+                    marks[kb, jb, ib] = True
+
+
+def cut_blocks(lattice, lat_geo=None, vertices=None, faces=None):
+    """The inside and surface flags around the leaves the cage crosses, in blocks.
+
+    Returns ``(block_of, pool, dims)``: ``pool`` (B, 8, 8, 8) uint8 holds the flags of
+    blocks of ``FLAG_BLOCK``^3 lattice points (bit 0 inside, bit 1 next to the surface).
+    ``block_of[kb, jb, ib]``: the block's row of ``pool`` (-1: not kept); ``dims``: the
+    lattice's points per axis. Taken from the lattice's masks, or computed from the cage
+    (``lat_geo``, ``vertices``, ``faces``) for a lattice without them (a joined one): the
+    same values, a row's flags not depending on which other rows are computed.
+    """
+    dims = np.asarray(lattice.end + 1, dtype=np.int64)  # (nx, ny, nz)
+    nb = -(-dims // FLAG_BLOCK)
+    marks = np.zeros((nb[2], nb[1], nb[0]), dtype=np.bool_)
+    if len(lattice.leaf_size):
+        _mark_cut_blocks(lattice.leaf_origin, lattice.leaf_size, lattice.leaf_cut,
+                         lattice.margins(), dims, marks)  # fmt: skip
+    block_of = np.full(marks.shape, -1, dtype=np.int64)
+    block_of[marks] = np.arange(int(marks.sum()))
+    pool = np.zeros((int(marks.sum()), FLAG_BLOCK, FLAG_BLOCK, FLAG_BLOCK), dtype=np.uint8)
+    for kb in np.nonzero(marks.any(axis=(1, 2)))[0]:
+        kb_marks = marks[kb]
+        jbs = np.nonzero(kb_marks.any(axis=1))[0]
+        k0, k1 = kb * FLAG_BLOCK, min((kb + 1) * FLAG_BLOCK, dims[2])
+        j0, j1 = jbs[0] * FLAG_BLOCK, min((jbs[-1] + 1) * FLAG_BLOCK, dims[1])
+        if lattice.mask is not None:
+            inside = lattice.mask[k0:k1, j0:j1]
+            near = lattice.near[k0:k1, j0:j1]
+        else:
+            inside = inside_mask(lat_geo, vertices, faces, rows=(j0, j1, k0, k1))
+            near = surface_mask(lat_geo, vertices, faces, rows=(j0, j1, k0, k1))
+        flags = inside.astype(np.uint8) | (near.astype(np.uint8) << 1)
+        for jb, ib in zip(*np.nonzero(kb_marks), strict=True):
+            a, b = jb * FLAG_BLOCK - j0, ib * FLAG_BLOCK
+            block = flags[:, a : a + FLAG_BLOCK, b : b + FLAG_BLOCK]
+            pool[block_of[kb, jb, ib], : block.shape[0], : block.shape[1], : block.shape[2]] = block
+    return block_of, pool, dims
+
+
+@numba.njit(cache=True)
+def inside_around(block_of, pool, dims, u):  # pragma: no cover - compiled
+    """Whether ``u`` is inside the cage, from the grid cube around it.
+
+    8 (inside) or 0 (outside) when the cage does not cross the cube's edges and the
+    corners agree; -1 (ask the winding number) when the surface runs next to the cube, or
+    the cube's flags were not kept (:func:`cut_blocks`).
+    """
+    i0 = min(max(int(math.floor(u[0])), 0), dims[0] - 2)
+    j0 = min(max(int(math.floor(u[1])), 0), dims[1] - 2)
+    k0 = min(max(int(math.floor(u[2])), 0), dims[2] - 2)
+    count = 0
+    for c in range(2):
+        for b in range(2):
+            for a in range(2):
+                k, j, i = k0 + c, j0 + b, i0 + a
+                blk = block_of[k // FLAG_BLOCK, j // FLAG_BLOCK, i // FLAG_BLOCK]
+                if blk < 0:
+                    return -1
+                flags = pool[blk, k % FLAG_BLOCK, j % FLAG_BLOCK, i % FLAG_BLOCK]
+                if flags & 2:
+                    return -1
+                if flags & 1:
+                    count += 1
+    return count if count == 0 or count == 8 else -1
+
+
+@numba.njit(parallel=True, cache=True)
+def pull_back_rows(
+    data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, block_of, pool, dims,
+    last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
+    u_out, state, fold, quality,
+):  # pragma: no cover - compiled  # fmt: skip
+    """Pre-images of the output voxels of a box: Newton on the leaves' polynomials.
+
+    For every row of the box and every leaf whose image box crosses it, each voxel ``y``
+    gets a linear pre-image estimate from the leaf's centre; a leaf more than ``rho`` plus
+    the margin away is skipped, otherwise Newton's method on the leaf's polynomial starts
+    from that estimate (or from the previous voxel's pre-image, advanced by the inverse
+    Jacobian). A converged pre-image within the margin of its leaf and within the input
+    volume's half-voxel border is kept:
+
+    * ``state`` 1 (inside the cage), or 2 when the leaf crosses the cage and the voxels
+      around it disagree (the caller checks those with the winding number);
+    * a second pre-image more than one voxel from the first marks a fold (``fold`` 1); a
+      nearer one (the same point, found from a neighbouring leaf) replaces the first when
+      it lies deeper inside its leaf (``quality`` = distance outside the leaf).
+    """
+    nx = box[1] - box[0] + 1
+    ny = box[3] - box[2] + 1
+    n_rows = row_start.shape[0] - 1
+    step = np.empty(3)
+    for a in range(3):
+        step[a] = to_world_out[a, 0]
+    for r in numba.prange(n_rows):
+        k = box[4] + r // ny
+        j = box[2] + r % ny
+        y = np.empty(3)
+        ul = np.empty(3)
+        u = np.empty(3)
+        f = np.empty(3)
+        g = np.empty((3, 3))
+        gi = np.empty((3, 3))
+        prev1 = np.empty(3)
+        prev2 = np.empty(3)
+        for c in range(row_start[r], row_start[r + 1]):
+            n = row_leaf[c]
+            h = float(size[n])
+            lim = 0.5 * h + rho[n] + margin[n]
+            chained = 0  # consecutive converged voxels before this one
+            for i_ in range(row_i0[c], row_i1[c] + 1):
+                for a in range(3):
+                    y[a] = origin_out[a] + to_world_out[a, 0] * i_ + (
+                        to_world_out[a, 1] * j + to_world_out[a, 2] * k
+                    )
+                far = False
+                for a in range(3):
+                    d = 0.0
+                    for b in range(3):
+                        d += centre_ginv[n, a, b] * (y[b] - centre_f[n, b])
+                    ul[a] = origin[n, a] + 0.5 * h + d
+                    if not abs(d) <= lim:  # also catches NaN
+                        far = True
+                if far:
+                    chained = 0
+                    continue
+                v = ((k - box[4]) * ny + (j - box[2])) * nx + (i_ - box[0])
+                if state[v] == 1 and quality[v] == 0.0:
+                    # a pre-image inside its own leaf is known: a pre-image in this leaf
+                    # (within rho of the estimate) more than a voxel away would be a fold
+                    gap = 0.0
+                    for a in range(3):
+                        gap = max(gap, abs(ul[a] - u_out[v, a]))
+                    if gap + rho[n] < 1.0:
+                        chained = 0
+                        continue
+                if chained >= 3:
+                    # the pre-images of a row are smooth: quadratic extrapolation
+                    for a in range(3):
+                        nxt = 3.0 * u[a] - 3.0 * prev1[a] + prev2[a]
+                        prev2[a] = prev1[a]
+                        prev1[a] = u[a]
+                        u[a] = nxt
+                elif chained > 0:
+                    # previous pre-image advanced by the inverse Jacobian (one voxel along i)
+                    for a in range(3):
+                        d = 0.0
+                        for b in range(3):
+                            d += gi[a, b] * step[b]
+                        prev2[a] = prev1[a]
+                        prev1[a] = u[a]
+                        u[a] += d
+                else:
+                    for a in range(3):
+                        u[a] = ul[a]
+                ok = False
+                for _ in range(_NEWTON_ITERATIONS):
+                    cell_eval(
+                        data, rows[n], h, (u[0] - origin[n, 0]) / h, (u[1] - origin[n, 1]) / h,
+                        (u[2] - origin[n, 2]) / h, f, g, True,
+                    )  # fmt: skip
+                    det = (
+                        g[0, 0] * (g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1])
+                        - g[0, 1] * (g[1, 0] * g[2, 2] - g[1, 2] * g[2, 0])
+                        + g[0, 2] * (g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0])
+                    )
+                    if not abs(det) > 1e-300:
+                        break
+                    inv = 1.0 / det
+                    gi[0, 0] = (g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1]) * inv
+                    gi[0, 1] = (g[0, 2] * g[2, 1] - g[0, 1] * g[2, 2]) * inv
+                    gi[0, 2] = (g[0, 1] * g[1, 2] - g[0, 2] * g[1, 1]) * inv
+                    gi[1, 0] = (g[1, 2] * g[2, 0] - g[1, 0] * g[2, 2]) * inv
+                    gi[1, 1] = (g[0, 0] * g[2, 2] - g[0, 2] * g[2, 0]) * inv
+                    gi[1, 2] = (g[0, 2] * g[1, 0] - g[0, 0] * g[1, 2]) * inv
+                    gi[2, 0] = (g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]) * inv
+                    gi[2, 1] = (g[0, 1] * g[2, 0] - g[0, 0] * g[2, 1]) * inv
+                    gi[2, 2] = (g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]) * inv
+                    big = 0.0
+                    for a in range(3):
+                        d = 0.0
+                        for b in range(3):
+                            d += gi[a, b] * (y[b] - f[b])
+                        u[a] += d
+                        big = max(big, abs(d))
+                    if not big < 2.0 * h:  # diverging (or NaN)
+                        break
+                    if big < _NEWTON_STEP:
+                        ok = True
+                        break
+                chained = chained + 1 if ok else 0
+                if not ok:
+                    continue
+                q = 0.0
+                inside_vol = True
+                for a in range(3):
+                    # beyond the volume's boundary the border takes over from the margin
+                    below = origin[n, a] - u[a] - (BORDER if origin[n, a] <= 0 else 0.0)
+                    above = u[a] - origin[n, a] - h - (
+                        BORDER if origin[n, a] + size[n] >= last[a] else 0.0
+                    )
+                    q = max(q, below, above)
+                    if u[a] < -BORDER or u[a] > last[a] + BORDER:
+                        inside_vol = False
+                if q > MARGIN or not inside_vol:
+                    continue
+                s = 1
+                if cut[n]:
+                    around = inside_around(block_of, pool, dims, u)
+                    if around == 0:
+                        continue
+                    if around < 0:
+                        s = 2
+                if state[v] == 0 or (state[v] == 2 and s == 1):
+                    state[v] = s
+                    quality[v] = q
+                    for a in range(3):
+                        u_out[v, a] = u[a]
+                elif state[v] == s:
+                    apart = 0.0
+                    for a in range(3):
+                        apart = max(apart, abs(u[a] - u_out[v, a]))
+                    if apart > 1.0:
+                        fold[v] = 1
+                    elif q < quality[v]:
+                        quality[v] = q
+                        for a in range(3):
+                            u_out[v, a] = u[a]
