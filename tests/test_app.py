@@ -433,7 +433,7 @@ def test_drag_shows_the_proxy_and_release_the_full_mesh(window, qtbot):
     assert win._actors["proxy"].GetVisibility() and not win._actors["shape"].GetVisibility()
     np.testing.assert_array_equal(ctrl.deformed_points, before)  # the full shape waits
     # the proxy shows the map of its rest points at the drag solution (float32 binding)
-    expected = ctrl.deformer.harmonic_map.map(ctrl._proxy_rest)
+    expected = ctrl.deformer.harmonic_map.map(ctrl.proxy_rest_points)
     np.testing.assert_allclose(proxy.points, expected, atol=1e-5)
     # release: full shape, solved to convergence, equal to a direct Deformer solve
     w.InvokeEvent("EndInteractionEvent")
@@ -460,7 +460,7 @@ def test_drag_shows_the_proxy_and_release_the_full_mesh(window, qtbot):
 def test_make_proxy_surfaces_volumes_and_points():
     import pyvista as pv
 
-    from vhm_viz.app.controller import make_proxy
+    from vhm_viz.app.lod import make_proxy
 
     sphere = pv.Sphere(theta_resolution=60, phi_resolution=60)  # 6,844 triangles
     p = make_proxy(sphere, 1000)

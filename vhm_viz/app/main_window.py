@@ -424,14 +424,14 @@ class ExplorerWindow(QMainWindow):
 
         def job(progress, cancelled):
             new = ExplorerController()
-            new.copy_lod_settings(self.ctrl)
-            new.mode, new.alpha = mode, alpha
-            new.max_iterations = self.ctrl.max_iterations
+            new.copy_settings(self.ctrl)
+            new.scene.mode, new.scene.alpha = mode, alpha
             progress(0.0, f"{name}: reading")
-            load(new)
+            load(new, progress)
             if new.can_solve:
                 new.prepare(progress, cancelled)
-                new.settle(init="identity")
+                if new.last_report is None:  # a loaded scene comes solved
+                    new.settle(init="identity")
                 new.deform()
             return new
 
@@ -444,12 +444,14 @@ class ExplorerWindow(QMainWindow):
             path, _ = QFileDialog.getOpenFileName(self, "Open data", "", _OPEN_FILTER)
             if not path:
                 return False
-        return self._load_job(f"open {Path(path).name}", lambda c: c.load_file(path))
+        return self._load_job(f"open {Path(path).name}", lambda c, progress: c.load_file(path))
 
     @guarded
     def open_bar(self, kind: str = "bend-u", resolution: int = 39, apply: bool = True) -> bool:
         """Open a bundled bar scenario (solved, with its constraints)."""
-        return self._load_job(f"bar {kind}", lambda c: c.load_bar(kind, resolution, apply))
+        return self._load_job(
+            f"bar {kind}", lambda c, progress: c.load_bar(kind, resolution, apply)
+        )
 
     @guarded
     def load_scene(self, path: str | None = None) -> bool:
@@ -460,7 +462,8 @@ class ExplorerWindow(QMainWindow):
                 return False
         current = self.ctrl
         return self._load_job(
-            f"scene {Path(path).name}", lambda c: c.load_scene(path, data_from=current)
+            f"scene {Path(path).name}",
+            lambda c, progress: c.load_scene(path, data_from=current, progress=progress),
         )
 
     @guarded

@@ -1,0 +1,67 @@
+"""Undo and redo for the explorer: a history of :class:`~vhm_viz.scene.Scene` snapshots."""
+
+from __future__ import annotations
+
+import copy
+
+from vhm_viz.scene import Scene
+
+__all__ = ["SceneHistory", "UNDO_LIMIT"]
+
+# undo steps kept
+UNDO_LIMIT = 100
+
+
+class SceneHistory:
+    """Scenes before each user action (undo) and after each undone one (redo).
+
+    Parameters
+    ----------
+    limit : int
+        Undo steps kept (the oldest are forgotten).
+    """
+
+    def __init__(self, limit: int = UNDO_LIMIT):
+        self.limit = int(limit)
+        self._undo: list[Scene] = []
+        self._redo: list[Scene] = []
+
+    @staticmethod
+    def snapshot(scene: Scene) -> Scene:
+        """An independent copy of ``scene`` (arrays copied)."""
+        return copy.deepcopy(scene)
+
+    def record(self, before: Scene) -> None:
+        """Remember the scene before a user action; clears the redo history."""
+        self._undo.append(before)
+        del self._undo[: -self.limit]
+        self._redo.clear()
+
+    def clear(self) -> None:
+        """Forget everything (new data loaded)."""
+        self._undo.clear()
+        self._redo.clear()
+
+    @property
+    def can_undo(self) -> bool:
+        """Whether :meth:`undo` has a scene to go back to."""
+        return bool(self._undo)
+
+    @property
+    def can_redo(self) -> bool:
+        """Whether :meth:`redo` has a scene to go forward to."""
+        return bool(self._redo)
+
+    def undo(self, current: Scene) -> Scene | None:
+        """The scene before the last action (``current`` becomes redoable); None if none."""
+        return self._step(self._undo, self._redo, current)
+
+    def redo(self, current: Scene) -> Scene | None:
+        """The scene after the last undone action; None if none."""
+        return self._step(self._redo, self._undo, current)
+
+    def _step(self, source: list, target: list, current: Scene) -> Scene | None:
+        if not source:
+            return None
+        target.append(self.snapshot(current))
+        return source.pop()
