@@ -260,7 +260,7 @@ def main() -> None:
         from PySide6.QtWidgets import QApplication
         from threadpoolctl import threadpool_limits
 
-        from vhm_viz.app.main_window import ExplorerWindow
+        from vhm_viz.app.window import ExplorerWindow
 
         threadpool_limits(limits=1, user_api="blas")  # as the app does
         app = QApplication.instance() or QApplication(sys.argv[:1])
