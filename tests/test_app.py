@@ -530,7 +530,7 @@ def test_certify_action_draws_witnesses_and_the_dock_shows_the_answer(window):
     assert ctrl.certificate is None and "witnesses" not in win.actors
 
 
-# ---------------------------------------------------------------------------- issue 17
+# ---------------------------------------------------------------------------- analysis dock
 
 
 def test_solved_bar_fills_the_analysis_dock_and_a_cage_shows_at_once(window, tmp_path):

@@ -16,6 +16,11 @@ import sys
 import time
 from pathlib import Path
 
+from threadpoolctl import threadpool_limits
+
+from vhm_viz import interrupts
+from vhm_viz.atomic import atomic_path
+
 __all__ = ["main", "ExplorerController", "start_xvfb"]
 
 
@@ -80,17 +85,15 @@ def run(args) -> int:
     """
     from PySide6.QtCore import QTimer
     from PySide6.QtWidgets import QApplication
-    from threadpoolctl import threadpool_limits
 
-    from vhm_viz import interrupts
     from vhm_viz.app.window import ExplorerWindow
 
     if getattr(args, "screenshot", None):
         return screenshot(args)
     # The explorer's linear algebra is small (QR of a few hundred columns, products with
     # 3 columns) but runs next to Qt, VTK, a worker thread and numba's parallel kernels;
-    # OpenBLAS's spinning pool then fights them for the cores (a 3138 x 314 QR measured
-    # 1-6 s with the default pool under load, 0.11 s with one thread).
+    # OpenBLAS's spinning pool then fights them for the cores and a small QR can take many
+    # times longer than with one thread.
     threadpool_limits(limits=int(os.environ.get("VHM_BLAS_THREADS", "1")), user_api="blas")
 
     app = QApplication.instance() or QApplication(sys.argv[:1])
@@ -154,10 +157,8 @@ def screenshot(args) -> int:
         os.environ["DISPLAY"] = display
         os.environ["QT_QPA_PLATFORM"] = "xcb"
     from PySide6.QtWidgets import QApplication
-    from threadpoolctl import threadpool_limits
 
     from vhm_viz.app.window import ExplorerWindow
-    from vhm_viz.atomic import atomic_path
     from vhm_viz.io import refuse_inputs
 
     refuse_inputs(out, [Path(p) for p in (args.file, args.scene, args.cage) if p])

@@ -14,12 +14,11 @@ Life cycle
   model; :attr:`~ExplorerController.positions` and :attr:`~ExplorerController.jacobians`
   are views of them (:mod:`vhm_viz.app.constraints`). Undo and redo step through
   snapshots of the scene (:class:`~vhm_viz.app.history.SceneHistory`).
-* Editing the cage, anchors or alpha marks the deformer stale; adding or removing
-  constraints marks the constraint layout stale; both are rebuilt by
-  :meth:`ExplorerController.prepare`, the only expensive call (basis evaluation at every
-  point of the shape, in chunks with progress and cancellation). Moving a target or changing
-  a Jacobian's angles or scale only calls ``Deformer.update_targets`` (no refactorisation),
-  so :meth:`ExplorerController.drag` (update + warm-started solve + deform) is cheap.
+* Editing the cage, anchors or alpha marks the deformer stale, adding or removing
+  constraints the constraint layout; :meth:`ExplorerController.prepare` rebuilds them (the
+  only expensive call: basis evaluation at every point of the shape, with progress and
+  cancellation). Moving a target or turning a Jacobian only updates the targets, so
+  :meth:`ExplorerController.drag` (update + warm-started solve + deform) is cheap.
 * A scene file is loaded and solved through :meth:`vhm_viz.scene.Scene.solve_map`, the path
   every front end takes from a scene to a solved map.
 * Level of detail (:mod:`vhm_viz.app.lod`): a shape with more than
@@ -30,11 +29,9 @@ Life cycle
 * Constraint points live in rest space; targets in deformed space. A position constraint
   added at a point starts with the point's current image as target (the shape does not
   jump); a Jacobian constraint starts at the closest similarity to the current Jacobian.
-* Analysis: :meth:`ExplorerController.metrics` counts the inverted cells of data with 3D
-  cells (from the displayed, float32-bound positions; ``vhm-viz analyze`` and the export
-  evaluate in float64), and :meth:`ExplorerController.certify` proves the current map
-  injective over the shape or finds witnesses (:mod:`vhm_viz.app.certify`); the
-  certificate is dropped by the next solve, since it belongs to one solution.
+* Analysis: :meth:`ExplorerController.metrics` (shape distortion, inverted cells) and
+  :meth:`ExplorerController.certify` (:mod:`vhm_viz.app.certify`); the certificate is
+  dropped by the next solve, since it belongs to one solution.
 """
 
 from __future__ import annotations
@@ -46,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
+from vhm_viz.app.analysis import shape_metrics, triangles_of
 from vhm_viz.app.cage_fit import point_values, region_threshold
 from vhm_viz.app.cancellation import Cancelled, ProgressFn, never_cancelled, no_progress
 from vhm_viz.app.certify import certificate_geometry, certify_shape
@@ -62,20 +60,25 @@ from vhm_viz.app.constraints import (
     similarity_of,
     with_row,
 )
-from vhm_viz.app.export import export_path, scene_for_file, write_deformed, write_deformed_volume
+from vhm_viz.app.explorer_scene import (
+    SETTLE_SOLVER,
+    empty_scene,
+    scene_for_file,
+    settle_settings,
+    solve_loaded,
+)
+from vhm_viz.app.export import export_path, write_deformed, write_deformed_volume
 from vhm_viz.app.history import SceneHistory
 from vhm_viz.app.lod import LevelOfDetail
 from vhm_viz.app.picking import rest_point_of_pick
 from vhm_viz.app.volume import VolumeView, is_volume
 from vhm_viz.autocage import auto_anchors, auto_cage
-from vhm_viz.core import metrics as shape_metrics
 from vhm_viz.core.anchors import anchors_from_polylines
 from vhm_viz.core.cage import Cage
 from vhm_viz.core.errors import AbortedError, CageError, ConstraintError, describe_indices
 from vhm_viz.examples import bar
-from vhm_viz.filters import cell_quality
 from vhm_viz.io import read_anchors, read_cage, read_dataset, read_rigidity_lines, refuse_inputs
-from vhm_viz.scene import DEFAULT_SOLVER, Scene
+from vhm_viz.scene import Scene
 
 __all__ = [
     "ExplorerController",
@@ -87,42 +90,17 @@ __all__ = [
     "settle_settings",
 ]
 
-# Solver settings of the explorer's full solves (on release, after loading): the solver's
-# fixed-point estimate is optimistic at small alpha, so settle tighter than the scene
-# default. They are saved with the scene, so `vhm-viz deform` reproduces the explorer.
-SETTLE_SOLVER = dict(DEFAULT_SOLVER, max_iterations=50000, tolerance=1e-8)
 
+def _level_of_detail(name: str, doc: str) -> property:
+    """A controller property that reads and sets ``level_of_detail.<name>``."""
 
-def settle_settings(solver: dict) -> dict:
-    """The settings the explorer settles a scene with, and saves it with.
+    def get(self):
+        return getattr(self.level_of_detail, name)
 
-    A scene's own cap and tolerance, at least as strict as :data:`SETTLE_SOLVER`: a
-    scene written with ``max_iterations: 200`` would otherwise be settled (and saved)
-    unconverged, and ``vhm-viz deform`` would refuse it.
-    """
-    out = dict(solver)
-    out["max_iterations"] = max(int(out["max_iterations"]), SETTLE_SOLVER["max_iterations"])
-    out["tolerance"] = min(float(out["tolerance"]), SETTLE_SOLVER["tolerance"])
-    return out
+    def set(self, value) -> None:
+        setattr(self.level_of_detail, name, type(get(self))(value))
 
-
-def empty_scene(mode: str = "rigid", alpha: float = 0.01, solver: dict | None = None,
-                data: dict | None = None) -> Scene:  # fmt: skip
-    """A scene without cage, anchors or constraints (what the explorer edits from)."""
-    return Scene(
-        cage={"vertices": np.zeros((0, 3)), "faces": np.zeros((0, 3), dtype=np.int64)},
-        anchors={"points": np.zeros((0, 3))},
-        constraints={
-            "positions": np.zeros((0, 3)),
-            "targets": np.zeros((0, 3)),
-            "jacobian_points": np.zeros((0, 3)),
-            "jacobians": np.zeros((0, 3, 3)),
-        },
-        mode=mode,
-        alpha=float(alpha),
-        solver=dict(SETTLE_SOLVER if solver is None else solver),
-        data=data,
-    )
+    return property(get, set, doc=doc)
 
 
 @dataclass
@@ -247,11 +225,6 @@ class ExplorerController:
         return [JacobianConstraint(self, i) for i in range(n)]
 
     # ------------------------------------------------------------------ data
-    @property
-    def has_data(self) -> bool:
-        """Whether a dataset is loaded."""
-        return self.rest is not None
-
     @property
     def ready(self) -> bool:
         """Whether :meth:`drag` can run without :meth:`prepare` (nothing stale)."""
@@ -573,13 +546,6 @@ class ExplorerController:
         self._edit_constraints(with_row, "jacobians", index, scale * closest_rotation(rotation))
         self._targets_stale = True
 
-    def set_point(self, kind: str, index: int, point) -> None:
-        """Move the rest-space point of a constraint (changes the layout)."""
-        p = np.asarray(point, dtype=float).reshape(3)
-        self._check_constraint_point(p)
-        self._edit_constraints(with_row, ARRAYS[kind][0], index, p)
-        self._layout_stale = True
-
     def constraint_arrays(self) -> dict:
         """The constraints in :meth:`Deformer.set_constraints` form."""
         return self.scene.constraint_arguments()
@@ -608,42 +574,16 @@ class ExplorerController:
         self.max_iterations, self.tolerance = other.max_iterations, other.tolerance
 
     # ------------------------------------------------------------------ level of detail
-    @property
-    def lod(self) -> bool:
-        """Drag a proxy when the shape has more than :attr:`lod_points` points."""
-        return self.level_of_detail.enabled
-
-    @lod.setter
-    def lod(self, on: bool) -> None:
-        self.level_of_detail.enabled = bool(on)
-
-    @property
-    def lod_points(self) -> int:
-        """Level-of-detail threshold (points of the shape)."""
-        return self.level_of_detail.points
-
-    @lod_points.setter
-    def lod_points(self, n: int) -> None:
-        self.level_of_detail.points = int(n)
-
-    @property
-    def proxy_triangles(self) -> int:
-        """Size of the drag proxy (see :func:`vhm_viz.app.lod.make_proxy`)."""
-        return self.level_of_detail.triangles
-
-    @proxy_triangles.setter
-    def proxy_triangles(self, n: int) -> None:
-        self.level_of_detail.triangles = int(n)
+    lod = _level_of_detail(
+        "enabled", "Drag a proxy when the shape has more than :attr:`lod_points`."
+    )
+    lod_points = _level_of_detail("points", "Level-of-detail threshold (points of the shape).")
+    proxy_triangles = _level_of_detail("triangles", "Size of the drag proxy (triangles).")
 
     @property
     def proxy(self):
         """The drag proxy (pyvista.PolyData, deformed in place by :meth:`drag`) or None."""
         return self.level_of_detail.proxy
-
-    @property
-    def proxy_binding(self):
-        """The drag proxy's binding, or None."""
-        return self.level_of_detail.binding
 
     @property
     def proxy_rest_points(self) -> np.ndarray:
@@ -669,17 +609,11 @@ class ExplorerController:
             Invalid anchors or constraints (the message names them).
         """
         if not self.can_solve:
-            missing = [
-                name
-                for name, ok in (
-                    ("data", self.rest is not None),
-                    ("a cage", self.cage is not None),
-                    ("anchors", len(self.anchors) > 0),
-                    ("a position constraint", len(self.scene.constraints["positions"]) > 0),
-                )
-                if not ok
-            ]
-            raise ConstraintError("cannot deform yet: missing " + ", ".join(missing))
+            n = len(self.scene.constraints["positions"])
+            have = {"data": self.rest is not None, "a cage": self.cage is not None,
+                    "anchors": len(self.anchors) > 0, "a position constraint": n > 0}  # fmt: skip
+            missing = ", ".join(name for name, ok in have.items() if not ok)
+            raise ConstraintError("cannot deform yet: missing " + missing)
         deformer, binding = self.deformer, self.binding
         rebuilt = False
         try:
@@ -821,25 +755,15 @@ class ExplorerController:
 
     # ------------------------------------------------------------------ analysis
     def metrics(self) -> dict:
-        """E_rigid and E_volume of triangle surfaces (NaN otherwise), last energy."""
-        out = {"E_rigid": float("nan"), "E_volume": float("nan")}
+        """Shape distortion and inverted cells, the last energy, the certificate's answer.
+
+        See :func:`vhm_viz.app.analysis.shape_metrics`.
+        """
         self._catch_up()
-        tris = self.triangles()
-        if tris is not None and len(tris):
-            d = self.deformed_points
-            out["E_rigid"] = float(shape_metrics.rigidity_distortion(self._rest_points, d, tris))
-            try:
-                out["E_volume"] = float(shape_metrics.volume_change(self._rest_points, d, tris))
-            except ValueError:
-                pass
+        out = shape_metrics(self.rest, self.display, self._rest_points, self.volume is None)
         if self.last_report is not None:
             out["energy"] = self.last_report.final_energy
             out["iterations"] = self.last_report.iterations
-        if self.rest is not None and self.display is not None and self.volume is None:
-            quality = cell_quality(self.rest, self.deformed_points)
-            if quality is not None:
-                out["inverted_cells"] = quality["summary"]["inverted"]
-                out["cells"] = quality["summary"]["cells"]
         if self.certificate is not None:
             out["certificate"] = self.certificate.status
         return out
@@ -876,12 +800,7 @@ class ExplorerController:
 
     def triangles(self) -> np.ndarray | None:
         """(m, 3) triangles of a polygonal surface made only of triangles, else None."""
-        d = self.display
-        if not isinstance(d, pv.PolyData) or d.GetNumberOfPolys() == 0:
-            return None
-        if not d.is_all_triangles:
-            return None
-        return np.asarray(d.regular_faces)
+        return triangles_of(self.display)
 
     # ------------------------------------------------------------------ export / scenes
     def export(self, path) -> None:
@@ -969,22 +888,7 @@ class ExplorerController:
         return list(new.notes)
 
     def _solve_loaded(self, stored: Scene, progress: ProgressFn) -> None:
-        """Solve a just-loaded scene, from its stored solution when it fits the anchors."""
-        scene = self.scene
-        init = scene.solver["init"]
-        if stored.solution is not None and stored.solution.shape == (len(self.anchors), 3, 3):
-            scene.solution = np.array(stored.solution)
-            scene.solution_contraction = stored.solution_contraction
-            scene.solver["init"] = "solution"
-        elif init == "solution":
-            scene.solver["init"] = "identity"
-        try:
-            solved = scene.solve_map(
-                data=self.rest, cage=self.cage, progress=progress, reuse_stored=False
-            )
-        finally:
-            scene.solution = scene.solution_contraction = None
-            scene.solver["init"] = init
+        solved = solve_loaded(self.scene, stored, self.rest, self.cage, progress)
         self.deformer, self.last_report = solved.deformer, solved.last_report
         rho = solved.last_report.contraction
         if solved.converged and np.isfinite(rho):
@@ -1050,17 +954,8 @@ class ExplorerController:
         """Edit the recorded ``scene``, marking stale exactly what differs (cheapest rebuild)."""
         if scene is None:
             return False
-        old, new = self.scene, scene
-        same_shape = (
-            np.array_equal(old.cage["vertices"], new.cage["vertices"])
-            and np.array_equal(old.cage["faces"], new.cage["faces"])
-            and old.alpha == new.alpha
-            and np.array_equal(old.anchors["points"], new.anchors["points"])
-        )
-        same_layout = all(
-            np.array_equal(old.constraints[k], new.constraints[k])
-            for k in ("positions", "jacobian_points")
-        )
+        same_shape, same_layout = SceneHistory.changes(self.scene, scene)
+        new = scene
         self.scene = new
         self.cage = self._cage_of(new)
         if self.deformer is not None:

@@ -1,4 +1,4 @@
-"""What the explorer writes: the deformed data, as ``vhm-viz deform`` writes it, and scenes.
+"""Export of the explorer's deformed data, as ``vhm-viz deform`` writes it.
 
 The display is deformed through a float32 binding (fast to drag); the export evaluates the
 harmonic map in float64, so it equals ``vhm-viz deform`` of the saved scene to rounding.
@@ -8,20 +8,16 @@ the others, the command line's choice (:func:`resamples_volume`).
 
 from __future__ import annotations
 
-import copy
-import os
 from pathlib import Path
 
 import numpy as np
 
 from vhm_viz.cli.deform import RESAMPLED_SUFFIXES
 from vhm_viz.io import refuse_inputs, suffix_of, write_dataset
-from vhm_viz.scene import Scene
 
 __all__ = [
     "export_path",
     "resamples_volume",
-    "scene_for_file",
     "write_deformed",
     "write_deformed_volume",
 ]
@@ -81,40 +77,3 @@ def write_deformed_volume(path: Path, volume, harmonic_map) -> None:
     else:
         data = volume.vhm.deform(harmonic_map, outside="passthrough")
     write_dataset(path, data)
-
-
-def scene_for_file(scene: Scene, deformer=None, report=None, relative_to=None) -> Scene:
-    """A copy of the edited ``scene`` as it is saved.
-
-    Parameters
-    ----------
-    scene : Scene
-        The explorer's scene (inline cage, anchor points, absolute data path).
-    deformer : Deformer, optional
-        The solved deformer: with a converged ``report`` its solution becomes the scene's
-        starting point (``"init": "solution"``; the command line starts there and
-        reproduces it) and its map is stored (:meth:`Scene.record_map`: ParaView's filters
-        then use it instead of solving again).
-    report : SolveReport, optional
-        The deformer's last solve.
-    relative_to : path-like, optional
-        Directory that the data path is written relative to (the scene file's).
-    """
-    out = copy.deepcopy(scene)
-    out.notes, out.base_dir, out.stored_map = [], None, None
-    data = scene.data or {}
-    if "path" in data and relative_to is not None:
-        try:
-            out.data = {"path": os.path.relpath(data["path"], Path(relative_to).resolve())}
-        except ValueError:  # another drive
-            pass
-    out.solution = out.solution_contraction = None
-    if deformer is not None and report is not None and report.converged:
-        out.solution = np.array(deformer.rotations_at_anchors)
-        rho = report.contraction
-        out.solution_contraction = float(rho) if np.isfinite(rho) else None
-        out.solver["init"] = "solution"
-        out.record_map(deformer)
-    elif out.solver["init"] == "solution":
-        out.solver["init"] = "identity"
-    return out

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import copy
 
+import numpy as np
+
 from vhm_viz.scene import Scene
 
 __all__ = ["SceneHistory", "UNDO_LIMIT"]
@@ -30,6 +32,29 @@ class SceneHistory:
     def snapshot(scene: Scene) -> Scene:
         """An independent copy of ``scene`` (arrays copied)."""
         return copy.deepcopy(scene)
+
+    @staticmethod
+    def changes(old: Scene, new: Scene) -> tuple[bool, bool]:
+        """What going from ``old`` to ``new`` keeps.
+
+        Returns
+        -------
+        same_shape : bool
+            Same cage, alpha and anchors (the deformer holds).
+        same_layout : bool
+            Same constraint points (the constraint factorisation holds).
+        """
+        same_shape = (
+            np.array_equal(old.cage["vertices"], new.cage["vertices"])
+            and np.array_equal(old.cage["faces"], new.cage["faces"])
+            and old.alpha == new.alpha
+            and np.array_equal(old.anchors["points"], new.anchors["points"])
+        )
+        same_layout = all(
+            np.array_equal(old.constraints[k], new.constraints[k])
+            for k in ("positions", "jacobian_points")
+        )
+        return same_shape, same_layout
 
     def record(self, before: Scene) -> None:
         """Remember the scene before a user action; clears the redo history."""

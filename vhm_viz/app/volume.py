@@ -24,6 +24,11 @@ import math
 
 import numpy as np
 
+from vhm_viz.app.analysis import SliceProbe
+from vhm_viz.core.image import ImageGeometry, inside_mask
+from vhm_viz.core.volume import VolumeDeformation
+from vhm_viz.filters._common import image_geometry
+
 __all__ = [
     "VolumeView",
     "is_volume",
@@ -81,8 +86,6 @@ class VolumeView:
     AXES = ("x", "y", "z")
 
     def __init__(self, image):
-        from vhm_viz.filters._common import image_geometry
-
         self.image = image
         self.name = _scalar_name(image)
         values = np.asarray(image.point_data[self.name])
@@ -161,8 +164,6 @@ class VolumeView:
 
     def _subsampled(self, voxels: int):
         """The values subsampled by :meth:`render_step`, (nz, ny, nx), and their grid."""
-        from vhm_viz.core.image import ImageGeometry
-
         s = self.render_step(voxels)
         nx, ny, nz = self.dimensions
         vol = np.ascontiguousarray(self.values.reshape(nz, ny, nx)[::s, ::s, ::s])
@@ -200,8 +201,6 @@ class VolumeView:
         pyvista.ImageData
             Point arrays ``"values"`` (float32) and ``"vtkValidPointMask"``.
         """
-        from vhm_viz.core.volume import VolumeDeformation
-
         vol, geo = self._subsampled(voxels)
         vd = VolumeDeformation(harmonic_map, geo, outside="passthrough")
         out = vd.resample({"values": vol.ravel()}, progress=progress, abort=abort)
@@ -209,8 +208,6 @@ class VolumeView:
 
     def inside(self, cage) -> np.ndarray:
         """(P,) bool: voxels inside the cage (VTK order; the scan-line test)."""
-        from vhm_viz.core.image import inside_mask
-
         return inside_mask(self.geometry, cage.vertices, cage.faces).ravel()
 
     def slice_probe(self, controller, axis: int, samples: int):
@@ -219,8 +216,6 @@ class VolumeView:
         Point data ``"value"`` holds the volume's values at the samples. Slices with more
         than :data:`DRAG_SAMPLES` samples per side bind in float32 (half the memory).
         """
-        from vhm_viz.app.analysis import SliceProbe
-
         pts, shape, values = self.plane(axis, samples=samples)
         dtype = np.float32 if samples > DRAG_SAMPLES else np.float64
         probe = SliceProbe.on_grid(controller, pts, shape, dtype=dtype)

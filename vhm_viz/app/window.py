@@ -12,7 +12,7 @@ drag proxy, cage, markers, handles), :class:`~vhm_viz.app.volume_view.VolumeDisp
 Interaction modes (toolbar, :data:`vhm_viz.app.picking.MODES`): *View* (camera; drag the
 orange handles to move position targets), *Add position*, *Add Jacobian*, *Add anchor*,
 *Remove anchor* (left click on the shape). Every click goes through
-:meth:`ExplorerWindow.click_at_display`, which tests call directly.
+:meth:`~vhm_viz.app.editing.Editing.click_at_display`, which tests call directly.
 
 Long work runs in :mod:`vhm_viz.app.workers`; :meth:`ExplorerWindow.waiting_for_jobs`
 waits for the jobs a block of code started.
@@ -20,9 +20,7 @@ waits for the jobs a block of code started.
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import time
 import traceback
 from pathlib import Path
 
@@ -31,7 +29,6 @@ import pyvista as pv
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
 from PySide6.QtWidgets import (
-    QApplication,
     QDockWidget,
     QFileDialog,
     QLabel,
@@ -342,37 +339,12 @@ class ExplorerWindow(QMainWindow):
 
         return wrapped
 
-    @contextlib.contextmanager
     def waiting_for_jobs(self, timeout_s: float = 120.0):
-        """Run the ``with`` block, then wait for the jobs it started, processing events.
+        """Context manager: run the block, then wait for the jobs it started.
 
-        Waits for every job submitted during the block (started or queued) and every job
-        those submit in turn (e.g. a solve that starts the volume's resampling), until each
-        has ended. Yields the list of those jobs.
-
-        Raises
-        ------
-        TimeoutError
-            A job still runs after ``timeout_s`` seconds.
+        See :meth:`~vhm_viz.app.workers.JobRunner.waiting`; yields the list of jobs.
         """
-        jobs: list = []
-
-        def record(job) -> None:
-            jobs.append(job)
-
-        self.runner.submitted.connect(record)
-        try:
-            yield jobs
-            t0 = time.perf_counter()
-            while not all(job.is_over for job in jobs):
-                if time.perf_counter() - t0 > timeout_s:
-                    names = [job.name for job in jobs if not job.is_over]
-                    raise TimeoutError(f"jobs still running after {timeout_s:g} s: {names}")
-                QApplication.processEvents()
-                time.sleep(0.005)
-            QApplication.processEvents()
-        finally:
-            self.runner.submitted.disconnect(record)
+        return self.runner.waiting(timeout_s)
 
     def cancel_job(self) -> None:
         """Cancel the running background job (its result is discarded)."""

@@ -9,16 +9,19 @@ cannot stop early (e.g. a library call) are *abandoned* on cancel: their result 
 discarded when they finish and the UI is released immediately.
 
 Every job ends with :attr:`Job.ended` set and its ``ended`` signal, after its callbacks ran:
-callers wait for the job they started (:meth:`JobRunner.start` returns it), never for "no
-job running", which also holds before a just-submitted job has started.
+callers wait for the job they started (:meth:`JobRunner.start` returns it;
+:meth:`JobRunner.waiting`), never for "no job running", which also holds before a
+just-submitted job has started.
 """
 
 from __future__ import annotations
 
+import contextlib
+import time
 import traceback
 from collections.abc import Callable
 
-from PySide6.QtCore import QObject, QThread, Signal
+from PySide6.QtCore import QCoreApplication, QObject, QThread, Signal
 
 from vhm_viz import interrupts
 from vhm_viz.app.cancellation import Cancelled
@@ -196,6 +199,38 @@ class JobRunner(QObject):
         self.job = None
         self.finished.emit(job.name)
         job.end()
+
+    @contextlib.contextmanager
+    def waiting(self, timeout_s: float = 120.0):
+        """Run the ``with`` block, then wait for the jobs it started, processing events.
+
+        Waits for every job submitted during the block (started or queued) and every job
+        those submit in turn (e.g. a solve that starts the volume's resampling), until each
+        has ended. Yields the list of those jobs.
+
+        Raises
+        ------
+        TimeoutError
+            A job still runs after ``timeout_s`` seconds.
+        """
+        jobs: list[Job] = []
+
+        def record(job: Job) -> None:
+            jobs.append(job)
+
+        self.submitted.connect(record)
+        try:
+            yield jobs
+            t0 = time.perf_counter()
+            while not all(job.is_over for job in jobs):
+                if time.perf_counter() - t0 > timeout_s:
+                    names = [job.name for job in jobs if not job.is_over]
+                    raise TimeoutError(f"jobs still running after {timeout_s:g} s: {names}")
+                QCoreApplication.processEvents()
+                time.sleep(0.005)
+            QCoreApplication.processEvents()
+        finally:
+            self.submitted.disconnect(record)
 
     def _reap(self, job: Job) -> None:
         if job in self._abandoned:
