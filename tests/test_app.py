@@ -87,7 +87,7 @@ def _direct_points(ctrl, mode=None):
     from vhm_viz.core.deformer import Deformer
 
     dfm = Deformer(ctrl.cage, ctrl.anchors, mode=mode or ctrl.mode, alpha=ctrl.alpha)
-    dfm.set_constraints(**ctrl.constraint_arrays())
+    dfm.set_constraints(**ctrl.scene.constraint_arguments())
     # stiff set-ups (many anchors, few constraints) need several thousand accelerated
     # iterations (~0.1 s): give the reference room to converge
     rep = dfm.solve(max_iterations=50000, tolerance=1e-9, init="identity")

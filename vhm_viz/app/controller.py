@@ -41,9 +41,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pyvista as pv
 
-from vhm_viz.app.analysis import shape_metrics, triangles_of
+from vhm_viz.app.analysis import shape_metrics
 from vhm_viz.app.cage_fit import point_values, region_threshold
 from vhm_viz.app.cancellation import Cancelled, ProgressFn, never_cancelled, no_progress
 from vhm_viz.app.certify import certificate_geometry, certify_shape
@@ -69,12 +68,10 @@ from vhm_viz.app.explorer_scene import (
 )
 from vhm_viz.app.export import export_path, write_deformed, write_deformed_volume
 from vhm_viz.app.history import SceneHistory
-from vhm_viz.app.lod import LevelOfDetail
-from vhm_viz.app.picking import rest_point_of_pick
-from vhm_viz.app.volume import VolumeView, is_volume
+from vhm_viz.app.lod import LevelOfDetail, level_of_detail_setting
+from vhm_viz.app.volume import displayed
 from vhm_viz.autocage import auto_anchors, auto_cage
 from vhm_viz.core.anchors import anchors_from_polylines
-from vhm_viz.core.cage import Cage
 from vhm_viz.core.errors import AbortedError, CageError, ConstraintError, describe_indices
 from vhm_viz.examples import bar
 from vhm_viz.io import read_anchors, read_cage, read_dataset, read_rigidity_lines, refuse_inputs
@@ -89,18 +86,6 @@ __all__ = [
     "SETTLE_SOLVER",
     "settle_settings",
 ]
-
-
-def _level_of_detail(name: str, doc: str) -> property:
-    """A controller property that reads and sets ``level_of_detail.<name>``."""
-
-    def get(self):
-        return getattr(self.level_of_detail, name)
-
-    def set(self, value) -> None:
-        setattr(self.level_of_detail, name, type(get(self))(value))
-
-    return property(get, set, doc=doc)
 
 
 @dataclass
@@ -184,7 +169,6 @@ class ExplorerController:
         self.volume = None
         self.history = SceneHistory()
         # cages used since loading, so that undo finds a scene's cage without rebuilding it
-        self._cages: list = []
 
     # ------------------------------------------------------------------ the scene's fields
     @property
@@ -246,26 +230,13 @@ class ExplorerController:
         )
 
     def _set_data(self, data, source: dict) -> None:
-        self.volume = VolumeView(data) if is_volume(data) else None
-        if self.volume is not None:
-            display = self.volume.outline()
-        else:
-            if isinstance(data, pv.ImageData | pv.RectilinearGrid):
-                data = data.cast_to_structured_grid()
-            display = data.copy(deep=True)
-        display.points = np.asarray(display.points, dtype=np.float64)
-        # the rest pose's normals would shade (and export) the deformed shape wrongly: drop
-        # them; the renderer then shades each triangle by its deformed geometry
-        for name in {"Normals", display.point_data.active_normals_name} - {None}:
-            if name in display.point_data:
-                del display.point_data[name]
+        data, display, self.volume = displayed(data)
         self.rest = data
         self.display = display
         self._rest_points = np.array(display.points, dtype=np.float64)
         self.scene = empty_scene(self.mode, self.alpha, self.solver, dict(source) or None)
         self.input_files = [Path(source["path"])] if "path" in source else []
         self.cage = None
-        self._cages = []
         self.threshold = None
         self.deformer = None
         self.binding = None
@@ -326,22 +297,7 @@ class ExplorerController:
             "vertices": np.array(cage.vertices, dtype=np.float64),
             "faces": np.array(cage.faces, dtype=np.int64),
         }
-        if not any(c is cage for c in self._cages):
-            self._cages.append(cage)
-
-    def _cage_of(self, scene: Scene):
-        """The built cage of ``scene`` (None without one), reusing one used before."""
-        v, f = scene.cage["vertices"], scene.cage["faces"]
-        if not len(f):
-            return None
-        for cage in [self.cage, *self._cages]:
-            if (
-                cage is not None
-                and np.array_equal(cage.vertices, v)
-                and np.array_equal(cage.faces, f)
-            ):
-                return cage
-        return Cage(v, f)
+        self.history.remember_cage(cage)
 
     def set_cage(self, cage) -> None:
         """Use a cage; it must enclose every point of the data (or of a volume's region).
@@ -546,10 +502,6 @@ class ExplorerController:
         self._edit_constraints(with_row, "jacobians", index, scale * closest_rotation(rotation))
         self._targets_stale = True
 
-    def constraint_arrays(self) -> dict:
-        """The constraints in :meth:`Deformer.set_constraints` form."""
-        return self.scene.constraint_arguments()
-
     # ------------------------------------------------------------------ settings
     def set_mode(self, mode: str) -> None:
         """Rigid or similar (no refactorisation; re-solve to see the effect)."""
@@ -574,11 +526,13 @@ class ExplorerController:
         self.max_iterations, self.tolerance = other.max_iterations, other.tolerance
 
     # ------------------------------------------------------------------ level of detail
-    lod = _level_of_detail(
+    lod = level_of_detail_setting(
         "enabled", "Drag a proxy when the shape has more than :attr:`lod_points`."
     )
-    lod_points = _level_of_detail("points", "Level-of-detail threshold (points of the shape).")
-    proxy_triangles = _level_of_detail("triangles", "Size of the drag proxy (triangles).")
+    lod_points = level_of_detail_setting(
+        "points", "Level-of-detail threshold (points of the shape)."
+    )
+    proxy_triangles = level_of_detail_setting("triangles", "Size of the drag proxy (triangles).")
 
     @property
     def proxy(self):
@@ -697,12 +651,6 @@ class ExplorerController:
         self.full_stale = False
         return out
 
-    def deform_proxy(self) -> np.ndarray:
-        """Write the deformed points into :attr:`proxy` in place (the full shape lags)."""
-        out = self.level_of_detail.deform()
-        self.full_stale = True
-        return out
-
     def _catch_up(self) -> None:
         """Deform the full shape if a drag left it behind the solution (proxy shown)."""
         if self.full_stale and self.ready:
@@ -733,8 +681,9 @@ class ExplorerController:
         rep = self.solve()
         t1 = time.perf_counter()
         proxy = self.uses_proxy if lod is None else bool(lod) and self.uses_proxy
-        if proxy:
-            self.deform_proxy()
+        if proxy:  # the full shape lags behind
+            self.level_of_detail.deform()
+            self.full_stale = True
         else:
             self.deform()
         t2 = time.perf_counter()
@@ -774,11 +723,7 @@ class ExplorerController:
 
         See :func:`vhm_viz.app.certify.certify_shape`. Safe to run in a worker thread while
         the UI does not modify the controller; the answer is kept in :attr:`certificate`
-        until the next solve.
-
-        Returns
-        -------
-        InjectivityCertificate
+        until the next solve. Returns the :class:`InjectivityCertificate`.
 
         Raises
         ------
@@ -797,10 +742,6 @@ class ExplorerController:
     def certificate_geometry(self):
         """What to draw of :attr:`certificate`: witnesses (w, 3) and undecided cubes or None."""
         return certificate_geometry(self.certificate, self._certified_map)
-
-    def triangles(self) -> np.ndarray | None:
-        """(m, 3) triangles of a polygonal surface made only of triangles, else None."""
-        return triangles_of(self.display)
 
     # ------------------------------------------------------------------ export / scenes
     def export(self, path) -> None:
@@ -932,16 +873,6 @@ class ExplorerController:
         """
         self.history.record(self.snapshot() if state is None else state)
 
-    @property
-    def can_undo(self) -> bool:
-        """Whether :meth:`undo` has a state to go back to."""
-        return self.history.can_undo
-
-    @property
-    def can_redo(self) -> bool:
-        """Whether :meth:`redo` has a state to go forward to."""
-        return self.history.can_redo
-
     def undo(self) -> bool:
         """Go back to the scene before the last user action; False when there is none."""
         return self._restore(self.history.undo(self.scene))
@@ -957,7 +888,7 @@ class ExplorerController:
         same_shape, same_layout = SceneHistory.changes(self.scene, scene)
         new = scene
         self.scene = new
-        self.cage = self._cage_of(new)
+        self.cage = self.history.cage_of(new)
         if self.deformer is not None:
             self.deformer.mode = self.mode
         if not same_shape:
@@ -967,11 +898,3 @@ class ExplorerController:
         self._targets_stale = True
         self.certificate = None
         return True
-
-    # ------------------------------------------------------------------ picking
-    def rest_point_from_cell(self, cell_id: int, world_point) -> np.ndarray:
-        """Rest-space point of a pick on the *deformed* display dataset.
-
-        See :func:`vhm_viz.app.picking.rest_point_of_pick`.
-        """
-        return rest_point_of_pick(self.display, self._rest_points, cell_id, world_point)

@@ -19,7 +19,7 @@ from PySide6.QtCore import QTimer
 from PySide6.QtWidgets import QInputDialog
 
 from vhm_viz.app.controller import FrameTiming
-from vhm_viz.app.picking import MODES, apply_pick
+from vhm_viz.app.picking import MODES, apply_pick, rest_point_of_pick
 from vhm_viz.core.cage import MIN_FACE_ANGLE
 
 __all__ = ["Editing"]
@@ -351,7 +351,7 @@ class Editing:
             win.status("busy: wait or cancel the running job")
             return
         mode = self.interaction_mode
-        rest = self.ctrl.rest_point_from_cell(cell_id, world_point)
+        rest = rest_point_of_pick(self.ctrl.display, self.ctrl.rest_points, cell_id, world_point)
         with self.recorded():
             done = apply_pick(self.ctrl, mode, rest, world_point)
             if done is None:

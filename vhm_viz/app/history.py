@@ -6,6 +6,7 @@ import copy
 
 import numpy as np
 
+from vhm_viz.core.cage import Cage
 from vhm_viz.scene import Scene
 
 __all__ = ["SceneHistory", "UNDO_LIMIT"]
@@ -27,6 +28,7 @@ class SceneHistory:
         self.limit = int(limit)
         self._undo: list[Scene] = []
         self._redo: list[Scene] = []
+        self._cages: list = []
 
     @staticmethod
     def snapshot(scene: Scene) -> Scene:
@@ -66,6 +68,26 @@ class SceneHistory:
         """Forget everything (new data loaded)."""
         self._undo.clear()
         self._redo.clear()
+        self._cages.clear()
+
+    def remember_cage(self, cage) -> None:
+        """Keep a cage in use, so that :meth:`cage_of` finds it without rebuilding it."""
+        if not any(c is cage for c in self._cages):
+            self._cages.append(cage)
+
+    def cage_of(self, scene: Scene):
+        """The built cage of ``scene``'s inline cage (None without one).
+
+        One remembered by :meth:`remember_cage` when it has the same vertices and faces,
+        else a new :class:`~vhm_viz.Cage`.
+        """
+        v, f = scene.cage["vertices"], scene.cage["faces"]
+        if not len(f):
+            return None
+        for cage in reversed(self._cages):
+            if np.array_equal(cage.vertices, v) and np.array_equal(cage.faces, f):
+                return cage
+        return Cage(v, f)
 
     @property
     def can_undo(self) -> bool:

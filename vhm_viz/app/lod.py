@@ -11,7 +11,13 @@ from __future__ import annotations
 import numpy as np
 import pyvista as pv
 
-__all__ = ["LOD_POINTS", "PROXY_TRIANGLES", "LevelOfDetail", "make_proxy"]
+__all__ = [
+    "LOD_POINTS",
+    "PROXY_TRIANGLES",
+    "LevelOfDetail",
+    "level_of_detail_setting",
+    "make_proxy",
+]
 
 # shapes with more points than this are dragged as a decimated proxy
 LOD_POINTS = 30000
@@ -149,3 +155,15 @@ class LevelOfDetail:
         if self.proxy is not None:
             np.asarray(self.proxy.points)[:] = self.rest_points
             self.proxy.GetPoints().Modified()
+
+
+def level_of_detail_setting(name: str, doc: str) -> property:
+    """A property of an owner of ``level_of_detail`` that reads and sets its ``name``."""
+
+    def get(self):
+        return getattr(self.level_of_detail, name)
+
+    def set(self, value) -> None:
+        setattr(self.level_of_detail, name, type(get(self))(value))
+
+    return property(get, set, doc=doc)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pyvista as pv
 
 from vhm_viz.app.analysis import SliceProbe
 from vhm_viz.core.image import ImageGeometry, inside_mask
@@ -36,6 +37,7 @@ __all__ = [
     "FULL_SAMPLES",
     "OUTLINE_SAMPLES",
     "RENDER_VOXELS",
+    "displayed",
 ]
 
 #: Samples per side of a slice while dragging (and of the det J / cond J colouring).
@@ -223,3 +225,30 @@ class VolumeView:
         probe.mesh.point_data.active_scalars_name = "value"
         probe.axis = axis
         return probe
+
+
+def displayed(data):
+    """What the explorer shows and deforms for loaded ``data``.
+
+    Returns
+    -------
+    data : pyvista.DataSet
+        The data; an image or rectilinear grid that is no volume becomes a structured grid.
+    display : pyvista.DataSet
+        A deep copy with float64 points and no normals (the rest pose's normals would shade,
+        and export, the deformed shape wrongly; the renderer shades each triangle by its
+        deformed geometry); for a volume, its outline box surface.
+    volume : VolumeView or None
+    """
+    volume = VolumeView(data) if is_volume(data) else None
+    if volume is not None:
+        display = volume.outline()
+    else:
+        if isinstance(data, pv.ImageData | pv.RectilinearGrid):
+            data = data.cast_to_structured_grid()
+        display = data.copy(deep=True)
+    display.points = np.asarray(display.points, dtype=np.float64)
+    for name in {"Normals", display.point_data.active_normals_name} - {None}:
+        if name in display.point_data:
+            del display.point_data[name]
+    return data, display, volume
