@@ -260,7 +260,7 @@ def main() -> None:
         from PySide6.QtWidgets import QApplication
         from threadpoolctl import threadpool_limits
 
-        from vhm_viz.app.main_window import ExplorerWindow
+        from vhm_viz.app.window import ExplorerWindow
 
         threadpool_limits(limits=1, user_api="blas")  # as the app does
         app = QApplication.instance() or QApplication(sys.argv[:1])
@@ -272,7 +272,7 @@ def main() -> None:
 
         info = win.plotter.ren_win.ReportCapabilities().splitlines()
         renderer = next((s.split(":", 1)[1].strip() for s in info if "OpenGL renderer" in s), "?")
-        from vhm_viz.app.controller import PROXY_TRIANGLES
+        from vhm_viz.app.lod import PROXY_TRIANGLES
 
         triangles = args.proxy_triangles or PROXY_TRIANGLES
         rows = []

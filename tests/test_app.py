@@ -62,7 +62,7 @@ def xvfb_display():
 
 @pytest.fixture
 def window(qtbot):
-    from vhm_viz.app.main_window import ExplorerWindow
+    from vhm_viz.app.window import ExplorerWindow
 
     win = ExplorerWindow(dialogs=False)
     qtbot.addWidget(win)
@@ -75,8 +75,8 @@ def window(qtbot):
 
 
 def _open_bar(win, kind="bend-90", apply=True):
-    assert win.open_bar(kind, resolution=RES, apply=apply)
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        assert win.open_bar(kind, resolution=RES, apply=apply)
     assert win.last_error is None, win.last_error
     assert win.ctrl.ready
     return win.ctrl
@@ -87,7 +87,7 @@ def _direct_points(ctrl, mode=None):
     from vhm_viz.core.deformer import Deformer
 
     dfm = Deformer(ctrl.cage, ctrl.anchors, mode=mode or ctrl.mode, alpha=ctrl.alpha)
-    dfm.set_constraints(**ctrl.constraint_arrays())
+    dfm.set_constraints(**ctrl.scene.constraint_arguments())
     # stiff set-ups (many anchors, few constraints) need several thousand accelerated
     # iterations (~0.1 s): give the reference room to converge
     rep = dfm.solve(max_iterations=50000, tolerance=1e-9, init="identity")
@@ -95,11 +95,19 @@ def _direct_points(ctrl, mode=None):
     return dfm.harmonic_map.map(ctrl.rest_points)
 
 
-def test_qt_uses_the_x_display(xvfb_display, qapp):
-    assert xvfb_display
-    assert qapp.platformName() in ("xcb", "offscreen")
+def test_the_window_shows_on_the_display_and_draws_the_shape(window, qapp):
+    """The explorer's window is exposed on Qt's display and its 3D view draws the shape."""
     if os.environ.get("QT_QPA_PLATFORM") == "xcb":
         assert qapp.platformName() == "xcb"
+    assert window.isVisible() and window.windowHandle().isExposed()
+    assert window.plotter.interactor.isVisible()
+    _open_bar(window, "bend-90")
+    img = np.asarray(window.screenshot(False))[..., :3].astype(int)
+    w, h = window.plotter.window_size
+    assert img.shape[:2] == (h, w)
+    # the shape's light grey-beige, shaded, on the white background
+    shape = (np.abs(img[..., 0] - img[..., 1]) < 12) & (img[..., 0] > 60) & (img[..., 0] < 245)
+    assert 0.005 < shape.mean() < 0.9, shape.mean()
 
 
 def test_bar_click_constraint_and_drag_match_direct_solve(window):
@@ -107,9 +115,9 @@ def test_bar_click_constraint_and_drag_match_direct_solve(window):
     ctrl = _open_bar(win, "bend-90")
     p = win.plotter
     # the scene shows the shape (deformed), cage, anchors and one handle per position target
-    assert "shape" in win._actors and "cage" in win._actors and "anchors" in win._actors
-    assert "jacobians" in win._actors
-    assert len(win._handles) == len(ctrl.positions) == 6
+    assert "shape" in win.actors and "cage" in win.actors and "anchors" in win.actors
+    assert "jacobians" in win.actors
+    assert len(win.shape_view.handles) == len(ctrl.positions) == 6
     assert not np.allclose(ctrl.deformed_points, ctrl.rest_points)
 
     # click on the shape in "add position" mode: a vertex on the y = -0.5 face mid-way up
@@ -118,12 +126,12 @@ def test_bar_click_constraint_and_drag_match_direct_solve(window):
     rest = ctrl.rest_points
     k = int(np.argmin(np.linalg.norm(rest - [0.0, -0.5, 2.5], axis=1)))
     world = ctrl.deformed_points[k].copy()
-    win.set_interaction_mode("position")
-    x, y = win.display_coordinates(world)
-    assert win.click_at_display(x, y)
-    win.wait_idle()
+    win.editing.set_interaction_mode("position")
+    x, y = win.picker.display_coordinates(world)
+    with win.waiting_for_jobs():
+        assert win.editing.click_at_display(x, y)
     assert win.last_error is None, win.last_error
-    assert len(ctrl.positions) == 7 and len(win._handles) == 7
+    assert len(ctrl.positions) == 7 and len(win.shape_view.handles) == 7
     new = ctrl.positions[-1]
     cell = 5.0 / (5 * RES)
     assert np.linalg.norm(new.point - rest[k]) < 1.5 * cell  # rest point under the cursor
@@ -133,8 +141,8 @@ def test_bar_click_constraint_and_drag_match_direct_solve(window):
     np.testing.assert_allclose(before, _direct_points(ctrl), atol=2e-4)
 
     # drag its handle through the sphere widget's callback
-    win.set_interaction_mode("view")
-    widget = win._handles[-1]
+    win.editing.set_interaction_mode("view")
+    widget = win.shape_view.handles[-1]
     goal = new.target + np.array([0.3, -0.2, 0.1])
     widget.SetCenter(*goal)
     widget.InvokeEvent("InteractionEvent")
@@ -147,9 +155,9 @@ def test_bar_click_constraint_and_drag_match_direct_solve(window):
     # the constraint holds and the frame time is shown
     img = ctrl.deformer.harmonic_map.map(new.point[None])[0]
     np.testing.assert_allclose(img, goal, atol=1e-6)
-    assert "ms" in win.frame_label.text() and win.last_frame.total > 0
+    assert "ms" in win.frame_label.text() and win.drag.last_frame.total > 0
     # the display dataset was updated in place: the same actor and dataset
-    assert win._actors["shape"].mapper.dataset is ctrl.display
+    assert win.actors["shape"].mapper.dataset is ctrl.display
 
 
 def test_mode_switch_and_alpha(window):
@@ -157,15 +165,15 @@ def test_mode_switch_and_alpha(window):
     ctrl = _open_bar(win, "bulge")
     rigid = ctrl.deformed_points.copy()
     np.testing.assert_allclose(rigid, _direct_points(ctrl, "rigid"), atol=5e-4)
-    win.constraints_panel.mode.setCurrentText("similar")  # the UI path
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.constraints_panel.mode.setCurrentText("similar")  # the UI path
     assert ctrl.mode == "similar" and ctrl.deformer.mode == "similar"
     similar = ctrl.deformed_points.copy()
     assert np.abs(similar - rigid).max() > 1e-3
     np.testing.assert_allclose(similar, _direct_points(ctrl, "similar"), atol=5e-4)
     # alpha: the slider rebuilds the deformer in the background
-    win.set_alpha(0.001)
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.editing.set_alpha(0.001)
     assert ctrl.ready and ctrl.deformer.alpha == pytest.approx(0.001)
     np.testing.assert_allclose(ctrl.deformed_points, _direct_points(ctrl), atol=5e-4)
 
@@ -176,9 +184,11 @@ def test_jacobian_constraint_numeric_edit_and_delete(window):
     win.plotter.view_xz()
     win.plotter.render()
     k = int(np.argmin(np.linalg.norm(ctrl.rest_points - [0.0, -0.5, 4.0], axis=1)))
-    win.set_interaction_mode("jacobian")
-    assert win.click_at_display(*win.display_coordinates(ctrl.deformed_points[k]))
-    win.wait_idle()
+    win.editing.set_interaction_mode("jacobian")
+    with win.waiting_for_jobs():
+        assert win.editing.click_at_display(
+            *win.picker.display_coordinates(ctrl.deformed_points[k])
+        )
     assert len(ctrl.jacobians) == 1 and win.last_error is None
     np.testing.assert_allclose(ctrl.jacobians[0].matrix, np.eye(3), atol=1e-6)
     # numeric editing in the side panel: rotate 40 degrees about y, scale 1.2
@@ -186,8 +196,8 @@ def test_jacobian_constraint_numeric_edit_and_delete(window):
     row = len(ctrl.positions)
     assert table.item(row, 0).text() == "J 0"
     table.item(row, 2).setText("40")
-    table.item(row, 4).setText("1.2")
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        table.item(row, 4).setText("1.2")
     assert ctrl.jacobians[0].scale == pytest.approx(1.2)
     assert ctrl.jacobians[0].angles[1] == pytest.approx(40)
     J = ctrl.deformer.harmonic_map.jacobian(ctrl.jacobians[0].point[None])[0]
@@ -198,8 +208,8 @@ def test_jacobian_constraint_numeric_edit_and_delete(window):
     assert win.last_error is not None and ctrl.jacobians[0].scale == pytest.approx(1.2)
     win.last_error = None
     # delete it: back to the rest shape (only the bottom is held)
-    win.delete_constraint("jacobian", 0)
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.editing.delete_constraint("jacobian", 0)
     assert not ctrl.jacobians
     np.testing.assert_allclose(ctrl.deformed_points, ctrl.rest_points, atol=1e-4)
 
@@ -207,11 +217,11 @@ def test_jacobian_constraint_numeric_edit_and_delete(window):
 def test_save_and_reload_scene(window, tmp_path):
     win = window
     ctrl = _open_bar(win, "bend-u")
-    win.set_mode("similar")
+    win.editing.set_mode("similar")
     i = ctrl.add_position_constraint(ctrl.rest_points[50])
-    win.after_edit(structure=False)
-    win.wait_idle()
-    w = win._handles[i]
+    with win.waiting_for_jobs():
+        win.editing.after_edit(structure=False)
+    w = win.shape_view.handles[i]
     w.SetCenter(*(ctrl.positions[i].target + [0.1, 0.1, 0.0]))
     w.InvokeEvent("InteractionEvent")
     w.InvokeEvent("EndInteractionEvent")  # release: solved to convergence
@@ -223,11 +233,11 @@ def test_save_and_reload_scene(window, tmp_path):
 
     scene = Scene.load(path)
     assert scene.mode == "similar" and len(scene.constraints["positions"]) == 7
-    win.open_bar("twist", resolution=RES)  # something else in between
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.open_bar("twist", resolution=RES)  # something else in between
     assert not np.allclose(ctrl.deformed_points[: len(expected)], expected, atol=1e-2)
-    assert win.load_scene(str(path))
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        assert win.load_scene(str(path))
     assert win.last_error is None, win.last_error
     assert win.ctrl.mode == "similar" and len(win.ctrl.positions) == 7
     np.testing.assert_allclose(win.ctrl.deformed_points, expected, atol=1e-6)
@@ -248,17 +258,20 @@ def test_save_and_reload_scene(window, tmp_path):
 def test_screenshot_shows_shape_and_slice(window, tmp_path):
     win = window
     ctrl = _open_bar(win, "bulge")
-    win.show_cage_action.setChecked(False)
-    win._toggle_cage(False)
+    win.show_cage_action.trigger()  # Cage > Show cage: off
+    assert not win.show_cage_action.isChecked()
+    assert not win.actors["cage"].GetVisibility()
     b = ctrl.cage.bounds
-    win.show_slice(True, origin=0.5 * (b[0] + b[1]), normal=(0.0, -1.0, 0.0))
+    win.analysis_view.show_section(True, origin=0.5 * (b[0] + b[1]), normal=(0.0, -1.0, 0.0))
     assert win.last_error is None, win.last_error
-    assert win.slice is not None and win.slice.n_points > 50
+    assert win.analysis_view.slice is not None and win.analysis_view.slice.n_points > 50
     # slice values are closed-form Jacobian determinants of the map at the slice samples
-    dets = win.slice.mesh.point_data["measure"]
-    ref = np.linalg.det(ctrl.deformer.harmonic_map.jacobian(win.slice.rest_points))
+    dets = win.analysis_view.slice.mesh.point_data["measure"]
+    ref = np.linalg.det(ctrl.deformer.harmonic_map.jacobian(win.analysis_view.slice.rest_points))
     np.testing.assert_allclose(dets, ref, rtol=1e-6, atol=1e-8)
-    assert "foldovers" in win.analysis_metrics and np.isfinite(win.analysis_metrics["E_rigid"])
+    assert "foldovers" in win.analysis_view.metrics and np.isfinite(
+        win.analysis_view.metrics["E_rigid"]
+    )
     win.plotter.view_xz()
     win.plotter.reset_camera()
     path = tmp_path / "explorer.png"
@@ -277,8 +290,8 @@ def test_screenshot_shows_shape_and_slice(window, tmp_path):
     assert saturated.sum() > 1000, saturated.sum()
     # condition number colouring switches the measure in place
     win.analysis_panel.measure.setCurrentText("condition_number")
-    assert win.measure == "condition_number"
-    assert np.all(win.slice.mesh.point_data["measure"] >= 1 - 1e-9)
+    assert win.analysis_view.measure == "condition_number"
+    assert np.all(win.analysis_view.slice.mesh.point_data["measure"] >= 1 - 1e-9)
 
 
 def test_errors_are_messages_and_the_app_survives(window, tmp_path):
@@ -289,16 +302,16 @@ def test_errors_are_messages_and_the_app_survives(window, tmp_path):
     # unreadable data file
     bad = tmp_path / "garbage.vtp"
     bad.write_text("this is not a VTK file")
-    win.open_file(str(bad))
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.open_file(str(bad))
     assert win.last_error and "garbage.vtp" in win.last_error
-    win.open_file(str(tmp_path / "missing.obj"))
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.open_file(str(tmp_path / "missing.obj"))
     assert "missing.obj" in win.last_error
     assert win.ctrl.display is not None and np.allclose(win.ctrl.deformed_points, before)
     # a cage file that is not a valid cage (self-intersecting)
     win.last_error = None
-    win.load_cage(str(data_path("bad_cages", "selfintersecting_armadillo_cage.obj")))
+    win.editing.load_cage(str(data_path("bad_cages", "selfintersecting_armadillo_cage.obj")))
     assert win.last_error and "CageError" in win.last_error
     # a valid cage that does not enclose the shape
     win.last_error = None
@@ -309,7 +322,7 @@ def test_errors_are_messages_and_the_app_survives(window, tmp_path):
     with open(small, "w") as fh:
         fh.writelines(f"v {x} {y} {z}\n" for x, y, z in cv)
         fh.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in cf)
-    win.load_cage(str(small))
+    win.editing.load_cage(str(small))
     assert win.last_error and "does not enclose" in win.last_error
     assert win.ctrl.cage is cage_before
     # a constraint outside the cage is refused
@@ -319,15 +332,15 @@ def test_errors_are_messages_and_the_app_survives(window, tmp_path):
     # impossible constraints (same point, two targets): a message; deleting one recovers
     c0 = win.ctrl.positions[0]
     win.ctrl.add_position_constraint(c0.point, target=c0.target + 1.0)
-    win.after_edit(structure=False)
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.editing.after_edit(structure=False)
     assert win.last_error and "ConstraintError" in win.last_error
-    win.delete_constraint("position", len(win.ctrl.positions) - 1)
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.editing.delete_constraint("position", len(win.ctrl.positions) - 1)
     assert win.ctrl.ready
     # the app still works: a drag deforms the shape
     win.last_error = None
-    w = win._handles[-1]
+    w = win.shape_view.handles[-1]
     w.SetCenter(*(win.ctrl.positions[-1].target + [0.2, 0, 0]))
     w.InvokeEvent("InteractionEvent")
     assert win.last_error is None
@@ -370,34 +383,36 @@ def test_cli_explore_registered():
 def test_open_file_generate_cage_anchors_and_drag(window):
     """The file path: open a mesh, generate a cage and anchors in the background, click, drag."""
     win = window
-    assert win.open_file(str(data_path("bar", "bar_dense.obj")))
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        assert win.open_file(str(data_path("bar", "bar_dense.obj")))
     assert win.last_error is None, win.last_error
     ctrl = win.ctrl
     assert ctrl.display.n_points == 6146 and ctrl.cage is None
-    win.generate_cage(max_faces=120)
-    assert win.busy  # runs in the worker, with a progress bar
-    win.wait_idle()
+    with win.waiting_for_jobs() as jobs:
+        win.editing.generate_cage(max_faces=120)
+        assert win.busy and len(jobs) == 1  # runs in the worker, with a progress bar
     assert win.last_error is None, win.last_error
     assert ctrl.cage is not None and ctrl.cage.n_faces <= 120
     assert ctrl.cage.contains(ctrl.rest_points).all()
-    win.generate_anchors(count=12)
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.editing.generate_anchors(count=12)
     assert win.last_error is None, win.last_error
     assert len(ctrl.anchors) > 0 and ctrl.cage.contains(ctrl.anchors).all()
     # two clicks: hold one end, grab the other (bar along y in [-1, 4.74])
-    win.set_interaction_mode("position")
+    win.editing.set_interaction_mode("position")
     win.plotter.view_xy()
     win.plotter.render()
     p = ctrl.rest_points
     for goal in ([0.0, -0.9, 1.0], [0.0, 4.6, 1.0]):
         k = int(np.argmin(np.linalg.norm(p - goal, axis=1)))
-        assert win.click_at_display(*win.display_coordinates(ctrl.deformed_points[k]))
-        win.wait_idle()
+        with win.waiting_for_jobs():
+            assert win.editing.click_at_display(
+                *win.picker.display_coordinates(ctrl.deformed_points[k])
+            )
         assert win.last_error is None, win.last_error
     assert len(ctrl.positions) == 2 and ctrl.ready
     np.testing.assert_allclose(ctrl.deformed_points, p, atol=1e-6)  # nothing moved yet
-    w = win._handles[1]
+    w = win.shape_view.handles[1]
     w.SetCenter(*(ctrl.positions[1].target + [1.0, 0.0, 0.0]))
     w.InvokeEvent("InteractionEvent")
     w.InvokeEvent("EndInteractionEvent")
@@ -411,13 +426,13 @@ def test_drag_shows_the_proxy_and_release_the_full_mesh(window, qtbot):
     win = window
     win.ctrl.lod_points, win.ctrl.proxy_triangles = 500, 400  # the bar (1,410 points) is "large"
     ctrl = _open_bar(win, "bend-90")
-    assert ctrl.uses_proxy and "proxy" in win._actors
+    assert ctrl.uses_proxy and "proxy" in win.actors
     proxy = ctrl.proxy
     assert 0 < proxy.n_cells <= 450 and proxy.n_cells < ctrl.display.n_cells
-    assert not win.showing_proxy and "full mesh" in win.lod_label.text()
+    assert not win.shape_view.showing_proxy and "full mesh" in win.lod_label.text()
     before = ctrl.deformed_points.copy()
     # one drag frame through the sphere widget's callback: only the proxy moves
-    w = win._handles[0]
+    w = win.shape_view.handles[0]
     goal = ctrl.positions[0].target + np.array([0.2, -0.1, 0.1])
     w.SetCenter(*goal)
     renders = []
@@ -427,40 +442,44 @@ def test_drag_shows_the_proxy_and_release_the_full_mesh(window, qtbot):
     assert not renders  # the callback leaves the render to the widget (one per frame)
     win.plotter.iren.interactor.Render()  # what vtkSphereWidget does after its callback
     win.plotter.ren_win.RemoveObserver(obs)
-    assert len(renders) == 1 and win.last_frame.render > 0 and "ms" in win.frame_label.text()
-    assert win.last_frame.mesh == "proxy" and win.showing_proxy and ctrl.full_stale
+    assert len(renders) == 1 and win.drag.last_frame.render > 0 and "ms" in win.frame_label.text()
+    assert win.drag.last_frame.mesh == "proxy" and win.shape_view.showing_proxy and ctrl.full_stale
     assert "drag proxy" in win.lod_label.text()
-    assert win._actors["proxy"].GetVisibility() and not win._actors["shape"].GetVisibility()
+    assert win.actors["proxy"].GetVisibility() and not win.actors["shape"].GetVisibility()
     np.testing.assert_array_equal(ctrl.deformed_points, before)  # the full shape waits
     # the proxy shows the map of its rest points at the drag solution (float32 binding)
-    expected = ctrl.deformer.harmonic_map.map(ctrl._proxy_rest)
+    expected = ctrl.deformer.harmonic_map.map(ctrl.proxy_rest_points)
     np.testing.assert_allclose(proxy.points, expected, atol=1e-5)
     # release: full shape, solved to convergence, equal to a direct Deformer solve
     w.InvokeEvent("EndInteractionEvent")
     assert win.last_error is None, win.last_error
-    assert not win.showing_proxy and not ctrl.full_stale and win.last_frame.mesh == "full"
+    assert (
+        not win.shape_view.showing_proxy
+        and not ctrl.full_stale
+        and win.drag.last_frame.mesh == "full"
+    )
     assert "full mesh" in win.lod_label.text()
-    assert win._actors["shape"].GetVisibility() and not win._actors["proxy"].GetVisibility()
+    assert win.actors["shape"].GetVisibility() and not win.actors["proxy"].GetVisibility()
     assert np.abs(ctrl.deformed_points - before).max() > 0.05
     np.testing.assert_allclose(ctrl.deformed_points, _direct_points(ctrl), atol=5e-4)
     # a handle resting without release: the full shape replaces the proxy after a moment
     w.SetCenter(*(goal + [0.05, 0.0, 0.0]))
     w.InvokeEvent("InteractionEvent")
-    assert win.showing_proxy
-    qtbot.waitUntil(lambda: not win.showing_proxy, timeout=5000)
+    assert win.shape_view.showing_proxy
+    qtbot.waitUntil(lambda: not win.shape_view.showing_proxy, timeout=5000)
     np.testing.assert_allclose(
         ctrl.deformed_points, ctrl.deformer.harmonic_map.map(ctrl.rest_points), atol=1e-5
     )
     # without level of detail the drag deforms the full shape
     ctrl.lod = False
     w.InvokeEvent("InteractionEvent")
-    assert win.last_frame.mesh == "full" and not win.showing_proxy
+    assert win.drag.last_frame.mesh == "full" and not win.shape_view.showing_proxy
 
 
 def test_make_proxy_surfaces_volumes_and_points():
     import pyvista as pv
 
-    from vhm_viz.app.controller import make_proxy
+    from vhm_viz.app.lod import make_proxy
 
     sphere = pv.Sphere(theta_resolution=60, phi_resolution=60)  # 6,844 triangles
     p = make_proxy(sphere, 1000)
@@ -498,20 +517,20 @@ def test_certify_action_draws_witnesses_and_the_dock_shows_the_answer(window):
     win = window
     ctrl = _open_bar(win, "push")
     assert win.certify_action.text().replace("&", "") == "Certify injectivity"
-    win.certify_action.trigger()
-    assert win.busy
-    win.wait_idle()
+    with win.waiting_for_jobs() as jobs:
+        win.certify_action.trigger()
+        assert win.busy and [job.name for job in jobs] == ["certify"]
     assert win.last_error is None, win.last_error
     assert ctrl.certificate.status == "not injective"
-    assert "witnesses" in win._actors and "undecided" not in win._actors
-    assert win.analysis_metrics["certificate"] == "not injective"
+    assert "witnesses" in win.actors and "undecided" not in win.actors
+    assert win.analysis_view.metrics["certificate"] == "not injective"
     assert "certificate: not injective" in win.analysis_panel.metrics.text()
-    win.full_solve()
-    win.update_analysis()
-    assert ctrl.certificate is None and "witnesses" not in win._actors
+    win.editing.full_solve()
+    win.editing.update_analysis()
+    assert ctrl.certificate is None and "witnesses" not in win.actors
 
 
-# ---------------------------------------------------------------------------- issue 17
+# ---------------------------------------------------------------------------- analysis dock
 
 
 def test_solved_bar_fills_the_analysis_dock_and_a_cage_shows_at_once(window, tmp_path):
@@ -528,18 +547,18 @@ def test_solved_bar_fills_the_analysis_dock_and_a_cage_shows_at_once(window, tmp
     with open(path, "w") as fh:
         fh.writelines(f"v {x} {y} {z}\n" for x, y, z in 1.05 * v)
         fh.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f)
-    win.load_cage(str(path))
-    win.plotter.ren_win.RemoveObserver(obs)
-    assert win.last_error is None, win.last_error
-    assert renders
-    cage_pts = np.asarray(win._actors["cage"].mapper.dataset.points)
-    np.testing.assert_allclose(cage_pts, 1.05 * v)
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.editing.load_cage(str(path))
+        win.plotter.ren_win.RemoveObserver(obs)
+        assert win.last_error is None, win.last_error
+        assert renders
+        cage_pts = np.asarray(win.actors["cage"].mapper.dataset.points)
+        np.testing.assert_allclose(cage_pts, 1.05 * v)
     # camera reset frames shape and cage: every cage vertex projects inside the view
     win.frame_all()
     w, h = win.plotter.window_size
     for x in np.asarray(win.ctrl.cage.vertices):
-        px, py = win.display_coordinates(x)
+        px, py = win.picker.display_coordinates(x)
         assert 0 <= px < w and 0 <= py < h
 
 
@@ -555,12 +574,14 @@ def test_undo_redo_delete_of_constraints_and_anchors(window):
     win.plotter.view_xz()
     win.plotter.render()
     k = int(np.argmin(np.linalg.norm(rest - [0.0, -0.5, 4.5], axis=1)))
-    win.set_interaction_mode("position")
-    assert win.click_at_display(*win.display_coordinates(ctrl.deformed_points[k]))
-    win.wait_idle()
+    win.editing.set_interaction_mode("position")
+    with win.waiting_for_jobs():
+        assert win.editing.click_at_display(
+            *win.picker.display_coordinates(ctrl.deformed_points[k])
+        )
     assert len(ctrl.positions) == n0 + 1
     start = ctrl.positions[-1].target.copy()
-    w = win._handles[-1]
+    w = win.shape_view.handles[-1]
     for step in (0.2, 0.4, 0.6):  # one drag of three frames = one undo step
         w.SetCenter(*(start + [step, 0.0, 0.0]))
         w.InvokeEvent("InteractionEvent")
@@ -568,39 +589,41 @@ def test_undo_redo_delete_of_constraints_and_anchors(window):
     dragged = ctrl.deformed_points.copy()
     np.testing.assert_allclose(dragged, _direct_points(ctrl), atol=5e-4)
     # an anchor edit
-    win.set_interaction_mode("anchor-")
-    assert win.click_at_display(*win.display_coordinates(ctrl.deformed_points[k]))
-    win.wait_idle()
+    win.editing.set_interaction_mode("anchor-")
+    with win.waiting_for_jobs():
+        assert win.editing.click_at_display(
+            *win.picker.display_coordinates(ctrl.deformed_points[k])
+        )
     assert len(ctrl.anchors) == a0 - 1
     # undo: the anchor comes back, then the drag is undone, then the constraint goes
-    win.undo_action.trigger()
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.undo_action.trigger()
     assert len(ctrl.anchors) == a0 and win.last_error is None
     np.testing.assert_allclose(ctrl.deformed_points, dragged, atol=5e-4)
-    win.undo_action.trigger()
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.undo_action.trigger()
     np.testing.assert_allclose(ctrl.positions[-1].target, start)
     np.testing.assert_allclose(ctrl.deformed_points, rest, atol=1e-4)  # nothing pulled
-    win.undo_action.trigger()
-    win.wait_idle()
-    assert len(ctrl.positions) == n0 and len(win._handles) == n0
+    with win.waiting_for_jobs():
+        win.undo_action.trigger()
+    assert len(ctrl.positions) == n0 and len(win.shape_view.handles) == n0
     # redo twice: the constraint and its drag are back, solved as before
-    win.redo_action.trigger()
-    win.wait_idle()
-    win.redo_action.trigger()
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.redo_action.trigger()
+    with win.waiting_for_jobs():
+        win.redo_action.trigger()
     assert len(ctrl.positions) == n0 + 1
     np.testing.assert_allclose(ctrl.positions[-1].target, start + [0.6, 0, 0])
     np.testing.assert_allclose(ctrl.deformed_points, dragged, atol=5e-4)
     # Delete removes the constraint selected in the table
     win.constraints_panel.fill(ctrl.positions, ctrl.jacobians)
     win.constraints_panel.table.selectRow(n0)
-    win.delete_action.trigger()
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.delete_action.trigger()
     assert len(ctrl.positions) == n0 and win.last_error is None
     np.testing.assert_allclose(ctrl.deformed_points, rest, atol=1e-4)
-    win.undo_action.trigger()  # and that is undone too
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.undo_action.trigger()  # and that is undone too
     assert len(ctrl.positions) == n0 + 1
 
 
@@ -611,13 +634,13 @@ def test_rotation_gizmo_sets_the_jacobian_target(window):
     win = window
     ctrl = _open_bar(win, "bend-90", apply=False)
     top = ctrl.rest_points[np.argmax(ctrl.rest_points[:, 2])] * [0, 0, 0.9]
-    with win._recorded():
+    with win.editing.recorded():
         ctrl.add_jacobian_constraint(top)
-    win.gizmo_index = 0
-    win.after_edit(structure=False)
-    win.wait_idle()
-    assert win._gizmo is not None and win._gizmo.GetEnabled()
-    np.testing.assert_allclose(win.gizmo_rotation(), np.eye(3), atol=1e-9)
+    win.gizmo.index = 0
+    with win.waiting_for_jobs():
+        win.editing.after_edit(structure=False)
+    assert win.gizmo.widget is not None and win.gizmo.widget.GetEnabled()
+    np.testing.assert_allclose(win.gizmo.rotation(), np.eye(3), atol=1e-9)
     # the user turns the box 35 degrees about y (the widget's transform), frame by frame
     centre = ctrl.image_of(top)
     for deg in (10, 25, 35):
@@ -626,17 +649,17 @@ def test_rotation_gizmo_sets_the_jacobian_target(window):
         m[:3, :3], m[:3, 3] = r, centre - r @ centre
         t = vtk.vtkTransform()
         t.SetMatrix(m.ravel())
-        win._gizmo.SetTransform(t)
-        win._gizmo.InvokeEvent("InteractionEvent")
-    win._gizmo.InvokeEvent("EndInteractionEvent")
+        win.gizmo.widget.SetTransform(t)
+        win.gizmo.widget.InvokeEvent("InteractionEvent")
+    win.gizmo.widget.InvokeEvent("EndInteractionEvent")
     assert win.last_error is None, win.last_error
     expected = Rotation.from_euler("y", 35, degrees=True).as_matrix()
     np.testing.assert_allclose(ctrl.jacobians[0].matrix, expected, atol=1e-9)
     J = ctrl.deformer.harmonic_map.jacobian(top[None])[0]
     np.testing.assert_allclose(J, expected, atol=1e-6)  # the solve follows the gizmo
     np.testing.assert_allclose(ctrl.deformed_points, _direct_points(ctrl), atol=5e-4)
-    win.undo_action.trigger()  # one rotation = one undo step
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.undo_action.trigger()  # one rotation = one undo step
     np.testing.assert_allclose(ctrl.jacobians[0].matrix, np.eye(3), atol=1e-9)
 
 
@@ -651,20 +674,20 @@ def test_volume_slices_follow_the_map_and_show_the_data(window):
     win = window
     head = data_path("volumes", "headsq_64x64x93.vti")
     scene = Path(__file__).resolve().parents[1] / "docs" / "examples" / "head_scene.json"
-    assert win.open_file(str(head))
-    win.wait_idle()
-    assert win.load_scene(str(scene))
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        assert win.open_file(str(head))
+    with win.waiting_for_jobs():
+        assert win.load_scene(str(scene))
     assert win.last_error is None, win.last_error
     ctrl = win.ctrl
     assert ctrl.volume is not None and ctrl.ready and ctrl.last_report.converged
     # three slices at full resolution (every voxel of the plane), mapped by the solution
     hm = ctrl.deformer.harmonic_map
-    for axis, e in win._vslices.items():
+    for axis, e in win.volume_display.slices.items():
         full = e["full"]
         n = [d for a, d in enumerate(ctrl.volume.dimensions) if a != axis]
         assert full.n_points == n[0] * n[1]
-        assert win._actors[f"vslice{axis}full"].GetVisibility()
+        assert win.actors[f"vslice{axis}full"].GetVisibility()
         ref = hm.map(full.rest_points, outside="passthrough")
         np.testing.assert_allclose(full.mesh.points, ref, atol=1e-3)
         vals = np.asarray(full.mesh.point_data["value"])
@@ -673,20 +696,20 @@ def test_volume_slices_follow_the_map_and_show_the_data(window):
     img = win.screenshot(False)
     assert _grey_levels(img) > 60
     # drag the target: the drag slices follow each frame, the full ones on release
-    w = win._handles[-1]
+    w = win.shape_view.handles[-1]
     goal = ctrl.positions[-1].target + np.array([-10.0, 0.0, 5.0])
     w.SetCenter(*goal)
     w.InvokeEvent("InteractionEvent")
     assert win.last_error is None, win.last_error
-    assert win._actors["vslice2drag"].GetVisibility()
-    drag = win._vslices[2]["drag"]
+    assert win.actors["vslice2drag"].GetVisibility()
+    drag = win.volume_display.slices[2]["drag"]
     np.testing.assert_allclose(
         drag.mesh.points, ctrl.deformer.harmonic_map.map(drag.rest_points, outside="passthrough"),
         atol=1e-6,
     )  # fmt: skip
     w.InvokeEvent("EndInteractionEvent")
-    full = win._vslices[2]["full"]
-    assert win._actors["vslice2full"].GetVisibility()
+    full = win.volume_display.slices[2]["full"]
+    assert win.actors["vslice2full"].GetVisibility()
     np.testing.assert_allclose(
         full.mesh.points, ctrl.deformer.harmonic_map.map(full.rest_points, outside="passthrough"),
         atol=1e-3,
@@ -695,38 +718,39 @@ def test_volume_slices_follow_the_map_and_show_the_data(window):
     from vhm_viz.colours import det_range
 
     win.view_panel.slice_colour.setCurrentText("determinant")
-    drag = win._vslices[0]["drag"]
+    drag = win.volume_display.slices[0]["drag"]
     det = np.linalg.det(ctrl.deformer.harmonic_map.jacobian(drag.rest_points))
     inside = ctrl.cage.contains(drag.rest_points)
     np.testing.assert_allclose(drag.mesh.point_data["measure"][inside], det[inside], rtol=1e-5)
     shown = np.asarray(drag.mesh.point_data["shown"])
+    slices = win.volume_display.slices
     lo, hi = det_range(np.concatenate(
-        [np.asarray(e["drag"].mesh.point_data["measure"]) for e in win._vslices.values()]
+        [np.asarray(e["drag"].mesh.point_data["measure"]) for e in slices.values()]
     ))  # fmt: skip
     assert shown.min() >= lo * 0.5 - 1e-12 and shown.max() <= hi + 1e-12
     hist = win.analysis_panel.histogram._bars
-    assert hist.total == sum(e["drag"].n_points for e in win._vslices.values())
+    assert hist.total == sum(e["drag"].n_points for e in win.volume_display.slices.values())
     # move a slice: the new plane, at full resolution once the slider rests
     win.view_panel.slice_sliders[2].setValue(20)
-    win._full_slices()
+    win.volume_display.finish_slice_move()
     assert ctrl.volume.index[2] == 20
     z = ctrl.volume.grid_points(np.array([[0, 0, 20]]))[0, 2]
-    np.testing.assert_allclose(win._vslices[2]["full"].rest_points[:, 2], z)
+    np.testing.assert_allclose(win.volume_display.slices[2]["full"].rest_points[:, 2], z)
     # volume rendering and an isosurface of the deformed volume
-    win.view_panel.volume.setChecked(True)
-    win.wait_idle()
+    with win.waiting_for_jobs():
+        win.view_panel.volume.setChecked(True)
     assert win.last_error is None, win.last_error
-    assert "volume" in win._actors and win.volume_image is not None
+    assert "volume" in win.actors and win.volume_display.image is not None
     level, width, opacity = 1000.0, 400.0, 0.5
     win.view_panel.set_transfer(level, width, opacity)
-    otf = win._actors["volume"].GetProperty().GetScalarOpacity()
+    otf = win.actors["volume"].GetProperty().GetScalarOpacity()
     lvl, wid, op = win.view_panel.transfer
     assert otf.GetValue(lvl - wid / 2 - 1) == pytest.approx(0.0)
     assert otf.GetValue(lvl + wid / 2 + 1) == pytest.approx(op, abs=1e-6)
     assert otf.GetValue(lvl) == pytest.approx(op / 2, abs=0.02)
     win.view_panel.iso_value.setValue(win.view_panel.step_of(1000.0))
     win.view_panel.iso.setChecked(True)
-    assert "iso" in win._actors and win._actors["iso"].mapper.dataset.n_points > 100
+    assert "iso" in win.actors and win.actors["iso"].mapper.dataset.n_points > 100
 
 
 def _run_cli(*args, timeout=600):

@@ -1,11 +1,25 @@
 """The Qt desktop explorer (``vhm-viz explore``, ``python -m vhm_viz.app``).
 
 :class:`~vhm_viz.app.controller.ExplorerController` holds the state without Qt;
-:class:`~vhm_viz.app.main_window.ExplorerWindow` is the PySide6 + pyvistaqt window.
-Qt is imported only by :func:`main` and the window module.
+:class:`~vhm_viz.app.window.ExplorerWindow` is the PySide6 + pyvistaqt window.
+Qt is imported only by :func:`main` and the window module: the functions here import it
+(and the window) when called, so that the command line starts without it.
 """
 
 from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from threadpoolctl import threadpool_limits
+
+from vhm_viz import interrupts
+from vhm_viz.atomic import atomic_path
 
 __all__ = ["main", "ExplorerController", "start_xvfb"]
 
@@ -16,7 +30,7 @@ def __getattr__(name: str):
 
         return ExplorerController
     if name == "ExplorerWindow":
-        from vhm_viz.app.main_window import ExplorerWindow
+        from vhm_viz.app.window import ExplorerWindow
 
         return ExplorerWindow
     raise AttributeError(f"module 'vhm_viz.app' has no attribute {name!r}")
@@ -24,8 +38,6 @@ def __getattr__(name: str):
 
 def main(argv: list[str] | None = None) -> int:
     """Open the explorer window; ``argv``: ``[FILE] [--scene SCENE] [--bar KIND]``."""
-    import argparse
-
     parser = argparse.ArgumentParser(prog="python -m vhm_viz.app", description=__doc__)
     add_arguments(parser)
     return run(parser.parse_args(argv))
@@ -71,22 +83,17 @@ def run(args) -> int:
 
     0 when the window is closed, 130/143 after SIGINT/SIGTERM.
     """
-    import os
-    import sys
-
     from PySide6.QtCore import QTimer
     from PySide6.QtWidgets import QApplication
-    from threadpoolctl import threadpool_limits
 
-    from vhm_viz import interrupts
-    from vhm_viz.app.main_window import ExplorerWindow
+    from vhm_viz.app.window import ExplorerWindow
 
     if getattr(args, "screenshot", None):
         return screenshot(args)
     # The explorer's linear algebra is small (QR of a few hundred columns, products with
     # 3 columns) but runs next to Qt, VTK, a worker thread and numba's parallel kernels;
-    # OpenBLAS's spinning pool then fights them for the cores (a 3138 x 314 QR measured
-    # 1-6 s with the default pool under load, 0.11 s with one thread).
+    # OpenBLAS's spinning pool then fights them for the cores and a small QR can take many
+    # times longer than with one thread.
     threadpool_limits(limits=int(os.environ.get("VHM_BLAS_THREADS", "1")), user_api="blas")
 
     app = QApplication.instance() or QApplication(sys.argv[:1])
@@ -101,13 +108,13 @@ def run(args) -> int:
         win = ExplorerWindow()
         win.show()
         if args.file:
-            win.open_file(args.file)
-            win.wait_idle()
+            with win.waiting_for_jobs(float("inf")):
+                win.open_file(args.file)
             if args.cage:
-                win.load_cage(args.cage)
+                win.editing.load_cage(args.cage)
         elif args.bar:
-            win.open_bar(args.bar)
-            win.wait_idle()
+            with win.waiting_for_jobs(float("inf")):
+                win.open_bar(args.bar)
         if args.scene:  # applies to FILE unless the scene's sidecar names its data
             win.load_scene(args.scene)
         # Python runs signal handlers only between its own instructions, which a Qt event
@@ -130,10 +137,6 @@ def screenshot(args) -> int:
     missing or unreadable file, a scene that cannot be solved) raise ``ValueError`` with
     one line, which the command line prints.
     """
-    import os
-    import sys
-    from pathlib import Path
-
     if not (args.file or args.bar or args.scene):
         raise ValueError("--screenshot needs FILE, --bar or --scene")
     w, h = (int(v) for v in args.size)
@@ -154,10 +157,8 @@ def screenshot(args) -> int:
         os.environ["DISPLAY"] = display
         os.environ["QT_QPA_PLATFORM"] = "xcb"
     from PySide6.QtWidgets import QApplication
-    from threadpoolctl import threadpool_limits
 
-    from vhm_viz.app.main_window import ExplorerWindow
-    from vhm_viz.atomic import atomic_path
+    from vhm_viz.app.window import ExplorerWindow
     from vhm_viz.io import refuse_inputs
 
     refuse_inputs(out, [Path(p) for p in (args.file, args.scene, args.cage) if p])
@@ -169,24 +170,23 @@ def screenshot(args) -> int:
         win.show()
         app.processEvents()
 
-        def step(ok, what: str) -> None:
-            win.wait_idle(600)
-            if win.last_error or ok is False or ok is None and what != "cage":
+        def step(action, what: str, needs_job: bool = True) -> None:
+            # wait for the jobs the action started (and those they start: the rendering)
+            with win.waiting_for_jobs(600):
+                job = action()
+            if win.last_error or needs_job and job is None:
                 raise ValueError(f"{what}: {win.last_error or 'failed'}")
 
         if args.file:
-            step(win.open_file(args.file), Path(args.file).name)
+            step(lambda: win.open_file(args.file), Path(args.file).name)
             if args.cage:
-                win.load_cage(args.cage)
-                step(True, Path(args.cage).name)
+                step(lambda: win.editing.load_cage(args.cage), Path(args.cage).name, False)
         elif args.bar:
-            step(win.open_bar(args.bar), f"bar {args.bar}")
+            step(lambda: win.open_bar(args.bar), f"bar {args.bar}")
         if args.scene:
-            step(win.load_scene(args.scene), Path(args.scene).name)
+            step(lambda: win.load_scene(args.scene), Path(args.scene).name)
         if args.colour != "none":
-            win.colour_by(args.colour)
-            step(True, "colour")
-        win.wait_idle(600)  # e.g. the volume rendering
+            step(lambda: win.colour_by(args.colour), "colour", False)
         win.frame_all()
         img = win.screenshot(False)
         if img is None:
@@ -206,11 +206,6 @@ def start_xvfb(first: int = 99, last: int = 170, terminate: bool = True):
 
     ``terminate``: the server exits with its last client (``-terminate``).
     """
-    import shutil
-    import subprocess
-    import time
-    from pathlib import Path
-
     exe = shutil.which("Xvfb")
     if exe is None:
         return None, None

@@ -9,14 +9,18 @@ Figure 4: the material cross-section, shown deformed.
 from __future__ import annotations
 
 import numpy as np
+import pyvista as pv
 
-__all__ = ["SliceProbe", "measure_values", "shown_values"]
+from vhm_viz.colours import measure_style
+from vhm_viz.core import metrics as M
+from vhm_viz.core.metrics import foldover_count
+from vhm_viz.filters import cell_quality
+
+__all__ = ["SliceProbe", "measure_values", "shape_metrics", "shown_values", "triangles_of"]
 
 
 def measure_values(jacobians: np.ndarray, measure: str) -> np.ndarray:
     """Per-point ``determinant`` or ``condition_number`` of (N, 3, 3) Jacobians."""
-    from vhm_viz.core import metrics as M
-
     if measure == "determinant":
         return M.jacobian_determinant(jacobians)
     if measure == "condition_number":
@@ -93,8 +97,6 @@ class SliceProbe:
         self._setup(controller, pts[used], remap[quads])
 
     def _setup(self, controller, rest_points, quads, dtype=np.float64) -> None:
-        import pyvista as pv
-
         self.rest_points = np.ascontiguousarray(rest_points, dtype=np.float64)
         faces = np.column_stack([np.full(len(quads), 4), quads]).ravel()
         self.mesh = pv.PolyData(self.rest_points.copy(), faces if len(quads) else None)
@@ -108,8 +110,6 @@ class SliceProbe:
 
     def colour(self, measure: str, values: np.ndarray) -> dict:
         """Store ``values`` for drawing in the style of :mod:`vhm_viz.colours`; the style."""
-        from vhm_viz.colours import measure_style
-
         style = measure_style(measure, values)
         self.mesh.point_data["shown"] = shown_values(values, style)
         return style
@@ -137,8 +137,6 @@ class SliceProbe:
     @staticmethod
     def _inside_shape(controller, pts: np.ndarray) -> np.ndarray:
         """Samples inside a closed surface (all samples for other data)."""
-        import pyvista as pv
-
         surf = controller.rest
         if not isinstance(surf, pv.PolyData) or surf.GetNumberOfPolys() == 0:
             return np.ones(len(pts), bool)
@@ -172,6 +170,50 @@ class SliceProbe:
 
     def foldovers(self) -> int:
         """Slice samples with ``det J <= 0``."""
-        from vhm_viz.core.metrics import foldover_count
-
         return foldover_count(np.asarray(self.jacobians)) if self.n_points else 0
+
+
+def triangles_of(data) -> np.ndarray | None:
+    """(m, 3) triangles of a polygonal surface made only of triangles, else None."""
+    if not isinstance(data, pv.PolyData) or data.GetNumberOfPolys() == 0:
+        return None
+    if not data.is_all_triangles:
+        return None
+    return np.asarray(data.regular_faces)
+
+
+def shape_metrics(rest, display, rest_points: np.ndarray, cells: bool = True) -> dict:
+    """Distortion of the displayed shape against its rest pose.
+
+    Parameters
+    ----------
+    rest : pyvista.DataSet
+        The loaded data.
+    display : pyvista.DataSet
+        The displayed, deformed copy (its points are the deformed positions).
+    rest_points : (P, 3) ndarray
+        The display's rest positions.
+    cells : bool
+        Count inverted 3D cells (:func:`vhm_viz.filters.cell_quality`).
+
+    Returns
+    -------
+    dict
+        ``E_rigid`` and ``E_volume`` of a triangle surface (NaN otherwise); with ``cells``
+        and data with 3D cells also ``inverted_cells`` and ``cells``.
+    """
+    out = {"E_rigid": float("nan"), "E_volume": float("nan")}
+    tris = triangles_of(display)
+    deformed = np.asarray(display.points)
+    if tris is not None and len(tris):
+        out["E_rigid"] = float(M.rigidity_distortion(rest_points, deformed, tris))
+        try:
+            out["E_volume"] = float(M.volume_change(rest_points, deformed, tris))
+        except ValueError:
+            pass
+    if cells:
+        quality = cell_quality(rest, deformed)
+        if quality is not None:
+            out["inverted_cells"] = quality["summary"]["inverted"]
+            out["cells"] = quality["summary"]["cells"]
+    return out

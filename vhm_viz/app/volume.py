@@ -23,6 +23,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pyvista as pv
+
+from vhm_viz.app.analysis import SliceProbe
+from vhm_viz.core.image import ImageGeometry, inside_mask
+from vhm_viz.core.volume import VolumeDeformation
+from vhm_viz.filters._common import image_geometry
 
 __all__ = [
     "VolumeView",
@@ -31,6 +37,7 @@ __all__ = [
     "FULL_SAMPLES",
     "OUTLINE_SAMPLES",
     "RENDER_VOXELS",
+    "displayed",
 ]
 
 #: Samples per side of a slice while dragging (and of the det J / cond J colouring).
@@ -81,8 +88,6 @@ class VolumeView:
     AXES = ("x", "y", "z")
 
     def __init__(self, image):
-        from vhm_viz.filters._common import image_geometry
-
         self.image = image
         self.name = _scalar_name(image)
         values = np.asarray(image.point_data[self.name])
@@ -161,8 +166,6 @@ class VolumeView:
 
     def _subsampled(self, voxels: int):
         """The values subsampled by :meth:`render_step`, (nz, ny, nx), and their grid."""
-        from vhm_viz.core.image import ImageGeometry
-
         s = self.render_step(voxels)
         nx, ny, nz = self.dimensions
         vol = np.ascontiguousarray(self.values.reshape(nz, ny, nx)[::s, ::s, ::s])
@@ -200,8 +203,6 @@ class VolumeView:
         pyvista.ImageData
             Point arrays ``"values"`` (float32) and ``"vtkValidPointMask"``.
         """
-        from vhm_viz.core.volume import VolumeDeformation
-
         vol, geo = self._subsampled(voxels)
         vd = VolumeDeformation(harmonic_map, geo, outside="passthrough")
         out = vd.resample({"values": vol.ravel()}, progress=progress, abort=abort)
@@ -209,8 +210,6 @@ class VolumeView:
 
     def inside(self, cage) -> np.ndarray:
         """(P,) bool: voxels inside the cage (VTK order; the scan-line test)."""
-        from vhm_viz.core.image import inside_mask
-
         return inside_mask(self.geometry, cage.vertices, cage.faces).ravel()
 
     def slice_probe(self, controller, axis: int, samples: int):
@@ -219,8 +218,6 @@ class VolumeView:
         Point data ``"value"`` holds the volume's values at the samples. Slices with more
         than :data:`DRAG_SAMPLES` samples per side bind in float32 (half the memory).
         """
-        from vhm_viz.app.analysis import SliceProbe
-
         pts, shape, values = self.plane(axis, samples=samples)
         dtype = np.float32 if samples > DRAG_SAMPLES else np.float64
         probe = SliceProbe.on_grid(controller, pts, shape, dtype=dtype)
@@ -228,3 +225,30 @@ class VolumeView:
         probe.mesh.point_data.active_scalars_name = "value"
         probe.axis = axis
         return probe
+
+
+def displayed(data):
+    """What the explorer shows and deforms for loaded ``data``.
+
+    Returns
+    -------
+    data : pyvista.DataSet
+        The data; an image or rectilinear grid that is no volume becomes a structured grid.
+    display : pyvista.DataSet
+        A deep copy with float64 points and no normals (the rest pose's normals would shade,
+        and export, the deformed shape wrongly; the renderer shades each triangle by its
+        deformed geometry); for a volume, its outline box surface.
+    volume : VolumeView or None
+    """
+    volume = VolumeView(data) if is_volume(data) else None
+    if volume is not None:
+        display = volume.outline()
+    else:
+        if isinstance(data, pv.ImageData | pv.RectilinearGrid):
+            data = data.cast_to_structured_grid()
+        display = data.copy(deep=True)
+    display.points = np.asarray(display.points, dtype=np.float64)
+    for name in {"Normals", display.point_data.active_normals_name} - {None}:
+        if name in display.point_data:
+            del display.point_data[name]
+    return data, display, volume

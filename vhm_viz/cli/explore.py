@@ -34,7 +34,7 @@ def run(args) -> int:
             raise RuntimeError(
                 f"the explorer needs the Qt extra: pip install 'vhm_viz[qt]' ({exc})"
             ) from exc
-        import vhm_viz.app.main_window  # noqa: F401
+        import vhm_viz.app.window  # noqa: F401
         from vhm_viz.app import run as run_app
 
     return run_app(args)  # an error becomes one line and exit status 1 (vhm_viz.cli.main)

@@ -1,0 +1,79 @@
+"""Export of the explorer's deformed data, as ``vhm-viz deform`` writes it.
+
+The display is deformed through a float32 binding (fast to drag); the export evaluates the
+harmonic map in float64, so it equals ``vhm-viz deform`` of the saved scene to rounding.
+A volume is resampled on its grid for image formats and warped (a structured grid) for
+the others, the command line's choice (:func:`resamples_volume`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from vhm_viz.cli.deform import RESAMPLED_SUFFIXES
+from vhm_viz.io import refuse_inputs, suffix_of, write_dataset
+
+__all__ = [
+    "export_path",
+    "resamples_volume",
+    "write_deformed",
+    "write_deformed_volume",
+]
+
+
+def resamples_volume(path) -> bool:
+    """Whether a volume written to ``path`` is resampled (image formats) rather than warped."""
+    # merge: use vhm_viz.io.is_image_format
+    return suffix_of(Path(path)) in RESAMPLED_SUFFIXES
+
+
+def export_path(path, source: dict, input_files) -> Path:
+    """The file to write: ``path``, with the input's suffix (``.vtp`` without one) if it has none.
+
+    Raises
+    ------
+    ValueError
+        The path is one of ``input_files`` (data, cage or anchors read since loading).
+    """
+    path = Path(path)
+    if not path.suffix:
+        src = source.get("path")
+        path = path.with_suffix(Path(src).suffix if src else ".vtp")
+    refuse_inputs(path, list(input_files))
+    return path
+
+
+def write_deformed(path: Path, display, rest_points: np.ndarray, harmonic_map=None) -> None:
+    """Write the display dataset, its points mapped by ``harmonic_map`` in float64.
+
+    Parameters
+    ----------
+    path : Path
+    display : pyvista.DataSet
+        The shown dataset (its point arrays are written; names starting with ``_`` are the
+        display's helpers and are dropped).
+    rest_points : (P, 3) ndarray
+        The display's rest positions.
+    harmonic_map : HarmonicMap, optional
+        The solved map; without one the display's points are written as they are.
+    """
+    data = display.copy(deep=True)
+    if harmonic_map is not None:
+        data.points = harmonic_map.map(rest_points, outside="passthrough")
+    for name in [n for n in data.point_data.keys() if n.startswith("_")]:
+        del data.point_data[name]
+    try:
+        write_dataset(path, data)
+    except (ValueError, TypeError) as exc:  # a suffix VTK cannot write this type to
+        raise ValueError(f"cannot write {path.name}: {exc}") from exc
+
+
+def write_deformed_volume(path: Path, volume, harmonic_map) -> None:
+    """Write a deformed volume: resampled or warped as :func:`resamples_volume` says."""
+    if resamples_volume(path):
+        data = volume.vhm.resample(harmonic_map, outside="passthrough")
+    else:
+        data = volume.vhm.deform(harmonic_map, outside="passthrough")
+    write_dataset(path, data)
