@@ -122,7 +122,7 @@ def run_volume(win, name: str, frames: int, n_anchors: int) -> dict:
     ctrl.settle(init="identity")
     ctrl.deform()
     win.ctrl.adopt(ctrl)
-    win._vslices_for = None
+    win.volume_display.reset()
     t0 = time.perf_counter()
     win.rebuild_scene(reset_camera=True)
     t_slices = time.perf_counter() - t0
@@ -135,19 +135,19 @@ def run_volume(win, name: str, frames: int, n_anchors: int) -> dict:
     for f in range(frames + 5):
         ang = 2 * np.pi * f / frames
         goal = start + 0.1 * diag * (np.sin(ang) * u + (np.cos(ang) - 1) * vt[1])
-        win._handles[k].SetCenter(*goal)
-        win._handle_cb(k, goal)
+        win.shape_view.handles[k].SetCenter(*goal)
+        win.drag.handle_moved(k, goal)
         win.plotter.iren.interactor.Render()
         QApplication.processEvents()
         if f >= 5:
-            timings.append(win.last_frame)
+            timings.append(win.drag.last_frame)
     t0 = time.perf_counter()
-    win.on_handle_released()
+    win.drag.released()
     release = time.perf_counter() - t0
     if win.errors:
         raise SystemExit(f"explorer errors: {win.errors}")
-    drag = win._vslices[2]["drag"].mesh
-    full = win._vslices[2]["full"].mesh
+    drag = win.volume_display.slices[2]["drag"].mesh
+    full = win.volume_display.slices[2]["full"].mesh
     return {
         "name": name,
         "dims": "x".join(str(d) for d in ctrl.volume.dimensions),
@@ -202,31 +202,31 @@ def run_model(win, size: str, frames: int, n_anchors: int, lod: bool, triangles:
         u = np.cross(axis, [0, 1.0, 0])
     u /= np.linalg.norm(u)
     v = np.cross(axis, u)
-    win.frame_times.clear()
+    win.drag.frame_times.clear()
     timings = []
     for f in range(frames + 5):
         ang = 2 * np.pi * f / frames
         goal = start + 0.15 * diag * (np.cos(ang) - 1) * u + 0.15 * diag * np.sin(ang) * v
         # what vtkSphereWidget does on a mouse move: its InteractionEvent callback, then a
         # render (the callback leaves rendering to it: one render per frame)
-        win._handles[k].SetCenter(*goal)
-        win._handle_cb(k, goal)
+        win.shape_view.handles[k].SetCenter(*goal)
+        win.drag.handle_moved(k, goal)
         win.plotter.iren.interactor.Render()
         QApplication.processEvents()
         if f >= 5:  # warm-up frames excluded
-            timings.append(win.last_frame)
+            timings.append(win.drag.last_frame)
     drag_mesh = win.lod_label.text()
     release, settled = [], []
     for _ in range(3):
-        win.on_handle_moved(k, goal)
+        win.drag.move_handle(k, goal)
         t0 = time.perf_counter()
-        win.on_handle_released()
-        release.append(win.last_frame.total)
+        win.drag.released()
+        release.append(win.drag.last_frame.total)
         QApplication.processEvents()  # the deferred shape metrics
         settled.append(time.perf_counter() - t0)
     if win.errors:
         raise SystemExit(f"explorer errors: {win.errors}")
-    if win.showing_proxy:
+    if win.shape_view.showing_proxy:
         raise SystemExit("the proxy is still shown after the release")
     return {
         "size": size,
