@@ -34,19 +34,24 @@ def test_version_has_one_source():
     pyproject = tomllib.loads((REPO / "pyproject.toml").read_text())
     assert "version" not in pyproject["project"]
     assert "version" in pyproject["project"]["dynamic"]
-    assert pyproject["tool"]["setuptools"]["dynamic"]["version"] == {
-        "attr": "vhm_viz.__version__"
-    }
+    assert pyproject["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "vhm_viz.__version__"}
     init = (REPO / "vhm_viz" / "__init__.py").read_text()
     (version,) = re.findall(r'^__version__ = "([^"]+)"$', init, flags=re.M)
-    out = subprocess.run(
-        [sys.executable, "-m", "vhm_viz.cli", "--version"],
+    out = _vhm_viz("--version", cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert out.stdout.strip() == f"vhm-viz {version}"
+
+
+def _vhm_viz(*args, cwd, env):
+    """``vhm-viz ARGS`` of the copy that ``env``'s PYTHONPATH finds, run in ``cwd``."""
+    run = subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", *args],
+        cwd=cwd,
         capture_output=True,
         text=True,
-        check=True,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
+        env=env,
     )
-    assert out.stdout.strip() == f"vhm-viz {version}"
+    assert run.returncode == 0, run.stderr[-2000:]
+    return run
 
 
 @pytest.fixture(scope="module")
@@ -55,9 +60,7 @@ def wheel(tmp_path_factory):
     src = tmp_path_factory.mktemp("src")
     for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy2(REPO / name, src / name)
-    shutil.copytree(
-        REPO / "vhm_viz", src / "vhm_viz", ignore=shutil.ignore_patterns("__pycache__")
-    )
+    shutil.copytree(REPO / "vhm_viz", src / "vhm_viz", ignore=shutil.ignore_patterns("__pycache__"))
     out = tmp_path_factory.mktemp("wheel")
     build = subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(out), str(src)],
@@ -91,14 +94,7 @@ def test_installed_copy_prints_its_plugin_and_scenes_outside_the_checkout(wheel,
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     env = {**os.environ, "PYTHONPATH": str(site)}
-    run = subprocess.run(
-        [sys.executable, "-m", "vhm_viz.cli", "paraview"],
-        cwd=elsewhere,
-        capture_output=True,
-        text=True,
-        env=env,
-    )
-    assert run.returncode == 0, run.stderr
+    run = _vhm_viz("paraview", cwd=elsewhere, env=env)
     plugin = site / "vhm_viz" / "paraview_plugin" / "vhm_viz_paraview.py"
     assert f"ParaView plugin: {plugin}" in run.stdout
     assert f"example scenes:  {site / 'vhm_viz' / 'scenes'}" in run.stdout
@@ -107,37 +103,18 @@ def test_installed_copy_prints_its_plugin_and_scenes_outside_the_checkout(wheel,
     assert [p.name for p in plugin.parent.iterdir()] == ["vhm_viz_paraview.py"]
 
     # --shell: only export lines, and a program run with them sees the same settings
-    shell = subprocess.run(
-        [sys.executable, "-m", "vhm_viz.cli", "paraview", "--shell"],
-        cwd=elsewhere,
-        capture_output=True,
-        text=True,
-        env=env,
-        check=True,
-    )
+    shell = _vhm_viz("paraview", "--shell", cwd=elsewhere, env=env)
     assert all(line.startswith("export ") for line in shell.stdout.splitlines())
     probe = "import os, vhm_viz; print(os.environ['PV_PLUGIN_PATH']); print(vhm_viz.__file__)"
-    ran = subprocess.run(
-        [sys.executable, "-m", "vhm_viz.cli", "paraview", sys.executable, "-c", probe],
-        cwd=elsewhere,
-        capture_output=True,
-        text=True,
-        env={k: v for k, v in env.items() if k != "PV_PLUGIN_PATH"},
-        check=True,
-    )
+    bare = {k: v for k, v in env.items() if k != "PV_PLUGIN_PATH"}
+    ran = _vhm_viz("paraview", sys.executable, "-c", probe, cwd=elsewhere, env=bare)
     plugin_path, module = ran.stdout.splitlines()
     assert plugin_path == str(plugin.parent)
     assert Path(module).resolve() == (site / "vhm_viz" / "__init__.py").resolve()
 
     # the installed copy's command line knows the demo, and its scenes are complete
-    demo = subprocess.run(
-        [sys.executable, "-m", "vhm_viz.cli", "demo", "--help"],
-        cwd=elsewhere,
-        capture_output=True,
-        text=True,
-        env=env,
-    )
-    assert demo.returncode == 0 and "--output" in demo.stdout
+    demo = _vhm_viz("demo", "--help", cwd=elsewhere, env=env)
+    assert "--output" in demo.stdout
     assert SCENES <= {p.name for p in (site / "vhm_viz" / "scenes").iterdir()}
 
 
@@ -154,14 +131,8 @@ def test_paraview_python_path_leaves_a_pip_vtk_out(wheel, tmp_path):
     zipfile.ZipFile(wheel).extractall(site)
     (site / "vtkmodules").mkdir()  # as in a virtual environment's site-packages
     link_site = tmp_path / "pv-site"
-    run = subprocess.run(
-        [sys.executable, "-m", "vhm_viz.cli", "paraview", "--shell", "--site", str(link_site)],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(site)},
-        check=True,
-    )
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    run = _vhm_viz("paraview", "--shell", "--site", str(link_site), cwd=tmp_path, env=env)
     assert f'export PYTHONPATH="{link_site}$' in run.stdout
     assert [p.name for p in link_site.iterdir()] == ["vhm_viz"]
     assert (link_site / "vhm_viz").resolve() == (site / "vhm_viz").resolve()
