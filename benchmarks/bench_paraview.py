@@ -1,6 +1,6 @@
 """ParaView: serial ``pvbatch`` against ``mpiexec -n 2 pvbatch`` on real volumes.
 
-For the CT head (``docs/examples/head_scene.json``) and the 256^3 embryo (the bend of
+For the CT head (``vhm_viz/scenes/head_scene.json``) and the 256^3 embryo (the bend of
 ``bench_volume.py``: automatic cage and anchors computed once here, then written into an
 explicit scene, since under MPI the automatic cage is refused), each scene holding its
 solved map as a scene saved after a solve does (``--solve``: without it, so that every
@@ -223,8 +223,8 @@ def main() -> None:
     cases = {}
     if args.only in (None, "head"):
         cases["head"] = (data("volumes", "headsq_64x64x93.vti"),
-                         with_map(ROOT / "docs/examples/head_scene.json", folder),
-                         ROOT / "docs/examples/head_cage.obj")  # fmt: skip
+                         with_map(ROOT / "vhm_viz/scenes/head_scene.json", folder),
+                         ROOT / "vhm_viz/scenes/head_cage.obj")  # fmt: skip
     if args.only in (None, "embryo"):
         scene, cage = embryo_scene(folder)
         cases["embryo"] = (embryo_vti(folder), scene, cage)

@@ -673,7 +673,7 @@ def _grey_levels(img) -> int:
 def test_volume_slices_follow_the_map_and_show_the_data(window):
     win = window
     head = data_path("volumes", "headsq_64x64x93.vti")
-    scene = Path(__file__).resolve().parents[1] / "docs" / "examples" / "head_scene.json"
+    scene = Path(__file__).resolve().parents[1] / "vhm_viz" / "scenes" / "head_scene.json"
     with win.waiting_for_jobs():
         assert win.open_file(str(head))
     with win.waiting_for_jobs():
@@ -769,7 +769,7 @@ def _run_cli(*args, timeout=600):
 
 def test_screenshot_command_head_volume_and_errors(tmp_path):
     head = data_path("volumes", "headsq_64x64x93.vti")
-    scene = Path(__file__).resolve().parents[1] / "docs" / "examples" / "head_scene.json"
+    scene = Path(__file__).resolve().parents[1] / "vhm_viz" / "scenes" / "head_scene.json"
     out = tmp_path / "head.png"
     r = _run_cli("explore", str(head), "--scene", str(scene), "--screenshot", str(out),
                  "--size", "640", "480")  # fmt: skip

@@ -285,7 +285,7 @@ def test_the_readme_scene_is_the_example_file_and_it_works(tmp_path, capsys):
     from vhm_viz.scene import _TOP_FIELDS, DEFAULT_SOLVER
 
     readme = (REPO / "README.md").read_text()
-    folder = REPO / "docs" / "examples"
+    folder = REPO / "vhm_viz" / "scenes"
     text = (folder / "bar_scene.json").read_text()
     assert "```json\n" + text.rstrip("\n") + "\n```" in readme
     section = readme.split("#### A scene, field by field", 1)[1].split("\n### ", 1)[0]

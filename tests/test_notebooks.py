@@ -168,6 +168,17 @@ def test_there_are_notebooks():
     assert names == {"01_bar_bend_u.ipynb", "02_volume_and_tets.ipynb"}
 
 
+def test_notebooks_are_saved_with_their_outputs():
+    """Committed with outputs (static PNGs), so they read as they are on a forge; small."""
+    for path in sorted(NOTEBOOKS.glob("*.ipynb")):
+        assert path.stat().st_size < 1_000_000, path.name
+        nb = nbformat.read(path, as_version=4)
+        cells = _code_cells(nb)
+        assert all(c.execution_count for c in cells), path.name  # every cell was run
+        assert _pngs(nb), path.name
+        assert not any(o.output_type == "error" for c in cells for o in c.outputs), path.name
+
+
 @pytest.fixture
 def kernel_env(monkeypatch):
     monkeypatch.setenv("PYVISTA_OFF_SCREEN", "true")

@@ -310,7 +310,7 @@ def test_tet_mesh_two_ranks_equal_serial_equal_python(paraview_env, tet_scene, t
 def head_scene(tmp_path_factory):
     """The CT head's example scene (cage and anchors from files), solved tight."""
     tmp = tmp_path_factory.mktemp("pv_head")
-    examples = ROOT / "docs" / "examples"
+    examples = ROOT / "vhm_viz" / "scenes"
     scene = json.loads((examples / "head_scene.json").read_text())
     scene["cage"] = str(examples / scene["cage"])
     scene["anchors"] = str(examples / scene["anchors"])

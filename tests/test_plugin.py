@@ -28,7 +28,9 @@ from vtkmodules.util import numpy_support as ns  # noqa: E402
 from vtkmodules.vtkCommonCore import vtkOutputWindow, vtkStringOutputWindow  # noqa: E402
 from vtkmodules.vtkIOGeometry import vtkOBJReader  # noqa: E402
 
+# the checkout's loader, which runs the plugin shipped in the package
 PLUGIN = Path(__file__).resolve().parents[1] / "plugins" / "vhm_viz_paraview.py"
+FILTERS = ("VHMHarmonicDeformation", "VHMJacobianAnalysis", "VHMResampleToImage")
 
 
 class _NoOpDecorators:
@@ -41,6 +43,11 @@ class _NoOpDecorators:
 
 @pytest.fixture
 def plugin(monkeypatch):
+    return _load_plugin(PLUGIN, monkeypatch)
+
+
+def _load_plugin(path, monkeypatch):
+    """The plugin file loaded as ParaView does (a module named after the file)."""
     from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 
     algorithm = types.ModuleType("paraview.util.vtkAlgorithm")
@@ -50,10 +57,24 @@ def plugin(monkeypatch):
     monkeypatch.setitem(sys.modules, "paraview", types.ModuleType("paraview"))
     monkeypatch.setitem(sys.modules, "paraview.util", types.ModuleType("paraview.util"))
     monkeypatch.setitem(sys.modules, "paraview.util.vtkAlgorithm", algorithm)
-    spec = importlib.util.spec_from_file_location("vhm_viz_paraview", PLUGIN)
+    spec = importlib.util.spec_from_file_location("vhm_viz_paraview", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def test_checkout_loader_declares_the_installed_plugins_filters(monkeypatch):
+    """plugins/vhm_viz_paraview.py and the package's plugin (what ``vhm-viz paraview``
+    names) declare the same filters, in a module named after the file as ParaView's loader
+    names it."""
+    from vhm_viz.cli.paraview import plugin_path
+
+    loader = _load_plugin(PLUGIN, monkeypatch)
+    packaged = _load_plugin(plugin_path(), monkeypatch)
+    for name in FILTERS:
+        assert getattr(loader, name).__module__ == "vhm_viz_paraview"
+        assert getattr(packaged, name).__module__ == "vhm_viz_paraview"
+        assert getattr(loader, name).__doc__ == getattr(packaged, name).__doc__
 
 
 @contextlib.contextmanager

@@ -34,6 +34,7 @@ _COMMANDS = {
     "cage": "cage",
     "anchors": "anchors",
     "explore": "explore",
+    "paraview": "paraview",
 }
 
 

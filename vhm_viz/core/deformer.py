@@ -592,6 +592,9 @@ class Deformer:
         Changing the constraint *points* rebuilds ``B`` and ``C`` (two QR factorisations of
         size ``n+m``); to move targets only, use :meth:`update_targets`.
 
+        A cage shell holding none of the points stays put (identity map; see
+        :attr:`pinned_shells`), with a ``UserWarning`` naming it.
+
         Parameters
         ----------
         positions : (r, 3) array_like
@@ -603,9 +606,6 @@ class Deformer:
             Points ``t_i`` inside the cage whose Jacobians are prescribed.
         jacobians : (s, 3, 3) array_like, optional
             Target Jacobians ``J[i, j] = d f_i / d x_j`` (``det > 0``).
-
-        A cage shell holding none of the points stays put (identity map; see
-        :attr:`pinned_shells`), with a ``UserWarning`` naming it.
 
         Raises
         ------

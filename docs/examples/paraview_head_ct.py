@@ -1,9 +1,23 @@
-"""ParaView GUI state of the README's screenshot: the head CT bent by VHM Harmonic Deformation.
-
-Run from the project root, after ``eval "$(bash plugins/paraview-env.sh)"``:
-``paraview --script=docs/paraview_head_ct.py``. The scene in docs/examples/ names its cage and
-anchors, computed once with ``vhm-viz cage`` / ``vhm-viz anchors``.
 """
+ParaView: the head CT bent by the plugin
+========================================
+
+A ParaView state script (shown, not run here: it needs ParaView's ``pvpython`` or GUI).
+The plugin's *VHM Harmonic Deformation* filter bends the head CT with the example scene
+``head_scene.json``; the skin isosurface is coloured by det J with
+:func:`vhm_viz.paraview.color_by_measure`, the same convention as the explorer and the
+figures.
+
+Set up ParaView's Python and open the state, from the repository root::
+
+    eval "$(bash plugins/paraview-env.sh)"       # from a checkout
+    eval "$(vhm-viz paraview --shell)"           # or from an installed vhm_viz
+    paraview --script=docs/examples/paraview_head_ct.py
+
+.. image:: /images/paraview_head_ct.png
+   :alt: ParaView with the VHM Harmonic Deformation panel and the head CT bent, coloured by det J
+"""
+
 
 import paraview.simple as pvs
 
@@ -14,10 +28,10 @@ head = pvs.XMLImageDataReader(
     FileName=["../shared/data/volumes/headsq_64x64x93.vti"],
 )
 cage = pvs.WavefrontOBJReader(
-    registrationName="head_cage.obj", FileName="docs/examples/head_cage.obj"
+    registrationName="head_cage.obj", FileName="vhm_viz/scenes/head_cage.obj"
 )
 bent = pvs.VHMHarmonicDeformation(registrationName="VHMHarmonicDeformation1", Input=head, Cage=cage)
-bent.SceneFile = "docs/examples/head_scene.json"
+bent.SceneFile = "vhm_viz/scenes/head_scene.json"
 bent.OutputArrays = ["jacobian_determinant"]
 skin = pvs.Contour(registrationName="Contour1", Input=bent)
 skin.ContourBy = ["POINTS", "ImageScalars"]

@@ -1,0 +1,124 @@
+"""``vhm-viz paraview [--shell] [PROGRAM ARGS...]``: where the ParaView plugin is, and its set-up.
+
+The plugin and the example scenes ship inside the package, so an installed ``vhm_viz``
+(a wheel, no checkout) finds them here. Without arguments the command prints the plugin's
+file, the example scenes' folder and the shell lines that make ParaView load the plugin;
+``--shell`` prints only those lines (``eval "$(vhm-viz paraview --shell)"``); with a
+``PROGRAM`` (``paraview``, ``pvpython``, ``pvbatch`` and its arguments) it runs it in that
+environment and returns its exit status.
+
+ParaView's Python must import ``vhm_viz`` but not this environment's own VTK (two VTKs in
+one process crash): when the package sits next to a pip-installed VTK, ``PYTHONPATH`` names
+a folder that holds only a link to the package (``--site``, made on demand). ParaView's
+Python also needs numba built for its own Python and numpy; from a checkout,
+``eval "$(bash plugins/paraview-env.sh)"`` installs it and does all of this.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+from importlib import resources
+from pathlib import Path
+
+PLUGIN_FILE = "vhm_viz_paraview.py"
+
+
+def add_parser(subparsers) -> None:
+    """Register the ``paraview`` subcommand."""
+    p = subparsers.add_parser(
+        "paraview",
+        help="print the ParaView plugin's path and set-up lines, or run ParaView with it",
+        description="Print where the installed ParaView plugin and example scenes are and "
+        "the shell lines that make ParaView load the plugin; with PROGRAM (paraview, "
+        "pvpython, pvbatch ...), run it with those settings.",
+    )
+    p.add_argument(
+        "--shell",
+        action="store_true",
+        help='print only the export lines, for eval "$(vhm-viz paraview --shell)"',
+    )
+    p.add_argument(
+        "--site",
+        metavar="DIR",
+        default=None,
+        help="folder for the link to the package when its own folder also holds a pip VTK "
+        "(default: $XDG_CACHE_HOME/vhm_viz/paraview-site, or ~/.cache/...)",
+    )
+    p.add_argument(
+        "program",
+        nargs=argparse.REMAINDER,
+        metavar="PROGRAM ARGS",
+        help="run this program (e.g. paraview, pvpython script.py) with the plugin loaded",
+    )
+    p.set_defaults(func=run)
+
+
+def package_folder() -> Path:
+    """The installed ``vhm_viz`` package's folder."""
+    return Path(str(resources.files("vhm_viz")))
+
+
+def plugin_path() -> Path:
+    """The ParaView plugin file shipped in the package (its folder goes on PV_PLUGIN_PATH)."""
+    return package_folder() / "paraview_plugin" / PLUGIN_FILE
+
+
+def scenes_folder() -> Path:
+    """The folder of the example scenes shipped in the package (scene, cage, anchors)."""
+    return package_folder() / "scenes"
+
+
+def python_path(site: str | None = None) -> Path:
+    """A folder from which ParaView's Python imports this ``vhm_viz`` and no other package.
+
+    The package's parent folder when it holds no VTK of its own (a checkout); otherwise
+    ``site``, made with a link named ``vhm_viz`` to the package.
+    """
+    package = package_folder()
+    parent = package.parent
+    if not (parent / "vtkmodules").exists() and not (parent / "vtk.py").exists():
+        return parent
+    if site is None:
+        cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+        site = str(Path(cache) / "vhm_viz" / "paraview-site")
+    folder = Path(site)
+    folder.mkdir(parents=True, exist_ok=True)
+    link = folder / "vhm_viz"
+    if link.is_symlink() and link.resolve() != package.resolve():
+        link.unlink()
+    if not link.exists():
+        link.symlink_to(package, target_is_directory=True)
+    return folder
+
+
+def environment(site: str | None = None) -> dict[str, str]:
+    """The variables that make ParaView load the plugin and import ``vhm_viz``."""
+    return {
+        "PV_PLUGIN_PATH": str(plugin_path().parent),
+        "PYTHONPATH": str(python_path(site)),
+    }
+
+
+def _prepend(name: str, value: str) -> str:
+    return f'export {name}="{value}${{{name}:+:${name}}}"'
+
+
+def run(args: argparse.Namespace) -> int:
+    """Print the plugin's set-up, or run a ParaView program with it; returns the status."""
+    settings = environment(args.site)
+    program = [a for a in args.program if a != "--"] if args.program else []
+    if program:
+        env = dict(os.environ)
+        for name, value in settings.items():
+            env[name] = value + (os.pathsep + env[name] if env.get(name) else "")
+        return subprocess.call(program, env=env)
+    lines = [_prepend(name, value) for name, value in settings.items()]
+    if not args.shell:
+        print(f"ParaView plugin: {plugin_path()}")
+        print(f"example scenes:  {scenes_folder()}")
+        print('set-up (or: eval "$(vhm-viz paraview --shell)"; ParaView\'s Python also needs')
+        print("numba for its own numpy: from a checkout, plugins/paraview-env.sh installs it):")
+    print("\n".join(lines))
+    return 0
