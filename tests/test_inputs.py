@@ -225,15 +225,14 @@ def test_meshio_sys_exit_and_prints_become_one_error(tmp_path, capsys):
     assert out == "" and err == ""
 
 
-def test_a_reader_that_crashes_takes_only_its_child_process(models, monkeypatch):
+def test_a_reader_that_crashes_takes_only_its_child_process(models):
     """If VTK crashes on a file the checks could not vet, that is an error message."""
     import ctypes
 
-    import vhm_viz.io as io
+    from vhm_viz.io.isolated import read_isolated
 
-    monkeypatch.setattr(io, "_read_vtk", lambda p, suffix: ctypes.string_at(0))  # SIGSEGV
     with pytest.raises(ReadError, match="crashed on this file .signal SIGSEGV."):
-        io._read_vtk_isolated(models / "bin.ply", ".ply")
+        read_isolated(models / "bin.ply", lambda p: ctypes.string_at(0), "a reader")
 
 
 def test_volume_with_missing_voxels_is_refused(tmp_path):
