@@ -66,6 +66,9 @@ def test_suffix_queries_agree_with_the_table():
         assert format_of(f"x{s.upper()}").suffixes == format_of(f"x{s}").suffixes
     with pytest.raises(ValueError, match="unknown dataset type"):
         output_suffixes("MultiBlock")
+    for fmt in FORMATS:  # every function a row names exists
+        for role in ("read", "check", "write", "cage", "lines"):
+            assert getattr(fmt, role) is None or callable(fmt.function(role)), (fmt.name, role)
 
 
 @pytest.mark.parametrize("kind", DATASET_TYPES)
