@@ -29,13 +29,28 @@ def test_a_variable_pointing_nowhere_is_one_clear_error(tmp_path, monkeypatch):
 
 def test_found_from_any_folder(tmp_path, monkeypatch):
     monkeypatch.delenv("VHM_VIZ_DATA", raising=False)
-    # the repository's sibling comes first, then ../shared/data of the folder and its parents
     deep = tmp_path / "a" / "b"
-    found = examples._data_candidates(deep)
-    assert found[0] == REPO.parent / "shared" / "data"
-    assert found[1:3] == [tmp_path / "a" / "shared" / "data", tmp_path / "shared" / "data"]
-    assert found[-1] == Path("/shared/data") and len(set(found)) == len(found)
-    if DATA.is_dir():
+    deep.mkdir(parents=True)
+    if DATA.is_dir():  # the repository's sibling comes first, from any folder
         monkeypatch.chdir(tmp_path)
         assert examples.data_dir() == DATA.resolve()
         assert examples.data_dir(cwd=deep) == DATA.resolve()
+    if Path("/shared/data").is_dir():
+        pytest.skip("/shared/data exists here: the search would stop there")
+    # a package installed away from the data: ../shared/data of the package's folder, then
+    # of the current folder and of each of its parents, in that order
+    package = tmp_path / "site" / "lib"
+    monkeypatch.setattr(examples, "__file__", str(package / "vhm_viz" / "examples.py"))
+    with pytest.raises(examples.DataNotFound) as exc:
+        examples.data_dir(cwd=deep)
+    looked = str(exc.value).split("looked in ")[1].split("; set ")[0].split(", ")
+    expected = [tmp_path / "site" / "shared" / "data", tmp_path / "a" / "shared" / "data"]
+    expected += [p.parent / "shared" / "data" for p in deep.parents]
+    assert looked == [str(p) for p in dict.fromkeys(expected)]
+    assert looked[-1] == "/shared/data"
+    (tmp_path / "shared" / "data").mkdir(parents=True)
+    assert examples.data_dir(cwd=deep) == (tmp_path / "shared" / "data").resolve()
+    (tmp_path / "a" / "shared" / "data").mkdir(parents=True)
+    assert examples.data_dir(cwd=deep) == (tmp_path / "a" / "shared" / "data").resolve()
+    (package.parent / "shared" / "data").mkdir(parents=True)
+    assert examples.data_dir(cwd=deep) == (package.parent / "shared" / "data").resolve()

@@ -1,4 +1,4 @@
-"""Fuzz: mutated models and scenes through ``vhm-viz deform`` (issue 12, "Must show").
+"""Fuzz: mutated models and scenes through ``vhm-viz deform``.
 
 Several hundred versions of the bundled models, the formats derived from them, the scenes
 and the files the scenes reference -- truncated, bit-flipped, or under the wrong suffix --

@@ -1,4 +1,4 @@
-"""Results do not depend on the length unit or on where the origin is (issue 12, defect 4).
+"""Results do not depend on the length unit or on where the origin is.
 
 A deformation scaled by s and translated by t must give the scaled and translated result:
 ``f_{s,t}(s p + t) = s f(p) + t``. Solves here converge to 1e-10 so that what is compared is
@@ -56,8 +56,8 @@ def test_bar_result_is_equivariant_under_scaling_and_translation(bar, scale, shi
     sc, ref, dfm0 = bar
     out, dfm = _moved(sc.cage, sc.anchors, sc.constraints, sc.points, scale, shift)
     diag = float(np.linalg.norm(np.ptp(sc.points, axis=0)))
-    # before: x1000 moved the result by 1.3e-3 of the diagonal (x0.001: 2.8e-3), because
-    # the smoothness weight lambda mixed 1/length and dimensionless rows
+    # the smoothness weight lambda scales with the length unit: the rows it weighs
+    # (1/length) and the dimensionless ones stay in proportion
     print(f"scale {scale:g}, shift {shift}: {np.abs(out - ref).max() / diag:.1e} of the diagonal")
     assert np.abs(out - ref).max() <= 1e-6 * diag
     assert dfm.lambda_ == pytest.approx(scale * dfm0.lambda_, rel=1e-6)
@@ -71,8 +71,8 @@ def test_armadillo_cage_far_from_the_origin_behaves_as_at_the_origin(shift):
 
     cage = read_cage(data_path("armadillo", "cage_216f.obj"))
     pts = np.asarray(read_dataset(data_path("armadillo", "armadillo_43k.obj")).points)
-    # before: signed volume 148139 instead of 0.14, the cage judged inward and flipped,
-    # then every anchor outside
+    # far from the origin the signed volume must not lose its digits to cancellation, or
+    # the cage is judged inward, flipped, and every anchor falls outside
     moved = np.asarray(cage.vertices) + shift
     assert signed_volume(moved, cage.faces) == pytest.approx(cage.volume, rel=1e-6)
     rng = np.random.default_rng(3)

@@ -1,8 +1,9 @@
-"""Atomic output files: write to a temporary beside the target, then rename.
+"""Output guards: never write over an input, write to a temporary and then rename.
 
-The writers in :mod:`vhm_viz.io` use :func:`atomic_path` (one file) and
-:func:`atomic_directory` (several files that belong together, such as the report of
-``vhm-viz analyze``); this module is only the mechanism.
+Every writer of user-named outputs (the command line, the explorer's export) first asks
+:func:`refuse_inputs`; the writers in :mod:`vhm_viz.io` then use :func:`atomic_path` (one
+file) and :func:`atomic_directory` (several files that belong together, such as the
+report of ``vhm-viz analyze``).
 
 An error, a crash or an interrupt never leaves a half-written output or a temporary file,
 and an existing file is only replaced once the new one is complete: temporaries are
@@ -21,6 +22,44 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from vhm_viz import interrupts
+
+__all__ = ["OverwriteError", "same_file", "refuse_inputs", "atomic_path", "atomic_directory"]
+
+
+class OverwriteError(ValueError):
+    """An output that would overwrite one of the inputs (:func:`refuse_inputs`)."""
+
+
+def same_file(a, b) -> bool:
+    """Whether two paths name the same file: same inode (hard links), or same real path."""
+    a, b = Path(a), Path(b)
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
+def refuse_inputs(output, inputs) -> None:
+    """Raise :class:`OverwriteError` if ``output`` is any of ``inputs``.
+
+    The one guard every writer of user-named outputs uses (the command line, the
+    explorer's export): whatever path, symbolic link or hard link names an input, it is
+    never written.
+
+    Parameters
+    ----------
+    output : path-like
+    inputs : iterable of path-like or None
+        Every file the operation reads: the data, the scene, every file the scene
+        references (:meth:`vhm_viz.scene.Scene.referenced_files`).
+    """
+    for src in inputs:
+        if src is not None and same_file(Path(src), Path(output)):
+            raise OverwriteError(
+                f"refusing to overwrite the input file {src} (as {output}); choose another output"
+            )
 
 
 def _umask() -> int:

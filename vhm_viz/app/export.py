@@ -3,7 +3,7 @@
 The display is deformed through a float32 binding (fast to drag); the export evaluates the
 harmonic map in float64, so it equals ``vhm-viz deform`` of the saved scene to rounding.
 A volume is resampled on its grid for image formats and warped (a structured grid) for
-the others, the command line's choice (:func:`resamples_volume`).
+the others, the command line's choice (:func:`vhm_viz.io.is_image_format`).
 """
 
 from __future__ import annotations
@@ -12,21 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.cli.deform import RESAMPLED_SUFFIXES
-from vhm_viz.io import refuse_inputs, suffix_of, write_dataset
+from vhm_viz.io import is_image_format, refuse_inputs, write_dataset
 
 __all__ = [
     "export_path",
-    "resamples_volume",
     "write_deformed",
     "write_deformed_volume",
 ]
-
-
-def resamples_volume(path) -> bool:
-    """Whether a volume written to ``path`` is resampled (image formats) rather than warped."""
-    # merge: use vhm_viz.io.is_image_format
-    return suffix_of(Path(path)) in RESAMPLED_SUFFIXES
 
 
 def export_path(path, source: dict, input_files) -> Path:
@@ -71,8 +63,8 @@ def write_deformed(path: Path, display, rest_points: np.ndarray, harmonic_map=No
 
 
 def write_deformed_volume(path: Path, volume, harmonic_map) -> None:
-    """Write a deformed volume: resampled or warped as :func:`resamples_volume` says."""
-    if resamples_volume(path):
+    """Write a deformed volume: resampled or warped as :func:`~vhm_viz.io.is_image_format` says."""
+    if is_image_format(path):
         data = volume.vhm.resample(harmonic_map, outside="passthrough")
     else:
         data = volume.vhm.deform(harmonic_map, outside="passthrough")

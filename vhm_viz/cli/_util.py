@@ -13,14 +13,6 @@ from vhm_viz.cli import one_line
 from vhm_viz.core.cage import MIN_FACE_ANGLE
 from vhm_viz.io import DATASET_SUFFIXES, OverwriteError, refuse_inputs, suffix_of
 
-#: Output formats per output dataset type.
-OUTPUT_SUFFIXES = {
-    "PolyData": (".vtp", ".vtk", ".ply", ".obj", ".stl"),
-    "UnstructuredGrid": (".vtu", ".vtk"),
-    "StructuredGrid": (".vts", ".vtk"),
-    "ImageData": (".vti", ".vtk", ".mhd", ".mha", ".nii", ".nii.gz"),
-}
-
 
 class CLIError(ValueError):
     """An error reported as one line (the message) with a non-zero exit status."""

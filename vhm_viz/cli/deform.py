@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz.cli._util import (
-    OUTPUT_SUFFIXES,
     CLIError,
     Progress,
     add_convergence_argument,
@@ -27,11 +26,18 @@ from vhm_viz.cli._util import (
 from vhm_viz.core.errors import OutsideCageError
 from vhm_viz.core.image import INTERPOLATIONS
 from vhm_viz.core.volume import DEFAULT_TOLERANCE
-from vhm_viz.io import DATASET_SUFFIXES, read_dataset, suffix_of, write_dataset
+from vhm_viz.io import (
+    DATASET_SUFFIXES,
+    is_image_format,
+    output_suffixes,
+    read_dataset,
+    suffix_of,
+    write_dataset,
+)
 
-ALL_OUTPUT_SUFFIXES = tuple(sorted({s for v in OUTPUT_SUFFIXES.values() for s in v}))
-#: Outputs of a volume that are resampled images (the others are warped grids).
-RESAMPLED_SUFFIXES = (".vti", ".mhd", ".mha", ".nii", ".nii.gz")
+#: What ``deform`` writes: the input's type, or an image a volume is resampled onto.
+OUTPUT_TYPES = ("PolyData", "UnstructuredGrid", "StructuredGrid", "ImageData")
+ALL_OUTPUT_SUFFIXES = tuple(sorted({s for t in OUTPUT_TYPES for s in output_suffixes(t)}))
 
 
 def add_parser(subparsers) -> None:
@@ -168,12 +174,12 @@ def deform(args: argparse.Namespace) -> str:
     out = Path(args.output)
     mesh = read_dataset(src)
     volume = isinstance(mesh, pv.ImageData)
-    resample = volume and suffix_of(out) in RESAMPLED_SUFFIXES
+    resample = volume and is_image_format(out)
     out_type = "ImageData" if resample else _output_type(mesh)
-    if suffix_of(out) not in OUTPUT_SUFFIXES[out_type]:
+    if suffix_of(out) not in output_suffixes(out_type):
         raise CLIError(
             f"cannot write a {out_type} to {suffix_of(out)!r}; use "
-            f"{', '.join(OUTPUT_SUFFIXES[out_type])}"
+            f"{', '.join(output_suffixes(out_type))}"
         )
     ref_image = None
     if reference is not None:

@@ -1,0 +1,207 @@
+"""Datasets from and to files: :func:`read_dataset` and :func:`write_dataset`.
+
+Both dispatch through the format table (:mod:`vhm_viz.io.registry`): a format's header
+check, then its reader; its writer, or PyVista's. What every read must satisfy whatever
+the format -- one dataset, some points, finite points, cells whose point ids exist -- is
+checked here.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from vhm_viz.atomic import atomic_path
+from vhm_viz.io.errors import ReadError, first_line
+from vhm_viz.io.registry import (
+    dataset_suffixes,
+    dataset_type,
+    format_of,
+    output_suffixes,
+    suffix_of,
+)
+
+__all__ = ["read_dataset", "write_dataset", "check_dataset"]
+
+
+def read_dataset(path):
+    """Read a mesh, tet mesh, point cloud or volume; never crash, never guess.
+
+    Every file is checked before a library parses it, and a file that is truncated,
+    inconsistent or not what its suffix says is refused with a :class:`ReadError` -- never
+    read as a partial mesh or a point cloud:
+
+    * PLY: the header's element counts and property types against the file size (binary)
+      or the number of values (ASCII); legacy VTK: the point and cell counts against the
+      bytes or values that follow; binary STL: the triangle count against the file size;
+      MetaImage (``.mhd``/``.mha``), NIfTI (``.nii``/``.nii.gz``), NRRD and SLC: the voxel
+      count against the (decompressed) data; OFF: parsed here;
+    * VTK's readers then run in a forked child process, so that a crash of a reader on a
+      file these checks could not fully vet becomes an error message, not the end of the
+      process; an error VTK reports while reading refuses the file too;
+    * the result must have finite points and cells whose point ids exist;
+    * meshio (MEDIT ``.mesh``) runs with its printed output captured and its ``sys.exit``
+      turned into a :class:`ReadError`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        One of :data:`~vhm_viz.io.DATASET_SUFFIXES`, or a folder of DICOM files.
+        ``.npy``/``.xyz``/``.txt``/``.csv`` hold one point per row (the first three
+        columns are x, y, z).
+
+    Returns
+    -------
+    pyvista.DataSet
+        ``PolyData`` for surfaces and point lists (an OBJ/OFF read as polygon cells becomes
+        a surface again), ``UnstructuredGrid`` for volumetric meshes, ``ImageData`` for
+        volumes (DICOM folders included), and so on. A MultiBlock file with one block gives
+        that block.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    ReadError
+        Unknown suffix, unreadable, truncated, inconsistent or empty file, several datasets
+        in one file; the message names the file and the problem.
+    """
+    import pyvista as pv
+
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"no such file: {p}")
+    if not (p.is_file() or p.is_dir()):
+        raise ReadError(f"{p}: not a file")
+    fmt = format_of(p)
+    if fmt is None or fmt.read is None:
+        suffix = suffix_of(p)
+        raise ReadError(
+            f"{p}: unsupported file type {suffix or '(none)'!r}; use one of "
+            f"{', '.join(dataset_suffixes())} (or a folder of DICOM files)"
+        )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            check = fmt.function("check")
+            if check is not None:
+                check(p)
+            data = fmt.function("read")(p)
+        except ReadError:
+            raise
+        except MemoryError as exc:
+            raise ReadError(f"{p}: cannot read (it asks for more memory than there is)") from exc
+        except Exception as exc:  # noqa: BLE001 -- VTK, numpy and meshio raise many types
+            raise ReadError(f"{p}: cannot read ({first_line(exc)})") from exc
+    if isinstance(data, pv.MultiBlock):
+        blocks = [b for b in data if b is not None]
+        if len(blocks) != 1:
+            raise ReadError(f"{p}: holds {len(blocks)} datasets (a MultiBlock); give one dataset")
+        data = blocks[0]
+    if data is None or data.n_points == 0:
+        why = f" ({first_line(caught[0].message)})" if caught else ""
+        kind = fmt.name if fmt.folder else suffix_of(p)
+        raise ReadError(f"{p}: no points (empty, or not a valid {kind} file){why}")
+    check_dataset(data, p)
+    return _surface_if_polygonal(data)
+
+
+def write_dataset(path, data) -> None:
+    """Write a PyVista dataset atomically, in the format of the suffix.
+
+    The format's row in :data:`~vhm_viz.io.registry.FORMATS` says which dataset types it
+    holds and who writes it: images go to MetaImage (``.mhd`` + ``.raw``, or ``.mha``)
+    and NIfTI (``.nii``, ``.nii.gz``) with their origin, spacing and direction
+    (:mod:`vhm_viz.io.medical`); the other formats through PyVista's writers.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    data : pyvista.DataSet
+
+    Raises
+    ------
+    ValueError
+        A suffix nothing is written to, or a dataset type its format does not hold; one
+        line naming the suffixes that would do.
+    """
+    suffix = suffix_of(path)
+    fmt = format_of(path) if suffix else None
+    if fmt is None or not fmt.writes:
+        raise ValueError(
+            f"cannot write {suffix or 'a file without a suffix'!r} files; use one of "
+            f"{', '.join(output_suffixes())}"
+        )
+    kind = dataset_type(data)
+    if kind is not None and kind not in fmt.writes:
+        raise ValueError(
+            f"cannot write a {kind} to {suffix!r}; use one of {', '.join(output_suffixes(kind))}"
+        )
+    write = fmt.function("write")
+    if write is not None:
+        write(path, data)
+        return
+    with atomic_path(path) as tmp:
+        data.save(os.fspath(tmp))
+
+
+def check_dataset(data, path) -> None:
+    """Refuse what no reader should have returned: non-finite points, dangling cell ids.
+
+    Parameters
+    ----------
+    data : pyvista.DataSet or vtkDataSet
+    path : path-like
+        The file it was read from, named in the message.
+
+    Raises
+    ------
+    ReadError
+    """
+    import pyvista as pv
+    from vtkmodules.util import numpy_support as ns
+
+    p = path
+
+    if data.GetNumberOfPoints() and isinstance(
+        data, pv.PointSet | pv.PolyData | pv.UnstructuredGrid
+    ):
+        pts = np.asarray(data.points)
+        if not np.isfinite(pts).all():
+            bad = np.nonzero(~np.isfinite(pts).all(axis=1))[0]
+            raise ReadError(
+                f"{p}: {bad.size} points with non-finite coordinates (e.g. point {bad[0]})"
+            )
+    cells = []
+    if isinstance(data, pv.PolyData):
+        cells = [data.GetVerts(), data.GetLines(), data.GetPolys(), data.GetStrips()]
+    elif isinstance(data, pv.UnstructuredGrid):
+        cells = [data.GetCells()]
+    n = data.GetNumberOfPoints()
+    for arr in cells:
+        if arr is None or arr.GetNumberOfCells() == 0:
+            continue
+        conn = ns.vtk_to_numpy(arr.GetConnectivityArray())
+        if conn.size and (conn.min() < 0 or conn.max() >= n):
+            raise ReadError(
+                f"{p}: cells refer to points that do not exist (ids up to {int(conn.max())}, "
+                f"{n} points)"
+            )
+
+
+def _surface_if_polygonal(data):
+    """An UnstructuredGrid of triangles/quads/polygons only (OBJ/OFF via meshio) -> PolyData."""
+    import pyvista as pv
+
+    if isinstance(data, pv.UnstructuredGrid) and data.n_cells:
+        types = set(np.unique(np.asarray(data.celltypes)).tolist())
+        polygonal = {int(pv.CellType.TRIANGLE), int(pv.CellType.QUAD), int(pv.CellType.POLYGON)}
+        if types <= polygonal:
+            surf = pv.PolyData(np.asarray(data.points), faces=np.asarray(data.cells))
+            for name, values in data.point_data.items():
+                surf.point_data[name] = values
+            return surf
+    return data

@@ -1,0 +1,118 @@
+"""Reading in a forked child process: a reader that crashes takes only the child with it.
+
+A library reader (VTK's, in C++) that dereferences a corrupt count ends the process it
+runs in. :func:`read_isolated` runs it in a child and turns a crash into a
+:class:`~vhm_viz.io.ReadError` naming the file; the child's address space is capped, so
+a corrupt count cannot exhaust the machine's memory either.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pickle
+import signal
+from pathlib import Path
+
+import numpy as np
+
+from vhm_viz.io.errors import ReadError, first_line
+
+__all__ = ["read_isolated"]
+
+
+def read_isolated(path, read, what: str = "the reader"):
+    """``read(path)`` in a forked child process (where there is fork), its result here.
+
+    The child sends the dataset back pickled (PyVista serialises it with VTK's own
+    writer); an image's direction, which that serialisation drops, travels beside it.
+
+    Parameters
+    ----------
+    path : path-like
+        The file (or folder) read; it sizes the child's memory cap and is named in
+        messages.
+    read : callable
+        ``read(path) -> pyvista.DataSet``, run in the child.
+    what : str
+        The reader, as messages name it (``"VTK's .ply reader"``).
+
+    Returns
+    -------
+    pyvista.DataSet
+        What ``read`` returned.
+
+    Raises
+    ------
+    ReadError
+        The child crashed (a signal or no result), or ``read`` raised (its first line).
+    """
+    p = Path(path)
+    if not hasattr(os, "fork"):  # pragma: no cover - Windows: the header checks alone must do
+        return read(p)
+    read_end, write_end = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child (coverage does not follow the fork)
+        status = 0
+        try:
+            import faulthandler
+
+            faulthandler.disable()  # a crash here is expected and reported by the parent
+            os.close(read_end)
+            _limit_memory(p)
+            try:
+                data = read(p)
+                direction = (
+                    np.array(data.direction_matrix) if hasattr(data, "direction_matrix") else None
+                )
+                payload = ("ok", (data, direction))
+            except BaseException as exc:  # noqa: BLE001 - everything goes back as text
+                payload = ("error", first_line(exc))
+            with os.fdopen(write_end, "wb") as fh:
+                pickle.dump(payload, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        except BaseException:  # noqa: BLE001
+            status = 1
+        finally:
+            os._exit(status)
+    os.close(write_end)
+    try:
+        with os.fdopen(read_end, "rb") as fh:
+            blob = fh.read()
+        _, status = os.waitpid(pid, 0)
+        pid = None
+    finally:
+        if pid is not None:  # interrupted while waiting: do not leave the child behind
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+    if os.WIFSIGNALED(status) or not blob:
+        how = (
+            f"signal {signal.Signals(os.WTERMSIG(status)).name}"
+            if os.WIFSIGNALED(status)
+            else f"exit status {os.WEXITSTATUS(status)}"
+        )
+        raise ReadError(f"{p}: {what} crashed on this file ({how}): corrupt file")
+    kind, value = pickle.loads(blob)  # noqa: S301 - our own child's data
+    if kind == "error":
+        raise ReadError(f"{p}: cannot read ({value})")
+    data, direction = value
+    if direction is not None:
+        data.direction_matrix = direction
+    return data
+
+
+def _limit_memory(p: Path) -> None:
+    """Cap the reading child's address space: a corrupt count cannot exhaust the machine.
+
+    What it may add to what the process already maps: 2 GiB, or 64 times the file
+    (folder) size when that is more -- far above any real reader's needs.
+    """
+    try:
+        import resource
+
+        size = sum(f.stat().st_size for f in p.iterdir()) if p.is_dir() else p.stat().st_size
+        with open("/proc/self/statm") as fh:
+            mapped = int(fh.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+        resource.setrlimit(resource.RLIMIT_AS, (mapped + max(2 << 30, 64 * size),) * 2)
+    except (ImportError, OSError, ValueError):  # pragma: no cover - not Linux
+        pass

@@ -1,0 +1,296 @@
+"""Medical volumes: MetaImage, NIfTI and DICOM, read and written in ITK's frame.
+
+vhm_viz's world follows ITK and DICOM (LPS). Both MetaImage and NIfTI are read through
+VTK (:mod:`vhm_viz.io.vtk_files`) after a check of the header's voxel count against the
+data, and their orientation is then taken from the header as ITK reads it: VTK's
+MetaImage reader takes ``TransformMatrix`` row by row (the transpose of what ITK
+writes), and its NIfTI reader keeps the qform/sform apart from the image. The writers
+keep origin, spacing and direction, so SimpleITK and ITK-based tools read the same
+geometry.
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from vhm_viz.atomic import atomic_path
+from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
+from vhm_viz.io.isolated import read_isolated
+from vhm_viz.io.registry import suffix_of
+from vhm_viz.io.vtk_files import read_vtk, read_vtk_file
+
+__all__ = [
+    "check_metaimage",
+    "check_nifti",
+    "read_metaimage",
+    "read_nifti",
+    "read_dicom",
+    "write_metaimage",
+    "write_nifti",
+]
+
+# NIfTI's world is RAS; vhm_viz's is LPS: x and y flip.
+_RAS_LPS = np.diag([-1.0, -1.0, 1.0])
+_META_TYPES = {
+    "uint8": "MET_UCHAR", "int8": "MET_CHAR", "uint16": "MET_USHORT", "int16": "MET_SHORT",
+    "uint32": "MET_UINT", "int32": "MET_INT", "uint64": "MET_ULONG_LONG",
+    "int64": "MET_LONG_LONG", "float32": "MET_FLOAT", "float64": "MET_DOUBLE",
+}  # fmt: skip
+_NIFTI_TYPES = {  # NIfTI-1 datatype code, bits per voxel
+    "uint8": (2, 8), "int16": (4, 16), "int32": (8, 32), "float32": (16, 32),
+    "float64": (64, 64), "int8": (256, 8), "uint16": (512, 16), "uint32": (768, 32),
+    "int64": (1024, 64), "uint64": (1280, 64),
+}  # fmt: skip
+
+
+_MET_TYPES = {
+    "MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4,
+    "MET_UINT": 4, "MET_LONG": 8, "MET_ULONG": 8, "MET_LONG_LONG": 8,
+    "MET_ULONG_LONG": 8, "MET_FLOAT": 4, "MET_DOUBLE": 8,
+}  # fmt: skip
+
+
+def check_metaimage(p: Path) -> None:
+    """MetaImage: DimSize x ElementType x channels against the (uncompressed) data file."""
+    blob = p.read_bytes()[: 1 << 16] if p.stat().st_size > 1 << 16 else p.read_bytes()
+    fields, header_end = {}, 0
+    for line in blob.split(b"\n"):
+        header_end += len(line) + 1
+        key, _, value = line.decode("latin-1").partition("=")
+        key = key.strip()
+        if key:
+            fields[key] = value.strip()
+        if key == "ElementDataFile":
+            break
+    try:
+        dims = [int(v) for v in fields["DimSize"].split()]
+        item = _MET_TYPES[fields["ElementType"].upper()]
+        channels = int(fields.get("ElementNumberOfChannels", "1"))
+        data_file = fields["ElementDataFile"]
+    except (KeyError, ValueError):
+        raise ReadError(
+            f"{p}: malformed MetaImage header (DimSize, ElementType, ElementDataFile)"
+        ) from None
+    if min(dims, default=0) <= 0 or channels <= 0:
+        raise ReadError(f"{p}: corrupt MetaImage header: DimSize {dims}")
+    if fields.get("CompressedData", "False").lower() == "true" or data_file.upper() == "LIST":
+        return
+    needed = int(np.prod(dims, dtype=np.int64)) * item * channels
+    if data_file.upper() == "LOCAL":
+        need(p, "the voxels", needed, p.stat().st_size - header_end)
+        return
+    raw = (p.parent / data_file) if not Path(data_file).is_absolute() else Path(data_file)
+    if not raw.is_file():
+        raise ReadError(f"{p}: its data file {raw.name} is missing")
+    skip = int(fields.get("HeaderSize", "0") or 0)
+    need(raw, "the voxels of " + p.name, needed, raw.stat().st_size - max(skip, 0))
+
+
+def check_nifti(p: Path) -> None:
+    """NIfTI-1/2: the voxel count of the header against the (decompressed) data."""
+    if suffix_of(p) == ".nii.gz":
+        try:
+            with gzip.open(p, "rb") as fh:
+                blob = fh.read()
+        except (OSError, EOFError) as exc:
+            raise TruncatedError(
+                f"{p}: truncated or corrupt gzip data ({first_line(exc)})"
+            ) from None
+    else:
+        blob = p.read_bytes()
+    need(p, "a NIfTI header", 348, len(blob))
+    for order in "<>":
+        size = struct.unpack_from(order + "i", blob, 0)[0]
+        if size in (348, 540):
+            break
+    else:
+        raise ReadError(f"{p}: not a NIfTI file (header size field is not 348 or 540)")
+    if size == 348:
+        dim = struct.unpack_from(order + "8h", blob, 40)
+        bitpix = struct.unpack_from(order + "h", blob, 72)[0]
+        offset = struct.unpack_from(order + "f", blob, 108)[0]
+    else:
+        need(p, "a NIfTI-2 header", 540, len(blob))
+        bitpix = struct.unpack_from(order + "h", blob, 14)[0]
+        dim = struct.unpack_from(order + "8q", blob, 16)
+        offset = struct.unpack_from(order + "q", blob, 168)[0]
+    ndim = dim[0]
+    if not 1 <= ndim <= 7 or any(d <= 0 for d in dim[1 : ndim + 1]) or bitpix <= 0:
+        raise ReadError(f"{p}: corrupt NIfTI header (dim {list(dim)}, bitpix {bitpix})")
+    if not (np.isfinite(offset) and offset >= 0):
+        raise ReadError(f"{p}: corrupt NIfTI header (vox_offset {offset})")
+    voxels = int(np.prod(dim[1 : ndim + 1], dtype=np.int64))
+    need(p, f"{voxels} voxels of {bitpix} bits", int(offset) + voxels * bitpix // 8, len(blob))
+
+
+def read_metaimage(path):
+    """A MetaImage (``.mhd`` + data file, or ``.mha``), its direction as ITK reads it."""
+    p = Path(path)
+    image = read_vtk_file(p)
+    if not hasattr(image, "direction_matrix"):
+        return image
+    fields = {}
+    with open(p, "rb") as fh:
+        for raw in fh:
+            line = raw.decode("latin-1").strip()
+            key, _, value = line.partition("=")
+            fields[key.strip()] = value.strip()
+            if key.strip() == "ElementDataFile":
+                break
+    text = fields.get("TransformMatrix") or fields.get("Rotation") or fields.get("Orientation")
+    if text:
+        m = np.array([float(v) for v in text.split()], dtype=np.float64)
+        if m.size == 9:
+            image.direction_matrix = m.reshape(3, 3).T
+    return image
+
+
+def read_nifti(path):
+    """A NIfTI image (``.nii``, ``.nii.gz``), placed by its sform (else qform), in LPS."""
+    from vtkmodules.vtkIOImage import vtkNIFTIImageReader
+
+    p = Path(path)
+    image = read_vtk_file(p)
+    if not hasattr(image, "direction_matrix"):
+        return image
+    reader = vtkNIFTIImageReader()
+    reader.SetFileName(os.fspath(p))
+    reader.UpdateInformation()
+    matrix = reader.GetSFormMatrix() or reader.GetQFormMatrix()
+    if matrix is None:
+        return image
+    m = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+    image.origin = tuple(_RAS_LPS @ m[:3, 3])
+    image.direction_matrix = _RAS_LPS @ m[:3, :3]
+    return image
+
+
+def read_dicom(path):
+    """A folder of DICOM files (one series) as an image, through VTK's DICOM reader."""
+
+    def read(p):
+        import pyvista as pv
+
+        return read_vtk(p, pv.DICOMReader(os.fspath(p)))
+
+    return read_isolated(path, read, "VTK's DICOM reader")
+
+
+def _volume_array(image) -> np.ndarray:
+    """The array a single-array format stores: the active scalars, else the first one."""
+    name = image.active_scalars_name or (image.point_data.keys() or [None])[0]
+    if name is None:
+        raise ValueError("the image has no point array to write")
+    values = np.ascontiguousarray(image.point_data[name])
+    if values.dtype.name not in _META_TYPES:
+        values = values.astype(np.float64)
+    return values
+
+
+def write_metaimage(path, image) -> None:
+    """Write an image as MetaImage (atomically), keeping origin, spacing and direction.
+
+    The active scalars (or the first point array) are written; a multi-component array
+    becomes channels. The direction matrix is listed column by column
+    (``TransformMatrix``, each image axis's direction in turn), as ITK writes it.
+    ``.mhd`` puts the voxels in a ``.raw`` file beside it; ``.mha`` holds them.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        ``.mhd`` or ``.mha``.
+    image : pyvista.ImageData
+    """
+    path = Path(path)
+    values = _volume_array(image)
+    direction = np.asarray(image.direction_matrix, dtype=np.float64)
+    comps = 1 if values.ndim == 1 else values.shape[1]
+    fmt = lambda v: " ".join(f"{x:.17g}" for x in v)  # noqa: E731
+    data_file = "LOCAL" if path.suffix.lower() == ".mha" else path.with_suffix(".raw").name
+    header = [
+        "ObjectType = Image",
+        "NDims = 3",
+        "BinaryData = True",
+        "BinaryDataByteOrderMSB = False",
+        "CompressedData = False",
+        f"TransformMatrix = {fmt(direction.T.ravel())}",  # ITK: one image axis after another
+        f"Offset = {fmt(image.origin)}",
+        "CenterOfRotation = 0 0 0",
+        f"ElementSpacing = {fmt(image.spacing)}",
+        f"DimSize = {' '.join(str(int(d)) for d in image.dimensions)}",
+        *([f"ElementNumberOfChannels = {comps}"] if comps > 1 else []),
+        f"ElementType = {_META_TYPES[values.dtype.name]}",
+        f"ElementDataFile = {data_file}",
+    ]
+    text = ("\n".join(header) + "\n").encode("ascii")
+    raw = values.astype(values.dtype.newbyteorder("<"), copy=False).tobytes()
+    if data_file == "LOCAL":
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(text + raw)
+        return
+    with atomic_path(path.with_suffix(".raw")) as tmp:
+        tmp.write_bytes(raw)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(text)
+
+
+def write_nifti(path, image) -> None:
+    """Write an image as NIfTI-1 (atomically), keeping origin, spacing and direction.
+
+    One file, a 352-byte header with matching qform and sform; the active scalars (or the
+    first point array), a multi-component array as a vector. NIfTI's world is RAS, so x
+    and y are negated from vhm_viz's (LPS) world, as ITK does.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        ``.nii`` or ``.nii.gz`` (gzip-compressed).
+    image : pyvista.ImageData
+    """
+    from scipy.spatial.transform import Rotation
+
+    path = Path(path)
+    values = _volume_array(image)
+    if values.dtype.name not in _NIFTI_TYPES:
+        values = values.astype(np.float64)
+    code, bits = _NIFTI_TYPES[values.dtype.name]
+    comps = 1 if values.ndim == 1 else values.shape[1]
+    spacing = np.asarray(image.spacing, dtype=np.float64)
+    rot = _RAS_LPS @ np.asarray(image.direction_matrix, dtype=np.float64)
+    offset = _RAS_LPS @ np.asarray(image.origin, dtype=np.float64)
+    # the quaternion holds a proper rotation; a reflection flips the third axis (qfac = -1)
+    qfac = 1.0 if np.linalg.det(rot) > 0 else -1.0
+    quat = Rotation.from_matrix(rot * [1.0, 1.0, qfac]).as_quat()  # x, y, z, w
+    if quat[3] < 0:
+        quat = -quat
+    affine = rot * spacing
+    dims = [5 if comps > 1 else 3, *image.dimensions, 1, comps, 1, 1]
+    header = bytearray(352)
+    struct.pack_into("<i", header, 0, 348)
+    struct.pack_into("<8h", header, 40, *dims)
+    if comps > 1:
+        struct.pack_into("<h", header, 68, 1007)  # intent: vector
+    struct.pack_into("<2h", header, 70, code, bits)
+    struct.pack_into("<8f", header, 76, qfac, *spacing, 1.0, 1.0, 1.0, 1.0)
+    struct.pack_into("<f", header, 108, 352.0)  # vox_offset
+    struct.pack_into("<f", header, 112, 1.0)  # scl_slope
+    header[123] = 2  # xyzt_units: millimetres
+    struct.pack_into("<2h", header, 252, 1, 1)  # qform_code, sform_code: scanner
+    struct.pack_into("<6f", header, 256, *quat[:3], *offset)
+    for r in range(3):
+        struct.pack_into("<4f", header, 280 + 16 * r, *affine[r], offset[r])
+    header[344:348] = b"n+1\0"
+    raw = values.astype(values.dtype.newbyteorder("<"), copy=False)
+    # NIfTI orders a vector's components slowest: (c, z, y, x)
+    blob = bytes(header) + (raw.T if comps > 1 else raw).tobytes()
+    with atomic_path(path) as tmp:
+        if suffix_of(path) == ".nii.gz":
+            with gzip.open(tmp, "wb", compresslevel=6) as fh:
+                fh.write(blob)
+        else:
+            tmp.write_bytes(blob)

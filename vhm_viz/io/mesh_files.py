@@ -1,0 +1,278 @@
+"""Surface and mesh formats parsed or checked here: PLY, STL, OFF, MEDIT, point lists.
+
+PLY and STL headers are checked against the file (:func:`check_ply`, :func:`check_stl`)
+before VTK reads them; OFF is parsed here (:func:`parse_off`, the one OFF parser, also
+for cages and rigidity lines); MEDIT goes through meshio; point lists through NumPy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from vhm_viz.io.errors import ReadError, TruncatedError, need
+from vhm_viz.io.registry import suffix_of
+
+__all__ = [
+    "check_ply",
+    "check_stl",
+    "parse_off",
+    "read_off_dataset",
+    "read_medit",
+    "read_point_list",
+]
+
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+
+
+def check_ply(p: Path) -> None:
+    """PLY: header, element counts and list lengths against the file's bytes or values."""
+    blob = p.read_bytes()
+    if not blob.startswith(b"ply"):
+        raise ReadError(f"{p}: not a PLY file (no 'ply' magic)")
+    at = blob.find(b"end_header", 0, 1 << 16)
+    if at < 0:
+        raise ReadError(f"{p}: PLY header has no 'end_header' line")
+    nl = blob.find(b"\n", at)
+    body = len(blob) if nl < 0 else nl + 1
+    fmt, elements = None, []
+    for raw in blob[:at].decode("latin-1").splitlines()[1:]:
+        tok = raw.split()
+        if not tok or tok[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if tok[0] == "format":
+                fmt = tok[1]
+            elif tok[0] == "element":
+                count = int(tok[2])
+                if count < 0:
+                    raise ValueError
+                elements.append((tok[1], count, []))
+            elif tok[0] == "property" and elements:
+                if tok[1] == "list":
+                    elements[-1][2].append((tok[-1], _PLY_TYPES[tok[2]], _PLY_TYPES[tok[3]]))
+                else:
+                    elements[-1][2].append((tok[-1], _PLY_TYPES[tok[1]], None))
+            else:
+                raise ValueError
+        except (IndexError, KeyError, ValueError):
+            raise ReadError(f"{p}: malformed PLY header line {raw.strip()!r}") from None
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise ReadError(f"{p}: unknown PLY format {fmt!r}")
+    n_vertices = next((c for name, c, _ in elements if name == "vertex"), 0)
+    if fmt == "ascii":
+        _check_ply_ascii(p, blob[body:], elements, n_vertices)
+    else:
+        _check_ply_binary(p, blob, body, elements, n_vertices, "<" if "little" in fmt else ">")
+
+
+def _check_ply_binary(p, blob, pos, elements, n_vertices, order) -> None:
+    for name, count, props in elements:
+        if all(kind is None for _, _, kind in props):
+            row = sum(np.dtype(t).itemsize for _, t, _ in props)
+            need(p, f"element '{name}' ({count} x {row} bytes)", count * row, len(blob) - pos)
+            pos += count * row
+            continue
+        if len(props) == 1 and count:
+            # one list per row (faces): usually all of one length -- check it vectorised
+            _, count_type, item_type = props[0]
+            ct, it = (
+                np.dtype(count_type).newbyteorder(order),
+                np.dtype(item_type).newbyteorder(order),
+            )
+            need(p, f"element '{name}'", ct.itemsize, len(blob) - pos)
+            k = int(np.frombuffer(blob, ct, 1, pos)[0])
+            if k >= 0:
+                rec = np.dtype([("k", ct), ("ids", it, (k,))])
+                if len(blob) - pos >= count * rec.itemsize:
+                    rows = np.frombuffer(blob, rec, count, pos)
+                    if (rows["k"] == k).all():
+                        _check_ids(p, name, rows["ids"], n_vertices)
+                        pos += count * rec.itemsize
+                        continue
+        pos = _walk_ply_rows(p, blob, pos, name, count, props, order, n_vertices)
+    return None
+
+
+def _walk_ply_rows(p, blob, pos, name, count, props, order, n_vertices) -> int:
+    """Row by row (lists of varying length): every list inside the file, ids in range."""
+    size = len(blob)
+    for _ in range(count):
+        for prop, scalar_or_count, item in props:
+            ct = np.dtype(scalar_or_count).newbyteorder(order)
+            need(p, f"element '{name}'", pos + ct.itemsize, size)
+            if item is None:
+                pos += ct.itemsize
+                continue
+            k = int(np.frombuffer(blob, ct, 1, pos)[0])
+            pos += ct.itemsize
+            it = np.dtype(item).newbyteorder(order)
+            if k < 0:
+                raise ReadError(f"{p}: corrupt PLY: a list of length {k} in element '{name}'")
+            need(p, f"element '{name}'", pos + k * it.itemsize, size)
+            if prop in ("vertex_indices", "vertex_index"):
+                _check_ids(p, name, np.frombuffer(blob, it, k, pos), n_vertices)
+            pos += k * it.itemsize
+    return pos
+
+
+def _check_ids(p, element, ids, n_vertices) -> None:
+    ids = np.asarray(ids)
+    if ids.size and (ids.min() < 0 or ids.max() >= n_vertices):
+        raise ReadError(
+            f"{p}: corrupt PLY: element '{element}' refers to vertex {int(ids.max())} "
+            f"(or {int(ids.min())}); there are {n_vertices} vertices"
+        )
+
+
+def _check_ply_ascii(p, body: bytes, elements, n_vertices) -> None:
+    tokens = body.split()
+    pos = 0
+    for name, count, props in elements:
+        for _ in range(count):
+            for prop, _t, item in props:
+                if pos >= len(tokens):
+                    raise TruncatedError(
+                        f"{p}: truncated: element '{name}' has fewer rows than {count}"
+                    )
+                if item is None:
+                    pos += 1
+                    continue
+                try:
+                    k = int(tokens[pos])
+                    ids = [int(t) for t in tokens[pos + 1 : pos + 1 + k]]
+                except ValueError:
+                    raise ReadError(f"{p}: corrupt PLY: non-integer list in '{name}'") from None
+                if k < 0 or len(ids) < k:
+                    raise TruncatedError(f"{p}: truncated or corrupt list in element '{name}'")
+                if prop in ("vertex_indices", "vertex_index"):
+                    _check_ids(p, name, ids, n_vertices)
+                pos += 1 + k
+
+
+def check_stl(p: Path) -> None:
+    """STL: binary -- 84 + 50 n bytes for n triangles; ASCII -- ends with ``endsolid``."""
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        head = fh.read(84)
+    if len(head) == 84 and 84 + 50 * int.from_bytes(head[80:84], "little") == size:
+        return
+    if head.lstrip().lower().startswith(b"solid"):
+        with open(p, "rb") as fh:
+            fh.seek(max(0, size - 1024))
+            if b"endsolid" in fh.read().lower():
+                return
+        raise TruncatedError(f"{p}: truncated ASCII STL (no 'endsolid' at the end)")
+    n = int.from_bytes(head[80:84], "little") if len(head) == 84 else 0
+    raise TruncatedError(
+        f"{p}: truncated or corrupt binary STL: {n} triangles need {84 + 50 * n} bytes, the "
+        f"file has {size}"
+    )
+
+
+def parse_off(path: Path) -> tuple[np.ndarray, list[np.ndarray], int]:
+    """The one OFF parser: points, every record after them, and the header's face count.
+
+    Records are index lists (``k i j ...``): faces, and -- in rigidity-line files such as
+    the hand's ``polylines.off`` -- edges (``k = 2``) after the faces. Refuses a file whose
+    header announces more points or faces than it holds, and indices out of range.
+    """
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        lines = [t for t in (ln.split("#", 1)[0].split() for ln in fh) if t]
+    if not lines or not lines[0][0].upper().endswith("OFF"):
+        raise ReadError(f"{path}: not an OFF file (no OFF header)")
+    head, rest = lines[0][1:], lines[1:]
+    if not head:
+        if not rest:
+            raise TruncatedError(f"{path}: truncated OFF file (no counts line)")
+        head, rest = rest[0], rest[1:]
+    try:
+        nv, nf = int(head[0]), int(head[1])
+        if nv < 0 or nf < 0:
+            raise ValueError(f"negative count in {' '.join(head)!r}")
+        if len(rest) < nv:
+            raise TruncatedError(
+                f"{path}: truncated: the header announces {nv} points, the file has {len(rest)}"
+            )
+        verts = np.array([[float(x) for x in t[:3]] for t in rest[:nv]], dtype=np.float64)
+        if verts.size and verts.shape[1:] != (3,):
+            raise ValueError("a point line with fewer than 3 coordinates")
+        records = []
+        for t in rest[nv:]:
+            k = int(t[0])
+            ids = np.array([int(x) for x in t[1 : 1 + k]], dtype=np.int64)
+            if k < 1 or len(ids) != k:
+                raise ValueError(f"bad record {' '.join(t)[:40]!r}")
+            records.append(ids)
+    except ReadError:
+        raise
+    except (ValueError, IndexError) as exc:
+        raise ReadError(f"{path}: malformed OFF file: {exc}") from None
+    if len(records) < nf:
+        raise TruncatedError(
+            f"{path}: truncated: the header announces {nv} points and {nf} faces, the file "
+            f"holds {len(records)} faces"
+        )
+    bad = [i for i, r in enumerate(records) if r.min() < 0 or r.max() >= nv]
+    if bad:
+        raise ReadError(f"{path}: record {bad[0]} refers to a point outside [0, {nv})")
+    return verts.reshape(-1, 3), records, nf
+
+
+def read_off_dataset(path):
+    """An OFF file as PolyData: polygons, and any edge (2) or vertex (1) records."""
+    import pyvista as pv
+
+    points, records, _ = parse_off(Path(path))
+    by_kind: dict[str, list] = {"faces": [], "lines": [], "verts": []}
+    for r in records:
+        kind = "faces" if len(r) >= 3 else ("lines" if len(r) == 2 else "verts")
+        by_kind[kind].append(np.concatenate([[len(r)], r]))
+    cells = {k: np.concatenate(v) for k, v in by_kind.items() if v}
+    return pv.PolyData(points, **cells)
+
+
+def read_medit(path):
+    """A MEDIT ``.mesh`` file through meshio, its printed complaints and ``sys.exit`` caught."""
+    import meshio
+    import pyvista as pv
+
+    p = Path(path)
+    printed = io.StringIO()  # meshio prints (and logs) its complaints: keep them
+    try:
+        with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+            mesh = meshio.read(os.fspath(p))
+    except SystemExit as exc:  # meshio's readers call sys.exit on some malformed files
+        said = printed.getvalue().strip().splitlines()
+        raise ReadError(
+            f"{p}: malformed {suffix_of(p)} file" + (f" ({said[0]})" if said else "")
+        ) from exc
+    return pv.from_meshio(mesh)
+
+
+def read_point_list(path):
+    """A file of one point per row (the first three columns are x, y, z) as PolyData.
+
+    ``.npy`` (a NumPy array), ``.csv`` (comma-separated) or whitespace-separated text.
+    """
+    import pyvista as pv
+
+    p, suffix = Path(path), suffix_of(path)
+    if suffix == ".npy":
+        pts = np.load(p, allow_pickle=False)
+    else:
+        pts = np.loadtxt(p, delimiter="," if suffix == ".csv" else None, ndmin=2)
+    pts = np.asarray(pts, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise ReadError(f"{p}: expected one point per row (x y z ...), got shape {pts.shape}")
+    return pv.PolyData(np.ascontiguousarray(pts[:, :3]))

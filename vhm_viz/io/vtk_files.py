@@ -1,0 +1,241 @@
+"""VTK's own formats: reading through VTK (crash-isolated), and the legacy format's check.
+
+:func:`read_vtk_file` reads every format VTK (through PyVista) has a reader for, in a
+child process (:mod:`vhm_viz.io.isolated`), an error VTK reports refusing the file;
+:func:`check_legacy_vtk` checks a legacy ``.vtk`` file's counts against its bytes first,
+since VTK's legacy reader returns whatever it got from a truncated file.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+from vhm_viz.io.errors import ReadError, TruncatedError, need
+from vhm_viz.io.isolated import read_isolated
+from vhm_viz.io.registry import suffix_of
+
+__all__ = ["read_vtk_file", "read_vtk", "check_legacy_vtk"]
+
+
+def read_vtk_file(path):
+    """Read a file with VTK's reader for its suffix, in a child process.
+
+    Parameters
+    ----------
+    path : path-like
+
+    Returns
+    -------
+    pyvista.DataSet or pyvista.MultiBlock
+
+    Raises
+    ------
+    ReadError
+        The reader crashed, or VTK reported an error reading the file.
+    """
+    return read_isolated(path, read_vtk, f"VTK's {suffix_of(path)} reader")
+
+
+def read_vtk(path, reader=None):
+    """Read with PyVista/VTK in this process; an ``ErrorEvent`` of the reader refuses the file.
+
+    Parameters
+    ----------
+    path : path-like
+    reader : pyvista reader, optional
+        Default: PyVista's reader for the suffix.
+
+    Raises
+    ------
+    ReadError
+        VTK reported an error (or a warning of a short read) while reading.
+    """
+    import pyvista as pv
+
+    p = Path(path)
+    if reader is None:
+        reader = pv.get_reader(os.fspath(p))
+    errors: list[str] = []
+    vtk_reader = getattr(reader, "reader", None)
+    if vtk_reader is not None and hasattr(vtk_reader, "AddObserver"):
+
+        def on_error(obj, _event, *args):
+            errors.append(str(args[0]) if args else "error")
+
+        def on_warning(obj, _event, *args):
+            # VTK's legacy reader reports short reads ("Error reading binary data!") as
+            # warnings, and then returns what it got
+            text = str(args[0]) if args else ""
+            if re.search(r"error|premature|unexpected end|truncat", text, re.IGNORECASE):
+                errors.append(text)
+
+        on_error.CallDataType = on_warning.CallDataType = "string0"
+        vtk_reader.AddObserver("ErrorEvent", on_error)
+        vtk_reader.AddObserver("WarningEvent", on_warning)
+    data = reader.read()
+    if errors:
+        text = " ".join(errors[0].split())
+        raise ReadError(f"{p}: VTK reports an error reading it ({text[-160:]})")
+    return data
+
+
+_VTK_TYPES = {
+    "bit": 1, "char": 1, "signed_char": 1, "unsigned_char": 1, "short": 2,
+    "unsigned_short": 2, "int": 4, "unsigned_int": 4, "long": 8, "unsigned_long": 8,
+    "float": 4, "double": 8, "vtkidtype": 4, "vtktypeint64": 8, "vtktypeuint64": 8,
+    "vtktypeint32": 4, "vtktypeuint32": 4, "vtktypeint8": 1, "vtktypeuint8": 1,
+    "vtktypeint16": 2, "vtktypeuint16": 2, "vtktypefloat32": 4, "vtktypefloat64": 8,
+}  # fmt: skip
+
+
+class _Cursor:
+    """Walk a legacy VTK file: keyword lines, then counted values (binary bytes or tokens)."""
+
+    def __init__(self, p: Path, blob: bytes, binary: bool, pos: int):
+        self.p, self.blob, self.binary, self.pos = p, blob, binary, pos
+
+    def keyword(self) -> list[str] | None:
+        """The next non-empty line's tokens (None at the end)."""
+        blob = self.blob
+        while self.pos < len(blob):
+            nl = blob.find(b"\n", self.pos)
+            end = len(blob) if nl < 0 else nl
+            line = blob[self.pos : end].decode("latin-1").split()
+            self.pos = end + 1
+            if line:
+                return line
+        return None
+
+    def skip_block(self) -> None:
+        """Skip lines up to the next empty one (a METADATA block)."""
+        blob = self.blob
+        while self.pos < len(blob):
+            nl = blob.find(b"\n", self.pos)
+            end = len(blob) if nl < 0 else nl
+            empty = not blob[self.pos : end].strip()
+            self.pos = end + 1
+            if empty:
+                return
+
+    def values(self, count: int, vtk_type: str, what: str) -> None:
+        """Skip ``count`` values of ``vtk_type``; refuse when the file ends first."""
+        if count < 0:
+            raise ReadError(f"{self.p}: corrupt legacy VTK file: negative count for {what}")
+        if self.binary:
+            size = _VTK_TYPES.get(vtk_type.lower())
+            if size is None:
+                raise ReadError(f"{self.p}: unknown data type {vtk_type!r} for {what}")
+            need(
+                self.p,
+                f"{what} ({count} {vtk_type} values)",
+                count * size,
+                len(self.blob) - self.pos,
+            )
+            self.pos += count * size
+            return
+        blob, seen = self.blob, 0
+        while seen < count:
+            # whole lines at a time: values never span lines
+            nl = blob.find(b"\n", self.pos)
+            end = len(blob) if nl < 0 else nl + 1
+            if self.pos >= len(blob):
+                raise TruncatedError(
+                    f"{self.p}: truncated: {what} announces {count} values, the file ends "
+                    f"after {seen}"
+                )
+            seen += len(blob[self.pos : end].split())
+            self.pos = end
+        if seen != count:
+            raise ReadError(
+                f"{self.p}: corrupt legacy VTK file: {what} has {seen} values, not {count}"
+            )
+
+
+def _int(text: str, p: Path, what: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise ReadError(f"{p}: corrupt legacy VTK file: {what} count {text!r}") from None
+    if value < 0:
+        raise ReadError(f"{p}: corrupt legacy VTK file: negative {what} count {value}")
+    return value
+
+
+def check_legacy_vtk(p: Path) -> None:
+    """Legacy VTK: the geometry's counts (points, cells, coordinates) against the file."""
+    blob = p.read_bytes()
+    lines = blob.split(b"\n", 3)
+    if len(lines) < 4 or not lines[0].lower().startswith(b"# vtk datafile"):
+        raise ReadError(f"{p}: not a legacy VTK file (no '# vtk DataFile' header)")
+    mode = lines[2].strip().upper()
+    if mode not in (b"ASCII", b"BINARY"):
+        raise ReadError(f"{p}: legacy VTK file is neither ASCII nor BINARY ({mode[:20]!r})")
+    cur = _Cursor(p, blob, mode == b"BINARY", len(lines[0]) + len(lines[1]) + len(lines[2]) + 3)
+    n_points, per = None, 0  # per: tuples in the current POINT_DATA / CELL_DATA block
+    while (tok := cur.keyword()) is not None:
+        key = tok[0].upper()
+        if key == "POINTS" and len(tok) >= 3:
+            n_points = _int(tok[1], p, "POINTS")
+            cur.values(3 * n_points, tok[2], "POINTS")
+        elif key in ("VERTICES", "LINES", "POLYGONS", "TRIANGLE_STRIPS", "CELLS") and len(tok) >= 3:
+            n, size = _int(tok[1], p, key), _int(tok[2], p, key)
+            if n_points is None:
+                raise ReadError(f"{p}: corrupt legacy VTK file: {key} before POINTS")
+            nxt = cur.pos
+            head = cur.keyword()
+            if head and head[0].upper() == "OFFSETS":  # file format 5: offsets, connectivity
+                cur.values(n, head[1], f"{key} offsets")
+                head = cur.keyword()
+                if not head or head[0].upper() != "CONNECTIVITY":
+                    raise TruncatedError(f"{p}: truncated or corrupt: {key} without CONNECTIVITY")
+                cur.values(size, head[1], f"{key} connectivity")
+            else:
+                cur.pos = nxt
+                cur.values(size, "int", key)
+        elif key == "CELL_TYPES" and len(tok) >= 2:
+            cur.values(_int(tok[1], p, key), "int", key)
+        elif key in ("X_COORDINATES", "Y_COORDINATES", "Z_COORDINATES") and len(tok) >= 3:
+            cur.values(_int(tok[1], p, key), tok[2], key)
+        elif key in ("POINT_DATA", "CELL_DATA") and len(tok) >= 2:
+            per = _int(tok[1], p, key)
+        elif key == "SCALARS" and len(tok) >= 3:
+            ncomp = _int(tok[3], p, key) if len(tok) > 3 else 1
+            nxt = cur.pos
+            head = cur.keyword()
+            if not head or head[0].upper() != "LOOKUP_TABLE":
+                cur.pos = nxt
+            cur.values(per * ncomp, tok[2], f"SCALARS {tok[1]}")
+        elif key in ("VECTORS", "NORMALS") and len(tok) >= 3:
+            cur.values(3 * per, tok[2], f"{key} {tok[1]}")
+        elif key == "TENSORS" and len(tok) >= 3:
+            cur.values(9 * per, tok[2], f"TENSORS {tok[1]}")
+        elif key == "TEXTURE_COORDINATES" and len(tok) >= 4:
+            cur.values(_int(tok[2], p, key) * per, tok[3], f"{key} {tok[1]}")
+        elif key == "COLOR_SCALARS" and len(tok) >= 3:
+            kind = "unsigned_char" if cur.binary else "float"
+            cur.values(_int(tok[2], p, key) * per, kind, f"{key} {tok[1]}")
+        elif key == "LOOKUP_TABLE" and len(tok) >= 3:
+            kind = "unsigned_char" if cur.binary else "float"
+            cur.values(4 * _int(tok[2], p, key), kind, f"LOOKUP_TABLE {tok[1]}")
+        elif key == "FIELD" and len(tok) >= 3:
+            for _ in range(_int(tok[2], p, key)):
+                arr = cur.keyword()
+                if arr is None:
+                    raise TruncatedError(f"{p}: truncated: FIELD {tok[1]} lacks arrays")
+                if arr[0].upper() == "NULL_ARRAY":
+                    continue
+                if len(arr) < 4:
+                    raise ReadError(f"{p}: corrupt FIELD array line {' '.join(arr)[:40]!r}")
+                ncomp, ntup = _int(arr[1], p, "FIELD"), _int(arr[2], p, "FIELD")
+                cur.values(ncomp * ntup, arr[3], f"FIELD array {arr[0]}")
+        elif key == "METADATA":
+            cur.skip_block()
+        elif key in ("DATASET", "DIMENSIONS", "SPACING", "ORIGIN", "ASPECT_RATIO"):
+            continue
+        else:
+            raise ReadError(f"{p}: corrupt legacy VTK file: unexpected line {' '.join(tok)[:40]!r}")
+    head = blob[:300].upper()
+    if n_points is None and b"STRUCTURED_POINTS" not in head and b"RECTILINEAR" not in head:
+        raise TruncatedError(f"{p}: truncated or corrupt legacy VTK file: no POINTS")
