@@ -68,6 +68,29 @@ def _umask() -> int:
     return mask
 
 
+def _sync_file(path: Path) -> None:
+    """Flush a written file's data to the disk (before it is renamed into place)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _sync_directory(directory: Path) -> None:
+    """Flush a folder's entries (a rename into it) to the disk, where the system allows."""
+    try:
+        fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # file systems without directory sync (some network mounts)
+    finally:
+        os.close(fd)
+
+
 def _directory_of(path: Path) -> Path:
     directory = path.parent if str(path.parent) else Path(".")
     directory.mkdir(parents=True, exist_ok=True)
@@ -98,11 +121,15 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             os.close(fd)
             tmp = Path(name)
         yield tmp
+        # the data reaches the disk before the name does: a power loss leaves the old file
+        # or the whole new one, never an empty file under the final name
+        _sync_file(tmp)
         with interrupts.deferred():
             interrupts.check()  # an interrupt received (even one VTK swallowed): no rename
             os.chmod(tmp, 0o666 & ~_umask())
             os.replace(tmp, path)
             tmp = None
+        _sync_directory(directory)
     finally:
         if tmp is not None:
             with interrupts.deferred(), contextlib.suppress(FileNotFoundError):
@@ -135,12 +162,16 @@ def atomic_directory(directory: str | os.PathLike) -> Iterator[Path]:
         with interrupts.deferred():
             stage = Path(tempfile.mkdtemp(prefix=".vhm-staging.", dir=directory))
         yield stage
+        for item in stage.iterdir():
+            if item.is_file():
+                _sync_file(item)
         with interrupts.deferred():
             interrupts.check()
             mode = 0o666 & ~_umask()
             for item in sorted(stage.iterdir()):
                 os.chmod(item, mode)
                 os.replace(item, directory / item.name)
+        _sync_directory(directory)
     finally:
         if stage is not None:
             with interrupts.deferred():

@@ -100,28 +100,29 @@ class Format:
 
 _ALL = DATASET_TYPES
 _VTK_READ = "vtk_files:read_vtk_file"
+_VTK_WRITE = "vtk_files:write_vtk_file"
 _VTK_CAGE = "cages:read_vtk_cage"
 
 #: Every format, in the order messages list them.
 FORMATS: tuple[Format, ...] = (
     Format("VTK XML unstructured grid", (".vtu",), ("UnstructuredGrid",), ("UnstructuredGrid",),
-           read=_VTK_READ, cage=_VTK_CAGE),
+           read=_VTK_READ, write=_VTK_WRITE, cage=_VTK_CAGE),
     Format("VTK XML polygonal data", (".vtp",), ("PolyData",), ("PolyData",),
-           read=_VTK_READ, cage=_VTK_CAGE),
+           read=_VTK_READ, write=_VTK_WRITE, cage=_VTK_CAGE),
     Format("VTK XML image", (".vti",), ("ImageData",), ("ImageData",), image=True,
-           read=_VTK_READ),
+           read=_VTK_READ, write=_VTK_WRITE),
     Format("VTK XML structured grid", (".vts",), ("StructuredGrid",), ("StructuredGrid",),
-           read=_VTK_READ),
+           read=_VTK_READ, write=_VTK_WRITE),
     Format("VTK XML rectilinear grid", (".vtr",), ("RectilinearGrid",), ("RectilinearGrid",),
-           read=_VTK_READ),
+           read=_VTK_READ, write=_VTK_WRITE),
     Format("legacy VTK", (".vtk",), _ALL, _ALL, read=_VTK_READ,
-           check="vtk_files:check_legacy_vtk", cage=_VTK_CAGE),
+           write=_VTK_WRITE, check="vtk_files:check_legacy_vtk", cage=_VTK_CAGE),
     Format("PLY", (".ply",), ("PolyData",), ("PolyData",), read=_VTK_READ,
-           check="mesh_files:check_ply", cage=_VTK_CAGE),
+           write=_VTK_WRITE, check="mesh_files:check_ply", cage=_VTK_CAGE),
     Format("Wavefront OBJ", (".obj",), ("PolyData",), ("PolyData",), read=_VTK_READ,
-           cage="cages:read_obj_cage"),
+           write=_VTK_WRITE, cage="cages:read_obj_cage"),
     Format("STL", (".stl",), ("PolyData",), ("PolyData",), read=_VTK_READ,
-           check="mesh_files:check_stl", cage="cages:read_stl_cage"),
+           write=_VTK_WRITE, check="mesh_files:check_stl", cage="cages:read_stl_cage"),
     Format("MEDIT", (".mesh",), ("UnstructuredGrid", "PolyData"),
            read="mesh_files:read_medit"),
     Format("OFF", (".off",), ("PolyData",), read="mesh_files:read_off_dataset",

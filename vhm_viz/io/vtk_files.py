@@ -1,9 +1,11 @@
-"""VTK's own formats: reading through VTK (crash-isolated), and the legacy format's check.
+"""VTK's own formats: reading through VTK (crash-isolated), writing, the legacy check.
 
 :func:`read_vtk_file` reads every format VTK (through PyVista) has a reader for, in a
 child process (:mod:`vhm_viz.io.isolated`), an error VTK reports refusing the file;
-:func:`check_legacy_vtk` checks a legacy ``.vtk`` file's counts against its bytes first,
-since VTK's legacy reader returns whatever it got from a truncated file.
+:func:`write_vtk_file` writes with VTK's writer for the suffix and checks its error code
+(a full disk fails the write, not only a message); :func:`check_legacy_vtk` checks a
+legacy ``.vtk`` file's counts against its bytes first, since VTK's legacy reader returns
+whatever it got from a truncated file.
 """
 
 from __future__ import annotations
@@ -12,11 +14,65 @@ import os
 import re
 from pathlib import Path
 
+from vhm_viz.atomic import atomic_path
 from vhm_viz.io.errors import ReadError, TruncatedError, need
 from vhm_viz.io.isolated import read_isolated
 from vhm_viz.io.registry import suffix_of
 
-__all__ = ["read_vtk_file", "read_vtk", "check_legacy_vtk"]
+__all__ = ["read_vtk_file", "read_vtk", "write_vtk_file", "check_legacy_vtk"]
+
+#: VTK's writer class (in ``vtkmodules.vtkIOXML`` / ``vtkIOLegacy`` / ``vtkIOPLY`` /
+#: ``vtkIOGeometry``) for each suffix, and whether it takes ``SetFileTypeToBinary``.
+_WRITERS = {
+    ".vtp": ("vtkIOXML", "vtkXMLPolyDataWriter", False),
+    ".vtu": ("vtkIOXML", "vtkXMLUnstructuredGridWriter", False),
+    ".vti": ("vtkIOXML", "vtkXMLImageDataWriter", False),
+    ".vts": ("vtkIOXML", "vtkXMLStructuredGridWriter", False),
+    ".vtr": ("vtkIOXML", "vtkXMLRectilinearGridWriter", False),
+    ".vtk": ("vtkIOLegacy", "vtkDataSetWriter", True),
+    ".ply": ("vtkIOPLY", "vtkPLYWriter", True),
+    ".stl": ("vtkIOGeometry", "vtkSTLWriter", True),
+    ".obj": ("vtkIOGeometry", "vtkOBJWriter", False),
+}
+
+
+def write_vtk_file(path, data) -> None:
+    """Write ``data`` atomically with VTK's writer for the suffix, binary where it can.
+
+    VTK's writers report a failed write (a full disk or quota, a file-size limit) through
+    their error code and an error message that may be silenced, and leave a truncated
+    file; the code is checked before the file is renamed into place.
+
+    Parameters
+    ----------
+    path : path-like
+        ``.vtp``, ``.vtu``, ``.vti``, ``.vts``, ``.vtr``, ``.vtk``, ``.ply``, ``.stl`` or
+        ``.obj``.
+    data : pyvista.DataSet or vtkDataSet
+        Of a type the format holds.
+
+    Raises
+    ------
+    OSError
+        The writer failed; names the file and VTK's reason. ``path`` is left as it was.
+    """
+    import importlib
+
+    from vtkmodules.vtkCommonMisc import vtkErrorCode
+
+    module, name, binary = _WRITERS[suffix_of(path)]
+    writer = getattr(importlib.import_module(f"vtkmodules.{module}"), name)()
+    if binary:
+        writer.SetFileTypeToBinary()
+    with atomic_path(path) as tmp:
+        writer.SetFileName(os.fspath(tmp))
+        writer.SetInputData(data)
+        ok = writer.Write()
+        code = writer.GetErrorCode()
+        writer.SetInputData(None)
+        if not ok or code:
+            reason = vtkErrorCode.GetStringFromErrorCode(code) if code else "the writer failed"
+            raise OSError(f"could not write {os.fspath(path)}: {reason}")
 
 
 def read_vtk_file(path):
