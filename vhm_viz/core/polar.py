@@ -3,8 +3,9 @@
 A scaled Newton iteration finds the polar factor of a well-conditioned block with
 ``det > 0``; other blocks go through an eigen-decomposition of ``M^T M`` by cyclic Jacobi
 rotations, the rotation built from the first two singular directions and their cross
-product (the closest *proper* rotation, ``det = +1``, as in the paper's local step). As-Similar-As-Possible scales
-the rotation by the mean signed singular value (paper Figure 12).
+product (the closest *proper* rotation, ``det = +1``, as in the paper's local step).
+As-Similar-As-Possible scales the rotation by the mean signed singular value (paper
+Figure 12).
 """
 
 from __future__ import annotations
