@@ -11,7 +11,15 @@ import numpy as np
 import pytest
 from conftest import box_cage, data_path, interior_points, read_triangles, simple_cage
 
-from vhm_viz.core.basis import evaluate_basis, evaluate_map, hessian5_to_full, winding_number
+from vhm_viz.core.basis import (
+    domain_columns,
+    evaluate_basis,
+    evaluate_map,
+    hessian5_to_full,
+    winding_number,
+)
+from vhm_viz.core.basis_kernel import lanes_evaluation, per_point_evaluation
+from vhm_viz.core.cage_tables import prepare_cage
 from vhm_viz.core.geometry import face_normals_and_areas
 
 
@@ -305,18 +313,10 @@ def test_numba_matches_numpy_reference(order):
 
 def _run_lanes_and_per_point(pts, v, f, order):
     """Both compiled kernels on the same points: (lanes values, grads, flagged), per-point."""
-    from vhm_viz.core import basis
-    from vhm_viz.core.basis_lanes import lanes_kernel
-
-    cd = basis._prepare_cage(v, f)
-    nm = len(cd.vertices) + len(cd.faces)
-    args = basis._kernel_arrays(cd)
-    host = np.full(len(pts), -1)
-    vals = np.full((len(pts), nm), np.nan)
-    grads = np.full((len(pts), 3, nm), np.nan) if order else np.zeros((0, 3, 0))
-    flagged = np.zeros(len(pts), dtype=bool)
-    lanes_kernel(pts, *args, host, basis._NEAR_EDGE, order, vals, grads, flagged)
-    ref = basis._evaluate_per_point(pts, args, cd, order, host)
+    cd = prepare_cage(v, f)
+    host = np.full(len(pts), -1, dtype=np.int64)
+    vals, grads, flagged = lanes_evaluation(pts, cd, order, host)
+    ref = per_point_evaluation(pts, cd, order, host)
     return vals, grads, flagged, ref
 
 
@@ -473,8 +473,6 @@ def test_domain_columns_own_each_shell_and_its_holes():
     v = np.vstack([v1, v2, v3])
     f = np.vstack([f1, f2 + 8, f3[:, ::-1] + 16])
     n = len(v)
-    from vhm_viz.core.basis import domain_columns
-
     d = domain_columns(v, f)
     assert len(d) == 2
     np.testing.assert_array_equal(d[0], np.r_[0:8, n + np.arange(0, 12)])

@@ -134,11 +134,10 @@ def test_never_certified_where_dense_sampling_folds(unit_cage, seed):
     region = Region.box([0.15] * 3, [0.85] * 3)
     det = _det(hm, _grid(region.lo, region.hi, 60))  # 216,000 exact samples
     cert = certify_injectivity(hm, region, max_cubes=20000)
-    if det.min() <= 0:
-        assert not cert.certified
-    if cert.certified:
-        assert det.min() > 0
-    if cert.status == "not injective":
+    # every scenario is decided within the budget, and as dense sampling says
+    expected = "certified" if det.min() > 0 else "not injective"
+    assert cert.status == expected, cert.summary()
+    if expected == "not injective":
         assert np.all(_det(hm, cert.witnesses) <= 0)
         assert np.allclose(_det(hm, cert.witnesses), cert.witness_determinants)
         assert region.contains(cert.witnesses).all()

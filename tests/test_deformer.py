@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from vhm_viz.core.basis import evaluate_basis
 from vhm_viz.core.errors import ConstraintError, OutsideCageError
 from vhm_viz.core.solver import project_blocks
 
@@ -531,8 +532,13 @@ def test_lambda_follows_paper_rule(cage, anchors):
     # the paper's rule for the cage scaled to a unit bounding-box diagonal, scaled back
     L = cage.diagonal
     n = cage.n_vertices
-    J = np.hstack([a._Jhat[:, :n] * L, a._Jhat[:, n:]])
-    H = np.hstack([a._Hhat[:, :n] * L**2, a._Hhat[:, n:] * L])
+    nm = n + cage.n_faces
+    Jhat = evaluate_basis(anchors, cage.vertices, cage.faces, order=1).gradients
+    Jhat = Jhat.reshape(-1, nm)
+    Hhat = evaluate_basis(a.smoothness_samples, cage.vertices, cage.faces, order=2).hessians
+    Hhat = Hhat.reshape(-1, nm)
+    J = np.hstack([Jhat[:, :n] * L, Jhat[:, n:]])
+    H = np.hstack([Hhat[:, :n] * L**2, Hhat[:, n:] * L])
     expected = L * 0.01 * 6 * np.abs(J).sum(1).max() / np.abs(H).sum(1).max()
     assert a.lambda_ == pytest.approx(expected)
 

@@ -1,8 +1,8 @@
 """Point-vectorised kernel for basis values and gradients (the common, far-from-cage case).
 
-:mod:`vhm_viz.core.basis` evaluates one point at a time, with branches for every way a
-point can sit next to the cage. Most points of a shape are not next to any cage edge, and
-for them the plain formulas are exact to rounding. This kernel evaluates such points in
+:mod:`vhm_viz.core.basis_kernel` evaluates one point at a time, with branches for every
+way a point can sit next to the cage. Most points of a shape are not next to any cage edge,
+and for them the plain formulas are exact to rounding. This kernel evaluates such points in
 groups of ``LANES``: every loop runs over the lanes of a group, without branches, so LLVM
 turns it into SIMD code, and the transcendental functions come from
 :mod:`vhm_viz.core.vecmath` instead of the C library (which would stop vectorisation).
@@ -38,9 +38,10 @@ import numpy as np
 
 from vhm_viz.core import vecmath
 
-# Points per group. LLVM vectorises the lane loops 4 wide (AVX2) here, so 16 lanes are four
-# vector iterations; 8 lanes measured 2.5x slower (loop overhead), 32 no faster. The scratch
-# per group is (4 n + n_edges + n + m) * 16 * 8 bytes, about 0.3 MB for a 500-face cage.
+# Points per group. LLVM vectorises the lane loops 4 wide (AVX2), so 16 lanes are four
+# vector iterations: fewer lanes leave the loop overhead in charge, more gain nothing. The
+# scratch per group is (4 n + n_edges + n + m) * 16 * 8 bytes, about 0.3 MB for a
+# 500-face cage.
 LANES = 16
 # Groups per parallel work item: amortises the scratch allocation over 256 points.
 _GROUPS_PER_ITEM = 16
@@ -114,7 +115,7 @@ def _edge_logs(E, edges, edge_len, inv_4pi_len, near_edge, ce, near, L):  # prag
             uw = ux * wx + uy * wy + uz * wz
             lilj = li * lj
             big = li + lj + dl
-            # R - |d| = num / den without cancellation (see basis._edge_terms_numpy)
+            # R - |d| = num / den without cancellation (see basis_reference._edge_terms_numpy)
             neg = uw <= 0.0
             num = 2.0 * (cx * cx + cy * cy + cz * cz) if neg else 2.0 * (lilj + uw)
             den = (lilj - uw) * big if neg else big
@@ -265,32 +266,31 @@ def _group_basis(
     _face_terms(E, ce, F, N, inv_twice_area, D, NxD, face_edges, order, acc, accg, buf, L)
 
 
+@numba.njit(**_INLINE)
+def _group_scratch(n, n_edges, nm, order, L):  # pragma: no cover - compiled
+    """Scratch of one work item: ``pts, near, E, ce, acc, accg, buf`` (see _group_basis)."""
+    return (
+        np.empty(3 * L),
+        np.empty(L),
+        np.empty(4 * n * L),
+        np.empty(n_edges * L),
+        np.empty(nm * L),
+        np.empty(3 * nm * L if order >= 1 else 0),
+        np.empty(7 * L),
+    )
+
+
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def lanes_kernel(
-    points,
-    V,
-    F,
-    N,
-    inv_twice_area,
-    D,
-    NxD,
-    edges,
-    edge_len,
-    inv_4pi_len,
-    face_edges,
-    host,
-    near_edge,
-    order,
-    values,
-    gradients,
-    flagged,
-):  # pragma: no cover - compiled
+    points, V, F, N, inv_twice_area, D, NxD, edges, edge_len, inv_4pi_len, face_edges,
+    host, near_edge, order, values, gradients, flagged,
+):  # pragma: no cover - compiled  # fmt: skip
     """Values (``order`` 0) or values and gradients (``order`` 1) of the basis.
 
-    Arrays as in :func:`vhm_viz.core.basis._basis_kernel`; ``flagged[k]`` is set for points
-    this kernel does not handle (near or on a cage edge or vertex, or with a host face):
-    their rows of ``values``/``gradients`` hold placeholders and must be recomputed by the
-    per-point kernel.
+    Cage arrays as in :func:`vhm_viz.core.cage_tables.kernel_arrays`; ``flagged[k]`` is
+    set for points this kernel does not handle (near or on a cage edge or vertex, or with
+    a host face): their rows of ``values``/``gradients`` hold placeholders and must be
+    recomputed by the per-point kernel.
     """
     L = LANES
     npts = points.shape[0]
@@ -300,13 +300,7 @@ def lanes_kernel(
     ngroups = (npts + L - 1) // L
     nitems = (ngroups + _GROUPS_PER_ITEM - 1) // _GROUPS_PER_ITEM
     for item in numba.prange(nitems):
-        pts = np.empty(3 * L)
-        near = np.empty(L)
-        E = np.empty(4 * n * L)
-        ce = np.empty(edges.shape[0] * L)
-        acc = np.empty(nm * L)
-        accg = np.empty(3 * nm * L if order >= 1 else 0)
-        buf = np.empty(7 * L)
+        pts, near, E, ce, acc, accg, buf = _group_scratch(n, edges.shape[0], nm, order, L)
         for grp in range(item * _GROUPS_PER_ITEM, min(ngroups, (item + 1) * _GROUPS_PER_ITEM)):
             k0 = grp * L
             _group_basis(
@@ -372,31 +366,15 @@ def winding_kernel(points, V, F, out):  # pragma: no cover - compiled
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def lanes_map_kernel(
-    points,
-    V,
-    F,
-    N,
-    inv_twice_area,
-    D,
-    NxD,
-    edges,
-    edge_len,
-    inv_4pi_len,
-    face_edges,
-    near_edge,
-    order,
-    z,
-    values,
-    jacobians,
-    winding,
-    flagged,
-):  # pragma: no cover - compiled
+    points, V, F, N, inv_twice_area, D, NxD, edges, edge_len, inv_4pi_len, face_edges,
+    near_edge, order, z, values, jacobians, winding, flagged,
+):  # pragma: no cover - compiled  # fmt: skip
     """A map ``f = sum_c z_c b_c`` (and its Jacobian) without storing the basis.
 
     The basis values and gradients of a group of points are contracted with the
     coefficients ``z`` (``n + m`` rows, 3 columns) as soon as they are complete, so no
-    ``(N, n + m)`` matrices are written or read back (for a 500-face cage that traffic
-    cost more than the kernel itself). ``values[k]`` is ``f``, ``jacobians[k, i, j]`` is
+    ``(N, n + m)`` matrices are written or read back (for a large cage that memory traffic
+    costs more than the kernel's arithmetic). ``values[k]`` is ``f``, ``jacobians[k, i, j]`` is
     ``d f_i / d x_j`` (``order`` 1), ``winding[k]`` the sum of the vertex functions.
     Flagged points as in :func:`lanes_kernel`.
     """
@@ -410,13 +388,7 @@ def lanes_map_kernel(
     nitems = (ngroups + _GROUPS_PER_ITEM - 1) // _GROUPS_PER_ITEM
     host = np.full(1, -1, dtype=np.int64)
     for item in numba.prange(nitems):
-        pts = np.empty(3 * L)
-        near = np.empty(L)
-        E = np.empty(4 * n * L)
-        ce = np.empty(edges.shape[0] * L)
-        acc = np.empty(nm * L)
-        accg = np.empty(3 * nm * L if order >= 1 else 0)
-        buf = np.empty(7 * L)
+        pts, near, E, ce, acc, accg, buf = _group_scratch(n, edges.shape[0], nm, order, L)
         fz = np.empty(3 * L)
         jz = np.empty(9 * L)
         wz = np.empty(L)

@@ -39,6 +39,7 @@ from vhm_viz.core.basis import (
 )
 from vhm_viz.core.errors import AbortedError, OutsideCageError, describe_indices
 from vhm_viz.core.limits import check_setting
+from vhm_viz.core.points import as_points
 
 __all__ = [
     "OUTSIDE_POLICIES",
@@ -71,20 +72,6 @@ def _check_abort(abort: AbortCallback | None) -> None:
         raise AbortedError("aborted")
 
 
-def _as_points(points, name: str = "points") -> np.ndarray:
-    p = np.ascontiguousarray(points, dtype=np.float64)
-    if p.ndim == 1 and p.size == 3:
-        p = p.reshape(1, 3)
-    if p.size == 0:
-        p = p.reshape(0, 3)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3); got {p.shape}")
-    if not np.isfinite(p).all():
-        rows = np.nonzero(~np.isfinite(p).all(axis=1))[0]
-        raise ValueError(f"{name} are not finite in rows {describe_indices(rows)}")
-    return p
-
-
 def outside_mask(points, vertices, faces, policy: str = "error") -> np.ndarray:
     """Which points lie outside the cage; raise for policy ``"error"``.
 
@@ -114,7 +101,7 @@ def outside_mask(points, vertices, faces, policy: str = "error") -> np.ndarray:
 def _classify(points, vertices, faces, policy: str) -> tuple[np.ndarray, np.ndarray]:
     """``outside`` mask and host faces (:func:`~vhm_viz.core.basis.classify_inside`)."""
     check_outside_policy(policy)
-    p = _as_points(points)
+    p = as_points(points)
     if len(p) == 0:
         return np.zeros(0, bool), np.zeros(0, np.int64)
     inside, hosts = classify_inside(p, vertices, faces)
@@ -187,7 +174,7 @@ class _BoundPoints:
 
     def __init__(self, points, vertices, faces, outside, memory_budget):
         self.outside_policy = check_outside_policy(outside)
-        self.points = _as_points(points).copy()
+        self.points = as_points(points).copy()
         self.points.flags.writeable = False
         if memory_budget is not None:
             memory_budget = check_setting("memory_budget", memory_budget)

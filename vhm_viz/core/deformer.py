@@ -24,7 +24,8 @@ Design (all documented choices in one place):
 * **lambda** follows the paper: ``lambda = alpha * d * ||J_anchors||_inf / ||H_samples||_inf``
   (infinity norms = largest absolute row sum of the stacked basis rows), ``alpha = 0.01``
   by default, with the norms taken in units of the cage's bounding-box diagonal so that
-  lambda does not depend on the length unit (:func:`_smoothness_weight`). It depends on the
+  lambda does not depend on the length unit
+  (:func:`~vhm_viz.core.smoothness.smoothness_weight`). It depends on the
   sample layout (centroid samples roughly halve ``||H||_inf``) and grows with ``d``;
   quality is flat for alpha in [0.001, 0.01].
 * **Hard constraints by elimination.** With ``K = [D_q; G_t]`` (``c = r + 3 s`` rows,
@@ -62,222 +63,45 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg as sla
 
-from vhm_viz.core.basis import domain_columns, evaluate_basis, evaluate_inside, inside_cage
+from vhm_viz.core.basis import domain_columns, evaluate_inside
 from vhm_viz.core.binding import Binding
+from vhm_viz.core.constraints import (
+    as_matrices,
+    check_duplicate_points,
+    check_jacobian_targets,
+    describe_shell,
+    domain_of,
+    factor_constraints,
+    factor_least_squares,
+    shells_to_pin,
+    stack_transposed,
+    unstack_transposed,
+)
 from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indices
-from vhm_viz.core.geometry import face_normals_and_areas, ray_depth
+from vhm_viz.core.geometry import face_normals_and_areas
+from vhm_viz.core.harmonic_map import HarmonicMap
 from vhm_viz.core.limits import check_setting
-from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW, project_blocks, run_local_global
+from vhm_viz.core.points import as_points
+from vhm_viz.core.smoothness import (
+    default_smoothness_samples,
+    smoothness_rows,
+    smoothness_weight,
+)
+from vhm_viz.core.solve_report import SolveReport
+from vhm_viz.core.solver import (
+    DEFAULT_ANDERSON_WINDOW,
+    initial_local_matrices,
+    project_blocks,
+    run_local_global,
+)
 
+# SolveReport and default_smoothness_samples are re-exported from their own modules
 __all__ = ["Deformer", "SolveReport", "default_smoothness_samples"]
 
 _MODES = ("rigid", "similar")
-_INITS = ("previous", "identity", "random")
-# Relative rank tolerance of the constraint and least-squares factorisations.
-_RANK_TOL = 1e-10
-# Barycentric coordinates of the default smoothness samples (3-point quadrature rule).
-_SAMPLE_BARY = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
-_SAMPLE_INSET = 1e-3
-
-
-def _blocks_T(a: np.ndarray) -> np.ndarray:
-    """(3d, 3) stack of transposed blocks <-> (d, 3, 3) user-facing matrices."""
-    return np.ascontiguousarray(np.swapaxes(a.reshape(-1, 3, 3), 1, 2))
-
-
-def _stack_T(j: np.ndarray) -> np.ndarray:
-    """(d, 3, 3) user-facing matrices -> (3d, 3) stack of their transposes."""
-    return np.ascontiguousarray(np.swapaxes(j, 1, 2).reshape(-1, 3))
-
-
-def _as_point_array(a, name: str, allow_empty: bool = False) -> np.ndarray:
-    p = np.asarray(a, dtype=np.float64)
-    if p.ndim == 1 and p.shape[0] == 3:
-        p = p[None]
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3); got {np.shape(a)}")
-    if not allow_empty and len(p) == 0:
-        raise ValueError(f"{name} is empty")
-    bad = ~np.isfinite(p).all(axis=1)
-    if bad.any():
-        raise ValueError(
-            f"{name} has non-finite values at indices {describe_indices(np.nonzero(bad)[0])}"
-        )
-    return p
-
-
-def _as_matrix_array(a, name: str) -> np.ndarray:
-    j = np.asarray(a, dtype=np.float64)
-    if j.shape == (3, 3):
-        j = j[None]
-    if j.ndim != 3 or j.shape[1:] != (3, 3):
-        raise ValueError(f"{name} must have shape (s, 3, 3); got {np.shape(a)}")
-    bad = ~np.isfinite(j).all(axis=(1, 2))
-    if bad.any():
-        raise ValueError(
-            f"{name} has non-finite values at indices {describe_indices(np.nonzero(bad)[0])}"
-        )
-    return j
-
-
-def default_smoothness_samples(vertices, faces, inset: float = _SAMPLE_INSET) -> np.ndarray:
-    """The default smoothness samples of a cage (3 per face, pulled inward).
-
-    Each sample starts at a barycentric point of its face and moves inward along the face
-    normal by ``inset`` times the cage's bounding-box diagonal, or by half the cage's local
-    thickness there when that is less: the distance along the inward normal to the first
-    other face (the far side of a thin plate, or the neighbour of a sharp convex edge). So
-    every sample of a valid cage lies strictly inside it, however thin the cage gets.
-
-    Parameters
-    ----------
-    vertices : (n, 3) array_like
-    faces : (m, 3) array_like of int
-        Outward-oriented cage.
-    inset : float
-        Largest inward offset along the face normal, as a fraction of the bounding-box
-        diagonal (0 puts the samples on the faces).
-
-    Returns
-    -------
-    (3 m, 3) float64
-        Samples ``3 t + i`` belong to face ``t``.
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    normals, _ = face_normals_and_areas(v, f)
-    diag = float(np.linalg.norm(v.max(0) - v.min(0)))
-    on_face = np.einsum("sb,fbc->fsc", _SAMPLE_BARY, v[f]).reshape(-1, 3)
-    if inset <= 0:
-        return on_face
-    inward = -np.repeat(normals, 3, axis=0)
-    thickness = ray_depth(on_face, inward, v, f, skip_faces=np.repeat(np.arange(len(f)), 3))
-    depth = np.minimum(inset * diag, 0.5 * thickness)
-    return on_face + depth[:, None] * inward
-
-
-def _smoothness_weight(alpha, d, Jhat, Hhat, n, vertices) -> float:
-    """``lambda = alpha d ||J||_inf / ||H||_inf`` (paper Section 3), free of the length unit.
-
-    The paper's norms mix units: the rows of ``J`` hold ``grad phi`` (1/length) next to
-    ``grad psi`` (dimensionless), those of ``H`` ``1/length^2`` next to ``1/length``, so the
-    same shape in millimetres got another lambda than in metres (a 1.3e-3-diagonal change
-    of the result). They are taken here with lengths in units of the cage's bounding-box
-    diagonal ``L`` -- the paper's formula for the cage scaled to a unit diagonal -- and
-    lambda is scaled back by ``L``, so lambda scales with the cage and the minimiser is
-    equivariant under scaling and translation.
-
-    Parameters
-    ----------
-    alpha : float
-    d : int
-        Number of anchors.
-    Jhat : (3 d, n + m) float64
-        Basis gradient rows at the anchors.
-    Hhat : (5 k, n + m) float64
-        Basis Hessian rows at the smoothness samples.
-    n : int
-        Number of cage vertices (the ``phi`` columns come first).
-    vertices : (n, 3) float64
-
-    Returns
-    -------
-    float
-        lambda, in units of length (``lambda * H z`` is dimensionless like ``J z``).
-    """
-    L = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
-    jn = (np.abs(Jhat[:, :n]).sum(axis=1) * L + np.abs(Jhat[:, n:]).sum(axis=1)).max()
-    hn = (np.abs(Hhat[:, :n]).sum(axis=1) * L**2 + np.abs(Hhat[:, n:]).sum(axis=1) * L).max()
-    return float(L * alpha * d * jn / hn)
-
-
-@dataclass
-class SolveReport:
-    """Outcome of :meth:`Deformer.solve`.
-
-    Attributes
-    ----------
-    iterations : int
-        Local/global iterations performed (accelerated or plain, each one local + global
-        step; rejected accelerated candidates are not counted separately).
-    converged : bool
-        Whether the stopping rule was met before ``max_iterations``.
-    energy, rigidity, smoothness : (iterations + 1,) float64
-        Energy history: total ``E`` and its two parts ``sum |J - R|^2`` and
-        ``lambda^2 sum |H|^2``, for the initial iterate and after each iteration; the last
-        entry is the energy of the returned solution. Never increasing (up to rounding).
-    residuals : (iterations + 1,) float64
-        Fixed-point residual ``|T(u) - u|`` (RMS per anchor) of each iterate.
-    seconds : float
-        Wall time of the iteration (excluding the O(d) set-up).
-    rejected_steps : int
-        Anderson-extrapolated iterates rejected by the energy safeguard.
-    init : str
-        The initialisation used.
-    contraction : float
-        The last estimate of the iteration's contraction rate ``rho`` (NaN when fewer than
-        three iterates were seen); stored with a saved solution (see ``Deformer.solve``).
-    max_iterations : int
-        The iteration cap of the solve.
-    tolerance : float
-        The stopping tolerance of the solve (see :attr:`distance_estimate`).
-    """
-
-    iterations: int
-    converged: bool
-    energy: np.ndarray
-    rigidity: np.ndarray
-    smoothness: np.ndarray
-    residuals: np.ndarray
-    seconds: float
-    rejected_steps: int = 0
-    init: str = "previous"
-    contraction: float = float("nan")
-    extra: dict = field(default_factory=dict)
-    max_iterations: int = 0
-    tolerance: float = float("nan")
-
-    @property
-    def energy_history(self) -> np.ndarray:
-        """(iterations + 1, 3): columns total, rigidity, smoothness."""
-        return np.column_stack([self.energy, self.rigidity, self.smoothness])
-
-    @property
-    def distance_estimate(self) -> float:
-        """Estimated distance of the returned local matrices to the fixed point.
-
-        ``|T(u) - u| / (1 - rho)`` (RMS per anchor), the quantity compared with the
-        tolerance; with no contraction estimate, the last residual itself.
-        """
-        rho = self.contraction if np.isfinite(self.contraction) else 0.0
-        return float(self.residuals[-1] / (1.0 - rho))
-
-    def shortfall(self) -> str:
-        """Why an unconverged solve stopped, in words (empty when it converged)."""
-        if self.converged:
-            return ""
-        return (
-            f"the solver stopped at max_iterations = {self.max_iterations} with the "
-            f"estimated distance to the solution {self.distance_estimate:.3g} above the "
-            f"tolerance {self.tolerance:g}"
-        )
-
-    @property
-    def final_energy(self) -> float:
-        """Total energy of the returned solution."""
-        return float(self.energy[-1])
-
-    def __repr__(self) -> str:
-        return (
-            f"SolveReport(iterations={self.iterations}, converged={self.converged}, "
-            f"energy={self.energy[-1]:.6g} (rigidity {self.rigidity[-1]:.6g}, smoothness "
-            f"{self.smoothness[-1]:.6g}), seconds={self.seconds:.3g})"
-        )
 
 
 class Deformer:
@@ -351,7 +175,7 @@ class Deformer:
         self.n_factorizations = 0
         self._layout_version = 0
 
-        a = _as_point_array(anchors, "anchors")
+        a = as_points(anchors, "anchors", allow_empty=False)
         self._anchors = a
         d = len(a)
         ev = self._evaluate_inside(a, 1, "anchors")
@@ -360,62 +184,22 @@ class Deformer:
             raise ValueError(f"anchors {describe_indices(bad)} lie on a cage edge or vertex")
         self._Jhat = np.ascontiguousarray(ev.gradients.reshape(3 * d, self._N))
         self._domains = domain_columns(self._V, self._Fc)
-        self._anchor_domain = self._domain_of(ev.values)
+        self._anchor_domain = domain_of(ev.values, self._domains, self._n)
         self.pinned_shells: tuple[int, ...] = ()
         self.notes: list[str] = []
 
-        if smoothness_samples is None:
-            w = default_smoothness_samples(self._V, self._Fc)
-            host = None
-        else:
-            w = _as_point_array(smoothness_samples, "smoothness_samples")
-            host = smoothness_host_faces
-        self._samples = w
-        evs = evaluate_basis(w, self._V, self._Fc, order=2, host_faces=host)
-        wn = evs.values[:, : self._n].sum(axis=1)
-        on_face = np.zeros(len(w), bool) if host is None else np.asarray(host).ravel() >= 0
-        out = ~inside_cage(wn) & ~on_face
-        if out.any():
-            idx = np.nonzero(out)[0]
-            raise OutsideCageError(
-                f"{idx.size} smoothness samples are outside the cage "
-                f"(indices {describe_indices(idx)})"
-                + (
-                    "; default samples lie halfway to the next face along the inward normal, "
-                    "so the cage is not a closed, embedded surface there"
-                    if smoothness_samples is None
-                    else ""
-                ),
-                idx,
-            )
-        if not np.isfinite(evs.hessians).all():
-            bad = np.nonzero(~np.isfinite(evs.hessians).all(axis=(1, 2)))[0]
-            raise ValueError(
-                f"smoothness samples {describe_indices(bad)} lie on a cage edge or vertex"
-            )
-        hessians = evs.hessians
-        del evs  # the values and gradients (36 MB on a 754-column cage) before the QR
-        self._Hhat = np.ascontiguousarray(hessians.reshape(5 * len(w), self._N))
-        del hessians
+        self._samples, self._Hhat = smoothness_rows(
+            self._V, self._Fc, smoothness_samples, smoothness_host_faces
+        )
+        self.lambda_ = smoothness_weight(self.alpha, d, self._Jhat, self._Hhat, self._n, self._V)
 
-        self.lambda_ = _smoothness_weight(self.alpha, d, self._Jhat, self._Hhat, self._n, self._V)
-
-        # QR of A = [J; lambda H], once per anchor layout, in place: in Fortran order
-        # LAPACK's geqrf and orgqr overwrite A with Q, where scipy would copy a C-ordered A
-        # and return Q apart (three 7572 x 754 arrays, 137 MB, for one; the same factors)
-        A = np.empty((3 * d + len(self._Hhat), self._N), order="F")
-        A[: 3 * d] = self._Jhat
-        np.multiply(self._Hhat, self.lambda_, out=A[3 * d :])
-        q, r = sla.qr(A, mode="economic", overwrite_a=True, check_finite=False)
-        del A
+        self._RA, self._W = factor_least_squares(self._Jhat, self._Hhat, self.lambda_)
         self.n_factorizations += 1
-        self._RA = r  # (N, N)
-        self._W = np.ascontiguousarray(q[: 3 * d].T)  # (N, 3d) = Q_A^T [I; 0]
         self._z_identity = np.vstack([self._V, self._normals])
         #: Reference point of the solver's arithmetic (see :meth:`_local_h`).
         self._centre = 0.5 * (self._V.min(axis=0) + self._V.max(axis=0))
 
-        self._u = _stack_T(np.broadcast_to(np.eye(3), (d, 3, 3)).copy())
+        self._u = stack_transposed(np.broadcast_to(np.eye(3), (d, 3, 3)).copy())
         self._G = None
         self._z = None
         self._has_constraints = False
@@ -487,8 +271,6 @@ class Deformer:
     @property
     def harmonic_map(self):
         """The current map as a :class:`~vhm_viz.core.harmonic_map.HarmonicMap`."""
-        from vhm_viz.core.harmonic_map import HarmonicMap
-
         return HarmonicMap(self.cage, self.coefficients)
 
     @property
@@ -496,12 +278,12 @@ class Deformer:
         """(d, 3, 3) Jacobians ``J[i, j] = d f_i / d x_j`` of the current map at the anchors."""
         self._require_constraints()
         G = self._g + self._C_R @ self._u
-        return _blocks_T(G)
+        return unstack_transposed(G)
 
     @property
     def rotations_at_anchors(self) -> np.ndarray:
         """(d, 3, 3) current local matrices (rotations, or similarities in "similar" mode)."""
-        return _blocks_T(self._u)
+        return unstack_transposed(self._u)
 
     @property
     def last_report(self) -> SolveReport | None:
@@ -519,70 +301,11 @@ class Deformer:
             )
         return ev
 
-    def _domain_of(self, values: np.ndarray) -> np.ndarray:
-        """Index of the domain (outward shell) holding each point, from its basis values."""
-        if len(self._domains) == 1:
-            return np.zeros(len(values), dtype=np.int64)
-        # the basis zeroes the other shells' columns, so only the own shell sums to ~1
-        own = np.stack(
-            [values[:, cols[cols < self._n]].sum(axis=1) for cols in self._domains], axis=1
-        )
-        return np.argmax(own, axis=1)
-
-    def _describe_shell(self, k: int) -> str:
-        cols = self._domains[k]
-        verts = self._V[cols[cols < self._n]]
-        centre = ", ".join(f"{x:.4g}" for x in 0.5 * (verts.min(0) + verts.max(0)))
-        return f"cage shell {k} ({int((cols >= self._n).sum())} faces, centred at ({centre}))"
-
-    def _shells_to_pin(self, position_domain: np.ndarray, jacobian_domain: np.ndarray):
-        """Shells without constraints (pinned to the identity); errors for singular ones."""
-        pinned = []
-        for k in range(len(self._domains)):
-            has_pos = bool((position_domain == k).any())
-            has_jac = bool((jacobian_domain == k).any())
-            if not has_pos and not has_jac:
-                pinned.append(k)
-            elif not has_pos:
-                raise ConstraintError(
-                    f"{self._describe_shell(k)} has Jacobian constraints but no position "
-                    "constraint: its translation is free; add a position constraint inside it"
-                )
-            elif not (self._anchor_domain == k).any():
-                raise ConstraintError(
-                    f"{self._describe_shell(k)} has constraints but no anchor: nothing "
-                    "determines its rotation; add anchors inside it (auto_anchors gives "
-                    "every shell at least one)"
-                )
-        return pinned
-
     def _require_constraints(self) -> None:
         if not self._has_constraints:
             raise ConstraintError(
                 "no constraints set: call set_constraints(positions=..., targets=...) first "
                 "(at least one position constraint fixes the translation)"
-            )
-
-    @staticmethod
-    def _check_duplicates(
-        points: np.ndarray, targets: np.ndarray, what: str, tol: float, target_tol: float
-    ) -> None:
-        """Constraint points closer than ``tol`` (lengths scale with the cage)."""
-        if len(points) < 2:
-            return
-        from scipy.spatial import cKDTree
-
-        pairs = cKDTree(points).query_pairs(tol, output_type="ndarray")
-        if len(pairs):
-            i, j = (int(v) for v in pairs[0])
-            differ = not np.allclose(targets[i], targets[j], rtol=0, atol=target_tol)
-            raise ConstraintError(
-                f"{what} {i} and {j} are at the same point "
-                + (
-                    "with different targets (contradictory)"
-                    if differ
-                    else "(duplicate: remove one)"
-                )
             )
 
     # ------------------------------------------------------------------ constraints
@@ -624,8 +347,8 @@ class Deformer:
                 "at least one position constraint is required (translation is otherwise free): "
                 "pass positions and targets"
             )
-        q = _as_point_array(positions, "positions", allow_empty=True)
-        f = _as_point_array(targets, "targets", allow_empty=True)
+        q = as_points(positions, "positions")
+        f = as_points(targets, "targets")
         if len(q) == 0:
             raise ConstraintError(
                 "at least one position constraint is required (translation is otherwise free)"
@@ -638,11 +361,11 @@ class Deformer:
             t = np.zeros((0, 3))
             g = np.zeros((0, 3, 3))
         else:
-            t = _as_point_array(jacobian_points, "jacobian_points", allow_empty=True)
-            g = _as_matrix_array(jacobians, "jacobians") if len(t) else np.zeros((0, 3, 3))
+            t = as_points(jacobian_points, "jacobian_points")
+            g = as_matrices(jacobians, "jacobians") if len(t) else np.zeros((0, 3, 3))
             if len(g) != len(t):
                 raise ValueError(f"got {len(t)} jacobian_points but {len(g)} jacobians")
-        self._check_jacobian_targets(g)
+        check_jacobian_targets(g)
         r, s = len(q), len(t)
         c = r + 3 * s
         if c >= self._N:
@@ -651,8 +374,8 @@ class Deformer:
                 f"rows = {c} >= n + m = {self._N} coefficients per component"
             )
         diag = float(np.linalg.norm(self._V.max(0) - self._V.min(0)))
-        self._check_duplicates(q, f, "position constraints", 1e-12 * diag, 1e-12 * diag)
-        self._check_duplicates(t, g.reshape(-1, 9), "Jacobian constraints", 1e-12 * diag, 1e-12)
+        check_duplicate_points(q, f, "position constraints", 1e-12 * diag, 1e-12 * diag)
+        check_duplicate_points(t, g.reshape(-1, 9), "Jacobian constraints", 1e-12 * diag, 1e-12)
 
         evq = self._evaluate_inside(q, 0, "position constraints")
         rows = [evq.values]
@@ -670,9 +393,12 @@ class Deformer:
         ]
         # a shell nobody constrains would leave the solve singular (its translation is
         # free): it stays put instead, its coefficients fixed to the identity's
-        pinned = self._shells_to_pin(
-            self._domain_of(evq.values),
-            self._domain_of(evt.values) if s else np.zeros(0, dtype=np.int64),
+        pinned = shells_to_pin(
+            self._domains,
+            self._V,
+            domain_of(evq.values, self._domains, self._n),
+            domain_of(evt.values, self._domains, self._n) if s else np.zeros(0, dtype=np.int64),
+            self._anchor_domain,
         )
         pin_cols = (
             np.concatenate([self._domains[k] for k in pinned])
@@ -694,68 +420,27 @@ class Deformer:
         self._layout_version += 1
         self.pinned_shells = tuple(pinned)
         self.notes = [
-            f"{self._describe_shell(k)} has no constraint: it stays put (identity map)"
+            f"{describe_shell(k, self._domains, self._V)} has no constraint: it stays put "
+            "(identity map)"
             for k in pinned
         ]
         for note in self.notes:
             warnings.warn(note, UserWarning, stacklevel=2)
-        h = np.vstack([f, _stack_T(g)]) if s else f.copy()
+        h = np.vstack([f, stack_transposed(g)]) if s else f.copy()
         self._set_h(np.vstack([h, self._h_rest[c:]]))
         return self
 
-    @staticmethod
-    def _check_jacobian_targets(g: np.ndarray) -> None:
-        if len(g):
-            det = np.linalg.det(g)
-            bad = np.nonzero(~(det > 0))[0]
-            if bad.size:
-                raise ConstraintError(
-                    f"Jacobian targets {describe_indices(bad)} have non-positive determinant "
-                    f"({', '.join(f'{det[i]:.3g}' for i in bad[:5])}): a harmonic deformation "
-                    "cannot fold or flatten space there"
-                )
-
     def _build(self, K: np.ndarray, labels: list[str]) -> None:
         """Factorise the constraint layout: B, C and the energy precomputations."""
-        c = K.shape[0]
-        scale = 1.0 / np.linalg.norm(K, axis=1)
-        Ks = K * scale[:, None]
-        Q, R, piv = sla.qr(Ks.T, mode="full", pivoting=True, check_finite=False)
-        self.n_factorizations += 1
-        diag = np.abs(np.diag(R))
-        rank = int(np.count_nonzero(diag > _RANK_TOL * diag[0]))
-        if rank < c:
-            dep = sorted(piv[rank:])
-            raise ConstraintError(
-                "rank-deficient constraints: "
-                + ", ".join(labels[i] for i in dep[:8])
-                + (f" (and {len(dep) - 8} more)" if len(dep) > 8 else "")
-                + " linearly depend on the others (duplicate or redundant constraints)"
-            )
-        Q1, Q2 = Q[:, :c], Q[:, c:]
-        E = np.zeros((c, c))
-        E[np.arange(c), piv] = scale[piv]
-        P = Q1 @ sla.solve_triangular(R[:c, :c], E, trans="T", check_finite=False)  # (N, c)
-        M2 = self._RA @ Q2
-        U2, T2 = sla.qr(M2, mode="economic", check_finite=False)
-        self.n_factorizations += 1
-        d2 = np.abs(np.diag(T2))
-        if d2.min() <= 1e-12 * d2.max():
-            raise ConstraintError(
-                "the constraints, anchors and smoothness samples do not determine the map "
-                "(a free direction remains, e.g. the translation): add position constraints"
-            )
-        X = sla.solve_triangular(T2, U2.T @ np.hstack([self._W, self._RA @ P]), check_finite=False)
-        d3 = 3 * self.n_anchors
-        B_R = Q2 @ X[:, :d3]
-        B_h = P - Q2 @ X[:, d3:]
-        self._B = np.ascontiguousarray(np.hstack([B_h, B_R]))
-        self._C_h = np.ascontiguousarray(self._Jhat @ B_h)
-        self._C_R = np.ascontiguousarray(self._Jhat @ B_R)
-        self._JP = self._Jhat @ P
-        HP = self._Hhat @ P
-        HB = self._Hhat @ self._B
-        self._KH = (self.lambda_**2) * (HB.T @ HP)  # (c + 3d, c)
+        factors = factor_constraints(
+            K, labels, self._RA, self._W, self._Jhat, self._Hhat, self.lambda_
+        )
+        self.n_factorizations += 2
+        self._B = factors.B
+        self._C_h = factors.C_h
+        self._C_R = factors.C_R
+        self._JP = factors.JP
+        self._KH = factors.KH
         self._z = None
 
     def _local_h(self, h: np.ndarray) -> np.ndarray:
@@ -796,16 +481,16 @@ class Deformer:
         self._require_constraints()
         h = self._h.copy()
         if targets is not None:
-            f = _as_point_array(targets, "targets")
+            f = as_points(targets, "targets", allow_empty=False)
             if f.shape != (self._r, 3):
                 raise ValueError(f"targets must have shape ({self._r}, 3); got {f.shape}")
             h[: self._r] = f
         if jacobians is not None:
-            g = _as_matrix_array(jacobians, "jacobians") if self._s else np.zeros((0, 3, 3))
+            g = as_matrices(jacobians, "jacobians") if self._s else np.zeros((0, 3, 3))
             if len(g) != self._s:
                 raise ValueError(f"expected {self._s} jacobians; got {len(g)}")
-            self._check_jacobian_targets(g)
-            h[self._r : self._r + 3 * self._s] = _stack_T(g)
+            check_jacobian_targets(g)
+            h[self._r : self._r + 3 * self._s] = stack_transposed(g)
         self._set_h(h)
         return self
 
@@ -818,7 +503,7 @@ class Deformer:
             "targets": self._h[: self._r].copy(),
             "jacobian_points": self._t.copy(),
             "jacobians": (
-                _blocks_T(self._h[self._r : self._r + 3 * self._s])
+                unstack_transposed(self._h[self._r : self._r + 3 * self._s])
                 if self._s
                 else np.zeros((0, 3, 3))
             ),
@@ -851,8 +536,8 @@ class Deformer:
             identities, random 3x3 matrices (paper Figure 7; entries uniform in [0, 1),
             seeded by ``seed``), or given. The problem is not convex: a random start can end
             in another local minimum (on the bar, a full turn of twist about its axis).
-            Uniform entries reach the identity-init solution far more often than Gaussian
-            ones (bend-90: 19 of 20 seeds vs 10 of 20; bend-u: 16 vs 11).
+            On the bar's example scenes, uniform entries reach the identity-init solution
+            far more often than Gaussian ones.
         seed : int or numpy Generator, optional
             For ``init="random"``.
         anderson_window : int, optional
@@ -873,23 +558,7 @@ class Deformer:
             A setting of the wrong type or outside its range (:mod:`vhm_viz.core.limits`).
         """
         self._require_constraints()
-        d = self.n_anchors
-        if isinstance(init, str):
-            if init not in _INITS:
-                raise ValueError(f"init must be one of {_INITS} or an array; got {init!r}")
-            if init == "previous":
-                u0 = self._u.copy()
-            elif init == "identity":
-                u0 = _stack_T(np.broadcast_to(np.eye(3), (d, 3, 3)).copy())
-            else:
-                rng = np.random.default_rng(seed)
-                u0 = rng.random((3 * d, 3))
-            init_name = init
-        else:
-            u0 = _stack_T(_as_matrix_array(init, "init"))
-            if u0.shape != (3 * d, 3):
-                raise ValueError(f"init must have shape ({d}, 3, 3)")
-            init_name = "given"
+        u0, init_name = initial_local_matrices(init, self._u, seed)
         max_iterations = check_setting("max_iterations", max_iterations)
         tolerance = check_setting("tolerance", tolerance)
         window = self.anderson_window

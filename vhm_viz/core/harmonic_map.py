@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from vhm_viz.core.basis import (
-    _as_points,
     chunk_rows,
     classify_inside,
     evaluate_inside,
@@ -14,6 +13,7 @@ from vhm_viz.core.basis import (
 from vhm_viz.core.binding import check_outside_policy
 from vhm_viz.core.errors import OutsideCageError, describe_indices
 from vhm_viz.core.geometry import face_normals_and_areas
+from vhm_viz.core.points import as_points
 
 
 class HarmonicMap:
@@ -158,7 +158,7 @@ class HarmonicMap:
         H : (N, 3, 3, 3) ndarray or None
         """
         check_outside_policy(outside)
-        p = _as_points(points)
+        p = as_points(points)
         npts = len(p)
         f = p.copy()
         jac = np.broadcast_to(np.eye(3), (npts, 3, 3)).copy() if order >= 1 else None

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from vhm_viz.core.geometry import signed_volume
+from vhm_viz.core.points import as_points
 
 __all__ = [
     "rigidity_distortion",
@@ -44,15 +45,6 @@ __all__ = [
 #: Rest tetrahedra with ``|det D_rest|`` below this times their longest edge cubed are
 #: degenerate: their deformation gradient is undefined (NaN), never counted as inverted.
 DEGENERATE_RTOL = 1e-12
-
-
-def _points(a, name: str) -> np.ndarray:
-    p = np.asarray(a, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3); got {p.shape}")
-    if not np.isfinite(p).all():
-        raise ValueError(f"{name} contains non-finite values")
-    return p
 
 
 def _simplices(s, n_points: int, corners: int = 3, name: str = "triangles") -> np.ndarray:
@@ -115,8 +107,8 @@ def triangle_singular_values(source_points, deformed_points, triangles):
     source_areas : (m,) float64
         Source triangle areas.
     """
-    x = _points(source_points, "source_points")
-    y = _points(deformed_points, "deformed_points")
+    x = as_points(source_points, "source_points")
+    y = as_points(deformed_points, "deformed_points")
     if x.shape != y.shape:
         raise ValueError(f"source and deformed points differ in shape: {x.shape} vs {y.shape}")
     f = _simplices(triangles, len(x))
@@ -183,8 +175,8 @@ def volume_change(source_points, deformed_points, triangles) -> float:
     -------
     float
     """
-    x = _points(source_points, "source_points")
-    y = _points(deformed_points, "deformed_points")
+    x = as_points(source_points, "source_points")
+    y = as_points(deformed_points, "deformed_points")
     f = _simplices(triangles, len(x))
     v0 = signed_volume(x, f)
     if v0 == 0.0:
