@@ -27,8 +27,8 @@ __all__ = [
     "hexahedron_corner_determinants",
 ]
 
-#: A rest tetrahedron is degenerate (its ``F`` undefined) when ``|det D_rest|`` is at most
-#: this times its longest edge cubed.
+#: Rest tetrahedra with ``|det D_rest|`` at most this times their longest edge cubed are
+#: degenerate: their deformation gradient is undefined (NaN), never counted as inverted.
 DEGENERATE_RTOL = 1e-12
 
 #: Sweeps of the one-sided Jacobi SVD at most (it converges quadratically: 3 x 3 matrices

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from vhm_viz.core.cell_kernels import DEGENERATE_RTOL, tetrahedron_measures
 from vhm_viz.core.geometry import signed_volume
 from vhm_viz.core.points import as_points
 
@@ -41,10 +42,6 @@ __all__ = [
     "cell_summary",
     "finite_or_none",
 ]
-
-#: Rest tetrahedra with ``|det D_rest|`` below this times their longest edge cubed are
-#: degenerate: their deformation gradient is undefined (NaN), never counted as inverted.
-DEGENERATE_RTOL = 1e-12
 
 
 def _simplices(s, n_points: int, corners: int = 3, name: str = "triangles") -> np.ndarray:
@@ -356,8 +353,12 @@ def tetrahedron_gradients(rest_points, deformed_points, tets):
     return grads, rest_det
 
 
-def cell_measures(rest_points, deformed_points, tets, cells=None, n_cells=None) -> dict:
+def cell_measures(
+    rest_points, deformed_points, tets, cells=None, n_cells=None, *, condition: bool = True
+) -> dict:
     """Per-cell quality of a deformed mesh whose cells are (split into) tetrahedra.
+
+    Compiled, one thread per tet (:func:`vhm_viz.core.cell_kernels.tetrahedron_measures`).
 
     Parameters
     ----------
@@ -369,6 +370,8 @@ def cell_measures(rest_points, deformed_points, tets, cells=None, n_cells=None) 
     n_cells : int, optional
         Number of cells (cells without tets, e.g. 2D cells of a mixed mesh, get NaN);
         default ``cells.max() + 1``.
+    condition : bool
+        Compute the condition numbers (NaN when False).
 
     Returns
     -------
@@ -378,9 +381,15 @@ def cell_measures(rest_points, deformed_points, tets, cells=None, n_cells=None) 
         ``s_max / s_min`` of ``F`` (inf for a flattened tet); ``rest_inverted`` (n_cells,
         bool): a tet of the cell is stored with negative volume at rest; ``degenerate``
         (n_cells, bool): a tet of the cell has no volume at rest (its ``F`` is undefined).
+        A tet with a NaN deformed corner (outside the cage under the "nan" policy) is not
+        measured and not degenerate.
     """
-    grads, rest_det = tetrahedron_gradients(rest_points, deformed_points, tets)
-    t = len(grads)
+    x = np.asarray(rest_points, dtype=np.float64).reshape(-1, 3)
+    y = np.asarray(deformed_points, dtype=np.float64).reshape(-1, 3)
+    if x.shape != y.shape:
+        raise ValueError(f"rest and deformed points differ in shape: {x.shape} vs {y.shape}")
+    index = _simplices(tets, len(x), 4, "tets")
+    t = len(index)
     owner = np.arange(t) if cells is None else np.asarray(cells, dtype=np.int64).reshape(-1)
     if owner.shape != (t,):
         raise ValueError(f"cells must have one entry per tet ({t}); got {owner.shape}")
@@ -388,36 +397,7 @@ def cell_measures(rest_points, deformed_points, tets, cells=None, n_cells=None) 
         n_cells = int(owner.max()) + 1 if t else 0
     if t and (owner.min() < 0 or owner.max() >= n_cells):
         raise ValueError(f"cell ids must lie in [0, {n_cells})")
-    measured = np.isfinite(grads).all(axis=(1, 2))
-    # NaN gradients: a flat rest tet, or deformed corners that are NaN (outside the cage
-    # under the "nan" policy); only the first is a property of the mesh
-    moved = np.asarray(deformed_points, dtype=np.float64).reshape(-1, 3)
-    index = _simplices(tets, len(moved), 4, "tets")
-    corners_ok = np.isfinite(moved).all(axis=1)[index].all(axis=1)
-    degenerate = ~measured & corners_ok
-    det = np.full(t, np.nan)
-    cond = np.full(t, np.nan)
-    if measured.any():
-        det[measured] = np.linalg.det(grads[measured])
-        cond[measured] = condition_number(grads[measured])
-    out_det = np.full(n_cells, np.inf)
-    out_cond = np.full(n_cells, -np.inf)
-    np.minimum.at(out_det, owner[measured], det[measured])
-    np.maximum.at(out_cond, owner[measured], cond[measured])
-    has = np.zeros(n_cells, bool)
-    has[owner[measured]] = True
-    out_det[~has] = np.nan
-    out_cond[~has] = np.nan
-    rest_inverted = np.zeros(n_cells, bool)
-    rest_inverted[owner[rest_det < 0]] = True
-    bad = np.zeros(n_cells, bool)
-    bad[owner[degenerate]] = True
-    return {
-        "determinant": out_det,
-        "condition_number": out_cond,
-        "rest_inverted": rest_inverted,
-        "degenerate": bad,
-    }
+    return tetrahedron_measures(x, y, index, owner, n_cells, condition=condition)
 
 
 def cell_summary(measures: dict) -> dict:
