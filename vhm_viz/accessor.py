@@ -12,6 +12,9 @@ not even needed::
 
 ``deformation`` is a :class:`~vhm_viz.Deformer`, a :class:`~vhm_viz.HarmonicMap`, a
 :class:`~vhm_viz.scene.Scene` or the path of a scene file.
+
+PyVista may load this module whenever it loads its accessors: the filters and the
+certificate (compiled kernels) are imported by the method that needs them, not here.
 """
 
 from __future__ import annotations

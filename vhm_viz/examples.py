@@ -33,6 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
+from vhm_viz.core.anchors import anchors_from_polylines
+from vhm_viz.core.cage import Cage
+from vhm_viz.scene import Scene
+
 __all__ = [
     "bar",
     "bar_surface",
@@ -250,8 +254,6 @@ def bar_cage(divisions=(2, 2, 12)):
     -------
     vhm_viz.Cage
     """
-    from vhm_viz.core.cage import Cage
-
     v, f = _box_surface((-0.65, -0.65, -0.2), (0.65, 0.65, 5.2), divisions)
     return Cage(v, f)
 
@@ -350,9 +352,6 @@ def bar(
     -------
     BarScenario
     """
-    from vhm_viz.core.anchors import anchors_from_polylines
-    from vhm_viz.scene import Scene
-
     if kind not in BAR_KINDS + FOLD_KINDS:
         raise ValueError(f"kind must be one of {BAR_KINDS + FOLD_KINDS}; got {kind!r}")
     points, tris = bar_surface(resolution)

@@ -1,4 +1,8 @@
-"""``vhm-viz deform``: deform a mesh, tet mesh, point cloud or volume with a scene."""
+"""``vhm-viz deform``: deform a mesh, tet mesh, point cloud or volume with a scene.
+
+PyVista and the VTK filters are imported when the command runs, so that ``vhm-viz --help``
+stays quick.
+"""
 
 from __future__ import annotations
 
@@ -184,9 +188,10 @@ def deform(args: argparse.Namespace) -> str:
         raise CLIError("--spacing and --reference apply to a volume resampled to an image")
 
     t0 = time.perf_counter()
-    dfm, reports = build_and_solve(
+    solved = build_and_solve(
         scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
     )
+    dfm, reports = solved.deformer, solved.reports
     if resample:
         flt = HarmonicResampleFilter()
         flt.SetFillValue(args.fill_value)
