@@ -22,6 +22,7 @@ __all__ = [
     "all_ranks",
     "any_rank",
     "min_max_over_ranks",
+    "check_whole_cage",
     "mpi_command",
     "gather_rows",
     "gather_rows_of",
@@ -114,6 +115,20 @@ def min_max_over_ranks(value: int) -> tuple[int, int]:
     lo = _all_reduce([int(value)], "min")[0]
     hi = _all_reduce([int(value)], "max")[0]
     return lo, hi
+
+
+def check_whole_cage(connected: bool, n_points: int) -> None:
+    """Raise unless a cage on port 1 reached every rank with the same number of points.
+
+    Collective: every rank calls it, with its own count (0 when nothing arrived).
+    """
+    lo, hi = min_max_over_ranks(n_points)
+    if connected and lo != hi:
+        raise RuntimeError(
+            f"the Cage input reached the ranks with {lo} to {hi} points: every rank needs "
+            "the whole cage (read it with a reader that every rank runs, and do not "
+            "distribute it)"
+        )
 
 
 def _all_gather(values) -> np.ndarray:

@@ -7,7 +7,8 @@ from vtkmodules.util import numpy_support as ns
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkDataSet
 
 from vhm_viz.core.metrics import jacobian_measures
-from vhm_viz.filters._common import DeformationSource, image_geometry, numpy_points
+from vhm_viz.filters._common import DeformationSource
+from vhm_viz.filters._vtk import image_geometry, numpy_points
 from vhm_viz.filters.cells import add_cell_arrays, cell_quality
 
 __all__ = ["JacobianAnalysisFilter", "ANALYSIS_ARRAYS"]

@@ -22,7 +22,7 @@ from vtkmodules.util import numpy_support as ns
 
 from vhm_viz.core.geometry import signed_volume
 from vhm_viz.core.metrics import cell_measures, cell_summary
-from vhm_viz.filters._common import numpy_points
+from vhm_viz.filters._vtk import numpy_points
 from vhm_viz.io import cell_types
 
 __all__ = ["CELL_ARRAYS", "cell_tetrahedra", "cell_quality", "add_cell_arrays", "region_of"]

@@ -17,8 +17,9 @@ from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearG
 
 from vhm_viz.core.binding import cofactor_normals
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
-from vhm_viz.filters._common import (
-    DeformationSource,
+from vhm_viz.filters._common import DeformationSource
+from vhm_viz.filters._vtk import (
+    add_lattice_counts,
     image_geometry,
     numpy_points,
     requested_extent,
@@ -330,7 +331,7 @@ class HarmonicDeformationFilter(DeformationSource):
                 _set_array(pd, pnormals.GetName() or "Normals", normals, normals=True)
         if self._displacement:
             _set_array(pd, "displacement", points - vol.geometry.sub(box).points())
-        self._add_lattice_counts(out, vol)
+        add_lattice_counts(out, vol)
         # one array for the flags, not three (a half of the embryo: 8 MB each)
         self._finish(out, np.logical_not(inside, out=np.empty(inside.size, np.uint8)))
         return 1

@@ -20,8 +20,9 @@ from vhm_viz.core.volume import (
     window_of,
 )
 from vhm_viz.filters import _parallel
-from vhm_viz.filters._common import (
-    DeformationSource,
+from vhm_viz.filters._common import DeformationSource
+from vhm_viz.filters._vtk import (
+    add_lattice_counts,
     image_geometry,
     information_geometry,
     requested_extent,
@@ -283,7 +284,7 @@ class HarmonicResampleFilter(DeformationSource):
                                **options)  # fmt: skip
             pulled = res.counts["voxels"]
         self.stats = {**res.counts, "pulled_back": int(pulled)}
-        self._add_lattice_counts(out, vol)
+        add_lattice_counts(out, vol)
         for name, values in res.arrays.items():
             new = ns.numpy_to_vtk(values, deep=0, array_type=types[name])
             new.SetName(name)
@@ -316,7 +317,7 @@ class HarmonicResampleFilter(DeformationSource):
         self._cage_now(in_info)
         hm, _ = self._resolve(in_info, img)
         vol, own = self._window_engine(hm, geo_in)
-        key = (self._volume_key, self._outside, self._mode, self._spacing,
+        key = (self._volumes.key, self._outside, self._mode, self._spacing,
                None if self._explicit is None else self._explicit.key())  # fmt: skip
         if self._shared is not None and self._shared["key"] == key:
             return self._shared["geometry"]
@@ -337,7 +338,7 @@ class HarmonicResampleFilter(DeformationSource):
             geo = geo_in
         else:
             keep = self._outside == "passthrough" and any_outside
-            geo = output_grid(geo_in, lo, hi, tolerance=vol.tolerance, spacing=self._spacing,
+            geo = output_grid(geo_in, lo, hi, tolerance=self._tolerance, spacing=self._spacing,
                               keep_input=keep)  # fmt: skip
         table = _parallel.gather_rows_of(lambda: vol.reach_table(geo, own(vol.lattice)), 12)
         table = table.astype(np.int64)
@@ -461,7 +462,7 @@ class HarmonicResampleFilter(DeformationSource):
         got = _parallel.send_parts(part_for, PART_FIELDS)
         lat = None  # (what the own part left of it)
         release_free_memory()
-        joined = join_parts(got, vol.map, vol.geometry, tolerance=vol.tolerance,
+        joined = join_parts(got, vol.map, vol.geometry, tolerance=self._tolerance,
                             root=vol.root, stats=stats)  # fmt: skip
         del got
         release_free_memory()
@@ -473,7 +474,7 @@ class HarmonicResampleFilter(DeformationSource):
             hull[1::2] = np.max([b[1::2] for b in mine], axis=0)
             engine = VolumeDeformation.for_piece(
                 vol.map, vol.geometry, joined, shared["geometry"], hull,
-                any_outside=shared["any_outside"], tolerance=vol.tolerance,
+                any_outside=shared["any_outside"], tolerance=self._tolerance,
                 outside=self._outside, memory_budget=vol.memory_budget,
                 exchange=vol.exchange,
             )  # fmt: skip
