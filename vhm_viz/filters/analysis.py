@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from vtkmodules.util import numpy_support as ns
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkDataSet
+from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from vhm_viz.core.metrics import jacobian_measures
 from vhm_viz.filters._common import DeformationSource
@@ -53,8 +54,7 @@ class JacobianAnalysisFilter(DeformationSource):
 
     Images of more than :data:`~vhm_viz.core.volume.EXACT_VOXELS` voxels take their
     Jacobians from the volume engine's lattice (:mod:`vhm_viz.core.volume`, tolerance
-    :meth:`SetTolerance`), slab by slab: a 256^3 scan in seconds instead of an exact
-    evaluation per voxel.
+    :meth:`SetTolerance`), slab by slab, instead of an exact evaluation per voxel.
     """
 
     def __init__(self):
@@ -102,9 +102,8 @@ class JacobianAnalysisFilter(DeformationSource):
 
     def _execute_image(self, in_info, inp, hm, out):
         """Images: the measures of the lattice's Jacobians (this piece's part of it)."""
-        from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
-
-        whole = in_info[0].GetInformationObject(0).Get(sddp.WHOLE_EXTENT())
+        info = in_info[0].GetInformationObject(0)
+        whole = info.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
         whole = inp.GetExtent() if whole is None else whole
         ext = inp.GetExtent()
         box = [ext[a] - whole[a - a % 2] for a in range(6)]

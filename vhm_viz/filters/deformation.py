@@ -13,6 +13,7 @@ from vtkmodules.vtkCommonDataModel import (
     vtkUnstructuredGrid,
 )
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+from vtkmodules.vtkFiltersCore import vtkCellCenters
 from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearGridToPointSet
 
 from vhm_viz.core.binding import cofactor_normals
@@ -332,14 +333,12 @@ class HarmonicDeformationFilter(DeformationSource):
         if self._displacement:
             _set_array(pd, "displacement", points - vol.geometry.sub(box).points())
         add_lattice_counts(out, vol)
-        # one array for the flags, not three (a half of the embryo: 8 MB each)
+        # one array for the flags, not three (each a byte per voxel)
         self._finish(out, np.logical_not(inside, out=np.empty(inside.size, np.uint8)))
         return 1
 
 
 def _cell_centres(ds) -> np.ndarray:
-    from vtkmodules.vtkFiltersCore import vtkCellCenters
-
     cc = vtkCellCenters()
     cc.SetInputData(ds)
     cc.VertexCellsOff()
