@@ -72,8 +72,9 @@ class VHMAccessor:
         normals : bool
             Deform normals through the Jacobian.
         tolerance : float, optional
-            Images: largest position error of a voxel, in voxels (default 0.05); images
-            are mapped through the volume engine's lattice (:mod:`vhm_viz.core.volume`).
+            Images: largest position error of a voxel, in voxels (default:
+            :data:`vhm_viz.core.volume.DEFAULT_TOLERANCE`); images are mapped through
+            the volume engine's lattice (:mod:`vhm_viz.core.volume`).
 
         Returns
         -------
@@ -168,7 +169,8 @@ class VHMAccessor:
         reference : pyvista.ImageData, optional
             Resample onto this image's grid instead.
         tolerance : float, optional
-            Largest position error of a voxel, in voxels (default 0.05).
+            Largest position error of a voxel, in voxels (default:
+            :data:`vhm_viz.core.volume.DEFAULT_TOLERANCE`).
 
         Returns
         -------
