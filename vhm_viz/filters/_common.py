@@ -38,27 +38,11 @@ from vhm_viz.core.volume import DEFAULT_TOLERANCE
 from vhm_viz.filters import _parallel
 from vhm_viz.filters._engines import BindingCache, VolumeEngineCache, check_tolerance
 from vhm_viz.filters._map_source import MapSource
-from vhm_viz.filters._vtk import (
-    _SDDP,
-    cage_digest,
-    geometry_key,
-    image_geometry,
-    information_geometry,
-    numpy_points,
-    requested_extent,
-    update,
-)
+from vhm_viz.filters._vtk import _SDDP, cage_digest, geometry_key
+from vhm_viz.filters._vtk import image_geometry as image_geometry  # re-exported (explorer)
 from vhm_viz.io import cage_from_dataset, cage_to_polydata
 
-__all__ = [
-    "DeformationSource",
-    "update",
-    "numpy_points",
-    "geometry_key",
-    "image_geometry",
-    "information_geometry",
-    "requested_extent",
-]
+__all__ = ["DeformationSource"]
 
 
 class DeformationSource(VTKPythonAlgorithmBase):
