@@ -294,7 +294,7 @@ class BarScenario:
     def surface(self):
         """The rest surface as a ``pyvista.PolyData`` (built on first access)."""
         if self._surface is None:
-            import pyvista as pv
+            import pyvista as pv  # only here: the scenarios are plain arrays otherwise
 
             faces = np.column_stack([np.full(len(self.triangles), 3), self.triangles]).ravel()
             self._surface = pv.PolyData(self.points.copy(), faces)
