@@ -282,7 +282,7 @@ def test_the_readme_scene_is_the_example_file_and_it_works(tmp_path, capsys):
     import numpy as np
 
     from vhm_viz.cli import main
-    from vhm_viz.scene import _TOP_FIELDS, DEFAULT_SOLVER
+    from vhm_viz.scene_fields import DEFAULT_SOLVER, SCENE_FIELDS
 
     readme = (REPO / "README.md").read_text()
     folder = REPO / "vhm_viz" / "scenes"
@@ -290,7 +290,7 @@ def test_the_readme_scene_is_the_example_file_and_it_works(tmp_path, capsys):
     assert "```json\n" + text.rstrip("\n") + "\n```" in readme
     section = readme.split("#### A scene, field by field", 1)[1].split("\n### ", 1)[0]
     table = [ln for ln in section.splitlines() if ln.startswith("| `")]
-    for name in [*_TOP_FIELDS, *(f"solver.{k}" for k in DEFAULT_SOLVER)]:
+    for name in [*SCENE_FIELDS, *(f"solver.{k}" for k in DEFAULT_SOLVER)]:
         assert any(f"`{name}`" in row or f"`{name}." in row for row in table), name
     for key in ("positions", "targets", "jacobian_points", "jacobians"):
         assert any(f"`constraints.{key}`" in row for row in table), key

@@ -12,6 +12,9 @@ not even needed::
 
 ``deformation`` is a :class:`~vhm_viz.Deformer`, a :class:`~vhm_viz.HarmonicMap`, a
 :class:`~vhm_viz.scene.Scene` or the path of a scene file.
+
+PyVista may load this module whenever it loads its accessors: the filters and the
+certificate (compiled kernels) are imported by the method that needs them, not here.
 """
 
 from __future__ import annotations
@@ -69,8 +72,9 @@ class VHMAccessor:
         normals : bool
             Deform normals through the Jacobian.
         tolerance : float, optional
-            Images: largest position error of a voxel, in voxels (default 0.05); images
-            are mapped through the volume engine's lattice (:mod:`vhm_viz.core.volume`).
+            Images: largest position error of a voxel, in voxels (default:
+            :data:`vhm_viz.core.volume.DEFAULT_TOLERANCE`); images are mapped through
+            the volume engine's lattice (:mod:`vhm_viz.core.volume`).
 
         Returns
         -------
@@ -165,7 +169,8 @@ class VHMAccessor:
         reference : pyvista.ImageData, optional
             Resample onto this image's grid instead.
         tolerance : float, optional
-            Largest position error of a voxel, in voxels (default 0.05).
+            Largest position error of a voxel, in voxels (default:
+            :data:`vhm_viz.core.volume.DEFAULT_TOLERANCE`).
 
         Returns
         -------

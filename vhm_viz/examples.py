@@ -33,6 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
+from vhm_viz.core.anchors import anchors_from_polylines
+from vhm_viz.core.cage import Cage
+from vhm_viz.scene import Scene
+
 __all__ = [
     "bar",
     "bar_surface",
@@ -250,8 +254,6 @@ def bar_cage(divisions=(2, 2, 12)):
     -------
     vhm_viz.Cage
     """
-    from vhm_viz.core.cage import Cage
-
     v, f = _box_surface((-0.65, -0.65, -0.2), (0.65, 0.65, 5.2), divisions)
     return Cage(v, f)
 
@@ -292,7 +294,7 @@ class BarScenario:
     def surface(self):
         """The rest surface as a ``pyvista.PolyData`` (built on first access)."""
         if self._surface is None:
-            import pyvista as pv
+            import pyvista as pv  # only here: the scenarios are plain arrays otherwise
 
             faces = np.column_stack([np.full(len(self.triangles), 3), self.triangles]).ravel()
             self._surface = pv.PolyData(self.points.copy(), faces)
@@ -350,9 +352,6 @@ def bar(
     -------
     BarScenario
     """
-    from vhm_viz.core.anchors import anchors_from_polylines
-    from vhm_viz.scene import Scene
-
     if kind not in BAR_KINDS + FOLD_KINDS:
         raise ValueError(f"kind must be one of {BAR_KINDS + FOLD_KINDS}; got {kind!r}")
     points, tris = bar_surface(resolution)

@@ -44,7 +44,8 @@ anchors as built, the constraints, mode, alpha, solver settings and stored solut
 (:meth:`Scene.map_inputs`). :meth:`Scene.record_map` writes it for a converged solve;
 :meth:`Scene.map_for` hands it back only while the digest still matches, so a scene edited
 by hand (or a cage file changed) is solved again. ParaView's filters use it: no rank then
-builds and solves the deformer (on the embryo's cage, 1.1 s and 150 MB on every rank).
+builds and solves the deformer, which on a large cage takes seconds and hundreds of
+megabytes on every rank.
 
 Jacobians are user-facing, ``J[i][j] = d f_i / d x_j``. ``jacobian_points``/``jacobians``,
 ``mode``, ``alpha``, ``solver`` (and each solver key), ``data`` and ``solution`` are
@@ -52,12 +53,8 @@ optional; saving writes every field with its value (one point per line), so
 ``Scene.load(path).save(other)`` writes a normalised file and
 ``Scene.from_dict(s.to_dict()) == s`` exactly (floats are written with full precision).
 Unknown fields, unknown versions and malformed values raise :class:`SceneError`, whose
-message names the offending field (``constraints.targets[3]``). Numeric settings must lie in
-their documented ranges (:mod:`vhm_viz.core.limits`): ``alpha`` in [1e-4, 100],
-``solver.max_iterations`` an integer in [1, 1e6], ``solver.tolerance`` in (0, 0.1],
-``solver.steps`` in [1, 1000], ``solver.anderson_window`` in [0, 100], anchor counts in
-[1, 1e5], ``data.resolution`` in [1, 200], ``solution.contraction`` in [0, 1); the error
-names the field and the range.
+message names the offending field (``constraints.targets[3]``); each field's default, parser
+and documented range live in :mod:`vhm_viz.scene_fields`.
 """
 
 from __future__ import annotations
@@ -65,16 +62,41 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from vhm_viz.core.cage import MIN_FACE_ANGLE
-from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW
+from vhm_viz.autocage import auto_anchors, auto_cage
+from vhm_viz.core.anchors import anchors_from_polylines
+from vhm_viz.core.cage import MIN_FACE_ANGLE, Cage
+from vhm_viz.core.deformer import Deformer
+from vhm_viz.core.harmonic_map import HarmonicMap
+from vhm_viz.io import json_text, read_anchors, read_cage, read_polylines, read_tgf, write_text
+from vhm_viz.scene_fields import (
+    CONSTRAINT_FIELDS,
+    DEFAULT_SOLVER,
+    SCENE_FIELDS,
+    SCENE_FORMAT,
+    SCENE_VERSION,
+    SceneError,
+    explorer_data_reference,
+    explorer_v1_to_current,
+    parse_anchors,
+    parse_cage,
+    parse_constraints,
+    parse_contraction,
+    parse_data,
+    parse_map,
+    parse_mode,
+    parse_setting,
+    parse_solution,
+    parse_solver,
+    to_lists,
+)
 
 __all__ = [
     "Scene",
@@ -84,117 +106,12 @@ __all__ = [
     "SCENE_FORMAT",
     "SCENE_VERSION",
     "DEFAULT_SOLVER",
+    "MAP_INPUTS_VERSION",
 ]
 
-SCENE_FORMAT = "vhm_viz.scene"
-SCENE_VERSION = 1
-DEFAULT_SOLVER = {
-    "max_iterations": 1000,
-    "tolerance": 1e-6,
-    "init": "identity",
-    "steps": 1,
-    "anderson_window": DEFAULT_ANDERSON_WINDOW,
-}
-_TOP_FIELDS = {
-    "format",
-    "version",
-    "cage",
-    "anchors",
-    "constraints",
-    "mode",
-    "alpha",
-    "solver",
-    "data",
-    "solution",
-    "map",
-}
 #: Version of what a stored map's digest covers (:meth:`Scene.map_inputs`): a change of
 #: the solver that changes its results must change this, so that old maps are re-solved.
 MAP_INPUTS_VERSION = "vhm_viz.map/1"
-_CONSTRAINT_FIELDS = ("positions", "targets", "jacobian_points", "jacobians")
-
-
-class SceneError(ValueError):
-    """A malformed scene; ``field`` names the offending field (dotted path)."""
-
-    def __init__(self, field_name: str, message: str, source: str | None = None):
-        self.field = field_name
-        self.message = message
-        where = f"{source}: " if source else ""
-        what = (
-            f"scene {field_name}" if field_name.startswith("(") else (f"scene field '{field_name}'")
-        )
-        super().__init__(f"{where}{what}: {message}")
-
-
-# ----------------------------------------------------------------------------------------
-# validation helpers
-# ----------------------------------------------------------------------------------------
-
-
-def _number(value, name: str, *, positive: bool = False, integer: bool = False):
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SceneError(name, f"expected a number, got {json.dumps(value)[:40]}")
-    if not math.isfinite(value):
-        raise SceneError(name, f"expected a finite number, got {value}")
-    if integer:
-        if isinstance(value, float) and not value.is_integer():
-            raise SceneError(name, f"expected an integer, got {value}")
-        value = int(value)
-    if positive and value <= 0:
-        raise SceneError(name, f"must be positive, got {value}")
-    return value
-
-
-def _setting(kind: str, value, name: str):
-    """A numeric setting checked against its documented range (:mod:`vhm_viz.core.limits`)."""
-    from vhm_viz.core.errors import SettingError
-    from vhm_viz.core.limits import check_setting
-
-    try:
-        return check_setting(kind, value, name)
-    except SettingError as exc:
-        raise SceneError(name, exc.detail) from None
-
-
-def _matrix(value, name: str, shape: tuple[int, ...], *, integer: bool = False) -> np.ndarray:
-    """Nested lists -> array of ``shape`` (first dimension free when -1)."""
-    if not isinstance(value, list):
-        raise SceneError(name, f"expected a list, got {type(value).__name__}")
-    if shape[1:]:
-        rows = [
-            _matrix(v, f"{name}[{i}]", (shape[1],) + shape[2:], integer=integer)
-            for i, v in enumerate(value)
-        ]
-        if shape[0] >= 0 and len(rows) != shape[0]:
-            raise SceneError(name, f"expected {shape[0]} rows, got {len(rows)}")
-        inner = (shape[1],) + shape[2:] if shape[1] >= 0 else (0,)
-        return np.array(rows, dtype=np.int64 if integer else np.float64).reshape(
-            (len(rows), *inner)
-        )
-    if shape[0] >= 0 and len(value) != shape[0]:
-        raise SceneError(name, f"expected {shape[0]} numbers, got {len(value)}")
-    nums = [_number(v, f"{name}[{i}]", integer=integer) for i, v in enumerate(value)]
-    return np.array(nums, dtype=np.int64 if integer else np.float64)
-
-
-def _points(value, name: str) -> np.ndarray:
-    return _matrix(value, name, (-1, 3)).reshape(-1, 3)
-
-
-def _tolist(a: np.ndarray):
-    return np.asarray(a).tolist()
-
-
-def _path_text(value, name: str) -> str:
-    if not isinstance(value, str) or not value:
-        raise SceneError(name, "expected a non-empty path string")
-    return value
-
-
-# ----------------------------------------------------------------------------------------
-# the scene
-# ----------------------------------------------------------------------------------------
 
 
 @dataclass(eq=False)
@@ -269,7 +186,7 @@ class Scene:
         if not isinstance(data, dict):
             raise SceneError("(top level)", f"expected a JSON object, got {type(data).__name__}")
         if "vhm_viz_scene" in data and "format" not in data:
-            scene = cls._from_dict(_convert_explorer_v1(data), base_dir)
+            scene = cls._from_dict(explorer_v1_to_current(data), base_dir)
             scene.notes.append(
                 "converted from the explorer's old scene format; save the scene to write it "
                 "in the current format"
@@ -288,23 +205,23 @@ class Scene:
                 "version",
                 f"unsupported version {version} (this vhm_viz reads version {SCENE_VERSION})",
             )
-        unknown = sorted(set(data) - _TOP_FIELDS)
+        unknown = sorted(set(data) - SCENE_FIELDS)
         if unknown:
             raise SceneError(unknown[0], "unknown field")
         for required in ("cage", "anchors", "constraints"):
             if required not in data:
                 raise SceneError(required, "missing")
         scene = cls(
-            cage=_parse_cage(data["cage"]),
-            anchors=_parse_anchors(data["anchors"]),
-            constraints=_parse_constraints(data["constraints"]),
-            mode=_parse_mode(data.get("mode", "rigid")),
-            alpha=_setting("alpha", data.get("alpha", 0.01), "alpha"),
-            solver=_parse_solver(data.get("solver", {})),
-            data=_parse_data(data.get("data")),
-            solution=_parse_solution(data.get("solution")),
-            solution_contraction=_parse_contraction(data.get("solution")),
-            stored_map=_parse_map(data.get("map")),
+            cage=parse_cage(data["cage"]),
+            anchors=parse_anchors(data["anchors"]),
+            constraints=parse_constraints(data["constraints"]),
+            mode=parse_mode(data.get("mode", "rigid")),
+            alpha=parse_setting("alpha", data.get("alpha", 0.01), "alpha"),
+            solver=parse_solver(data.get("solver", {})),
+            data=parse_data(data.get("data")),
+            solution=parse_solution(data.get("solution")),
+            solution_contraction=parse_contraction(data.get("solution")),
+            stored_map=parse_map(data.get("map")),
             base_dir=Path(base_dir) if base_dir is not None else None,
         )
         if scene.solver["init"] == "solution":
@@ -326,11 +243,11 @@ class Scene:
             cage = {"auto": copy.deepcopy(self.cage["auto"])}
         else:
             cage = {
-                "vertices": _tolist(self.cage["vertices"]),
-                "faces": _tolist(self.cage["faces"]),
+                "vertices": to_lists(self.cage["vertices"]),
+                "faces": to_lists(self.cage["faces"]),
             }
         if "points" in self.anchors:
-            anchors: Any = _tolist(self.anchors["points"])
+            anchors: Any = to_lists(self.anchors["points"])
         elif "path" in self.anchors:
             anchors = self.anchors["path"]
         else:
@@ -341,7 +258,7 @@ class Scene:
             "version": SCENE_VERSION,
             "cage": cage,
             "anchors": anchors,
-            "constraints": {k: _tolist(c[k]) for k in _CONSTRAINT_FIELDS},
+            "constraints": {k: to_lists(c[k]) for k in CONSTRAINT_FIELDS},
             "mode": self.mode,
             "alpha": self.alpha,
             "solver": dict(self.solver),
@@ -349,11 +266,11 @@ class Scene:
         if self.data is not None:
             out["data"] = self.data["path"] if "path" in self.data else dict(self.data)
         if self.solution is not None:
-            out["solution"] = {"rotations": _tolist(self.solution)}
+            out["solution"] = {"rotations": to_lists(self.solution)}
             if self.solution_contraction is not None:
                 out["solution"]["contraction"] = float(self.solution_contraction)
         if self.stored_map is not None:
-            out["map"] = {"coefficients": _tolist(self.stored_map["coefficients"]),
+            out["map"] = {"coefficients": to_lists(self.stored_map["coefficients"]),
                           "inputs": self.stored_map["inputs"]}  # fmt: skip
         return out
 
@@ -368,8 +285,6 @@ class Scene:
 
     def dumps(self) -> str:
         """JSON text (one point per line, floats at full precision)."""
-        from vhm_viz.io import json_text
-
         return json_text(self.to_dict())
 
     @classmethod
@@ -403,10 +318,10 @@ class Scene:
         if not isinstance(side, dict):
             return
         try:
-            self.data = _parse_data(_data_ref_v1(side.get("data")))
+            self.data = parse_data(explorer_data_reference(side.get("data")))
             rotations = side.get("rotations")
             if rotations is not None:
-                self.solution = _parse_solution({"rotations": rotations})
+                self.solution = parse_solution({"rotations": rotations})
         except SceneError as exc:
             raise SceneError(f"(sidecar) {exc.field}", exc.message, str(sidecar)) from None
         self.notes.append(
@@ -416,8 +331,6 @@ class Scene:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the scene atomically (temporary file in the same directory, then rename)."""
-        from vhm_viz.io import write_text
-
         write_text(path, self.dumps())
 
     def __eq__(self, other) -> bool:
@@ -456,7 +369,7 @@ class Scene:
             },
             mode=deformer.mode,
             alpha=float(deformer.alpha),
-            solver=_parse_solver(settings),
+            solver=parse_solver(settings),
         )
 
     def referenced_files(self) -> list[Path]:
@@ -484,16 +397,11 @@ class Scene:
 
     def build_cage(self, data=None):
         """The scene's cage (a :class:`vhm_viz.Cage`); ``data`` is needed for ``"auto"``."""
-        from vhm_viz.core.cage import Cage
-        from vhm_viz.io import read_cage
-
         if "path" in self.cage:
             return read_cage(self._resolve_path(self.cage["path"]))
         if "auto" in self.cage:
             if data is None:
                 raise SceneError("cage", '"auto" needs the data to deform')
-            from vhm_viz.autocage import auto_cage
-
             return auto_cage(data, **self.cage["auto"])
         return Cage(self.cage["vertices"], self.cage["faces"])
 
@@ -503,14 +411,10 @@ class Scene:
         if "points" in a:
             return np.array(a["points"], dtype=np.float64)
         if "path" in a:
-            from vhm_viz.io import read_anchors
-
             return read_anchors(self._resolve_path(a["path"]))
         if "auto" in a:
             if data is None:
                 raise SceneError("anchors", '"auto" needs the data to deform')
-            from vhm_viz.autocage import auto_anchors
-
             # a volume's automatic cage encloses the region above its threshold: the
             # anchors go in that region too
             options = self.cage.get("auto") if isinstance(self.cage.get("auto"), dict) else {}
@@ -521,15 +425,9 @@ class Scene:
                 threshold=options.get("threshold"),
                 scalars=options.get("scalars"),
             )
-        from vhm_viz.core.anchors import anchors_from_polylines
-
         if "polylines" in a:
-            from vhm_viz.io import read_polylines
-
             pts, edges = read_polylines(self._resolve_path(a["polylines"]))
         else:
-            from vhm_viz.io import read_tgf
-
             pts, edges = read_tgf(self._resolve_path(a["skeleton"]))
         return anchors_from_polylines(pts, edges, int(a["count"]))
 
@@ -546,8 +444,6 @@ class Scene:
             The anchors as :meth:`build_anchors` gives them for ``cage``, when the caller
             has them already.
         """
-        from vhm_viz.core.deformer import Deformer
-
         if cage is None:
             cage = self.build_cage(data)
         if anchors is None:
@@ -563,7 +459,14 @@ class Scene:
         return dfm
 
     def solve_map(
-        self, data=None, cage=None, *, progress=None, reuse_stored: bool = True, **overrides
+        self,
+        data=None,
+        cage=None,
+        *,
+        progress=None,
+        reuse_stored: bool = True,
+        on_note=None,
+        **overrides,
     ) -> SolvedMap:
         """The scene's solved map: the one path from a scene to a deformation.
 
@@ -584,6 +487,9 @@ class Scene:
         reuse_stored : bool
             Use the stored map when it holds (no deformer is built then). Solver
             ``overrides`` always solve anew.
+        on_note : callable(str), optional
+            Called with each of the notes (see :class:`SolvedMap`) as soon as it is known,
+            before the solve.
         **overrides
             Solver settings, as for :meth:`solve`.
 
@@ -601,6 +507,9 @@ class Scene:
                 f"degrees (e.g. face {int(thin[0])}): the smoothness weight collapses on "
                 "them and the result may be poor"
             )
+        if on_note is not None:
+            for note in notes:
+                on_note(note)
         anchors = self.build_anchors(cage, data)
         if reuse_stored and not overrides:
             stored = self.map_for(cage, anchors)
@@ -628,7 +537,7 @@ class Scene:
         add(cage.vertices, np.float64)
         add(cage.faces, np.int64)
         add(anchors, np.float64)
-        for name in _CONSTRAINT_FIELDS:
+        for name in CONSTRAINT_FIELDS:
             add(self.constraints[name], np.float64)
         settings = {k: v for k, v in self.solver.items() if isinstance(v, (int, float, str))}
         text = json.dumps([self.mode, repr(float(self.alpha)), settings], sort_keys=True)
@@ -650,7 +559,7 @@ class Scene:
         if report is None or not report.converged:
             return False
         c, mine = deformer.constraints, self.constraints
-        for name in _CONSTRAINT_FIELDS:
+        for name in CONSTRAINT_FIELDS:
             theirs = np.asarray(c[name], dtype=np.float64)
             if theirs.size != mine[name].size or not np.array_equal(
                 theirs.reshape(mine[name].shape), mine[name]
@@ -676,8 +585,6 @@ class Scene:
             cage, anchors
         ):
             return None
-        from vhm_viz.core.harmonic_map import HarmonicMap
-
         return HarmonicMap(cage, stored["coefficients"])
 
     def constraint_arguments(self) -> dict:
@@ -724,7 +631,7 @@ class Scene:
         settings = dict(self.solver)
         settings.update(overrides)
         init = settings["init"]
-        settings = _parse_solver({**settings, "init": "identity"}) | {"init": init}
+        settings = parse_solver({**settings, "init": "identity"}) | {"init": init}
         steps = settings["steps"]
         contraction = None
         if isinstance(init, str) and init == "solution":
@@ -799,9 +706,19 @@ class SolvedMap:
         return report is None or bool(report.converged)
 
     def shortfall(self) -> str:
-        """Why the solve stopped short, in words (empty when it converged)."""
+        """Why the solve stopped short, in the scene's terms (empty when it converged).
+
+        Names the scene's settings (``solver.max_iterations``, ``solver.tolerance``) with
+        the values the solve ran with, so the user knows which field to raise.
+        """
         report = self.last_report
-        return "" if report is None else report.shortfall()
+        if report is None or report.converged:
+            return ""
+        return (
+            f"the solver stopped at solver.max_iterations = {report.max_iterations} with the "
+            f"estimated distance to the solution {report.distance_estimate:.3g} above "
+            f"solver.tolerance = {report.tolerance:g}"
+        )
 
     def require_converged(self, allow: bool = False, remedy: str = "") -> None:
         """Raise :class:`NotConverged` for an unconverged solve unless ``allow``.
@@ -822,224 +739,8 @@ class SolvedMap:
         raise NotConverged(text)
 
 
-# ----------------------------------------------------------------------------------------
-# field parsers
-# ----------------------------------------------------------------------------------------
-
-
-def _parse_cage(value) -> dict:
-    if value == "auto":
-        return {"auto": {}}
-    if isinstance(value, str):
-        return {"path": _path_text(value, "cage")}
-    if not isinstance(value, dict):
-        raise SceneError("cage", 'expected a path, "auto" or an object')
-    keys = set(value)
-    if keys == {"path"}:
-        return {"path": _path_text(value["path"], "cage.path")}
-    if keys == {"auto"}:
-        opts = value["auto"]
-        if not isinstance(opts, dict):
-            raise SceneError("cage.auto", "expected an object of auto_cage options")
-        return {"auto": copy.deepcopy(opts)}
-    if keys == {"vertices", "faces"}:
-        v = _points(value["vertices"], "cage.vertices")
-        f = _matrix(value["faces"], "cage.faces", (-1, 3), integer=True).reshape(-1, 3)
-        if len(v) < 4:
-            raise SceneError("cage.vertices", f"a cage needs at least 4 vertices, got {len(v)}")
-        if len(f) < 4:
-            raise SceneError("cage.faces", f"a cage needs at least 4 faces, got {len(f)}")
-        bad = np.nonzero((f < 0).any(axis=1) | (f >= len(v)).any(axis=1))[0]
-        if bad.size:
-            raise SceneError(f"cage.faces[{bad[0]}]", f"vertex index out of range [0, {len(v)})")
-        return {"vertices": v, "faces": f}
-    extra = sorted(keys - {"path", "auto", "vertices", "faces"})
-    if extra:
-        raise SceneError(f"cage.{extra[0]}", "unknown field")
-    raise SceneError("cage", "expected one of {path}, {auto}, {vertices, faces}")
-
-
-def _parse_anchors(value) -> dict:
-    if isinstance(value, str):
-        return {"path": _path_text(value, "anchors")}
-    if isinstance(value, list):
-        pts = _points(value, "anchors")
-        if len(pts) == 0:
-            raise SceneError("anchors", "no anchor points")
-        return {"points": pts}
-    if not isinstance(value, dict):
-        raise SceneError("anchors", "expected a list of points or an object")
-    keys = set(value)
-    if keys == {"path"}:
-        return {"path": _path_text(value["path"], "anchors.path")}
-    if keys == {"auto"}:
-        return {"auto": _setting("anchor_count", value["auto"], "anchors.auto")}
-    for kind in ("polylines", "skeleton"):
-        if keys == {kind, "count"}:
-            return {
-                kind: _path_text(value[kind], f"anchors.{kind}"),
-                "count": _setting("anchor_count", value["count"], "anchors.count"),
-            }
-    extra = sorted(keys - {"path", "auto", "polylines", "skeleton", "count"})
-    if extra:
-        raise SceneError(f"anchors.{extra[0]}", "unknown field")
-    raise SceneError("anchors", "expected {path}, {auto}, {polylines, count} or {skeleton, count}")
-
-
-def _parse_constraints(value) -> dict:
-    if not isinstance(value, dict):
-        raise SceneError("constraints", "expected an object")
-    extra = sorted(set(value) - set(_CONSTRAINT_FIELDS))
-    if extra:
-        raise SceneError(f"constraints.{extra[0]}", "unknown field")
-    for required in ("positions", "targets"):
-        if required not in value:
-            raise SceneError(f"constraints.{required}", "missing")
-    pos = _points(value["positions"], "constraints.positions")
-    tgt = _points(value["targets"], "constraints.targets")
-    if len(pos) == 0:
-        raise SceneError("constraints.positions", "at least one position constraint is needed")
-    if len(tgt) != len(pos):
-        raise SceneError("constraints.targets", f"{len(tgt)} targets for {len(pos)} positions")
-    jp = _points(value.get("jacobian_points", []), "constraints.jacobian_points")
-    jac = _matrix(value.get("jacobians", []), "constraints.jacobians", (-1, 3, 3))
-    jac = jac.reshape(-1, 3, 3)
-    if len(jac) != len(jp):
-        raise SceneError(
-            "constraints.jacobians", f"{len(jac)} jacobians for {len(jp)} jacobian_points"
-        )
-    return {"positions": pos, "targets": tgt, "jacobian_points": jp, "jacobians": jac}
-
-
-def _parse_mode(value) -> str:
-    if value not in ("rigid", "similar"):
-        raise SceneError("mode", f'expected "rigid" or "similar", got {json.dumps(value)}')
-    return value
-
-
-def _parse_solver(value) -> dict:
-    if not isinstance(value, dict):
-        raise SceneError("solver", "expected an object")
-    extra = sorted(set(value) - set(DEFAULT_SOLVER))
-    if extra:
-        raise SceneError(f"solver.{extra[0]}", "unknown field")
-    out = dict(DEFAULT_SOLVER)
-    out.update(value)
-    for key in ("max_iterations", "tolerance", "steps", "anderson_window"):
-        out[key] = _setting(key, out[key], f"solver.{key}")
-    if out["init"] not in ("identity", "previous", "solution"):
-        raise SceneError(
-            "solver.init",
-            f'expected "identity", "previous" or "solution", got {json.dumps(out["init"])}',
-        )
-    return {k: out[k] for k in DEFAULT_SOLVER}
-
-
-def _parse_data(value) -> dict | None:
-    if value is None:
-        return None
-    if isinstance(value, str):
-        return {"path": _path_text(value, "data")}
-    if isinstance(value, dict) and set(value) <= {"bar", "resolution"} and "bar" in value:
-        if not isinstance(value["bar"], str):
-            raise SceneError("data.bar", "expected the name of a bar scenario")
-        res = _setting("resolution", value.get("resolution", 39), "data.resolution")
-        return {"bar": value["bar"], "resolution": res}
-    raise SceneError("data", 'expected a path or {"bar": kind, "resolution": n}')
-
-
-def _parse_map(value) -> dict | None:
-    if value is None:
-        return None
-    if not isinstance(value, dict) or set(value) != {"coefficients", "inputs"}:
-        raise SceneError("map", 'expected {"coefficients": [[x, y, z], ...], "inputs": "..."}')
-    inputs = value["inputs"]
-    if not (isinstance(inputs, str) and len(inputs) == 64
-            and all(ch in "0123456789abcdef" for ch in inputs)):  # fmt: skip
-        raise SceneError("map.inputs", "expected a sha256 digest (64 hexadecimal digits)")
-    return {"coefficients": _points(value["coefficients"], "map.coefficients"), "inputs": inputs}
-
-
-def _parse_solution(value) -> np.ndarray | None:
-    if value is None:
-        return None
-    keys = set(value) if isinstance(value, dict) else set()
-    if not {"rotations"} <= keys <= {"rotations", "contraction"}:
-        raise SceneError("solution", 'expected {"rotations": [[[..3..], ...], ...]}')
-    return _matrix(value["rotations"], "solution.rotations", (-1, 3, 3)).reshape(-1, 3, 3)
-
-
-def _parse_contraction(value) -> float | None:
-    if not isinstance(value, dict) or value.get("contraction") is None:
-        return None
-    return _setting("contraction", value["contraction"], "solution.contraction")
-
-
-# ----------------------------------------------------------------------------------------
-# helpers
-# ----------------------------------------------------------------------------------------
-
-
-def _data_ref_v1(src):
-    """The old explorer's data reference (``{"path": p}`` or a bar) in this format's terms."""
-    if not isinstance(src, dict) or not src:
-        return None
-    if "path" in src:
-        return src["path"]
-    return src
-
-
-def _convert_explorer_v1(d: dict) -> dict:
-    """The explorer's old single-file scene (``{"vhm_viz_scene": 1, ...}``) as this format."""
-    from scipy.spatial.transform import Rotation
-
-    if d.get("vhm_viz_scene") != 1:
-        version = d.get("vhm_viz_scene")
-        raise SceneError("vhm_viz_scene", f"unsupported explorer scene version {version}")
-    if not d.get("cage"):
-        raise SceneError("cage", "the explorer scene has no cage")
-    try:
-        positions = [c["point"] for c in d.get("positions", [])]
-        targets = [c["target"] for c in d.get("positions", [])]
-        jac_points = [c["point"] for c in d.get("jacobians", [])]
-        jacobians = [
-            (
-                float(c["scale"])
-                * Rotation.from_euler("xyz", c["angles"], degrees=True).as_matrix()
-            ).tolist()
-            for c in d.get("jacobians", [])
-        ]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise SceneError("positions", f"malformed explorer constraint ({exc})") from None
-    solver = {k: v for k, v in (d.get("solver") or {}).items() if k in DEFAULT_SOLVER}
-    out = {
-        "format": SCENE_FORMAT,
-        "version": SCENE_VERSION,
-        "cage": d["cage"],
-        "anchors": d.get("anchors", []),
-        "constraints": {
-            "positions": positions,
-            "targets": targets,
-            "jacobian_points": jac_points,
-            "jacobians": jacobians,
-        },
-        "mode": d.get("mode", "rigid"),
-        "alpha": d.get("alpha", 0.01),
-        "solver": solver,
-    }
-    data = _data_ref_v1(d.get("data"))
-    if data is not None:
-        out["data"] = data
-    if d.get("rotations") is not None:
-        out["solution"] = {"rotations": d["rotations"]}
-        out["solver"]["init"] = "solution"
-    return out
-
-
 def _interpolate_jacobian(j: np.ndarray, s: float) -> np.ndarray:
     """Interpolate ``I -> j = scale * R`` by rotation angle and scale."""
-    from scipy.spatial.transform import Rotation
-
     scale = np.cbrt(np.linalg.det(j))
     rot = Rotation.from_matrix(j / scale)
     return (1 + s * (scale - 1)) * Rotation.from_rotvec(s * rot.as_rotvec()).as_matrix()

@@ -24,7 +24,8 @@ import argparse
 import importlib
 import sys
 
-from vhm_viz import interrupts
+from vhm_viz import __version__, interrupts
+from vhm_viz.scene import NotConverged
 
 # subcommand name -> module in this package; order is the order shown in --help
 _COMMANDS = {
@@ -45,8 +46,6 @@ def build_parser() -> argparse.ArgumentParser:
         description="Variational harmonic maps for space deformation of meshes, "
         "tet meshes, point clouds and volumes.",
     )
-    from vhm_viz import __version__
-
     parser.add_argument("--version", action="version", version=f"vhm-viz {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module_name in _COMMANDS.values():
@@ -55,12 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-#: Exit status of a solve that stopped at its iteration cap (see the module documentation).
+#: Exit status of a solve that stopped at its iteration cap (see the module documentation):
+#: :class:`~vhm_viz.scene.NotConverged`, raised by the scene's solved map.
 EXIT_NOT_CONVERGED = 3
-
-
-class NotConverged(RuntimeError):
-    """The solver stopped at ``solver.max_iterations``; exit :data:`EXIT_NOT_CONVERGED`."""
 
 
 def main(argv: list[str] | None = None) -> int:

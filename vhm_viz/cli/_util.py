@@ -1,17 +1,24 @@
-"""Helpers shared by the ``deform``, ``analyze`` and ``demo`` subcommands."""
+"""Helpers shared by the ``deform``, ``analyze`` and ``demo`` subcommands.
+
+VTK and PyVista are imported where they are used: ``vhm-viz --help`` imports every
+subcommand's module and stays quick.
+"""
 
 from __future__ import annotations
 
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from vhm_viz import interrupts
 from vhm_viz.cli import one_line
-from vhm_viz.core.cage import MIN_FACE_ANGLE
+from vhm_viz.core.errors import describe_indices
+from vhm_viz.core.metrics import rigidity_distortion, volume_change
 from vhm_viz.io import DATASET_SUFFIXES, OverwriteError, refuse_inputs, suffix_of
+from vhm_viz.scene import Scene, SolvedMap
 
 
 class CLIError(ValueError):
@@ -89,8 +96,6 @@ def _is_terminal(stream) -> bool:
 
 def quiet_vtk() -> None:
     """Silence VTK's own log and warning output (the CLI reports errors itself, one line)."""
-    import warnings
-
     from vtkmodules.vtkCommonCore import vtkLogger, vtkObject
 
     vtkObject.GlobalWarningDisplayOff()
@@ -182,8 +187,6 @@ def _refuse_inputs(path: Path, inputs) -> None:
 
 def outside_message(exc, n_points: int, source) -> str:
     """One line for an :class:`OutsideCageError` raised on the input's points."""
-    from vhm_viz.core.errors import describe_indices
-
     idx = getattr(exc, "indices", None)
     if idx is None or len(idx) == 0:
         return one_line(exc)
@@ -196,8 +199,6 @@ def outside_message(exc, n_points: int, source) -> str:
 
 def load_scene(path: str):
     """Load a scene file; errors as :class:`CLIError`."""
-    from vhm_viz.scene import Scene
-
     p = Path(path)
     if not p.is_file():
         raise CLIError(f"scene file not found: {p}")
@@ -214,8 +215,17 @@ def add_convergence_argument(parser) -> None:
     )
 
 
-def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False):
-    """Build the scene's deformer (auto cage/anchors from ``mesh``) and solve it.
+def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False) -> SolvedMap:
+    """Solve the scene's map for ``mesh`` (auto cage/anchors from it), saying its notes.
+
+    Always solves (the command line reports the solve), through
+    :meth:`~vhm_viz.scene.Scene.solve_map`; what loading had to change is printed on stderr,
+    one line each (old scene format, cage repairs, thin cage faces).
+
+    Returns
+    -------
+    SolvedMap
+        With its deformer and the reports of each solve step.
 
     Raises
     ------
@@ -223,33 +233,18 @@ def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False
         The (last) solve stopped at ``solver.max_iterations`` and ``allow_unconverged``
         is false.
     """
-    from vhm_viz.cli import NotConverged
-
-    dfm = scene.build(data=mesh)
-    # what loading had to change is said, one line each (old scene format, cage repairs)
-    notes = [*scene.notes, *(f"cage repaired: {r}" for r in dfm.cage.repairs)]
-    thin = dfm.cage.thin_faces
-    if len(thin):
-        notes.append(
-            f"the cage has {len(thin)} faces with an angle below {MIN_FACE_ANGLE:g} degrees "
-            "(e.g. face " + str(int(thin[0])) + "): the smoothness weight collapses on "
-            "them and the result may be poor"
-        )
-    for note in notes:
-        print(f"vhm-viz: note: {note}", file=sys.stderr)
     bar = Progress("solving", enabled=not quiet)
-    reports = scene.solve(dfm, progress=bar)
+    solved = scene.solve_map(mesh, progress=bar, reuse_stored=False, on_note=_print_note)
     bar.finish()
-    last = reports[-1]
-    if not last.converged and not allow_unconverged:
-        raise NotConverged(
-            f"not converged: the solver stopped at solver.max_iterations = "
-            f"{scene.solver['max_iterations']} with the estimated distance to the solution "
-            f"{last.distance_estimate:.3g} above solver.tolerance = "
-            f"{scene.solver['tolerance']:g}; nothing written (raise max_iterations, or pass "
-            "--allow-unconverged)"
-        )
-    return dfm, reports
+    solved.require_converged(
+        allow_unconverged,
+        remedy="nothing written (raise max_iterations, or pass --allow-unconverged)",
+    )
+    return solved
+
+
+def _print_note(note: str) -> None:
+    print(f"vhm-viz: note: {note}", file=sys.stderr)
 
 
 def surface_metrics(rest, deformed) -> dict:
@@ -265,8 +260,6 @@ def surface_metrics(rest, deformed) -> dict:
 
 def _surface_metrics(rest, deformed) -> dict:
     import pyvista as pv
-
-    from vhm_viz.core.metrics import rigidity_distortion, volume_change
 
     out: dict = {}
     if isinstance(rest, pv.PolyData) and rest.n_cells and rest.GetNumberOfPolys():

@@ -6,6 +6,9 @@ rest shape with the point arrays of the Jacobian, the cell arrays of the deforme
 the point vectors ``displacement``). With ``--certify`` it also proves (or refutes) that the
 map has no foldover anywhere in the shape (:func:`vhm_viz.certify_injectivity`), adding
 ``"injectivity"`` to the metrics and ``injectivity.png``.
+
+PyVista and the VTK filters are imported when the command runs, so that ``vhm-viz --help``
+stays quick.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import time
 
 import numpy as np
 
+from vhm_viz import plotting
 from vhm_viz.cli._util import (
     CLIError,
     Progress,
@@ -28,6 +32,7 @@ from vhm_viz.cli._util import (
     quiet_vtk,
     surface_metrics,
 )
+from vhm_viz.core.certify import certify_injectivity
 from vhm_viz.core.errors import OutsideCageError
 from vhm_viz.core.metrics import finite_or_none
 from vhm_viz.io import atomic_outputs, json_text, read_dataset, write_dataset, write_text
@@ -137,7 +142,6 @@ def analyze(args: argparse.Namespace) -> str:
     """Do the work; returns the summary line."""
     import pyvista as pv
 
-    from vhm_viz import plotting
     from vhm_viz.filters import HarmonicDeformationFilter, JacobianAnalysisFilter, update
 
     src = check_input(args.input)
@@ -154,9 +158,10 @@ def analyze(args: argparse.Namespace) -> str:
     mesh = read_dataset(src)
 
     t0 = time.perf_counter()
-    dfm, reports = build_and_solve(
+    solved = build_and_solve(
         scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
     )
+    dfm, reports = solved.deformer, solved.reports
     hm = dfm.harmonic_map
     ana = JacobianAnalysisFilter()
     ana.SetInputData(mesh)
@@ -256,7 +261,6 @@ def analyze(args: argparse.Namespace) -> str:
 
 def _certify(dfm, mesh, args):
     """Certify the map over the shape's region, with a progress bar."""
-    from vhm_viz.core.certify import certify_injectivity
     from vhm_viz.filters import region_of
 
     region = region_of(mesh, dfm.cage)

@@ -1,4 +1,8 @@
-"""``vhm-viz deform``: deform a mesh, tet mesh, point cloud or volume with a scene."""
+"""``vhm-viz deform``: deform a mesh, tet mesh, point cloud or volume with a scene.
+
+PyVista and the VTK filters are imported when the command runs, so that ``vhm-viz --help``
+stays quick.
+"""
 
 from __future__ import annotations
 
@@ -161,11 +165,14 @@ def deform(args: argparse.Namespace) -> str:
     import pyvista as pv
 
     from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
+    from vhm_viz.filters._engines import check_tolerance
 
     src = check_input(args.input)
     arrays = _parse_arrays(args.arrays)
-    if not (args.tolerance > 0 and args.tolerance < float("inf")):
-        raise CLIError(f"--tolerance must be a positive number of voxels; got {args.tolerance}")
+    try:
+        tolerance = check_tolerance(args.tolerance)
+    except ValueError as exc:
+        raise CLIError(f"--{exc}") from None
     scene = load_scene(args.scene)
     reference = check_input(args.reference) if args.reference else None
     # never write onto the data, the scene or any file the scene names
@@ -190,9 +197,10 @@ def deform(args: argparse.Namespace) -> str:
         raise CLIError("--spacing and --reference apply to a volume resampled to an image")
 
     t0 = time.perf_counter()
-    dfm, reports = build_and_solve(
+    solved = build_and_solve(
         scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
     )
+    dfm, reports = solved.deformer, solved.reports
     if resample:
         flt = HarmonicResampleFilter()
         flt.SetFillValue(args.fill_value)
@@ -210,7 +218,7 @@ def deform(args: argparse.Namespace) -> str:
         flt.SetComputeCellQuality("cells" in arrays)
         label = "warping" if volume else "binding"
     flt.SetOutsidePolicy(args.outside)
-    flt.SetTolerance(args.tolerance)
+    flt.SetTolerance(tolerance)
     flt.SetInputData(mesh)
     flt.SetDeformer(dfm)
     bar = Progress(label, enabled=not args.quiet)
@@ -221,7 +229,7 @@ def deform(args: argparse.Namespace) -> str:
         raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
     bar.finish()
     # everything that can fail happens before the write: an error never follows an output
-    summary = _summary(mesh, result, reports, flt, resample, volume, args.tolerance)
+    summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
     warning = _check_folds(mesh, result, dfm, flt, resample)
     write_dataset(out, result)
     seconds = time.perf_counter() - t0

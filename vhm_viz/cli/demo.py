@@ -11,6 +11,9 @@ variational harmonic map, then deforms through the VTK filters
 and writes the figures (the paper's Figure 4 slices, Figure 12 histogram, energy plot, a
 3D view of the rest and the bent bar), the scene file and a metrics summary into the
 output directory (a relative one is taken from the current folder).
+
+PyVista and the VTK filters are imported when the demo runs, so that ``vhm-viz --help``
+stays quick.
 """
 
 from __future__ import annotations
@@ -21,13 +24,18 @@ from pathlib import Path
 
 import numpy as np
 
+from vhm_viz import plotting
 from vhm_viz.cli._util import (
     CLIError,
     Progress,
     observe_progress,
     quiet_vtk,
 )
+from vhm_viz.core.metrics import jacobian_measures, rigidity_distortion, volume_change
+from vhm_viz.examples import bar, bar_surface
 from vhm_viz.io import json_text, write_dataset, write_text
+from vhm_viz.scene import Scene
+from vhm_viz.tetra import tetrahedralize
 
 
 def add_parser(subparsers) -> None:
@@ -104,11 +112,7 @@ def demo(args: argparse.Namespace):
     """Run the demo, yielding the lines to print."""
     import pyvista as pv
 
-    from vhm_viz import plotting
-    from vhm_viz.core.metrics import jacobian_measures, rigidity_distortion, volume_change
-    from vhm_viz.examples import bar, bar_surface
     from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
-    from vhm_viz.scene import Scene
 
     out = Path(args.output)
     if out.exists() and not out.is_dir():
@@ -154,8 +158,6 @@ def demo(args: argparse.Namespace):
     # 3. a tetrahedral bar -----------------------------------------------------------------
     tet_line = None
     if not args.no_tets:
-        from vhm_viz.tetra import tetrahedralize
-
         tets = tetrahedralize(
             bar_surface(4),
             edge_length=0.2,

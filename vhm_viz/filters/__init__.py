@@ -14,7 +14,7 @@ while a filter executes; :func:`update` updates a filter and re-raises them.
 certifies, and :func:`cell_quality` measures the cells of a deformed dataset.
 """
 
-from vhm_viz.filters._common import update
+from vhm_viz.filters._vtk import update
 from vhm_viz.filters.analysis import ANALYSIS_ARRAYS, JacobianAnalysisFilter
 from vhm_viz.filters.cells import CELL_ARRAYS, cell_quality, region_of
 from vhm_viz.filters.deformation import HarmonicDeformationFilter, output_type_for

@@ -5,7 +5,8 @@ a collective operation at fixed points of ``RequestData``. The filters do that o
 asked (:meth:`DeformationSource.SetParallelReporting`, set by the ParaView plugin): in a
 plain VTK script under MPI the ranks need not update together, and a collective would hang.
 
-With one process (or without VTK's parallel module) every function here is a no-op.
+With one process (or without VTK's parallel module, imported where it is used, as it is
+optional in VTK builds) every function here is a no-op.
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ import os
 import time
 
 import numpy as np
+from vtkmodules.util import numpy_support as ns
+from vtkmodules.vtkCommonCore import vtkDoubleArray, vtkIntArray, vtkUnsignedCharArray
 
 __all__ = [
     "LatticeExchange",
@@ -22,6 +25,7 @@ __all__ = [
     "all_ranks",
     "any_rank",
     "min_max_over_ranks",
+    "check_whole_cage",
     "mpi_command",
     "gather_rows",
     "gather_rows_of",
@@ -87,7 +91,7 @@ def _all_reduce(values: list[int], operation: str) -> list[int]:
     controller = _controller()
     if controller is None:
         return list(values)
-    from vtkmodules.vtkCommonCore import vtkIntArray
+    # the parallel module exists: _controller found it
     from vtkmodules.vtkParallelCore import vtkCommunicator
 
     send, receive = vtkIntArray(), vtkIntArray()
@@ -116,11 +120,22 @@ def min_max_over_ranks(value: int) -> tuple[int, int]:
     return lo, hi
 
 
+def check_whole_cage(connected: bool, n_points: int) -> None:
+    """Raise unless a cage on port 1 reached every rank with the same number of points.
+
+    Collective: every rank calls it, with its own count (0 when nothing arrived).
+    """
+    lo, hi = min_max_over_ranks(n_points)
+    if connected and lo != hi:
+        raise RuntimeError(
+            f"the Cage input reached the ranks with {lo} to {hi} points: every rank needs "
+            "the whole cage (read it with a reader that every rank runs, and do not "
+            "distribute it)"
+        )
+
+
 def _all_gather(values) -> np.ndarray:
     """Every rank's float64 ``values``, concatenated in rank order (a collective)."""
-    from vtkmodules.util import numpy_support as ns
-    from vtkmodules.vtkCommonCore import vtkDoubleArray
-
     send = ns.numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64).ravel(), deep=1)
     receive = vtkDoubleArray()
     _controller().AllGatherV(send, receive)
@@ -186,15 +201,12 @@ def send_parts(make_part, fields: dict) -> list:
     me, n = rank(), process_count()
     if controller is None:
         return [make_part(0)]
-    from vtkmodules.util import numpy_support as ns
-    from vtkmodules.vtkCommonCore import vtkUnsignedCharArray
-
     # every part this rank sends is made (and packed) first, then its own part, and only
     # then does anything arrive: a source that the own part releases (the window's
-    # lattice) is gone before the others' parts come in. Receiving them first held the
-    # lattice and the incoming parts together, an MPI rank's peak on the embryo. All the
-    # parts are made before any message: a rank failing to make one (memory) is agreed
-    # here, and every rank raises rather than waiting for its parts
+    # lattice) is gone before the others' parts come in, so the lattice and the incoming
+    # parts are never held together. All the parts are made before any message: a rank
+    # failing to make one (memory) is agreed here, and every rank raises rather than
+    # waiting for its parts
     outgoing = {}
     got = [None] * n
 
@@ -224,9 +236,8 @@ def send_parts(make_part, fields: dict) -> list:
 def _pack(part: dict, fields: dict) -> np.ndarray:
     """A part of :func:`send_parts` in one uint8 buffer: per field its length, then its bytes.
 
-    Straight into the buffer, each field released once copied: a part is never held
-    twice (on the embryo's resample, parts of 10-60 MB). Each field starts 8-byte
-    aligned.
+    Straight into the buffer, each field released once copied: a part, tens of megabytes
+    on a large volume, is never held twice. Each field starts 8-byte aligned.
     """
     part = dict(part)
     rows = {name: _row_count(part[name], shape) for name, (shape, _) in fields.items()}
@@ -353,11 +364,10 @@ class LatticeExchange:
         except BaseException as exc:  # noqa: BLE001 -- agreed below, then re-raised
             error = exc
         self._busy += time.perf_counter() - t0
-        # each rank gets the values of its own keys only (not every rank's: on the embryo
-        # that held the whole round's results twice on every rank, the build's peak); the
-        # values go out as rows of the evaluated arrays, taken straight into the send
-        # buffers and into this rank's own arrays (stacked into one table first, then
-        # copied: 22 MB more at the finest round on an MPI rank of the embryo)
+        # each rank gets the values of its own keys only (every rank's would hold the
+        # whole round's results twice on every rank); the values go out as rows of the
+        # evaluated arrays, taken straight into the send buffers and into this rank's own
+        # arrays, never stacked into one table first (a copy of the finest round)
         row = np.full(len(distinct), -1, dtype=np.int64)
         row[mine] = np.arange(len(mine))
         starts = np.concatenate([[0], np.cumsum(counts)])
@@ -415,9 +425,9 @@ def _dealing_order(n: int) -> np.ndarray:
     """The order in which ``n`` sorted lattice keys are dealt out to the ranks.
 
     Runs of ``_DEAL_RUN`` consecutive keys in a fixed pseudo-random order of runs
-    (Fibonacci hashing). Runs of neighbours keep the exact evaluations' speed: the same
-    points in a fully hashed order take 11% longer (measured on the embryo's lattice, the
-    branches of the kernel following the geometry). The hashed order of the runs mixes
+    (Fibonacci hashing). Runs of neighbours keep the exact evaluations' speed (the
+    kernel's branches follow the geometry, so neighbours take the same branches, which a
+    fully hashed order would mix). The hashed order of the runs mixes
     inside and outside points in every share.
     """
     run = np.arange(n, dtype=np.uint64) // np.uint64(_DEAL_RUN)

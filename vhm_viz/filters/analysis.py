@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 from vtkmodules.util import numpy_support as ns
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkDataSet
+from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from vhm_viz.core.metrics import jacobian_measures
-from vhm_viz.filters._common import DeformationSource, image_geometry, numpy_points
+from vhm_viz.filters._common import DeformationSource
+from vhm_viz.filters._vtk import image_geometry, numpy_points
 from vhm_viz.filters.cells import add_cell_arrays, cell_quality
 
 __all__ = ["JacobianAnalysisFilter", "ANALYSIS_ARRAYS"]
@@ -52,8 +54,7 @@ class JacobianAnalysisFilter(DeformationSource):
 
     Images of more than :data:`~vhm_viz.core.volume.EXACT_VOXELS` voxels take their
     Jacobians from the volume engine's lattice (:mod:`vhm_viz.core.volume`, tolerance
-    :meth:`SetTolerance`), slab by slab: a 256^3 scan in seconds instead of an exact
-    evaluation per voxel.
+    :meth:`SetTolerance`), slab by slab, instead of an exact evaluation per voxel.
     """
 
     def __init__(self):
@@ -101,9 +102,8 @@ class JacobianAnalysisFilter(DeformationSource):
 
     def _execute_image(self, in_info, inp, hm, out):
         """Images: the measures of the lattice's Jacobians (this piece's part of it)."""
-        from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
-
-        whole = in_info[0].GetInformationObject(0).Get(sddp.WHOLE_EXTENT())
+        info = in_info[0].GetInformationObject(0)
+        whole = info.Get(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT())
         whole = inp.GetExtent() if whole is None else whole
         ext = inp.GetExtent()
         box = [ext[a] - whole[a - a % 2] for a in range(6)]

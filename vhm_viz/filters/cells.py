@@ -19,17 +19,21 @@ from __future__ import annotations
 
 import numpy as np
 from vtkmodules.util import numpy_support as ns
+from vtkmodules.vtkFiltersGeneral import vtkDataSetTriangleFilter
 
+from vhm_viz.autocage.proximity import NearDistance, grid_signed_distance
+from vhm_viz.core.basis import inside_cage, winding_number
+from vhm_viz.core.certify import INSIDE, MEETS, OUTSIDE, Region, default_margin
 from vhm_viz.core.geometry import signed_volume
 from vhm_viz.core.metrics import cell_measures, cell_summary
-from vhm_viz.filters._common import numpy_points
+from vhm_viz.filters._vtk import numpy_points
 from vhm_viz.io import cell_types
 
 __all__ = ["CELL_ARRAYS", "cell_tetrahedra", "cell_quality", "add_cell_arrays", "region_of"]
 
 #: Cell arrays written by the analysis (and, on request, the deformation) filter.
 CELL_ARRAYS = ("cell_jacobian_determinant", "cell_condition_number", "cell_inverted")
-# Tetrahedra per chunk (about 100 MB of work arrays).
+# Tetrahedra per chunk (bounds the work arrays at about 100 MB).
 _CHUNK_TETS = 2_000_000
 _VTK_TETRA = 10
 _ID_ARRAY = "vhm_cell_id"
@@ -121,8 +125,6 @@ def cell_tetrahedra(ds, chunk_tets: int = _CHUNK_TETS):
 
 def _triangulated(ds):
     """Tets of any 3D cells through ``vtkDataSetTriangleFilter`` (points kept as they are)."""
-    from vtkmodules.vtkFiltersGeneral import vtkDataSetTriangleFilter
-
     tagged = ds.NewInstance()
     tagged.ShallowCopy(ds)
     ids = ns.numpy_to_vtk(np.arange(ds.GetNumberOfCells(), dtype=np.int64), deep=1)
@@ -242,9 +244,7 @@ def region_of(ds, cage=None):
     -------
     Region
     """
-    import pyvista as pv
-
-    from vhm_viz.core.certify import Region, default_margin
+    import pyvista as pv  # only here: ParaView's Python may lack PyVista
 
     ds = pv.wrap(ds)
     if _dimensions(ds) is not None:
@@ -274,10 +274,6 @@ def _solid_region(surface):
     cube that straddles the surface lie within four of their radii of it, so the exact
     distance covers every later test.
     """
-    from vhm_viz.autocage.proximity import NearDistance, grid_signed_distance
-    from vhm_viz.core.basis import inside_cage, winding_number
-    from vhm_viz.core.certify import INSIDE, MEETS, OUTSIDE, Region
-
     v = np.ascontiguousarray(surface.points, dtype=np.float64)
     f = np.ascontiguousarray(np.asarray(surface.faces).reshape(-1, 4)[:, 1:], dtype=np.int64)
     if signed_volume(v, f) < 0:

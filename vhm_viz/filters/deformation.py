@@ -13,12 +13,14 @@ from vtkmodules.vtkCommonDataModel import (
     vtkUnstructuredGrid,
 )
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+from vtkmodules.vtkFiltersCore import vtkCellCenters
 from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearGridToPointSet
 
 from vhm_viz.core.binding import cofactor_normals
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
-from vhm_viz.filters._common import (
-    DeformationSource,
+from vhm_viz.filters._common import DeformationSource
+from vhm_viz.filters._vtk import (
+    add_lattice_counts,
     image_geometry,
     numpy_points,
     requested_extent,
@@ -330,15 +332,13 @@ class HarmonicDeformationFilter(DeformationSource):
                 _set_array(pd, pnormals.GetName() or "Normals", normals, normals=True)
         if self._displacement:
             _set_array(pd, "displacement", points - vol.geometry.sub(box).points())
-        self._add_lattice_counts(out, vol)
-        # one array for the flags, not three (a half of the embryo: 8 MB each)
+        add_lattice_counts(out, vol)
+        # one array for the flags, not three (each a byte per voxel)
         self._finish(out, np.logical_not(inside, out=np.empty(inside.size, np.uint8)))
         return 1
 
 
 def _cell_centres(ds) -> np.ndarray:
-    from vtkmodules.vtkFiltersCore import vtkCellCenters
-
     cc = vtkCellCenters()
     cc.SetInputData(ds)
     cc.VertexCellsOff()

@@ -20,8 +20,9 @@ from vhm_viz.core.volume import (
     window_of,
 )
 from vhm_viz.filters import _parallel
-from vhm_viz.filters._common import (
-    DeformationSource,
+from vhm_viz.filters._common import DeformationSource
+from vhm_viz.filters._vtk import (
+    add_lattice_counts,
     image_geometry,
     information_geometry,
     requested_extent,
@@ -33,9 +34,8 @@ _SDDP = vtkStreamingDemandDrivenPipeline
 _MODES = ("deformed", "input")
 # Voxels beyond a rank's own root layers that its window holds: a single-voxel cell's
 # twists difference the node one voxel across (its own cells then come out as the whole
-# lattice's, bit for bit; with no voxel beyond, pre-images moved by up to 1e-5 voxel).
-# One would do; two keep a margin. (A whole root layer beyond, as before, cost rank 0 of
-# the embryo 21k more leaves.)
+# lattice's, bit for bit; with no voxel beyond, pre-images would move by up to 1e-5
+# voxel). One would do; two keep a margin, and far fewer leaves than a whole root layer.
 _HALO = 2
 #: Point arrays the filter adds (never resampled from an input that already has them).
 _OWN_ARRAYS = ("vtkValidPointMask", "vhm_foldover")
@@ -82,7 +82,7 @@ class HarmonicResampleFilter(DeformationSource):
     bit); the ranks agree on the output grid from their leaves' bounds, and on a cut of
     the output's k-planes into shares of the pull-back work and of the leaves it needs
     (:func:`~vhm_viz.core.volume.pull_back_shares`: the pieces ParaView asks for need not
-    hold equal work -- on the embryo one half holds 71% of it). Each rank pulls back the
+    hold equal work: one half of a scan may hold most of it). Each rank pulls back the
     voxels of its planes, whichever rank's piece they belong to, and sends them there; it
     reads the input window those planes may need, from every rank's table of where its
     root cells map to. At the update each rank sends to every other the leaves whose
@@ -283,7 +283,7 @@ class HarmonicResampleFilter(DeformationSource):
                                **options)  # fmt: skip
             pulled = res.counts["voxels"]
         self.stats = {**res.counts, "pulled_back": int(pulled)}
-        self._add_lattice_counts(out, vol)
+        add_lattice_counts(out, vol)
         for name, values in res.arrays.items():
             new = ns.numpy_to_vtk(values, deep=0, array_type=types[name])
             new.SetName(name)
@@ -316,7 +316,7 @@ class HarmonicResampleFilter(DeformationSource):
         self._cage_now(in_info)
         hm, _ = self._resolve(in_info, img)
         vol, own = self._window_engine(hm, geo_in)
-        key = (self._volume_key, self._outside, self._mode, self._spacing,
+        key = (self._volumes.key, self._outside, self._mode, self._spacing,
                None if self._explicit is None else self._explicit.key())  # fmt: skip
         if self._shared is not None and self._shared["key"] == key:
             return self._shared["geometry"]
@@ -337,13 +337,12 @@ class HarmonicResampleFilter(DeformationSource):
             geo = geo_in
         else:
             keep = self._outside == "passthrough" and any_outside
-            geo = output_grid(geo_in, lo, hi, tolerance=vol.tolerance, spacing=self._spacing,
+            geo = output_grid(geo_in, lo, hi, tolerance=self._tolerance, spacing=self._spacing,
                               keep_input=keep)  # fmt: skip
         table = _parallel.gather_rows_of(lambda: vol.reach_table(geo, own(vol.lattice)), 12)
         table = table.astype(np.int64)
         # which output planes each rank pulls back: shares of the work and of the leaves,
-        # whichever pieces the pipeline asks for (the embryo's lower half holds 71% of the
-        # work)
+        # whichever pieces the pipeline asks for (they need not hold equal work)
         nz = int(geo.dimensions[2])
 
         def counts():
@@ -355,7 +354,7 @@ class HarmonicResampleFilter(DeformationSource):
         summed = _parallel.gather_rows_of(counts, 3 * nz + 1).sum(axis=0)
         pairs, *spans = summed[:-1].reshape(3, nz)
         # each rank's even share of the build counts in its time: the cuts lean on the
-        # leaves, most of its memory (the embryo's build is twice its pull-back's work).
+        # leaves, most of its memory (the build may be more work than the pull-back).
         # The ranks' counts include the halo points each needed from the others: a few
         # percent over the distinct evaluations, whose cost the constant was measured on
         # (LatticeExchange.distinct would add up the builds again if a rank rebuilt)
@@ -461,7 +460,7 @@ class HarmonicResampleFilter(DeformationSource):
         got = _parallel.send_parts(part_for, PART_FIELDS)
         lat = None  # (what the own part left of it)
         release_free_memory()
-        joined = join_parts(got, vol.map, vol.geometry, tolerance=vol.tolerance,
+        joined = join_parts(got, vol.map, vol.geometry, tolerance=self._tolerance,
                             root=vol.root, stats=stats)  # fmt: skip
         del got
         release_free_memory()
@@ -473,7 +472,7 @@ class HarmonicResampleFilter(DeformationSource):
             hull[1::2] = np.max([b[1::2] for b in mine], axis=0)
             engine = VolumeDeformation.for_piece(
                 vol.map, vol.geometry, joined, shared["geometry"], hull,
-                any_outside=shared["any_outside"], tolerance=vol.tolerance,
+                any_outside=shared["any_outside"], tolerance=self._tolerance,
                 outside=self._outside, memory_budget=vol.memory_budget,
                 exchange=vol.exchange,
             )  # fmt: skip
@@ -488,8 +487,8 @@ class HarmonicResampleFilter(DeformationSource):
         first those of the other ranks' pieces, which it sends them, then those of its
         own piece, straight into the output arrays. A rank pulls back planes of another's
         piece where the cuts hand it that piece's denser planes: their slabs, the
-        largest, come before its own piece is filled (the second rank of the embryo
-        peaked 3-6 MB lower than with its own piece first). Collective. Returns
+        largest, come before its own piece is filled, which lowers the rank's peak.
+        Collective. Returns
         ``(engine, result, voxels this rank pulled back)``.
         """
         vol, boxes = self._piece(in_info, img, ext)

@@ -1,9 +1,8 @@
 """Compile the filters' numba kernels ahead of their first use (a set-up step).
 
 numba compiles a kernel on its first call and keeps it in its cache (``NUMBA_CACHE_DIR``);
-in a fresh installation the first filter run spends about a minute compiling (68 s for
-the three filters on a 32^3 image in Debian's ParaView, against 4 s with the cache), and
-under MPI every rank compiles at once. :func:`compile_kernels` runs the three filters
+in a fresh installation the first filter run spends about a minute compiling instead of
+seconds, and under MPI every rank compiles at once. :func:`compile_kernels` runs the three filters
 once on tiny data -- two images, a tet mesh and a surface in the bundled bar's cage, the
 same calls as the ParaView plugin makes -- so that ``plugins/paraview-env.sh`` can fill
 the cache when it installs numba.
@@ -26,6 +25,16 @@ from vtkmodules.vtkCommonDataModel import (
     vtkPolyData,
     vtkUnstructuredGrid,
 )
+
+from vhm_viz.core.volume import EXACT_VOXELS
+from vhm_viz.examples import bar, bar_surface, bar_tets
+from vhm_viz.filters import (
+    HarmonicDeformationFilter,
+    HarmonicResampleFilter,
+    JacobianAnalysisFilter,
+    update,
+)
+from vhm_viz.io import cage_to_polydata
 
 __all__ = ["compile_kernels"]
 
@@ -72,9 +81,6 @@ def _image(dims, spacing: float, start=(0, 0, 0)) -> vtkImageData:
 
 def _inputs():
     """Images, a tet mesh and a surface inside the bar's cage (VTK objects)."""
-    from vhm_viz.core.volume import EXACT_VOXELS
-    from vhm_viz.examples import bar_surface, bar_tets
-
     # more voxels than EXACT_VOXELS (the volume engine builds its lattice), and fewer
     # (every voxel evaluated exactly); and an extent not starting at 0 (a piece of a
     # volume, an extracted subset: its masks and boxes are views, compiled apart)
@@ -103,15 +109,6 @@ def compile_kernels(report=None) -> float:
     float
         Seconds taken.
     """
-    from vhm_viz.examples import bar
-    from vhm_viz.filters import (
-        HarmonicDeformationFilter,
-        HarmonicResampleFilter,
-        JacobianAnalysisFilter,
-        update,
-    )
-    from vhm_viz.io import cage_to_polydata
-
     t0 = time.perf_counter()
     scenario = bar(resolution=5)  # (its own surface is not used)
     scene = scenario.scene  # solved by each filter: the solver's kernels too

@@ -1,0 +1,198 @@
+"""The VTK edge of the filters: VTK data as numpy arrays and grids, and ``update``.
+
+What the filters read from VTK objects (points, image geometry, the extent a pipeline
+asks for, a key that changes with a dataset's geometry) as plain arrays and
+:class:`~vhm_viz.core.image.ImageGeometry`, and :func:`update`, which runs a filter and
+raises the Python error its execution stored.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import signal
+
+import numpy as np
+from vtkmodules.util import numpy_support as ns
+from vtkmodules.vtkCommonCore import vtkObject
+from vtkmodules.vtkCommonDataModel import vtkImageData
+from vtkmodules.vtkCommonExecutionModel import vtkExtentTranslator, vtkStreamingDemandDrivenPipeline
+
+from vhm_viz import interrupts
+from vhm_viz.core.image import ImageGeometry
+
+__all__ = [
+    "update",
+    "numpy_points",
+    "geometry_key",
+    "image_geometry",
+    "information_geometry",
+    "requested_extent",
+    "cage_digest",
+    "add_lattice_counts",
+]
+
+_SDDP = vtkStreamingDemandDrivenPipeline
+
+
+def numpy_points(ds) -> np.ndarray:
+    """Points of any vtkDataSet as a (N, 3) float64 array (a copy for implicit points)."""
+    pts = ds.GetPoints() if hasattr(ds, "GetPoints") else None
+    if pts is not None and pts.GetData() is not None:
+        return np.asarray(ns.vtk_to_numpy(pts.GetData()), dtype=np.float64).reshape(-1, 3)
+    n = ds.GetNumberOfPoints()
+    out = np.empty((n, 3))
+    p = [0.0, 0.0, 0.0]
+    for i in range(n):  # only reached for exotic datasets; image/rectilinear are converted
+        ds.GetPoint(i, p)
+        out[i] = p
+    return out
+
+
+def image_geometry(img, extent=None) -> ImageGeometry:
+    """:class:`~vhm_viz.core.image.ImageGeometry` of a ``vtkImageData`` (or of an extent).
+
+    ``extent`` (default: the image's own) may be any extent of the same grid, such as the
+    whole extent of a pipeline whose data holds one piece.
+    """
+    ext = img.GetExtent() if extent is None else extent
+    origin = np.asarray(img.GetOrigin(), dtype=np.float64)
+    spacing = np.asarray(img.GetSpacing(), dtype=np.float64)
+    m = img.GetDirectionMatrix()
+    direction = np.array([[m.GetElement(i, j) for j in range(3)] for i in range(3)])
+    start = np.array(ext[0::2], dtype=np.float64)
+    dims = [ext[2 * a + 1] - ext[2 * a] + 1 for a in range(3)]
+    return ImageGeometry(origin + direction @ (start * spacing), spacing, dims, direction)
+
+
+def information_geometry(info) -> ImageGeometry | None:
+    """The whole grid an image pipeline announces (WHOLE_EXTENT, ORIGIN, SPACING, DIRECTION).
+
+    Known in the information pass, before any data is read: what a filter needs to plan
+    which extent of its input to request. None without a whole extent.
+    """
+    whole = info.Get(_SDDP.WHOLE_EXTENT())
+    if whole is None:
+        return None
+    origin = info.Get(vtkImageData.ORIGIN()) or (0.0, 0.0, 0.0)
+    spacing = info.Get(vtkImageData.SPACING()) or (1.0, 1.0, 1.0)
+    direction = info.Get(vtkImageData.DIRECTION()) if info.Has(vtkImageData.DIRECTION()) else None
+    direction = np.eye(3) if direction is None else np.asarray(direction).reshape(3, 3)
+    start = np.array(whole[0::2], dtype=np.float64)
+    dims = [whole[2 * a + 1] - whole[2 * a] + 1 for a in range(3)]
+    origin = np.asarray(origin, dtype=np.float64) + direction @ (start * np.asarray(spacing))
+    return ImageGeometry(origin, spacing, dims, direction)
+
+
+def requested_extent(info, whole=None):
+    """The extent a structured output is asked for: its piece's (block mode) or UPDATE_EXTENT.
+
+    When a piece is requested (``UpdatePiece``, MPI ranks), VTK turns it into an extent
+    with ``vtkExtentTranslator`` only after the update-extent pass; a filter that plans
+    what to read from its input (the resampling's window) needs the piece's extent then.
+    """
+    whole = info.Get(_SDDP.WHOLE_EXTENT()) if whole is None else whole
+    ext = info.Get(_SDDP.UPDATE_EXTENT()) or whole
+    n = info.Get(_SDDP.UPDATE_NUMBER_OF_PIECES()) or 1
+    if n > 1 and whole is not None and (ext is None or tuple(ext) == tuple(whole)):
+        piece = info.Get(_SDDP.UPDATE_PIECE_NUMBER()) or 0
+        tr = vtkExtentTranslator()
+        ext = [0] * 6
+        tr.PieceToExtentThreadSafe(piece, n, 0, whole, ext, tr.BLOCK_MODE, 0)
+    return None if ext is None else tuple(int(v) for v in ext)
+
+
+def geometry_key(ds) -> tuple:
+    """A hashable key that changes when the geometry (point positions) of ``ds`` changes.
+
+    Point sets: identity and modification time of their points. Images: extent, origin,
+    spacing, direction. Rectilinear grids: extent and the coordinate arrays' times.
+    """
+    if ds is None:
+        return (None,)
+    if ds.IsA("vtkImageData"):
+        d = ds.GetDirectionMatrix()
+        direction = tuple(d.GetElement(i, j) for i in range(3) for j in range(3))
+        return ("image", ds.GetExtent(), ds.GetOrigin(), ds.GetSpacing(), direction)
+    if ds.IsA("vtkRectilinearGrid"):
+        coords = (ds.GetXCoordinates(), ds.GetYCoordinates(), ds.GetZCoordinates())
+        return ("rect", ds.GetExtent(), *((id(c), c.GetMTime()) for c in coords))
+    pts = ds.GetPoints()
+    if pts is None:
+        return ("empty", ds.GetNumberOfPoints())
+    return ("points", pts.GetAddressAsString("vtkPoints"), pts.GetMTime(), pts.GetNumberOfPoints())
+
+
+def update(algorithm, piece: int | None = None, n_pieces: int = 1):
+    """Update a vhm_viz filter and re-raise the Python error its execution stored.
+
+    VTK reports exceptions raised inside ``RequestData`` only as log messages; the
+    vhm_viz filters keep the exception in ``last_error``. This helper silences VTK's
+    duplicate messages and raises that exception.
+
+    Parameters
+    ----------
+    algorithm : a vhm_viz filter
+    piece, n_pieces : int, optional
+        Update only this piece (``UpdatePiece(piece, n_pieces, 0)``).
+
+    Returns
+    -------
+    vtkDataObject
+        The filter's output.
+    """
+    previous = vtkObject.GetGlobalWarningDisplay()
+    vtkObject.GlobalWarningDisplayOff()
+    # Ctrl-C inside VTK's pipeline: the filters stop between chunks and the interrupt is
+    # raised here, even when VTK's wrapper swallowed it inside a callback
+    with interrupts.handled(signals=(signal.SIGINT,)):
+        try:
+            algorithm.last_error = None
+            if piece is None:
+                algorithm.Update()
+            else:
+                algorithm.UpdatePiece(int(piece), int(n_pieces), 0)
+        finally:
+            vtkObject.SetGlobalWarningDisplay(previous)
+            if algorithm.last_error is not None or interrupts.pending() is not None:
+                algorithm.Modified()  # what it produced is no result: execute next time
+        try:
+            interrupts.check()
+        except interrupts.Interrupted as exc:
+            if exc.signum == signal.SIGINT:  # Ctrl-C: what Python callers expect
+                raise KeyboardInterrupt(str(exc)) from None
+            raise
+    if algorithm.last_error is not None:
+        raise algorithm.last_error
+    return algorithm.GetOutputDataObject(0)
+
+
+def cage_digest(pd) -> str:
+    """A digest of a cage surface's points and triangles: its content, not its identity.
+
+    A reader that re-runs gives the same digest for the same cage (no re-solve), and MPI
+    ranks holding the same cage agree on it (the identity and modification time of the
+    arrays differ between processes).
+    """
+    h = hashlib.blake2b(digest_size=16)
+    h.update(ns.vtk_to_numpy(pd.GetPoints().GetData()).astype(np.float64).tobytes())
+    polys = pd.GetPolys()
+    if polys is not None and polys.GetNumberOfCells():
+        h.update(ns.vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64).tobytes())
+        h.update(ns.vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64).tobytes())
+    return h.hexdigest()
+
+
+def add_lattice_counts(out, vol) -> None:
+    """Field array ``vhm_lattice_evaluations`` of the volume's lattice build.
+
+    The exact evaluations made by this process, and the distinct points they were
+    shared among: the same two numbers without MPI; under MPI each rank's piece has
+    its own share.
+    """
+    exchange = vol.exchange
+    n = int(vol.lattice.stats["evaluations"])
+    here, among = (n, n) if exchange is None else (exchange.evaluated, exchange.distinct)
+    counts = ns.numpy_to_vtk(np.array([here, among], dtype=np.int64), deep=1)
+    counts.SetName("vhm_lattice_evaluations")
+    out.GetFieldData().RemoveArray(counts.GetName())
+    out.GetFieldData().AddArray(counts)

@@ -1,0 +1,365 @@
+"""The scene file's fields: their defaults, parsers and validation, in one place.
+
+Each parser takes the JSON value of one field and returns the normalised Python value
+(float64 arrays, dicts of settings) or raises :class:`SceneError` naming the field
+(``constraints.targets[3]``). Numeric settings must lie in their documented ranges
+(:mod:`vhm_viz.core.limits`): ``alpha`` in [1e-4, 100], ``solver.max_iterations`` an
+integer in [1, 1e6], ``solver.tolerance`` in (0, 0.1], ``solver.steps`` in [1, 1000],
+``solver.anderson_window`` in [0, 100], anchor counts in [1, 1e5], ``data.resolution`` in
+[1, 200], ``solution.contraction`` in [0, 1); the error names the field and the range.
+:func:`explorer_v1_to_current` converts the explorer's old scene format.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from vhm_viz.core.errors import SettingError
+from vhm_viz.core.limits import check_setting
+from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW
+
+__all__ = [
+    "SceneError",
+    "SCENE_FORMAT",
+    "SCENE_VERSION",
+    "SCENE_FIELDS",
+    "CONSTRAINT_FIELDS",
+    "DEFAULT_SOLVER",
+    "parse_setting",
+    "parse_cage",
+    "parse_anchors",
+    "parse_constraints",
+    "parse_mode",
+    "parse_solver",
+    "parse_data",
+    "parse_map",
+    "parse_solution",
+    "parse_contraction",
+    "explorer_data_reference",
+    "explorer_v1_to_current",
+    "to_lists",
+]
+
+SCENE_FORMAT = "vhm_viz.scene"
+SCENE_VERSION = 1
+DEFAULT_SOLVER = {
+    "max_iterations": 1000,
+    "tolerance": 1e-6,
+    "init": "identity",
+    "steps": 1,
+    "anderson_window": DEFAULT_ANDERSON_WINDOW,
+}
+SCENE_FIELDS = {
+    "format",
+    "version",
+    "cage",
+    "anchors",
+    "constraints",
+    "mode",
+    "alpha",
+    "solver",
+    "data",
+    "solution",
+    "map",
+}
+#: Version of what a stored map's digest covers (:meth:`Scene.map_inputs`): a change of
+#: the solver that changes its results must change this, so that old maps are re-solved.
+
+CONSTRAINT_FIELDS = ("positions", "targets", "jacobian_points", "jacobians")
+
+
+class SceneError(ValueError):
+    """A malformed scene; ``field`` names the offending field (dotted path)."""
+
+    def __init__(self, field_name: str, message: str, source: str | None = None):
+        self.field = field_name
+        self.message = message
+        where = f"{source}: " if source else ""
+        what = (
+            f"scene {field_name}" if field_name.startswith("(") else (f"scene field '{field_name}'")
+        )
+        super().__init__(f"{where}{what}: {message}")
+
+
+# ----------------------------------------------------------------------------------------
+# validation helpers
+# ----------------------------------------------------------------------------------------
+
+
+def _number(value, name: str, *, positive: bool = False, integer: bool = False):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SceneError(name, f"expected a number, got {json.dumps(value)[:40]}")
+    if not math.isfinite(value):
+        raise SceneError(name, f"expected a finite number, got {value}")
+    if integer:
+        if isinstance(value, float) and not value.is_integer():
+            raise SceneError(name, f"expected an integer, got {value}")
+        value = int(value)
+    if positive and value <= 0:
+        raise SceneError(name, f"must be positive, got {value}")
+    return value
+
+
+def parse_setting(kind: str, value, name: str):
+    """A numeric setting checked against its documented range (:mod:`vhm_viz.core.limits`)."""
+    try:
+        return check_setting(kind, value, name)
+    except SettingError as exc:
+        raise SceneError(name, exc.detail) from None
+
+
+def _matrix(value, name: str, shape: tuple[int, ...], *, integer: bool = False) -> np.ndarray:
+    """Nested lists -> array of ``shape`` (first dimension free when -1)."""
+    if not isinstance(value, list):
+        raise SceneError(name, f"expected a list, got {type(value).__name__}")
+    if shape[1:]:
+        rows = [
+            _matrix(v, f"{name}[{i}]", (shape[1],) + shape[2:], integer=integer)
+            for i, v in enumerate(value)
+        ]
+        if shape[0] >= 0 and len(rows) != shape[0]:
+            raise SceneError(name, f"expected {shape[0]} rows, got {len(rows)}")
+        inner = (shape[1],) + shape[2:] if shape[1] >= 0 else (0,)
+        return np.array(rows, dtype=np.int64 if integer else np.float64).reshape(
+            (len(rows), *inner)
+        )
+    if shape[0] >= 0 and len(value) != shape[0]:
+        raise SceneError(name, f"expected {shape[0]} numbers, got {len(value)}")
+    nums = [_number(v, f"{name}[{i}]", integer=integer) for i, v in enumerate(value)]
+    return np.array(nums, dtype=np.int64 if integer else np.float64)
+
+
+def _points(value, name: str) -> np.ndarray:
+    return _matrix(value, name, (-1, 3)).reshape(-1, 3)
+
+
+def to_lists(a: np.ndarray):
+    """An array as nested lists (for JSON)."""
+    return np.asarray(a).tolist()
+
+
+def _path_text(value, name: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise SceneError(name, "expected a non-empty path string")
+    return value
+
+
+# ----------------------------------------------------------------------------------------
+# field parsers
+# ----------------------------------------------------------------------------------------
+
+
+def parse_cage(value) -> dict:
+    """``cage``: ``{"path"}``, ``{"auto": options}`` or ``{"vertices" (n, 3), "faces" (m, 3)}``."""
+    if value == "auto":
+        return {"auto": {}}
+    if isinstance(value, str):
+        return {"path": _path_text(value, "cage")}
+    if not isinstance(value, dict):
+        raise SceneError("cage", 'expected a path, "auto" or an object')
+    keys = set(value)
+    if keys == {"path"}:
+        return {"path": _path_text(value["path"], "cage.path")}
+    if keys == {"auto"}:
+        opts = value["auto"]
+        if not isinstance(opts, dict):
+            raise SceneError("cage.auto", "expected an object of auto_cage options")
+        return {"auto": copy.deepcopy(opts)}
+    if keys == {"vertices", "faces"}:
+        v = _points(value["vertices"], "cage.vertices")
+        f = _matrix(value["faces"], "cage.faces", (-1, 3), integer=True).reshape(-1, 3)
+        if len(v) < 4:
+            raise SceneError("cage.vertices", f"a cage needs at least 4 vertices, got {len(v)}")
+        if len(f) < 4:
+            raise SceneError("cage.faces", f"a cage needs at least 4 faces, got {len(f)}")
+        bad = np.nonzero((f < 0).any(axis=1) | (f >= len(v)).any(axis=1))[0]
+        if bad.size:
+            raise SceneError(f"cage.faces[{bad[0]}]", f"vertex index out of range [0, {len(v)})")
+        return {"vertices": v, "faces": f}
+    extra = sorted(keys - {"path", "auto", "vertices", "faces"})
+    if extra:
+        raise SceneError(f"cage.{extra[0]}", "unknown field")
+    raise SceneError("cage", "expected one of {path}, {auto}, {vertices, faces}")
+
+
+def parse_anchors(value) -> dict:
+    """``anchors``: ``{"points" (d, 3)}``, ``{"path"}``, ``{"auto": d}`` or polylines/skeleton."""
+    if isinstance(value, str):
+        return {"path": _path_text(value, "anchors")}
+    if isinstance(value, list):
+        pts = _points(value, "anchors")
+        if len(pts) == 0:
+            raise SceneError("anchors", "no anchor points")
+        return {"points": pts}
+    if not isinstance(value, dict):
+        raise SceneError("anchors", "expected a list of points or an object")
+    keys = set(value)
+    if keys == {"path"}:
+        return {"path": _path_text(value["path"], "anchors.path")}
+    if keys == {"auto"}:
+        return {"auto": parse_setting("anchor_count", value["auto"], "anchors.auto")}
+    for kind in ("polylines", "skeleton"):
+        if keys == {kind, "count"}:
+            return {
+                kind: _path_text(value[kind], f"anchors.{kind}"),
+                "count": parse_setting("anchor_count", value["count"], "anchors.count"),
+            }
+    extra = sorted(keys - {"path", "auto", "polylines", "skeleton", "count"})
+    if extra:
+        raise SceneError(f"anchors.{extra[0]}", "unknown field")
+    raise SceneError("anchors", "expected {path}, {auto}, {polylines, count} or {skeleton, count}")
+
+
+def parse_constraints(value) -> dict:
+    """``constraints``: positions, targets (r, 3), jacobian_points (s, 3), jacobians (s, 3, 3)."""
+    if not isinstance(value, dict):
+        raise SceneError("constraints", "expected an object")
+    extra = sorted(set(value) - set(CONSTRAINT_FIELDS))
+    if extra:
+        raise SceneError(f"constraints.{extra[0]}", "unknown field")
+    for required in ("positions", "targets"):
+        if required not in value:
+            raise SceneError(f"constraints.{required}", "missing")
+    pos = _points(value["positions"], "constraints.positions")
+    tgt = _points(value["targets"], "constraints.targets")
+    if len(pos) == 0:
+        raise SceneError("constraints.positions", "at least one position constraint is needed")
+    if len(tgt) != len(pos):
+        raise SceneError("constraints.targets", f"{len(tgt)} targets for {len(pos)} positions")
+    jp = _points(value.get("jacobian_points", []), "constraints.jacobian_points")
+    jac = _matrix(value.get("jacobians", []), "constraints.jacobians", (-1, 3, 3))
+    jac = jac.reshape(-1, 3, 3)
+    if len(jac) != len(jp):
+        raise SceneError(
+            "constraints.jacobians", f"{len(jac)} jacobians for {len(jp)} jacobian_points"
+        )
+    return {"positions": pos, "targets": tgt, "jacobian_points": jp, "jacobians": jac}
+
+
+def parse_mode(value) -> str:
+    """``mode``: ``"rigid"`` or ``"similar"``."""
+    if value not in ("rigid", "similar"):
+        raise SceneError("mode", f'expected "rigid" or "similar", got {json.dumps(value)}')
+    return value
+
+
+def parse_solver(value) -> dict:
+    """``solver``: every key of :data:`DEFAULT_SOLVER`, missing ones at their defaults."""
+    if not isinstance(value, dict):
+        raise SceneError("solver", "expected an object")
+    extra = sorted(set(value) - set(DEFAULT_SOLVER))
+    if extra:
+        raise SceneError(f"solver.{extra[0]}", "unknown field")
+    out = dict(DEFAULT_SOLVER)
+    out.update(value)
+    for key in ("max_iterations", "tolerance", "steps", "anderson_window"):
+        out[key] = parse_setting(key, out[key], f"solver.{key}")
+    if out["init"] not in ("identity", "previous", "solution"):
+        raise SceneError(
+            "solver.init",
+            f'expected "identity", "previous" or "solution", got {json.dumps(out["init"])}',
+        )
+    return {k: out[k] for k in DEFAULT_SOLVER}
+
+
+def parse_data(value) -> dict | None:
+    """``data``: ``{"path": str}``, ``{"bar": kind, "resolution": n}`` or None."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        return {"path": _path_text(value, "data")}
+    if isinstance(value, dict) and set(value) <= {"bar", "resolution"} and "bar" in value:
+        if not isinstance(value["bar"], str):
+            raise SceneError("data.bar", "expected the name of a bar scenario")
+        res = parse_setting("resolution", value.get("resolution", 39), "data.resolution")
+        return {"bar": value["bar"], "resolution": res}
+    raise SceneError("data", 'expected a path or {"bar": kind, "resolution": n}')
+
+
+def parse_map(value) -> dict | None:
+    """``map``: ``{"coefficients": (n + m, 3) array, "inputs": sha256 hex}`` or None."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or set(value) != {"coefficients", "inputs"}:
+        raise SceneError("map", 'expected {"coefficients": [[x, y, z], ...], "inputs": "..."}')
+    inputs = value["inputs"]
+    if not (isinstance(inputs, str) and len(inputs) == 64
+            and all(ch in "0123456789abcdef" for ch in inputs)):  # fmt: skip
+        raise SceneError("map.inputs", "expected a sha256 digest (64 hexadecimal digits)")
+    return {"coefficients": _points(value["coefficients"], "map.coefficients"), "inputs": inputs}
+
+
+def parse_solution(value) -> np.ndarray | None:
+    """``solution.rotations``: the anchors' local matrices (d, 3, 3), or None."""
+    if value is None:
+        return None
+    keys = set(value) if isinstance(value, dict) else set()
+    if not {"rotations"} <= keys <= {"rotations", "contraction"}:
+        raise SceneError("solution", 'expected {"rotations": [[[..3..], ...], ...]}')
+    return _matrix(value["rotations"], "solution.rotations", (-1, 3, 3)).reshape(-1, 3, 3)
+
+
+def parse_contraction(value) -> float | None:
+    """``solution.contraction``: the solver's contraction rate in [0, 1), or None."""
+    if not isinstance(value, dict) or value.get("contraction") is None:
+        return None
+    return parse_setting("contraction", value["contraction"], "solution.contraction")
+
+
+def explorer_data_reference(src):
+    """The old explorer's data reference (``{"path": p}`` or a bar) in this format's terms."""
+    if not isinstance(src, dict) or not src:
+        return None
+    if "path" in src:
+        return src["path"]
+    return src
+
+
+def explorer_v1_to_current(d: dict) -> dict:
+    """The explorer's old single-file scene (``{"vhm_viz_scene": 1, ...}``) as this format."""
+    if d.get("vhm_viz_scene") != 1:
+        version = d.get("vhm_viz_scene")
+        raise SceneError("vhm_viz_scene", f"unsupported explorer scene version {version}")
+    if not d.get("cage"):
+        raise SceneError("cage", "the explorer scene has no cage")
+    try:
+        positions = [c["point"] for c in d.get("positions", [])]
+        targets = [c["target"] for c in d.get("positions", [])]
+        jac_points = [c["point"] for c in d.get("jacobians", [])]
+        jacobians = [
+            (
+                float(c["scale"])
+                * Rotation.from_euler("xyz", c["angles"], degrees=True).as_matrix()
+            ).tolist()
+            for c in d.get("jacobians", [])
+        ]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SceneError("positions", f"malformed explorer constraint ({exc})") from None
+    solver = {k: v for k, v in (d.get("solver") or {}).items() if k in DEFAULT_SOLVER}
+    out = {
+        "format": SCENE_FORMAT,
+        "version": SCENE_VERSION,
+        "cage": d["cage"],
+        "anchors": d.get("anchors", []),
+        "constraints": {
+            "positions": positions,
+            "targets": targets,
+            "jacobian_points": jac_points,
+            "jacobians": jacobians,
+        },
+        "mode": d.get("mode", "rigid"),
+        "alpha": d.get("alpha", 0.01),
+        "solver": solver,
+    }
+    data = explorer_data_reference(d.get("data"))
+    if data is not None:
+        out["data"] = data
+    if d.get("rotations") is not None:
+        out["solution"] = {"rotations": d["rotations"]}
+        out["solver"]["init"] = "solution"
+    return out
