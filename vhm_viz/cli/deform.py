@@ -164,8 +164,8 @@ def deform(args: argparse.Namespace) -> str:
     """Do the work; returns the summary line."""
     import pyvista as pv
 
+    from vhm_viz.core.volume import check_tolerance
     from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
-    from vhm_viz.filters._engines import check_tolerance
 
     src = check_input(args.input)
     arrays = _parse_arrays(args.arrays)

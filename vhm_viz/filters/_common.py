@@ -34,9 +34,9 @@ from vhm_viz.core.binding import check_outside_policy
 from vhm_viz.core.errors import AbortedError
 from vhm_viz.core.image import ImageGeometry
 from vhm_viz.core.limits import check_setting
-from vhm_viz.core.volume import DEFAULT_TOLERANCE
+from vhm_viz.core.volume import DEFAULT_TOLERANCE, check_tolerance
 from vhm_viz.filters import _parallel
-from vhm_viz.filters._engines import BindingCache, VolumeEngineCache, check_tolerance
+from vhm_viz.filters._engines import BindingCache, VolumeEngineCache
 from vhm_viz.filters._map_source import MapSource
 from vhm_viz.filters._vtk import _SDDP, cage_digest, geometry_key
 from vhm_viz.filters._vtk import image_geometry as image_geometry  # re-exported (explorer)

@@ -8,9 +8,8 @@ the last one while what it was built from still holds:
   geometry, the outside policy and the memory budget hold -- moving targets re-uses it;
 * :class:`VolumeEngineCache`: the :class:`~vhm_viz.core.volume.VolumeDeformation` of a
   map on an image grid, kept while the map's content, the grid, the tolerance, the budget
-  and the window hold; its tolerance is validated once, where a user gives it
-  (:func:`check_tolerance`: a filter's ``SetTolerance``, the command line's
-  ``--tolerance``).
+  and the window hold (its tolerance checked by
+  :func:`~vhm_viz.core.volume.check_tolerance`).
 
 Objects are compared by identity (``is``) and held by the cache, never by ``id()``: an id
 is reused once its object is collected, and a new deformer could then pass for the old.
@@ -27,23 +26,7 @@ from vhm_viz.core.image import ImageGeometry
 from vhm_viz.core.memory import release_free_memory
 from vhm_viz.core.volume import VolumeDeformation
 
-__all__ = ["BindingCache", "VolumeEngineCache", "check_tolerance", "map_digest"]
-
-
-def check_tolerance(voxels) -> float:
-    """The volume tolerance (a positive, finite number of voxels), validated once here.
-
-    The filters' :meth:`~DeformationSource.SetTolerance`, the command line's
-    ``--tolerance`` and the accessor all pass through it; the volume engine takes the
-    value as it is.
-    """
-    try:
-        value = float(voxels)
-    except (TypeError, ValueError):
-        value = float("nan")
-    if not (np.isfinite(value) and value > 0):
-        raise ValueError(f"tolerance must be a positive number of voxels; got {voxels}")
-    return value
+__all__ = ["BindingCache", "VolumeEngineCache", "map_digest"]
 
 
 def map_digest(harmonic_map) -> str:

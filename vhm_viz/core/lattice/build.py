@@ -49,6 +49,9 @@ _CORNERS = np.array([[a, b, c] for c in (0, 1) for b in (0, 1) for a in (0, 1)])
 def check_tolerance(tolerance) -> float:
     """The volume tolerance as a float, refused unless a positive finite number of voxels.
 
+    The one check of the setting: the volume engine's constructors, the filters'
+    ``SetTolerance`` and the command line's ``--tolerance`` all call it.
+
     Parameters
     ----------
     tolerance : float
@@ -63,7 +66,10 @@ def check_tolerance(tolerance) -> float:
     ValueError
         When it is not a positive finite number.
     """
-    value = float(tolerance)
+    try:
+        value = float(tolerance)
+    except (TypeError, ValueError):
+        value = math.nan
     if not (math.isfinite(value) and value > 0):
         raise ValueError(f"tolerance must be a positive number of voxels; got {tolerance}")
     return value
