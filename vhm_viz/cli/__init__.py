@@ -1,9 +1,11 @@
 """The ``vhm-viz`` command line.
 
-Each subcommand lives in its own module of this package exposing
-``add_parser(subparsers)`` (registers the subcommand) and ``run(args) -> int``.
-Subcommands simply raise; :func:`main` reports every error as one line on stderr
-with a non-zero exit status.
+Each subcommand lives in its own module of this package, listed in :data:`COMMANDS`,
+exposing ``HELP``, ``DESCRIPTION`` (and optionally ``EPILOG``), ``add_arguments(parser)``
+and ``run(args) -> int``. Every subcommand also takes ``--timings`` (the stage breakdown,
+:mod:`vhm_viz.cli.timings`) and ``--threads`` (:mod:`vhm_viz.core.threads`); a command
+records its stages in ``args.timer``. Subcommands simply raise; :func:`main` reports
+every error as one line on stderr with a non-zero exit status.
 
 Exit statuses:
 
@@ -25,18 +27,23 @@ import importlib
 import sys
 
 from vhm_viz import __version__, interrupts
+from vhm_viz.cli.timings import StageTimer
+from vhm_viz.core.threads import THREADS_VARIABLE, use_threads
 from vhm_viz.scene import NotConverged
 
-# subcommand name -> module in this package; order is the order shown in --help
-_COMMANDS = {
-    "demo": "demo",
-    "deform": "deform",
-    "analyze": "analyze",
-    "cage": "cage",
-    "anchors": "anchors",
-    "explore": "explore",
-    "paraview": "paraview",
-}
+#: The subcommands (modules of this package), in the order ``--help`` shows them.
+COMMANDS = ("demo", "deform", "analyze", "cage", "anchors", "explore", "paraview")
+
+
+def _threads(text: str) -> int:
+    """``--threads``: a positive integer."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer; got {text!r}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,9 +55,29 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"vhm-viz {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module_name in _COMMANDS.values():
-        module = importlib.import_module(f"vhm_viz.cli.{module_name}")
-        module.add_parser(sub)
+    for name in COMMANDS:
+        module = importlib.import_module(f"vhm_viz.cli.{name}")
+        p = sub.add_parser(
+            name,
+            help=module.HELP,
+            description=module.DESCRIPTION,
+            epilog=getattr(module, "EPILOG", None),
+        )
+        module.add_arguments(p)
+        p.add_argument(
+            "--timings",
+            action="store_true",
+            help="print where the time went (read, solve, map, checks, write) on stderr",
+        )
+        p.add_argument(
+            "--threads",
+            type=_threads,
+            default=None,
+            metavar="N",
+            help=f"threads of the numeric kernels (default: ${THREADS_VARIABLE}, else the "
+            "CPUs this process may use: its affinity and any cgroup CPU quota)",
+        )
+        p.set_defaults(func=module.run)
     return parser
 
 
@@ -66,8 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
+    args.timer = StageTimer()
     with interrupts.handled():
         try:
+            use_threads(args.threads)
             return int(args.func(args) or 0)
         except (interrupts.Interrupted, KeyboardInterrupt) as exc:
             status = getattr(exc, "exit_status", 130)
@@ -79,6 +108,8 @@ def main(argv: list[str] | None = None) -> int:
         except Exception as exc:  # noqa: BLE001 - every error is one line and a non-zero exit
             print(f"vhm-viz {args.command}: error: {one_line(exc)}", file=sys.stderr)
             return 1
+        finally:
+            args.timer.report(args.timings)
 
 
 def one_line(exc: BaseException) -> str:

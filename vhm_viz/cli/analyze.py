@@ -55,19 +55,21 @@ ANALYSIS_FILES = {
 }
 
 
-def add_parser(subparsers) -> None:
-    """Register the ``analyze`` subcommand."""
-    p = subparsers.add_parser(
-        "analyze",
-        help="figures and metrics of a deformation (Figure 4 slices, Figure 12 histogram)",
-        description="Solve SCENE for INPUT and write into DIR: the paper's Figure 4 (a slice "
-        "coloured by det J and by cond J), Figure 12 (condition-number histogram), the "
-        "energy-vs-iteration plot, metrics.json (E_rigid and E_volume where the data "
-        "has a surface, det/cond statistics, foldovers, and for meshes with 3D cells the "
-        "inverted cells) and the analysed dataset (analysis.vtu/.vtp/.vti) with its point "
-        "and cell arrays. --certify proves that the map folds nowhere in the shape, or "
-        "finds where it does.",
-    )
+HELP = "figures and metrics of a deformation (Figure 4 slices, Figure 12 histogram)"
+
+DESCRIPTION = (
+    "Solve SCENE for INPUT and write into DIR: the paper's Figure 4 (a slice "
+    "coloured by det J and by cond J), Figure 12 (condition-number histogram), the "
+    "energy-vs-iteration plot, metrics.json (E_rigid and E_volume where the data "
+    "has a surface, det/cond statistics, foldovers, and for meshes with 3D cells the "
+    "inverted cells) and the analysed dataset (analysis.vtu/.vtp/.vti) with its point "
+    "and cell arrays. --certify proves that the map folds nowhere in the shape, or "
+    "finds where it does."
+)
+
+
+def add_arguments(p) -> None:
+    """The ``analyze`` subcommand's arguments."""
     p.add_argument("input", metavar="INPUT", help="rest-pose dataset")
     p.add_argument("--scene", "-s", required=True, metavar="SCENE", help="scene file (JSON)")
     p.add_argument(
@@ -101,7 +103,6 @@ def add_parser(subparsers) -> None:
         help="--certify: cubes examined at most before answering 'undecided' (default: 200000)",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

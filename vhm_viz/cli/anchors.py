@@ -9,16 +9,17 @@ from vhm_viz.cli._dataset_input import add_dataset_argument, add_threshold_argum
 from vhm_viz.cli._util import check_input, check_output
 from vhm_viz.io import CAGE_SUFFIXES, read_cage, read_dataset, write_anchors
 
+HELP = "place anchors on the medial axis/surface of a dataset, inside its cage"
 
-def add_parser(subparsers) -> None:
-    """Register the ``anchors`` subcommand."""
-    p = subparsers.add_parser(
-        "anchors",
-        help="place anchors on the medial axis/surface of a dataset, inside its cage",
-        description="Place --count anchors on an approximation of the medial axis/surface "
-        "of INPUT, strictly inside INPUT and CAGE, and write them as JSON: "
-        '{"anchors": [[x, y, z], ...], "count": d, "min_pairwise_distance": ...}.',
-    )
+DESCRIPTION = (
+    "Place --count anchors on an approximation of the medial axis/surface "
+    "of INPUT, strictly inside INPUT and CAGE, and write them as JSON: "
+    '{"anchors": [[x, y, z], ...], "count": d, "min_pairwise_distance": ...}.'
+)
+
+
+def add_arguments(p) -> None:
+    """The ``anchors`` subcommand's arguments."""
     add_dataset_argument(p)
     p.add_argument("--cage", "-c", required=True, metavar="CAGE", help="cage file (OBJ, ...)")
     p.add_argument("-o", "--output", required=True, metavar="ANCHORS.json", help="output JSON")
@@ -35,7 +36,6 @@ def add_parser(subparsers) -> None:
     )
     add_threshold_argument(p, "place anchors in the region", "the whole volume")
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

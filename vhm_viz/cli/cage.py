@@ -9,16 +9,17 @@ from vhm_viz.cli._dataset_input import add_dataset_argument, add_threshold_argum
 from vhm_viz.cli._util import check_input, check_output
 from vhm_viz.io import read_dataset, write_cage
 
+HELP = "build an automatic cage (closed, manifold, enclosing) for a dataset"
 
-def add_parser(subparsers) -> None:
-    """Register the ``cage`` subcommand."""
-    p = subparsers.add_parser(
-        "cage",
-        help="build an automatic cage (closed, manifold, enclosing) for a dataset",
-        description="Build a cage that strictly encloses INPUT (surface, point cloud, tet "
-        "mesh or volume) and follows its shape, with at most --max-faces triangles; write "
-        "it as OBJ. Prints the face count, clearance and enclosure check.",
-    )
+DESCRIPTION = (
+    "Build a cage that strictly encloses INPUT (surface, point cloud, tet "
+    "mesh or volume) and follows its shape, with at most --max-faces triangles; write "
+    "it as OBJ. Prints the face count, clearance and enclosure check."
+)
+
+
+def add_arguments(p) -> None:
+    """The ``cage`` subcommand's arguments."""
     add_dataset_argument(p)
     p.add_argument("-o", "--output", required=True, metavar="CAGE.obj", help="output OBJ")
     p.add_argument(
@@ -54,7 +55,6 @@ def add_parser(subparsers) -> None:
     )
     add_threshold_argument(p, "enclose the region", "the volume's bounding box")
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -44,24 +44,29 @@ OUTPUT_TYPES = ("PolyData", "UnstructuredGrid", "StructuredGrid", "ImageData")
 ALL_OUTPUT_SUFFIXES = tuple(sorted({s for t in OUTPUT_TYPES for s in output_suffixes(t)}))
 
 
-def add_parser(subparsers) -> None:
-    """Register the ``deform`` subcommand."""
-    p = subparsers.add_parser(
-        "deform",
-        help="deform a dataset with a scene (cage, anchors, constraints)",
-        description="Deform INPUT with the variational harmonic map described by SCENE and "
-        "write OUTPUT. Surfaces stay surfaces, tet meshes stay tet meshes. A volume (any "
-        "image format read) written to .vts or .vtk becomes a warped structured grid "
-        "(every voxel moved); written to .vti, .mhd, .mha, .nii or .nii.gz it is resampled "
-        "onto a regular grid that holds the whole deformed volume (each output voxel pulled "
-        "back through the inverse map), keeping origin, spacing and direction. Volumes go "
-        "through an adaptive lattice of exact map values (--tolerance). Prints one summary "
-        "line, and a warning line (stderr) when the output has inverted cells or det J <= 0 "
-        "at sampled points.",
-        epilog=f"input types: {' '.join(DATASET_SUFFIXES)}, or a DICOM folder. Example: "
-        "vhm-viz deform bar.vtp "
-        "--scene bar.json -o bent.vtp",
-    )
+HELP = "deform a dataset with a scene (cage, anchors, constraints)"
+
+DESCRIPTION = (
+    "Deform INPUT with the variational harmonic map described by SCENE and "
+    "write OUTPUT. Surfaces stay surfaces, tet meshes stay tet meshes. A volume (any "
+    "image format read) written to .vts or .vtk becomes a warped structured grid "
+    "(every voxel moved); written to .vti, .mhd, .mha, .nii or .nii.gz it is resampled "
+    "onto a regular grid that holds the whole deformed volume (each output voxel pulled "
+    "back through the inverse map), keeping origin, spacing and direction. Volumes go "
+    "through an adaptive lattice of exact map values (--tolerance). Prints one summary "
+    "line, and a warning line (stderr) when the output has inverted cells or det J <= 0 "
+    "at sampled points."
+)
+
+EPILOG = (
+    f"input types: {' '.join(DATASET_SUFFIXES)}, or a DICOM folder. Example: "
+    "vhm-viz deform bar.vtp "
+    "--scene bar.json -o bent.vtp"
+)
+
+
+def add_arguments(p) -> None:
+    """The ``deform`` subcommand's arguments."""
     p.add_argument("input", metavar="INPUT", help="dataset to deform")
     p.add_argument("--scene", "-s", required=True, metavar="SCENE", help="scene file (JSON)")
     p.add_argument(
@@ -128,7 +133,6 @@ def add_parser(subparsers) -> None:
     )
     add_convergence_argument(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -179,7 +183,9 @@ def deform(args: argparse.Namespace) -> str:
     inputs = [src, args.scene, *scene.referenced_files(), *([reference] if reference else [])]
     check_output(args.output, ALL_OUTPUT_SUFFIXES, inputs)
     out = Path(args.output)
-    mesh = read_dataset(src)
+    timer = args.timer
+    with timer.stage("read"):
+        mesh = read_dataset(src)
     volume = isinstance(mesh, pv.ImageData)
     resample = volume and is_image_format(out)
     out_type = "ImageData" if resample else _output_type(mesh)
@@ -190,16 +196,18 @@ def deform(args: argparse.Namespace) -> str:
         )
     ref_image = None
     if reference is not None:
-        ref_image = read_dataset(reference)
+        with timer.stage("read"):
+            ref_image = read_dataset(reference)
         if not isinstance(ref_image, pv.ImageData):
             raise CLIError(f"--reference {reference} is not an image")
     if not resample and (args.spacing or reference):
         raise CLIError("--spacing and --reference apply to a volume resampled to an image")
 
     t0 = time.perf_counter()
-    solved = build_and_solve(
-        scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
-    )
+    with timer.stage("solve"):
+        solved = build_and_solve(
+            scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
+        )
     dfm, reports = solved.deformer, solved.reports
     if resample:
         flt = HarmonicResampleFilter()
@@ -224,14 +232,17 @@ def deform(args: argparse.Namespace) -> str:
     bar = Progress(label, enabled=not args.quiet)
     observe_progress(flt, bar)
     try:
-        result = pv.wrap(update(flt))
+        with timer.stage("map"):
+            result = pv.wrap(update(flt))
     except OutsideCageError as exc:
         raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
     bar.finish()
     # everything that can fail happens before the write: an error never follows an output
-    summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
-    warning = _check_folds(mesh, result, dfm, flt, resample)
-    write_dataset(out, result)
+    with timer.stage("checks"):
+        summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
+        warning = _check_folds(mesh, result, dfm, flt, resample)
+    with timer.stage("write"):
+        write_dataset(out, result)
     seconds = time.perf_counter() - t0
     if warning:
         print(warning, file=sys.stderr)
@@ -270,15 +281,45 @@ def _output_type(mesh) -> str:
 
 
 def _check_folds(mesh, result, dfm, flt, resample: bool) -> str | None:
-    """The fold warning of the output: inverted cells and sampled det J <= 0."""
+    """The fold warning of the output: inverted cells and sampled det J <= 0.
+
+    A warped image's cells are judged by the corner Jacobians of its trilinear voxels
+    (:func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants`); other 3D cells
+    by the tetrahedra they split into, taken from the output's cell arrays when the
+    filter computed them (``--arrays cells``).
+    """
+    import pyvista as pv
+
     from vhm_viz.filters import cell_quality
 
     cells = None
     point_det = None
     if not resample:
-        cells = cell_quality(mesh, result.points)
+        if isinstance(mesh, pv.ImageData):
+            cells = _voxel_folds(mesh, result)
+        elif "cell_jacobian_determinant" in result.cell_data:
+            det = np.asarray(result.cell_data["cell_jacobian_determinant"])
+            finite = np.isfinite(det)
+            summary = {"cells": int(finite.sum()), "inverted": int((det[finite] <= 0).sum())}
+            cells = {"determinant": det, "summary": summary}
+        else:
+            cells = cell_quality(mesh, result.points, condition=False)
         if "jacobian_determinant" in result.point_data:
             point_det = np.asarray(result.point_data["jacobian_determinant"])
             if "vhm_outside" in result.point_data:  # passthrough points are not the map's
                 point_det = np.where(result.point_data["vhm_outside"] == 0, point_det, np.nan)
     return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det)
+
+
+def _voxel_folds(image, warped) -> dict | None:
+    """:func:`fold_warning`'s cells of a warped image: its voxels' corner Jacobians."""
+    from vhm_viz.core.cell_kernels import hexahedron_corner_determinants
+
+    dims = tuple(int(d) for d in image.dimensions)
+    if min(dims) < 2:
+        return None
+    rest_det = float(np.prod(image.spacing) * np.linalg.det(np.asarray(image.direction_matrix)))
+    det = hexahedron_corner_determinants(warped.points, dims, rest_det)
+    finite = np.isfinite(det)
+    summary = {"cells": int(finite.sum()), "inverted": int(np.count_nonzero(det[finite] <= 0))}
+    return {"determinant": det, "summary": summary}

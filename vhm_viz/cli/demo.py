@@ -37,16 +37,17 @@ from vhm_viz.io import json_text, write_dataset, write_text
 from vhm_viz.scene import Scene
 from vhm_viz.tetra import tetrahedralize
 
+HELP = "run the bundled bar demo end to end (surface, tets, volume, figures)"
 
-def add_parser(subparsers) -> None:
-    """Register the ``demo`` subcommand."""
-    p = subparsers.add_parser(
-        "demo",
-        help="run the bundled bar demo end to end (surface, tets, volume, figures)",
-        description="Bend the bundled bar into a U (the paper's Figure 4 scenario) and write "
-        "the deformed surface, a deformed tet mesh, a deformed voxel volume (warped and "
-        "resampled), the figures, the scene and the metrics into DIR.",
-    )
+DESCRIPTION = (
+    "Bend the bundled bar into a U (the paper's Figure 4 scenario) and write "
+    "the deformed surface, a deformed tet mesh, a deformed voxel volume (warped and "
+    "resampled), the figures, the scene and the metrics into DIR."
+)
+
+
+def add_arguments(p) -> None:
+    """The ``demo`` subcommand's arguments."""
     p.add_argument(
         "-o",
         "--output",
@@ -71,7 +72,6 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--no-tets", action="store_true", help="skip the tetrahedral mesh")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:

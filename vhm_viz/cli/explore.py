@@ -2,21 +2,21 @@
 
 from __future__ import annotations
 
+HELP = "open the interactive Qt explorer"
 
-def add_parser(subparsers) -> None:
-    """Register the ``explore`` subcommand."""
-    from vhm_viz.app import add_arguments
+DESCRIPTION = (
+    "Open a mesh, tet mesh, point cloud or volume (or a scene) in the "
+    "interactive explorer: load or generate a cage and anchors, click to add "
+    "constraints, drag them and analyse the deformation live. With --screenshot, render "
+    "one frame of the solved scene to a PNG file and exit."
+)
 
-    p = subparsers.add_parser(
-        "explore",
-        help="open the interactive Qt explorer",
-        description="Open a mesh, tet mesh, point cloud or volume (or a scene) in the "
-        "interactive explorer: load or generate a cage and anchors, click to add "
-        "constraints, drag them and analyse the deformation live. With --screenshot, render "
-        "one frame of the solved scene to a PNG file and exit.",
-    )
-    add_arguments(p)
-    p.set_defaults(func=run)
+
+def add_arguments(p) -> None:
+    """The ``explore`` subcommand's arguments."""
+    from vhm_viz.app import add_arguments as add_explorer_arguments
+
+    add_explorer_arguments(p)
 
 
 def run(args) -> int:

@@ -25,15 +25,17 @@ from pathlib import Path
 PLUGIN_FILE = "vhm_viz_paraview.py"
 
 
-def add_parser(subparsers) -> None:
-    """Register the ``paraview`` subcommand."""
-    p = subparsers.add_parser(
-        "paraview",
-        help="print the ParaView plugin's path and set-up lines, or run ParaView with it",
-        description="Print where the installed ParaView plugin and example scenes are and "
-        "the shell lines that make ParaView load the plugin; with PROGRAM (paraview, "
-        "pvpython, pvbatch ...), run it with those settings.",
-    )
+HELP = "print the ParaView plugin's path and set-up lines, or run ParaView with it"
+
+DESCRIPTION = (
+    "Print where the installed ParaView plugin and example scenes are and "
+    "the shell lines that make ParaView load the plugin; with PROGRAM (paraview, "
+    "pvpython, pvbatch ...), run it with those settings."
+)
+
+
+def add_arguments(p) -> None:
+    """The ``paraview`` subcommand's arguments."""
     p.add_argument(
         "--shell",
         action="store_true",
@@ -52,7 +54,6 @@ def add_parser(subparsers) -> None:
         metavar="PROGRAM ARGS",
         help="run this program (e.g. paraview, pvpython script.py) with the plugin loaded",
     )
-    p.set_defaults(func=run)
 
 
 def package_folder() -> Path:

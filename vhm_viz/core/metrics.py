@@ -419,7 +419,7 @@ def cell_summary(measures: dict) -> dict:
         "inverted": int(np.count_nonzero(det[ok] <= 0.0)),
         "det_min": float(det[ok].min()) if ok.any() else float("nan"),
         "det_max": float(det[ok].max()) if ok.any() else float("nan"),
-        "cond_max": float(np.nanmax(cond)) if ok.any() else float("nan"),
+        "cond_max": float(np.nanmax(cond)) if (ok & ~np.isnan(cond)).any() else float("nan"),
         "rest_inverted": int(np.count_nonzero(measures["rest_inverted"])),
         "degenerate": int(np.count_nonzero(measures["degenerate"])),
     }

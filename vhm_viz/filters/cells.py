@@ -149,7 +149,7 @@ def _triangulated(ds):
     return conn.reshape(-1, 4), owner
 
 
-def cell_quality(ds, deformed_points) -> dict | None:
+def cell_quality(ds, deformed_points, *, condition: bool = True) -> dict | None:
     """Per-cell determinant and condition number of a deformation of ``ds``'s 3D cells.
 
     Parameters
@@ -158,6 +158,8 @@ def cell_quality(ds, deformed_points) -> dict | None:
         The rest dataset.
     deformed_points : (N, 3) array_like
         Its points after the deformation (same order).
+    condition : bool
+        Compute the condition numbers too (NaN when False).
 
     Returns
     -------
@@ -180,7 +182,7 @@ def cell_quality(ds, deformed_points) -> dict | None:
             continue
         # renumber the chunk's cells so the work arrays stay the chunk's size
         used, local = np.unique(cells, return_inverse=True)
-        m = cell_measures(rest, moved, tets, local, len(used))
+        m = cell_measures(rest, moved, tets, local, len(used), condition=condition)
         det[used], cond[used] = m["determinant"], m["condition_number"]
         degenerate[used] |= m["degenerate"]
         if _dimensions(ds) is None:  # a lattice's tets are ours: it stores no orientation

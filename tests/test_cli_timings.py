@@ -1,0 +1,94 @@
+"""--timings, --threads and the fold check of a warped volume, through the command line."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from vhm_viz import examples
+
+
+def _cli(*args, env=None):
+    return subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", *args],
+        capture_output=True, text=True, timeout=600, env={**os.environ, **(env or {})},
+    )  # fmt: skip
+
+
+DIMS = (9, 9, 24)
+
+
+@pytest.fixture(scope="module")
+def folding_volume(tmp_path_factory):
+    """An image filling the bar, and the bar's push scene, which folds it."""
+    folder = tmp_path_factory.mktemp("fold")
+    scenario = examples.bar("push", resolution=12, top_height=2.5)
+    scene = scenario.scene
+    scene.solver["steps"] = 8  # the continuation of BarScenario.solve
+    scene.save(folder / "scene.json")
+    lo = np.array(scenario.surface.bounds[0::2])
+    hi = np.array(scenario.surface.bounds[1::2])
+    size = 0.98 * (hi - lo)
+    image = pv.ImageData(
+        dimensions=DIMS, spacing=size / (np.array(DIMS) - 1), origin=lo + 0.01 * (hi - lo)
+    )
+    image["value"] = np.arange(image.n_points, dtype=np.float32)
+    image.save(folder / "image.vti")
+    return folder
+
+
+def _corner_dets(points, dims):
+    """Brute force: the smallest trilinear corner Jacobian determinant of each cell."""
+    p = points.reshape(dims[2], dims[1], dims[0], 3)
+    nz, ny, nx = (d - 1 for d in dims[::-1])
+    out = np.full((nz, ny, nx), np.inf)
+    for c in (0, 1):
+        for b in (0, 1):
+            for a in (0, 1):
+                ex = p[c : c + nz, b : b + ny, 1:] - p[c : c + nz, b : b + ny, :-1]
+                ey = p[c : c + nz, 1:, a : a + nx] - p[c : c + nz, :-1, a : a + nx]
+                ez = p[1:, b : b + ny, a : a + nx] - p[:-1, b : b + ny, a : a + nx]
+                out = np.minimum(out, np.linalg.det(np.stack([ex, ey, ez], axis=-1)))
+    return out.reshape(-1)
+
+
+def test_warped_volume_fold_count_matches_brute_force(folding_volume):
+    out = folding_volume / "warped.vts"
+    proc = _cli(
+        "deform", str(folding_volume / "image.vti"), "--scene", str(folding_volume / "scene.json"),
+        "-o", str(out), "-q", "--timings",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    warped = pv.read(out)
+    expected = int((_corner_dets(np.asarray(warped.points), DIMS) <= 0).sum())
+    assert expected > 0  # the scene folds
+    m = re.search(r"(\d+) of (\d+) cells inverted", proc.stderr)
+    assert m, proc.stderr
+    assert int(m.group(1)) == expected and int(m.group(2)) == np.prod(np.array(DIMS) - 1)
+    line = [ln for ln in proc.stderr.splitlines() if "timings:" in ln]
+    assert len(line) == 1
+    stages = dict(re.findall(r"(\w+) ([0-9.]+) s", line[0]))
+    assert {"read", "solve", "map", "checks", "write", "other", "total"} <= set(stages)
+    parts = sum(float(v) for k, v in stages.items() if k != "total")
+    assert parts == pytest.approx(float(stages["total"]), abs=0.02)
+
+
+def test_threads_option_and_variable(folding_volume):
+    d = folding_volume
+    args = ["deform", str(d / "image.vti"), "--scene", str(d / "scene.json"),
+            "-o", str(d / "t.vti"), "-q"]  # fmt: skip
+    ok = _cli(*args, "--threads", "1")
+    assert ok.returncode == 0, ok.stderr
+    bad = _cli(*args, "--threads", "0")
+    assert bad.returncode == 2 and "--threads: expected a positive integer" in bad.stderr
+    env = _cli(*args, env={"VHM_THREADS": "many"})
+    assert env.returncode == 1
+    assert env.stderr.strip().splitlines() == [
+        "vhm-viz deform: error: VHM_THREADS must be a positive integer; got 'many'"
+    ]
