@@ -156,12 +156,15 @@ def analyze(args: argparse.Namespace) -> str:
         [*FILES.values(), *ANALYSIS_FILES.values()],
         [src, args.scene, *scene.referenced_files()],
     )
-    mesh = read_dataset(src)
+    timer = args.timer
+    with timer.stage("read"):
+        mesh = read_dataset(src)
 
     t0 = time.perf_counter()
-    solved = build_and_solve(
-        scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
-    )
+    with timer.stage("solve"):
+        solved = build_and_solve(
+            scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
+        )
     dfm, reports = solved.deformer, solved.reports
     hm = dfm.harmonic_map
     ana = JacobianAnalysisFilter()
@@ -171,7 +174,8 @@ def analyze(args: argparse.Namespace) -> str:
     bar = Progress("analyzing", enabled=not args.quiet)
     observe_progress(ana, bar)
     try:
-        analysed = pv.wrap(update(ana))
+        with timer.stage("map"):
+            analysed = pv.wrap(update(ana))
     except OutsideCageError as exc:
         raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
     bar.finish()
@@ -186,13 +190,15 @@ def analyze(args: argparse.Namespace) -> str:
     deformer_filter.SetInputData(mesh)
     deformer_filter.SetDeformer(dfm)
     deformer_filter.SetOutsidePolicy(args.outside)
-    deformed = pv.wrap(update(deformer_filter))
+    with timer.stage("map"):
+        deformed = pv.wrap(update(deformer_filter))
     analysed.point_data["displacement"] = np.asarray(deformed.points) - np.asarray(mesh.points)
     analysis_name = ANALYSIS_FILES.get(type(analysed).__name__, "analysis.vtk")
 
     surf = deformed if isinstance(deformed, pv.PolyData) else None
-    slice_ = plotting.jacobian_slice(mesh, hm, normal=normal)
-    certificate = _certify(dfm, mesh, args) if args.certify else None
+    with timer.stage("checks"):
+        slice_ = plotting.jacobian_slice(mesh, hm, normal=normal)
+        certificate = _certify(dfm, mesh, args) if args.certify else None
 
     metrics = {
         "input": str(src),
@@ -222,7 +228,7 @@ def analyze(args: argparse.Namespace) -> str:
     if certificate is not None:
         metrics["injectivity"] = certificate.to_json()
     # the report is one unit: its files appear together, or the old ones stay untouched
-    with atomic_outputs(out_dir) as stage:
+    with timer.stage("write"), atomic_outputs(out_dir) as stage:
         write_dataset(stage / analysis_name, analysed)
         pl = plotting.figure4(slice_, deformed_surface=surf, filename=stage / FILES["figure4"])
         pl.close()
