@@ -92,3 +92,22 @@ def test_threads_option_and_variable(folding_volume):
     assert env.stderr.strip().splitlines() == [
         "vhm-viz deform: error: VHM_THREADS must be a positive integer; got 'many'"
     ]
+
+
+def test_first_run_says_it_compiles_once(folding_volume, tmp_path, monkeypatch, capsys):
+    from vhm_viz.cli import main
+
+    # a fresh stamp folder: as on a machine where no command has run yet
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    d = folding_volume
+    args = ["deform", str(d / "image.vti"), "--scene", str(d / "scene.json"),
+            "-o", str(tmp_path / "out.vti")]  # fmt: skip
+    assert main([*args[:1], str(d / "missing.vti"), *args[2:]]) == 1
+    first = capsys.readouterr().err
+    assert "compiling numeric kernels once" in first  # said before it starts
+    assert main(args) == 0  # a failed run did not count: said again, then recorded
+    assert "compiling numeric kernels once" in capsys.readouterr().err
+    assert main(args) == 0
+    assert "compiling" not in capsys.readouterr().err
+    assert main(["analyze", *args[1:4], "-o", str(tmp_path / "a")]) == 0
+    assert "compiling numeric kernels once" in capsys.readouterr().err  # per command

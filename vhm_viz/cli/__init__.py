@@ -27,12 +27,15 @@ import importlib
 import sys
 
 from vhm_viz import __version__, interrupts
+from vhm_viz.cli.first_run import NOTICE, compiled_before, record_compiled
 from vhm_viz.cli.timings import StageTimer
 from vhm_viz.core.threads import THREADS_VARIABLE, use_threads
 from vhm_viz.scene import NotConverged
 
 #: The subcommands (modules of this package), in the order ``--help`` shows them.
 COMMANDS = ("demo", "deform", "analyze", "cage", "anchors", "explore", "paraview")
+#: The subcommands that run compiled kernels (their first run on a machine compiles them).
+COMPILING = frozenset(COMMANDS) - {"paraview"}
 
 
 def _threads(text: str) -> int:
@@ -94,10 +97,16 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     args.timer = StageTimer()
+    first_run = args.command in COMPILING and not compiled_before(args.command)
+    if first_run and not getattr(args, "quiet", False):
+        print(NOTICE, file=sys.stderr, flush=True)
     with interrupts.handled():
         try:
             use_threads(args.threads)
-            return int(args.func(args) or 0)
+            status = int(args.func(args) or 0)
+            if first_run and status == 0:
+                record_compiled(args.command)
+            return status
         except (interrupts.Interrupted, KeyboardInterrupt) as exc:
             status = getattr(exc, "exit_status", 130)
             print(f"vhm-viz {args.command}: {exc or 'interrupted by SIGINT'}", file=sys.stderr)
