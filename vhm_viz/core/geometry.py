@@ -362,7 +362,8 @@ def ray_depth(origins, directions, vertices, faces, skip_faces=None) -> np.ndarr
     e1 = v[f[:, 1]] - a
     e2 = v[f[:, 2]] - a
     out = np.full(len(o), np.inf)
-    # (rays x faces) blocks of ~1M pairs keep the temporaries near 100 MB
+    # blocks of at most a million (ray, face) pairs bound the temporaries' memory,
+    # whatever the numbers of rays and faces
     step = max(1, 1_000_000 // max(len(f), 1))
     for s in range(0, len(o), step):
         oo, dd = o[s : s + step, None, :], d[s : s + step, None, :]

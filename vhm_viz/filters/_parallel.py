@@ -236,8 +236,8 @@ def send_parts(make_part, fields: dict) -> list:
 def pack_part(part: dict, fields: dict) -> np.ndarray:
     """A part of :func:`send_parts` in one uint8 buffer: per field its length, then its bytes.
 
-    Straight into the buffer, each field released once copied: a part, tens of megabytes
-    on a large volume, is never held twice. Each field starts 8-byte aligned.
+    Straight into the buffer, each field released once copied: a part, a large share of
+    a round's values, is never held twice. Each field starts 8-byte aligned.
 
     Parameters
     ----------
