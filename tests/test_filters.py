@@ -8,7 +8,13 @@ import pytest
 pv = pytest.importorskip("pyvista")
 vtk = pytest.importorskip("vtkmodules.vtkCommonDataModel")
 
-from conftest import affine_resampled, box_cage, data_path  # noqa: E402
+from conftest import (  # noqa: E402
+    affine_resampled,
+    box_cage,
+    data_path,
+    extent_box,
+    fd_jacobian,
+)
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase  # noqa: E402
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline  # noqa: E402
 from vtkmodules.vtkImagingCore import vtkRTAnalyticSource  # noqa: E402
@@ -55,17 +61,6 @@ def _expected_normals(jac, n):
     # independent formula: cof(J) n = det(J) J^{-T} n
     m = np.linalg.det(jac)[:, None] * np.einsum("kji,kj->ki", np.linalg.inv(jac), n)
     return m / np.linalg.norm(m, axis=1, keepdims=True)
-
-
-def _fd_jacobian(f, points, h=1e-5):
-    """Central finite differences of the positions: ``J[k, i, j] = d f_i / d x_j``."""
-    p = np.asarray(points, dtype=np.float64)
-    cols = []
-    for j in range(3):
-        e = np.zeros(3)
-        e[j] = h
-        cols.append((f(p + e) - f(p - e)) / (2 * h))
-    return np.stack(cols, axis=2)
 
 
 def _reference_measures(jac):
@@ -465,11 +460,10 @@ def test_pieces_reassemble_to_whole(streaming_source):
         ext = out.GetExtent()
         pieces.append(ext)
         o = pv.wrap(out)
-        d = [ext[1] - ext[0] + 1, ext[3] - ext[2] + 1, ext[5] - ext[4] + 1]
-        assert o.n_points == np.prod(d) < whole.n_points
-        sl = np.s_[ext[4] : ext[5] + 1, ext[2] : ext[3] + 1, ext[0] : ext[1] + 1]
-        got[sl] = np.asarray(o.points).reshape(d[2], d[1], d[0], 3)
-        got_s[sl] = np.asarray(o.point_data["RTData"]).reshape(d[2], d[1], d[0])
+        shape, box = extent_box(ext)
+        assert o.n_points == np.prod(shape) < whole.n_points
+        got[box] = np.asarray(o.points).reshape(shape + (3,))
+        got_s[box] = np.asarray(o.point_data["RTData"]).reshape(shape)
     assert len(set(pieces)) == 4
     np.testing.assert_allclose(got, expected, atol=1e-12)
     np.testing.assert_array_equal(got_s, scalars)
@@ -555,10 +549,8 @@ def test_resample_pieces_and_deformed_grid():
         f2.SetInputData(img)
         f2.SetHarmonicMap(hm)
         out = update(f2, p, 3)
-        ext = out.GetExtent()
-        d = [ext[1] - ext[0] + 1, ext[3] - ext[2] + 1, ext[5] - ext[4] + 1]
-        sl = np.s_[ext[4] : ext[5] + 1, ext[2] : ext[3] + 1, ext[0] : ext[1] + 1]
-        got[sl] = np.asarray(pv.wrap(out).point_data["density"]).reshape(d[2], d[1], d[0])
+        shape, box = extent_box(out.GetExtent())
+        got[box] = np.asarray(pv.wrap(out).point_data["density"]).reshape(shape)
     np.testing.assert_allclose(got, expected, atol=1e-9)
 
 
@@ -596,7 +588,7 @@ def test_analysis_arrays_equal_metrics():
     np.testing.assert_array_equal(out.points, mesh.points)  # rest geometry
     np.testing.assert_array_equal(out.point_data["keep"], mesh.point_data["keep"])
     # the closed form against finite differences of the mapped positions
-    fd = _fd_jacobian(hm.map, mesh.points)
+    fd = fd_jacobian(hm.map, mesh.points)
     np.testing.assert_allclose(hm.jacobian(mesh.points), fd, atol=1e-7)
     det, cond, angle = _reference_measures(fd)
     assert det.min() > 0 and np.ptp(det) > 0.05 and angle.max() > 1.0  # a real deformation
@@ -637,7 +629,7 @@ def test_analysis_with_deformer_matches_binding():
     dfm.solve()
     out = pv.wrap(update(_analysis(mesh, dfm)))
     # finite differences of the deformer's own deformation of nearby points
-    fd = _fd_jacobian(lambda p: dfm.bind(p).deform(), mesh.points)
+    fd = fd_jacobian(lambda p: dfm.bind(p).deform(), mesh.points)
     det, cond, angle = _reference_measures(fd)
     assert np.abs(det - 1).max() > 0.01  # not the identity
     np.testing.assert_allclose(out.point_data["jacobian_determinant"], det, rtol=1e-8)
@@ -655,7 +647,7 @@ def test_accessor_deform_and_analyze():
     hm = _random_map(_cage_around(mesh.bounds))
     out = mesh.vhm.deform(hm, determinant=True)
     np.testing.assert_allclose(out.points, hm.map(mesh.points), atol=1e-12)
-    det, cond, angle = _reference_measures(_fd_jacobian(hm.map, mesh.points))
+    det, cond, angle = _reference_measures(fd_jacobian(hm.map, mesh.points))
     np.testing.assert_allclose(out.point_data["jacobian_determinant"], det, rtol=1e-8)
     ana = mesh.vhm.analyze(hm)
     np.testing.assert_array_equal(ana.points, mesh.points)
