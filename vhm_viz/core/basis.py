@@ -414,9 +414,8 @@ def domain_columns(vertices, faces) -> tuple[np.ndarray, ...]:
 
     Parameters
     ----------
-    vertices : (n, 3) array_like
-    faces : (m, 3) array_like of int
-        Outward-oriented cage.
+    vertices, faces : (n, 3) array_like, (m, 3) array_like of int
+        The outward-oriented cage, as for :func:`~vhm_viz.core.cage_tables.prepare_cage`.
 
     Returns
     -------
