@@ -53,8 +53,8 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     Notes
     -----
     The cones are taken from the vertices' centroid, not from the origin: for a mesh far
-    from the origin the per-face terms would otherwise be huge and cancel (a cage moved by
-    1e6 came out with volume 148139 instead of 0.124, the wrong sign included).
+    from the origin the per-face terms would otherwise be huge and cancel, leaving nothing
+    of a small volume, not even its sign.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
