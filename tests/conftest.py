@@ -84,6 +84,27 @@ def simple_cage(vertices, faces):
     return SimpleNamespace(vertices=vertices, faces=faces, face_normals=normals, face_areas=areas)
 
 
+def fd_jacobian(f, points, h: float = 1e-5) -> np.ndarray:
+    """Central finite differences of ``f`` at ``points`` (N, 3): ``J[k, i, j] = d f_i / d x_j``."""
+    p = np.asarray(points, dtype=np.float64)
+    cols = []
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = h
+        cols.append((f(p + e) - f(p - e)) / (2 * h))
+    return np.stack(cols, axis=2)
+
+
+def extent_box(extent) -> tuple[tuple[int, int, int], tuple]:
+    """A piece's VTK ``extent`` in its whole image's (z, y, x)-ordered arrays.
+
+    Returns the piece's (nz, ny, nx) shape and the index of its voxels in the whole.
+    """
+    e = extent
+    shape = (e[5] - e[4] + 1, e[3] - e[2] + 1, e[1] - e[0] + 1)
+    return shape, np.s_[e[4] : e[5] + 1, e[2] : e[3] + 1, e[0] : e[1] + 1]
+
+
 def interior_points(vertices, faces, count: int, rng, margin: float = 0.0):
     """Random points inside a cage (by winding number), optionally ``margin`` away from it."""
     from vhm_viz.core.basis import winding_number

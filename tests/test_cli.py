@@ -22,6 +22,11 @@ def _run(capsys, *argv):
     return rc, out, err
 
 
+def _with_scene(capsys, command, data, scene, output):
+    """``vhm-viz <command> <data> --scene <scene> -o <output> -q``: rc, stdout, stderr."""
+    return _run(capsys, command, data, "--scene", scene, "-o", output, "-q")
+
+
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
@@ -141,56 +146,28 @@ def test_deform_matches_the_scene(demo_dir, tmp_path, capsys):
 
 
 def test_deform_volume_resampled_and_warped(demo_dir, tmp_path, capsys):
-    rc, out, err = _run(
-        capsys,
-        "deform",
-        demo_dir / "bar_volume_rest.vti",
-        "--scene",
-        demo_dir / "scene.json",
-        "-o",
-        tmp_path / "v.vti",
-        "-q",
+    scene = demo_dir / "scene.json"
+    rc, out, err = _with_scene(
+        capsys, "deform", demo_dir / "bar_volume_rest.vti", scene, tmp_path / "v.vti"
     )
     assert rc == 0, err
     assert "voxels with a pre-image" in out
     assert isinstance(pv.read(tmp_path / "v.vti"), pv.ImageData)
-    rc, out, err = _run(
-        capsys,
-        "deform",
-        demo_dir / "bar_volume_rest.vti",
-        "--scene",
-        demo_dir / "scene.json",
-        "-o",
-        tmp_path / "v.vts",
-        "-q",
+    rc, out, err = _with_scene(
+        capsys, "deform", demo_dir / "bar_volume_rest.vti", scene, tmp_path / "v.vts"
     )
     assert rc == 0, err
     assert isinstance(pv.read(tmp_path / "v.vts"), pv.StructuredGrid)
-    rc, out, err = _run(
-        capsys,
-        "deform",
-        demo_dir / "bar_tets_rest.vtu",
-        "--scene",
-        demo_dir / "scene.json",
-        "-o",
-        tmp_path / "t.vtp",
-        "-q",
+    rc, out, err = _with_scene(
+        capsys, "deform", demo_dir / "bar_tets_rest.vtu", scene, tmp_path / "t.vtp"
     )
     assert rc == 1 and "cannot write a UnstructuredGrid" in err
 
 
 def test_analyze_writes_figures_and_metrics(demo_dir, tmp_path, capsys):
+    scene = demo_dir / "scene.json"
     out_dir = tmp_path / "analysis"
-    rc, out, err = _run(
-        capsys,
-        "analyze",
-        demo_dir / "bar_rest.vtp",
-        "--scene",
-        demo_dir / "scene.json",
-        "-o",
-        out_dir,
-        "-q",
-    )
+    rc, out, err = _with_scene(capsys, "analyze", demo_dir / "bar_rest.vtp", scene, out_dir)
     assert rc == 0, err
     assert len(out.strip().splitlines()) == 1 and "E_rigid" in out
     for name in ("figure4_slices.png", "figure12_condition_histogram.png", "energy.png"):
@@ -208,15 +185,8 @@ def test_analyze_writes_figures_and_metrics(demo_dir, tmp_path, capsys):
         assert key in m
     assert m["foldovers"] == 0 and m["condition_number"]["min"] >= 1.0
     # tets: E_volume from the cell volumes, no E_rigid
-    rc, out, err = _run(
-        capsys,
-        "analyze",
-        demo_dir / "bar_tets_rest.vtu",
-        "--scene",
-        demo_dir / "scene.json",
-        "-o",
-        tmp_path / "a2",
-        "-q",
+    rc, out, err = _with_scene(
+        capsys, "analyze", demo_dir / "bar_tets_rest.vtu", scene, tmp_path / "a2"
     )
     assert rc == 0, err
     m = json.loads((tmp_path / "a2" / "metrics.json").read_text())
@@ -236,30 +206,12 @@ def test_bad_inputs(demo_dir, tmp_path, capsys):
     rest = demo_dir / "bar_rest.vtp"
     # missing input
     line = _one_line_error(
-        *_run(
-            capsys,
-            "deform",
-            tmp_path / "nope.vtp",
-            "--scene",
-            scene,
-            "-o",
-            tmp_path / "o.vtp",
-            "-q",
-        )[::2]
+        *_with_scene(capsys, "deform", tmp_path / "nope.vtp", scene, tmp_path / "o.vtp")[::2]
     )
     assert "not found" in line
     # missing scene
     line = _one_line_error(
-        *_run(
-            capsys,
-            "deform",
-            rest,
-            "--scene",
-            tmp_path / "nope.json",
-            "-o",
-            tmp_path / "o.vtp",
-            "-q",
-        )[::2]
+        *_with_scene(capsys, "deform", rest, tmp_path / "nope.json", tmp_path / "o.vtp")[::2]
     )
     assert "scene file not found" in line
     # malformed scene: wrong version, bad field
@@ -267,25 +219,19 @@ def test_bad_inputs(demo_dir, tmp_path, capsys):
     bad["version"] = 7
     (tmp_path / "v7.json").write_text(json.dumps(bad))
     line = _one_line_error(
-        *_run(
-            capsys, "deform", rest, "--scene", tmp_path / "v7.json", "-o", tmp_path / "o.vtp", "-q"
-        )[::2]
+        *_with_scene(capsys, "deform", rest, tmp_path / "v7.json", tmp_path / "o.vtp")[::2]
     )
     assert "'version'" in line and "unsupported version 7" in line
     bad = json.loads(scene.read_text())
     bad["constraints"]["targets"][1] = [1, 2]
     (tmp_path / "b.json").write_text(json.dumps(bad))
     line = _one_line_error(
-        *_run(capsys, "analyze", rest, "--scene", tmp_path / "b.json", "-o", tmp_path / "a", "-q")[
-            ::2
-        ]
+        *_with_scene(capsys, "analyze", rest, tmp_path / "b.json", tmp_path / "a")[::2]
     )
     assert "'constraints.targets[1]'" in line
     (tmp_path / "j.json").write_text("{oops")
     line = _one_line_error(
-        *_run(
-            capsys, "deform", rest, "--scene", tmp_path / "j.json", "-o", tmp_path / "o.vtp", "-q"
-        )[::2]
+        *_with_scene(capsys, "deform", rest, tmp_path / "j.json", tmp_path / "o.vtp")[::2]
     )
     assert "not valid JSON" in line
     # output = input (also through another spelling of the path)
@@ -293,24 +239,13 @@ def test_bad_inputs(demo_dir, tmp_path, capsys):
     copy.write_bytes(rest.read_bytes())
     before = copy.read_bytes()
     for target in (copy, tmp_path / "." / "in.vtp"):
-        line = _one_line_error(
-            *_run(capsys, "deform", copy, "--scene", scene, "-o", target, "-q")[::2]
-        )
+        line = _one_line_error(*_with_scene(capsys, "deform", copy, scene, target)[::2])
         assert "refusing to overwrite the input" in line
     assert copy.read_bytes() == before
     # unreadable input
     (tmp_path / "junk.vtp").write_text("not a vtk file")
     line = _one_line_error(
-        *_run(
-            capsys,
-            "deform",
-            tmp_path / "junk.vtp",
-            "--scene",
-            scene,
-            "-o",
-            tmp_path / "o.vtp",
-            "-q",
-        )[::2]
+        *_with_scene(capsys, "deform", tmp_path / "junk.vtp", scene, tmp_path / "o.vtp")[::2]
     )
     assert "junk.vtp" in line
     assert not (tmp_path / "o.vtp").exists()
@@ -322,9 +257,7 @@ def test_cage_not_enclosing_the_data(demo_dir, tmp_path, capsys):
     big = tmp_path / "long.vtp"
     mesh.save(big)
     scene = demo_dir / "scene.json"
-    line = _one_line_error(
-        *_run(capsys, "deform", big, "--scene", scene, "-o", tmp_path / "o.vtp", "-q")[::2]
-    )
+    line = _one_line_error(*_with_scene(capsys, "deform", big, scene, tmp_path / "o.vtp")[::2])
     assert "outside the cage" in line and "--outside passthrough" in line
     assert not (tmp_path / "o.vtp").exists()
     rc, out, err = _run(

@@ -8,7 +8,13 @@ import pytest
 pv = pytest.importorskip("pyvista")
 vtk = pytest.importorskip("vtkmodules.vtkCommonDataModel")
 
-from conftest import affine_resampled, box_cage, data_path  # noqa: E402
+from conftest import (  # noqa: E402
+    affine_resampled,
+    box_cage,
+    data_path,
+    extent_box,
+    fd_jacobian,
+)
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase  # noqa: E402
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline  # noqa: E402
 from vtkmodules.vtkImagingCore import vtkRTAnalyticSource  # noqa: E402
@@ -23,6 +29,13 @@ from vhm_viz.filters import (  # noqa: E402
     JacobianAnalysisFilter,
     output_type_for,
     update,
+)
+from vhm_viz.filters._parallel import (  # noqa: E402
+    DEAL_RUN,
+    balanced_shares,
+    dealing_order,
+    pack_part,
+    unpack_part,
 )
 from vhm_viz.io import cage_to_polydata  # noqa: E402
 
@@ -48,17 +61,6 @@ def _expected_normals(jac, n):
     # independent formula: cof(J) n = det(J) J^{-T} n
     m = np.linalg.det(jac)[:, None] * np.einsum("kji,kj->ki", np.linalg.inv(jac), n)
     return m / np.linalg.norm(m, axis=1, keepdims=True)
-
-
-def _fd_jacobian(f, points, h=1e-5):
-    """Central finite differences of the positions: ``J[k, i, j] = d f_i / d x_j``."""
-    p = np.asarray(points, dtype=np.float64)
-    cols = []
-    for j in range(3):
-        e = np.zeros(3)
-        e[j] = h
-        cols.append((f(p + e) - f(p - e)) / (2 * h))
-    return np.stack(cols, axis=2)
 
 
 def _reference_measures(jac):
@@ -458,11 +460,10 @@ def test_pieces_reassemble_to_whole(streaming_source):
         ext = out.GetExtent()
         pieces.append(ext)
         o = pv.wrap(out)
-        d = [ext[1] - ext[0] + 1, ext[3] - ext[2] + 1, ext[5] - ext[4] + 1]
-        assert o.n_points == np.prod(d) < whole.n_points
-        sl = np.s_[ext[4] : ext[5] + 1, ext[2] : ext[3] + 1, ext[0] : ext[1] + 1]
-        got[sl] = np.asarray(o.points).reshape(d[2], d[1], d[0], 3)
-        got_s[sl] = np.asarray(o.point_data["RTData"]).reshape(d[2], d[1], d[0])
+        shape, box = extent_box(ext)
+        assert o.n_points == np.prod(shape) < whole.n_points
+        got[box] = np.asarray(o.points).reshape(shape + (3,))
+        got_s[box] = np.asarray(o.point_data["RTData"]).reshape(shape)
     assert len(set(pieces)) == 4
     np.testing.assert_allclose(got, expected, atol=1e-12)
     np.testing.assert_array_equal(got_s, scalars)
@@ -548,10 +549,8 @@ def test_resample_pieces_and_deformed_grid():
         f2.SetInputData(img)
         f2.SetHarmonicMap(hm)
         out = update(f2, p, 3)
-        ext = out.GetExtent()
-        d = [ext[1] - ext[0] + 1, ext[3] - ext[2] + 1, ext[5] - ext[4] + 1]
-        sl = np.s_[ext[4] : ext[5] + 1, ext[2] : ext[3] + 1, ext[0] : ext[1] + 1]
-        got[sl] = np.asarray(pv.wrap(out).point_data["density"]).reshape(d[2], d[1], d[0])
+        shape, box = extent_box(out.GetExtent())
+        got[box] = np.asarray(pv.wrap(out).point_data["density"]).reshape(shape)
     np.testing.assert_allclose(got, expected, atol=1e-9)
 
 
@@ -589,7 +588,7 @@ def test_analysis_arrays_equal_metrics():
     np.testing.assert_array_equal(out.points, mesh.points)  # rest geometry
     np.testing.assert_array_equal(out.point_data["keep"], mesh.point_data["keep"])
     # the closed form against finite differences of the mapped positions
-    fd = _fd_jacobian(hm.map, mesh.points)
+    fd = fd_jacobian(hm.map, mesh.points)
     np.testing.assert_allclose(hm.jacobian(mesh.points), fd, atol=1e-7)
     det, cond, angle = _reference_measures(fd)
     assert det.min() > 0 and np.ptp(det) > 0.05 and angle.max() > 1.0  # a real deformation
@@ -630,7 +629,7 @@ def test_analysis_with_deformer_matches_binding():
     dfm.solve()
     out = pv.wrap(update(_analysis(mesh, dfm)))
     # finite differences of the deformer's own deformation of nearby points
-    fd = _fd_jacobian(lambda p: dfm.bind(p).deform(), mesh.points)
+    fd = fd_jacobian(lambda p: dfm.bind(p).deform(), mesh.points)
     det, cond, angle = _reference_measures(fd)
     assert np.abs(det - 1).max() > 0.01  # not the identity
     np.testing.assert_allclose(out.point_data["jacobian_determinant"], det, rtol=1e-8)
@@ -648,7 +647,7 @@ def test_accessor_deform_and_analyze():
     hm = _random_map(_cage_around(mesh.bounds))
     out = mesh.vhm.deform(hm, determinant=True)
     np.testing.assert_allclose(out.points, hm.map(mesh.points), atol=1e-12)
-    det, cond, angle = _reference_measures(_fd_jacobian(hm.map, mesh.points))
+    det, cond, angle = _reference_measures(fd_jacobian(hm.map, mesh.points))
     np.testing.assert_allclose(out.point_data["jacobian_determinant"], det, rtol=1e-8)
     ana = mesh.vhm.analyze(hm)
     np.testing.assert_array_equal(ana.points, mesh.points)
@@ -755,32 +754,29 @@ def test_progress_events_and_abort():
 
 
 def test_lattice_exchange_shares_even_out_the_ranks_busy_time():
-    """The MPI ranks' shares of a round's evaluations (filters._parallel._shares)."""
-    from vhm_viz.filters._parallel import _shares
+    """The MPI ranks' shares of a round's evaluations (filters._parallel.balanced_shares)."""
 
     def header(busy, seconds=1.0, points=1000):
         return np.array([[1, 10, b, seconds, points] for b in busy], dtype=float)
 
     # no cost measured yet: equal, the remainder to the first ranks
     first = np.array([[1, 5, 0, 0, 0], [1, 5, 0, 0, 0], [1, 0, 0, 0, 0]], dtype=float)
-    assert _shares(10, first).tolist() == [4, 3, 3]
+    assert balanced_shares(10, first).tolist() == [4, 3, 3]
     # equally busy: equal
-    assert _shares(1000, header([2.0, 2.0])).tolist() == [500, 500]
+    assert balanced_shares(1000, header([2.0, 2.0])).tolist() == [500, 500]
     # at 1 ms a point, a rank 0.2 s behind takes 200 points fewer; all are dealt
-    assert _shares(1000, header([2.2, 2.0])).tolist() == [400, 600]
+    assert balanced_shares(1000, header([2.2, 2.0])).tolist() == [400, 600]
     # one rank far behind: the others take every point
-    assert _shares(1000, header([9.0, 2.0, 2.0])).tolist() == [0, 500, 500]
+    assert balanced_shares(1000, header([9.0, 2.0, 2.0])).tolist() == [0, 500, 500]
     for busy in ([3.0, 1.0, 2.5], [0.1, 0.0, 7.0, 0.3]):
-        share = _shares(777, header(busy))
+        share = balanced_shares(777, header(busy))
         assert share.sum() == 777 and (share >= 0).all()
 
 
 def test_parts_are_packed_with_their_values_and_rows_taken_straight_from_a_source():
-    """An MPI part's buffer (filters._parallel._pack / _unpack): every field's values come
-    back exactly (int64 beyond 2**53, bools, odd lengths between 8-byte aligned fields),
+    """An MPI part's buffer (filters._parallel.pack_part / unpack_part): every field's
+    values come back exactly (int64 beyond 2**53, bools, odd lengths between 8-byte aligned fields),
     and an (array, index) field is the rows array[index], as if taken first."""
-    from vhm_viz.filters._parallel import _pack, _unpack
-
     rng = np.random.default_rng(3)
     source = rng.normal(size=(50, 8, 3))
     index = np.array([7, 0, 49, 7, 3])
@@ -790,10 +786,10 @@ def test_parts_are_packed_with_their_values_and_rows_taken_straight_from_a_sourc
     flags = np.array([True, False, True])
     part = {"ok": np.ones(1, dtype=np.uint8), "keys": keys, "flag": flags,
             "data": (source, index), "none": np.zeros((0, 3))}  # fmt: skip
-    flat = _pack(part, fields)
+    flat = pack_part(part, fields)
     assert flat.dtype == np.uint8 and len(flat) % 8 == 0
     assert part["data"][0] is source  # the caller's part is left as it was
-    got = _unpack(flat.copy(), fields)
+    got = unpack_part(flat.copy(), fields)
     assert got.keys() == fields.keys()
     np.testing.assert_array_equal(got["keys"], keys)
     np.testing.assert_array_equal(got["flag"], flags)
@@ -802,20 +798,18 @@ def test_parts_are_packed_with_their_values_and_rows_taken_straight_from_a_sourc
     assert got["ok"].tolist() == [1]
     # rows taken from an array of another dtype are converted, as a copy would be
     ints = np.arange(12).reshape(6, 2)
-    back = _unpack(_pack({**part, "keys": (ints, np.array([5, 1]))}, fields), fields)
+    back = unpack_part(pack_part({**part, "keys": (ints, np.array([5, 1]))}, fields), fields)
     np.testing.assert_array_equal(back["keys"], ints[[5, 1]])
 
 
 def test_lattice_exchange_deals_runs_of_neighbours_in_a_mixed_order():
     """Each rank's share is whole runs of consecutive keys, from all over the lattice."""
-    from vhm_viz.filters._parallel import _DEAL_RUN, _dealing_order
-
-    n = 20 * _DEAL_RUN + 123
-    order = _dealing_order(n)
+    n = 20 * DEAL_RUN + 123
+    order = dealing_order(n)
     assert np.array_equal(np.sort(order), np.arange(n))  # every key, once
     # a run ascends by one; runs start on run boundaries (the odd-sized last one aside)
     starts = order[np.flatnonzero(np.diff(order, prepend=-2) != 1)]
-    assert (starts % _DEAL_RUN == 0).all() and len(starts) == 21
+    assert (starts % DEAL_RUN == 0).all() and len(starts) == 21
     # either half of the deal reaches both halves of the key range, not one end of it
     for half in (order[: n // 2], order[n // 2 :]):
         assert (half < n // 4).any() and (half > 3 * n // 4).any()

@@ -75,6 +75,14 @@ def _points_by_id(path: Path, n: int) -> np.ndarray:
     return out
 
 
+def _armadillo_config(scene, **extra) -> dict:
+    """A pvbatch run deforming the 43k Armadillo by ``scene``, the cage on the Cage port."""
+    return {"input": str(data_path("armadillo", "armadillo_43k.obj")),
+            "filter": "VHMHarmonicDeformation", "scene": str(scene),
+            "cage": str(data_path("armadillo", "cage_216f.obj")), "redistribute": True,
+            **extra}  # fmt: skip
+
+
 @pytest.fixture(scope="session")
 def armadillo_scene(tmp_path_factory):
     """A bend of the 43k Armadillo with its 216-face cage and anchors from a file."""
@@ -143,13 +151,7 @@ def test_set_up_compiles_the_kernels_and_filters_update_in_pvpython(paraview_env
 @pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
 def test_surface_two_ranks_equal_serial_equal_python(paraview_env, armadillo_scene, tmp_path):
     scene, rest, expected = armadillo_scene
-    config = {
-        "input": str(data_path("armadillo", "armadillo_43k.obj")),
-        "filter": "VHMHarmonicDeformation",
-        "scene": str(scene),
-        "cage": str(data_path("armadillo", "cage_216f.obj")),  # on the Cage port
-        "redistribute": True,
-    }
+    config = _armadillo_config(scene)
     _run(paraview_env, {**config, "output": str(tmp_path / "serial.pvtu")}, tmp_path)
     log = _run(paraview_env, {**config, "output": str(tmp_path / "mpi.pvtu")}, tmp_path, ranks=2)
     assert "on 2 rank(s)" in log
@@ -178,14 +180,8 @@ def test_no_scene_file_one_message_no_output(paraview_env, tmp_path):
 @pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
 def test_cage_missing_on_a_rank_is_an_error_not_a_seam(paraview_env, armadillo_scene, tmp_path):
     scene, _, _ = armadillo_scene
-    config = {
-        "input": str(data_path("armadillo", "armadillo_43k.obj")),
-        "filter": "VHMHarmonicDeformation",
-        "scene": str(scene),
-        "cage": str(data_path("armadillo", "cage_216f.obj")),
-        "cage_on_rank_0_only": True,  # what a reader that runs on rank 0 only would give
-        "redistribute": True,
-    }
+    # what a reader that runs on rank 0 only would give
+    config = _armadillo_config(scene, cage_on_rank_0_only=True)
     log = _run(paraview_env, config, tmp_path, ranks=2)
     assert "the Cage input reached the ranks with 0 to 110 points" in log
     assert "vhm-paraview-points: 0" in log  # no half-deformed output

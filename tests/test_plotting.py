@@ -8,7 +8,7 @@ import pytest
 pv = pytest.importorskip("pyvista")
 pytest.importorskip("matplotlib")
 
-from conftest import box_cage  # noqa: E402
+from conftest import box_cage, fd_jacobian  # noqa: E402
 
 from vhm_viz import Cage, HarmonicMap, plotting  # noqa: E402
 
@@ -37,17 +37,6 @@ def _stretched_map():
     tgt[:, 2] *= 1 + 1.2 * (tgt[:, 2] + 0.2) / 2.4
     tgt[:, 0] += 0.3 * (tgt[:, 2] / 2.2) ** 2
     return HarmonicMap.from_target_cage(cage, tgt)
-
-
-def _fd_jacobian(hm, points, h=1e-5):
-    """Central finite differences of the mapped positions, ``J[k, i, j] = d f_i / d x_j``."""
-    p = np.asarray(points, dtype=np.float64)
-    cols = []
-    for j in range(3):
-        e = np.zeros(3)
-        e[j] = h
-        cols.append((hm.map(p + e) - hm.map(p - e)) / (2 * h))
-    return np.stack(cols, axis=2)
 
 
 def _det_cond(jac):
@@ -120,7 +109,7 @@ def test_jacobian_slice_of_tets_and_volume(bar_and_map, kind):
     np.testing.assert_allclose(rest[:, [0, 2]].min(axis=0), lo[[0, 2]], atol=1e-9)
     np.testing.assert_allclose(rest[:, [0, 2]].max(axis=0), hi[[0, 2]], atol=1e-9)
     np.testing.assert_allclose(sl.points, hm.map(rest), atol=1e-12)
-    det, cond = _det_cond(_fd_jacobian(hm, rest))
+    det, cond = _det_cond(fd_jacobian(hm.map, rest))
     assert np.ptp(det) > 0.01  # the bend changes volumes
     np.testing.assert_allclose(sl.point_data["jacobian_determinant"], det, rtol=1e-7)
     np.testing.assert_allclose(sl.point_data["condition_number"], cond, rtol=1e-7)
@@ -140,7 +129,7 @@ def test_figure4_colours_are_the_det_and_cond_of_the_map(bar_and_map, tmp_path, 
     hm = bent if which == "bend" else _stretched_map()
     sl = plotting.jacobian_slice(bar, hm, resolution=80)
     # the data's ranges, computed independently (finite differences of the positions)
-    det, cond = _det_cond(_fd_jacobian(hm, sl.point_data["rest_points"]))
+    det, cond = _det_cond(fd_jacobian(hm.map, sl.point_data["rest_points"]))
     det_range = _log_det_range(det)
     cond_range = (1.0, max(2.0, np.percentile(cond, 99)))
     if which == "stretch":
@@ -231,7 +220,7 @@ def test_figure4_draws_folds_in_the_fold_colour(bar_and_map, tmp_path):
     # set by the positive values alone
     hm = _folding_map()
     sl = plotting.jacobian_slice(bar, hm, normal=(0, 1, 0), resolution=80)
-    det, _ = _det_cond(_fd_jacobian(hm, sl.point_data["rest_points"]))
+    det, _ = _det_cond(fd_jacobian(hm.map, sl.point_data["rest_points"]))
     assert 0.1 < (det <= 0).mean() < 0.9
     path = tmp_path / "fold.png"
     pl = plotting.figure4(sl, filename=path, window_size=(900, 400))
@@ -260,7 +249,7 @@ def test_injectivity_figure_uses_the_det_convention(bar_and_map, tmp_path):
     bar, _ = bar_and_map
     hm = _folding_map()
     sl = plotting.jacobian_slice(bar, hm, normal=(0, 1, 0), resolution=80)
-    det, _ = _det_cond(_fd_jacobian(hm, sl.point_data["rest_points"]))
+    det, _ = _det_cond(fd_jacobian(hm.map, sl.point_data["rest_points"]))
     pl = plotting.injectivity_figure(sl, NoFolds(), hm, filename=tmp_path / "inj.png")
     (lut,) = [b.GetLookupTable() for b in pl.scalar_bars.values()]
     np.testing.assert_allclose(lut.GetRange(), _log_det_range(det), rtol=1e-6)

@@ -19,7 +19,7 @@ import pytest
 
 pv = pytest.importorskip("pyvista")
 
-from conftest import affine_resampled, box_cage, data_path  # noqa: E402
+from conftest import affine_resampled, box_cage, data_path, extent_box  # noqa: E402
 from scipy.ndimage import binary_erosion  # noqa: E402
 from scipy.optimize import root as find_root  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
@@ -765,8 +765,7 @@ def test_vtk_filters_two_pieces_equal_one_on_the_lattice():
             e = part.GetExtent()
             assert e != whole.GetExtent()
             part = pv.wrap(part)
-            shape = (e[5] - e[4] + 1, e[3] - e[2] + 1, e[1] - e[0] + 1)
-            box = np.s_[e[4] : e[5] + 1, e[2] : e[3] + 1, e[0] : e[1] + 1]
+            shape, box = extent_box(e)
             points[box] = np.asarray(part.points).reshape(shape + (3,))
             values[box] = np.asarray(part.point_data["v"]).reshape(shape)
         if cls is HarmonicDeformationFilter:  # same lattice, same arithmetic
@@ -1111,7 +1110,6 @@ def test_node_table_grows_without_holding_itself_twice():
     (concatenating and reordering held each field three times at once). What this code
     allocates (tracemalloc), not what realloc may copy below glibc's mmap threshold."""
 
-
     rng = np.random.default_rng(3)
     keys = np.sort(rng.choice(10**7, size=250_000, replace=False))
     old, new = keys[::5], np.setdiff1d(keys, keys[::5])[:50_000]
@@ -1141,7 +1139,6 @@ def test_taking_rows_in_place_equals_indexing_in_the_same_memory():
     fancy indexing, for every field's dtype and shape; in place (the same memory, no second
     array) for an ascending index; copied when the index is not ascending or the array is
     held elsewhere, which is then left untouched."""
-
 
     rng = np.random.default_rng(11)
     arrays = {"data": rng.normal(size=(5000, 8, 3)), "origin": rng.integers(0, 99, (5000, 3)),
@@ -1184,7 +1181,6 @@ def test_taking_rows_in_place_equals_indexing_in_the_same_memory():
 def test_a_builder_of_an_empty_piece_only_shares_the_evaluations():
     """An MPI rank with an empty piece (more ranks than planes) builds no cell but takes
     its share of the other's evaluations, so that neither waits for the other."""
-
 
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (44, 40, 70))
     hm = _random_bend(_cage_around((0, 0, 0), (43, 39, 82.8), 0.03), 0.004, seed=2)
@@ -1258,7 +1254,6 @@ def test_resample_pieces_read_only_the_window_their_preimages_reach(tmp_path):
     """Streamed in 4 pieces from a reader, each piece reads only a window of the volume,
     holding its pre-images, and the pieces equal the whole."""
 
-
     img = pv.ImageData(dimensions=(30, 28, 80), spacing=(1.0, 1.0, 1.0))
     rng = np.random.default_rng(5)
     img.point_data["v"] = rng.integers(0, 60000, img.n_points).astype(np.uint16)
@@ -1289,7 +1284,7 @@ def test_resample_pieces_read_only_the_window_their_preimages_reach(tmp_path):
         window = flt.GetInputDataObject(0, 0).GetExtent()  # what the reader delivered
         read.append(window[5] - window[4] + 1)
         part = pv.wrap(part)
-        box = np.s_[e[4] : e[5] + 1, e[2] : e[3] + 1, e[0] : e[1] + 1]
+        _, box = extent_box(e)
         for name, values in ref.items():
             np.testing.assert_array_equal(part.point_data[name], values[box].ravel())
         # the window holds every pre-image of the piece with its cubic stencil (-1 .. +2)

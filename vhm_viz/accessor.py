@@ -24,13 +24,17 @@ import pyvista as pv
 __all__ = ["VHMAccessor"]
 
 
-def _configure(flt, deformation, cage, outside, tolerance=None):
+def _run(flt, mesh, deformation, cage, outside, **settings):
+    """Update filter ``flt`` on ``mesh``; ``settings``: ``Set<Name>`` values (None: unset)."""
+    from vhm_viz.filters import update
+
+    flt.SetInputData(mesh)
     flt.SetDeformation(deformation)
     flt.SetOutsidePolicy(outside)
-    if cage is not None:
-        flt.SetCageData(cage)
-    if tolerance is not None:
-        flt.SetTolerance(tolerance)
+    for name, value in {"CageData": cage, **settings}.items():
+        if value is not None:
+            getattr(flt, f"Set{name}")(value)
+    return pv.wrap(update(flt))
 
 
 class VHMAccessor:
@@ -82,16 +86,12 @@ class VHMAccessor:
             PolyData, UnstructuredGrid or StructuredGrid (images and rectilinear grids
             become structured grids).
         """
-        from vhm_viz.filters import HarmonicDeformationFilter, update
+        from vhm_viz.filters import HarmonicDeformationFilter
 
-        f = HarmonicDeformationFilter()
-        f.SetInputData(self._mesh)
-        _configure(f, deformation, cage, outside, tolerance)
-        f.SetComputeDisplacement(displacement)
-        f.SetComputeJacobianDeterminant(determinant)
-        f.SetComputeConditionNumber(condition_number)
-        f.SetDeformNormals(normals)
-        return pv.wrap(update(f))
+        return _run(HarmonicDeformationFilter(), self._mesh, deformation, cage, outside,
+                    Tolerance=tolerance, ComputeDisplacement=displacement,
+                    ComputeJacobianDeterminant=determinant,
+                    ComputeConditionNumber=condition_number, DeformNormals=normals)  # fmt: skip
 
     def analyze(self, deformation, *, outside: str = "error", cage=None):
         """The dataset with Jacobian quality arrays (rest geometry).
@@ -103,12 +103,9 @@ class VHMAccessor:
         ``vhm_cells_inverted`` and ``vhm_cells_rest_inverted`` (see
         :class:`vhm_viz.filters.JacobianAnalysisFilter`).
         """
-        from vhm_viz.filters import JacobianAnalysisFilter, update
+        from vhm_viz.filters import JacobianAnalysisFilter
 
-        f = JacobianAnalysisFilter()
-        f.SetInputData(self._mesh)
-        _configure(f, deformation, cage, outside)
-        return pv.wrap(update(f))
+        return _run(JacobianAnalysisFilter(), self._mesh, deformation, cage, outside)
 
     def certify(self, deformation, *, max_cubes: int = 200_000, progress=None):
         """Prove that the map folds nowhere in this shape, or find where it does.
@@ -176,21 +173,14 @@ class VHMAccessor:
         -------
         pyvista.ImageData
         """
-        from vhm_viz.filters import HarmonicResampleFilter, update
+        from vhm_viz.filters import HarmonicResampleFilter
 
         if not isinstance(self._mesh, pv.ImageData):
             raise TypeError(f"resample needs pyvista.ImageData; got {type(self._mesh).__name__}")
-        f = HarmonicResampleFilter()
-        f.SetInputData(self._mesh)
-        _configure(f, deformation, cage, outside, tolerance)
-        f.SetFillValue(fill_value)
-        f.SetOutputMode(output)
-        f.SetInterpolation(interpolation)
-        if spacing is not None:
-            f.SetOutputSpacing(spacing)
-        if reference is not None:
-            f.SetReferenceImage(reference)
-        return pv.wrap(update(f))
+        return _run(HarmonicResampleFilter(), self._mesh, deformation, cage, outside,
+                    Tolerance=tolerance, FillValue=fill_value, OutputMode=output,
+                    Interpolation=interpolation, OutputSpacing=spacing,
+                    ReferenceImage=reference)  # fmt: skip
 
 
 # PyVista >= 0.48 has the accessor registry; older versions simply lack ``mesh.vhm``.

@@ -101,6 +101,15 @@ def cond_range(cond, *, percentile: float = 99.0, min_top: float = _MIN_COND_TOP
     return (1.0, max(float(min_top), top))
 
 
+#: Per measure: its other names, colour map, range of the values, log scale, colour of
+#: the folds below the range, and title.
+_MEASURE_STYLES = {
+    "determinant": (("jacobian_determinant", "det"), DET_CMAP, det_range, True, FOLD_COLOUR,
+                    "det J (log scale; black: det J <= 0)"),
+    "condition_number": (("cond", "cond J"), COND_CMAP, cond_range, False, None, "cond J"),
+}  # fmt: skip
+
+
 def measure_style(measure: str, values) -> dict:
     """Colour map, range and scale of one measure, for any renderer.
 
@@ -117,24 +126,11 @@ def measure_style(measure: str, values) -> dict:
         ``below_color`` (RGB of values under ``clim[0]`` that are folds, or None),
         ``title`` and ``paraview_preset``.
     """
-    if measure in ("determinant", "jacobian_determinant", "det"):
-        return {
-            "cmap": DET_CMAP,
-            "clim": det_range(values),
-            "log_scale": True,
-            "below_color": FOLD_COLOUR,
-            "title": "det J (log scale; black: det J <= 0)",
-            "paraview_preset": PARAVIEW_PRESETS["determinant"],
-        }
-    if measure in ("condition_number", "cond", "cond J"):
-        return {
-            "cmap": COND_CMAP,
-            "clim": cond_range(values),
-            "log_scale": False,
-            "below_color": None,
-            "title": "cond J",
-            "paraview_preset": PARAVIEW_PRESETS["condition_number"],
-        }
+    for name, (aliases, cmap, clim, log_scale, below, title) in _MEASURE_STYLES.items():
+        if measure == name or measure in aliases:
+            return {"cmap": cmap, "clim": clim(values), "log_scale": log_scale,
+                    "below_color": below, "title": title,
+                    "paraview_preset": PARAVIEW_PRESETS[name]}  # fmt: skip
     raise ValueError(f"unknown measure {measure!r} (determinant, condition_number)")
 
 

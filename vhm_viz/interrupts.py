@@ -4,8 +4,8 @@ While :func:`handled` is active (the command line, the explorer, :func:`vhm_viz.
 a SIGINT or SIGTERM is recorded (:func:`pending`) and raised as :class:`Interrupted` at the
 next Python instruction. Long work stops promptly because it runs in chunks: the core's
 bindings call their ``abort()`` callback between chunks and the VTK filters check their
-``AbortExecute`` flag (:meth:`~vhm_viz.filters.DeformationSource._aborted`), both of which
-also look at :func:`pending`. That matters because VTK's Python wrapper swallows an
+``AbortExecute`` flag (the filters' base, ``vhm_viz.filters._common.DeformationSource``),
+both of which also look at :func:`pending`. That matters because VTK's Python wrapper swallows an
 exception raised inside a callback (a progress observer, ``RequestData``): the recorded
 signal survives it, and :func:`check` raises it again afterwards.
 

@@ -22,6 +22,9 @@ import os
 
 import numpy as np
 
+from vhm_viz.colours import cond_range, histogram, measure_style
+from vhm_viz.core.metrics import condition_number, jacobian_determinant
+
 __all__ = [
     "measure_mesh_kwargs",
     "jacobian_slice",
@@ -60,8 +63,6 @@ def measure_mesh_kwargs(measure: str, values, *, clim=None, scalar_bar_args=None
     dict
         ``scalars`` is not included: pass it yourself.
     """
-    from vhm_viz.colours import measure_style
-
     style = measure_style(measure, values)
     if clim is not None:
         style["clim"] = tuple(float(c) for c in clim)
@@ -152,8 +153,6 @@ def jacobian_slice(mesh, harmonic_map, *, normal=None, origin=None, resolution: 
         ``condition_number`` and ``rest_points``.
     """
     import pyvista as pv
-
-    from vhm_viz.core.metrics import condition_number, jacobian_determinant
 
     mesh = pv.wrap(mesh)
     pts = np.asarray(mesh.points, dtype=np.float64)
@@ -342,8 +341,6 @@ def figure12(
         ``fig.histograms`` holds the :class:`vhm_viz.colours.Histogram` of each set.
     """
     from matplotlib.figure import Figure
-
-    from vhm_viz.colours import cond_range, histogram
 
     sets = condition_numbers if isinstance(condition_numbers, dict) else {"": condition_numbers}
     data = {k: np.asarray(v, dtype=np.float64).ravel() for k, v in sets.items()}

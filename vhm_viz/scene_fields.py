@@ -154,17 +154,40 @@ def _path_text(value, name: str) -> str:
 # ----------------------------------------------------------------------------------------
 
 
+def _check_fields(value, field: str, allowed) -> None:
+    """Refuse keys of ``value`` (the scene's ``field``) that are not in ``allowed``."""
+    extra = sorted(set(value) - set(allowed))
+    if extra:
+        raise SceneError(f"{field}.{extra[0]}", "unknown field")
+
+
+def _object_of(value, field: str, allowed) -> dict:
+    """``value``, a JSON object with keys from ``allowed`` only (else a SceneError)."""
+    if not isinstance(value, dict):
+        raise SceneError(field, "expected an object")
+    _check_fields(value, field, allowed)
+    return value
+
+
+def _path_form(value, field: str) -> dict | None:
+    """``{"path": text}`` of a file named as a string or as ``{"path": ...}``, else None."""
+    if isinstance(value, str):
+        return {"path": _path_text(value, field)}
+    if isinstance(value, dict) and set(value) == {"path"}:
+        return {"path": _path_text(value["path"], f"{field}.path")}
+    return None
+
+
 def parse_cage(value) -> dict:
     """``cage``: ``{"path"}``, ``{"auto": options}`` or ``{"vertices" (n, 3), "faces" (m, 3)}``."""
     if value == "auto":
         return {"auto": {}}
-    if isinstance(value, str):
-        return {"path": _path_text(value, "cage")}
+    path = _path_form(value, "cage")
+    if path:
+        return path
     if not isinstance(value, dict):
         raise SceneError("cage", 'expected a path, "auto" or an object')
     keys = set(value)
-    if keys == {"path"}:
-        return {"path": _path_text(value["path"], "cage.path")}
     if keys == {"auto"}:
         opts = value["auto"]
         if not isinstance(opts, dict):
@@ -181,16 +204,15 @@ def parse_cage(value) -> dict:
         if bad.size:
             raise SceneError(f"cage.faces[{bad[0]}]", f"vertex index out of range [0, {len(v)})")
         return {"vertices": v, "faces": f}
-    extra = sorted(keys - {"path", "auto", "vertices", "faces"})
-    if extra:
-        raise SceneError(f"cage.{extra[0]}", "unknown field")
+    _check_fields(keys, "cage", {"path", "auto", "vertices", "faces"})
     raise SceneError("cage", "expected one of {path}, {auto}, {vertices, faces}")
 
 
 def parse_anchors(value) -> dict:
     """``anchors``: ``{"points" (d, 3)}``, ``{"path"}``, ``{"auto": d}`` or polylines/skeleton."""
-    if isinstance(value, str):
-        return {"path": _path_text(value, "anchors")}
+    path = _path_form(value, "anchors")
+    if path:
+        return path
     if isinstance(value, list):
         pts = _points(value, "anchors")
         if len(pts) == 0:
@@ -199,8 +221,6 @@ def parse_anchors(value) -> dict:
     if not isinstance(value, dict):
         raise SceneError("anchors", "expected a list of points or an object")
     keys = set(value)
-    if keys == {"path"}:
-        return {"path": _path_text(value["path"], "anchors.path")}
     if keys == {"auto"}:
         return {"auto": parse_setting("anchor_count", value["auto"], "anchors.auto")}
     for kind in ("polylines", "skeleton"):
@@ -209,19 +229,13 @@ def parse_anchors(value) -> dict:
                 kind: _path_text(value[kind], f"anchors.{kind}"),
                 "count": parse_setting("anchor_count", value["count"], "anchors.count"),
             }
-    extra = sorted(keys - {"path", "auto", "polylines", "skeleton", "count"})
-    if extra:
-        raise SceneError(f"anchors.{extra[0]}", "unknown field")
+    _check_fields(keys, "anchors", {"path", "auto", "polylines", "skeleton", "count"})
     raise SceneError("anchors", "expected {path}, {auto}, {polylines, count} or {skeleton, count}")
 
 
 def parse_constraints(value) -> dict:
     """``constraints``: positions, targets (r, 3), jacobian_points (s, 3), jacobians (s, 3, 3)."""
-    if not isinstance(value, dict):
-        raise SceneError("constraints", "expected an object")
-    extra = sorted(set(value) - set(CONSTRAINT_FIELDS))
-    if extra:
-        raise SceneError(f"constraints.{extra[0]}", "unknown field")
+    _object_of(value, "constraints", CONSTRAINT_FIELDS)
     for required in ("positions", "targets"):
         if required not in value:
             raise SceneError(f"constraints.{required}", "missing")
@@ -250,11 +264,7 @@ def parse_mode(value) -> str:
 
 def parse_solver(value) -> dict:
     """``solver``: every key of :data:`DEFAULT_SOLVER`, missing ones at their defaults."""
-    if not isinstance(value, dict):
-        raise SceneError("solver", "expected an object")
-    extra = sorted(set(value) - set(DEFAULT_SOLVER))
-    if extra:
-        raise SceneError(f"solver.{extra[0]}", "unknown field")
+    _object_of(value, "solver", DEFAULT_SOLVER)
     out = dict(DEFAULT_SOLVER)
     out.update(value)
     for key in ("max_iterations", "tolerance", "steps", "anderson_window"):

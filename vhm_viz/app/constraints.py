@@ -58,48 +58,52 @@ def similarity_matrix(angles, scale: float) -> np.ndarray:
     return float(scale) * r.as_matrix()
 
 
-class PositionConstraint:
+class _ConstraintView:
+    """Row ``index`` of a controller's scene constraint arrays; ``_POINTS`` names its points."""
+
+    _POINTS = ""
+
+    def __init__(self, controller, index: int):
+        self._controller = controller
+        self.index = int(index)
+
+    def _row(self, name: str) -> np.ndarray:
+        return self._controller.scene.constraints[name][self.index]
+
+    @property
+    def point(self) -> np.ndarray:
+        """(3,) rest-space point."""
+        return self._row(self._POINTS)
+
+
+class PositionConstraint(_ConstraintView):
     """Position constraint ``index`` of a controller's scene: ``f(point) = target``.
 
     ``point`` (3,) is in rest space, ``target`` (3,) in deformed space; both are read from
     the scene each time (edits go through the controller).
     """
 
-    def __init__(self, controller, index: int):
-        self._controller = controller
-        self.index = int(index)
-
-    @property
-    def point(self) -> np.ndarray:
-        """(3,) rest-space point."""
-        return self._controller.scene.constraints["positions"][self.index]
+    _POINTS = "positions"
 
     @property
     def target(self) -> np.ndarray:
         """(3,) deformed-space target."""
-        return self._controller.scene.constraints["targets"][self.index]
+        return self._row("targets")
 
 
-class JacobianConstraint:
+class JacobianConstraint(_ConstraintView):
     """Jacobian constraint ``index`` of a controller's scene: ``J_f(point) = matrix``.
 
     ``angles`` (degrees) and ``scale`` describe the closest similarity to ``matrix``;
     setting either rewrites the scene's matrix as ``scale * R(angles)``.
     """
 
-    def __init__(self, controller, index: int):
-        self._controller = controller
-        self.index = int(index)
-
-    @property
-    def point(self) -> np.ndarray:
-        """(3,) rest-space point."""
-        return self._controller.scene.constraints["jacobian_points"][self.index]
+    _POINTS = "jacobian_points"
 
     @property
     def matrix(self) -> np.ndarray:
         """(3, 3) target Jacobian ``J[i, j] = d f_i / d x_j``."""
-        return self._controller.scene.constraints["jacobians"][self.index]
+        return self._row("jacobians")
 
     @property
     def angles(self) -> np.ndarray:

@@ -114,6 +114,13 @@ class Editing:
         self.window.status(message + (f"; {notes}" if notes else ""), 15000 if notes else 5000)
         self.after_edit(structure=True)
 
+    def _ask_count(self, count, title: str, label: str, default: int, lowest: int):
+        """``count``, or when None the number the user enters (None if cancelled)."""
+        if count is not None:
+            return count
+        count, ok = QInputDialog.getInt(self.window, title, label, default, lowest, 5000)
+        return count if ok else None
+
     def generate_cage(self, max_faces: int | None = None):
         """Generate a cage in the background (progress, cancel); returns the job."""
         return self._guarded(self._generate_cage, max_faces)
@@ -121,12 +128,9 @@ class Editing:
     def _generate_cage(self, max_faces: int | None = None):
         if self.ctrl.rest is None:
             raise ValueError("open data before generating a cage")
+        max_faces = self._ask_count(max_faces, "Generate cage", "Max faces", 500, 12)
         if max_faces is None:
-            max_faces, ok = QInputDialog.getInt(
-                self.window, "Generate cage", "Max faces", 500, 12, 5000
-            )
-            if not ok:
-                return None
+            return None
         ctrl = self.ctrl
 
         def done(cage):
@@ -157,12 +161,9 @@ class Editing:
         path = self.window.ask_path(path, "Load rigidity lines", lines)
         if path is None:
             return
+        count = self._ask_count(count, "Anchors", "Number of anchors", 50, 1)
         if count is None:
-            count, ok = QInputDialog.getInt(
-                self.window, "Anchors", "Number of anchors", 50, 1, 5000
-            )
-            if not ok:
-                return
+            return
         with self.recorded():
             self.ctrl.load_anchors(path, count)
         self.after_edit(structure=True)
@@ -172,12 +173,9 @@ class Editing:
         return self._guarded(self._generate_anchors, count)
 
     def _generate_anchors(self, count: int | None = None):
+        count = self._ask_count(count, "Anchors", "Number of anchors", 50, 1)
         if count is None:
-            count, ok = QInputDialog.getInt(
-                self.window, "Anchors", "Number of anchors", 50, 1, 5000
-            )
-            if not ok:
-                return None
+            return None
         ctrl = self.ctrl
 
         def job(progress, cancelled):

@@ -16,7 +16,7 @@ import numpy as np
 import pyvista as pv
 import vtk
 
-__all__ = ["ShapeView", "SHAPE_COLOR", "OUTLINE_OPACITY"]
+__all__ = ["ShapeView", "SHAPE_COLOR", "OUTLINE_OPACITY", "remove_named_actor"]
 
 SHAPE_COLOR = (0.85, 0.85, 0.80)
 HANDLE_COLOR = "orange"
@@ -30,6 +30,13 @@ OUTLINE_OPACITY = 0.15
 def cage_mesh(cage) -> pv.PolyData:
     """Triangle PolyData of a (core or public) cage."""
     return pv.PolyData.from_regular_faces(np.array(cage.vertices), np.array(cage.faces))
+
+
+def remove_named_actor(plotter, actors: dict, name: str) -> None:
+    """Take actor ``name`` out of ``actors`` and off ``plotter`` (no render), if there."""
+    actor = actors.pop(name, None)
+    if actor is not None:
+        plotter.remove_actor(actor, render=False)
 
 
 class ShapeView:
@@ -74,9 +81,7 @@ class ShapeView:
         self._marker_meshes: dict[str, pv.PolyData] = {}
 
     def _remove(self, name: str) -> None:
-        actor = self.actors.pop(name, None)
-        if actor is not None:
-            self.plotter.remove_actor(actor, render=False)
+        remove_named_actor(self.plotter, self.actors, name)
 
     def forget(self) -> None:
         """New data: the markers' binding belongs to the old deformer."""

@@ -14,6 +14,7 @@ import traceback
 import numpy as np
 from PySide6.QtCore import QTimer
 
+from vhm_viz.app.shape_view import remove_named_actor
 from vhm_viz.app.volume import DRAG_SAMPLES, FULL_SAMPLES
 from vhm_viz.colours import measure_style
 
@@ -76,9 +77,7 @@ class VolumeDisplay:
         self._slice_timer.timeout.connect(self.finish_slice_move)
 
     def _remove(self, name: str) -> None:
-        actor = self.actors.pop(name, None)
-        if actor is not None:
-            self.plotter.remove_actor(actor, render=False)
+        remove_named_actor(self.plotter, self.actors, name)
 
     def reset(self) -> None:
         """New data: slices rebound, the image resampled when shown."""

@@ -20,8 +20,9 @@ __all__ = ["collapse_blocked", "empty_face_grid", "make_face_grid", "register_fa
 def _tri_touch(t1, t2, tol):
     """Whether triangles ``t1``, ``t2`` ((3, 3) each) intersect or come within ``tol``.
 
-    The separating-axis test of :func:`vhm_viz.core.cage._sat_intersect` (normals, edge
-    cross products, in-plane edge normals); a segment is the triangle ``(a, b, b)``.
+    The separating-axis test of :func:`vhm_viz.core.self_intersection.self_intersections`
+    (normals, edge cross products, in-plane edge normals); a segment is the triangle
+    ``(a, b, b)``.
     """
     o = t1[0].copy()
     a = t1 - o

@@ -31,8 +31,8 @@ def plane_quadrics(V, F):
 
     Parameters
     ----------
-    V : (n, 3) float array
-    F : (m, 3) int array
+    V, F : (n, 3) float array, (m, 3) int array
+        The triangle mesh.
 
     Returns
     -------

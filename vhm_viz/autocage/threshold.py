@@ -88,6 +88,7 @@ def resolve_threshold(values: np.ndarray, threshold) -> float:
     Returns
     -------
     float
+        In the units of ``values``.
 
     Raises
     ------

@@ -172,7 +172,7 @@ def evaluate_basis(
     chunk_size : int, optional
         Points per chunk (in [1, 1e7]) for the numpy reference (bounds its temporaries, which are
         ``O(chunk_size * m)``). The numba kernels need no temporaries beyond the output
-        (and ~0.3 MB of scratch per thread).
+        (and a scratch per thread that grows with the cage, not with the points).
 
     Returns
     -------
@@ -414,9 +414,8 @@ def domain_columns(vertices, faces) -> tuple[np.ndarray, ...]:
 
     Parameters
     ----------
-    vertices : (n, 3) array_like
-    faces : (m, 3) array_like of int
-        Outward-oriented cage.
+    vertices, faces : (n, 3) array_like, (m, 3) array_like of int
+        The outward-oriented cage, as for :func:`~vhm_viz.core.cage_tables.prepare_cage`.
 
     Returns
     -------

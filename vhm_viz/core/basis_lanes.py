@@ -40,8 +40,8 @@ from vhm_viz.core import vecmath
 
 # Points per group. LLVM vectorises the lane loops 4 wide (AVX2), so 16 lanes are four
 # vector iterations: fewer lanes leave the loop overhead in charge, more gain nothing. The
-# scratch per group is (4 n + n_edges + n + m) * 16 * 8 bytes, about 0.3 MB for a
-# 500-face cage.
+# scratch per group is (4 n + n_edges + n + m) * 16 * 8 bytes: it grows with the cage,
+# never with the number of points.
 LANES = 16
 # Groups per parallel work item: amortises the scratch allocation over 256 points.
 _GROUPS_PER_ITEM = 16

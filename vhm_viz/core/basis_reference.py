@@ -40,12 +40,9 @@ def evaluate_reference(p: np.ndarray, cd: CageTables, order: int, host, chunk: i
 
     Returns
     -------
-    values : (N, n + m) float64
-    gradients : (N, 3, n + m) float64 or None
-    hessians : (N, 5, n + m) float64 or None
-    degenerate : (N,) bool
-        Points exactly on a cage edge or vertex (their rows need the fix-up of
-        :func:`vhm_viz.core.basis.evaluate_basis`).
+    values, gradients, hessians, degenerate
+        As :func:`~vhm_viz.core.basis_kernel.per_point_evaluation` returns them; the
+        degenerate rows need the fix-up of :func:`vhm_viz.core.basis.evaluate_basis`.
     """
     npts = p.shape[0]
     parts = [

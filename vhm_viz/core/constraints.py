@@ -292,16 +292,10 @@ def factor_constraints(
         Constraint rows.
     labels : list of str
         A name for each row, for the error message.
-    RA : (n + m, n + m) float64
-        R factor of ``A = [J_anchors; lambda H_samples]``.
-    W : (n + m, 3d) float64
-        ``Q_A^T [I; 0]``.
-    Jhat : (3d, n + m) float64
-        Basis gradient rows at the anchors.
-    Hhat : (5k, n + m) float64
-        Basis Hessian rows at the smoothness samples.
-    lambda_ : float
-        The smoothness weight.
+    RA, W : (n + m, n + m), (n + m, 3d) float64
+        The factors of :func:`factor_least_squares` for ``Jhat``, ``Hhat``, ``lambda_``.
+    Jhat, Hhat, lambda_
+        The least-squares rows and weight, as for :func:`factor_least_squares`.
 
     Returns
     -------

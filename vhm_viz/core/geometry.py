@@ -53,8 +53,8 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     Notes
     -----
     The cones are taken from the vertices' centroid, not from the origin: for a mesh far
-    from the origin the per-face terms would otherwise be huge and cancel (a cage moved by
-    1e6 came out with volume 148139 instead of 0.124, the wrong sign included).
+    from the origin the per-face terms would otherwise be huge and cancel, leaving nothing
+    of a small volume, not even its sign.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
@@ -362,7 +362,8 @@ def ray_depth(origins, directions, vertices, faces, skip_faces=None) -> np.ndarr
     e1 = v[f[:, 1]] - a
     e2 = v[f[:, 2]] - a
     out = np.full(len(o), np.inf)
-    # (rays x faces) blocks of ~1M pairs keep the temporaries near 100 MB
+    # blocks of at most a million (ray, face) pairs bound the temporaries' memory,
+    # whatever the numbers of rays and faces
     step = max(1, 1_000_000 // max(len(f), 1))
     for s in range(0, len(o), step):
         oo, dd = o[s : s + step, None, :], d[s : s + step, None, :]

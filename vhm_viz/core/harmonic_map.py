@@ -242,6 +242,7 @@ def green_stretch(source_vertices, target_vertices, faces) -> np.ndarray:
     ----------
     source_vertices, target_vertices : (n, 3) array_like
     faces : (m, 3) array_like of int
+        The triangles, the same for both vertex sets.
 
     Returns
     -------

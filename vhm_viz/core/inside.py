@@ -231,9 +231,8 @@ def winding_number(points, vertices, faces, *, backend: str = "numba") -> np.nda
     Parameters
     ----------
     points : (N, 3) array_like
-    vertices : (n, 3) array_like
-    faces : (m, 3) array_like of int
-        Outward-oriented cage triangles.
+    vertices, faces : (n, 3) array_like, (m, 3) array_like of int
+        The closed cage, its triangles outward-oriented.
     backend : {"numba", "numpy"}
 
     Returns

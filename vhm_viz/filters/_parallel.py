@@ -213,7 +213,7 @@ def send_parts(make_part, fields: dict) -> list:
     def make_all():
         for q in range(n):
             if q != me:
-                outgoing[q] = _pack(make_part(q), fields)
+                outgoing[q] = pack_part(make_part(q), fields)
         got[me] = make_part(me)
         return np.zeros((0, 1))
 
@@ -224,7 +224,7 @@ def send_parts(make_part, fields: dict) -> list:
                 if r != q:
                     buffer = vtkUnsignedCharArray()
                     controller.Receive(buffer, r, 9317)
-                    got[r] = _unpack(ns.vtk_to_numpy(buffer), fields)
+                    got[r] = unpack_part(ns.vtk_to_numpy(buffer), fields)
                     del buffer
         else:
             packed = outgoing.pop(q)
@@ -233,11 +233,26 @@ def send_parts(make_part, fields: dict) -> list:
     return got
 
 
-def _pack(part: dict, fields: dict) -> np.ndarray:
+def pack_part(part: dict, fields: dict) -> np.ndarray:
     """A part of :func:`send_parts` in one uint8 buffer: per field its length, then its bytes.
 
-    Straight into the buffer, each field released once copied: a part, tens of megabytes
-    on a large volume, is never held twice. Each field starts 8-byte aligned.
+    Straight into the buffer, each field released once copied: a part, a large share of
+    a round's values, is never held twice. Each field starts 8-byte aligned.
+
+    Parameters
+    ----------
+    part : dict
+        Field name -> array of shape ``(m,) + shape``, or an ``(array, index)`` pair that
+        stands for the rows ``array[index]`` (taken straight into the buffer, converted
+        to the field's dtype). The caller's dict is left as it was.
+    fields : dict
+        Field name -> ``(shape, dtype)``, the trailing shape and dtype of each field, in
+        the order they are packed.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(nbytes,)`` uint8, a multiple of 8 bytes; :func:`unpack_part` reads it back.
     """
     part = dict(part)
     rows = {name: _row_count(part[name], shape) for name, (shape, _) in fields.items()}
@@ -265,10 +280,22 @@ def _pack(part: dict, fields: dict) -> np.ndarray:
     return flat
 
 
-def _unpack(flat: np.ndarray, fields: dict) -> dict:
-    """The part packed by :func:`_pack` into ``flat``, as views of it (no copies).
+def unpack_part(flat: np.ndarray, fields: dict) -> dict:
+    """The part packed by :func:`pack_part` into ``flat``, as views of it (no copies).
 
     The buffer lives as long as one of them does.
+
+    Parameters
+    ----------
+    flat : numpy.ndarray
+        ``(nbytes,)`` uint8 buffer made by :func:`pack_part` with the same ``fields``.
+    fields : dict
+        Field name -> ``(shape, dtype)``, as given to :func:`pack_part`.
+
+    Returns
+    -------
+    dict
+        Field name -> array of shape ``(m,) + shape``, values exactly as packed.
     """
     part, pos = {}, 0
     for name, (shape, dtype) in fields.items():
@@ -304,7 +331,7 @@ class LatticeExchange:
     what evens out their busy time so far (measured, excluding the waits), at the exact
     evaluations' measured cost per point; the first round splits them equally. Which
     rank evaluates a point never changes its value. Points are dealt in runs of
-    neighbours taken in a hashed order (:func:`_dealing_order`), so that each share mixes
+    neighbours taken in a hashed order (:func:`dealing_order`), so that each share mixes
     points inside and outside the cage (which cost differently).
 
     **Errors.** An error on one rank (an abort, memory) is agreed in the round it happens,
@@ -346,8 +373,8 @@ class LatticeExchange:
         distinct, inverse = np.unique(everyone, return_inverse=True)
         inverse = inverse.ravel()
         del everyone
-        order = _dealing_order(len(distinct))
-        bounds = np.concatenate([[0], np.cumsum(_shares(len(distinct), header))])
+        order = dealing_order(len(distinct))
+        bounds = np.concatenate([[0], np.cumsum(balanced_shares(len(distinct), header))])
         owner = np.empty(len(distinct), dtype=np.int32)  # who evaluates each point
         for r in range(n):
             owner[order[bounds[r] : bounds[r + 1]]] = r
@@ -418,27 +445,50 @@ _VALUE_FIELDS = {"ok": ((), np.uint8), "f": ((3,), np.float64), "fu": ((9,), np.
                  "inside": ((), np.bool_)}  # fmt: skip
 
 #: Sorted lattice keys dealt together (neighbours along i, then j).
-_DEAL_RUN = 4096
+DEAL_RUN = 4096
 
 
-def _dealing_order(n: int) -> np.ndarray:
+def dealing_order(n: int) -> np.ndarray:
     """The order in which ``n`` sorted lattice keys are dealt out to the ranks.
 
-    Runs of ``_DEAL_RUN`` consecutive keys in a fixed pseudo-random order of runs
+    Runs of ``DEAL_RUN`` consecutive keys in a fixed pseudo-random order of runs
     (Fibonacci hashing). Runs of neighbours keep the exact evaluations' speed (the
     kernel's branches follow the geometry, so neighbours take the same branches, which a
     fully hashed order would mix). The hashed order of the runs mixes
     inside and outside points in every share.
+
+    Parameters
+    ----------
+    n : int
+        Number of sorted keys.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n,)`` int64 permutation of ``range(n)``: whole runs, each ascending by one.
     """
-    run = np.arange(n, dtype=np.uint64) // np.uint64(_DEAL_RUN)
+    run = np.arange(n, dtype=np.uint64) // np.uint64(DEAL_RUN)
     return np.argsort(run * np.uint64(0x9E3779B97F4A7C15), kind="stable")
 
 
-def _shares(n: int, header: np.ndarray) -> np.ndarray:
+def balanced_shares(n: int, header: np.ndarray) -> np.ndarray:
     """Points per rank that even out the ranks' busy seconds (see :class:`LatticeExchange`).
 
-    ``header`` rows: status, own points, busy seconds, seconds and points evaluated so far.
-    The same on every rank (gathered), so every rank computes the same shares.
+    The same ``header`` on every rank (gathered), so every rank computes the same shares.
+
+    Parameters
+    ----------
+    n : int
+        Number of points to deal out.
+    header : numpy.ndarray
+        ``(ranks, 5)`` float rows: status, own points, busy seconds, and the seconds and
+        points of exact evaluations so far.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(ranks,)`` int64 non-negative shares summing to ``n``; equal (the remainder to
+        the first ranks) while no cost is known.
     """
     n_ranks = len(header)
     equal = np.full(n_ranks, n // n_ranks) + (np.arange(n_ranks) < n % n_ranks)

@@ -34,8 +34,9 @@ _SDDP = vtkStreamingDemandDrivenPipeline
 _MODES = ("deformed", "input")
 # Voxels beyond a rank's own root layers that its window holds: a single-voxel cell's
 # twists difference the node one voxel across (its own cells then come out as the whole
-# lattice's, bit for bit; with no voxel beyond, pre-images would move by up to 1e-5
-# voxel). One would do; two keep a margin, and far fewer leaves than a whole root layer.
+# lattice's, bit for bit; with no voxel beyond, pre-images near a window's edge would
+# differ from a serial run's). One would do; two keep a margin, and far fewer leaves than
+# a whole root layer.
 _HALO = 2
 #: Point arrays the filter adds (never resampled from an input that already has them).
 _OWN_ARRAYS = ("vtkValidPointMask", "vhm_foldover")
@@ -356,7 +357,7 @@ class HarmonicResampleFilter(DeformationSource):
         # each rank's even share of the build counts in its time: the cuts lean on the
         # leaves, most of its memory (the build may be more work than the pull-back).
         # The ranks' counts include the halo points each needed from the others: a few
-        # percent over the distinct evaluations, whose cost the constant was measured on
+        # percent over the distinct evaluations, the work the constant prices
         # (LatticeExchange.distinct would add up the builds again if a rank rebuilt)
         build = lattice_build_work(summed[-1], len(hm.cage.vertices) + len(hm.cage.faces))
         cuts = pull_back_shares(pairs, geo, _parallel.process_count(), spans, build)

@@ -9,6 +9,7 @@ a corrupt count cannot exhaust the machine's memory either.
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import os
 import pickle
 import signal
@@ -55,8 +56,6 @@ def read_isolated(path, read, what: str = "the reader"):
     if pid == 0:  # pragma: no cover - the child (coverage does not follow the fork)
         status = 0
         try:
-            import faulthandler
-
             faulthandler.disable()  # a crash here is expected and reported by the parent
             os.close(read_end)
             _limit_memory(p)

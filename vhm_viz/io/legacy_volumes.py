@@ -132,7 +132,7 @@ def _slc_voxels(p: Path) -> np.ndarray | None:
     """The voxels of an 8-bit SLC file, ``(nz, ny, nx)``, missing ones set to 0.
 
     VTK's SLC reader leaves a voxel uninitialised when a slice's run-length code stops
-    short of it (the bundled embryo's slices all stop one voxel short): its value then
+    short of it (files whose every slice stops one voxel short exist): its value then
     changes from run to run, and so does the region above a threshold. Returns None for
     files this decoder does not handle (other than 8 bits).
     """

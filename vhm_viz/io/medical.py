@@ -17,6 +17,7 @@ import struct
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from vhm_viz.atomic import atomic_path
 from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
@@ -252,8 +253,6 @@ def write_nifti(path, image) -> None:
         ``.nii`` or ``.nii.gz`` (gzip-compressed).
     image : pyvista.ImageData
     """
-    from scipy.spatial.transform import Rotation
-
     path = Path(path)
     values = _volume_array(image)
     if values.dtype.name not in _NIFTI_TYPES:

@@ -36,11 +36,12 @@ def read_polylines(path) -> tuple[np.ndarray, np.ndarray]:
     Parameters
     ----------
     path : str or os.PathLike
+        The OFF file.
 
     Returns
     -------
-    points : (P, 3) float64
-    edges : (E, 2) int64
+    points, edges : (P, 3) float64, (E, 2) int64
+        The polylines' points, and their segments as pairs of 0-based point indices.
 
     Raises
     ------
@@ -68,6 +69,7 @@ def read_tgf(path) -> tuple[np.ndarray, np.ndarray]:
     Parameters
     ----------
     path : str or os.PathLike
+        The ``.tgf`` file.
 
     Returns
     -------
@@ -119,8 +121,8 @@ def read_rigidity_lines(path) -> tuple[np.ndarray, np.ndarray]:
 
     Returns
     -------
-    points : (P, 3) float64
-    edges : (E, 2) int64
+    points, edges : (P, 3) float64, (E, 2) int64
+        As :func:`read_polylines` returns them (a skeleton's joints and bones).
 
     Raises
     ------

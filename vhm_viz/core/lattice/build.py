@@ -60,6 +60,7 @@ def check_tolerance(tolerance) -> float:
     Returns
     -------
     float
+        The tolerance, in voxels.
 
     Raises
     ------
@@ -92,9 +93,8 @@ def build_lattice(
 
     Parameters
     ----------
-    harmonic_map : HarmonicMap
-    geometry : ImageGeometry
-        The input volume's grid.
+    harmonic_map, geometry : HarmonicMap, ImageGeometry
+        The map, and the input volume's grid it is built over.
     tolerance : float
         Largest allowed position error, in voxels of the input spacing (Euclidean norm
         of the error in index coordinates); default :data:`DEFAULT_TOLERANCE`.
