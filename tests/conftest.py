@@ -175,3 +175,22 @@ def affine_resampled(img, name, matrix, translation):
     clearly_in = np.all((idx > -0.5 + 1e-6) & (idx < top + 0.5 - 1e-6), axis=1)
     clearly_out = np.any((idx < -0.5 - 1e-6) | (idx > top + 0.5 + 1e-6), axis=1)
     return ref.ravel(), clearly_in, clearly_out
+
+
+def trilinear_corner_dets(p):
+    """Brute force: each cell's smallest trilinear corner Jacobian determinant (numpy).
+
+    ``p``: (nz, ny, nx, 3) grid points, i fastest. Returns one value per cell, VTK order.
+    """
+    nz, ny, nx = (d - 1 for d in p.shape[:3])
+    out = np.full((nz, ny, nx), np.inf)
+    for c in (0, 1):
+        for b in (0, 1):
+            for a in (0, 1):
+                ex = p[c : c + nz, b : b + ny, 1:] - p[c : c + nz, b : b + ny, :-1]
+                ey = p[c : c + nz, 1:, a : a + nx] - p[c : c + nz, :-1, a : a + nx]
+                ez = p[1:, b : b + ny, a : a + nx] - p[:-1, b : b + ny, a : a + nx]
+                with np.errstate(invalid="ignore"):
+                    d = np.linalg.det(np.stack([ex, ey, ez], axis=-1))
+                out = np.minimum(out, d)
+    return out.reshape(-1)

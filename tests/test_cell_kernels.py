@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import trilinear_corner_dets
 
 from vhm_viz.core.cell_kernels import (
     hexahedron_corner_determinants,
@@ -108,22 +109,6 @@ def test_cells_take_the_worst_tet_and_flag_rest_problems():
     assert m["determinant"][0] == 1.0 and np.isnan(m["condition_number"][0])
 
 
-def _trilinear_corner_dets(p):
-    """Brute force: the trilinear Jacobian at each corner of each cell, numpy."""
-    nz, ny, nx = (d - 1 for d in p.shape[:3])
-    out = np.full((nz, ny, nx), np.inf)
-    for c in (0, 1):
-        for b in (0, 1):
-            for a in (0, 1):
-                ex = p[c : c + nz, b : b + ny, 1:] - p[c : c + nz, b : b + ny, :-1]
-                ey = p[c : c + nz, 1:, a : a + nx] - p[c : c + nz, :-1, a : a + nx]
-                ez = p[1:, b : b + ny, a : a + nx] - p[:-1, b : b + ny, a : a + nx]
-                with np.errstate(invalid="ignore"):
-                    d = np.linalg.det(np.stack([ex, ey, ez], axis=-1))
-                out = np.minimum(out, d)
-    return out.reshape(-1)
-
-
 def test_hexahedra_of_an_affine_map_have_its_determinant():
     dims = (5, 4, 3)
     spacing = np.array([0.5, 0.7, 1.1])
@@ -144,7 +129,7 @@ def test_hexahedra_match_brute_force_and_find_inverted_cells():
     p[3, 2, 2] += [2.0, 0.0, 0.0]  # pushed through its neighbours: folds cells around it
     p[5, 4, 5] = np.nan
     out = hexahedron_corner_determinants(p.reshape(-1, 3), dims, -2.0)
-    ref = _trilinear_corner_dets(p) / -2.0
+    ref = trilinear_corner_dets(p) / -2.0
     np.testing.assert_allclose(out, ref, rtol=1e-12)
     assert np.isnan(out).sum() == np.isnan(ref).sum() > 0
     assert (out[np.isfinite(out)] >= 0).any() and (out[np.isfinite(out)] < 0).any()

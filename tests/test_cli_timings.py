@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 import pyvista as pv
+from conftest import trilinear_corner_dets
 
 from vhm_viz import examples
 
@@ -43,21 +44,6 @@ def folding_volume(tmp_path_factory):
     return folder
 
 
-def _corner_dets(points, dims):
-    """Brute force: the smallest trilinear corner Jacobian determinant of each cell."""
-    p = points.reshape(dims[2], dims[1], dims[0], 3)
-    nz, ny, nx = (d - 1 for d in dims[::-1])
-    out = np.full((nz, ny, nx), np.inf)
-    for c in (0, 1):
-        for b in (0, 1):
-            for a in (0, 1):
-                ex = p[c : c + nz, b : b + ny, 1:] - p[c : c + nz, b : b + ny, :-1]
-                ey = p[c : c + nz, 1:, a : a + nx] - p[c : c + nz, :-1, a : a + nx]
-                ez = p[1:, b : b + ny, a : a + nx] - p[:-1, b : b + ny, a : a + nx]
-                out = np.minimum(out, np.linalg.det(np.stack([ex, ey, ez], axis=-1)))
-    return out.reshape(-1)
-
-
 def test_warped_volume_fold_count_matches_brute_force(folding_volume):
     out = folding_volume / "warped.vts"
     proc = _cli(
@@ -66,7 +52,8 @@ def test_warped_volume_fold_count_matches_brute_force(folding_volume):
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     warped = pv.read(out)
-    expected = int((_corner_dets(np.asarray(warped.points), DIMS) <= 0).sum())
+    grid = np.asarray(warped.points).reshape(*DIMS[::-1], 3)
+    expected = int((trilinear_corner_dets(grid) <= 0).sum())
     assert expected > 0  # the scene folds
     m = re.search(r"(\d+) of (\d+) cells inverted", proc.stderr)
     assert m, proc.stderr

@@ -15,7 +15,7 @@ import numpy as np
 
 from vhm_viz import interrupts
 from vhm_viz.cli import one_line
-from vhm_viz.core.errors import describe_indices
+from vhm_viz.core.errors import OutsideCageError, describe_indices
 from vhm_viz.core.metrics import rigidity_distortion, volume_change
 from vhm_viz.io import DATASET_SUFFIXES, OverwriteError, refuse_inputs, suffix_of
 from vhm_viz.scene import Scene, SolvedMap
@@ -117,6 +117,46 @@ def observe_progress(algorithm, progress: Progress) -> None:
             progress(obj.GetProgress())
 
     algorithm.AddObserver("ProgressEvent", forward)
+
+
+def run_filter(algorithm, data, deformer, label: str, *, quiet: bool, source=None):
+    """Run one of the VTK filters on ``data`` with ``deformer``, its progress on stderr.
+
+    Parameters
+    ----------
+    algorithm : vtkAlgorithm
+        A :mod:`vhm_viz.filters` filter, set up apart from its input and deformer.
+    data : pyvista.DataSet
+    deformer : Deformer
+    label : str
+        The progress bar's label.
+    quiet : bool
+        No progress bar.
+    source : path-like, optional
+        The file ``data`` came from: with it, points outside the cage are one
+        :class:`CLIError` naming the file (else the filter's error is raised).
+
+    Returns
+    -------
+    pyvista.DataSet
+        The filter's output.
+    """
+    import pyvista as pv
+
+    from vhm_viz.filters import update
+
+    algorithm.SetInputData(data)
+    algorithm.SetDeformer(deformer)
+    bar = Progress(label, enabled=not quiet)
+    observe_progress(algorithm, bar)
+    try:
+        result = pv.wrap(update(algorithm))
+    except OutsideCageError as exc:
+        if source is None:
+            raise
+        raise CLIError(outside_message(exc, data.n_points, source)) from exc
+    bar.finish()
+    return result
 
 
 def check_input(path: str, suffixes=DATASET_SUFFIXES) -> Path:

@@ -27,13 +27,11 @@ from vhm_viz.cli._util import (
     check_input,
     check_output_directory,
     load_scene,
-    observe_progress,
-    outside_message,
     quiet_vtk,
+    run_filter,
     surface_metrics,
 )
 from vhm_viz.core.certify import certify_injectivity
-from vhm_viz.core.errors import OutsideCageError
 from vhm_viz.core.metrics import finite_or_none
 from vhm_viz.io import atomic_outputs, json_text, read_dataset, write_dataset, write_text
 
@@ -168,17 +166,9 @@ def analyze(args: argparse.Namespace) -> str:
     dfm, reports = solved.deformer, solved.reports
     hm = dfm.harmonic_map
     ana = JacobianAnalysisFilter()
-    ana.SetInputData(mesh)
-    ana.SetDeformer(dfm)
     ana.SetOutsidePolicy(args.outside)
-    bar = Progress("analyzing", enabled=not args.quiet)
-    observe_progress(ana, bar)
-    try:
-        with timer.stage("map"):
-            analysed = pv.wrap(update(ana))
-    except OutsideCageError as exc:
-        raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
-    bar.finish()
+    with timer.stage("map"):
+        analysed = run_filter(ana, mesh, dfm, "analyzing", quiet=args.quiet, source=src)
     inside = np.ones(mesh.n_points, bool)
     if "vhm_outside" in analysed.point_data:
         inside = np.asarray(analysed.point_data["vhm_outside"]) == 0

@@ -15,19 +15,16 @@ import numpy as np
 
 from vhm_viz.cli._util import (
     CLIError,
-    Progress,
     add_convergence_argument,
     build_and_solve,
     check_input,
     check_output,
     fold_warning,
     load_scene,
-    observe_progress,
-    outside_message,
     quiet_vtk,
+    run_filter,
     surface_metrics,
 )
-from vhm_viz.core.errors import OutsideCageError
 from vhm_viz.core.image import INTERPOLATIONS
 from vhm_viz.core.volume import DEFAULT_TOLERANCE
 from vhm_viz.io import (
@@ -169,7 +166,7 @@ def deform(args: argparse.Namespace) -> str:
     import pyvista as pv
 
     from vhm_viz.core.volume import check_tolerance
-    from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
+    from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter
 
     src = check_input(args.input)
     arrays = _parse_arrays(args.arrays)
@@ -227,16 +224,8 @@ def deform(args: argparse.Namespace) -> str:
         label = "warping" if volume else "binding"
     flt.SetOutsidePolicy(args.outside)
     flt.SetTolerance(tolerance)
-    flt.SetInputData(mesh)
-    flt.SetDeformer(dfm)
-    bar = Progress(label, enabled=not args.quiet)
-    observe_progress(flt, bar)
-    try:
-        with timer.stage("map"):
-            result = pv.wrap(update(flt))
-    except OutsideCageError as exc:
-        raise CLIError(outside_message(exc, mesh.n_points, src)) from exc
-    bar.finish()
+    with timer.stage("map"):
+        result = run_filter(flt, mesh, dfm, label, quiet=args.quiet, source=src)
     # everything that can fail happens before the write: an error never follows an output
     with timer.stage("checks"):
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)

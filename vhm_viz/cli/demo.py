@@ -28,8 +28,8 @@ from vhm_viz import plotting
 from vhm_viz.cli._util import (
     CLIError,
     Progress,
-    observe_progress,
     quiet_vtk,
+    run_filter,
 )
 from vhm_viz.core.metrics import jacobian_measures, rigidity_distortion, volume_change
 from vhm_viz.examples import bar, bar_surface
@@ -141,15 +141,10 @@ def demo(args: argparse.Namespace):
     rest = scenario.surface
     save(rest, "bar_rest.vtp", "rest surface")
     surface_filter = HarmonicDeformationFilter()
-    surface_filter.SetInputData(rest)
-    surface_filter.SetDeformer(dfm)
     surface_filter.SetComputeDisplacement(True)
     surface_filter.SetComputeJacobianDeterminant(True)
     surface_filter.SetComputeConditionNumber(True)
-    p = Progress("surface", enabled=not quiet)
-    observe_progress(surface_filter, p)
-    bent = pv.wrap(update(surface_filter))
-    p.finish()
+    bent = run_filter(surface_filter, rest, dfm, "surface", quiet=quiet)
     save(bent, "bar_bent.vtp", "deformed surface")
     tris = scenario.triangles
     e_rigid = rigidity_distortion(scenario.points, bent.points, tris)
@@ -187,13 +182,7 @@ def demo(args: argparse.Namespace):
     warp.SetInputData(vol)
     warp.SetDeformer(dfm)
     save(pv.wrap(update(warp)), "bar_volume_bent.vts", "deformed volume (warped grid)")
-    resample = HarmonicResampleFilter()
-    resample.SetInputData(vol)
-    resample.SetDeformer(dfm)
-    p = Progress("resample", enabled=not quiet)
-    observe_progress(resample, p)
-    resampled = pv.wrap(update(resample))
-    p.finish()
+    resampled = run_filter(HarmonicResampleFilter(), vol, dfm, "resample", quiet=quiet)
     save(resampled, "bar_volume_bent.vti", "deformed volume (resampled, .vti)")
     mass0 = float(np.asarray(vol.point_data["density"], dtype=np.float64).sum())
     mass1 = float(np.asarray(resampled.point_data["density"], dtype=np.float64).sum())
