@@ -47,10 +47,7 @@ def xvfb_display():
                 pytest.skip("no X display and Xvfb not found (apt-get install xvfb)")
             os.environ["DISPLAY"] = display
         os.environ["QT_QPA_PLATFORM"] = "xcb"
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=1, user_api="blas"):  # as the app does (vhm_viz.app.run)
-        yield os.environ.get("DISPLAY")
+    yield os.environ.get("DISPLAY")
     for k, v in old.items():
         if v is None:
             os.environ.pop(k, None)
@@ -58,6 +55,19 @@ def xvfb_display():
             os.environ[k] = v
     if proc is not None and QApplication.instance() is None:
         proc.terminate()  # never connected: nothing will make it exit by itself
+
+
+@pytest.fixture(scope="module", autouse=True)
+def single_threaded_blas():
+    """BLAS on one thread, as the explorer runs it (vhm_viz.app.run), in this module only.
+
+    Rounding, and with it iteration counts, depend on BLAS's threads: the limit must not
+    leak into the tests of other modules.
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
 
 
 @pytest.fixture
