@@ -330,6 +330,18 @@ def _where(points: np.ndarray, values: np.ndarray) -> str:
     return text
 
 
+def _points_of(data, index) -> np.ndarray:
+    """Positions of the points ``index`` of ``data``; an image's without making them all."""
+    import pyvista as pv
+
+    index = np.asarray(index, dtype=np.int64)
+    if isinstance(data, pv.ImageData):
+        ijk = np.column_stack(np.unravel_index(index, tuple(data.dimensions), order="F"))
+        frame = np.asarray(data.direction_matrix, dtype=np.float64) * np.asarray(data.spacing)
+        return np.asarray(data.origin, dtype=np.float64) + ijk @ frame.T
+    return np.asarray(data.points, dtype=np.float64)[index]
+
+
 def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:
     """One warning line when a deformation folds the data, naming how many and where.
 
@@ -355,15 +367,18 @@ def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:
     if cells is not None and cells["summary"]["inverted"]:
         det = np.asarray(cells["determinant"])
         bad = np.nonzero(det <= 0)[0]
-        centres = np.asarray(pv.wrap(rest).extract_cells(bad).cell_centers().points)
+        if "centres" in cells:
+            centres = np.asarray(cells["centres"](bad))
+        else:
+            centres = np.asarray(pv.wrap(rest).extract_cells(bad).cell_centers().points)
         parts.append(
             f"{bad.size} of {cells['summary']['cells']} cells inverted "
             f"(cell det <= 0; {_where(centres, det[bad])})"
         )
-    points = np.asarray(rest.points, dtype=np.float64)
+    n_points = rest.GetNumberOfPoints()
     if point_det is None:
-        idx = np.unique(np.linspace(0, len(points) - 1, min(len(points), FOLD_SAMPLES)).astype(int))
-        jac = harmonic_map.evaluate(points[idx], order=1, outside="nan")[1]
+        idx = np.unique(np.linspace(0, n_points - 1, min(n_points, FOLD_SAMPLES)).astype(int))
+        jac = harmonic_map.evaluate(_points_of(rest, idx), order=1, outside="nan")[1]
         ok = np.isfinite(jac).all(axis=(1, 2))
         idx, det = idx[ok], np.linalg.det(jac[ok])
         what = f"{idx.size} sampled points"
@@ -375,7 +390,8 @@ def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:
     bad = det <= 0
     if bad.any():
         parts.append(
-            f"det J <= 0 at {int(bad.sum())} of {what} ({_where(points[idx][bad], det[bad])})"
+            f"det J <= 0 at {int(bad.sum())} of {what} "
+            f"({_where(_points_of(rest, idx[bad]), det[bad])})"
         )
     if not parts:
         return None

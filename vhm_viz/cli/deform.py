@@ -311,4 +311,12 @@ def _voxel_folds(image, warped) -> dict | None:
     det = hexahedron_corner_determinants(warped.points, dims, rest_det)
     finite = np.isfinite(det)
     summary = {"cells": int(finite.sum()), "inverted": int(np.count_nonzero(det[finite] <= 0))}
-    return {"determinant": det, "summary": summary}
+    origin = np.asarray(image.origin, dtype=np.float64)
+    frame = np.asarray(image.direction_matrix, dtype=np.float64) * np.asarray(image.spacing)
+
+    def centres(cells):
+        """Rest centres of voxel cells given by index, without extracting the cells."""
+        i, j, k = np.unravel_index(cells, (dims[0] - 1, dims[1] - 1, dims[2] - 1), order="F")
+        return origin + (np.column_stack([i, j, k]) + 0.5) @ frame.T
+
+    return {"determinant": det, "summary": summary, "centres": centres}

@@ -39,6 +39,8 @@ _WRITERS = {
 def write_vtk_file(path, data) -> None:
     """Write ``data`` atomically with VTK's writer for the suffix, binary where it can.
 
+    XML formats are LZ4-compressed.
+
     VTK's writers report a failed write (a full disk or quota, a file-size limit) through
     their error code and an error message that may be silenced, and leave a truncated
     file; the code is checked before the file is renamed into place.
@@ -64,6 +66,10 @@ def write_vtk_file(path, data) -> None:
     writer = getattr(importlib.import_module(f"vtkmodules.{module}"), name)()
     if binary:
         writer.SetFileTypeToBinary()
+    if hasattr(writer, "SetCompressorTypeToLZ4"):
+        # XML formats: LZ4 writes and reads several times faster than zlib, for a larger
+        # file (every VTK reader since 8.1 and ParaView read it)
+        writer.SetCompressorTypeToLZ4()
     with atomic_path(path) as tmp:
         writer.SetFileName(os.fspath(tmp))
         writer.SetInputData(data)
