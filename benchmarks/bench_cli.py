@@ -31,7 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -158,10 +158,9 @@ class Case:
     scene: dict | None = None
     output: str = ""
     big: bool = False
-    extra_files: dict = field(default_factory=dict)
 
 
-def cases(scratch: Path, big: bool) -> list[Case]:
+def cases(big: bool) -> list[Case]:
     """The default set: volumes, tet meshes, surfaces and the certificate."""
     vol = data("volumes")
     out: list[Case] = []
@@ -297,7 +296,7 @@ def main(argv=None) -> int:
     try:
         todo = [
             c
-            for c in cases(scratch, args.big or "embryo" in args.only)
+            for c in cases(args.big or "embryo" in args.only)
             if args.only.lower() in c.name.lower()
         ]
         for k, case in enumerate(todo):

@@ -337,9 +337,14 @@ def _points_of(data, index) -> np.ndarray:
     index = np.asarray(index, dtype=np.int64)
     if isinstance(data, pv.ImageData):
         ijk = np.column_stack(np.unravel_index(index, tuple(data.dimensions), order="F"))
-        frame = np.asarray(data.direction_matrix, dtype=np.float64) * np.asarray(data.spacing)
-        return np.asarray(data.origin, dtype=np.float64) + ijk @ frame.T
+        return image_positions(data, ijk)
     return np.asarray(data.points, dtype=np.float64)[index]
+
+
+def image_positions(image, ijk) -> np.ndarray:
+    """World positions of (fractional) index coordinates ``ijk`` (K, 3) of an image."""
+    frame = np.asarray(image.direction_matrix, dtype=np.float64) * np.asarray(image.spacing)
+    return np.asarray(image.origin, dtype=np.float64) + np.asarray(ijk, dtype=np.float64) @ frame.T
 
 
 def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:

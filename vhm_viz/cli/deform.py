@@ -20,6 +20,7 @@ from vhm_viz.cli._util import (
     check_input,
     check_output,
     fold_warning,
+    image_positions,
     load_scene,
     quiet_vtk,
     run_filter,
@@ -311,12 +312,10 @@ def _voxel_folds(image, warped) -> dict | None:
     det = hexahedron_corner_determinants(warped.points, dims, rest_det)
     finite = np.isfinite(det)
     summary = {"cells": int(finite.sum()), "inverted": int(np.count_nonzero(det[finite] <= 0))}
-    origin = np.asarray(image.origin, dtype=np.float64)
-    frame = np.asarray(image.direction_matrix, dtype=np.float64) * np.asarray(image.spacing)
 
     def centres(cells):
         """Rest centres of voxel cells given by index, without extracting the cells."""
         i, j, k = np.unravel_index(cells, (dims[0] - 1, dims[1] - 1, dims[2] - 1), order="F")
-        return origin + (np.column_stack([i, j, k]) + 0.5) @ frame.T
+        return image_positions(image, np.column_stack([i, j, k]) + 0.5)
 
     return {"determinant": det, "summary": summary, "centres": centres}

@@ -10,6 +10,7 @@ whatever it got from a truncated file.
 
 from __future__ import annotations
 
+import importlib
 import os
 import re
 from pathlib import Path
@@ -58,8 +59,6 @@ def write_vtk_file(path, data) -> None:
     OSError
         The writer failed; names the file and VTK's reason. ``path`` is left as it was.
     """
-    import importlib
-
     from vtkmodules.vtkCommonMisc import vtkErrorCode
 
     module, name, binary = _WRITERS[suffix_of(path)]
