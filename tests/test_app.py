@@ -22,66 +22,10 @@ pytest.importorskip("pytestqt")
 
 pytestmark = pytest.mark.gui
 
+# the real X display, one-thread BLAS and the window (fixtures shared with other GUI tests)
+from tests.gui import single_threaded_blas, window, xvfb_display  # noqa: E402, F401
+
 RES = 8  # bar resolution of the tests (1,410 surface points: fast bindings)
-
-
-def _start_xvfb():
-    from vhm_viz.app import start_xvfb
-
-    # -terminate: the server exits when the test process (its last client) does, so Qt
-    # never sees its display vanish while the QApplication is alive
-    return start_xvfb()
-
-
-@pytest.fixture(scope="session", autouse=True)
-def xvfb_display():
-    """A real X display for Qt and VTK: the current one, or a fresh Xvfb."""
-    from PySide6.QtWidgets import QApplication
-
-    old = {k: os.environ.get(k) for k in ("DISPLAY", "QT_QPA_PLATFORM")}
-    proc = None
-    if QApplication.instance() is None:
-        if not os.environ.get("DISPLAY"):
-            proc, display = _start_xvfb()
-            if proc is None:
-                pytest.skip("no X display and Xvfb not found (apt-get install xvfb)")
-            os.environ["DISPLAY"] = display
-        os.environ["QT_QPA_PLATFORM"] = "xcb"
-    yield os.environ.get("DISPLAY")
-    for k, v in old.items():
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
-    if proc is not None and QApplication.instance() is None:
-        proc.terminate()  # never connected: nothing will make it exit by itself
-
-
-@pytest.fixture(scope="module", autouse=True)
-def single_threaded_blas():
-    """BLAS on one thread, as the explorer runs it (vhm_viz.app.run), in this module only.
-
-    Rounding, and with it iteration counts, depend on BLAS's threads: the limit must not
-    leak into the tests of other modules.
-    """
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=1, user_api="blas"):
-        yield
-
-
-@pytest.fixture
-def window(qtbot):
-    from vhm_viz.app.window import ExplorerWindow
-
-    win = ExplorerWindow(dialogs=False)
-    qtbot.addWidget(win)
-    win.resize(1000, 700)
-    win.show()
-    qtbot.waitExposed(win)
-    yield win
-    win.runner.wait(60000)
-    win.close()
 
 
 def _open_bar(win, kind="bend-90", apply=True):

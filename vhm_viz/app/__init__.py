@@ -117,6 +117,10 @@ def run(args) -> int:
                 win.open_bar(args.bar)
         if args.scene:  # applies to FILE unless the scene's sidecar names its data
             win.load_scene(args.scene)
+        # the edited scene is kept on disk while the session runs; one left by a session
+        # that crashed or was killed is offered back
+        win.start_autosave()
+        win.offer_recovery()
         # Python runs signal handlers only between its own instructions, which a Qt event
         # loop waiting in C++ never executes: a timer gives it the chance every 200 ms
         tick = QTimer()

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pyvista as pv
-from PySide6.QtCore import Qt
+from PySide6.QtCore import Qt, QTimer
 from PySide6.QtGui import QAction, QActionGroup, QKeySequence
 from PySide6.QtWidgets import (
     QDockWidget,
@@ -40,6 +40,7 @@ from PySide6.QtWidgets import (
 from pyvistaqt import QtInteractor
 
 from vhm_viz.app.analysis_view import AnalysisView
+from vhm_viz.app.autosave import AUTOSAVE_INTERVAL_S, Autosave, recoverable
 from vhm_viz.app.controller import ExplorerController
 from vhm_viz.app.dragging import DragFrames
 from vhm_viz.app.editing import Editing
@@ -112,6 +113,9 @@ class ExplorerWindow(QMainWindow):
         #: ("position" | "jacobian", index) of the constraint Delete removes.
         self.selected = None
         self._open_dialogs: list = []
+        #: The session's :class:`~vhm_viz.app.autosave.Autosave` once :meth:`start_autosave` ran.
+        self.autosave: Autosave | None = None
+        self._autosave_timer: QTimer | None = None
         # software OpenGL (llvmpipe) costs: no multi-sampling (doubles the frame time), one
         # headlight instead of pyvista's five-light kit (a third of the shape's render time)
         self.plotter = QtInteractor(
@@ -581,10 +585,75 @@ class ExplorerWindow(QMainWindow):
             return None
         return self.run_job("volume rendering", job, self.volume_display.set_image, queue=True)
 
+    # ================================================================== autosave
+    def start_autosave(self, folder=None, interval_s: float = AUTOSAVE_INTERVAL_S) -> None:
+        """Keep the edited scene on disk (:mod:`vhm_viz.app.autosave`) every ``interval_s``.
+
+        The explorer's start (``vhm-viz explore``) calls this; a window that closes normally
+        removes the file.
+        """
+        self.autosave = Autosave(folder)
+        self._autosave_timer = QTimer(self)
+        self._autosave_timer.timeout.connect(self.save_now)
+        self._autosave_timer.start(max(50, int(interval_s * 1000)))
+
+    def save_now(self) -> bool:
+        """Write the autosave if the scene changed; skipped while a job edits the state."""
+        if self.autosave is None or self.runner.busy:
+            return False
+        try:
+            return self.autosave.update(self.ctrl)
+        except OSError as exc:
+            self.statusBar().showMessage(f"autosave failed: {exc}", 15000)
+            return False
+
+    def offer_recovery(self, folder=None) -> list[Path]:
+        """Scenes left by explorers that crashed or were killed (newest first).
+
+        With dialogs, asks whether to open the newest (:meth:`recover`), keep it for later
+        or discard it.
+        """
+        if folder is None and self.autosave is not None:
+            folder = self.autosave.folder
+        found = recoverable(folder)
+        if not found or not self.dialogs:
+            return found
+        box = QMessageBox(
+            QMessageBox.Icon.Question,
+            "vhm_viz",
+            f"An explorer session ended without closing; its scene was kept in {found[0]}.\n"
+            "Open it now?",
+            QMessageBox.StandardButton.Open
+            | QMessageBox.StandardButton.Discard
+            | QMessageBox.StandardButton.Cancel,
+            parent=self,
+        )
+        answer = box.exec()
+        if answer == QMessageBox.StandardButton.Open:
+            self.recover(found[0])
+        elif answer == QMessageBox.StandardButton.Discard:
+            found[0].unlink(missing_ok=True)
+        return found
+
+    def recover(self, path):
+        """Open an autosaved scene (:meth:`load_scene`); it becomes this session's autosave.
+
+        Returns the load job.
+        """
+        path = Path(path)
+        if self.autosave is not None:
+            self.autosave.folder.mkdir(parents=True, exist_ok=True)
+            path.replace(self.autosave.path)
+            path = self.autosave.path
+        return self.load_scene(str(path))
+
     # ================================================================== shutdown
     def closeEvent(self, event) -> None:  # noqa: N802, D102 - Qt override
         if self.runner.busy:
             self.runner.cancel()
         self.runner.wait(5000)
+        if self._autosave_timer is not None:
+            self._autosave_timer.stop()
+            self.autosave.discard()
         self.plotter.close()
         super().closeEvent(event)
