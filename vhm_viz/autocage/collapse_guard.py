@@ -13,7 +13,57 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["collapse_blocked", "empty_face_grid", "make_face_grid", "register_face"]
+__all__ = [
+    "collapse_blocked",
+    "empty_face_grid",
+    "make_face_grid",
+    "register_face",
+    "take_once",
+    "turns_too_far",
+]
+
+
+@numba.njit(cache=True)
+def take_once(item, mark, token, out, n):
+    """Append ``item`` as ``out[n]`` unless ``mark[item]`` already holds ``token``.
+
+    The set operations of the compiled loops: a marker array (one int per item) and a
+    running token make "distinct items" a pass with no clearing. Returns the new count.
+    """
+    if mark[item] == token:
+        return n
+    mark[item] = token
+    out[n] = item
+    return n + 1
+
+
+@numba.njit(cache=True)
+def _face_normal(t):
+    """Unnormalized normal ``(t1 - t0) x (t2 - t0)`` of the triangle ``t`` (3, 3)."""
+    a1 = t[1] - t[0]
+    a2 = t[2] - t[0]
+    return np.array(
+        [
+            a1[1] * a2[2] - a1[2] * a2[1],
+            a1[2] * a2[0] - a1[0] * a2[2],
+            a1[0] * a2[1] - a1[1] * a2[0],
+        ]
+    )
+
+
+@numba.njit(cache=True)
+def turns_too_far(old, new, max_normal_turn):
+    """Whether a face moved from corners ``old`` to ``new`` ((3, 3) each) turns too far.
+
+    It does when the moved face degenerates (its normal shrinks below ``1e-12`` of the
+    old one) or the cosine of the angle between the two normals falls below
+    ``max_normal_turn``.
+    """
+    n0 = _face_normal(old)
+    n1 = _face_normal(new)
+    l0 = np.sqrt((n0**2).sum())
+    l1 = np.sqrt((n1**2).sum())
+    return l1 <= 1e-12 * max(l0, 1e-300) or (n0 * n1).sum() < max_normal_turn * l0 * l1
 
 
 @numba.njit(cache=True)
@@ -255,10 +305,7 @@ def _candidates(grid, visit, m, lo, hi, out):
                 while e >= 0:
                     g = entry_face[e]
                     e = nxt[e]
-                    if visit[g] != token:
-                        visit[g] = token
-                        out[n] = g
-                        n += 1
+                    n = take_once(g, visit, token, out, n)
     return n
 
 

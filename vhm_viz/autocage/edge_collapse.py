@@ -16,7 +16,13 @@ import heapq
 import numba
 import numpy as np
 
-from vhm_viz.autocage.collapse_guard import collapse_blocked, make_face_grid, register_face
+from vhm_viz.autocage.collapse_guard import (
+    collapse_blocked,
+    make_face_grid,
+    register_face,
+    take_once,
+    turns_too_far,
+)
 
 __all__ = ["collapse_edges"]
 
@@ -52,10 +58,8 @@ def _gather_vertices(vf, cnt, F, v, mark, token, out):
         f = vf[v, s]
         for j in range(3):
             w = F[f, j]
-            if w != v and mark[w] != token:
-                mark[w] = token
-                out[k] = w
-                k += 1
+            if w != v:
+                k = take_once(w, mark, token, out, k)
     return k
 
 
@@ -65,11 +69,7 @@ def _star(vf, cnt, u, v, fmark, token, out):
     k = 0
     for x in (u, v):
         for s in range(cnt[x]):
-            f = vf[x, s]
-            if fmark[f] != token:
-                fmark[f] = token
-                out[k] = f
-                k += 1
+            k = take_once(vf[x, s], fmark, token, out, k)
     return k
 
 
@@ -311,27 +311,7 @@ def collapse_edges(
                 for j in range(3):
                     o[j] = V[F[f, j]]
                     w[j] = p if (F[f, j] == u or F[f, j] == v) else o[j]
-                a1 = o[1] - o[0]
-                a2 = o[2] - o[0]
-                b1 = w[1] - w[0]
-                b2 = w[2] - w[0]
-                n0 = np.array(
-                    [
-                        a1[1] * a2[2] - a1[2] * a2[1],
-                        a1[2] * a2[0] - a1[0] * a2[2],
-                        a1[0] * a2[1] - a1[1] * a2[0],
-                    ]
-                )
-                n1 = np.array(
-                    [
-                        b1[1] * b2[2] - b1[2] * b2[1],
-                        b1[2] * b2[0] - b1[0] * b2[2],
-                        b1[0] * b2[1] - b1[1] * b2[0],
-                    ]
-                )
-                l0 = np.sqrt((n0**2).sum())
-                l1 = np.sqrt((n1**2).sum())
-                if l1 <= 1e-12 * max(l0, 1e-300) or (n0 * n1).sum() < max_normal_turn * l0 * l1:
+                if turns_too_far(o, w, max_normal_turn):
                     ok = False
                     break
         if not ok:

@@ -12,7 +12,7 @@ import heapq
 
 import numpy as np
 
-from vhm_viz.autocage.collapse_guard import collapse_blocked, empty_face_grid
+from vhm_viz.autocage.collapse_guard import collapse_blocked, empty_face_grid, turns_too_far
 
 __all__ = ["collapse_edges_reference"]
 
@@ -136,22 +136,11 @@ def collapse_edges_reference(
         if p is None:
             continue
         # normal check on the faces that survive
-        ok = True
         changed = (vf[u] | vf[v]) - shared
-        for fi in changed:
-            tri = F[fi]
-            old = V[tri]
-            new = old.copy()
-            for k in range(3):
-                if tri[k] == u or tri[k] == v:
-                    new[k] = p
-            n0 = np.cross(old[1] - old[0], old[2] - old[0])
-            n1 = np.cross(new[1] - new[0], new[2] - new[0])
-            l0, l1 = np.linalg.norm(n0), np.linalg.norm(n1)
-            if l1 <= 1e-12 * max(l0, 1e-300) or n0 @ n1 < max_normal_turn * l0 * l1:
-                ok = False
-                break
-        if not ok:
+        if any(
+            turns_too_far(V[F[fi]], _moved_corners(V, F[fi], u, v, p), max_normal_turn)
+            for fi in changed
+        ):
             continue
         if tol >= 0 and collapse_blocked(V, F, alive_f, u, v, p, tol, comp, no_grid, visit):
             continue
@@ -174,3 +163,10 @@ def collapse_edges_reference(
         for w in neighbours(u):
             push(u, w)
     return alive_f
+
+
+def _moved_corners(V, tri, u, v, p):
+    """(3, 3) corners of triangle ``tri`` with its corners ``u`` and ``v`` moved to ``p``."""
+    corners = V[tri]
+    corners[(tri == u) | (tri == v)] = p
+    return corners

@@ -1,4 +1,4 @@
-"""Helpers shared by the ``deform``, ``analyze`` and ``demo`` subcommands.
+"""Helpers shared by the subcommands (options, input and output checks, solving, reports).
 
 VTK and PyVista are imported where they are used: ``vhm-viz --help`` imports every
 subcommand's module and stays quick.
@@ -243,6 +243,24 @@ def load_scene(path: str):
     if not p.is_file():
         raise CLIError(f"scene file not found: {p}")
     return Scene.load(p)
+
+
+def add_scene_arguments(parser, input_help: str) -> None:
+    """The positional INPUT and the required ``--scene``: a dataset and the scene that moves it.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+    input_help : str
+        What INPUT is to the command, e.g. ``"dataset to deform"``.
+    """
+    parser.add_argument("input", metavar="INPUT", help=input_help)
+    parser.add_argument("--scene", "-s", required=True, metavar="SCENE", help="scene file (JSON)")
+
+
+def add_quiet_argument(parser, silenced: str = "no progress bars") -> None:
+    """``--quiet``/``-q``; ``silenced`` says what it turns off."""
+    parser.add_argument("--quiet", "-q", action="store_true", help=silenced)
 
 
 def add_convergence_argument(parser) -> None:

@@ -23,6 +23,8 @@ from vhm_viz.cli._util import (
     CLIError,
     Progress,
     add_convergence_argument,
+    add_quiet_argument,
+    add_scene_arguments,
     build_and_solve,
     check_input,
     check_output_directory,
@@ -68,8 +70,7 @@ DESCRIPTION = (
 
 def add_arguments(p) -> None:
     """The ``analyze`` subcommand's arguments."""
-    p.add_argument("input", metavar="INPUT", help="rest-pose dataset")
-    p.add_argument("--scene", "-s", required=True, metavar="SCENE", help="scene file (JSON)")
+    add_scene_arguments(p, "rest-pose dataset")
     p.add_argument(
         "-o", "--output", required=True, metavar="DIR", help="output directory (created if missing)"
     )
@@ -100,7 +101,7 @@ def add_arguments(p) -> None:
         metavar="N",
         help="--certify: cubes examined at most before answering 'undecided' (default: 200000)",
     )
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    add_quiet_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:

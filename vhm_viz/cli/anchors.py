@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from vhm_viz.cli._dataset_input import add_dataset_argument, add_threshold_argument, threshold_of
-from vhm_viz.cli._util import check_input, check_output
+from vhm_viz.cli._util import add_quiet_argument, check_input, check_output
 from vhm_viz.io import CAGE_SUFFIXES, read_cage, read_dataset, write_anchors
 
 HELP = "place anchors on the medial axis/surface of a dataset, inside its cage"
@@ -35,7 +35,7 @@ def add_arguments(p) -> None:
         "(default: 96; volumes: one per image sample, at most 96)",
     )
     add_threshold_argument(p, "place anchors in the region", "the whole volume")
-    p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
+    add_quiet_argument(p, "print nothing on success")
 
 
 def run(args: argparse.Namespace) -> int:

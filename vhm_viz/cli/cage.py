@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from vhm_viz.cli._dataset_input import add_dataset_argument, add_threshold_argument, threshold_of
-from vhm_viz.cli._util import check_input, check_output
+from vhm_viz.cli._util import add_quiet_argument, check_input, check_output
 from vhm_viz.io import read_dataset, write_cage
 
 HELP = "build an automatic cage (closed, manifold, enclosing) for a dataset"
@@ -54,7 +54,7 @@ def add_arguments(p) -> None:
         "offset, retried at 2 and 4 times the clearance, then voxel (default: auto)",
     )
     add_threshold_argument(p, "enclose the region", "the volume's bounding box")
-    p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
+    add_quiet_argument(p, "print nothing on success")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -16,6 +16,8 @@ import numpy as np
 from vhm_viz.cli._util import (
     CLIError,
     add_convergence_argument,
+    add_quiet_argument,
+    add_scene_arguments,
     build_and_solve,
     check_input,
     check_output,
@@ -65,8 +67,7 @@ EPILOG = (
 
 def add_arguments(p) -> None:
     """The ``deform`` subcommand's arguments."""
-    p.add_argument("input", metavar="INPUT", help="dataset to deform")
-    p.add_argument("--scene", "-s", required=True, metavar="SCENE", help="scene file (JSON)")
+    add_scene_arguments(p, "dataset to deform")
     p.add_argument(
         "-o",
         "--output",
@@ -130,7 +131,7 @@ def add_arguments(p) -> None:
         "dimensions, direction) instead (default: a grid holding the whole deformed volume)",
     )
     add_convergence_argument(p)
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    add_quiet_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:

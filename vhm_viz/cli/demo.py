@@ -28,6 +28,7 @@ from vhm_viz import plotting
 from vhm_viz.cli._util import (
     CLIError,
     Progress,
+    add_quiet_argument,
     quiet_vtk,
     run_filter,
 )
@@ -71,7 +72,7 @@ def add_arguments(p) -> None:
         help="voxel size of the bar volume, in the bar's units (it is 1 wide) (default: 0.08)",
     )
     p.add_argument("--no-tets", action="store_true", help="skip the tetrahedral mesh")
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
+    add_quiet_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -161,8 +161,17 @@ class DeformationSource(VTKPythonAlgorithmBase):
         filter may meet the other ranks in collective operations at fixed points of
         ``RequestData``. Leave it off in scripts whose ranks do not update together.
         """
-        self._parallel_reporting = bool(value)
-        self.Modified()
+        self._set_option("_parallel_reporting", bool(value))
+
+    def _set_option(self, name: str, value) -> None:
+        """Set the attribute ``name`` to ``value``, marking the filter modified if it changed.
+
+        VTK's ``vtkSetMacro`` convention: setting the value a filter already has leaves
+        its next update a no-op.
+        """
+        if getattr(self, name) != value:
+            setattr(self, name, value)
+            self.Modified()
 
     def _report(self, error: Exception) -> None:
         text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
@@ -262,10 +271,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         (``"passthrough"``) or become NaN (``"nan"``), flagged by the point array
         ``vhm_outside`` and counted in :attr:`outside_count`.
         """
-        policy = check_outside_policy(policy)
-        if policy != self._outside:
-            self._outside = policy
-            self.Modified()
+        self._set_option("_outside", check_outside_policy(policy))
 
     def GetOutsidePolicy(self) -> str:
         """The outside policy."""
@@ -280,9 +286,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         says so in :attr:`warnings` (a ``UserWarning``; in ParaView, its output window).
         A deformer solved by the caller is taken as it is: its report went to the caller.
         """
-        if bool(allow) != self._allow_unconverged:
-            self._allow_unconverged = bool(allow)
-            self.Modified()
+        self._set_option("_allow_unconverged", bool(allow))
 
     def GetAllowUnconverged(self) -> bool:
         """Whether an unconverged solve is let through (with a warning)."""
@@ -316,9 +320,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         """
         if nbytes is not None:
             nbytes = check_setting("memory_budget", nbytes)
-        if nbytes != self._memory_budget:
-            self._memory_budget = nbytes
-            self.Modified()
+        self._set_option("_memory_budget", nbytes)
 
     def _budget(self) -> int | None:
         """The working-memory budget of this process.
@@ -339,10 +341,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         lattice of :mod:`vhm_viz.core.lattice` (exact map at its nodes, tricubic Hermite
         in between) instead of evaluating every voxel.
         """
-        voxels = check_tolerance(voxels)
-        if voxels != self._tolerance:
-            self._tolerance = voxels
-            self.Modified()
+        self._set_option("_tolerance", check_tolerance(voxels))
 
     def GetTolerance(self) -> float:
         """The volume tolerance (voxels)."""

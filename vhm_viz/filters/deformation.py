@@ -148,28 +148,23 @@ class HarmonicDeformationFilter(DeformationSource):
     # ------------------------------------------------------------------ options
     def SetComputeDisplacement(self, value: bool) -> None:
         """Add the point vectors ``displacement = f(p) - p``."""
-        self._displacement = bool(value)
-        self.Modified()
+        self._set_option("_displacement", bool(value))
 
     def SetComputeJacobianDeterminant(self, value: bool) -> None:
         """Add the point array ``jacobian_determinant`` (``det J``, local volume ratio)."""
-        self._determinant = bool(value)
-        self.Modified()
+        self._set_option("_determinant", bool(value))
 
     def SetComputeConditionNumber(self, value: bool) -> None:
         """Add the point array ``condition_number`` (``s_max / s_min`` of ``J``)."""
-        self._condition = bool(value)
-        self.Modified()
+        self._set_option("_condition", bool(value))
 
     def SetComputeCellQuality(self, value: bool) -> None:
         """Add the cell quality arrays (datasets with 3D cells; see the class notes)."""
-        self._cell_quality = bool(value)
-        self.Modified()
+        self._set_option("_cell_quality", bool(value))
 
     def SetDeformNormals(self, value: bool) -> None:
         """Deform point/cell normals through the Jacobian (default True)."""
-        self._deform_normals = bool(value)
-        self.Modified()
+        self._set_option("_deform_normals", bool(value))
 
     # ------------------------------------------------------------------ pipeline
     def RequestDataObject(self, request, in_info, out_info):
