@@ -18,9 +18,11 @@ pv = pytest.importorskip("pyvista")
 sitk = pytest.importorskip("SimpleITK")
 nib = pytest.importorskip("nibabel")
 
-from conftest import data_path  # noqa: E402
+from conftest import box_cage, data_path  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
 
 import vhm_viz  # noqa: E402
+from vhm_viz import Cage, HarmonicMap  # noqa: E402
 from vhm_viz.cli import main  # noqa: E402
 from vhm_viz.core.image import ImageGeometry  # noqa: E402
 from vhm_viz.core.volume import VolumeDeformation  # noqa: E402
@@ -180,6 +182,48 @@ def test_accessor_gives_the_library_fields(head, pulled, engine):
                                rtol=0, atol=1e-9)  # fmt: skip
     assert library.valid.all() and np.asarray(forward.point_data["vtkValidPointMask"]).all()
     np.testing.assert_array_equal(forward.point_data["vhm_foldover"], library.foldover)
+
+
+def test_fields_of_an_affine_map_on_an_oblique_grid_are_exact():
+    """``f(x) = A x + t``: the pull-back is ``A^-1 (y - t) - y``, the forward ``A x + t - x``.
+
+    An oblique, reflected (det D = -1), anisotropic grid; the cage holds part of it only,
+    so the outside policies show: passthrough leaves voxels in place (zero vectors, valid),
+    ``"nan"`` gives them none (zero vectors, not valid).
+    """
+    direction = Rotation.from_rotvec([0.2, -0.3, 0.5]).as_matrix() @ np.diag([1.0, -1.0, 1.0])
+    geo = ImageGeometry((5.0, -3.0, 2.0), (1.0, 0.8, 1.3), (14, 12, 10), direction)
+    corners = geo.points(np.array([[0, 0, 0], [13, 11, 9]], dtype=float))
+    centre = geo.points(np.array([[6.5, 5.5, 4.5]]))[0]
+    cage = Cage(*box_cage(centre - 5.0, centre + 5.0, 1))  # smaller than the grid
+    assert not np.all(np.abs(corners - centre) < 5.0)
+    a = Rotation.from_rotvec([0.0, 0.0, 0.25]).as_matrix() * [1.1, 0.9, 1.0]
+    t = centre - a @ centre + [0.7, -0.4, 0.2]
+    hm = HarmonicMap.affine(cage, a, t)
+    for outside in ("passthrough", "nan"):
+        vol = VolumeDeformation(hm, geo, outside=outside, tolerance=0.01)
+        pulled = vol.displacement_field()
+        y = pulled.geometry.points()
+        found = pulled.valid.astype(bool)
+        x = np.linalg.solve(a, (y - t).T).T
+        in_cage = np.all(np.abs(x - centre) < 5.0 - 1e-6, axis=1)
+        # the map's own pre-images (not left in place), where the grid has voxels
+        exact = found & in_cage & geo.bounds_contain(x, tol=0.0)
+        assert exact.sum() > 200
+        np.testing.assert_allclose(pulled.vectors[exact], (x - y)[exact], atol=0.01 * 1.3)
+        assert np.abs(pulled.vectors[~found]).max(initial=0.0) == 0.0
+        assert not pulled.foldover.any() and set(np.unique(pulled.mask)) <= {0, 1}
+        forward = vol.displacement_field(kind="forward")
+        p = geo.points()
+        inside = np.all(np.abs(p - centre) < 5.0, axis=1)
+        np.testing.assert_allclose(forward.vectors[inside], (p @ a.T + t - p)[inside], atol=1e-9)
+        assert np.abs(forward.vectors[~inside]).max() < 1e-9  # left in place, or none
+        np.testing.assert_array_equal(forward.valid, inside | (outside == "passthrough"))
+        if outside == "passthrough":  # the outside voxels stayed: zero vectors, valid
+            assert (found & ~in_cage).sum() > 100
+            assert np.abs(pulled.vectors[found & ~in_cage]).max() < 1e-9
+    with pytest.raises(ValueError, match="input grid"):
+        vol.displacement_field(pulled.geometry, kind="forward")
 
 
 def test_bad_field_arguments_are_one_line(head, tmp_path, capsys):

@@ -655,7 +655,8 @@ class VolumeDeformation(VolumePieces):
         subtract_grid_points(vectors, self.geometry, b)
         det = np.empty(len(vectors))
         for rows, jac in self.jacobian_slabs(b, scaled_progress(progress, 0.7, 1.0), abort):
-            det[rows] = np.linalg.det(jac)
+            with np.errstate(invalid="ignore"):  # NaN Jacobians: voxels without an image
+                det[rows] = np.linalg.det(jac)
         return DisplacementField.forward(self.geometry.sub(b), vectors, det, copy=False)
 
     def slice(
