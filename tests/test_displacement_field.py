@@ -222,6 +222,14 @@ def test_fields_of_an_affine_map_on_an_oblique_grid_are_exact():
         if outside == "passthrough":  # the outside voxels stayed: zero vectors, valid
             assert (found & ~in_cage).sum() > 100
             assert np.abs(pulled.vectors[found & ~in_cage]).max() < 1e-9
+    # a box of the grid: the same vectors as the whole grid's there
+    box = (2, 9, 1, 7, 3, 6)
+    part = vol.displacement_field(pulled.geometry, box=box)
+    nx, ny, nz = pulled.geometry.dimensions
+    whole = pulled.vectors.reshape(nz, ny, nx, 3)
+    inner = whole[box[4] : box[5] + 1, box[2] : box[3] + 1, box[0] : box[1] + 1]
+    np.testing.assert_allclose(part.vectors, inner.reshape(-1, 3), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(part.geometry.origin, pulled.geometry.points([box[0::2]])[0])
     with pytest.raises(ValueError, match="input grid"):
         vol.displacement_field(pulled.geometry, kind="forward")
 
