@@ -34,13 +34,6 @@ __all__ = ["FIELD_KINDS", "DisplacementField", "check_field_kind", "subtract_gri
 FIELD_KINDS = ("pullback", "forward")
 
 
-def check_field_kind(kind: str) -> str:
-    """``kind`` if it is one of :data:`FIELD_KINDS`; else a ValueError naming them."""
-    if kind not in FIELD_KINDS:
-        raise ValueError(f"field kind must be one of {', '.join(FIELD_KINDS)}; got {kind!r}")
-    return kind
-
-
 @dataclass
 class DisplacementField:
     """One world vector per point of a regular grid, and where it is the map's.
@@ -108,6 +101,13 @@ class DisplacementField:
         if determinant is not None:
             fold = valid & (np.asarray(determinant, dtype=np.float64).ravel() <= 0)
         return cls(geometry, vectors, valid.astype(np.uint8), fold.astype(np.uint8), "forward")
+
+
+def check_field_kind(kind: str) -> str:
+    """``kind`` if it is one of :data:`FIELD_KINDS`; else a ValueError naming them."""
+    if kind not in FIELD_KINDS:
+        raise ValueError(f"field kind must be one of {', '.join(FIELD_KINDS)}; got {kind!r}")
+    return kind
 
 
 def subtract_grid_points(vectors, geometry: ImageGeometry, box) -> None:
