@@ -27,7 +27,7 @@ def add_field_arguments(p: argparse.ArgumentParser) -> None:
         "NIfTI intent 1007 as ITK writes it), which SimpleITK's "
         "DisplacementFieldTransform, antsApplyTransforms (-t FIELD) and 3D Slicer (as a "
         "grid transform) apply; and its mask beside it, FIELD_mask with the same suffix "
-        "(uint8: 0 no pre-image, 1 the map's, 2 in a fold)",
+        "(uint8: 0 no pre-image, 1 the map's, 2 in a fold) (default: none)",
     )
     p.add_argument(
         "--field-kind",
