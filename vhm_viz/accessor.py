@@ -8,6 +8,7 @@ not even needed::
     quality = mesh.vhm.analyze(deformer)        # det / cond / rotation / foldover arrays,
                                                 # and cell arrays of tet meshes and volumes
     volume = image.vhm.resample(deformer)       # deformed volume on a regular grid
+    field = image.vhm.displacement_field(deformer)  # f^-1(y) - y, as ITK/ANTs apply it
     answer = mesh.vhm.certify(deformer)         # det J > 0 everywhere in the shape?
 
 ``deformation`` is a :class:`~vhm_viz.Deformer`, a :class:`~vhm_viz.HarmonicMap`, a
@@ -181,6 +182,74 @@ class VHMAccessor:
                     Tolerance=tolerance, FillValue=fill_value, OutputMode=output,
                     Interpolation=interpolation, OutputSpacing=spacing,
                     ReferenceImage=reference)  # fmt: skip
+
+    def displacement_field(
+        self,
+        deformation,
+        *,
+        kind: str = "pullback",
+        output: str = "deformed",
+        spacing=None,
+        reference=None,
+        cage=None,
+        outside: str = "error",
+        tolerance: float | None = None,
+    ):
+        """The deformation of this volume as a displacement field (``pyvista.ImageData``).
+
+        See :mod:`vhm_viz.core.displacement`; write it for SimpleITK, ANTs or 3D Slicer
+        with :func:`vhm_viz.io.fields.write_displacement_field` (after
+        :func:`vhm_viz.filters.resample.displacement_field_of`).
+
+        Parameters
+        ----------
+        deformation : Deformer, HarmonicMap, Scene or path
+        kind : {"pullback", "forward"}
+            ``"pullback"``: ``f^-1(y) - y`` on the output grid of :meth:`resample` (the
+            same pre-images: ITK's ``DisplacementFieldTransform`` of it reproduces the
+            resampled volume). ``"forward"``: ``f(x) - x`` on this image's grid (for
+            moving points and meshes).
+        output, spacing, reference
+            The pull-back field's grid, as for :meth:`resample`.
+        cage, outside, tolerance
+            As for :meth:`resample`.
+
+        Returns
+        -------
+        pyvista.ImageData
+            Point arrays ``vhm_displacement_field`` (3 float64 components, world units and
+            frame, the active vectors; 0 where there is no pre-image or image),
+            ``vtkValidPointMask`` (1 where the vector is the map's) and ``vhm_foldover``
+            (pull-back: several pre-images; forward: ``det J <= 0``).
+        """
+        from vhm_viz.core.displacement import DisplacementField, check_field_kind
+        from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter
+        from vhm_viz.filters.resample import FIELD_ARRAY, image_geometry
+
+        if not isinstance(self._mesh, pv.ImageData):
+            raise TypeError(
+                f"displacement_field needs pyvista.ImageData; got {type(self._mesh).__name__}"
+            )
+        bare = pv.ImageData()  # the grid only: no array is resampled or warped
+        bare.CopyStructure(self._mesh)
+        if check_field_kind(kind) == "pullback":
+            out = _run(HarmonicResampleFilter(), bare, deformation, cage, outside,
+                       Tolerance=tolerance, OutputMode=output, OutputSpacing=spacing,
+                       ReferenceImage=reference, ComputeDisplacementField=True)  # fmt: skip
+        else:
+            warped = _run(HarmonicDeformationFilter(), bare, deformation, cage, outside,
+                          Tolerance=tolerance, ComputeDisplacement=True,
+                          ComputeJacobianDeterminant=True, DeformNormals=False)  # fmt: skip
+            field = DisplacementField.forward(
+                image_geometry(bare), warped.point_data["displacement"],
+                warped.point_data["jacobian_determinant"],
+            )  # fmt: skip
+            out = bare
+            out.point_data[FIELD_ARRAY] = field.vectors
+            out.point_data["vtkValidPointMask"] = field.valid
+            out.point_data["vhm_foldover"] = field.foldover
+        out.point_data.active_vectors_name = FIELD_ARRAY
+        return out
 
 
 # PyVista >= 0.48 has the accessor registry; older versions simply lack ``mesh.vhm``.

@@ -13,6 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
+from vhm_viz.cli._field_output import (
+    add_field_arguments,
+    check_field_output,
+    field_of,
+    write_field,
+)
 from vhm_viz.cli._util import (
     CLIError,
     add_convergence_argument,
@@ -130,6 +136,7 @@ def add_arguments(p) -> None:
         help="volume resampling: resample onto this image's grid (origin, spacing, "
         "dimensions, direction) instead (default: a grid holding the whole deformed volume)",
     )
+    add_field_arguments(p)
     add_convergence_argument(p)
     add_quiet_argument(p)
 
@@ -201,6 +208,7 @@ def deform(args: argparse.Namespace) -> str:
             raise CLIError(f"--reference {reference} is not an image")
     if not resample and (args.spacing or reference):
         raise CLIError("--spacing and --reference apply to a volume resampled to an image")
+    field_paths = check_field_output(args, volume, inputs)
 
     t0 = time.perf_counter()
     with timer.stage("solve"):
@@ -216,6 +224,7 @@ def deform(args: argparse.Namespace) -> str:
             flt.SetOutputSpacing(args.spacing)
         if ref_image is not None:
             flt.SetReferenceImage(ref_image)
+        flt.SetComputeDisplacementField(field_paths is not None and args.field_kind == "pullback")
         label = "resampling"
     else:
         flt = HarmonicDeformationFilter()
@@ -228,16 +237,18 @@ def deform(args: argparse.Namespace) -> str:
     flt.SetTolerance(tolerance)
     with timer.stage("map"):
         result = run_filter(flt, mesh, dfm, label, quiet=args.quiet, source=src)
+        field = None if field_paths is None else field_of(args, mesh, result, dfm, tolerance)
     # everything that can fail happens before the write: an error never follows an output
     with timer.stage("checks"):
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
         warning = _check_folds(mesh, result, dfm, flt, resample)
     with timer.stage("write"):
         write_dataset(out, result)
+        written = "" if field is None else "; " + write_field(field, field_paths)
     seconds = time.perf_counter() - t0
     if warning:
         print(warning, file=sys.stderr)
-    return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {out}"
+    return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {out}" + written
 
 
 def _summary(mesh, result, reports, flt, resample: bool, volume: bool, tolerance) -> list[str]:

@@ -43,6 +43,12 @@ import numpy as np
 
 from vhm_viz.core.basis import DEFAULT_MEMORY_BUDGET
 from vhm_viz.core.binding import check_outside_policy
+from vhm_viz.core.displacement import (
+    FIELD_KINDS,
+    DisplacementField,
+    check_field_kind,
+    subtract_grid_points,
+)
 from vhm_viz.core.errors import AbortedError, OutsideCageError, describe_indices
 from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry
 from vhm_viz.core.lattice import (
@@ -81,6 +87,8 @@ from vhm_viz.core.volume_pieces import VolumePieces, output_grid
 __all__ = [
     "VolumeDeformation",
     "Resampled",
+    "DisplacementField",
+    "FIELD_KINDS",
     "output_grid",
     "layer_shares",
     "equal_cuts",
@@ -124,6 +132,9 @@ class Resampled:
     counts : dict
         ``voxels``, ``valid``, ``identity`` (outside voxels left in place),
         ``foldover``.
+    displacement : (P, 3) float64 or None
+        The pull-back displacement ``f^-1(y) - y`` of each voxel (world units; 0 where
+        ``valid`` is 0), when asked for (see :mod:`vhm_viz.core.displacement`).
     """
 
     geometry: ImageGeometry
@@ -131,6 +142,7 @@ class Resampled:
     valid: np.ndarray
     foldover: np.ndarray
     counts: dict = field(default_factory=dict)
+    displacement: np.ndarray | None = None
 
 
 def _check_abort(abort) -> None:
@@ -477,6 +489,7 @@ class VolumeDeformation(VolumePieces):
         fill_value: float = 0.0,
         input_box=None,
         out: Resampled | None = None,
+        displacement: bool = False,
         progress=None,
         abort=None,
     ) -> Resampled:
@@ -504,6 +517,10 @@ class VolumeDeformation(VolumePieces):
             input's dtype and components, ``valid`` and ``foldover``, each a (C-contiguous)
             row per voxel of the box -- say, views of the rows of a larger box that this
             box's voxels occupy (an MPI rank's output piece, resampled in parts).
+            With ``displacement``, also its ``displacement``.
+        displacement : bool
+            Also the pull-back displacement of each voxel, from the same pre-images
+            (:attr:`Resampled.displacement`).
         progress, abort : callables, optional
 
         Returns
@@ -551,12 +568,23 @@ class VolumeDeformation(VolumePieces):
         else:
             result, valid, foldover = out.arrays, out.valid, out.foldover
             check_out_arrays(result, valid, foldover, shapes, n)
+        vectors = None
+        if displacement:
+            vectors = np.empty((n, 3)) if out is None else out.displacement
+            if vectors is None or vectors.shape != (n, 3) or vectors.dtype != np.float64 \
+                    or not vectors.flags.c_contiguous:  # fmt: skip
+                raise ValueError(f"out.displacement must be a contiguous float64 ({n}, 3) array")
+        plane = int((b[1] - b[0] + 1) * (b[3] - b[2] + 1))
         identity = 0
         for rows, u, state, fold in self._pull_back_slabs(out_geo, b, progress, abort):
             identity += int(np.count_nonzero(state == 3))
             ok = np.flatnonzero(state).astype(np.int64, copy=False)
             valid[rows] = state > 0
             foldover[rows] = fold
+            if vectors is not None:
+                slab = b.copy()
+                slab[4], slab[5] = b[4] + rows.start // plane, b[4] + rows.stop // plane - 1
+                self._pull_back_displacements(vectors[rows], u, state, out_geo, slab)
             if input_box is not None:  # indices of the box's arrays (in place: no copies
                 u -= ib[0::2]  # of a slab; rows without a pre-image are not read)
             for name, vol in volumes.items():
@@ -571,7 +599,65 @@ class VolumeDeformation(VolumePieces):
         if out is not None:
             out.geometry, out.counts = out_geo.sub(b), counts
             return out
-        return Resampled(out_geo.sub(b), result, valid, foldover, counts)
+        return Resampled(out_geo.sub(b), result, valid, foldover, counts, vectors)
+
+    def _pull_back_displacements(self, vectors, u, state, out_geo, slab) -> None:
+        """``f^-1(y) - y`` of a slab's output voxels (world), 0 where none, into ``vectors``."""
+        np.matmul(u, self.geometry.index_to_world.T, out=vectors)
+        vectors += self.geometry.origin
+        subtract_grid_points(vectors, out_geo, slab)
+        vectors[state == 0] = 0.0
+
+    def displacement_field(
+        self,
+        geometry: ImageGeometry | None = None,
+        *,
+        kind: str = "pullback",
+        box=None,
+        progress=None,
+        abort=None,
+    ) -> DisplacementField:
+        """The deformation as a displacement field (see :mod:`vhm_viz.core.displacement`).
+
+        Parameters
+        ----------
+        geometry : ImageGeometry, optional
+            ``"pullback"``: the output grid (default :meth:`output_geometry`).
+            ``"forward"``: must be the input grid, or None.
+        kind : {"pullback", "forward"}
+            ``"pullback"``: ``u(y) = f^-1(y) - y`` on the output grid, from the pre-images
+            :meth:`resample` finds (applied by ITK's ``DisplacementFieldTransform`` it
+            reproduces the resample); no pre-image gives 0 and ``valid`` 0, several
+            ``foldover`` 1 (the mask of the resample). ``"forward"``: ``u(x) = f(x) - x``
+            on the input grid (:meth:`warp`); ``foldover`` 1 where ``det J <= 0``
+            (:meth:`jacobian_slabs`); voxels outside the cage follow the outside policy
+            (``"passthrough"``: 0, ``"nan"``: 0 and ``valid`` 0).
+        box : (i0, i1, j0, j1, k0, k1), optional
+            Only these voxels of the grid (default all).
+        progress, abort : callables, optional
+
+        Returns
+        -------
+        DisplacementField
+            Vectors in world units and frame (LPS for scans), one row per voxel of the
+            box. Work goes slab by slab: the memory is the field plus one slab's arrays.
+        """
+        if check_field_kind(kind) == "pullback":
+            res = self.resample({}, geometry, box=box, displacement=True,
+                                progress=progress, abort=abort)  # fmt: skip
+            return DisplacementField(res.geometry, res.displacement, res.valid, res.foldover)
+        if geometry is not None and not geometry.same_as(self.geometry):
+            raise ValueError(
+                "a forward displacement field lives on the input grid: give no geometry"
+            )
+        b = self._in_window(self.window if box is None else box)
+        vectors = self.warp(b, progress=scaled_progress(progress, 0.0, 0.7), abort=abort)
+        subtract_grid_points(vectors, self.geometry, b)
+        det = np.empty(len(vectors))
+        for rows, jac in self.jacobian_slabs(b, scaled_progress(progress, 0.7, 1.0), abort):
+            with np.errstate(invalid="ignore"):  # NaN Jacobians: voxels without an image
+                det[rows] = np.linalg.det(jac)
+        return DisplacementField.forward(self.geometry.sub(b), vectors, det, copy=False)
 
     def slice(
         self,

@@ -7,6 +7,7 @@ from vtkmodules.util import numpy_support as ns
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
+from vhm_viz.core.displacement import DisplacementField
 from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry
 from vhm_viz.core.lattice import PART_FIELDS, join_parts
 from vhm_viz.core.memory import release_free_memory
@@ -28,7 +29,7 @@ from vhm_viz.filters._vtk import (
     requested_extent,
 )
 
-__all__ = ["HarmonicResampleFilter", "image_geometry"]
+__all__ = ["HarmonicResampleFilter", "image_geometry", "FIELD_ARRAY", "displacement_field_of"]
 
 _SDDP = vtkStreamingDemandDrivenPipeline
 _MODES = ("deformed", "input")
@@ -38,8 +39,12 @@ _MODES = ("deformed", "input")
 # differ from a serial run's). One would do; two keep a margin, and far fewer leaves than
 # a whole root layer.
 _HALO = 2
+#: The point array of a displacement field's vectors in a VTK image
+#: (:meth:`HarmonicResampleFilter.SetComputeDisplacementField`,
+#: ``mesh.vhm.displacement_field``).
+FIELD_ARRAY = "vhm_displacement_field"
 #: Point arrays the filter adds (never resampled from an input that already has them).
-_OWN_ARRAYS = ("vtkValidPointMask", "vhm_foldover")
+_OWN_ARRAYS = ("vtkValidPointMask", "vhm_foldover", FIELD_ARRAY)
 
 
 class HarmonicResampleFilter(DeformationSource):
@@ -57,6 +62,13 @@ class HarmonicResampleFilter(DeformationSource):
     array ``vtkValidPointMask`` (1 elsewhere), as ``vtkProbeFilter`` does. Where several
     pre-images exist (a fold) the ``uint8`` array ``vhm_foldover`` is 1; the field arrays
     ``vhm_foldover_count`` and ``vhm_valid_count`` count them. Cell data is not resampled.
+
+    **Displacement field** (opt-in, :meth:`SetComputeDisplacementField`): the point array
+    ``vhm_displacement_field``, 3 float64 components, the pull-back ``f^-1(y) - y`` of
+    each output voxel in world units and frame (0 where ``vtkValidPointMask`` is 0), from
+    the same pre-images as the resampled arrays: ITK's ``DisplacementFieldTransform`` of
+    it reproduces the output (see :mod:`vhm_viz.core.displacement`,
+    :func:`vhm_viz.io.fields.write_displacement_field`).
 
     **Outside the cage** voxels follow the outside policy (:meth:`SetOutsidePolicy`):
     ``"error"`` (default) refuses a volume with voxels outside the cage, ``"passthrough"``
@@ -103,6 +115,7 @@ class HarmonicResampleFilter(DeformationSource):
         self._explicit: ImageGeometry | None = None
         self._spacing = None
         self._interpolation = "linear"
+        self._field = False
         self._geometry: ImageGeometry | None = None
         # MPI ranks: what the ranks agreed on in the information pass, and the engine of
         # this rank's output piece
@@ -132,6 +145,15 @@ class HarmonicResampleFilter(DeformationSource):
     def GetInterpolation(self) -> str:
         """The interpolation kind."""
         return self._interpolation
+
+    def SetComputeDisplacementField(self, value: bool) -> None:
+        """Add the pull-back displacement of each output voxel (``vhm_displacement_field``)."""
+        self._field = bool(value)
+        self.Modified()
+
+    def GetComputeDisplacementField(self) -> bool:
+        """Whether the output holds ``vhm_displacement_field``."""
+        return self._field
 
     def SetOutputMode(self, mode: str) -> None:
         """``"deformed"`` (the whole deformed volume) or ``"input"`` (the input grid)."""
@@ -275,7 +297,8 @@ class HarmonicResampleFilter(DeformationSource):
             arrays[arr.GetName()] = ns.vtk_to_numpy(arr)
             types[arr.GetName()] = arr.GetDataType()
         options = dict(interpolation=self._interpolation, fill_value=self._fill,
-                       input_box=input_box, abort=self._aborted)  # fmt: skip
+                       input_box=input_box, displacement=self._field,
+                       abort=self._aborted)  # fmt: skip
         if self._mpi():
             vol, res, pulled = self._resample_shared(in_info, img, ext, arrays, options)
         else:
@@ -291,7 +314,10 @@ class HarmonicResampleFilter(DeformationSource):
             pd_out.AddArray(new)
             if name == scalars:
                 pd_out.SetActiveScalars(name)
-        for name, values in (("vtkValidPointMask", res.valid), ("vhm_foldover", res.foldover)):
+        own = [("vtkValidPointMask", res.valid), ("vhm_foldover", res.foldover)]
+        if self._field:
+            own.append((FIELD_ARRAY, res.displacement))
+        for name, values in own:
             new = ns.numpy_to_vtk(values, deep=0)
             new.SetName(name)
             pd_out.AddArray(new)
@@ -504,9 +530,12 @@ class HarmonicResampleFilter(DeformationSource):
             {name: np.empty((voxels,) + comps[name], dtype=a.dtype) for name, a in arrays.items()},
             np.zeros(voxels, dtype=np.uint8),
             np.zeros(voxels, dtype=np.uint8),
+            displacement=np.empty((voxels, 3)) if self._field else None,
         )  # fmt: skip
         fields = {"counts": ((4,), np.int64), "valid": ((), np.uint8),
                   "foldover": ((), np.uint8)}  # fmt: skip
+        if self._field:
+            fields["displacement"] = ((3,), np.float64)
         fields.update({"array " + name: (comps[name], a.dtype) for name, a in arrays.items()})
         keys = ("voxels", "valid", "identity", "foldover")
         counts = np.zeros(4, dtype=np.int64)
@@ -531,6 +560,8 @@ class HarmonicResampleFilter(DeformationSource):
                     part = {"array " + name: v for name, v in res.arrays.items()}
                     part.update(valid=res.valid, foldover=res.foldover,
                                 counts=np.array([[res.counts[k] for k in keys]]))  # fmt: skip
+                    if self._field:
+                        part["displacement"] = res.displacement
                     outgoing[q] = part
                 done += _voxels(b)
             return np.zeros((0, 1))
@@ -552,9 +583,44 @@ class HarmonicResampleFilter(DeformationSource):
                 rows.arrays[name][...] = part["array " + name]
             rows.valid[...] = part["valid"]
             rows.foldover[...] = part["foldover"]
+            if self._field:
+                rows.displacement[...] = part["displacement"]
             counts += part["counts"][0]
         piece.counts = {k: int(c) for k, c in zip(keys, counts, strict=True)}
         return vol, piece, done
+
+
+def displacement_field_of(image, kind: str = "pullback") -> DisplacementField:
+    """The displacement field a VTK image's point arrays hold.
+
+    Parameters
+    ----------
+    image : vtkImageData or pyvista.ImageData
+        With the point arrays :data:`FIELD_ARRAY` (3 components), ``vtkValidPointMask``
+        and ``vhm_foldover``: the output of :class:`HarmonicResampleFilter` with
+        :meth:`~HarmonicResampleFilter.SetComputeDisplacementField`, or of
+        ``mesh.vhm.displacement_field``.
+    kind : {"pullback", "forward"}
+        What the vectors are.
+
+    Returns
+    -------
+    DisplacementField
+    """
+    pd = image.GetPointData()
+    arrays = {}
+    for name in (FIELD_ARRAY, "vtkValidPointMask", "vhm_foldover"):
+        arr = pd.GetArray(name)
+        if arr is None:
+            raise ValueError(f"the image has no point array {name!r}: not a displacement field")
+        arrays[name] = ns.vtk_to_numpy(arr)
+    return DisplacementField(
+        image_geometry(image),
+        np.asarray(arrays[FIELD_ARRAY], dtype=np.float64).reshape(-1, 3),
+        np.asarray(arrays["vtkValidPointMask"], dtype=np.uint8),
+        np.asarray(arrays["vhm_foldover"], dtype=np.uint8),
+        kind,
+    )
 
 
 def _work_box(shared: dict, r: int):
@@ -590,6 +656,6 @@ def _rows_of(piece: Resampled, ext, box) -> Resampled:
     assert (box[:4] == ext[:4]).all(), "a share of a piece is a run of its whole planes"
     plane = int((ext[1] - ext[0] + 1) * (ext[3] - ext[2] + 1))
     rows = slice(int(box[4] - ext[4]) * plane, int(box[5] - ext[4] + 1) * plane)
+    field = None if piece.displacement is None else piece.displacement[rows]
     return Resampled(None, {name: a[rows] for name, a in piece.arrays.items()},
-                     piece.valid[rows], piece.foldover[rows])  # fmt: skip
-
+                     piece.valid[rows], piece.foldover[rows], displacement=field)  # fmt: skip
