@@ -128,8 +128,7 @@ class HarmonicResampleFilter(DeformationSource):
     # ------------------------------------------------------------------ options
     def SetFillValue(self, value: float) -> None:
         """Value of the voxels without a pre-image (default 0)."""
-        self._fill = float(value)
-        self.Modified()
+        self._set_option("_fill", float(value))
 
     def GetFillValue(self) -> float:
         """The fill value."""
@@ -139,8 +138,7 @@ class HarmonicResampleFilter(DeformationSource):
         """``"linear"`` (trilinear, default), ``"nearest"`` (label maps) or ``"cubic"``."""
         if kind not in INTERPOLATIONS:
             raise ValueError(f"interpolation must be one of {INTERPOLATIONS}; got {kind!r}")
-        self._interpolation = kind
-        self.Modified()
+        self._set_option("_interpolation", kind)
 
     def GetInterpolation(self) -> str:
         """The interpolation kind."""
@@ -148,8 +146,7 @@ class HarmonicResampleFilter(DeformationSource):
 
     def SetComputeDisplacementField(self, value: bool) -> None:
         """Add the pull-back displacement of each output voxel (``vhm_displacement_field``)."""
-        self._field = bool(value)
-        self.Modified()
+        self._set_option("_field", bool(value))
 
     def GetComputeDisplacementField(self) -> bool:
         """Whether the output holds ``vhm_displacement_field``."""
