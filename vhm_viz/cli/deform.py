@@ -232,11 +232,11 @@ def deform(args: argparse.Namespace) -> str:
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
         warning = _check_folds(mesh, result, dfm, flt, resample)
     with timer.stage("write"):
-        write_dataset(out, result)
+        written = write_dataset(out, result, inputs=inputs)  # arrays beside it too
     seconds = time.perf_counter() - t0
     if warning:
         print(warning, file=sys.stderr)
-    return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {out}"
+    return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {', '.join(map(str, written))}"
 
 
 def _summary(mesh, result, reports, flt, resample: bool, volume: bool, tolerance) -> list[str]:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from vhm_viz.io.errors import ReadError
 from vhm_viz.io.itk_images import read_with_sitk
 
 __all__ = ["is_dicom_file", "read_dicom"]
@@ -63,9 +64,14 @@ def read_dicom(path):
     """
     p = Path(path)
     folder = p if p.is_dir() else p.parent  # sizes the child's memory cap: the series
-    return read_with_sitk(
-        folder, lambda _: _read_series(p, folder), "SimpleITK's DICOM series reader"
-    )
+    try:
+        return read_with_sitk(
+            folder, lambda _: _read_series(p, folder), "SimpleITK's DICOM series reader"
+        )
+    except ReadError as exc:
+        if p == folder:
+            raise
+        raise ReadError(f"{p}{str(exc).removeprefix(str(folder))}") from None  # the file given
 
 
 def _read_series(p: Path, folder: Path):

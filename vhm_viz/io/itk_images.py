@@ -13,6 +13,7 @@ and writes atomically.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,13 @@ import numpy as np
 from vhm_viz.atomic import atomic_path
 from vhm_viz.io.isolated import read_isolated
 
-__all__ = ["image_from_sitk", "sitk_from_image", "read_with_sitk", "write_with_sitk"]
+__all__ = [
+    "image_from_sitk",
+    "sitk_from_image",
+    "read_with_sitk",
+    "write_with_sitk",
+    "sitk_message",
+]
 
 
 def image_from_sitk(image, name: str = "ImageFile"):
@@ -121,10 +128,34 @@ def read_with_sitk(path, read, what: str):
         import SimpleITK as sitk
 
         sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(1)
-        image, name = read(p)
+        sitk.ProcessObject.GlobalWarningDisplayOff()
+        # ITK's format probes print library diagnostics (HDF5's) on stderr: the child's
+        # only voice is its result, an error included
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        try:
+            image, name = read(p)
+        except RuntimeError as exc:
+            raise ValueError(sitk_message(exc)) from None
         return image_from_sitk(image, name)
 
     return read_isolated(path, child, what)
+
+
+_ITK_PREFIX = re.compile(r"^(\[\w+\]\s*|(sitk|itk)::ERROR:\s*|\w+\(0x[0-9a-fA-F]+\):\s*)+")
+
+
+def sitk_message(exc) -> str:
+    """The line of a SimpleITK exception that says what is wrong, without ITK's prefixes.
+
+    SimpleITK's first line names its own source file; the last non-empty line is the
+    innermost cause (``Unable to determine ImageIO reader for "x"``, teem's
+    ``_nrrdReadNrrdParse_sizes: ...``).
+    """
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    if len(lines) > 1:
+        lines = lines[1:]
+    return _ITK_PREFIX.sub("", lines[-1]) if lines else type(exc).__name__
 
 
 def write_with_sitk(path, image, values: np.ndarray, compress: bool = True) -> None:
