@@ -11,7 +11,6 @@ its output is compared with SimpleITK's own resampling under that translation.
 
 from __future__ import annotations
 
-import json
 import struct
 from pathlib import Path
 
@@ -24,7 +23,7 @@ pv = pytest.importorskip("pyvista")
 sitk = pytest.importorskip("SimpleITK")
 nib = pytest.importorskip("nibabel")
 
-from conftest import box_cage  # noqa: E402
+from test_inputs import box_scene  # noqa: E402
 
 from vhm_viz.cli import main  # noqa: E402
 from vhm_viz.io import ReadError, read_dataset, write_dataset  # noqa: E402
@@ -254,27 +253,16 @@ def test_oblique_dicom_series_lands_where_simpleitk_reads_it(tmp_path):
 
 
 def translation_scene(folder: Path, reference, shift) -> Path:
-    """A scene: a box cage around ``reference``'s corners, every constraint moved by shift."""
+    """A scene: a box cage around ``reference``'s corners, four constraints moved by shift."""
     size = np.asarray(reference.GetSize()) - 1
     corners = np.array([
         reference.TransformContinuousIndexToPhysicalPoint((size * c).tolist())
         for c in np.array(np.meshgrid([0, 1], [0, 1], [0, 1])).reshape(3, -1).T
     ])  # fmt: skip
     lo, hi = corners.min(0), corners.max(0)
-    pad = 0.12 * (hi - lo)
-    v, f = box_cage(lo - pad, hi + pad, divisions=2)
-    centre = 0.5 * (lo + hi)
-    anchors = centre + 0.25 * (hi - lo) * np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
-    scene = {
-        "format": "vhm_viz.scene",
-        "version": 1,
-        "cage": {"vertices": v.tolist(), "faces": f.tolist()},
-        "anchors": anchors.tolist(),
-        "constraints": {"positions": anchors.tolist(), "targets": (anchors + shift).tolist()},
-    }
-    path = folder / "scene.json"
-    path.write_text(json.dumps(scene))
-    return path
+    points = 0.5 * (lo + hi) + 0.25 * (hi - lo) * np.vstack([np.zeros(3), np.eye(3)])
+    moved = {"positions": points.tolist(), "targets": (points + shift).tolist()}
+    return box_scene(folder, lo, hi, constraints=moved)
 
 
 @pytest.mark.parametrize("kind", ["nrrd", "dicom"])
