@@ -247,6 +247,31 @@ def test_oblique_dicom_series_lands_where_simpleitk_reads_it(tmp_path):
         (folder / f"1.2.826.0.1.3680043.9.7.1_{k:03d}.dcm").unlink()
     with pytest.raises(ReadError, match=r"3 DICOM series of 5 slices.*give one file"):
         read_dataset(folder)
+    # a file without a suffix is known by its DICOM preamble
+    bare = folder / "slice"
+    (folder / "1.2.826.0.1.3680043.9.7.3_001.dcm").rename(bare)
+    assert_same_image(read_dataset(bare), read_series(folder, "1.2.826.0.1.3680043.9.7.3"))
+
+
+def test_nrrd_promising_more_voxels_than_it_holds_is_refused_before_simpleitk(tmp_path):
+    for name in ("a.nrrd", "b.nhdr"):
+        path = tmp_path / name
+        sitk.WriteImage(sitk_image("oblique", np.int16), str(path), False)
+        data = tmp_path / "b.raw" if name.endswith(".nhdr") else path
+        data.write_bytes(data.read_bytes()[:-2])
+        with pytest.raises(ReadError, match=r"truncated or corrupt: .*voxels.* needs 15360 bytes"):
+            read_dataset(path)
+
+
+def test_arrays_beside_an_output_never_overwrite_an_input(tmp_path):
+    image = pv.ImageData(dimensions=(3, 4, 5))
+    image.point_data["v"] = np.arange(image.n_points, dtype=np.float32)
+    image.point_data["mask"] = np.ones(image.n_points, np.uint8)
+    keep = tmp_path / "out_mask.nii.gz"
+    keep.write_bytes(b"an input")
+    with pytest.raises(ValueError, match="refusing to overwrite the input file"):
+        write_dataset(tmp_path / "out.nii.gz", image, inputs=[keep])
+    assert keep.read_bytes() == b"an input" and not (tmp_path / "out.nii.gz").exists()
 
 
 # ---------------------------------------------------------------------------- the command line
