@@ -38,11 +38,13 @@ def read_dataset(path):
     * PLY: the header's element counts and property types against the file size (binary)
       or the number of values (ASCII); legacy VTK: the point and cell counts against the
       bytes or values that follow; binary STL: the triangle count against the file size;
-      MetaImage (``.mhd``/``.mha``), NIfTI (``.nii``/``.nii.gz``), NRRD and SLC: the voxel
-      count against the (decompressed) data; OFF: parsed here;
-    * VTK's readers then run in a forked child process, so that a crash of a reader on a
-      file these checks could not fully vet becomes an error message, not the end of the
-      process; an error VTK reports while reading refuses the file too;
+      MetaImage (``.mhd``/``.mha``), NIfTI (``.nii``/``.nii.gz``), NRRD (``.nrrd``, and
+      ``.nhdr`` with its data file) and SLC: the voxel count against the (decompressed)
+      data; OFF: parsed here;
+    * VTK's and SimpleITK's readers then run in a forked child process, so that a crash
+      of a reader on a file these checks could not fully vet becomes an error message,
+      not the end of the process; an error the library reports while reading refuses the
+      file too;
     * the result must have finite points and cells whose point ids exist;
     * meshio (MEDIT ``.mesh``) runs with its printed output captured and its ``sys.exit``
       turned into a :class:`ReadError`.
@@ -50,16 +52,18 @@ def read_dataset(path):
     Parameters
     ----------
     path : str or os.PathLike
-        One of :data:`~vhm_viz.io.DATASET_SUFFIXES`, or a folder of DICOM files.
-        ``.npy``/``.xyz``/``.txt``/``.csv`` hold one point per row (the first three
-        columns are x, y, z).
+        One of :data:`~vhm_viz.io.DATASET_SUFFIXES`, or a DICOM series: a folder (its
+        largest series) or one DICOM file (with or without ``.dcm``: the series it
+        belongs to; :mod:`~vhm_viz.io.dicom`). ``.npy``/``.xyz``/``.txt``/``.csv`` hold
+        one point per row (the first three columns are x, y, z).
 
     Returns
     -------
     pyvista.DataSet
         ``PolyData`` for surfaces and point lists (an OBJ/OFF read as polygon cells becomes
         a surface again), ``UnstructuredGrid`` for volumetric meshes, ``ImageData`` for
-        volumes (DICOM folders included), and so on. A MultiBlock file with one block gives
+        volumes (DICOM series included; placed in ITK's LPS world in millimetres, as
+        SimpleITK reads them), and so on. A MultiBlock file with one block gives
         that block.
 
     Raises
