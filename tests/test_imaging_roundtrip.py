@@ -69,7 +69,7 @@ def write_dicom_series(folder: Path, image, uid: str) -> None:
             "0008|0060": "CT",
             "0020|000e": uid,
             "0008|0018": f"{uid}.{k + 1}",
-            "0020|0013": str(k + 1),
+            "0020|0013": str(image.GetDepth() - k),  # numbered against the slice order
             "0020|0032": "\\".join(f"{v:.12f}" for v in position),
             "0020|0037": orientation,
             "0008|103e": f"series {uid[-1]}",
@@ -232,12 +232,14 @@ def test_nrrd_written_here_is_read_by_simpleitk_where_it_was(tmp_path, dtype, co
 def test_oblique_dicom_series_lands_where_simpleitk_reads_it(tmp_path):
     """Two series in one folder: the larger by default, the other through one of its files."""
     folder = tmp_path / "dicom"
-    write_dicom_series(folder, sitk_image("oblique", np.int16, seed=6), "1.2.826.0.1.3680043.9.7.1")
+    source = sitk_image("oblique", np.int16, seed=6)
+    write_dicom_series(folder, source, "1.2.826.0.1.3680043.9.7.1")
     small = sitk_image("oblique", np.int16, seed=7)[:, :, :5]
     write_dicom_series(folder, small, "1.2.826.0.1.3680043.9.7.2")
     ours = read_dataset(folder)
     assert ours.dimensions == SIZE
     assert_same_image(ours, read_series(folder, "1.2.826.0.1.3680043.9.7.1"))
+    assert_same_image(ours, source)  # slices in the order of their positions
     other = read_dataset(folder / "1.2.826.0.1.3680043.9.7.2_002.dcm")
     assert other.dimensions == (SIZE[0], SIZE[1], 5)
     assert_same_image(other, read_series(folder, "1.2.826.0.1.3680043.9.7.2"))
