@@ -351,9 +351,11 @@ def test_every_volume_format_is_deformed_by_the_command_line(volume, kind, tmp_p
     img = read_dataset(path)
     assert isinstance(img, pv.ImageData) and img.n_points == vol.size
     values = np.asarray(img.point_data[img.array_names[0]]).ravel()
-    if kind == "dicom":  # VTK's DICOM reader turns the rows and the slice order over
-        values = values.reshape(vol.shape)[::-1, ::-1].ravel()
     np.testing.assert_array_equal(values, vol.ravel())  # every voxel in its place
+    if kind in ("dicom", ".nrrd"):  # placed as the headers say: no flipped rows or slices
+        np.testing.assert_allclose(img.origin, 0.0, atol=1e-9)
+        np.testing.assert_allclose(img.spacing, spacing, rtol=1e-9)
+        np.testing.assert_allclose(img.direction_matrix, np.eye(3), atol=1e-12)
     scene = box_scene(tmp_path, img.bounds[0::2], img.bounds[1::2])
     assert main(["deform", str(path), "-s", str(scene), "-o", str(tmp_path / "o.vts"), "-q"]) == 0
     out = pv.read(tmp_path / "o.vts")

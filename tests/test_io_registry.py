@@ -24,7 +24,7 @@ from vhm_viz.io import (  # noqa: E402
 )
 from vhm_viz.io.registry import DATASET_TYPES, dataset_type  # noqa: E402
 
-IMAGE_SUFFIXES = (".vti", ".mhd", ".mha", ".nii", ".nii.gz")
+IMAGE_SUFFIXES = (".vti", ".mhd", ".mha", ".nii", ".nii.gz", ".nrrd")
 
 
 def sample(kind: str, *, oriented: bool = False):

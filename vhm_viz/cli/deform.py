@@ -243,12 +243,13 @@ def deform(args: argparse.Namespace) -> str:
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
         warning = _check_folds(mesh, result, dfm, flt, resample)
     with timer.stage("write"):
-        write_dataset(out, result)
-        written = "" if field is None else "; " + write_field(field, field_paths)
+        written = write_dataset(out, result, inputs=inputs)  # arrays beside it too
+        field_written = "" if field is None else "; " + write_field(field, field_paths)
     seconds = time.perf_counter() - t0
     if warning:
         print(warning, file=sys.stderr)
-    return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {out}" + written
+    outputs = ", ".join(map(str, written))
+    return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {outputs}" + field_written
 
 
 def _summary(mesh, result, reports, flt, resample: bool, volume: bool, tolerance) -> list[str]:

@@ -24,8 +24,10 @@ Which suffix is which format, and what each reads and writes, is one table
 :func:`output_suffixes` and :func:`is_image_format` are queries of it. One module per
 format family does the work: :mod:`~vhm_viz.io.vtk_files` (VTK's formats),
 :mod:`~vhm_viz.io.mesh_files` (PLY, STL, OFF, MEDIT, point lists),
-:mod:`~vhm_viz.io.medical` (MetaImage, NIfTI, DICOM), :mod:`~vhm_viz.io.legacy_volumes`
-(NRRD, SLC); :mod:`~vhm_viz.io.isolated` runs library readers in a child process.
+:mod:`~vhm_viz.io.medical` (MetaImage, NIfTI), :mod:`~vhm_viz.io.nrrd` and
+:mod:`~vhm_viz.io.dicom` (through SimpleITK, :mod:`~vhm_viz.io.itk_images`),
+:mod:`~vhm_viz.io.legacy_volumes` (SLC); :mod:`~vhm_viz.io.isolated` runs library readers
+in a child process.
 
 Writers take the destination first: ``write_*(path, what)``.
 """

@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.atomic import atomic_path
+from vhm_viz.atomic import atomic_directory, atomic_path, refuse_inputs
 from vhm_viz.io.errors import ReadError, first_line
 from vhm_viz.io.registry import (
+    array_file,
     dataset_suffixes,
     dataset_type,
     format_of,
@@ -37,11 +38,13 @@ def read_dataset(path):
     * PLY: the header's element counts and property types against the file size (binary)
       or the number of values (ASCII); legacy VTK: the point and cell counts against the
       bytes or values that follow; binary STL: the triangle count against the file size;
-      MetaImage (``.mhd``/``.mha``), NIfTI (``.nii``/``.nii.gz``), NRRD and SLC: the voxel
-      count against the (decompressed) data; OFF: parsed here;
-    * VTK's readers then run in a forked child process, so that a crash of a reader on a
-      file these checks could not fully vet becomes an error message, not the end of the
-      process; an error VTK reports while reading refuses the file too;
+      MetaImage (``.mhd``/``.mha``), NIfTI (``.nii``/``.nii.gz``), NRRD (``.nrrd``, and
+      ``.nhdr`` with its data file) and SLC: the voxel count against the (decompressed)
+      data; OFF: parsed here;
+    * VTK's and SimpleITK's readers then run in a forked child process, so that a crash
+      of a reader on a file these checks could not fully vet becomes an error message,
+      not the end of the process; an error the library reports while reading refuses the
+      file too;
     * the result must have finite points and cells whose point ids exist;
     * meshio (MEDIT ``.mesh``) runs with its printed output captured and its ``sys.exit``
       turned into a :class:`ReadError`.
@@ -49,16 +52,18 @@ def read_dataset(path):
     Parameters
     ----------
     path : str or os.PathLike
-        One of :data:`~vhm_viz.io.DATASET_SUFFIXES`, or a folder of DICOM files.
-        ``.npy``/``.xyz``/``.txt``/``.csv`` hold one point per row (the first three
-        columns are x, y, z).
+        One of :data:`~vhm_viz.io.DATASET_SUFFIXES`, or a DICOM series: a folder (its
+        largest series) or one DICOM file (with or without ``.dcm``: the series it
+        belongs to; :mod:`~vhm_viz.io.dicom`). ``.npy``/``.xyz``/``.txt``/``.csv`` hold
+        one point per row (the first three columns are x, y, z).
 
     Returns
     -------
     pyvista.DataSet
         ``PolyData`` for surfaces and point lists (an OBJ/OFF read as polygon cells becomes
         a surface again), ``UnstructuredGrid`` for volumetric meshes, ``ImageData`` for
-        volumes (DICOM folders included), and so on. A MultiBlock file with one block gives
+        volumes (DICOM series included; placed in ITK's LPS world in millimetres, as
+        SimpleITK reads them), and so on. A MultiBlock file with one block gives
         that block.
 
     Raises
@@ -109,24 +114,39 @@ def read_dataset(path):
     return _surface_if_polygonal(data)
 
 
-def write_dataset(path, data) -> None:
+def write_dataset(path, data, inputs=()) -> list[Path]:
     """Write a PyVista dataset atomically, in the format of the suffix.
 
     The format's row in :data:`~vhm_viz.io.registry.FORMATS` says which dataset types it
-    holds and who writes it: images go to MetaImage (``.mhd`` + ``.raw``, or ``.mha``)
-    and NIfTI (``.nii``, ``.nii.gz``) with their origin, spacing and direction
-    (:mod:`vhm_viz.io.medical`); the other formats through PyVista's writers.
+    holds and who writes it: images go to MetaImage (``.mhd`` + ``.raw``, or ``.mha``),
+    NIfTI (``.nii``, ``.nii.gz``) and NRRD (``.nrrd``) with their origin, spacing and
+    direction (:mod:`vhm_viz.io.medical`, :mod:`vhm_viz.io.nrrd`); the other formats
+    through PyVista's writers. These image formats hold one array a file: the active
+    point array (or the first) goes to ``path``, every other one to a file beside it
+    (:func:`~vhm_viz.io.registry.array_file`: ``out.nii.gz`` and ``vtkValidPointMask``
+    give ``out_vtkValidPointMask.nii.gz``); all of them appear together or not at all.
 
     Parameters
     ----------
     path : str or os.PathLike
     data : pyvista.DataSet
+    inputs : iterable of path-like
+        Files that must not be written (the operation's inputs): a file beside ``path``
+        that would be one of them is refused before anything is written.
+
+    Returns
+    -------
+    list of Path
+        The files written: ``path`` first, then one per further point array (a
+        MetaImage ``.mhd``'s ``.raw`` data files are not listed).
 
     Raises
     ------
     ValueError
         A suffix nothing is written to, or a dataset type its format does not hold; one
         line naming the suffixes that would do.
+    OverwriteError
+        A file beside ``path`` would be one of ``inputs``.
     """
     suffix = suffix_of(path)
     fmt = format_of(path) if suffix else None
@@ -140,12 +160,53 @@ def write_dataset(path, data) -> None:
         raise ValueError(
             f"cannot write a {kind} to {suffix!r}; use one of {', '.join(output_suffixes(kind))}"
         )
+    path = Path(path)
     write = fmt.function("write")
-    if write is not None:
+    if write is None:
+        with atomic_path(path) as tmp:
+            data.save(os.fspath(tmp))
+        return [path]
+    parts = _one_array_images(data) if fmt.one_array else []
+    if len(parts) <= 1:
         write(path, data)
-        return
-    with atomic_path(path) as tmp:
-        data.save(os.fspath(tmp))
+        return [path]
+    paths = [path, *(array_file(path, name) for name, _ in parts[1:])]
+    for other in paths[1:]:
+        refuse_inputs(other, inputs)
+    if len(set(paths)) < len(paths):
+        raise ValueError(
+            f"two point arrays would be written to one file ({', '.join(p.name for p in paths)}); "
+            "rename them"
+        )
+    with atomic_directory(path.parent) as stage:
+        for target, (_, image) in zip(paths, parts, strict=True):
+            write(stage / target.name, image)
+    return paths
+
+
+def _one_array_images(data) -> list[tuple[str, object]]:
+    """``(name, image)`` for each point array of an image, the main one first.
+
+    The main array is the active scalars (else the first); each image has ``data``'s
+    grid and that one array, active. Empty for a dataset that is not an image.
+    """
+    import pyvista as pv
+
+    data = pv.wrap(data)
+    if not isinstance(data, pv.ImageData):
+        return []
+    names = list(data.point_data.keys())
+    if not names:
+        return []
+    main = data.active_scalars_name if data.active_scalars_name in names else names[0]
+    parts = []
+    for name in [main, *(n for n in names if n != main)]:
+        image = pv.ImageData(dimensions=data.dimensions, spacing=data.spacing, origin=data.origin)
+        image.direction_matrix = data.direction_matrix
+        image.point_data[name] = data.point_data[name]
+        image.set_active_scalars(name)
+        parts.append((name, image))
+    return parts
 
 
 def check_dataset(data, path) -> None:

@@ -1,8 +1,8 @@
-"""Volume formats vhm_viz reads but does not write: NRRD and SLC.
+"""A volume format vhm_viz reads but does not write: SLC.
 
-Both go through VTK's readers (:mod:`vhm_viz.io.vtk_files`) after a check of the header
-against the file, and what those readers get wrong is put right here: a 3-D scalar NRRD
-read as a 2-D vector image, SLC voxels left uninitialised.
+It goes through VTK's reader (:mod:`vhm_viz.io.vtk_files`) after a check of the header
+against the file, and what that reader gets wrong is put right here: voxels left
+uninitialised.
 """
 
 from __future__ import annotations
@@ -15,84 +15,7 @@ import numpy as np
 from vhm_viz.io.errors import ReadError, TruncatedError, need
 from vhm_viz.io.vtk_files import read_vtk_file
 
-__all__ = ["check_nrrd", "read_nrrd", "check_slc", "read_slc"]
-
-
-_NRRD_TYPES = {
-    "signed char": 1, "int8": 1, "int8_t": 1, "uchar": 1, "unsigned char": 1, "uint8": 1,
-    "uint8_t": 1, "short": 2, "short int": 2, "signed short": 2, "int16": 2, "int16_t": 2,
-    "ushort": 2, "unsigned short": 2, "uint16": 2, "uint16_t": 2, "int": 4, "signed int": 4,
-    "int32": 4, "int32_t": 4, "uint": 4, "unsigned int": 4, "uint32": 4, "uint32_t": 4,
-    "longlong": 8, "long long": 8, "int64": 8, "int64_t": 8, "ulonglong": 8, "uint64": 8,
-    "uint64_t": 8, "float": 4, "double": 8,
-}  # fmt: skip
-
-
-def _nrrd_header(p: Path) -> tuple[dict, bytes, int]:
-    """A NRRD header's fields (lower-case keys), the file's bytes, the header's end."""
-    blob = p.read_bytes()
-    if not blob.startswith(b"NRRD"):
-        raise ReadError(f"{p}: not a NRRD file (no 'NRRD' magic)")
-    sep = blob.find(b"\n\n")
-    if sep < 0:
-        raise TruncatedError(f"{p}: truncated NRRD file (no end of header)")
-    fields = {}
-    for line in blob[:sep].decode("latin-1").splitlines()[1:]:
-        key, colon, value = line.partition(":")
-        if colon and not line.startswith("#"):
-            fields[key.strip().lower()] = value.strip().lstrip("=").strip()
-    return fields, blob, sep
-
-
-def read_nrrd(path):
-    """A NRRD file through VTK; a 3-D scalar NRRD as the volume it is.
-
-    VTK's reader takes the first axis of any 3-D NRRD for vector components and returns a
-    2-D image of ``sizes[0]``-component pixels; a scalar volume (no vector ``kinds``) is
-    rebuilt here from the same values, with the header's spacing and origin.
-    """
-    import pyvista as pv
-
-    p = Path(path)
-    data = read_vtk_file(p)
-    fields, _, _ = _nrrd_header(p)
-    sizes = [int(v) for v in fields.get("sizes", "").split()]
-    kinds = fields.get("kinds", "domain domain domain").lower().split()
-    names = data.array_names if isinstance(data, pv.ImageData) else []
-    if len(sizes) != 3 or data.dimensions[2] != 1 or len(names) != 1:
-        return data
-    if kinds[0] not in ("domain", "space", "none", "???"):
-        return data  # really a vector axis
-    values = np.asarray(data.point_data[names[0]])
-    if values.ndim != 2 or values.shape[1] != sizes[0]:
-        return data
-    spacing = [1.0, 1.0, 1.0]
-    if "spacings" in fields:
-        spacing = [float(v) for v in fields["spacings"].split()]
-    elif "space directions" in fields:
-        rows = re.findall(r"\(([^)]*)\)", fields["space directions"])
-        spacing = [float(np.linalg.norm([float(x) for x in r.split(",")])) for r in rows]
-    origin = [0.0, 0.0, 0.0]
-    if "space origin" in fields:
-        origin = [float(x) for x in fields["space origin"].strip("()").split(",")]
-    out = pv.ImageData(dimensions=sizes, spacing=spacing, origin=origin)
-    out.point_data[names[0]] = values.reshape(-1)
-    return out
-
-
-def check_nrrd(p: Path) -> None:
-    """NRRD with attached raw data: ``sizes`` x ``type`` against the bytes after the header."""
-    fields, blob, sep = _nrrd_header(p)
-    if "data file" in fields or "datafile" in fields:
-        return  # detached data: VTK's reader reports what is missing
-    try:
-        sizes = [int(v) for v in fields["sizes"].split()]
-        item = _NRRD_TYPES[fields["type"].lower()]
-    except (KeyError, ValueError):
-        raise ReadError(f"{p}: malformed NRRD header (sizes, type)") from None
-    if fields.get("encoding", "raw").lower() == "raw":
-        needed = int(np.prod(sizes, dtype=np.int64)) * item
-        need(p, f"{needed // item} voxels", needed, len(blob) - sep - 2)
+__all__ = ["check_slc", "read_slc"]
 
 
 def check_slc(p: Path) -> None:

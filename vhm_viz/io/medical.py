@@ -1,12 +1,14 @@
-"""Medical volumes: MetaImage, NIfTI and DICOM, read and written in ITK's frame.
+"""Medical volumes: MetaImage and NIfTI, read and written in ITK's frame.
 
-vhm_viz's world follows ITK and DICOM (LPS). Both MetaImage and NIfTI are read through
-VTK (:mod:`vhm_viz.io.vtk_files`) after a check of the header's voxel count against the
-data, and their orientation is then taken from the header as ITK reads it: VTK's
-MetaImage reader takes ``TransformMatrix`` row by row (the transpose of what ITK
-writes), and its NIfTI reader keeps the qform/sform apart from the image. The writers
-keep origin, spacing and direction, so SimpleITK and ITK-based tools read the same
-geometry.
+vhm_viz's world follows ITK and DICOM (LPS, millimetres). Both MetaImage and NIfTI are
+read through VTK (:mod:`vhm_viz.io.vtk_files`) after a check of the header's voxel count
+against the data, and their orientation is then taken from the header as ITK reads it:
+VTK's MetaImage reader takes ``TransformMatrix`` row by row (the transpose of what ITK
+writes), and its NIfTI reader keeps the qform/sform, the spatial unit and the intensity
+scaling (``scl_slope``, ``scl_inter``) apart from the image. The writers keep origin,
+spacing and direction, so SimpleITK and ITK-based tools read the same geometry. DICOM
+series and NRRD, which VTK reads without their frame, go through SimpleITK
+(:mod:`vhm_viz.io.dicom`, :mod:`vhm_viz.io.nrrd`).
 """
 
 from __future__ import annotations
@@ -21,22 +23,24 @@ from scipy.spatial.transform import Rotation
 
 from vhm_viz.atomic import atomic_path
 from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
-from vhm_viz.io.isolated import read_isolated
 from vhm_viz.io.registry import suffix_of
-from vhm_viz.io.vtk_files import read_vtk, read_vtk_file
+from vhm_viz.io.vtk_files import read_vtk_file
 
 __all__ = [
     "check_metaimage",
     "check_nifti",
     "read_metaimage",
     "read_nifti",
-    "read_dicom",
+    "volume_array",
     "write_metaimage",
     "write_nifti",
 ]
 
 # NIfTI's world is RAS; vhm_viz's is LPS: x and y flip.
 _RAS_LPS = np.diag([-1.0, -1.0, 1.0])
+# NIfTI's spatial units (the low 3 bits of xyzt_units) in millimetres; unknown counts as mm
+_NIFTI_UNIT_MM = {1: 1000.0, 2: 1.0, 3: 1e-3}
+_NIFTI_MM = 2
 _META_TYPES = {
     "uint8": "MET_UCHAR", "int8": "MET_CHAR", "uint16": "MET_USHORT", "int16": "MET_SHORT",
     "uint32": "MET_UINT", "int32": "MET_INT", "uint64": "MET_ULONG_LONG",
@@ -152,7 +156,13 @@ def read_metaimage(path):
 
 
 def read_nifti(path):
-    """A NIfTI image (``.nii``, ``.nii.gz``), placed by its sform (else qform), in LPS."""
+    """A NIfTI image (``.nii``, ``.nii.gz``) in LPS millimetres, its intensities scaled.
+
+    Placed by its sform (else qform), negated in x and y (NIfTI's world is RAS); metres
+    and micrometres (``xyzt_units``) are converted to millimetres; a ``scl_slope`` other
+    than 0 or 1, or a ``scl_inter`` other than 0, is applied (``slope * value + inter``,
+    as float32, or float64 for float64 data), as ITK and nibabel read the file.
+    """
     from vtkmodules.vtkIOImage import vtkNIFTIImageReader
 
     p = Path(path)
@@ -162,28 +172,51 @@ def read_nifti(path):
     reader = vtkNIFTIImageReader()
     reader.SetFileName(os.fspath(p))
     reader.UpdateInformation()
+    unit = _NIFTI_UNIT_MM.get(reader.GetNIFTIHeader().GetXYZTUnits() & 7, 1.0)
+    _scale_intensities(image, reader.GetRescaleSlope(), reader.GetRescaleIntercept())
     matrix = reader.GetSFormMatrix() or reader.GetQFormMatrix()
-    if matrix is None:
-        return image
-    m = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
-    image.origin = tuple(_RAS_LPS @ m[:3, 3])
-    image.direction_matrix = _RAS_LPS @ m[:3, :3]
+    if matrix is not None:
+        m = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+        image.origin = tuple(_RAS_LPS @ m[:3, 3])
+        image.direction_matrix = _RAS_LPS @ m[:3, :3]
+    if unit != 1.0:
+        image.origin = tuple(unit * np.asarray(image.origin, dtype=np.float64))
+        image.spacing = tuple(unit * np.asarray(image.spacing, dtype=np.float64))
     return image
 
 
-def read_dicom(path):
-    """A folder of DICOM files (one series) as an image, through VTK's DICOM reader."""
+def _scale_intensities(image, slope: float, inter: float) -> None:
+    """Apply NIfTI's ``scl_slope``/``scl_inter`` to every point array, where they scale."""
+    if not np.isfinite(slope) or slope == 0.0:
+        slope = 1.0
+    if not np.isfinite(inter):
+        inter = 0.0
+    if slope == 1.0 and inter == 0.0:
+        return
+    for name in list(image.point_data.keys()):
+        values = np.asarray(image.point_data[name])
+        dtype = np.float64 if values.dtype == np.float64 else np.float32
+        image.point_data[name] = (values.astype(np.float64) * slope + inter).astype(dtype)
 
-    def read(p):
-        import pyvista as pv
 
-        return read_vtk(p, pv.DICOMReader(os.fspath(p)))
+def volume_array(image) -> np.ndarray:
+    """The array a one-array format stores: the active scalars, else the first one.
 
-    return read_isolated(path, read, "VTK's DICOM reader")
+    Parameters
+    ----------
+    image : pyvista.ImageData
 
+    Returns
+    -------
+    numpy.ndarray
+        ``(n_points,)`` or ``(n_points, components)``, contiguous; a dtype no format
+        stores (bool, float16, ...) as float64.
 
-def _volume_array(image) -> np.ndarray:
-    """The array a single-array format stores: the active scalars, else the first one."""
+    Raises
+    ------
+    ValueError
+        The image has no point array.
+    """
     name = image.active_scalars_name or (image.point_data.keys() or [None])[0]
     if name is None:
         raise ValueError("the image has no point array to write")
@@ -208,7 +241,7 @@ def write_metaimage(path, image) -> None:
     image : pyvista.ImageData
     """
     path = Path(path)
-    values = _volume_array(image)
+    values = volume_array(image)
     direction = np.asarray(image.direction_matrix, dtype=np.float64)
     comps = 1 if values.ndim == 1 else values.shape[1]
     fmt = lambda v: " ".join(f"{x:.17g}" for x in v)  # noqa: E731
@@ -254,7 +287,7 @@ def write_nifti(path, image) -> None:
     image : pyvista.ImageData
     """
     path = Path(path)
-    values = _volume_array(image)
+    values = volume_array(image)
     if values.dtype.name not in _NIFTI_TYPES:
         values = values.astype(np.float64)
     code, bits = _NIFTI_TYPES[values.dtype.name]
@@ -278,7 +311,7 @@ def write_nifti(path, image) -> None:
     struct.pack_into("<8f", header, 76, qfac, *spacing, 1.0, 1.0, 1.0, 1.0)
     struct.pack_into("<f", header, 108, 352.0)  # vox_offset
     struct.pack_into("<f", header, 112, 1.0)  # scl_slope
-    header[123] = 2  # xyzt_units: millimetres
+    header[123] = _NIFTI_MM  # xyzt_units: vhm_viz's world is in mm; no time axis
     struct.pack_into("<2h", header, 252, 1, 1)  # qform_code, sform_code: scanner
     struct.pack_into("<6f", header, 256, *quat[:3], *offset)
     for r in range(3):

@@ -31,6 +31,7 @@ __all__ = [
     "output_suffixes",
     "image_suffixes",
     "is_image_format",
+    "array_file",
 ]
 
 #: The PyVista dataset types the table speaks of.
@@ -72,7 +73,12 @@ class Format:
         ``"module:function"``, ``function(path) -> (points, edges)``: rigidity lines
         (:func:`~vhm_viz.io.read_rigidity_lines`); None: the line cells of the dataset.
     folder : bool
-        The format is a folder of files (DICOM), not one file.
+        The format is a folder of files (DICOM): a folder is read as it, and a file with
+        one of its ``suffixes`` (or, for DICOM, its preamble) stands for its folder.
+    one_array : bool
+        A file holds one point array: :func:`~vhm_viz.io.write_dataset` writes the
+        active one to the path and every other one beside it
+        (:func:`array_file`).
     """
 
     name: str
@@ -86,6 +92,7 @@ class Format:
     cage: str | None = None
     lines: str | None = None
     folder: bool = False
+    one_array: bool = False
 
     def function(self, role: str):
         """The function a row names for ``role`` (``"read"``, ``"check"``, ...), or None."""
@@ -129,18 +136,21 @@ FORMATS: tuple[Format, ...] = (
            cage="cages:read_off_cage", lines="rigidity:read_polylines"),
     Format("MetaImage", (".mhd", ".mha"), ("ImageData",), ("ImageData",), image=True,
            read="medical:read_metaimage", check="medical:check_metaimage",
-           write="medical:write_metaimage"),
+           write="medical:write_metaimage", one_array=True),
     Format("NIfTI", (".nii", ".nii.gz"), ("ImageData",), ("ImageData",), image=True,
            read="medical:read_nifti", check="medical:check_nifti",
-           write="medical:write_nifti"),
-    Format("NRRD", (".nrrd",), ("ImageData",), read="legacy_volumes:read_nrrd",
-           check="legacy_volumes:check_nrrd"),
+           write="medical:write_nifti", one_array=True),
+    Format("NRRD", (".nrrd",), ("ImageData",), ("ImageData",), image=True,
+           read="nrrd:read_nrrd", check="nrrd:check_nrrd", write="nrrd:write_nrrd",
+           one_array=True),
+    Format("NRRD detached header", (".nhdr",), ("ImageData",), read="nrrd:read_nrrd",
+           check="nrrd:check_nrrd"),
     Format("SLC", (".slc",), ("ImageData",), read="legacy_volumes:read_slc",
            check="legacy_volumes:check_slc"),
     Format("point list", (".npy", ".xyz", ".txt", ".csv"), ("PolyData",),
            read="mesh_files:read_point_list"),
     Format("TGF skeleton", (".tgf",), lines="rigidity:read_tgf"),
-    Format(DICOM_FOLDER, (), ("ImageData",), read="medical:read_dicom", folder=True),
+    Format(DICOM_FOLDER, (".dcm",), ("ImageData",), read="dicom:read_dicom", folder=True),
 )  # fmt: skip
 
 
@@ -155,11 +165,20 @@ def suffix_of(path) -> str:
 def format_of(path) -> Format | None:
     """The row for ``path``: by its suffix, or the folder format for an existing folder.
 
-    Returns None for a suffix no row lists.
+    An existing file whose suffix no row lists but which starts like a DICOM file (many
+    have no suffix, or a UID's last number for one) is a DICOM file. Returns None for
+    other suffixes no row lists.
     """
-    if Path(path).is_dir():
+    p = Path(path)
+    if p.is_dir():
         return next((f for f in FORMATS if f.folder), None)
-    return _format_with_suffix(suffix_of(path))
+    fmt = _format_with_suffix(suffix_of(p))
+    if fmt is None and p.is_file():
+        from vhm_viz.io.dicom import is_dicom_file
+
+        if is_dicom_file(p):
+            return next((f for f in FORMATS if f.folder), None)
+    return fmt
 
 
 def _format_with_suffix(suffix: str) -> Format | None:
@@ -212,8 +231,9 @@ def image_suffixes() -> tuple[str, ...]:
 def is_image_format(path) -> bool:
     """Whether a volume written to ``path`` is a regular image (resampled onto it).
 
-    True for ``.vti``, ``.mhd``, ``.mha``, ``.nii`` and ``.nii.gz``; False otherwise (a
-    volume written to ``.vts`` or ``.vtk`` is a warped grid, every voxel moved).
+    True for ``.vti``, ``.mhd``, ``.mha``, ``.nii``, ``.nii.gz`` and ``.nrrd``; False
+    otherwise (a volume written to ``.vts`` or ``.vtk`` is a warped grid, every voxel
+    moved).
 
     Parameters
     ----------
@@ -221,3 +241,24 @@ def is_image_format(path) -> bool:
         Only its suffix counts; the file need not exist.
     """
     return suffix_of(path) in image_suffixes()
+
+
+def array_file(path, name: str) -> Path:
+    """Where a one-array format (:attr:`Format.one_array`) puts the point array ``name``.
+
+    Beside ``path``, its name followed by ``_`` and the array's (characters other than
+    letters, digits, ``-`` and ``_`` become ``_``), with the same suffix:
+    ``out.nii.gz`` and ``vhm_foldover`` give ``out_vhm_foldover.nii.gz``.
+
+    Parameters
+    ----------
+    path : path-like
+        The file the active array is written to.
+    name : str
+        A point array's name.
+    """
+    p = Path(path)
+    suffix = suffix_of(p)
+    stem = p.name[: len(p.name) - len(suffix)] if suffix else p.name
+    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or "array"
+    return p.with_name(f"{stem}_{safe}{p.name[len(stem) :]}")

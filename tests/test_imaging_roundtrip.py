@@ -1,0 +1,327 @@
+"""Scans land where SimpleITK and nibabel put them: NIfTI, MetaImage, NRRD, DICOM series.
+
+Every image is made here with SimpleITK (or nibabel, or by hand for a RAS-space NRRD),
+small, with reflections (det D = -1), rotations, anisotropic spacing, int16 and float32
+voxels, 1 and 3 components. :func:`vhm_viz.read_dataset` (and SimpleITK reading what
+:func:`vhm_viz.io.write_dataset` wrote) is compared with the independent readers at random
+physical points -- interpolated values, not header fields -- to 1e-5 of the intensity
+range. The command line then deforms an oblique NRRD and DICOM series by a translation and
+its output is compared with SimpleITK's own resampling under that translation.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.ndimage import map_coordinates
+from scipy.spatial.transform import Rotation
+
+pv = pytest.importorskip("pyvista")
+sitk = pytest.importorskip("SimpleITK")
+nib = pytest.importorskip("nibabel")
+
+from test_inputs import box_scene  # noqa: E402
+
+from vhm_viz.cli import main  # noqa: E402
+from vhm_viz.io import ReadError, read_dataset, write_dataset  # noqa: E402
+
+SIZE = (20, 24, 16)  # x, y, z
+SPACING = (0.8, 1.3, 2.0)
+ORIGIN = (3.0, -4.0, 5.0)
+TURN = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+DIRECTIONS = {
+    "radiological": np.diag([-1.0, 1.0, 1.0]),  # x flipped: det -1
+    "oblique": TURN,
+    "oblique reflected": TURN @ np.diag([1.0, -1.0, 1.0]),  # det -1
+}
+LPS_RAS = np.diag([-1.0, -1.0, 1.0])  # nibabel's world is RAS, ITK's (and ours) LPS
+
+
+def sitk_image(direction: str, dtype, components: int = 1, seed: int = 0):
+    """A SIZE image with random voxels, SPACING, ORIGIN and one of DIRECTIONS."""
+    rng = np.random.default_rng(seed)
+    shape = (*SIZE[::-1], components) if components > 1 else SIZE[::-1]
+    if np.dtype(dtype).kind == "i":
+        values = rng.integers(-1000, 3000, size=shape).astype(dtype)
+    else:
+        values = (100 * rng.normal(size=shape)).astype(dtype)
+    image = sitk.GetImageFromArray(values, isVector=components > 1)
+    image.SetSpacing(SPACING)
+    image.SetOrigin(ORIGIN)
+    image.SetDirection(DIRECTIONS[direction].ravel().tolist())
+    return image
+
+
+def write_dicom_series(folder: Path, image, uid: str) -> None:
+    """A DICOM series of ``image`` (one file a slice, position and orientation per slice)."""
+    folder.mkdir(exist_ok=True)
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    d = np.reshape(image.GetDirection(), (3, 3))
+    orientation = "\\".join(f"{v:.12f}" for v in (*d[:, 0], *d[:, 1]))
+    for k in range(image.GetDepth()):
+        plane = image[:, :, k]
+        position = image.TransformIndexToPhysicalPoint((0, 0, k))
+        for tag, value in {
+            "0008|0060": "CT",
+            "0020|000e": uid,
+            "0008|0018": f"{uid}.{k + 1}",
+            "0020|0013": str(image.GetDepth() - k),  # numbered against the slice order
+            "0020|0032": "\\".join(f"{v:.12f}" for v in position),
+            "0020|0037": orientation,
+            "0008|103e": f"series {uid[-1]}",
+        }.items():
+            plane.SetMetaData(tag, value)
+        writer.SetFileName(str(folder / f"{uid}_{k:03d}.dcm"))
+        writer.Execute(plane)
+
+
+def read_series(folder: Path, uid: str | None = None):
+    files = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), *([uid] if uid else []))
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(files)
+    return reader.Execute()
+
+
+def probe_points(reference, n: int = 200, seed: int = 1) -> np.ndarray:
+    """Random physical points well inside ``reference`` (a SimpleITK image), (n, 3) mm."""
+    rng = np.random.default_rng(seed)
+    size = np.asarray(reference.GetSize(), dtype=float)
+    index = rng.uniform(1.0, size - 2.0, size=(n, 3))
+    return np.array([reference.TransformContinuousIndexToPhysicalPoint(i.tolist()) for i in index])
+
+
+def sitk_values(reference, points: np.ndarray) -> np.ndarray:
+    """SimpleITK's trilinear values at physical points, (n,) or (n, components)."""
+    return np.array(
+        [reference.EvaluateAtPhysicalPoint(p.tolist(), sitk.sitkLinear) for p in points]
+    )
+
+
+def our_values(image, points: np.ndarray) -> np.ndarray:
+    """VTK's trilinear values of a vhm_viz image at physical points (in float64)."""
+    name = image.active_scalars_name or image.array_names[0]
+    probe = pv.ImageData(dimensions=image.dimensions, spacing=image.spacing, origin=image.origin)
+    probe.direction_matrix = image.direction_matrix
+    probe.point_data["v"] = np.asarray(image.point_data[name], dtype=np.float64)
+    return np.asarray(pv.PolyData(points).sample(probe).point_data["v"])
+
+
+def nibabel_values(path: Path, points: np.ndarray) -> np.ndarray:
+    """nibabel's voxels, scaled, interpolated at LPS points (mm) through its affine."""
+    img = nib.load(str(path))
+    unit = {"meter": 1e3, "micron": 1e-3}.get(img.header.get_xyzt_units()[0], 1.0)
+    affine = img.affine.copy()
+    affine[:3] *= unit  # nibabel leaves the spatial unit to the reader
+    data = np.asarray(img.get_fdata(), dtype=np.float64)
+    ras = (LPS_RAS @ points.T).T
+    index = (np.linalg.inv(affine) @ np.c_[ras, np.ones(len(ras))].T)[:3]
+    if data.ndim == 3:
+        return map_coordinates(data, index, order=1)
+    vectors = data.reshape(*data.shape[:3], -1)
+    return np.stack([map_coordinates(vectors[..., c], index, order=1) for c in range(3)], 1)
+
+
+def assert_same_image(ours, reference, points=None, others=()) -> None:
+    """``ours`` holds ``reference``'s voxels at the same physical points (1e-5 of range)."""
+    expected = np.asarray(sitk.GetArrayViewFromImage(reference))
+    name = ours.active_scalars_name or ours.array_names[0]
+    assert np.asarray(ours.point_data[name]).dtype == expected.dtype
+    points = probe_points(reference) if points is None else points
+    want = sitk_values(reference, points)
+    scale = float(expected.max() - expected.min())
+    for got in (our_values(ours, points), *others):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * scale)
+
+
+# ------------------------------------------------------------------ files made by the others
+
+
+@pytest.mark.parametrize(
+    ("name", "direction", "dtype", "components"),
+    [
+        ("a.nii.gz", "radiological", np.int16, 1),
+        ("b.nii", "oblique", np.float32, 1),
+        ("c.nii.gz", "oblique reflected", np.float32, 3),
+        ("d.mha", "oblique reflected", np.int16, 1),
+        ("e.mhd", "oblique", np.float32, 3),
+        ("f.nrrd", "oblique reflected", np.int16, 1),
+        ("g.nhdr", "oblique", np.float32, 3),
+    ],
+)
+def test_files_written_by_simpleitk_are_read_where_it_reads_them(
+    tmp_path, name, direction, dtype, components
+):
+    path = tmp_path / name
+    sitk.WriteImage(sitk_image(direction, dtype, components), str(path))
+    reference = sitk.ReadImage(str(path))
+    ours = read_dataset(path)
+    others = [nibabel_values(path, probe_points(reference))] if ".nii" in name else []
+    assert_same_image(ours, reference, others=others)
+
+
+def test_nifti_scaling_and_units_are_applied_as_simpleitk_and_nibabel_read_them(tmp_path):
+    """int16 with scl_slope/scl_inter, in micrometres, oblique: float32 in mm."""
+    values = sitk.GetArrayFromImage(sitk_image("oblique", np.int16))
+    affine = np.eye(4)
+    affine[:3, :3] = LPS_RAS @ DIRECTIONS["oblique reflected"] * SPACING
+    affine[:3, 3] = LPS_RAS @ ORIGIN
+    img = nib.Nifti1Image(values.T, affine)
+    img.header.set_xyzt_units("micron")
+    path = tmp_path / "scaled.nii"
+    nib.save(img, str(path))
+    blob = bytearray(path.read_bytes())  # nibabel rescales arrays it saves: set it after
+    struct.pack_into("<2f", blob, 112, 0.25, -40.0)  # scl_slope, scl_inter
+    path.write_bytes(bytes(blob))
+    scaled = nib.load(str(path)).dataobj
+    assert (scaled.slope, scaled.inter) == (0.25, -40.0)
+    reference = sitk.ReadImage(str(path))
+    ours = read_dataset(path)
+    np.testing.assert_allclose(ours.spacing, np.asarray(SPACING) * 1e-3, rtol=1e-6)
+    assert_same_image(ours, reference, others=[nibabel_values(path, probe_points(reference))])
+
+
+def test_ras_space_nrrd_is_converted_to_lps(tmp_path):
+    """A hand-written RAS NRRD: the exact affine of its header, negated in x and y."""
+    values = sitk.GetArrayFromImage(sitk_image("oblique", np.int16, seed=3))
+    columns = DIRECTIONS["oblique reflected"] * SPACING  # RAS axis vectors, one a column
+    origin = np.array([10.0, -20.0, 30.0])
+    fmt = lambda v: "(" + ",".join(f"{x:.17g}" for x in v) + ")"  # noqa: E731
+    header = (
+        "NRRD0004\ntype: short\ndimension: 3\nspace: right-anterior-superior\n"
+        f"sizes: {SIZE[0]} {SIZE[1]} {SIZE[2]}\n"
+        f"space directions: {' '.join(fmt(c) for c in columns.T)}\n"
+        "kinds: domain domain domain\nendian: little\nencoding: raw\n"
+        f"space origin: {fmt(origin)}\n\n"
+    )
+    path = tmp_path / "ras.nrrd"
+    path.write_bytes(header.encode() + values.astype("<i2").tobytes())
+    ours = read_dataset(path)
+    reference = sitk.ReadImage(str(path))
+    assert_same_image(ours, reference)
+    # voxel (i, j, k) at LPS (origin + columns @ index) with x and y negated
+    rng = np.random.default_rng(5)
+    flat = np.asarray(ours.active_scalars)
+    for i, j, k in rng.integers(0, SIZE, size=(30, 3)):
+        lps = LPS_RAS @ (origin + columns @ [i, j, k])
+        found = ours.FindPoint(lps)
+        np.testing.assert_allclose(ours.points[found], lps, atol=1e-6)
+        assert flat[found] == values[k, j, i]
+
+
+@pytest.mark.parametrize(("dtype", "components"), [(np.float32, 1), (np.int16, 3)])
+def test_nrrd_written_here_is_read_by_simpleitk_where_it_was(tmp_path, dtype, components):
+    source = tmp_path / "source.mha"
+    sitk.WriteImage(sitk_image("oblique reflected", dtype, components, seed=4), str(source))
+    image = read_dataset(source)
+    image.point_data["mask"] = (np.arange(image.n_points) % 3 == 0).astype(np.uint8)
+    written = write_dataset(tmp_path / "out.nrrd", image)
+    assert written == [tmp_path / "out.nrrd", tmp_path / "out_mask.nrrd"]
+    reference = sitk.ReadImage(str(source))
+    back = sitk.ReadImage(str(tmp_path / "out.nrrd"))
+    assert_same_image(image, back)
+    assert_same_image(read_dataset(tmp_path / "out.nrrd"), reference)
+    mask = sitk.ReadImage(str(tmp_path / "out_mask.nrrd"))
+    np.testing.assert_array_equal(sitk.GetArrayViewFromImage(mask).ravel(), image["mask"])
+    assert mask.GetDirection() == pytest.approx(back.GetDirection(), abs=1e-12)
+
+
+def test_oblique_dicom_series_lands_where_simpleitk_reads_it(tmp_path):
+    """Two series in one folder: the larger by default, the other through one of its files."""
+    folder = tmp_path / "dicom"
+    source = sitk_image("oblique", np.int16, seed=6)
+    write_dicom_series(folder, source, "1.2.826.0.1.3680043.9.7.1")
+    small = sitk_image("oblique", np.int16, seed=7)[:, :, :5]
+    write_dicom_series(folder, small, "1.2.826.0.1.3680043.9.7.2")
+    ours = read_dataset(folder)
+    assert ours.dimensions == SIZE
+    assert_same_image(ours, read_series(folder, "1.2.826.0.1.3680043.9.7.1"))
+    assert_same_image(ours, source)  # slices in the order of their positions
+    other = read_dataset(folder / "1.2.826.0.1.3680043.9.7.2_002.dcm")
+    assert other.dimensions == (SIZE[0], SIZE[1], 5)
+    assert_same_image(other, read_series(folder, "1.2.826.0.1.3680043.9.7.2"))
+    # two series of one size: which one is meant is not guessed
+    write_dicom_series(folder, small, "1.2.826.0.1.3680043.9.7.3")
+    for k in range(5, SIZE[2]):  # the first series down to 5 slices too
+        (folder / f"1.2.826.0.1.3680043.9.7.1_{k:03d}.dcm").unlink()
+    with pytest.raises(ReadError, match=r"3 DICOM series of 5 slices.*give one file"):
+        read_dataset(folder)
+    # a file without a suffix is known by its DICOM preamble
+    bare = folder / "slice"
+    (folder / "1.2.826.0.1.3680043.9.7.3_001.dcm").rename(bare)
+    assert_same_image(read_dataset(bare), read_series(folder, "1.2.826.0.1.3680043.9.7.3"))
+
+
+def test_nrrd_promising_more_voxels_than_it_holds_is_refused_before_simpleitk(tmp_path):
+    for name in ("a.nrrd", "b.nhdr"):
+        path = tmp_path / name
+        sitk.WriteImage(sitk_image("oblique", np.int16), str(path), False)
+        data = tmp_path / "b.raw" if name.endswith(".nhdr") else path
+        data.write_bytes(data.read_bytes()[:-2])
+        with pytest.raises(ReadError, match=r"truncated or corrupt: .*voxels.* needs 15360 bytes"):
+            read_dataset(path)
+
+
+def test_arrays_beside_an_output_never_overwrite_an_input(tmp_path):
+    image = pv.ImageData(dimensions=(3, 4, 5))
+    image.point_data["v"] = np.arange(image.n_points, dtype=np.float32)
+    image.point_data["mask"] = np.ones(image.n_points, np.uint8)
+    keep = tmp_path / "out_mask.nii.gz"
+    keep.write_bytes(b"an input")
+    with pytest.raises(ValueError, match="refusing to overwrite the input file"):
+        write_dataset(tmp_path / "out.nii.gz", image, inputs=[keep])
+    assert keep.read_bytes() == b"an input" and not (tmp_path / "out.nii.gz").exists()
+
+
+# ---------------------------------------------------------------------------- the command line
+
+
+def translation_scene(folder: Path, reference, shift) -> Path:
+    """A scene: a box cage around ``reference``'s corners, four constraints moved by shift."""
+    size = np.asarray(reference.GetSize()) - 1
+    corners = np.array([
+        reference.TransformContinuousIndexToPhysicalPoint((size * c).tolist())
+        for c in np.array(np.meshgrid([0, 1], [0, 1], [0, 1])).reshape(3, -1).T
+    ])  # fmt: skip
+    lo, hi = corners.min(0), corners.max(0)
+    points = 0.5 * (lo + hi) + 0.25 * (hi - lo) * np.vstack([np.zeros(3), np.eye(3)])
+    moved = {"positions": points.tolist(), "targets": (points + shift).tolist()}
+    return box_scene(folder, lo, hi, constraints=moved)
+
+
+@pytest.mark.parametrize("kind", ["nrrd", "dicom"])
+def test_cli_deforms_oblique_scans_in_simpleitks_frame(tmp_path, kind, capsys):
+    """A translation by t: the .nrrd output is SimpleITK's resampling of the input at y - t."""
+    source = sitk.SmoothingRecursiveGaussian(sitk_image("oblique", np.float32, seed=8), 2.0)
+    if kind == "nrrd":
+        path = tmp_path / "in.nrrd"
+        sitk.WriteImage(source, str(path))
+        reference = sitk.ReadImage(str(path))
+    else:
+        path = tmp_path / "series"
+        series = sitk.Cast(source * 10, sitk.sitkInt16)
+        write_dicom_series(path, series, "1.2.826.0.1.3680043.9.7.9")
+        reference = read_series(path)
+    shift = np.array([1.5, -0.7, 0.9])
+    scene = translation_scene(tmp_path, reference, shift)
+    out = tmp_path / "out.nrrd"
+    assert main(["deform", str(path), "-s", str(scene), "-o", str(out), "-q"]) == 0
+    summary = capsys.readouterr().out
+    mask_file = tmp_path / "out_vtkValidPointMask.nrrd"
+    assert str(out) in summary and str(mask_file) in summary
+    result = sitk.ReadImage(str(out))  # written here, read by SimpleITK
+    inverse = sitk.TranslationTransform(3, (-shift).tolist())
+    expected = sitk.Resample(reference, result, inverse, sitk.sitkLinear, 0.0, sitk.sitkFloat64)
+    inside = sitk.Resample(reference * 0 + 1, result, inverse, sitk.sitkLinear, 0.0)
+    valid = sitk.GetArrayFromImage(sitk.ReadImage(str(mask_file))).astype(bool)
+    keep = valid & (sitk.GetArrayFromImage(inside) > 0.999)  # no fill value mixed in
+    assert keep.mean() > 0.5  # most of the moved image is compared
+    got = sitk.GetArrayFromImage(result).astype(np.float64)
+    want = sitk.GetArrayFromImage(expected)
+    values = sitk.GetArrayViewFromImage(reference)
+    scale = float(values.max() - values.min())
+    rounding = 0.5 if values.dtype.kind in "iu" else 0.0  # the output keeps the input's type
+    np.testing.assert_allclose(got[keep], want[keep], rtol=0, atol=rounding + 1e-5 * scale)

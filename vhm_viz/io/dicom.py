@@ -1,0 +1,128 @@
+"""DICOM series: a folder of slices (or one file of it) as an image in LPS millimetres.
+
+Read through SimpleITK's ``ImageSeriesReader`` with GDCM's series index: the slices of
+one ``SeriesInstanceUID`` ordered along the normal of ``ImageOrientationPatient`` by
+their ``ImagePositionPatient``, the image placed and oriented by them -- an oblique
+series lands where ITK, 3D Slicer and ANTs put it. VTK's DICOM reader ignores the
+orientation and turns rows and slices over.
+
+Which series: a folder holding several is read as its largest series (most slices); to
+read another, give one file of that series instead of the folder (the file's
+``SeriesInstanceUID`` chooses). Two largest series of the same size are refused, the
+message listing them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from vhm_viz.io.errors import ReadError
+from vhm_viz.io.itk_images import read_with_sitk
+
+__all__ = ["is_dicom_file", "read_dicom"]
+
+_SERIES_UID = "0020|000e"
+_DESCRIPTION = "0008|103e"
+
+
+def is_dicom_file(path) -> bool:
+    """Whether ``path`` is a file with DICOM's preamble (``DICM`` at byte 128).
+
+    Parameters
+    ----------
+    path : path-like
+    """
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(128)
+            return fh.read(4) == b"DICM"
+    except OSError:
+        return False
+
+
+def read_dicom(path):
+    """A DICOM series as an image, with its orientation and slice order.
+
+    Parameters
+    ----------
+    path : path-like
+        A folder of DICOM files (its largest series is read), or one DICOM file (the
+        series it belongs to, from the files in its folder, is read).
+
+    Returns
+    -------
+    pyvista.ImageData
+        Origin at the first slice's ``ImagePositionPatient``, direction columns the row
+        and column directions of ``ImageOrientationPatient`` and the slice normal, the
+        voxels in one point array ``"DICOMImage"`` (RGB as 3 components).
+
+    Raises
+    ------
+    ReadError
+        No series in the folder, two largest series of one size, a slice GDCM cannot
+        read, or a crash of the reader (in its child process).
+    """
+    p = Path(path)
+    folder = p if p.is_dir() else p.parent  # sizes the child's memory cap: the series
+    try:
+        return read_with_sitk(
+            folder, lambda _: _read_series(p, folder), "SimpleITK's DICOM series reader"
+        )
+    except ReadError as exc:
+        if p == folder:
+            raise
+        raise ReadError(f"{p}{str(exc).removeprefix(str(folder))}") from None  # the file given
+
+
+def _read_series(p: Path, folder: Path):
+    """The series ``p`` stands for, read by SimpleITK (runs in the reading child)."""
+    import SimpleITK as sitk
+
+    if p.is_dir():
+        uid = _largest_series(folder)
+    else:
+        header = sitk.ImageFileReader()
+        header.SetFileName(str(p))
+        header.ReadImageInformation()
+        if not header.HasMetaDataKey(_SERIES_UID):
+            raise ValueError(f"{p.name} names no SeriesInstanceUID (0020,000E)")
+        uid = header.GetMetaData(_SERIES_UID).strip().rstrip("\0")
+    files = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), uid)
+    if not files:
+        raise ValueError(f"no readable slice of series {uid} in {folder}")
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(files)
+    return reader.Execute(), "DICOMImage"
+
+
+def _largest_series(folder: Path) -> str:
+    """The UID of the series with the most slices in ``folder``; a tie is refused."""
+    import SimpleITK as sitk
+
+    uids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
+    if not uids:
+        raise ValueError("no DICOM series in this folder")
+    counts = {uid: len(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), uid))
+              for uid in uids}  # fmt: skip
+    ranked = sorted(counts, key=counts.get, reverse=True)
+    if len(ranked) > 1 and counts[ranked[0]] == counts[ranked[1]]:
+        tied = [u for u in ranked if counts[u] == counts[ranked[0]]]
+        names = "; ".join(f"{u} ({_description(folder, u)})" for u in tied)
+        raise ValueError(
+            f"holds {len(tied)} DICOM series of {counts[ranked[0]]} slices each: {names}; "
+            "give one file of the series to read instead of the folder"
+        )
+    return ranked[0]
+
+
+def _description(folder: Path, uid: str) -> str:
+    """A series' ``SeriesDescription`` (or its first file's name), for messages."""
+    import SimpleITK as sitk
+
+    first = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), uid)[0]
+    header = sitk.ImageFileReader()
+    header.SetFileName(first)
+    header.ReadImageInformation()
+    if header.HasMetaDataKey(_DESCRIPTION) and header.GetMetaData(_DESCRIPTION).strip():
+        return f"{header.GetMetaData(_DESCRIPTION).strip()!r}, e.g. {Path(first).name}"
+    return f"e.g. {Path(first).name}"
