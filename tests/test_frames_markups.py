@@ -184,3 +184,18 @@ def test_cli_anchors_writes_a_slicer_point_list(tmp_path, capsys):
     np.testing.assert_array_equal(
         read_markups(tmp_path / "b.mrk.json"), read_anchors(tmp_path / "a.json")
     )
+
+
+def test_the_working_with_scans_example_runs(tmp_path, monkeypatch):
+    """docs/working-with-scans.md's example: Slicer point lists in RAS bend the template."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "working-with-scans.md").read_text()
+    (block,) = re.findall(r"```python\n(.*?)```", text, re.S)
+    monkeypatch.chdir(tmp_path)
+    space: dict = {}
+    exec(compile(block, "working-with-scans.md", "exec"), space)
+    assert space["solved"].converged
+    np.testing.assert_allclose(space["moved"], space["targets"], atol=1e-6 * 180)
+    assert space["size"][0] == pytest.approx(180.0)
