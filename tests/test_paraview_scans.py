@@ -49,7 +49,53 @@ def _small_radiological_nifti(path: Path) -> Path:
     return path
 
 
+def _oblique_scans(tmp_path: Path):
+    """An oblique, anisotropic int16 image written by SimpleITK as NRRD and as a DICOM series."""
+    sitk = pytest.importorskip("SimpleITK")
+    rng = np.random.default_rng(35)
+    image = sitk.GetImageFromArray(rng.integers(-900, 1500, size=(6, 8, 10)).astype(np.int16))
+    image.SetSpacing((0.7, 1.1, 2.3))
+    image.SetOrigin((-12.0, 30.0, 5.0))
+    turn = sitk.VersorTransform((0.3, -0.2, 0.9), np.radians(25.0)).GetMatrix()
+    image.SetDirection(turn)
+    sitk.WriteImage(image, str(tmp_path / "oblique.nrrd"))
+    folder = tmp_path / "dicom"
+    folder.mkdir()
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    d = np.reshape(turn, (3, 3))
+    cosines = "\\".join(f"{v:.9f}" for v in (*d[:, 0], *d[:, 1]))
+    for k in range(image.GetDepth()):
+        piece = image[:, :, k]
+        corner = image.TransformIndexToPhysicalPoint((0, 0, k))
+        for tag, value in {
+            "0008|0060": "CT", "0020|000d": "1.2.826.0.1.3680043.2.1125.35.1",
+            "0020|000e": "1.2.826.0.1.3680043.2.1125.35.2", "0020|0037": cosines,
+            "0020|0032": "\\".join(f"{v:.9f}" for v in corner), "0020|0013": str(k + 1),
+            "0018|0050": "2.3",
+        }.items():  # fmt: skip
+            piece.SetMetaData(tag, value)
+        writer.SetFileName(str(folder / f"slice{k:03d}.dcm"))
+        writer.Execute(piece)
+    return image, [tmp_path / "oblique.nrrd", folder / "slice003.dcm"]
+
+
+def _check_at_physical_points(got, ref) -> None:
+    """``got`` (a vtkImageData read back) holds SimpleITK image ``ref``'s voxels where
+    SimpleITK places them."""
+    dims = np.array(ref.GetSize())
+    assert tuple(got.dimensions) == tuple(dims)
+    rng = np.random.default_rng(1)
+    ijk = np.vstack([rng.integers(0, dims, size=(60, 3)), [0, 0, 0], dims - 1])
+    flat = ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2])
+    where = [ref.TransformIndexToPhysicalPoint([int(v) for v in i]) for i in ijk]
+    np.testing.assert_allclose(np.asarray(got.points)[flat], where, atol=1e-4)
+    values = [ref[[int(v) for v in i]] for i in ijk]
+    np.testing.assert_array_equal(np.asarray(got.active_scalars)[flat], values)
+
+
 def test_paraview_reader_and_resample_match_read_dataset_and_the_cli(paraview_env, tmp_path):  # noqa: F811
+    oblique, others = _oblique_scans(tmp_path)
     small = _small_radiological_nifti(tmp_path / "small_rl.nii.gz")
     scene = tmp_path / "scene.json"
     scene.write_text(json.dumps(_ras_scene(read_dataset(small))))
@@ -57,6 +103,7 @@ def test_paraview_reader_and_resample_match_read_dataset_and_the_cli(paraview_en
         "scans": [[str(NIFTI), str(tmp_path / "nii.vti")], [str(META), str(tmp_path / "mhd.vti")]],
         "resample": [str(small), str(scene), str(tmp_path / "paraview.vti")],
     }
+    config["scans"] += [[str(p), str(tmp_path / f"{p.stem}.vti")] for p in others]
     (tmp_path / "config.json").write_text(json.dumps(config))
     script = ROOT / "tests" / "paraview" / "scan_check.py"
     done = subprocess.run(
@@ -64,7 +111,9 @@ def test_paraview_reader_and_resample_match_read_dataset_and_the_cli(paraview_en
         capture_output=True, text=True, env=paraview_env, timeout=900,
     )  # fmt: skip
     assert "vhm-scan-check: done" in done.stdout, done.stdout + done.stderr
-    for path, out in config["scans"]:
+    for _, out in config["scans"][2:]:  # NRRD and DICOM: SimpleITK is the reference
+        _check_at_physical_points(pv.read(out), oblique)
+    for path, out in config["scans"][:2]:
         ref, got = read_dataset(path), pv.read(out)
         assert got.dimensions == ref.dimensions
         np.testing.assert_allclose(got.origin, ref.origin, atol=1e-9)
