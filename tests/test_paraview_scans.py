@@ -1,5 +1,6 @@
 """ParaView's "VHM Medical Image Reader": the scan where read_dataset puts it, resampled as
-the command line resamples it (pvpython, set up by ``plugins/paraview-env.sh``)."""
+the command line and the Python accessor resample it (pvpython, set up by
+``plugins/paraview-env.sh``)."""
 
 from __future__ import annotations
 
@@ -131,5 +132,11 @@ def test_paraview_reader_and_resample_match_read_dataset_and_the_cli(paraview_en
     a, b = np.asarray(cli.active_scalars, float), np.asarray(para.active_scalars, float)
     np.testing.assert_array_equal(para["vtkValidPointMask"], cli["vtkValidPointMask"])
     assert np.abs(a - b).max() <= 1e-6 * np.ptp(a)
+    # Python: the accessor on the scan read_dataset opens
+    python = read_dataset(small).vhm.resample(str(scene))
+    assert python.dimensions == cli.dimensions
+    np.testing.assert_allclose(python.origin, cli.origin, atol=1e-6)
+    c = np.asarray(python.active_scalars, float)
+    assert np.abs(a - c).max() <= 1e-6 * np.ptp(a)
     # a real bend: the deformed scan needs a wider grid than the scan
     assert np.ptp(cli.bounds[:2]) > np.ptp(read_dataset(small).bounds[:2]) + 1.0
