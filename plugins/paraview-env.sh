@@ -8,6 +8,8 @@
 #   * numba + llvmlite built for ParaView's Python and numpy, with --no-deps into
 #     .paraview-site/ (a pip install with dependencies would pull a vtk wheel, and pvpython
 #     then crashes on two VTKs); the project itself is used in place (PYTHONPATH);
+#   * SimpleITK the same way, for the "VHM Medical Image Reader" (NIfTI, MetaImage,
+#     NRRD/NHDR, DICOM in ITK's LPS frame, as vhm_viz.read_dataset places them);
 #   * a sitecustomize.py shim: ParaView 5.11's plugin loader calls inspect.getargspec,
 #     which Python 3.11 removed;
 #   * the filters' numba kernels, compiled into ParaView's own numba cache
@@ -29,14 +31,20 @@ fi
 
 # ParaView's Python is the system one: ask it for its version, numpy, and the numba of
 # $site if any
-read -r pyver npver have < <(PYTHONPATH="$site" pvpython -c '
+read -r pyver npver have have_sitk < <(PYTHONPATH="$site" pvpython -c '
 import sys, numpy
 try:
     import numba
     have = numba.__version__
 except Exception:
     have = "none"
-print(f"{sys.version_info[0]}.{sys.version_info[1]}", numpy.__version__, have)' 2>/dev/null | tail -n 1)
+try:
+    import SimpleITK
+    have_sitk = "yes"
+except Exception:
+    have_sitk = "no"
+print(f"{sys.version_info[0]}.{sys.version_info[1]}", numpy.__version__, have, have_sitk)' \
+    2>/dev/null | tail -n 1)
 mkdir -p "$site"
 case "$npver" in
     # numba 0.61 compiles the SIMD basis kernel (numba-level inlining) in about 10 s; 0.58
@@ -46,26 +54,32 @@ case "$npver" in
         say "numba 0.58 for numpy $npver: the first filter run compiles for over 10 minutes" ;;
     *) say "no known numba for ParaView's numpy $npver"; exit 1 ;;
 esac
-if [ "$have" != "$numba_ver" ]; then
-    numba_pins="numba==$numba_ver llvmlite==$llvmlite_ver"
-    pip_python=""
+# pip_install PACKAGES...: wheels for ParaView's Python, without dependencies, into $site
+pip_install() {
+    local pip_python="" cand log
     for cand in "$root/.venv/bin/python" python3; do
         if "$cand" -m pip --version >/dev/null 2>&1; then pip_python="$cand"; break; fi
     done
     [ -n "$pip_python" ] || { say "no pip found (make the .venv first: bash .ci/setup)"; exit 1; }
-    say "installing $numba_pins for Python $pyver into $site"
-    # another version's files would stay next to the new ones
-    rm -rf "$site"/numba "$site"/numba-*.dist-info "$site"/llvmlite "$site"/llvmlite-*.dist-info
+    say "installing $* for Python $pyver into $site"
     log="$(mktemp)"
-    # shellcheck disable=SC2086
     if ! PIP_ROOT_USER_ACTION=ignore "$pip_python" -m pip install -q --no-deps \
         --disable-pip-version-check --only-binary=:all: --python-version "$pyver" \
         --implementation cp --platform manylinux2014_x86_64 --target "$site" --upgrade \
-        $numba_pins >"$log" 2>&1; then
+        "$@" >"$log" 2>&1; then
         cat "$log" >&2; rm -f "$log"; exit 1
     fi
     rm -f "$log"
+}
+if [ "$have" != "$numba_ver" ]; then
+    # another version's files would stay next to the new ones
+    rm -rf "$site"/numba "$site"/numba-*.dist-info "$site"/llvmlite "$site"/llvmlite-*.dist-info
+    pip_install "numba==$numba_ver" "llvmlite==$llvmlite_ver"
     rm -rf "$site/numba_cache"  # compiled by the numba this replaces
+fi
+if [ "$have_sitk" != "yes" ]; then
+    rm -rf "$site"/SimpleITK "$site"/[Ss]imple[Ii][Tt][Kk]-*.dist-info
+    pip_install "SimpleITK>=2.3,<3"
 fi
 cat > "$site/sitecustomize.py" <<'PY'
 # Written by plugins/paraview-env.sh: ParaView 5.11's Python plugin loader calls

@@ -128,7 +128,10 @@ def test_pvpython_loads_the_three_filters(paraview_env, tmp_path):
         ["pvpython", str(script)], capture_output=True, text=True, env=paraview_env, timeout=300
     )
     assert out.returncode == 0, out.stderr
-    assert "['VHMHarmonicDeformation', 'VHMJacobianAnalysis', 'VHMResampleToImage']" in out.stdout
+    assert (
+        "['VHMHarmonicDeformation', 'VHMJacobianAnalysis', 'VHMMedicalImageReader', "
+        "'VHMResampleToImage']" in out.stdout
+    )
     assert "SceneFile default: ''" in out.stdout
 
 

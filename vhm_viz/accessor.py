@@ -2,8 +2,11 @@
 
 Registered on :class:`pyvista.DataSet` when this module is imported, and found by PyVista
 through the ``pyvista.accessors`` entry point (PyVista >= 0.48), so ``import vhm_viz`` is
-not even needed::
+not even needed. Open scans with :func:`vhm_viz.read_dataset` (ITK's LPS frame: origin,
+spacing and direction, as the command line, the explorer and ParaView's "VHM Medical
+Image Reader" place them; ``pyvista.read`` drops the direction)::
 
+    image = vhm_viz.read_dataset("scan.nii.gz")
     deformed = mesh.vhm.deform(deformer)        # same type rules as vtkWarpVector
     quality = mesh.vhm.analyze(deformer)        # det / cond / rotation / foldover arrays,
                                                 # and cell arrays of tet meshes and volumes

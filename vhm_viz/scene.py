@@ -7,17 +7,20 @@ version 1::
     {
       "format": "vhm_viz.scene",
       "version": 1,
+      "space": "LPS" | "RAS",                    # the frame of the coordinates below
       "cage": "cage.obj"                         # a path (relative to the scene file), or
               | {"path": "cage.obj"}             # the same, or
               | {"vertices": [[x, y, z], ...], "faces": [[i, j, k], ...]}   # inline, or
               | "auto" | {"auto": {"max_faces": 300, ...}},  # vhm_viz.auto_cage of the data
       "anchors": [[x, y, z], ...]                # explicit, or
                  | "anchors.json"                # a file `vhm-viz anchors` writes, or
+                 | {"markups": "anchors.mrk.json"}   # a 3D Slicer point list, or
                  | {"auto": 24}                  # vhm_viz.auto_anchors, or
                  | {"polylines": "lines.off", "count": 24}   # OFF polylines, or
                  | {"skeleton": "hand.tgf", "count": 24},    # libigl TGF skeleton
       "constraints": {
-        "positions": [[x, y, z], ...], "targets": [[x, y, z], ...],
+        "positions": [[x, y, z], ...], "targets": [[x, y, z], ...],   # (or each
+                     # {"markups": "points.mrk.json"}, read when the scene loads)
         "jacobian_points": [[x, y, z], ...], "jacobians": [[[..3..], [..3..], [..3..]], ...]
       },
       "mode": "rigid" | "similar",
@@ -29,6 +32,13 @@ version 1::
                    "contraction": 0.97},
       "map": {"coefficients": [[x, y, z], ...], "inputs": "sha256 hex"}   # optional
     }
+
+``space`` is the world frame the scene's coordinates are written in: ``"LPS"`` (the
+default, ITK's frame, in which :func:`vhm_viz.read_dataset` places scans; every scene is
+written in it) or ``"RAS"`` (Slicer's and nibabel's), whose coordinates are converted to
+LPS on loading (``RAS = diag(-1, -1, 1) LPS``). Files a scene references (cage, anchors,
+polylines) hold coordinates in the data's own world (LPS for scans); Slicer markups say
+their frame themselves.
 
 ``data`` names the dataset the scene was made for (a path relative to the scene file, or a
 bundled bar scenario); the explorer re-opens it, the command line takes its input
@@ -76,15 +86,19 @@ from vhm_viz.core.cage import MIN_FACE_ANGLE, Cage
 from vhm_viz.core.deformer import Deformer
 from vhm_viz.core.harmonic_map import HarmonicMap
 from vhm_viz.io import json_text, read_anchors, read_cage, read_polylines, read_tgf, write_text
+from vhm_viz.io.markups import read_markups
 from vhm_viz.scene_fields import (
     CONSTRAINT_FIELDS,
     DEFAULT_SOLVER,
+    DEFAULT_SPACE,
     SCENE_FIELDS,
     SCENE_FORMAT,
     SCENE_VERSION,
     SceneError,
+    constraint_markups,
     explorer_data_reference,
     explorer_v1_to_current,
+    lps_fields,
     parse_anchors,
     parse_cage,
     parse_constraints,
@@ -95,6 +109,7 @@ from vhm_viz.scene_fields import (
     parse_setting,
     parse_solution,
     parse_solver,
+    parse_space,
     to_lists,
 )
 
@@ -124,7 +139,8 @@ class Scene:
         ``{"path": str}``, ``{"vertices": (n, 3) array, "faces": (m, 3) array}`` or
         ``{"auto": dict_of_auto_cage_options}``.
     anchors : dict
-        ``{"points": (d, 3) array}``, ``{"path": anchors_json}``, ``{"auto": d}``,
+        ``{"points": (d, 3) array}``, ``{"path": anchors_json}``,
+        ``{"markups": slicer_point_list}``, ``{"auto": d}``,
         ``{"polylines": path, "count": d}`` or ``{"skeleton": path, "count": d}``.
     constraints : dict
         ``positions``, ``targets`` (r, 3); ``jacobian_points`` (s, 3), ``jacobians``
@@ -211,19 +227,39 @@ class Scene:
         for required in ("cage", "anchors", "constraints"):
             if required not in data:
                 raise SceneError(required, "missing")
+        base = Path(base_dir) if base_dir is not None else None
+        space = parse_space(data.get("space", DEFAULT_SPACE))
+        constraints = constraint_markups(
+            data["constraints"], lambda text: _resolve(base, text), space
+        )
+        geometry = lps_fields(
+            space,
+            {
+                "cage": parse_cage(data["cage"]),
+                "anchors": parse_anchors(data["anchors"]),
+                "constraints": parse_constraints(constraints),
+                "solution": parse_solution(data.get("solution")),
+                "map": parse_map(data.get("map")),
+            },
+        )
         scene = cls(
-            cage=parse_cage(data["cage"]),
-            anchors=parse_anchors(data["anchors"]),
-            constraints=parse_constraints(data["constraints"]),
+            cage=geometry["cage"],
+            anchors=geometry["anchors"],
+            constraints=geometry["constraints"],
             mode=parse_mode(data.get("mode", "rigid")),
             alpha=parse_setting("alpha", data.get("alpha", 0.01), "alpha"),
             solver=parse_solver(data.get("solver", {})),
             data=parse_data(data.get("data")),
-            solution=parse_solution(data.get("solution")),
+            solution=geometry["solution"],
             solution_contraction=parse_contraction(data.get("solution")),
-            stored_map=parse_map(data.get("map")),
-            base_dir=Path(base_dir) if base_dir is not None else None,
+            stored_map=geometry["map"],
+            base_dir=base,
         )
+        if space != DEFAULT_SPACE:
+            scene.notes.append(
+                f"converted the scene's coordinates from {space} to {DEFAULT_SPACE}; save the "
+                f"scene to write it in {DEFAULT_SPACE}"
+            )
         if scene.solver["init"] == "solution":
             if scene.solution is None:
                 raise SceneError("solver.init", '"solution" needs the scene\'s "solution" field')
@@ -250,12 +286,13 @@ class Scene:
             anchors: Any = to_lists(self.anchors["points"])
         elif "path" in self.anchors:
             anchors = self.anchors["path"]
-        else:
+        else:  # markups, auto, polylines, skeleton
             anchors = copy.deepcopy(self.anchors)
         c = self.constraints
         out = {
             "format": SCENE_FORMAT,
             "version": SCENE_VERSION,
+            "space": DEFAULT_SPACE,
             "cage": cage,
             "anchors": anchors,
             "constraints": {k: to_lists(c[k]) for k in CONSTRAINT_FIELDS},
@@ -377,7 +414,7 @@ class Scene:
         paths = []
         if "path" in self.cage:
             paths.append(self._resolve_path(self.cage["path"]))
-        for key in ("path", "polylines", "skeleton"):
+        for key in ("path", "markups", "polylines", "skeleton"):
             if key in self.anchors:
                 paths.append(self._resolve_path(self.anchors[key]))
         if self.data is not None and "path" in self.data:
@@ -390,10 +427,7 @@ class Scene:
         return "auto" in self.cage or "auto" in self.anchors
 
     def _resolve_path(self, text: str) -> Path:
-        p = Path(text).expanduser()
-        if not p.is_absolute() and self.base_dir is not None:
-            p = self.base_dir / p
-        return p
+        return _resolve(self.base_dir, text)
 
     def build_cage(self, data=None):
         """The scene's cage (a :class:`vhm_viz.Cage`); ``data`` is needed for ``"auto"``."""
@@ -412,6 +446,8 @@ class Scene:
             return np.array(a["points"], dtype=np.float64)
         if "path" in a:
             return read_anchors(self._resolve_path(a["path"]))
+        if "markups" in a:
+            return read_markups(self._resolve_path(a["markups"]))
         if "auto" in a:
             if data is None:
                 raise SceneError("anchors", '"auto" needs the data to deform')
@@ -737,6 +773,14 @@ class SolvedMap:
         if remedy:
             text += f"; {remedy}"
         raise NotConverged(text)
+
+
+def _resolve(base_dir: Path | None, text: str) -> Path:
+    """A path of the scene file, relative ones against ``base_dir`` (the scene's folder)."""
+    p = Path(text).expanduser()
+    if not p.is_absolute() and base_dir is not None:
+        p = base_dir / p
+    return p
 
 
 def _interpolate_jacobian(j: np.ndarray, s: float) -> np.ndarray:

@@ -8,6 +8,12 @@ integer in [1, 1e6], ``solver.tolerance`` in (0, 0.1], ``solver.steps`` in [1, 1
 ``solver.anderson_window`` in [0, 100], anchor counts in [1, 1e5], ``data.resolution`` in
 [1, 200], ``solution.contraction`` in [0, 1); the error names the field and the range.
 :func:`explorer_v1_to_current` converts the explorer's old scene format.
+
+``space`` names the world frame of the scene's coordinates: ``"LPS"`` (ITK's, what
+:func:`vhm_viz.read_dataset` places scans in, and what every scene is written in) or
+``"RAS"`` (Slicer's view and nibabel's), converted to LPS on loading by
+:func:`lps_fields`. 3D Slicer point lists (``{"markups": "points.mrk.json"}``) carry
+their own frame (:mod:`vhm_viz.io.markups`).
 """
 
 from __future__ import annotations
@@ -22,6 +28,8 @@ from scipy.spatial.transform import Rotation
 from vhm_viz.core.errors import SettingError
 from vhm_viz.core.limits import check_setting
 from vhm_viz.core.solver import DEFAULT_ANDERSON_WINDOW
+from vhm_viz.io.errors import ReadError, first_line
+from vhm_viz.io.markups import RAS_TO_LPS, SPACES, lps_points, read_markups
 
 __all__ = [
     "SceneError",
@@ -30,7 +38,11 @@ __all__ = [
     "SCENE_FIELDS",
     "CONSTRAINT_FIELDS",
     "DEFAULT_SOLVER",
+    "DEFAULT_SPACE",
     "parse_setting",
+    "parse_space",
+    "constraint_markups",
+    "lps_fields",
     "parse_cage",
     "parse_anchors",
     "parse_constraints",
@@ -54,9 +66,12 @@ DEFAULT_SOLVER = {
     "steps": 1,
     "anderson_window": DEFAULT_ANDERSON_WINDOW,
 }
+#: The frame scenes are written in (and read in when they name none).
+DEFAULT_SPACE = "LPS"
 SCENE_FIELDS = {
     "format",
     "version",
+    "space",
     "cage",
     "anchors",
     "constraints",
@@ -209,10 +224,12 @@ def parse_cage(value) -> dict:
 
 
 def parse_anchors(value) -> dict:
-    """``anchors``: ``{"points" (d, 3)}``, ``{"path"}``, ``{"auto": d}`` or polylines/skeleton."""
+    """``anchors``: points (d, 3), ``{"path"}``, ``{"markups"}``, ``{"auto": d}``, lines."""
     path = _path_form(value, "anchors")
     if path:
         return path
+    if isinstance(value, dict) and set(value) == {"markups"}:
+        return {"markups": _path_text(value["markups"], "anchors.markups")}
     if isinstance(value, list):
         pts = _points(value, "anchors")
         if len(pts) == 0:
@@ -229,8 +246,10 @@ def parse_anchors(value) -> dict:
                 kind: _path_text(value[kind], f"anchors.{kind}"),
                 "count": parse_setting("anchor_count", value["count"], "anchors.count"),
             }
-    _check_fields(keys, "anchors", {"path", "auto", "polylines", "skeleton", "count"})
-    raise SceneError("anchors", "expected {path}, {auto}, {polylines, count} or {skeleton, count}")
+    _check_fields(keys, "anchors", {"path", "markups", "auto", "polylines", "skeleton", "count"})
+    raise SceneError(
+        "anchors", "expected {path}, {markups}, {auto}, {polylines, count} or {skeleton, count}"
+    )
 
 
 def parse_constraints(value) -> dict:
@@ -253,6 +272,92 @@ def parse_constraints(value) -> dict:
             "constraints.jacobians", f"{len(jac)} jacobians for {len(jp)} jacobian_points"
         )
     return {"positions": pos, "targets": tgt, "jacobian_points": jp, "jacobians": jac}
+
+
+def parse_space(value) -> str:
+    """``space``: the frame of the scene's coordinates, ``"LPS"`` or ``"RAS"``."""
+    if value not in SPACES:
+        raise SceneError(
+            "space",
+            f"expected {' or '.join(json.dumps(s) for s in SPACES)} (the world frame of the "
+            f"scene's coordinates), got {json.dumps(value)[:40]}",
+        )
+    return value
+
+
+def constraint_markups(value, resolve, space: str):
+    """``constraints`` with each ``{"markups": path}`` of positions/targets read, in ``space``.
+
+    Parameters
+    ----------
+    value : object
+        The scene's ``constraints`` JSON value.
+    resolve : callable(str) -> Path
+        Resolves a path against the scene file's folder.
+    space : {"LPS", "RAS"}
+        The scene's frame: the points (read in LPS) are expressed in it, so that
+        :func:`lps_fields` treats them like the inline ones.
+
+    Returns
+    -------
+    object
+        ``value`` itself, or a copy with point lists in place of the markups references.
+    """
+    if not isinstance(value, dict):
+        return value
+    out = dict(value)
+    for name in ("positions", "targets"):
+        ref = value.get(name)
+        if isinstance(ref, dict) and set(ref) == {"markups"}:
+            field_name = f"constraints.{name}.markups"
+            try:
+                points = read_markups(resolve(_path_text(ref["markups"], field_name)))
+            except (OSError, ReadError) as exc:
+                raise SceneError(field_name, first_line(exc)) from None
+            out[name] = lps_points(points, space).tolist()
+    return out
+
+
+def lps_fields(space: str, fields: dict) -> dict:
+    """The parsed geometric fields of a scene written in ``space``, in LPS.
+
+    RAS = diag(-1, -1, 1) LPS, a half turn about z: points (inline cage vertices,
+    anchors, constraint positions, targets and Jacobian points) are turned by it, matrices
+    (Jacobians, the solution's local matrices) conjugated, ``J_LPS = F J_RAS F``, and a
+    stored map's coefficient rows turned (the harmonic basis is invariant under the
+    rotation: Ben-Chen, Weber and Gotsman 2009 build it from
+    distances and normals alone).
+
+    Parameters
+    ----------
+    space : {"LPS", "RAS"}
+    fields : dict
+        ``cage``, ``anchors``, ``constraints``, ``solution`` and ``map`` as their
+        parsers return them.
+
+    Returns
+    -------
+    dict
+        ``fields`` (unchanged for LPS), converted copies for RAS.
+    """
+    if space == "LPS":
+        return fields
+    f = RAS_TO_LPS
+    out = dict(fields)
+    if "vertices" in fields["cage"]:
+        out["cage"] = {**fields["cage"], "vertices": fields["cage"]["vertices"] @ f}
+    if "points" in fields["anchors"]:
+        out["anchors"] = {"points": fields["anchors"]["points"] @ f}
+    c = fields["constraints"]
+    out["constraints"] = {
+        **{name: c[name] @ f for name in ("positions", "targets", "jacobian_points")},
+        "jacobians": f @ c["jacobians"] @ f,
+    }
+    if fields.get("solution") is not None:
+        out["solution"] = f @ fields["solution"] @ f
+    if fields.get("map") is not None:
+        out["map"] = {**fields["map"], "coefficients": fields["map"]["coefficients"] @ f}
+    return out
 
 
 def parse_mode(value) -> str:

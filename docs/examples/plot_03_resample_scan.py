@@ -13,9 +13,11 @@ from importlib import resources
 
 import pyvista as pv
 
+import vhm_viz
 from vhm_viz import examples
 
-head = pv.read(examples.data_dir() / "volumes" / "headsq_64x64x93.vti")
+# scans open with vhm_viz.read_dataset, in ITK's physical (LPS) frame
+head = vhm_viz.read_dataset(examples.data_dir() / "volumes" / "headsq_64x64x93.vti")
 scene = resources.files("vhm_viz") / "scenes" / "head_scene.json"
 print(head)
 

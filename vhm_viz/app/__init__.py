@@ -46,7 +46,10 @@ def main(argv: list[str] | None = None) -> int:
 def add_arguments(parser) -> None:
     """Arguments shared with ``vhm-viz explore``."""
     parser.add_argument(
-        "file", nargs="?", help="data file to open (any format pyvista reads; default: none)"
+        "file",
+        nargs="?",
+        help="data file to open (any format vhm_viz.read_dataset reads, scans in ITK's LPS "
+        "frame; default: none)",
     )
     parser.add_argument("--scene", help="scene file (.json) to open and solve (default: none)")
     parser.add_argument("--cage", help="cage file to load after the data (default: none)")

@@ -54,10 +54,11 @@ from vhm_viz.examples import BAR_KINDS
 
 __all__ = ["ExplorerWindow", "MODES", "guarded"]
 
-# data formats offered in the open dialog (anything pyvista.read accepts works)
+# data formats offered in the open dialog (anything vhm_viz.read_dataset reads works; scans
+# open in ITK's LPS frame, as on the command line and in ParaView)
 _OPEN_FILTER = (
-    "Data (*.obj *.ply *.stl *.vtp *.vtk *.vtu *.vti *.vts *.off *.mesh *.msh *.mhd *.nii "
-    "*.nii.gz *.slc *.xyz *.pts *.las);;All files (*)"
+    "Data (*.obj *.ply *.stl *.vtp *.vtk *.vtu *.vti *.vts *.off *.mesh *.msh *.mhd *.mha "
+    "*.nii *.nii.gz *.nrrd *.nhdr *.slc *.xyz *.pts *.las);;All files (*)"
 )
 
 

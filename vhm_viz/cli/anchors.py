@@ -14,7 +14,8 @@ HELP = "place anchors on the medial axis/surface of a dataset, inside its cage"
 DESCRIPTION = (
     "Place --count anchors on an approximation of the medial axis/surface "
     "of INPUT, strictly inside INPUT and CAGE, and write them as JSON: "
-    '{"anchors": [[x, y, z], ...], "count": d, "min_pairwise_distance": ...}.'
+    '{"anchors": [[x, y, z], ...], "count": d, "min_pairwise_distance": ...}, '
+    "or, to an OUTPUT ending in .mrk.json, a 3D Slicer point list (LPS)."
 )
 
 
@@ -22,7 +23,13 @@ def add_arguments(p) -> None:
     """The ``anchors`` subcommand's arguments."""
     add_dataset_argument(p)
     p.add_argument("--cage", "-c", required=True, metavar="CAGE", help="cage file (OBJ, ...)")
-    p.add_argument("-o", "--output", required=True, metavar="ANCHORS.json", help="output JSON")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        metavar="ANCHORS.json",
+        help="output JSON, or a 3D Slicer point list (*.mrk.json)",
+    )
     p.add_argument(
         "--count", "-n", type=int, default=24, metavar="N", help="number of anchors (default: 24)"
     )

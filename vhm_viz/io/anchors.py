@@ -1,4 +1,4 @@
-"""Anchor files: the JSON that ``vhm-viz anchors`` writes, or a bare list of points."""
+"""Anchor files: the JSON that ``vhm-viz anchors`` writes, a bare list, or Slicer markups."""
 
 from __future__ import annotations
 
@@ -8,18 +8,20 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz.io.errors import ReadError, first_line
+from vhm_viz.io.markups import is_markups_path, read_markups, write_markups
 from vhm_viz.io.text import json_text, write_text
 
 __all__ = ["read_anchors", "write_anchors"]
 
 
 def read_anchors(path) -> np.ndarray:
-    """Anchor points from a JSON file: what ``vhm-viz anchors`` writes, or a bare list.
+    """Anchor points from a JSON file: what ``vhm-viz anchors`` writes, a list, or markups.
 
     Parameters
     ----------
     path : str or os.PathLike
-        ``{"anchors": [[x, y, z], ...], ...}`` or ``[[x, y, z], ...]``.
+        ``{"anchors": [[x, y, z], ...], ...}`` or ``[[x, y, z], ...]`` (LPS), or a 3D
+        Slicer point list ``*.mrk.json`` (:func:`~vhm_viz.io.markups.read_markups`).
 
     Returns
     -------
@@ -32,6 +34,8 @@ def read_anchors(path) -> np.ndarray:
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"no such anchors file: {p}")
+    if is_markups_path(p):
+        return read_markups(p)
     try:
         data = json.loads(p.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -48,6 +52,13 @@ def read_anchors(path) -> np.ndarray:
 
 
 def write_anchors(path, anchors, **info) -> None:
-    """Write anchors as ``{"anchors": [[x, y, z], ...], "count": d, **info}`` (atomic)."""
+    """Write anchors as ``{"anchors": [[x, y, z], ...], "count": d, **info}`` (atomic).
+
+    A ``*.mrk.json`` path gets a 3D Slicer point list instead (LPS; ``info`` is not
+    written there).
+    """
     a = np.asarray(anchors, dtype=np.float64).reshape(-1, 3)
+    if is_markups_path(path):
+        write_markups(path, a, name="anchors")
+        return
     write_text(path, json_text({"anchors": a.tolist(), "count": len(a), **info}))

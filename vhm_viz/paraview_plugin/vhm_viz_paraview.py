@@ -5,7 +5,11 @@ set up ParaView's Python (from a checkout: ``eval "$(bash plugins/paraview-env.s
 ``plugins/vhm_viz_paraview.py`` runs this file). ParaView then loads the plugin from
 ``PV_PLUGIN_PATH`` (or load it with Tools > Manage Plugins). The filters appear under
 Filters > vhm_viz and in ``paraview.simple`` as ``VHMHarmonicDeformation``,
-``VHMJacobianAnalysis`` and ``VHMResampleToImage``.
+``VHMJacobianAnalysis`` and ``VHMResampleToImage``. The reader "VHM Medical Image Reader"
+(``VHMMedicalImageReader``) opens NIfTI, MetaImage, NRRD/NHDR and DICOM series in the
+frame :func:`vhm_viz.read_dataset` gives them: ITK's physical (LPS) world, with origin,
+spacing and direction as SimpleITK reads them, so a scene made in Python, in the explorer
+or in 3D Slicer fits the image in ParaView.
 
 Modelled on meshio's ParaView plugin, this file only declares proxies and properties: each
 filter *is* the corresponding :mod:`vhm_viz.filters` algorithm (same pipeline contract:
@@ -14,7 +18,15 @@ the whole cage is requested on every rank, pieces and extents are honoured), wit
 error is one line in ParaView's output window, and a failed update leaves no stale output.
 """
 
-from paraview.util.vtkAlgorithm import smdomain, smhint, smproperty, smproxy
+import os
+
+from paraview.util.vtkAlgorithm import (
+    VTKPythonAlgorithmBase,
+    smdomain,
+    smhint,
+    smproperty,
+    smproxy,
+)
 
 from vhm_viz.filters import (
     HarmonicDeformationFilter,
@@ -99,6 +111,34 @@ def _scene_and_outside(cls):
     return cls
 
 
+def _pass_direction(algorithm, in_info) -> None:
+    """Give port 0's information the image direction ParaView's post-filter left out.
+
+    ParaView 5.11 (VTK 9.2) puts a ``vtkPVPostFilter`` after every source; its information
+    pass copies an image's extent, origin and spacing but not its direction, which the
+    filters need before any data is read (an oblique or radiological scan would be placed
+    with the identity). The direction is taken from the source's own output information,
+    through post-filters only.
+    """
+    from vtkmodules.vtkCommonDataModel import vtkDataObject
+
+    key = vtkDataObject.DIRECTION()
+    info = (
+        in_info[0].GetInformationObject(0) if in_info[0].GetNumberOfInformationObjects() else None
+    )
+    if info is None or info.Has(key) or algorithm.GetNumberOfInputConnections(0) == 0:
+        return
+    producer = algorithm.GetInputAlgorithm(0, 0)
+    while producer is not None and producer.IsA("vtkPVPostFilter"):
+        if producer.GetNumberOfInputConnections(0) == 0:
+            return
+        upstream = producer.GetInputInformation(0, 0)
+        if upstream.Has(key):
+            info.Set(key, upstream.Get(key), 9)
+            return
+        producer = producer.GetInputAlgorithm(0, 0)
+
+
 class _ParaViewReporting:
     """Errors as one line in ParaView's output window, agreed across MPI ranks."""
 
@@ -107,6 +147,11 @@ class _ParaViewReporting:
     def __init__(self):
         super().__init__()
         self.SetParallelReporting(True)
+
+    def RequestInformation(self, request, in_info, out_info):
+        """The filter's information pass, with the input image's direction restored."""
+        _pass_direction(self, in_info)
+        return super().RequestInformation(request, in_info, out_info)
 
     def _label(self):
         return self.label
@@ -185,3 +230,133 @@ class VHMResampleToImage(_ParaViewReporting, HarmonicResampleFilter):
     )
     def SetFillValueProperty(self, value):
         self.SetFillValue(float(value))
+
+
+# the point array is named as VTK's own reader of the format names it
+_SCAN_ARRAYS = {".nii": "NIFTI", ".nii.gz": "NIFTI", ".mha": "MetaImage", ".mhd": "MetaImage",
+                ".nrrd": "NRRDImage", ".nhdr": "NRRDImage", ".dcm": "DICOMImage"}  # fmt: skip
+_SCAN_EXTENSIONS = "nii nii.gz mha mhd nrrd nhdr dcm"
+
+
+def _scan_suffix(path):
+    name = os.path.basename(path).lower()
+    return ".nii.gz" if name.endswith(".nii.gz") else os.path.splitext(name)[1]
+
+
+def read_scan(path):
+    """A scan as a ``vtkImageData`` in ITK's physical (LPS) frame, read by SimpleITK.
+
+    Parameters
+    ----------
+    path : str
+        A NIfTI, MetaImage or NRRD/NHDR file, a DICOM folder, or one DICOM file (its
+        folder's series that holds the file is read).
+
+    Returns
+    -------
+    vtkImageData
+        Origin, spacing and direction as SimpleITK reads them; one point array, with the
+        image's components.
+    """
+    import SimpleITK as sitk
+    from vtkmodules.util.numpy_support import numpy_to_vtk
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+
+    if os.path.isdir(path) or _scan_suffix(path) == ".dcm":
+        folder = path if os.path.isdir(path) else os.path.dirname(path)
+        series = [
+            sitk.ImageSeriesReader.GetGDCMSeriesFileNames(folder, sid)
+            for sid in sitk.ImageSeriesReader.GetGDCMSeriesIDs(folder)
+        ]
+        files = next((s for s in series if os.path.isdir(path) or path in s), None)
+        if not files:
+            raise ValueError(f"{path}: no DICOM series found")
+        image = sitk.ReadImage(files)
+        name = "DICOMImage"
+    else:
+        image = sitk.ReadImage(path)
+        name = _SCAN_ARRAYS.get(_scan_suffix(path), "ImageFile")
+    if image.GetDimension() != 3:
+        raise ValueError(f"{path}: a {image.GetDimension()}D image; this reader reads 3D scans")
+    values = sitk.GetArrayFromImage(image)  # (z, y, x[, c]): x varies fastest
+    comps = image.GetNumberOfComponentsPerPixel()
+    array = numpy_to_vtk(values.reshape(-1, comps) if comps > 1 else values.ravel(), deep=1)
+    array.SetName(name)
+    out = vtkImageData()
+    out.SetDimensions(*image.GetSize())
+    out.SetOrigin(*image.GetOrigin())
+    out.SetSpacing(*image.GetSpacing())
+    out.SetDirectionMatrix(*image.GetDirection())
+    out.GetPointData().SetScalars(array)
+    return out
+
+
+@smproxy.reader(
+    name="VHMMedicalImageReader",
+    label="VHM Medical Image Reader",
+    extensions=_SCAN_EXTENSIONS,
+    file_description="Medical images in ITK's LPS frame (vhm_viz)",
+)
+class VHMMedicalImageReader(VTKPythonAlgorithmBase):
+    """NIfTI, MetaImage, NRRD/NHDR and DICOM scans, placed as ``vhm_viz.read_dataset`` places
+    them (:func:`read_scan`)."""
+
+    def __init__(self):
+        VTKPythonAlgorithmBase.__init__(
+            self, nInputPorts=0, nOutputPorts=1, outputType="vtkImageData"
+        )
+        self._path = None
+        self._image = None
+
+    @smproperty.stringvector(name="FileName")
+    @smdomain.filelist()
+    @smhint.filechooser(extensions=_SCAN_EXTENSIONS, file_description="Medical images")
+    def SetFileName(self, name):
+        """The scan (a file, or a DICOM file whose series is read)."""
+        if name != self._path:
+            self._path, self._image = name, None
+            self.Modified()
+
+    def _scan(self):
+        if self._image is None:
+            if not self._path:
+                raise ValueError("no file name set")
+            self._image = read_scan(self._path)
+        return self._image
+
+    def RequestInformation(self, request, in_info, out_info):
+        """Whole extent, origin, spacing and direction of the scan."""
+        from vtkmodules.vtkCommonDataModel import vtkDataObject
+        from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm
+        from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
+
+        try:
+            image = self._scan()
+        except Exception as exc:  # noqa: BLE001 - SimpleITK raises RuntimeError and more
+            self._image = None
+            print(f"VHM Medical Image Reader: {str(exc).strip().splitlines()[0]}")
+            return 0
+        info = out_info.GetInformationObject(0)
+        info.Set(sddp.WHOLE_EXTENT(), *image.GetExtent())
+        info.Set(vtkDataObject.ORIGIN(), *image.GetOrigin())
+        info.Set(vtkDataObject.SPACING(), *image.GetSpacing())
+        direction = image.GetDirectionMatrix()
+        info.Set(
+            vtkDataObject.DIRECTION(),
+            tuple(direction.GetElement(i, j) for i in range(3) for j in range(3)),
+            9,
+        )
+        info.Set(vtkAlgorithm.CAN_PRODUCE_SUB_EXTENT(), 1)
+        return 1
+
+    def RequestData(self, request, in_info, out_info):
+        """The scan, cropped to the requested extent."""
+        from vtkmodules.vtkCommonDataModel import vtkImageData
+        from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
+
+        out = vtkImageData.GetData(out_info, 0)
+        out.ShallowCopy(self._scan())
+        extent = out_info.GetInformationObject(0).Get(sddp.UPDATE_EXTENT())
+        if extent is not None:
+            out.Crop(extent)
+        return 1
