@@ -121,10 +121,9 @@ def test_paraview_reader_and_resample_match_read_dataset_and_the_cli(paraview_en
         np.testing.assert_allclose(got.spacing, ref.spacing, atol=1e-9)
         np.testing.assert_allclose(got.direction_matrix, ref.direction_matrix, atol=1e-9)
         np.testing.assert_array_equal(got.active_scalars, ref.active_scalars)
-    assert (
-        main(["deform", str(small), "--scene", str(scene), "-o", str(tmp_path / "cli.vti"), "-q"])
-        == 0
-    )
+    field = tmp_path / "field.nii.gz"
+    cli_args = ["deform", str(small), "--scene", str(scene), "-o", str(tmp_path / "cli.vti")]
+    assert main([*cli_args, "--write-field", str(field), "-q"]) == 0
     cli, para = pv.read(tmp_path / "cli.vti"), pv.read(tmp_path / "paraview.vti")
     assert para.dimensions == cli.dimensions
     np.testing.assert_allclose(para.origin, cli.origin, atol=1e-6)
@@ -132,6 +131,25 @@ def test_paraview_reader_and_resample_match_read_dataset_and_the_cli(paraview_en
     a, b = np.asarray(cli.active_scalars, float), np.asarray(para.active_scalars, float)
     np.testing.assert_array_equal(para["vtkValidPointMask"], cli["vtkValidPointMask"])
     assert np.abs(a - b).max() <= 1e-6 * np.ptp(a)
+    # the pull-back displacement field: ParaView's array is the command line's file
+    sitk = pytest.importorskip("SimpleITK")
+    from_cli = sitk.GetArrayFromImage(sitk.ReadImage(str(field))).reshape(-1, 3)
+    np.testing.assert_allclose(para["vhm_displacement_field"], from_cli, atol=1e-9)
+    assert np.abs(from_cli).max() > 1.0  # millimetres: a real bend
+    # the explorer: the scan opened, the scene loaded and the deformed scan exported
+    from vhm_viz.app.controller import ExplorerController
+
+    explorer = ExplorerController()
+    explorer.load_file(small)
+    explorer.load_scene(scene)
+    explorer.prepare()  # what the window's load job runs after loading
+    explorer.deform()
+    explorer.export(tmp_path / "explorer.vti")
+    shown = pv.read(tmp_path / "explorer.vti")
+    assert shown.dimensions == cli.dimensions
+    np.testing.assert_allclose(shown.origin, cli.origin, atol=1e-6)
+    e = np.asarray(shown.active_scalars, float)
+    assert np.abs(a - e).max() <= 1e-6 * np.ptp(a)
     # Python: the accessor on the scan read_dataset opens
     python = read_dataset(small).vhm.resample(str(scene))
     assert python.dimensions == cli.dimensions

@@ -16,7 +16,9 @@ for path, output in config["scans"]:
     UpdatePipeline(proxy=reader)
     SaveData(output, proxy=reader)
 path, scene, output = config["resample"]
-flt = VHMResampleToImage(Input=VHMMedicalImageReader(FileName=path), SceneFile=scene)
+flt = VHMResampleToImage(
+    Input=VHMMedicalImageReader(FileName=path), SceneFile=scene, DisplacementField=1
+)
 UpdatePipeline(proxy=flt)
 SaveData(output, proxy=flt)
 print("vhm-scan-check: done")

@@ -19,7 +19,7 @@ from pathlib import Path
 from vhm_viz.io.errors import ReadError
 from vhm_viz.io.itk_images import read_with_sitk
 
-__all__ = ["is_dicom_file", "read_dicom"]
+__all__ = ["is_dicom_file", "read_dicom", "read_series"]
 
 _SERIES_UID = "0020|000e"
 _DESCRIPTION = "0008|103e"
@@ -66,7 +66,7 @@ def read_dicom(path):
     folder = p if p.is_dir() else p.parent  # sizes the child's memory cap: the series
     try:
         return read_with_sitk(
-            folder, lambda _: _read_series(p, folder), "SimpleITK's DICOM series reader"
+            folder, lambda _: (read_series(p), "DICOMImage"), "SimpleITK's DICOM series reader"
         )
     except ReadError as exc:
         if p == folder:
@@ -74,10 +74,31 @@ def read_dicom(path):
         raise ReadError(f"{p}{str(exc).removeprefix(str(folder))}") from None  # the file given
 
 
-def _read_series(p: Path, folder: Path):
-    """The series ``p`` stands for, read by SimpleITK (runs in the reading child)."""
+def read_series(path):
+    """The series ``path`` stands for, read by SimpleITK in this process.
+
+    The one choice of series (:func:`read_dicom` runs it in a child process; ParaView's
+    reader, which has no PyVista, calls it directly).
+
+    Parameters
+    ----------
+    path : path-like
+        A folder (its largest series) or one DICOM file (its series).
+
+    Returns
+    -------
+    SimpleITK.Image
+        The series, placed and oriented by its slices' headers.
+
+    Raises
+    ------
+    ValueError
+        No series, a tie between the largest, or a file without a series UID.
+    """
     import SimpleITK as sitk
 
+    p = Path(path)
+    folder = p if p.is_dir() else p.parent
     if p.is_dir():
         uid = _largest_series(folder)
     else:
@@ -92,7 +113,7 @@ def _read_series(p: Path, folder: Path):
         raise ValueError(f"no readable slice of series {uid} in {folder}")
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(files)
-    return reader.Execute(), "DICOMImage"
+    return reader.Execute()
 
 
 def _largest_series(folder: Path) -> str:

@@ -34,6 +34,7 @@ from vhm_viz.filters import (
     JacobianAnalysisFilter,
 )
 from vhm_viz.filters._common import DeformationSource
+from vhm_viz.io.dicom import read_series
 
 _SCENE_HELP = (
     "A vhm_viz scene (JSON): cage, anchors, constraints, mode, solver settings. Write one "
@@ -231,6 +232,16 @@ class VHMResampleToImage(_ParaViewReporting, HarmonicResampleFilter):
     def SetFillValueProperty(self, value):
         self.SetFillValue(float(value))
 
+    @smproperty.intvector(name="DisplacementField", default_values=0, number_of_elements=1)
+    @smdomain.xml(
+        '<BooleanDomain name="bool"/>'
+        "<Documentation>Add the point array vhm_displacement_field: each output voxel's "
+        "pull-back displacement f^-1(y) - y in LPS millimetres, what ITK, ANTs and Slicer "
+        "apply as a displacement field.</Documentation>"
+    )
+    def SetDisplacementFieldFlag(self, value):
+        self.SetComputeDisplacementField(bool(int(value)))
+
 
 # the point array is named as VTK's own reader of the format names it
 _SCAN_ARRAYS = {".nii": "NIFTI", ".nii.gz": "NIFTI", ".mha": "MetaImage", ".mhd": "MetaImage",
@@ -263,15 +274,7 @@ def read_scan(path):
     from vtkmodules.vtkCommonDataModel import vtkImageData
 
     if os.path.isdir(path) or _scan_suffix(path) == ".dcm":
-        folder = path if os.path.isdir(path) else os.path.dirname(path)
-        series = [
-            sitk.ImageSeriesReader.GetGDCMSeriesFileNames(folder, sid)
-            for sid in sitk.ImageSeriesReader.GetGDCMSeriesIDs(folder)
-        ]
-        files = next((s for s in series if os.path.isdir(path) or path in s), None)
-        if not files:
-            raise ValueError(f"{path}: no DICOM series found")
-        image = sitk.ReadImage(files)
+        image = read_series(path)  # the series vhm_viz.read_dataset chooses
         name = "DICOMImage"
     else:
         image = sitk.ReadImage(path)
