@@ -292,7 +292,7 @@ def translation_scene(folder: Path, reference, shift) -> Path:
     return box_scene(folder, lo, hi, constraints=moved)
 
 
-@pytest.mark.parametrize("kind", ["nrrd", "dicom"])
+@pytest.mark.parametrize("kind", ["nrrd", "dicom", "dicom file without suffix"])
 def test_cli_deforms_oblique_scans_in_simpleitks_frame(tmp_path, kind, capsys):
     """A translation by t: the .nrrd output is SimpleITK's resampling of the input at y - t."""
     source = sitk.SmoothingRecursiveGaussian(sitk_image("oblique", np.float32, seed=8), 2.0)
@@ -305,6 +305,9 @@ def test_cli_deforms_oblique_scans_in_simpleitks_frame(tmp_path, kind, capsys):
         series = sitk.Cast(source * 10, sitk.sitkInt16)
         write_dicom_series(path, series, "1.2.826.0.1.3680043.9.7.9")
         reference = read_series(path)
+        if kind != "dicom":  # one file of the series, named as scanners often name them
+            path = path / "IM0003"
+            sorted((tmp_path / "series").glob("*.dcm"))[3].rename(path)
     shift = np.array([1.5, -0.7, 0.9])
     scene = translation_scene(tmp_path, reference, shift)
     out = tmp_path / "out.nrrd"

@@ -757,11 +757,11 @@ class ExplorerController:
         solved = self.ready and self.last_report is not None
         hm = self.deformer.harmonic_map if solved else None
         if self.volume is None:
-            write_deformed(path, self.display, self._rest_points, hm)
+            write_deformed(path, self.display, self._rest_points, hm, self.input_files)
         elif hm is None:
             raise ValueError("nothing to export yet: solve first")
         else:
-            write_deformed_volume(path, self.rest, hm)
+            write_deformed_volume(path, self.rest, hm, self.input_files)
 
     def scene_to_save(self, relative_to=None) -> Scene:
         """The edited scene as it is saved: data path, solved state and map.

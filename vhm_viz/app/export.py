@@ -37,7 +37,9 @@ def export_path(path, source: dict, input_files) -> Path:
     return path
 
 
-def write_deformed(path: Path, display, rest_points: np.ndarray, harmonic_map=None) -> None:
+def write_deformed(
+    path: Path, display, rest_points: np.ndarray, harmonic_map=None, inputs=()
+) -> None:
     """Write the display dataset, its points mapped by ``harmonic_map`` in float64.
 
     Parameters
@@ -50,6 +52,9 @@ def write_deformed(path: Path, display, rest_points: np.ndarray, harmonic_map=No
         The display's rest positions.
     harmonic_map : HarmonicMap, optional
         The solved map; without one the display's points are written as they are.
+    inputs : iterable of path-like
+        The files the session read: no file written (the arrays beside an image output
+        included) may be one of them.
     """
     data = display.copy(deep=True)
     if harmonic_map is not None:
@@ -57,15 +62,18 @@ def write_deformed(path: Path, display, rest_points: np.ndarray, harmonic_map=No
     for name in [n for n in data.point_data.keys() if n.startswith("_")]:
         del data.point_data[name]
     try:
-        write_dataset(path, data)
+        write_dataset(path, data, inputs=inputs)
     except (ValueError, TypeError) as exc:  # a suffix VTK cannot write this type to
         raise ValueError(f"cannot write {path.name}: {exc}") from exc
 
 
-def write_deformed_volume(path: Path, volume, harmonic_map) -> None:
-    """Write a deformed volume: resampled or warped as :func:`~vhm_viz.io.is_image_format` says."""
+def write_deformed_volume(path: Path, volume, harmonic_map, inputs=()) -> None:
+    """Write a deformed volume: resampled or warped as :func:`~vhm_viz.io.is_image_format` says.
+
+    ``inputs``: as for :func:`write_deformed`.
+    """
     if is_image_format(path):
         data = volume.vhm.resample(harmonic_map, outside="passthrough")
     else:
         data = volume.vhm.deform(harmonic_map, outside="passthrough")
-    write_dataset(path, data)
+    write_dataset(path, data, inputs=inputs)

@@ -18,6 +18,7 @@ from vhm_viz.cli import one_line
 from vhm_viz.core.errors import OutsideCageError, describe_indices
 from vhm_viz.core.metrics import rigidity_distortion, volume_change
 from vhm_viz.io import DATASET_SUFFIXES, OverwriteError, refuse_inputs, suffix_of
+from vhm_viz.io.dicom import is_dicom_file
 from vhm_viz.scene import Scene, SolvedMap
 
 
@@ -162,14 +163,14 @@ def run_filter(algorithm, data, deformer, label: str, *, quiet: bool, source=Non
 def check_input(path: str, suffixes=DATASET_SUFFIXES) -> Path:
     """The input path; :class:`CLIError` when missing or of an unknown type.
 
-    With the dataset suffixes, a folder is accepted too (a DICOM series, read by
-    :func:`vhm_viz.io.read_dataset`).
+    With the dataset suffixes, a folder or a DICOM file of any name is accepted too (a
+    DICOM series, read by :func:`vhm_viz.io.read_dataset`).
     """
     p = Path(path)
     if not p.exists():
         raise CLIError(f"input file not found: {p}")
-    if p.is_dir() and suffixes is DATASET_SUFFIXES:
-        return p
+    if suffixes is DATASET_SUFFIXES and (p.is_dir() or is_dicom_file(p)):
+        return p  # a DICOM series: its folder, or one file of it (any name)
     if not p.is_file():
         raise CLIError(f"input is not a file: {p}")
     if suffix_of(p) not in suffixes:
