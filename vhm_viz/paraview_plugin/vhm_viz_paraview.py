@@ -45,6 +45,16 @@ _CAGE_HELP = (
     "Optional: the cage as a closed triangle surface. When connected it replaces the "
     "scene's cage (the deformer is rebuilt on it). Every rank receives all of it."
 )
+_UNCONVERGED_HELP = (
+    "Deform even when the scene's solve stops at solver.max_iterations before its "
+    "tolerance (a warning says how far it stopped). Off: such an update fails with that "
+    "message and leaves no output."
+)
+_FIELD_HELP = (
+    "Add the point array vhm_displacement_field: each output voxel's pull-back "
+    "displacement f^-1(y) - y in LPS millimetres, what ITK, ANTs and Slicer apply as a "
+    "displacement field."
+)
 _OUTSIDE_XML = (
     '<IntVectorProperty name="OutsidePolicy" command="SetOutsidePolicyIndex" '
     'number_of_elements="1" default_values="0">'
@@ -80,6 +90,18 @@ def _filter(name, label, data_type):
     return declare
 
 
+def _checkbox(name, documentation):
+    """A ParaView checkbox property (off by default) with its tooltip, for a setter."""
+
+    def declare(setter):
+        setter = smdomain.xml(
+            f'<BooleanDomain name="bool"/><Documentation>{documentation}</Documentation>'
+        )(setter)
+        return smproperty.intvector(name=name, default_values=0, number_of_elements=1)(setter)
+
+    return declare
+
+
 def _scene_and_outside(cls):
     """SceneFile, OutsidePolicy and AllowUnconverged properties on ``cls`` itself
     (ParaView reads only a class's own attributes, so a shared base class cannot carry
@@ -96,13 +118,7 @@ def _scene_and_outside(cls):
     def SetOutsidePolicyIndex(self, index):
         self.SetOutsidePolicy(_OUTSIDE[int(index)])
 
-    @smproperty.intvector(name="AllowUnconverged", default_values=0, number_of_elements=1)
-    @smdomain.xml(
-        '<BooleanDomain name="bool"/>'
-        "<Documentation>Deform even when the scene's solve stops at solver.max_iterations "
-        "before its tolerance (a warning says how far it stopped). Off: such an update "
-        "fails with that message and leaves no output.</Documentation>"
-    )
+    @_checkbox("AllowUnconverged", _UNCONVERGED_HELP)
     def SetAllowUnconvergedFlag(self, value):
         self.SetAllowUnconverged(bool(int(value)))
 
@@ -232,13 +248,7 @@ class VHMResampleToImage(_ParaViewReporting, HarmonicResampleFilter):
     def SetFillValueProperty(self, value):
         self.SetFillValue(float(value))
 
-    @smproperty.intvector(name="DisplacementField", default_values=0, number_of_elements=1)
-    @smdomain.xml(
-        '<BooleanDomain name="bool"/>'
-        "<Documentation>Add the point array vhm_displacement_field: each output voxel's "
-        "pull-back displacement f^-1(y) - y in LPS millimetres, what ITK, ANTs and Slicer "
-        "apply as a displacement field.</Documentation>"
-    )
+    @_checkbox("DisplacementField", _FIELD_HELP)
     def SetDisplacementFieldFlag(self, value):
         self.SetComputeDisplacementField(bool(int(value)))
 
