@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vhm_viz.atomic import atomic_path
+from vhm_viz.atomic import atomic_output_set, atomic_path
 from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
 from vhm_viz.io.isolated import read_isolated
 from vhm_viz.io.registry import suffix_of
@@ -234,10 +234,10 @@ def write_metaimage(path, image) -> None:
         with atomic_path(path) as tmp:
             tmp.write_bytes(text + raw)
         return
-    with atomic_path(path.with_suffix(".raw")) as tmp:
-        tmp.write_bytes(raw)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(text)
+    # one set: the voxels appear with their header, never beside another header
+    with atomic_output_set([path.with_suffix(".raw"), path]) as (raw_tmp, header_tmp):
+        raw_tmp.write_bytes(raw)
+        header_tmp.write_bytes(text)
 
 
 def write_nifti(path, image) -> None:
