@@ -16,9 +16,11 @@ import numpy as np
 from vhm_viz.cli._util import (
     CLIError,
     add_convergence_argument,
+    add_memory_argument,
     build_and_solve,
     check_input,
     check_output,
+    check_volume_memory,
     fold_warning,
     image_positions,
     load_scene,
@@ -130,6 +132,7 @@ def add_arguments(p) -> None:
         "dimensions, direction) instead (default: a grid holding the whole deformed volume)",
     )
     add_convergence_argument(p)
+    add_memory_argument(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars")
 
 
@@ -225,6 +228,11 @@ def deform(args: argparse.Namespace) -> str:
         label = "warping" if volume else "binding"
     flt.SetOutsidePolicy(args.outside)
     flt.SetTolerance(tolerance)
+    flt.SetMemoryBudget(args.memory_budget)
+    if volume:  # a job that cannot fit is refused before it allocates
+        check_volume_memory(mesh, dfm.harmonic_map, resample=resample, output=out,
+                            memory_budget=args.memory_budget, spacing=args.spacing,
+                            reference=ref_image, outside=args.outside)  # fmt: skip
     with timer.stage("map"):
         result = run_filter(flt, mesh, dfm, label, quiet=args.quiet, source=src)
     # everything that can fail happens before the write: an error never follows an output

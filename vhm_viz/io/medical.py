@@ -12,6 +12,7 @@ geometry.
 from __future__ import annotations
 
 import gzip
+import math
 import os
 import struct
 from pathlib import Path
@@ -24,6 +25,7 @@ from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
 from vhm_viz.io.isolated import read_isolated
 from vhm_viz.io.registry import suffix_of
 from vhm_viz.io.vtk_files import read_vtk, read_vtk_file
+from vhm_viz.resources import require_memory
 
 __all__ = [
     "check_metaimage",
@@ -79,6 +81,10 @@ def check_metaimage(p: Path) -> None:
         ) from None
     if min(dims, default=0) <= 0 or channels <= 0:
         raise ReadError(f"{p}: corrupt MetaImage header: DimSize {dims}")
+    # refused before a reader allocates it (a header claiming 10**12 voxels)
+    what = f"{p}: reading its DimSize {fields['DimSize']}"
+    remedy = "check its DimSize, or read it where more memory is allowed"
+    require_memory(math.prod(dims) * item * channels, what, remedy, ReadError)
     if fields.get("CompressedData", "False").lower() == "true" or data_file.upper() == "LIST":
         return
     needed = int(np.prod(dims, dtype=np.int64)) * item * channels
