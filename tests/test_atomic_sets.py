@@ -52,8 +52,8 @@ def test_a_failed_set_keeps_every_old_file_and_leaves_no_temporary(tmp_path):
 def test_temporaries_of_ended_processes_are_removed_and_running_ones_kept(tmp_path):
     dead, alive = _dead_pid(), os.getppid()
     (tmp_path / f".out.vhm-tmp-{dead}-0.vti").write_bytes(b"partial")
-    (tmp_path / f".vhm-stage-{dead}-3").mkdir()
-    (tmp_path / f".vhm-stage-{dead}-3" / "metrics.json").write_text("{}")
+    (tmp_path / f".vhm-staging.{dead}-3").mkdir()
+    (tmp_path / f".vhm-staging.{dead}-3" / "metrics.json").write_text("{}")
     (tmp_path / f".other.vhm-tmp-{alive}-0.vti").write_bytes(b"being written")
     (tmp_path / "out.vti").write_bytes(b"old")
     with atomic_output_set([tmp_path / "out.vti"]) as (tmp,):
@@ -100,7 +100,7 @@ def test_a_report_folder_appears_as_one_set_beside_the_users_other_files(tmp_pat
     (tmp_path / "notes.txt").write_text("the user's")
     (tmp_path / "metrics.json").write_text("old")
     with atomic_directory(tmp_path, last="metrics.json") as stage:
-        assert stage.parent == tmp_path and stage.name.startswith(".vhm-stage-")
+        assert stage.parent == tmp_path and stage.name.startswith(".vhm-staging.")
         (stage / "metrics.json").write_text("new")
         (stage / "a.png").write_bytes(b"png")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "metrics.json", "notes.txt"]

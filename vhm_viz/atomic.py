@@ -208,7 +208,7 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
     Yields
     ------
     Path
-        The staging folder (hidden, ``.vhm-stage-PID-N`` in ``directory``, so the renames
+        The staging folder (hidden, ``.vhm-staging.PID-N`` in ``directory``, so the renames
         stay on one file system).
     """
     directory = Path(directory)
@@ -217,7 +217,7 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
     stage = None
     try:
         with interrupts.deferred():
-            stage = directory / f".vhm-stage-{_token()}"
+            stage = directory / f".vhm-staging.{_token()}"
             stage.mkdir()
         yield stage
         names = sorted(p.name for p in stage.iterdir() if p.is_file())
@@ -236,7 +236,7 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
 
 
 #: A temporary, staging folder or journal of :func:`atomic_output_set`; group 1 is the PID.
-_TEMPORARY = re.compile(r"\.vhm-(?:tmp|stage|set)-(\d+)-\d+")
+_TEMPORARY = re.compile(r"\.vhm-(?:tmp-|staging\.|set-)(\d+)-\d+")
 _counter = itertools.count()
 
 

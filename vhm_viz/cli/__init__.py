@@ -23,7 +23,9 @@ Exit statuses:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import sys
 
 from vhm_viz import __version__, interrupts
@@ -110,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
         except (interrupts.Interrupted, KeyboardInterrupt) as exc:
             status = getattr(exc, "exit_status", 130)
             print(f"vhm-viz {args.command}: {exc or 'interrupted by SIGINT'}", file=sys.stderr)
+            if argv is None:  # this process is the command: end it now (see _end_now)
+                _end_now(status, args)
             return status
         except NotConverged as exc:
             print(f"vhm-viz {args.command}: {one_line(exc)}", file=sys.stderr)
@@ -119,6 +123,21 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         finally:
             args.timer.report(args.timings)
+
+
+def _end_now(status: int, args) -> None:
+    """End an interrupted command's process at once, its temporaries already removed.
+
+    The interpreter's own teardown (the kernels' thread pools, VTK's objects) can take
+    most of a second on a busy machine; an interrupted command should end promptly.
+    Only used when :func:`main` runs as the process's command (no ``argv`` given), never
+    when called from Python.
+    """
+    args.timer.report(args.timings)
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(status)
 
 
 def one_line(exc: BaseException) -> str:

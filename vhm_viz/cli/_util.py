@@ -347,6 +347,44 @@ def image_positions(image, ijk) -> np.ndarray:
     return np.asarray(image.origin, dtype=np.float64) + np.asarray(ijk, dtype=np.float64) @ frame.T
 
 
+#: Cells per slab of :func:`voxel_corner_determinants`: a slab takes a small fraction of a
+#: second, and an interrupt is acted on between slabs.
+FOLD_SLAB_CELLS = 1 << 20
+
+
+def voxel_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
+    """:func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants`, slab by slab.
+
+    A slab of voxel layers at a time, with an interrupt check between slabs, so that
+    Ctrl-C or SIGTERM stops the fold check of a large warped volume promptly.
+
+    Parameters
+    ----------
+    points : (nx * ny * nz, 3) array_like
+        Deformed positions in VTK's point order.
+    dimensions : (3,) int
+    rest_det : float
+
+    Returns
+    -------
+    ((nx - 1) * (ny - 1) * (nz - 1),) float64
+    """
+    from vhm_viz.core.cell_kernels import hexahedron_corner_determinants
+
+    nx, ny, nz = (int(d) for d in dimensions)
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    plane, cell_plane = nx * ny, max(nx - 1, 0) * max(ny - 1, 0)
+    det = np.empty(cell_plane * max(nz - 1, 0))
+    layers = max(1, FOLD_SLAB_CELLS // max(cell_plane, 1))
+    for k0 in range(0, nz - 1, layers):
+        k1 = min(k0 + layers, nz - 1)
+        det[k0 * cell_plane : k1 * cell_plane] = hexahedron_corner_determinants(
+            points[k0 * plane : (k1 + 1) * plane], (nx, ny, k1 - k0 + 1), rest_det
+        )
+        interrupts.check()
+    return det
+
+
 def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:
     """One warning line when a deformation folds the data, naming how many and where.
 

@@ -27,6 +27,7 @@ from vhm_viz.cli._util import (
     quiet_vtk,
     run_filter,
     surface_metrics,
+    voxel_corner_determinants,
 )
 from vhm_viz.core.image import INTERPOLATIONS
 from vhm_viz.core.volume import DEFAULT_TOLERANCE
@@ -311,13 +312,11 @@ def _check_folds(mesh, result, dfm, flt, resample: bool) -> str | None:
 
 def _voxel_folds(image, warped) -> dict | None:
     """:func:`fold_warning`'s cells of a warped image: its voxels' corner Jacobians."""
-    from vhm_viz.core.cell_kernels import hexahedron_corner_determinants
-
     dims = tuple(int(d) for d in image.dimensions)
     if min(dims) < 2:
         return None
     rest_det = float(np.prod(image.spacing) * np.linalg.det(np.asarray(image.direction_matrix)))
-    det = hexahedron_corner_determinants(warped.points, dims, rest_det)
+    det = voxel_corner_determinants(warped.points, dims, rest_det)  # interruptible
     finite = np.isfinite(det)
     summary = {"cells": int(finite.sum()), "inverted": int(np.count_nonzero(det[finite] <= 0))}
 

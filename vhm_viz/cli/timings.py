@@ -6,6 +6,8 @@ import sys
 import time
 from contextlib import contextmanager
 
+from vhm_viz import interrupts
+
 __all__ = ["STAGES", "StageTimer"]
 
 #: The stages of a command, in the order they run.
@@ -25,12 +27,19 @@ class StageTimer:
 
     @contextmanager
     def stage(self, name: str):
-        """Add the time spent in the ``with`` block to stage ``name``."""
+        """Add the time spent in the ``with`` block to stage ``name``.
+
+        The start and the end of a stage are abort points: a SIGINT or SIGTERM received
+        and not yet acted on (one that arrived where Python could not raise it) is raised
+        there (:func:`vhm_viz.interrupts.check`).
+        """
+        interrupts.check()
         t0 = time.perf_counter()
         try:
             yield
         finally:
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+        interrupts.check()
 
     @property
     def total(self) -> float:
