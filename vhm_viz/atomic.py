@@ -264,9 +264,12 @@ def _commit(moves: list[tuple[Path, Path]]) -> None:
         journal = moves[-1][1].parent / f".vhm-set-{_token()}.json"
         text = json.dumps([[os.fspath(t.absolute()), os.fspath(f.absolute())] for t, f in moves])
         part = journal.with_name(journal.name + ".part")
-        part.write_text(text, encoding="utf-8")
-        _sync_file(part)
-        os.replace(part, journal)
+        try:
+            part.write_text(text, encoding="utf-8")
+            _sync_file(part)
+            os.replace(part, journal)
+        finally:
+            _remove(part)  # gone after the rename; removed after a failed write
         _sync_directory(journal.parent)
     mode = 0o666 & ~_umask()
     for tmp, final in moves:
