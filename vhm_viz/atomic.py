@@ -38,6 +38,7 @@ __all__ = [
     "atomic_path",
     "atomic_directory",
     "remove_stale_temporaries",
+    "remove_temporaries_in_progress",
 ]
 
 
@@ -151,6 +152,7 @@ def atomic_output_set(paths) -> Iterator[list[Path]]:
         with interrupts.deferred():  # own the temporaries before an interrupt can strike
             for final in finals:
                 temps.append(_create_temporary(final))
+                _in_progress.add(temps[-1])
         yield list(temps)
         for tmp in temps:
             # the data reaches the disk before the names do: a power loss leaves the old
@@ -159,12 +161,14 @@ def atomic_output_set(paths) -> Iterator[list[Path]]:
         with interrupts.deferred():
             interrupts.check()  # an interrupt received (even one VTK swallowed): no rename
             _commit(list(zip(temps, finals, strict=True)))
+            _in_progress.difference_update(temps)
             temps = []
     finally:
         if temps:
             with interrupts.deferred():
                 for tmp in temps:
                     _remove(tmp)
+                _in_progress.difference_update(temps)
 
 
 @contextlib.contextmanager
@@ -219,6 +223,7 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
         with interrupts.deferred():
             stage = directory / f".vhm-staging.{_token()}"
             stage.mkdir()
+            _in_progress.add(stage)
         yield stage
         names = sorted(p.name for p in stage.iterdir() if p.is_file())
         if last in names:
@@ -233,6 +238,24 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
         if stage is not None:
             with interrupts.deferred():
                 shutil.rmtree(stage, ignore_errors=True)
+                _in_progress.discard(stage)
+
+
+#: This process's temporaries and staging folders not yet renamed or removed.
+_in_progress: set[Path] = set()
+
+
+def remove_temporaries_in_progress() -> None:
+    """Remove this process's temporaries of unfinished writes (before it ends at once).
+
+    For :func:`vhm_viz.interrupts.ending_now`: the outputs keep their previous bytes.
+    """
+    for path in list(_in_progress):
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            _remove(path)
+        _in_progress.discard(path)
 
 
 #: A temporary, staging folder or journal of :func:`atomic_output_set`; group 1 is the PID.

@@ -24,6 +24,8 @@ class StageTimer:
     def __init__(self) -> None:
         self.start = time.perf_counter()
         self.seconds: dict[str, float] = {}
+        #: The stage under way and its start (a process ended inside one reports it too).
+        self.running: tuple[str, float] | None = None
 
     @contextmanager
     def stage(self, name: str):
@@ -35,9 +37,11 @@ class StageTimer:
         """
         interrupts.check()
         t0 = time.perf_counter()
+        self.running = (name, t0)
         try:
             yield
         finally:
+            self.running = None
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
         interrupts.check()
 
@@ -49,10 +53,14 @@ class StageTimer:
     def line(self) -> str:
         """``timings: read 0.12 s, solve 0.30 s, ..., other 0.05 s, total 1.79 s``."""
         total = self.total
-        names = [s for s in STAGES if s in self.seconds]
-        names += sorted(set(self.seconds) - set(STAGES))
-        parts = [f"{n} {self.seconds[n]:.2f} s" for n in names]
-        other = max(0.0, total - sum(self.seconds.values()))
+        seconds = dict(self.seconds)
+        if self.running is not None:
+            name, t0 = self.running
+            seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
+        names = [s for s in STAGES if s in seconds]
+        names += sorted(set(seconds) - set(STAGES))
+        parts = [f"{n} {seconds[n]:.2f} s" for n in names]
+        other = max(0.0, total - sum(seconds.values()))
         parts += [f"other {other:.2f} s", f"total {total:.2f} s"]
         return "timings: " + ", ".join(parts)
 

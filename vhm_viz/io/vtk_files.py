@@ -46,8 +46,8 @@ def write_vtk_file(path, data) -> None:
     VTK's writers report a failed write (a full disk or quota, a file-size limit) through
     their error code and an error message that may be silenced, and leave a truncated
     file; the code is checked before the file is renamed into place. An interrupt
-    (SIGINT, SIGTERM) asks the writer to stop at its next progress step and is raised,
-    ``path`` left as it was.
+    (SIGINT, SIGTERM) stops the writer at its next progress step (see
+    :func:`_abort_when_interrupted`) and is raised, ``path`` left as it was.
 
     Parameters
     ----------
@@ -88,9 +88,14 @@ def write_vtk_file(path, data) -> None:
 
 
 def _abort_when_interrupted(writer, _event) -> None:
-    """A writer's progress observer: ask it to stop once SIGINT or SIGTERM was received."""
+    """A writer's progress observer: stop once SIGINT or SIGTERM was received.
+
+    VTK's XML writers ignore their abort flag and write the whole file: the command
+    line's process ends at once instead (:func:`vhm_viz.interrupts.end_now`).
+    """
     if interrupts.pending() is not None:
         writer.SetAbortExecute(1)
+        interrupts.end_now()
 
 
 def read_vtk_file(path):
