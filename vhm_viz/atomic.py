@@ -1,29 +1,45 @@
-"""Output guards: never write over an input, write to a temporary and then rename.
+"""Output guards: never write over an input; outputs appear whole or not at all.
 
 Every writer of user-named outputs (the command line, the explorer's export) first asks
-:func:`refuse_inputs`; the writers in :mod:`vhm_viz.io` then use :func:`atomic_path` (one
-file) and :func:`atomic_directory` (several files that belong together, such as the
-report of ``vhm-viz analyze``).
+:func:`refuse_inputs`; the writers in :mod:`vhm_viz.io` then use
+:func:`atomic_output_set` (several files that belong together: a MetaImage header and its
+voxels), :func:`atomic_path` (one file) or :func:`atomic_directory` (the files of a
+report folder, such as that of ``vhm-viz analyze``).
 
 An error, a crash or an interrupt never leaves a half-written output or a temporary file,
-and an existing file is only replaced once the new one is complete: temporaries are
-created and renamed inside :func:`vhm_viz.interrupts.deferred`, and an interrupt received
-before the rename stops it. The result gets ordinary permissions (``0o666`` less the
-process umask), not the private ``0o600`` of a temporary file.
+and an existing output is only replaced once the new one is complete and on the disk
+(``fsync`` of the files, then of their folder): temporaries are created and renamed
+inside :func:`vhm_viz.interrupts.deferred`, and an interrupt received before the renames
+stops them. A process killed outright (SIGKILL) leaves the previous outputs, or a journal
+that the next write in that folder completes; that write also removes the temporaries of
+processes that no longer run (:func:`remove_stale_temporaries`), whose names say what
+they are (``.out.vhm-tmp-PID-N.vti``). The result gets ordinary permissions (``0o666``
+less the process umask), not the private ``0o600`` of a temporary file.
 """
 
 from __future__ import annotations
 
 import contextlib
+import itertools
+import json
 import os
+import re
 import shutil
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 from vhm_viz import interrupts
 
-__all__ = ["OverwriteError", "same_file", "refuse_inputs", "atomic_path", "atomic_directory"]
+__all__ = [
+    "OverwriteError",
+    "same_file",
+    "refuse_inputs",
+    "atomic_output_set",
+    "atomic_path",
+    "atomic_directory",
+    "remove_stale_temporaries",
+    "remove_temporaries_in_progress",
+]
 
 
 class OverwriteError(ValueError):
@@ -98,8 +114,68 @@ def _directory_of(path: Path) -> Path:
 
 
 @contextlib.contextmanager
+def atomic_output_set(paths) -> Iterator[list[Path]]:
+    """Yield a temporary path for each of ``paths``; on success move them all into place.
+
+    The one home of atomic outputs: :func:`atomic_path` (one file) and
+    :func:`atomic_directory` (a report folder) are made of it, and writers of several
+    files that belong together (a MetaImage ``.mhd`` header and its ``.raw`` voxels, a
+    field and its mask) use it directly.
+
+    Each temporary is a hidden sibling of its output, ``.NAME.vhm-tmp-PID-N.SUFFIX`` (the
+    suffix kept, for writers that choose the format by it). When the block ends without
+    an error or interrupt, every temporary is flushed to the disk, a journal listing the
+    moves is written (for a set of several files), the temporaries are renamed onto the
+    outputs in the order given (the header, which names the others, last), the folder is
+    flushed and the journal removed. On an error or interrupt the temporaries are removed
+    and every output keeps its previous bytes. A process killed (SIGKILL, power loss)
+    leaves either the previous set, or a journal that the next atomic write in that
+    folder (any ``vhm-viz`` command writing there) completes, giving the whole new set;
+    that next write also removes every temporary of processes that no longer run.
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+        The outputs, in the order they are to appear (the file that refers to the others
+        last). Their folders are created if needed.
+
+    Yields
+    ------
+    list of Path
+        Where to write each output, in the order of ``paths``.
+    """
+    finals = [Path(p) for p in paths]
+    for directory in {_directory_of(p) for p in finals}:
+        remove_stale_temporaries(directory)
+    temps: list[Path] = []
+    try:
+        with interrupts.deferred():  # own the temporaries before an interrupt can strike
+            for final in finals:
+                temps.append(_create_temporary(final))
+                _in_progress.add(temps[-1])
+        yield list(temps)
+        for tmp in temps:
+            # the data reaches the disk before the names do: a power loss leaves the old
+            # file or the whole new one, never an empty file under the final name
+            _sync_file(tmp)
+        with interrupts.deferred():
+            interrupts.check()  # an interrupt received (even one VTK swallowed): no rename
+            _commit(list(zip(temps, finals, strict=True)))
+            _in_progress.difference_update(temps)
+            temps = []
+    finally:
+        if temps:
+            with interrupts.deferred():
+                for tmp in temps:
+                    _remove(tmp)
+                _in_progress.difference_update(temps)
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success rename it onto ``path``.
+
+    :func:`atomic_output_set` of one file.
 
     Parameters
     ----------
@@ -112,67 +188,193 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         Where to write. It keeps ``path``'s suffix, so writers that pick the format from
         the extension (PyVista, meshio) work unchanged.
     """
-    path = Path(path)
-    directory = _directory_of(path)
-    tmp = None
-    try:
-        with interrupts.deferred():  # own the temporary before an interrupt can strike
-            fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=directory)
-            os.close(fd)
-            tmp = Path(name)
+    with atomic_output_set([path]) as (tmp,):
         yield tmp
-        # the data reaches the disk before the name does: a power loss leaves the old file
-        # or the whole new one, never an empty file under the final name
-        _sync_file(tmp)
-        with interrupts.deferred():
-            interrupts.check()  # an interrupt received (even one VTK swallowed): no rename
-            os.chmod(tmp, 0o666 & ~_umask())
-            os.replace(tmp, path)
-            tmp = None
-        _sync_directory(directory)
-    finally:
-        if tmp is not None:
-            with interrupts.deferred(), contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
 
 
 @contextlib.contextmanager
-def atomic_directory(directory: str | os.PathLike) -> Iterator[Path]:
-    """Yield a staging folder inside ``directory``; on success move its files there.
+def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> Iterator[Path]:
+    """Yield a staging folder beside the files of ``directory``; on success move its files there.
 
-    Everything written into the staging folder appears in ``directory`` only when the block
-    ends without an error or interrupt; otherwise ``directory`` keeps its previous files,
-    byte for byte, and the staging folder is removed.
+    Everything written into the staging folder appears in ``directory`` as one set
+    (:func:`atomic_output_set`: the previous files or the new ones, never a mix) when the
+    block ends without an error or interrupt; otherwise ``directory`` keeps its previous
+    files, byte for byte, and the staging folder is removed.
 
     Parameters
     ----------
     directory : path-like
         Created if needed.
+    last : str, optional
+        The name of the file to move last (the one that describes the others); the
+        others move in name order.
 
     Yields
     ------
     Path
-        The staging folder (hidden, in ``directory``, so the renames stay on one file
-        system).
+        The staging folder (hidden, ``.vhm-staging.PID-N`` in ``directory``, so the renames
+        stay on one file system).
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(directory)
     stage = None
     try:
         with interrupts.deferred():
-            stage = Path(tempfile.mkdtemp(prefix=".vhm-staging.", dir=directory))
+            stage = directory / f".vhm-staging.{_token()}"
+            stage.mkdir()
+            _in_progress.add(stage)
         yield stage
-        for item in stage.iterdir():
-            if item.is_file():
-                _sync_file(item)
+        names = sorted(p.name for p in stage.iterdir() if p.is_file())
+        if last in names:
+            names.remove(last)
+            names.append(last)
+        for name in names:
+            _sync_file(stage / name)
         with interrupts.deferred():
             interrupts.check()
-            mode = 0o666 & ~_umask()
-            for item in sorted(stage.iterdir()):
-                os.chmod(item, mode)
-                os.replace(item, directory / item.name)
-        _sync_directory(directory)
+            _commit([(stage / n, directory / n) for n in names])
     finally:
         if stage is not None:
             with interrupts.deferred():
                 shutil.rmtree(stage, ignore_errors=True)
+                _in_progress.discard(stage)
+
+
+#: This process's temporaries and staging folders not yet renamed or removed.
+_in_progress: set[Path] = set()
+
+
+def remove_temporaries_in_progress() -> None:
+    """Remove this process's temporaries of unfinished writes (before it ends at once).
+
+    For :func:`vhm_viz.interrupts.ending_now`: the outputs keep their previous bytes.
+    """
+    for path in list(_in_progress):
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            _remove(path)
+        _in_progress.discard(path)
+
+
+#: A temporary, staging folder or journal of :func:`atomic_output_set`; group 1 is the PID.
+_TEMPORARY = re.compile(r"\.vhm-(?:tmp-|staging\.|set-)(\d+)-\d+")
+_counter = itertools.count()
+
+
+def _token() -> str:
+    """``PID-N``: unique within this process, its PID readable by the next run."""
+    return f"{os.getpid()}-{next(_counter)}"
+
+
+def _create_temporary(final: Path) -> Path:
+    """Create (exclusively, private) the hidden temporary of ``final``: ``.NAME.vhm-tmp-...``."""
+    head, dot, tail = final.name.partition(".")
+    while True:
+        tmp = final.with_name(f".{head}.vhm-tmp-{_token()}{dot}{tail}")
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+            return tmp
+        except FileExistsError:
+            continue
+
+
+def _commit(moves: list[tuple[Path, Path]]) -> None:
+    """Rename each temporary onto its output, in order, under a journal when several."""
+    journal = None
+    if len(moves) > 1:
+        journal = moves[-1][1].parent / f".vhm-set-{_token()}.json"
+        text = json.dumps([[os.fspath(t.absolute()), os.fspath(f.absolute())] for t, f in moves])
+        part = journal.with_name(journal.name + ".part")
+        try:
+            part.write_text(text, encoding="utf-8")
+            _sync_file(part)
+            os.replace(part, journal)
+        finally:
+            _remove(part)  # gone after the rename; removed after a failed write
+        _sync_directory(journal.parent)
+    mode = 0o666 & ~_umask()
+    for tmp, final in moves:
+        os.chmod(tmp, mode)
+        os.replace(tmp, final)
+    for directory in {final.parent for _, final in moves}:
+        _sync_directory(directory)
+    if journal is not None:
+        _remove(journal)
+
+
+def _running(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process (PermissionError): alive
+        return True
+    return True
+
+
+def remove_stale_temporaries(directory: str | os.PathLike) -> list[str]:
+    """Finish or remove what killed processes left in ``directory``.
+
+    A journal of a set whose process no longer runs is completed first (its remaining
+    temporaries are renamed onto their outputs: the set was complete on the disk when the
+    journal was written); then every temporary and staging folder of a process that no
+    longer runs is removed. Those of running processes are left alone.
+
+    Parameters
+    ----------
+    directory : path-like
+
+    Returns
+    -------
+    list of str
+        The names handled (journals completed, temporaries removed).
+    """
+    directory = Path(directory)
+    try:
+        entries = [e for e in os.scandir(directory) if _TEMPORARY.search(e.name)]
+    except OSError:
+        return []
+    stale = [e for e in entries if not _running(int(_TEMPORARY.search(e.name).group(1)))]
+    handled = []
+    for entry in sorted(stale, key=lambda e: not e.name.startswith(".vhm-set-")):
+        path = Path(entry.path)
+        if entry.name.startswith(".vhm-set-") and entry.name.endswith(".json"):
+            _roll_forward(path)
+        elif entry.is_dir(follow_symlinks=False):
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            _remove(path)
+        handled.append(entry.name)
+    return handled
+
+
+def _roll_forward(journal: Path) -> None:
+    """Complete the moves a killed process's journal lists, then remove the journal."""
+    try:
+        moves = json.loads(journal.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        moves = []
+    if not isinstance(moves, list) or not all(isinstance(m, list) for m in moves):
+        moves = []
+    owner = _TEMPORARY.search(journal.name).group(1)
+    mode = 0o666 & ~_umask()
+    moves = [m for m in moves if len(m) == 2 and all(isinstance(s, str) for s in m)]
+    for tmp, final in moves:
+        match = _TEMPORARY.search(Path(tmp).name)
+        if match is None or match.group(1) != owner:
+            continue  # only the journal's own process's temporaries are moved
+        with contextlib.suppress(OSError):  # already moved
+            os.chmod(tmp, mode)
+            os.replace(tmp, final)
+    for directory in {Path(final).parent for _, final in moves}:
+        _sync_directory(directory)
+    _remove(journal)
+
+
+def _remove(path: Path) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(path)

@@ -15,6 +15,11 @@ otherwise ignored, so clean-up code (removing temporary files) is never cut shor
 writers (:mod:`vhm_viz.atomic`) create and rename their temporaries there, so an
 interrupt leaves either the previous output or the complete new one, never a temporary.
 
+Some work cannot stop part-way (VTK's XML writers ignore their abort flag and write the
+whole file). A process that is wholly one command (``vhm-viz``) installs an
+:func:`ending_now` action, which such work calls through :func:`end_now` once a signal is
+pending: the command's temporaries are removed and the process ends at once.
+
 The exit status of an interrupted command is ``128 + signal number``: 130 for SIGINT,
 143 for SIGTERM (:attr:`Interrupted.exit_status`).
 
@@ -30,9 +35,10 @@ import signal
 import threading
 from collections.abc import Callable, Iterator
 
-__all__ = ["Interrupted", "check", "deferred", "handled", "pending"]
+__all__ = ["Interrupted", "check", "deferred", "handled", "pending", "ending_now", "end_now"]
 
-_state = {"pending": None, "raised": False, "defer": 0, "depth": 0, "on_signal": None}
+_state = {"pending": None, "raised": False, "defer": 0, "depth": 0, "on_signal": None,
+          "end_now": None}  # fmt: skip
 
 
 class Interrupted(BaseException):
@@ -145,3 +151,29 @@ def deferred(raise_at_end: bool = True) -> Iterator[None]:
         _state["defer"] -= 1
     if raise_at_end and not _state["defer"] and not _state["raised"]:
         check()
+
+
+@contextlib.contextmanager
+def ending_now(action: Callable[[int], None]) -> Iterator[None]:
+    """Inside the block, :func:`end_now` calls ``action(signum)`` (which should not return).
+
+    For a process that is wholly one command: ``action`` removes its temporaries, reports
+    the interrupt and exits (``os._exit``).
+    """
+    outer = _state["end_now"]
+    _state["end_now"] = action
+    try:
+        yield
+    finally:
+        _state["end_now"] = outer
+
+
+def end_now() -> None:
+    """Where work cannot stop part-way: end the process now if a signal is pending.
+
+    Only when an :func:`ending_now` action is installed (the command line); elsewhere
+    nothing happens and the work runs to its end, where the signal is raised as usual.
+    """
+    signum, action = _state["pending"], _state["end_now"]
+    if signum is not None and action is not None:
+        action(signum)

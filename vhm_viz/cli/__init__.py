@@ -23,7 +23,9 @@ Exit statuses:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import sys
 
 from vhm_viz import __version__, interrupts
@@ -100,7 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     first_run = args.command in COMPILING and not compiled_before(args.command)
     if first_run and not getattr(args, "quiet", False):
         print(NOTICE, file=sys.stderr, flush=True)
-    with interrupts.handled():
+    # a process that is wholly this command ends at once when work cannot stop part-way
+    ending = interrupts.ending_now(lambda signum: _end_now(signum, args))
+    with interrupts.handled(), ending if argv is None else contextlib.nullcontext():
         try:
             use_threads(args.threads)
             status = int(args.func(args) or 0)
@@ -110,6 +114,8 @@ def main(argv: list[str] | None = None) -> int:
         except (interrupts.Interrupted, KeyboardInterrupt) as exc:
             status = getattr(exc, "exit_status", 130)
             print(f"vhm-viz {args.command}: {exc or 'interrupted by SIGINT'}", file=sys.stderr)
+            if argv is None:  # this process is the command: end it now (see _end_now)
+                _end_now(None, args, status)
             return status
         except NotConverged as exc:
             print(f"vhm-viz {args.command}: {one_line(exc)}", file=sys.stderr)
@@ -119,6 +125,36 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         finally:
             args.timer.report(args.timings)
+
+
+def _end_now(signum: int | None, args, status: int | None = None) -> None:
+    """End an interrupted command's process at once, its temporaries removed.
+
+    The interpreter's own teardown (the kernels' thread pools, VTK's objects) can take
+    most of a second on a busy machine, and some work cannot stop part-way (VTK's XML
+    writers); an interrupted command should end promptly. Only used when :func:`main`
+    runs as the process's command (no ``argv`` given), never when called from Python.
+
+    Parameters
+    ----------
+    signum : int or None
+        The signal, when called from work that cannot stop (it is reported here); None
+        when the interrupt was already reported.
+    args : argparse.Namespace
+    status : int, optional
+        Exit status (default ``128 + signum``).
+    """
+    from vhm_viz.atomic import remove_temporaries_in_progress
+
+    remove_temporaries_in_progress()
+    if signum is not None:
+        status = 128 + signum
+        print(f"vhm-viz {args.command}: {interrupts.Interrupted(signum)}", file=sys.stderr)
+    args.timer.report(args.timings)
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(status)
 
 
 def one_line(exc: BaseException) -> str:

@@ -366,6 +366,44 @@ def image_positions(image, ijk) -> np.ndarray:
     return np.asarray(image.origin, dtype=np.float64) + np.asarray(ijk, dtype=np.float64) @ frame.T
 
 
+#: Cells per slab of :func:`voxel_corner_determinants`: a slab takes a small fraction of a
+#: second, and an interrupt is acted on between slabs.
+FOLD_SLAB_CELLS = 1 << 20
+
+
+def voxel_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
+    """:func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants`, slab by slab.
+
+    A slab of voxel layers at a time, with an interrupt check between slabs, so that
+    Ctrl-C or SIGTERM stops the fold check of a large warped volume promptly.
+
+    Parameters
+    ----------
+    points : (nx * ny * nz, 3) array_like
+        Deformed positions in VTK's point order.
+    dimensions : (3,) int
+    rest_det : float
+
+    Returns
+    -------
+    ((nx - 1) * (ny - 1) * (nz - 1),) float64
+    """
+    from vhm_viz.core.cell_kernels import hexahedron_corner_determinants
+
+    nx, ny, nz = (int(d) for d in dimensions)
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    plane, cell_plane = nx * ny, max(nx - 1, 0) * max(ny - 1, 0)
+    det = np.empty(cell_plane * max(nz - 1, 0))
+    layers = max(1, FOLD_SLAB_CELLS // max(cell_plane, 1))
+    for k0 in range(0, nz - 1, layers):
+        k1 = min(k0 + layers, nz - 1)
+        det[k0 * cell_plane : k1 * cell_plane] = hexahedron_corner_determinants(
+            points[k0 * plane : (k1 + 1) * plane], (nx, ny, k1 - k0 + 1), rest_det
+        )
+        interrupts.check()
+    return det
+
+
 def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:
     """One warning line when a deformation folds the data, naming how many and where.
 
@@ -424,3 +462,132 @@ def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:
         + "; ".join(parts)
         + " (rest positions; vhm-viz analyze --certify checks every point)"
     )
+
+
+#: ``--memory-budget`` suffixes: powers of 1024.
+_SIZE_UNITS = {"": 1, "B": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def memory_size(text: str) -> int:
+    """``--memory-budget``: bytes, or a number with K, M, G or T (powers of 1024)."""
+    import argparse
+
+    from vhm_viz.core.limits import RANGES
+
+    t = text.strip().upper().removesuffix("IB").removesuffix("B")
+    unit = t[-1:] if t[-1:] in _SIZE_UNITS else ""
+    try:
+        value = float(t[: len(t) - len(unit)]) * _SIZE_UNITS[unit]
+    except ValueError:
+        value = -1.0
+    rng = RANGES["memory_budget"]
+    if not (value == value and rng.low <= value <= rng.high):
+        raise argparse.ArgumentTypeError(
+            f"expected a size such as 256M or 2G, at least 1 byte and at most 1T; got {text!r}"
+        )
+    return int(value)
+
+
+def add_memory_argument(parser) -> None:
+    """``--memory-budget`` (see :func:`check_volume_memory`)."""
+    parser.add_argument(
+        "--memory-budget",
+        type=memory_size,
+        default=None,
+        metavar="SIZE",
+        help="volumes: working memory per slab and per evaluation chunk (bytes, or with "
+        "K, M, G); smaller slabs need less memory and are never a different result "
+        "(default: 64M)",
+    )
+
+
+#: Whole copies of the output data a writer makes, by output suffix (the rest: none).
+_WRITER_COPIES = {".mhd": 1, ".mha": 2, ".nii": 2, ".nii.gz": 2}
+#: Input points per axis mapped to estimate the extent of a resampled volume.
+_EXTENT_SAMPLES = 9
+
+
+def check_volume_memory(image, harmonic_map, *, resample: bool, output, memory_budget=None,
+                        spacing=None, reference=None, outside: str = "error") -> None:  # fmt: skip
+    """Refuse a volume job that cannot fit in this process's memory, before it allocates.
+
+    The estimate is :func:`vhm_viz.core.memory.volume_job_bytes`; the limit is
+    :func:`vhm_viz.resources.memory_limit` (address-space limit, cgroup, free memory).
+
+    Parameters
+    ----------
+    image : pyvista.ImageData
+        The input volume.
+    harmonic_map : HarmonicMap
+        The solved map (a few of the input's points are mapped to size a resample's grid).
+    resample : bool
+        Resampled to an image (else warped: every voxel moved).
+    output : path-like
+        The output file (its format decides the writer's copies).
+    memory_budget : int, optional
+        ``--memory-budget`` (default the engine's).
+    spacing : (3,) float, optional
+        ``--spacing`` of a resample.
+    reference : pyvista.ImageData, optional
+        ``--reference`` grid of a resample.
+    outside : str
+        ``--outside`` (passthrough keeps the input's own box in a resample's grid).
+
+    Raises
+    ------
+    CLIError
+        One line: the estimate, the limit, and the options that lower it.
+    """
+    from vhm_viz.core.basis import DEFAULT_MEMORY_BUDGET
+    from vhm_viz.core.memory import volume_job_bytes
+    from vhm_viz.io import suffix_of
+    from vhm_viz.resources import format_bytes, require_memory
+
+    dims = tuple(int(d) for d in image.dimensions)
+    n_in = int(np.prod(dims, dtype=np.int64))
+    value_bytes = sum(image.point_data[name].nbytes // max(n_in, 1)
+                      for name in image.point_data.keys())  # fmt: skip
+    if resample:
+        out_dims = _resampled_dimensions(image, harmonic_map, spacing, reference, outside)
+    else:
+        out_dims = dims
+    budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else int(memory_budget)
+    parts = volume_job_bytes(
+        n_in, int(np.prod(out_dims, dtype=np.int64)), value_bytes,
+        kind="resample" if resample else "warp", memory_budget=budget,
+        writer_copies=_WRITER_COPIES.get(suffix_of(output), 0),
+    )  # fmt: skip
+    grid = "x".join(str(d) for d in out_dims)
+    what = (f"resampling {'x'.join(map(str, dims))} voxels onto a {grid} grid" if resample
+            else f"warping {'x'.join(map(str, dims))} voxels")  # fmt: skip
+    if resample:
+        remedy = "give a coarser --spacing (or a smaller --reference grid)"
+    else:
+        remedy = "resample to an image (.vti, .mhd, .nii) with a coarser --spacing"
+    if parts["slab"] > 2 * 2**20:
+        remedy += f", or a smaller --memory-budget (now {format_bytes(budget)})"
+    try:
+        require_memory(parts["total"], what, remedy)
+    except MemoryError as exc:
+        raise CLIError(str(exc)) from None
+
+
+def _resampled_dimensions(image, harmonic_map, spacing, reference, outside) -> tuple:
+    """The dimensions of a resample's output grid, from the images of a few input points."""
+    if reference is not None:
+        return tuple(int(d) for d in reference.dimensions)
+    dims = np.asarray(image.dimensions, dtype=np.int64)
+    axes = [np.linspace(0, d - 1, min(int(d), _EXTENT_SAMPLES)) for d in dims]
+    ijk = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    mapped = harmonic_map.evaluate(image_positions(image, ijk), outside="nan")[0]
+    mapped = mapped[np.isfinite(mapped).all(axis=1)]
+    if len(mapped) == 0:
+        return tuple(int(d) for d in dims)
+    frame = np.asarray(image.direction_matrix, dtype=np.float64) * np.asarray(image.spacing)
+    index = np.linalg.solve(frame, (mapped - np.asarray(image.origin)).T).T
+    lo, hi = index.min(axis=0) - 1.0, index.max(axis=0) + 1.0
+    if outside == "passthrough":
+        lo, hi = np.minimum(lo, 0.0), np.maximum(hi, dims - 1.0)
+    extent = (hi - lo) * np.abs(np.asarray(image.spacing, dtype=np.float64))
+    step = np.abs(np.asarray(image.spacing, dtype=np.float64)) if spacing is None else spacing
+    return tuple(int(np.floor(e / s)) + 1 for e, s in zip(extent, step, strict=True))

@@ -219,7 +219,7 @@ def analyze(args: argparse.Namespace) -> str:
     if certificate is not None:
         metrics["injectivity"] = certificate.to_json()
     # the report is one unit: its files appear together, or the old ones stay untouched
-    with timer.stage("write"), atomic_outputs(out_dir) as stage:
+    with timer.stage("write"), atomic_outputs(out_dir, last=FILES["metrics"]) as stage:
         write_dataset(stage / analysis_name, analysed)
         pl = plotting.figure4(slice_, deformed_surface=surf, filename=stage / FILES["figure4"])
         pl.close()

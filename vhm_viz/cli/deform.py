@@ -22,17 +22,20 @@ from vhm_viz.cli._field_output import (
 from vhm_viz.cli._util import (
     CLIError,
     add_convergence_argument,
+    add_memory_argument,
     add_quiet_argument,
     add_scene_arguments,
     build_and_solve,
     check_input,
     check_output,
+    check_volume_memory,
     fold_warning,
     image_positions,
     load_scene,
     quiet_vtk,
     run_filter,
     surface_metrics,
+    voxel_corner_determinants,
 )
 from vhm_viz.core.image import INTERPOLATIONS
 from vhm_viz.core.volume import DEFAULT_TOLERANCE
@@ -138,6 +141,7 @@ def add_arguments(p) -> None:
     )
     add_field_arguments(p)
     add_convergence_argument(p)
+    add_memory_argument(p)
     add_quiet_argument(p)
 
 
@@ -235,6 +239,11 @@ def deform(args: argparse.Namespace) -> str:
         label = "warping" if volume else "binding"
     flt.SetOutsidePolicy(args.outside)
     flt.SetTolerance(tolerance)
+    flt.SetMemoryBudget(args.memory_budget)
+    if volume:  # a job that cannot fit is refused before it allocates
+        check_volume_memory(mesh, dfm.harmonic_map, resample=resample, output=out,
+                            memory_budget=args.memory_budget, spacing=args.spacing,
+                            reference=ref_image, outside=args.outside)  # fmt: skip
     with timer.stage("map"):
         result = run_filter(flt, mesh, dfm, label, quiet=args.quiet, source=src)
         field = None if field_paths is None else field_of(args, mesh, result, dfm, tolerance)
@@ -316,13 +325,11 @@ def _check_folds(mesh, result, dfm, flt, resample: bool) -> str | None:
 
 def _voxel_folds(image, warped) -> dict | None:
     """:func:`fold_warning`'s cells of a warped image: its voxels' corner Jacobians."""
-    from vhm_viz.core.cell_kernels import hexahedron_corner_determinants
-
     dims = tuple(int(d) for d in image.dimensions)
     if min(dims) < 2:
         return None
     rest_det = float(np.prod(image.spacing) * np.linalg.det(np.asarray(image.direction_matrix)))
-    det = hexahedron_corner_determinants(warped.points, dims, rest_det)
+    det = voxel_corner_determinants(warped.points, dims, rest_det)  # interruptible
     finite = np.isfinite(det)
     summary = {"cells": int(finite.sum()), "inverted": int(np.count_nonzero(det[finite] <= 0))}
 

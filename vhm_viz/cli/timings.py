@@ -6,6 +6,8 @@ import sys
 import time
 from contextlib import contextmanager
 
+from vhm_viz import interrupts
+
 __all__ = ["STAGES", "StageTimer"]
 
 #: The stages of a command, in the order they run.
@@ -22,15 +24,26 @@ class StageTimer:
     def __init__(self) -> None:
         self.start = time.perf_counter()
         self.seconds: dict[str, float] = {}
+        #: The stage under way and its start (a process ended inside one reports it too).
+        self.running: tuple[str, float] | None = None
 
     @contextmanager
     def stage(self, name: str):
-        """Add the time spent in the ``with`` block to stage ``name``."""
+        """Add the time spent in the ``with`` block to stage ``name``.
+
+        The start and the end of a stage are abort points: a SIGINT or SIGTERM received
+        and not yet acted on (one that arrived where Python could not raise it) is raised
+        there (:func:`vhm_viz.interrupts.check`).
+        """
+        interrupts.check()
         t0 = time.perf_counter()
+        self.running = (name, t0)
         try:
             yield
         finally:
+            self.running = None
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+        interrupts.check()
 
     @property
     def total(self) -> float:
@@ -40,10 +53,14 @@ class StageTimer:
     def line(self) -> str:
         """``timings: read 0.12 s, solve 0.30 s, ..., other 0.05 s, total 1.79 s``."""
         total = self.total
-        names = [s for s in STAGES if s in self.seconds]
-        names += sorted(set(self.seconds) - set(STAGES))
-        parts = [f"{n} {self.seconds[n]:.2f} s" for n in names]
-        other = max(0.0, total - sum(self.seconds.values()))
+        seconds = dict(self.seconds)
+        if self.running is not None:
+            name, t0 = self.running
+            seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
+        names = [s for s in STAGES if s in seconds]
+        names += sorted(set(seconds) - set(STAGES))
+        parts = [f"{n} {seconds[n]:.2f} s" for n in names]
+        other = max(0.0, total - sum(seconds.values()))
         parts += [f"other {other:.2f} s", f"total {total:.2f} s"]
         return "timings: " + ", ".join(parts)
 

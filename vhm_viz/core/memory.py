@@ -10,6 +10,11 @@ allocator to return it (``malloc_trim``), a few milliseconds.
 :func:`grow_in_place` and :func:`take_in_place` grow an array or keep some of its rows
 without holding the array and its new version at once (``ndarray.resize``, a realloc:
 a large mmapped block is remapped rather than copied).
+
+:func:`volume_job_bytes` estimates, before anything is allocated, the memory a volume job
+(a warp or a resample of :class:`~vhm_viz.core.volume.VolumeDeformation`) will still
+take, so that a job that cannot fit is refused at once (the limits themselves are found
+by :mod:`vhm_viz.resources`).
 """
 
 from __future__ import annotations
@@ -21,7 +26,13 @@ import sys
 import numba
 import numpy as np
 
-__all__ = ["release_free_memory", "grow_in_place", "take_in_place"]
+__all__ = [
+    "release_free_memory",
+    "grow_in_place",
+    "take_in_place",
+    "LATTICE_BYTES_PER_VOXEL",
+    "volume_job_bytes",
+]
 
 _LIBC = None
 
@@ -126,3 +137,63 @@ def _move_rows_forward(rows, index):  # pragma: no cover - compiled
     for t in range(index.shape[0]):
         if index[t] != t:
             rows[t] = rows[index[t]]
+
+
+#: Bytes of lattice per input voxel a volume job is estimated to hold: nodes (exact values
+#: and Jacobians, 12 float64 each, with their tables) at about one per 32 voxels near the
+#: default tolerance, where the map bends most; the lattice is coarser where it does not.
+LATTICE_BYTES_PER_VOXEL = 8
+#: Slab working arrays per voxel: a warp slab's positions, a pull-back slab's state.
+_SLAB_VOXEL_BYTES = {"warp": 16, "resample": 56}
+#: Bytes per voxel besides the output data: a warp's float64 positions (and the fold
+#: check's corner determinants, float64 per voxel); a resample's valid and fold masks.
+_EXTRA_VOXEL_BYTES = {"warp": 3 * 8 + 8, "resample": 2}
+#: The pull-back slabs stay within this (see :mod:`vhm_viz.core.volume`).
+_PULL_BACK_SLAB_BYTES = 16 * 2**20
+
+
+def volume_job_bytes(
+    input_voxels: int,
+    output_voxels: int,
+    value_bytes: int,
+    *,
+    kind: str,
+    memory_budget: int,
+    writer_copies: int = 0,
+) -> dict:
+    """The memory a volume job will still allocate once its input is read (an estimate).
+
+    Parameters
+    ----------
+    input_voxels : int
+        Voxels of the input grid.
+    output_voxels : int
+        Voxels of the output: the output grid of a resample, the input's of a warp.
+    value_bytes : int
+        Bytes of data per voxel (all point arrays, all components).
+    kind : {"warp", "resample"}
+    memory_budget : int
+        Working bytes per slab and per evaluation chunk (the engine's memory budget).
+    writer_copies : int
+        Whole copies of the output data the writer makes (a MetaImage writer: one).
+
+    Returns
+    -------
+    dict
+        Bytes of ``output`` (data, positions and masks), ``lattice``, ``slab`` (working
+        arrays of one slab and one evaluation chunk), ``write`` and their ``total``.
+    """
+    if kind not in _SLAB_VOXEL_BYTES:
+        raise ValueError(f"kind must be 'warp' or 'resample'; got {kind!r}")
+    input_voxels, output_voxels = int(input_voxels), int(output_voxels)
+    data = output_voxels * int(value_bytes)
+    slab = min(int(memory_budget), _PULL_BACK_SLAB_BYTES) if kind == "resample" else memory_budget
+    parts = {
+        "output": data + output_voxels * _EXTRA_VOXEL_BYTES[kind],
+        "lattice": input_voxels * LATTICE_BYTES_PER_VOXEL,
+        # a slab's working arrays, and a chunk of exact evaluations building the lattice
+        "slab": int(slab) + int(memory_budget),
+        "write": data * int(writer_copies),
+    }
+    parts["total"] = sum(parts.values())
+    return parts

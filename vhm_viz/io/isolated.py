@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vhm_viz import interrupts
 from vhm_viz.io.errors import ReadError, first_line
 
 __all__ = ["read_isolated"]
@@ -75,6 +76,7 @@ def read_isolated(path, read, what: str = "the reader"):
             os._exit(status)
     os.close(write_end)
     try:
+        interrupts.check()  # a signal during the fork may have been swallowed by its hooks
         with os.fdopen(read_end, "rb") as fh:
             blob = fh.read()
         _, status = os.waitpid(pid, 0)

@@ -14,6 +14,7 @@ series and NRRD, which VTK reads without their frame, go through SimpleITK
 from __future__ import annotations
 
 import gzip
+import math
 import os
 import struct
 from pathlib import Path
@@ -21,10 +22,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vhm_viz.atomic import atomic_path
+from vhm_viz.atomic import atomic_output_set, atomic_path
 from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
 from vhm_viz.io.registry import suffix_of
 from vhm_viz.io.vtk_files import read_vtk_file
+from vhm_viz.resources import require_memory
 
 __all__ = [
     "check_metaimage",
@@ -83,6 +85,10 @@ def check_metaimage(p: Path) -> None:
         ) from None
     if min(dims, default=0) <= 0 or channels <= 0:
         raise ReadError(f"{p}: corrupt MetaImage header: DimSize {dims}")
+    # refused before a reader allocates it (a header claiming 10**12 voxels)
+    what = f"{p}: reading its DimSize {fields['DimSize']}"
+    remedy = "check its DimSize, or read it where more memory is allowed"
+    require_memory(math.prod(dims) * item * channels, what, remedy, ReadError)
     if fields.get("CompressedData", "False").lower() == "true" or data_file.upper() == "LIST":
         return
     needed = int(np.prod(dims, dtype=np.int64)) * item * channels
@@ -267,10 +273,10 @@ def write_metaimage(path, image) -> None:
         with atomic_path(path) as tmp:
             tmp.write_bytes(text + raw)
         return
-    with atomic_path(path.with_suffix(".raw")) as tmp:
-        tmp.write_bytes(raw)
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(text)
+    # one set: the voxels appear with their header, never beside another header
+    with atomic_output_set([path.with_suffix(".raw"), path]) as (raw_tmp, header_tmp):
+        raw_tmp.write_bytes(raw)
+        header_tmp.write_bytes(text)
 
 
 def write_nifti(path, image) -> None:

@@ -15,6 +15,7 @@ import os
 import re
 from pathlib import Path
 
+from vhm_viz import interrupts
 from vhm_viz.atomic import atomic_path
 from vhm_viz.io.errors import ReadError, TruncatedError, need
 from vhm_viz.io.isolated import read_isolated
@@ -44,7 +45,9 @@ def write_vtk_file(path, data) -> None:
 
     VTK's writers report a failed write (a full disk or quota, a file-size limit) through
     their error code and an error message that may be silenced, and leave a truncated
-    file; the code is checked before the file is renamed into place.
+    file; the code is checked before the file is renamed into place. An interrupt
+    (SIGINT, SIGTERM) stops the writer at its next progress step (see
+    :func:`_abort_when_interrupted`) and is raised, ``path`` left as it was.
 
     Parameters
     ----------
@@ -69,15 +72,30 @@ def write_vtk_file(path, data) -> None:
         # XML formats: LZ4 writes and reads several times faster than zlib, for a larger
         # file (every VTK reader since 8.1 and ParaView read it)
         writer.SetCompressorTypeToLZ4()
+    writer.AddObserver("ProgressEvent", _abort_when_interrupted)
     with atomic_path(path) as tmp:
         writer.SetFileName(os.fspath(tmp))
         writer.SetInputData(data)
-        ok = writer.Write()
-        code = writer.GetErrorCode()
-        writer.SetInputData(None)
+        # a signal is only recorded while VTK writes (raised in the observer, VTK would
+        # print and lose it); the observer stops the writer, the block's end raises it
+        with interrupts.deferred():
+            ok = writer.Write()
+            code = writer.GetErrorCode()
+            writer.SetInputData(None)
         if not ok or code:
             reason = vtkErrorCode.GetStringFromErrorCode(code) if code else "the writer failed"
             raise OSError(f"could not write {os.fspath(path)}: {reason}")
+
+
+def _abort_when_interrupted(writer, _event) -> None:
+    """A writer's progress observer: stop once SIGINT or SIGTERM was received.
+
+    VTK's XML writers ignore their abort flag and write the whole file: the command
+    line's process ends at once instead (:func:`vhm_viz.interrupts.end_now`).
+    """
+    if interrupts.pending() is not None:
+        writer.SetAbortExecute(1)
+        interrupts.end_now()
 
 
 def read_vtk_file(path):

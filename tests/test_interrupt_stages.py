@@ -1,0 +1,89 @@
+"""A signal in any stage of a volume warp ends the command at once, the old output intact.
+
+Each stage (read, solve, map, checks, write) of ``vhm-viz deform`` on the CT head gets a
+signal as soon as the command shows that the stage has begun: the reader's child process
+exists (read), it has ended (solve, a moment later), the warp's progress starts (map)
+and ends (checks), the output's temporary appears (write). The command must
+then stop in that very stage (its ``--timings`` line ends with it), exit with 128 + the
+signal, and leave the previous output byte-identical with no temporary beside it.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from conftest import data_path
+
+SCENE = Path(__file__).resolve().parents[1] / "vhm_viz" / "scenes" / "head_scene.json"
+OLD = b"the previous output, which must survive\n"
+
+
+def _has_child(proc) -> bool:
+    try:
+        return bool(Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split())
+    except OSError:
+        return False
+
+
+def _stage_began(stage: str, proc, text: str, folder: Path, seen: dict) -> bool:
+    if stage == "read":  # the reader runs in a child process
+        return _has_child(proc)
+    if stage == "solve":  # a moment after the reader's child has ended (a solve takes ~1 s)
+        if "child_gone" not in seen:
+            child = _has_child(proc)
+            if seen.get("child") and not child:
+                seen["child_gone"] = time.monotonic()
+            seen["child"] = seen.get("child") or child
+            return False
+        return time.monotonic() > seen["child_gone"] + 0.3
+    if stage == "map":
+        return "warping:" in text
+    if stage == "checks":
+        return "warping: 100%" in text
+    return any(".vhm-tmp-" in p.name for p in folder.iterdir())  # write
+
+
+def _signal_in(stage: str, signum: int, command: list, folder: Path):
+    proc = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, bufsize=1)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
+    reader.start()
+    seen: dict = {}
+    while proc.poll() is None and not _stage_began(stage, proc, "".join(lines), folder, seen):
+        time.sleep(0.002)
+    if proc.poll() is None:
+        proc.send_signal(signum)
+    status = proc.wait(timeout=600)
+    reader.join()
+    return status, "".join(lines)
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
+@pytest.mark.parametrize(
+    ("stage", "signum"),
+    [("read", signal.SIGTERM), ("solve", signal.SIGINT), ("map", signal.SIGTERM),
+     ("checks", signal.SIGTERM), ("write", signal.SIGINT)],
+)  # fmt: skip
+def test_a_signal_in_each_stage_stops_it_and_keeps_the_old_output(tmp_path, stage, signum):
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    out = tmp_path / "bent.vts"
+    out.write_bytes(OLD)
+    command = [sys.executable, "-m", "vhm_viz.cli", "deform", str(head), "--scene", str(SCENE),
+               "-o", str(out), "--timings"]  # fmt: skip
+    status, stderr = _signal_in(stage, signum, command, tmp_path)
+    assert status == 128 + signum, stderr
+    assert "Traceback" not in stderr and "Exception ignored" not in stderr, stderr
+    name = signal.Signals(signum).name
+    assert f"vhm-viz deform: interrupted by {name}" in stderr
+    timings = next(ln for ln in stderr.splitlines() if "timings:" in ln)
+    stages = [p.split()[0] for p in timings.split("timings:")[1].split(",")]
+    ran = [s for s in stages if s in ("read", "solve", "map", "checks", "write")]
+    assert ran[-1] == stage, timings  # stopped in the stage that got the signal
+    assert out.read_bytes() == OLD
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]

@@ -1,0 +1,108 @@
+"""Memory ceilings: a volume job that cannot fit is refused before it allocates, in one line."""
+
+from __future__ import annotations
+
+import json
+import resource
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import box_cage, data_path
+
+from vhm_viz.resources import memory_limit
+
+SCENE = Path(__file__).resolve().parents[1] / "vhm_viz" / "scenes" / "head_scene.json"
+#: The address-space limit of the goal: a shared node's 1.2 GB.
+LIMIT = 1_200_000_000
+
+
+def _cli(*args, limit=None, timeout=600):
+    def set_limit():
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    return subprocess.run([sys.executable, "-m", "vhm_viz.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout,
+                          preexec_fn=set_limit if limit else None)  # fmt: skip
+
+
+def _bend_scene(bounds) -> dict:
+    """A padded box cage around ``bounds``, its far end moved along a second axis."""
+    lo, hi = np.asarray(bounds[0::2], float), np.asarray(bounds[1::2], float)
+    pad = 0.06 * (hi - lo)
+    vertices, faces = box_cage(lo - pad, hi + pad, 2)
+    long = int(np.argmax(hi - lo))
+    centre = (lo + hi) / 2
+    near, far = centre.copy(), centre.copy()
+    near[long], far[long] = lo[long] + 0.1 * (hi - lo)[long], hi[long] - 0.1 * (hi - lo)[long]
+    moved = far.copy()
+    moved[(long + 1) % 3] += 0.15 * (hi - lo)[long]
+    anchors = np.repeat(centre[None], 8, axis=0)
+    anchors[:, long] = np.linspace(near[long], far[long], 8)
+    return {"format": "vhm_viz.scene", "version": 1,
+            "cage": {"vertices": vertices.tolist(), "faces": faces.tolist()},
+            "anchors": anchors.tolist(), "mode": "rigid", "alpha": 0.01,
+            "constraints": {"positions": [near.tolist(), far.tolist()],
+                            "targets": [near.tolist(), moved.tolist()]}}  # fmt: skip
+
+
+def test_the_limit_found_is_the_address_space_limit_less_what_is_mapped():
+    code = ("import resource; resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30)); "
+            "from vhm_viz.resources import memory_limit; l = memory_limit(); "
+            "print(l.available, '|', l.source)")  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    available, source = out.stdout.split("|")
+    # less than the limit (the interpreter maps some), at least a few hundred MiB of it left
+    assert 200 << 20 < int(available) < 3 << 30
+    assert "ulimit -v" in source or "cgroup" in source or "available" in source
+    assert memory_limit().available is None or memory_limit().available > 0
+
+
+def test_the_embryo_resampled_under_1_2_gb_completes_or_is_refused_before_mapping(tmp_path):
+    from vhm_viz.io import read_dataset
+
+    embryo = data_path("volumes", "embryo.slc")
+    scene = tmp_path / "bend.json"
+    scene.write_text(json.dumps(_bend_scene(read_dataset(embryo).bounds)))
+    out = tmp_path / "bent.vti"
+    proc = _cli("deform", embryo, "--scene", scene, "-o", out, "-q", "--timings", limit=LIMIT)
+    assert "Traceback" not in proc.stderr and "MemoryError" not in proc.stderr
+    assert "Unable to allocate" not in proc.stderr and proc.returncode in (0, 1), proc.stderr
+    if proc.returncode == 0:
+        assert read_dataset(out).n_points > 0
+        return
+    errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("vhm-viz deform")]
+    assert len(errors) == 1, proc.stderr
+    line = errors[0]
+    # the estimate, the limit, and the options that lower it
+    assert "needs about" in line and "ulimit -v" in line, line
+    assert "--spacing" in line and "--memory-budget" in line, line
+    timings = next(ln for ln in proc.stderr.splitlines() if "timings:" in ln)
+    assert " map " not in timings, timings  # refused before the voxels were mapped
+    assert not out.exists() and list(tmp_path.iterdir()) == [scene]
+
+
+def test_a_header_claiming_a_trillion_voxels_is_refused_before_reading(tmp_path):
+    header = tmp_path / "huge.mhd"
+    header.write_text("ObjectType = Image\nNDims = 3\nBinaryData = True\n"
+                      "BinaryDataByteOrderMSB = False\nElementSpacing = 1 1 1\n"
+                      "DimSize = 10000 10000 10000\nElementType = MET_UCHAR\n"
+                      "ElementDataFile = huge.raw\n")  # fmt: skip
+    with open(tmp_path / "huge.raw", "wb") as fh:  # as many bytes as it claims (sparse)
+        fh.truncate(10**12)
+    proc = _cli("deform", header, "--scene", SCENE, "-o", tmp_path / "out.vti", "-q")
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("vhm-viz deform: error:"), proc.stderr
+    assert "DimSize" in lines[0] and "needs about 931 GiB" in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("text", ["0", "2P"])
+def test_a_memory_budget_that_is_no_size_is_refused_in_one_line(tmp_path, text):
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    proc = _cli("deform", head, "--scene", "x.json", "-o", tmp_path / "o.vti",
+                f"--memory-budget={text}")  # fmt: skip
+    assert proc.returncode == 2 and "--memory-budget" in proc.stderr
+    assert "expected a size" in proc.stderr and "Traceback" not in proc.stderr
