@@ -10,6 +10,7 @@ signal, and leave the previous output byte-identical with no temporary beside it
 
 from __future__ import annotations
 
+import shutil
 import signal
 import subprocess
 import sys
@@ -19,6 +20,8 @@ from pathlib import Path
 
 import pytest
 from conftest import data_path
+
+from vhm_viz.scene import Scene
 
 SCENE = Path(__file__).resolve().parents[1] / "vhm_viz" / "scenes" / "head_scene.json"
 OLD = b"the previous output, which must survive\n"
@@ -34,7 +37,7 @@ def _has_child(proc) -> bool:
 def _stage_began(stage: str, proc, text: str, folder: Path, seen: dict) -> bool:
     if stage == "read":  # the reader runs in a child process
         return _has_child(proc)
-    if stage == "solve":  # a moment after the reader's child has ended (a solve takes ~1 s)
+    if stage == "solve":  # a moment after the reader's child has ended (the ramped solve)
         if "child_gone" not in seen:
             child = _has_child(proc)
             if seen.get("child") and not child:
@@ -72,10 +75,18 @@ def _signal_in(stage: str, signum: int, command: list, folder: Path):
 )  # fmt: skip
 def test_a_signal_in_each_stage_stops_it_and_keeps_the_old_output(tmp_path, stage, signum):
     head = data_path("volumes", "headsq_64x64x93.vti")
+    scene = Scene.load(SCENE).to_dict()
+    if stage == "solve":  # automatic anchors: a solve stage that lasts seconds
+        scene["anchors"] = {"auto": 64}
+    work = tmp_path / "work"
+    work.mkdir()
+    Scene.from_dict(scene, base_dir=work).save(work / "scene.json")
+    for name in ("head_cage.obj", "head_anchors.json"):
+        shutil.copy(SCENE.parent / name, work / name)
     out = tmp_path / "bent.vts"
     out.write_bytes(OLD)
-    command = [sys.executable, "-m", "vhm_viz.cli", "deform", str(head), "--scene", str(SCENE),
-               "-o", str(out), "--timings"]  # fmt: skip
+    command = [sys.executable, "-m", "vhm_viz.cli", "deform", str(head), "--scene",
+               str(work / "scene.json"), "-o", str(out), "--timings"]  # fmt: skip
     status, stderr = _signal_in(stage, signum, command, tmp_path)
     assert status == 128 + signum, stderr
     assert "Traceback" not in stderr and "Exception ignored" not in stderr, stderr
@@ -86,4 +97,4 @@ def test_a_signal_in_each_stage_stops_it_and_keeps_the_old_output(tmp_path, stag
     ran = [s for s in stages if s in ("read", "solve", "map", "checks", "write")]
     assert ran[-1] == stage, timings  # stopped in the stage that got the signal
     assert out.read_bytes() == OLD
-    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, work.name])

@@ -1,6 +1,7 @@
 """A command killed outright (SIGKILL) leaves the complete old output set or the complete new one.
 
-A ``deform`` to ``.vts`` (one file) and to ``.mhd`` (header and voxels), and an
+A ``deform`` to ``.vts`` (one file) and to ``.mhd`` (headers and voxels of the scan and of
+its mask arrays), and an
 ``analyze`` report (five files), are killed at random moments, most of them while the
 outputs are being written (from when the first temporary appears), some anywhere in the
 run. After each kill the output files must be byte for byte the previous set or the set
@@ -34,7 +35,9 @@ REPORT = ("analysis.vti", "energy.png", "figure12_condition_histogram.png",
 #: (command, output, the files of its set, seconds a write may take: kills land within)
 CASES = {
     "vts": ("deform", "out.vts", ("out.vts",), 0.5),
-    "mhd": ("deform", "out.mhd", ("out.mhd", "out.raw"), 0.3),
+    # the scan, and each other point array in a MetaImage pair beside it
+    "mhd": ("deform", "out.mhd", tuple(f"out{a}.{s}" for a in ("", "_vtkValidPointMask",
+            "_vhm_foldover") for s in ("mhd", "raw")), 0.3),  # fmt: skip
     "analyze": ("analyze", "report", REPORT, 4.0),
 }
 
