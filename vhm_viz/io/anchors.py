@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.io.errors import ReadError, first_line
+from vhm_viz.io.errors import ReadError, check_file_size, first_line
 from vhm_viz.io.text import json_text, write_text
 
 __all__ = ["read_anchors", "write_anchors"]
@@ -32,6 +32,7 @@ def read_anchors(path) -> np.ndarray:
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"no such anchors file: {p}")
+    check_file_size(p, "anchors")
     try:
         data = json.loads(p.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
