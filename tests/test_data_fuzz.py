@@ -191,3 +191,18 @@ def test_cli_sample_of_mutated_files(tmp_path):
             assert len(lines) == 1, (suffix, kind, done.stderr)
             assert not out.exists()
         assert bad.read_bytes() == blob
+
+
+def test_a_cage_of_ten_million_faces_is_refused_unread(tmp_path):
+    """An OBJ cage of 10**7 faces (80 MB), and an anchors file as large: refused from
+    their size, before a line is parsed."""
+    from vhm_viz.io import read_anchors
+
+    cage = tmp_path / "big.obj"
+    cage.write_bytes(b"v 0 0 0\nv 1 0 0\nv 0 1 0\n" + b"f 1 2 3\n" * 10**7)
+    with pytest.raises(ReadError, match="cage files may hold at most"):
+        read_cage(cage)
+    anchors = tmp_path / "big.json"
+    anchors.write_bytes(b"[" + b"[0, 0, 0], " * 10**7 + b"[0, 0, 0]]")
+    with pytest.raises(ReadError, match="anchors files may hold at most"):
+        read_anchors(anchors)

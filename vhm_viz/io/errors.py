@@ -31,7 +31,7 @@ def check_file_size(path, what: str, limit: int = MAX_POINT_FILE_BYTES) -> None:
     """
     size = path.stat().st_size
     if size > limit:
-        raise ReadError(f"{path}: {size} bytes: a {what} file may hold at most {limit} bytes")
+        raise ReadError(f"{path}: {size} bytes: {what} files may hold at most {limit} bytes")
 
 
 def need(path, what: str, needed: int, available: int) -> None:
