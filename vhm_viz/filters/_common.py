@@ -130,9 +130,10 @@ class DeformationSource(VTKPythonAlgorithmBase):
         """Run the filter's ``_execute``; errors end up in :attr:`last_error` (see ``update``).
 
         With :meth:`SetParallelReporting` (ParaView), the ranks first agree that the cage
-        reached all of them, and afterwards that all of them succeeded; an error is shown
-        once per failing rank as one line in VTK's output window and leaves an empty output
-        on every rank (no stale data, no traceback).
+        reached all of them, and afterwards that all of them succeeded; an error on any
+        rank becomes every rank's :attr:`last_error` (the first failing rank's line), is
+        shown once as one line in VTK's output window and leaves an empty output on every
+        rank (no stale data, no traceback, no rank left waiting).
         """
         if not self._parallel_reporting:
             return self._guard(self._execute, in_info, out_info)
