@@ -95,6 +95,7 @@ from vhm_viz.scene_fields import (
     SCENE_FORMAT,
     SCENE_VERSION,
     SceneError,
+    check_scene_size,
     constraint_markups,
     explorer_data_reference,
     explorer_v1_to_current,
@@ -316,7 +317,7 @@ class Scene:
         """Parse a scene from JSON text."""
         try:
             data = json.loads(text)
-        except json.JSONDecodeError as exc:
+        except (json.JSONDecodeError, RecursionError) as exc:
             raise SceneError("(json)", f"not valid JSON: {exc}", source) from None
         return cls.from_dict(data, source=source, base_dir=base_dir)
 
@@ -336,6 +337,7 @@ class Scene:
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"no such scene file: {p}")
+        check_scene_size(p, p.stat().st_size)
         try:
             text = p.read_text(encoding="utf-8")
         except UnicodeDecodeError:

@@ -21,6 +21,8 @@ from __future__ import annotations
 import copy
 import json
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -33,6 +35,9 @@ from vhm_viz.io.markups import RAS_TO_LPS, SPACES, lps_points, read_markups
 
 __all__ = [
     "SceneError",
+    "MAX_SCENE_BYTES",
+    "MAX_SCENE_ROWS",
+    "check_scene_size",
     "SCENE_FORMAT",
     "SCENE_VERSION",
     "SCENE_FIELDS",
@@ -87,6 +92,22 @@ SCENE_FIELDS = {
 
 CONSTRAINT_FIELDS = ("positions", "targets", "jacobian_points", "jacobians")
 
+#: The largest scene file read (bytes): far beyond any scene of :data:`MAX_SCENE_ROWS`
+#: rows written by vhm_viz, far below what parsing a file into Python objects can hold
+#: (tens of bytes of memory per byte of JSON).
+MAX_SCENE_BYTES = 64 * 2**20
+#: The most rows an array of a scene may hold (anchors, cage vertices and faces,
+#: constraints, rotations; twice this for a stored map's coefficients, one per cage vertex
+#: and face): the upper end of the documented anchor counts (:mod:`vhm_viz.core.limits`).
+#: A dense harmonic map over that many anchors or cage elements does not fit in memory.
+MAX_SCENE_ROWS = 100_000
+#: The largest magnitude of a scene's coordinates and matrix entries: far beyond any model
+#: in any unit, far enough below the float64 range that products and squares of
+#: coordinates (distances, determinants) stay finite.
+MAX_SCENE_VALUE = 1e15
+#: The largest magnitude of a scene's integers (cage face indices): exact in float64.
+MAX_SCENE_INTEGER = 2**53
+
 
 class SceneError(ValueError):
     """A malformed scene; ``field`` names the offending field (dotted path)."""
@@ -106,15 +127,37 @@ class SceneError(ValueError):
 # ----------------------------------------------------------------------------------------
 
 
+def check_scene_size(path, size: int) -> None:
+    """Refuse a scene file of ``size`` bytes beyond :data:`MAX_SCENE_BYTES`, before reading."""
+    if size > MAX_SCENE_BYTES:
+        raise SceneError(
+            "(file)",
+            f"{size} bytes: a scene file may hold at most {MAX_SCENE_BYTES} bytes (keep large "
+            "point sets in their own files: anchors, cage)",
+            str(path),
+        )
+
+
+def _shown(value) -> str:
+    """A short text of a JSON value for a message (containers by their type and length)."""
+    if isinstance(value, (list, dict)):
+        return f"{'a list' if isinstance(value, list) else 'an object'} of {len(value)}"
+    return json.dumps(value)[:40] if isinstance(value, (str, int, float, type(None))) else "?"
+
+
 def _number(value, name: str, *, positive: bool = False, integer: bool = False):
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SceneError(name, f"expected a number, got {json.dumps(value)[:40]}")
+        raise SceneError(name, f"expected a number, got {_shown(value)}")
     if not math.isfinite(value):
         raise SceneError(name, f"expected a finite number, got {value}")
     if integer:
         if isinstance(value, float) and not value.is_integer():
             raise SceneError(name, f"expected an integer, got {value}")
+        if abs(value) >= MAX_SCENE_INTEGER:
+            raise SceneError(name, f"{value:g} is out of range (magnitude below 2**53)")
         value = int(value)
+    elif abs(value) > MAX_SCENE_VALUE:
+        raise SceneError(name, f"{value:g} is out of range (magnitude at most {MAX_SCENE_VALUE:g})")
     if positive and value <= 0:
         raise SceneError(name, f"must be positive, got {value}")
     return value
@@ -128,10 +171,14 @@ def parse_setting(kind: str, value, name: str):
         raise SceneError(name, exc.detail) from None
 
 
-def _matrix(value, name: str, shape: tuple[int, ...], *, integer: bool = False) -> np.ndarray:
-    """Nested lists -> array of ``shape`` (first dimension free when -1)."""
+def _matrix(
+    value, name: str, shape: tuple[int, ...], *, integer: bool = False, limit=MAX_SCENE_ROWS
+) -> np.ndarray:
+    """Nested lists -> array of ``shape`` (first dimension free when -1, at most ``limit``)."""
     if not isinstance(value, list):
         raise SceneError(name, f"expected a list, got {type(value).__name__}")
+    if len(value) > limit:
+        raise SceneError(name, f"{len(value)} rows: a scene may hold at most {limit}")
     if shape[1:]:
         rows = [
             _matrix(v, f"{name}[{i}]", (shape[1],) + shape[2:], integer=integer)
@@ -159,8 +206,15 @@ def to_lists(a: np.ndarray):
 
 
 def _path_text(value, name: str) -> str:
-    if not isinstance(value, str) or not value:
+    if not isinstance(value, str) or not value.strip():
         raise SceneError(name, "expected a non-empty path string")
+    try:
+        os.fsencode(value)
+        if "\0" in value:
+            raise ValueError("a NUL character")
+        Path(value).expanduser()
+    except (ValueError, RuntimeError) as exc:  # (unencodable, NUL, ~unknown-user)
+        raise SceneError(name, f"not a usable file name ({str(exc).splitlines()[0]})") from None
     return value
 
 
@@ -363,7 +417,7 @@ def lps_fields(space: str, fields: dict) -> dict:
 def parse_mode(value) -> str:
     """``mode``: ``"rigid"`` or ``"similar"``."""
     if value not in ("rigid", "similar"):
-        raise SceneError("mode", f'expected "rigid" or "similar", got {json.dumps(value)}')
+        raise SceneError("mode", f'expected "rigid" or "similar", got {_shown(value)}')
     return value
 
 
@@ -377,7 +431,7 @@ def parse_solver(value) -> dict:
     if out["init"] not in ("identity", "previous", "solution"):
         raise SceneError(
             "solver.init",
-            f'expected "identity", "previous" or "solution", got {json.dumps(out["init"])}',
+            f'expected "identity", "previous" or "solution", got {_shown(out["init"])}',
         )
     return {k: out[k] for k in DEFAULT_SOLVER}
 
@@ -406,7 +460,9 @@ def parse_map(value) -> dict | None:
     if not (isinstance(inputs, str) and len(inputs) == 64
             and all(ch in "0123456789abcdef" for ch in inputs)):  # fmt: skip
         raise SceneError("map.inputs", "expected a sha256 digest (64 hexadecimal digits)")
-    return {"coefficients": _points(value["coefficients"], "map.coefficients"), "inputs": inputs}
+    coefficients = _matrix(value["coefficients"], "map.coefficients", (-1, 3),
+                           limit=2 * MAX_SCENE_ROWS)  # fmt: skip
+    return {"coefficients": coefficients.reshape(-1, 3), "inputs": inputs}
 
 
 def parse_solution(value) -> np.ndarray | None:

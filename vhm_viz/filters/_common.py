@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import warnings
 
+import numpy as np
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
 from vtkmodules.vtkCommonCore import vtkOutputWindow
 from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkPolyData
@@ -129,9 +130,10 @@ class DeformationSource(VTKPythonAlgorithmBase):
         """Run the filter's ``_execute``; errors end up in :attr:`last_error` (see ``update``).
 
         With :meth:`SetParallelReporting` (ParaView), the ranks first agree that the cage
-        reached all of them, and afterwards that all of them succeeded; an error is shown
-        once per failing rank as one line in VTK's output window and leaves an empty output
-        on every rank (no stale data, no traceback).
+        reached all of them, and afterwards that all of them succeeded; an error on any
+        rank becomes every rank's :attr:`last_error` (the first failing rank's line), is
+        shown once as one line in VTK's output window and leaves an empty output on every
+        rank (no stale data, no traceback, no rank left waiting).
         """
         if not self._parallel_reporting:
             return self._guard(self._execute, in_info, out_info)
@@ -144,15 +146,33 @@ class DeformationSource(VTKPythonAlgorithmBase):
             self._guard(self._execute, in_info, out_info)
         failed_here = self.last_error is not None and not isinstance(self.last_error, AbortedError)
         everyone_ok = _parallel.all_ranks(not failed_here)
-        everyone_failed = not _parallel.any_rank(not failed_here)
-        # the same mistake everywhere (no scene, a bad file) is said once, by rank 0
-        if failed_here and (not everyone_failed or _parallel.rank() == 0):
-            self._report(self.last_error)
         if not everyone_ok:
+            self._agree_on_error(failed_here)
             out = out_info.GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
             if out is not None:
                 out.Initialize()
         return 1
+
+    def _agree_on_error(self, failed_here: bool) -> None:
+        """Give every rank the same error: the first failing rank's, said once (collective).
+
+        Every rank ends the request with that one line in :attr:`last_error` (the
+        failing rank its own exception, the others a RuntimeError of the same text);
+        rank 0 shows it in VTK's output window, naming the failing rank unless every rank
+        failed (the same mistake everywhere: no scene, a bad file).
+        """
+        everyone_failed = not _parallel.any_rank(not failed_here)
+        text = _one_line(self.last_error) if failed_here else ""
+        codes = np.frombuffer(text.encode("utf-8", "replace")[:2000], dtype=np.uint8)
+        rows = np.column_stack([np.full(len(codes), _parallel.rank()), codes])
+        got = _parallel.gather_rows(rows, 2) if _parallel.process_count() > 1 else rows
+        first = int(got[:, 0].min())
+        agreed = bytes(got[got[:, 0] == first, 1].astype(np.uint8)).decode("utf-8", "replace")
+        if text != agreed:
+            self.last_error = RuntimeError(agreed)
+        if _parallel.rank() == 0:
+            where = "" if everyone_failed else f" (rank {first})"
+            vtkOutputWindow.GetInstance().DisplayErrorText(f"{self._label()}{where}: {agreed}\n")
 
     def SetParallelReporting(self, value: bool) -> None:
         """Report errors in VTK's output window and agree on them across MPI ranks.
@@ -172,11 +192,6 @@ class DeformationSource(VTKPythonAlgorithmBase):
         if getattr(self, name) != value:
             setattr(self, name, value)
             self.Modified()
-
-    def _report(self, error: Exception) -> None:
-        text = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        where = f" (rank {_parallel.rank()})" if _parallel.process_count() > 1 else ""
-        vtkOutputWindow.GetInstance().DisplayErrorText(f"{self._label()}{where}: {text}\n")
 
     def _label(self) -> str:
         return type(self).__name__
@@ -461,3 +476,9 @@ class DeformationSource(VTKPythonAlgorithmBase):
         except BaseException as exc:  # noqa: BLE001 -- handed back by update()
             self.last_error = exc
             return 1 if isinstance(exc, AbortedError) else 0
+
+
+def _one_line(error: BaseException) -> str:
+    """An error's first line (its type's name when it has no message)."""
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__

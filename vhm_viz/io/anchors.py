@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.io.errors import ReadError, first_line
+from vhm_viz.io.errors import ReadError, check_file_size, first_line
 from vhm_viz.io.markups import is_markups_path, read_markups, write_markups
 from vhm_viz.io.text import json_text, write_text
 
@@ -34,6 +34,7 @@ def read_anchors(path) -> np.ndarray:
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"no such anchors file: {p}")
+    check_file_size(p, "anchors")
     if is_markups_path(p):
         return read_markups(p)
     try:

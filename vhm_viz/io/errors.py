@@ -11,6 +11,29 @@ class TruncatedError(ReadError):
     """A file that ends before what its header announces."""
 
 
+#: The largest cage or anchor-point file read (bytes): a cage of a million faces takes
+#: some 40 MB as OBJ; what lies beyond is no cage a harmonic map can be solved on, and
+#: reading it would take the memory of many copies of it.
+MAX_POINT_FILE_BYTES = 64 * 2**20
+
+
+def check_file_size(path, what: str, limit: int = MAX_POINT_FILE_BYTES) -> None:
+    """Raise :class:`ReadError` for a file ``path`` larger than ``limit`` bytes, unread.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The file, named in the message.
+    what : str
+        What the file should hold (``"cage"``).
+    limit : int
+        Bytes.
+    """
+    size = path.stat().st_size
+    if size > limit:
+        raise ReadError(f"{path}: {size} bytes: {what} files may hold at most {limit} bytes")
+
+
 def need(path, what: str, needed: int, available: int) -> None:
     """Raise :class:`TruncatedError` when ``what`` needs more bytes than are available.
 

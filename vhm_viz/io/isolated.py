@@ -59,6 +59,11 @@ def read_isolated(path, read, what: str = "the reader"):
         try:
             faulthandler.disable()  # a crash here is expected and reported by the parent
             os.close(read_end)
+            # what a library prints (MetaIO's complaints on std::cerr) is not for the user:
+            # the child's result or error goes back through the pipe, as one line
+            quiet = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(quiet, 1)
+            os.dup2(quiet, 2)
             _limit_memory(p)
             try:
                 data = read(p)

@@ -1,0 +1,30 @@
+"""Update one vhm_viz filter on every rank and print each rank's error and output size.
+
+Usage: ``mpiexec -n N pvbatch --symmetric rank_errors.py CONFIG.json`` with CONFIG holding
+``input`` (a volume), optional ``voi`` (a sub-extent of it: fewer planes than ranks leave
+a rank with an empty piece), ``filter``, ``scene`` and ``cage``. Every rank runs this
+script (``--symmetric``) and prints ``vhm-rank R: points N error TEXT vhm-end``: its filter's
+output size and ``last_error``.
+"""
+
+import json
+import sys
+
+import paraview.simple as pvs
+from vtkmodules.vtkParallelCore import vtkMultiProcessController as C
+
+cfg = json.load(open(sys.argv[1]))
+c = C.GetGlobalController()
+rank = 0 if c is None else c.GetLocalProcessId()
+src = pvs.OpenDataFile(cfg["input"])
+if cfg.get("voi"):
+    src = pvs.ExtractSubset(Input=src, VOI=cfg["voi"])
+cage = pvs.OpenDataFile(cfg["cage"])
+flt = getattr(pvs, cfg["filter"])(Input=src, Cage=cage, SceneFile=cfg["scene"])
+pvs.UpdatePipeline(proxy=flt)
+obj = flt.GetClientSideObject()
+out = obj.GetOutputDataObject(0)
+# (the ranks share one stdout: a line may start after another rank's unfinished one)
+print(
+    f"vhm-rank {rank}: points {out.GetNumberOfPoints()} error {obj.last_error} vhm-end", flush=True
+)
