@@ -5,15 +5,18 @@ cage padded around the data's bounds with anchors on its long axis, the data's a
 cage, or a hand-made cage from ``../shared/data``; one end bent and twisted), then runs
 ``python -m vhm_viz.cli ...`` as a child process: read, solve, map, checks, write. A
 warm-up run fills the compiled-code cache first (``--cold`` instead times runs with an
-empty cache). For each case the table gives the wall time (median and spread), the peak
-resident memory of the process (``wait4``'s ``ru_maxrss``) and, where the command prints
-``--timings``, the stage breakdown.
+empty cache: ``--cold --only demo`` is the first run on a fresh machine). For each case
+the table gives the wall time (median and spread), the process's CPU time (user + system,
+``wait4``'s ``ru_utime + ru_stime``: compiling is single-threaded, so on a shared machine
+it is the steadier measure of a cold run), the peak resident memory (``ru_maxrss``) and,
+where the command prints ``--timings``, the stage breakdown.
 
     python benchmarks/bench_cli.py                     # the default set
     python benchmarks/bench_cli.py --only ct           # cases whose name contains "ct"
     python benchmarks/bench_cli.py --repo ../old -r 3  # another checkout's vhm_viz
     python benchmarks/bench_cli.py --compare ../old    # alternate two checkouts, one table
     python benchmarks/bench_cli.py --busy              # also with a busy process beside it
+    python benchmarks/bench_cli.py --cold --only demo -r 2  # the first run of the demo
 
 Needs ``../shared/data``. Prints the machine's load average before and after.
 """
@@ -218,14 +221,21 @@ def cases(big: bool) -> list[Case]:
             output="",
         )
     )
+    out.append(
+        Case(
+            "demo (bundled bar: surface, tets, volume, figures)",
+            Path(),
+            ["demo", "-o", "{out}", "-q"],
+        )
+    )
     return out
 
 
 # ----------------------------------------------------------------------------------------
 # running
 # ----------------------------------------------------------------------------------------
-def run_once(cmd: list, env: dict, cwd: Path) -> tuple[float, float, str, int]:
-    """Wall seconds, peak RSS (MB), stderr text and exit status of one child process."""
+def run_once(cmd: list, env: dict, cwd: Path) -> tuple[float, float, float, str, int]:
+    """Wall seconds, CPU seconds, peak RSS (MB), stderr text and exit status of one child."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         cmd, env=env, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
@@ -234,7 +244,8 @@ def run_once(cmd: list, env: dict, cwd: Path) -> tuple[float, float, str, int]:
     _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
     wall = time.perf_counter() - t0
-    return wall, usage.ru_maxrss / 1024.0, err, proc.returncode
+    cpu = usage.ru_utime + usage.ru_stime
+    return wall, cpu, usage.ru_maxrss / 1024.0, err, proc.returncode
 
 
 def parse_timings(err: str) -> dict:
@@ -324,7 +335,10 @@ def main(argv=None) -> int:
                         cmd = [sys.executable, "-m", "vhm_viz.cli", *argv_]
                         busy = busy_process() if loaded else None
                         try:
-                            wall, rss, err, code = run_once(cmd, environment(repo, cache), scratch)
+                            load = os.getloadavg()[0]
+                            wall, cpu, rss, err, code = run_once(
+                                cmd, environment(repo, cache), scratch
+                            )
                         finally:
                             if busy is not None:
                                 busy.kill()
@@ -332,13 +346,22 @@ def main(argv=None) -> int:
                         if code != 0 and "unrecognized arguments: --timings" in err:
                             argv_.remove("--timings")
                             cmd = [sys.executable, "-m", "vhm_viz.cli", *argv_]
-                            wall, rss, err, code = run_once(cmd, environment(repo, cache), scratch)
+                            wall, cpu, rss, err, code = run_once(
+                                cmd, environment(repo, cache), scratch
+                            )
                         if code != 0:
                             print(f"{case.name}: exit {code}: {err.strip()[-400:]}", flush=True)
                         if rep == 0 and not args.cold:
                             continue  # warm-up: fills the compiled-code cache
                         runs[str(repo)].append(
-                            {"wall": wall, "rss": rss, "code": code, "stages": parse_timings(err)}
+                            {
+                                "wall": wall,
+                                "cpu": cpu,
+                                "rss": rss,
+                                "load": load,
+                                "code": code,
+                                "stages": parse_timings(err),
+                            }
                         )
                 for repo in repos:
                     results.append(
@@ -351,7 +374,10 @@ def main(argv=None) -> int:
                     )
                     print(
                         f"  {case.name}{' (busy)' if loaded else ''} [{repo.name}]: "
-                        + ", ".join(f"{r['wall']:.2f}s" for r in runs[str(repo)]),
+                        + ", ".join(
+                            f"{r['wall']:.2f}s (cpu {r['cpu']:.1f}s, load {r['load']:.1f})"
+                            for r in runs[str(repo)]
+                        ),
                         flush=True,
                     )
     finally:
@@ -362,6 +388,7 @@ def main(argv=None) -> int:
         w = [r["wall"] for r in res["runs"]]
         if not w:
             continue
+        c = [r["cpu"] for r in res["runs"]]
         m = [r["rss"] for r in res["runs"]]
         stages = {}
         for s in STAGES:
@@ -376,6 +403,7 @@ def main(argv=None) -> int:
             [
                 label,
                 f"{statistics.median(w):.2f} s ({min(w):.2f}-{max(w):.2f})",
+                f"{statistics.median(c):.2f} s ({min(c):.2f}-{max(c):.2f})",
                 f"{statistics.median(m):.0f} MB",
                 " ".join(f"{s} {stages[s]:.2f}" for s in STAGES if s in stages) or "-",
                 str(failed) if failed else "",
@@ -384,7 +412,11 @@ def main(argv=None) -> int:
     print()
     kind = "cold (empty compiled-code cache)" if args.cold else "warm (cache filled)"
     print(f"vhm-viz commands, fresh process each, {kind}, n={args.repeats}")
-    print_table(["case", "wall, median (min-max)", "peak RSS", "stages (s)", "failed"], rows)
+    print_table(
+        ["case", "wall, median (min-max)", "CPU, median (min-max)", "peak RSS", "stages (s)",
+         "failed"],
+        rows,
+    )  # fmt: skip
     print(f"\nload average after: {os.getloadavg()}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))

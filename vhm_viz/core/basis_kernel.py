@@ -16,7 +16,7 @@ import numba
 import numpy as np
 
 from vhm_viz.core.basis_lanes import lanes_kernel
-from vhm_viz.core.cage_tables import CageTables, kernel_arrays
+from vhm_viz.core.cage_tables import CageTables, kernel_arrays, read_only
 from vhm_viz.core.exact_cross import cross_exact
 
 __all__ = ["NEAR_EDGE", "compiled_evaluation", "lanes_evaluation", "per_point_evaluation"]
@@ -300,7 +300,7 @@ def per_point_evaluation(p: np.ndarray, cd: CageTables, order: int, host: np.nda
     if npts:
         # the per-point kernel takes face_edge_sign after face_edges
         _basis_kernel(
-            p,
+            read_only(p),
             *kernel_arrays(cd),
             cd.face_edge_sign,
             host,
@@ -344,7 +344,9 @@ def lanes_evaluation(p: np.ndarray, cd: CageTables, order: int, host: np.ndarray
     gradients = np.empty((npts, 3, nm)) if order >= 1 else np.zeros((0, 3, 0))
     flagged = np.zeros(npts, dtype=np.bool_)
     if npts:
-        lanes_kernel(p, *kernel_arrays(cd), host, NEAR_EDGE, order, values, gradients, flagged)
+        lanes_kernel(
+            read_only(p), *kernel_arrays(cd), host, NEAR_EDGE, order, values, gradients, flagged
+        )
     return values, (gradients if order >= 1 else None), flagged
 
 

@@ -25,8 +25,12 @@ Making LLVM vectorise these loops took some care, and the rules are easy to brea
   unrolled body is not vectorised.
 * A loop writes into one array at one base only (several rows of one array, at unrelated
   offsets, count as a possible dependence), so results go through a small buffer.
-* The per-face helpers are inlined at numba level: a call passes every array as a dozen
-  scalars, more work than a 16-lane loop.
+* Only a face's values (called once per face of every group) are inlined at numba level.
+  The other helpers are plain compiled functions: LLVM inlines the small ones into their
+  loops, and the large ones (a group's basis, every face's terms) are compiled once and
+  shared by the kernels here. numba's inlining copies and re-analyses the callee at every
+  call site, which made these kernels the slowest part of a first run; a call per group
+  of 16 points costs nothing measurable.
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ _U = np.uint64
 _S = _U(LANES)  # row length of the flat scratch arrays, as an unsigned offset
 
 
-@numba.njit(**_INLINE)
+@numba.njit(**_JIT)
 def _vectors_to_vertices(pts, V, E, L):  # pragma: no cover - compiled
     """Rows ``x, y, z, |e|`` of ``e = x_a - p`` for every cage vertex ``a``: ``E[4a + c]``."""
     S = _S
@@ -73,14 +77,14 @@ def _vectors_to_vertices(pts, V, E, L):  # pragma: no cover - compiled
             E[base + _U(3) * S + j] = math.sqrt(x * x + y * y + z * z)
 
 
-@numba.njit(**_INLINE)
+@numba.njit(**_JIT)
 def _corner(E, base, j):  # pragma: no cover - compiled
     """Lane ``j`` of the rows ``x, y, z, |e|`` of one cage vertex starting at ``base``."""
     S = _S
     return E[base + j], E[base + S + j], E[base + _U(2) * S + j], E[base + _U(3) * S + j]
 
 
-@numba.njit(**_INLINE)
+@numba.njit(**_JIT)
 def _solid_angle_den(x0, y0, z0, l0, x1, y1, z1, l1, x2, y2, z2, l2):  # pragma: no cover
     """Denominator of the solid angle's ``atan2`` (Van Oosterom and Strackee) from corners."""
     return (
@@ -91,7 +95,7 @@ def _solid_angle_den(x0, y0, z0, l0, x1, y1, z1, l1, x2, y2, z2, l2):  # pragma:
     )
 
 
-@numba.njit(**_INLINE)
+@numba.njit(**_JIT)
 def _edge_logs(E, edges, edge_len, inv_4pi_len, near_edge, ce, near, L):  # pragma: no cover
     """Per edge and lane: ``C = log(1 + 2|d| / (R - |d|)) / (4 pi |d|)``; flags near edges.
 
@@ -176,7 +180,7 @@ def _face_values(E, ce, b0, b1, b2, q0, q1, q2, n_t, NxD_t, ia, buf, L):  # prag
         buf[_U(6) * S + j] = qz
 
 
-@numba.njit(**_INLINE)
+@numba.njit(**_JIT)
 def _scatter(dst, dst_off, buf, buf_row, scale, add, L):  # pragma: no cover - compiled
     """``dst[dst_off + j] (+)= scale * buf[buf_row * LANES + j]``."""
     src = _U(buf_row) * _S
@@ -188,7 +192,7 @@ def _scatter(dst, dst_off, buf, buf_row, scale, add, L):  # pragma: no cover - c
             dst[dst_off + j] = scale * buf[src + j]
 
 
-@numba.njit(**_INLINE)
+@numba.njit(**_JIT)
 def _face_terms(E, ce, F, N, inv_twice_area, D, NxD, face_edges, order, acc, accg, buf, L):
     """Add every face's contribution to the basis values (and gradients), lane by lane.
 
@@ -238,7 +242,7 @@ def _face_terms(E, ce, F, N, inv_twice_area, D, NxD, face_edges, order, acc, acc
                     _scatter(accg, row, buf, 4 + c2, -D[t, v, c1] * ia, True, L)
 
 
-@numba.njit(**_INLINE)
+@numba.njit(**_JIT)
 def _group_basis(
     points, k0, host, V, F, N, inv_twice_area, D, NxD, edges, edge_len, inv_4pi_len,
     face_edges, near_edge, order, pts, near, E, ce, acc, accg, buf, L,

@@ -36,7 +36,7 @@ DEGENERATE_RTOL = 1e-12
 _JACOBI_SWEEPS = 30
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _rotate_columns(x0, x1, x2, y0, y1, y2):  # pragma: no cover - compiled
     """One Jacobi rotation making columns ``x`` and ``y`` orthogonal.
 
@@ -58,7 +58,7 @@ def _rotate_columns(x0, x1, x2, y0, y1, y2):  # pragma: no cover - compiled
     )  # fmt: skip
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _jacobi_singular_values(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pragma: no cover
     """Singular values of a 3 x 3 matrix by one-sided Jacobi rotations of its columns.
 

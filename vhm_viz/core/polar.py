@@ -18,7 +18,7 @@ import numpy as np
 __all__ = ["project_blocks", "project_stack"]
 
 
-@numba.njit(cache=True, fastmath=False, inline="always")
+@numba.njit(cache=True, fastmath=False)
 def _jacobi_eigen3(s00, s01, s02, s11, s12, s22, V):  # pragma: no cover - compiled
     """Eigen-decomposition of a symmetric 3x3 matrix by cyclic Jacobi rotations.
 
@@ -177,7 +177,7 @@ def _polar_block(M, out, similar):  # pragma: no cover - compiled
         _scale_to_similarity(M, out)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _scale_to_similarity(M, out):  # pragma: no cover - compiled
     """Scale the rotation ``out`` to the closest similarity ``s R`` of ``M``.
 
@@ -194,7 +194,7 @@ def _scale_to_similarity(M, out):  # pragma: no cover - compiled
             out[i, j] *= s
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _newton_polar(M, out):  # pragma: no cover - compiled
     """Orthogonal polar factor of a 3x3 matrix with ``det > 0`` by scaled Newton iteration.
 

@@ -16,7 +16,7 @@ import numpy as np
 N_TERMS = 8
 
 
-@numba.njit(inline="always", cache=True)
+@numba.njit(cache=True)
 def _term(du, dv, dw):  # pragma: no cover - compiled
     """Index of the node term ``d^(du+dv+dw) f / du^du dv^dv dw^dw``."""
     if du + dv + dw == 0:
@@ -28,7 +28,7 @@ def _term(du, dv, dw):  # pragma: no cover - compiled
     return 7
 
 
-@numba.njit(inline="always", cache=True)
+@numba.njit(cache=True)
 def _weights(t, h):  # pragma: no cover - compiled
     """Cubic Hermite weights on ``[0, h]`` at ``t * h`` and their u-derivatives.
 
@@ -143,6 +143,31 @@ def control_points(data, rows, h, cp):  # pragma: no cover - compiled
                     )
 
 
+@numba.njit(cache=True)
+def inverse3(g, out):  # pragma: no cover - compiled
+    """``out = g^-1`` of a 3x3 matrix by its adjugate; False when ``g`` is singular.
+
+    Singular: ``|det g| <= 1e-300`` or not finite; ``out`` is then left untouched.
+    """
+    c00 = g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1]
+    c01 = g[1, 2] * g[2, 0] - g[1, 0] * g[2, 2]
+    c02 = g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]
+    det = g[0, 0] * c00 + g[0, 1] * c01 + g[0, 2] * c02
+    if not abs(det) > 1e-300:
+        return False
+    r = 1.0 / det
+    out[0, 0] = c00 * r
+    out[1, 0] = c01 * r
+    out[2, 0] = c02 * r
+    out[0, 1] = (g[0, 2] * g[2, 1] - g[0, 1] * g[2, 2]) * r
+    out[1, 1] = (g[0, 0] * g[2, 2] - g[0, 2] * g[2, 0]) * r
+    out[2, 1] = (g[0, 1] * g[2, 0] - g[0, 0] * g[2, 1]) * r
+    out[0, 2] = (g[0, 1] * g[1, 2] - g[0, 2] * g[1, 1]) * r
+    out[1, 2] = (g[0, 2] * g[1, 0] - g[0, 0] * g[1, 2]) * r
+    out[2, 2] = (g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]) * r
+    return True
+
+
 @numba.njit(parallel=True, cache=True)
 def leaf_summaries(data, rows, size, centre_f, centre_ginv, rho):  # pragma: no cover
     """Per leaf: value and inverse u-Jacobian at the centre, and the nonlinearity ``rho``.
@@ -157,12 +182,12 @@ def leaf_summaries(data, rows, size, centre_f, centre_ginv, rho):  # pragma: no 
         g = np.empty((3, 3))
         f = np.empty(3)
         cell_eval(data, rows[n], h, 0.5, 0.5, 0.5, f, g, True)
-        if abs(np.linalg.det(g)) > 1e-300:
-            gi = np.linalg.inv(g)
-        else:
-            gi = np.full((3, 3), np.nan)
-        centre_f[n] = f
-        centre_ginv[n] = gi
+        gi = np.full((3, 3), np.nan)
+        inverse3(g, gi)
+        for i in range(3):
+            centre_f[n, i] = f[i]
+            for j in range(3):
+                centre_ginv[n, i, j] = gi[i, j]
         cp = np.empty((64, 3))
         control_points(data, rows[n], h, cp)
         worst = 0.0
@@ -189,59 +214,40 @@ def _owned_range(o, h, end, lo, hi):  # pragma: no cover - compiled
     return a, min(b, hi)
 
 
-@numba.njit(inline="always", cache=True)
-def _owned_box(origin, h, end, box, n):  # pragma: no cover - compiled
-    """The voxels of ``box`` owned by leaf ``n``: ``(ia, ib, ja, jb, ka, kb)`` inclusive."""
+@numba.njit(cache=True)
+def _owned_box(leaves, q, origin, size, end, box):  # pragma: no cover - compiled
+    """Leaf ``n = leaves[q]``, its size as a float and the voxels of ``box`` it owns.
+
+    Returns ``(n, h, ia, ib, ja, jb, ka, kb)``, the voxel ranges inclusive.
+    """
+    n = leaves[q]
+    h = size[n]
     ia, ib = _owned_range(origin[n, 0], h, end[0], box[0], box[1])
     ja, jb = _owned_range(origin[n, 1], h, end[1], box[2], box[3])
     ka, kb = _owned_range(origin[n, 2], h, end[2], box[4], box[5])
-    return ia, ib, ja, jb, ka, kb
+    return n, float(h), ia, ib, ja, jb, ka, kb
 
 
 @numba.njit(parallel=True, cache=True)
-def leaf_voxels(data, rows, origin, size, leaves, end, box, mask, jacobians, to_index, out):
-    """Interpolated positions (or u-Jacobians) of the inside voxels of a box, leaf by leaf.
+def leaf_voxels(data, rows, origin, size, leaves, end, box, mask, out):  # pragma: no cover
+    """Interpolated positions of the inside voxels of a box, leaf by leaf.
 
     ``box = (i0, i1, j0, j1, k0, k1)`` (inclusive voxel ranges); ``out`` is the box's
-    (P, 3) positions or (P, 3, 3) world Jacobians ``df/du @ to_index`` (``jacobians``;
-    ``to_index`` = du/dx), i fastest. Positions are
-    evaluated separably: per voxel row the polynomial is reduced to 4 cubic terms in u,
-    then each voxel costs 12 products.
+    (P, 3) positions, i fastest. Positions are evaluated separably: per voxel row the
+    polynomial is reduced to 4 cubic terms in u, then each voxel costs 12 products.
     """
     nx = box[1] - box[0] + 1
     ny = box[3] - box[2] + 1
     for q in numba.prange(leaves.shape[0]):
-        n = leaves[q]
-        h = size[n]
-        hf = float(h)
-        ia, ib, ja, jb, ka, kb = _owned_box(origin, h, end, box, n)
+        n, hf, ia, ib, ja, jb, ka, kb = _owned_box(leaves, q, origin, size, end, box)
         wv = np.empty(4)
         ww = np.empty(4)
         qrow = np.empty((2, 2, 3))
-        f = np.empty(3)
-        g = np.empty((3, 3))
-        gw = np.empty((3, 3))
         r = rows[n]
         for k in range(ka, kb + 1):
             ww[0], ww[1], ww[2], ww[3], _, _, _, _ = _weights((k - origin[n, 2]) / hf, hf)
             for j in range(ja, jb + 1):
                 base = ((k - box[4]) * ny + (j - box[2])) * nx - box[0]
-                if jacobians:
-                    for i_ in range(ia, ib + 1):
-                        if mask[k, j, i_]:
-                            cell_eval(
-                                data, r, hf, (i_ - origin[n, 0]) / hf, (j - origin[n, 1]) / hf,
-                                (k - origin[n, 2]) / hf, f, g, True,
-                            )  # fmt: skip
-                            for a in range(3):
-                                for b in range(3):
-                                    gw[a, b] = (
-                                        g[a, 0] * to_index[0, b]
-                                        + g[a, 1] * to_index[1, b]
-                                        + g[a, 2] * to_index[2, b]
-                                    )
-                            out[base + i_] = gw
-                    continue
                 wv[0], wv[1], wv[2], wv[3], _, _, _, _ = _weights((j - origin[n, 1]) / hf, hf)
                 # reduce to 4 terms in u: qrow[a, ku] = sum over (b, c, kv, kw)
                 qrow[:] = 0.0
@@ -270,6 +276,39 @@ def leaf_voxels(data, rows, origin, size, leaves, end, box, mask, jacobians, to_
 
 
 @numba.njit(parallel=True, cache=True)
+def leaf_jacobians(data, rows, origin, size, leaves, end, box, mask, to_index, out):
+    """World Jacobians ``df/du @ to_index`` of the inside voxels of a box, leaf by leaf.
+
+    As :func:`leaf_voxels`, with ``out`` the box's (P, 3, 3) Jacobians (``to_index`` =
+    du/dx): a kernel of its own, so that a command that only warps never compiles it.
+    """
+    nx = box[1] - box[0] + 1
+    ny = box[3] - box[2] + 1
+    for q in numba.prange(leaves.shape[0]):
+        n, hf, ia, ib, ja, jb, ka, kb = _owned_box(leaves, q, origin, size, end, box)
+        f = np.empty(3)
+        g = np.empty((3, 3))
+        r = rows[n]
+        for k in range(ka, kb + 1):
+            for j in range(ja, jb + 1):
+                base = ((k - box[4]) * ny + (j - box[2])) * nx - box[0]
+                for i_ in range(ia, ib + 1):
+                    if not mask[k, j, i_]:
+                        continue
+                    cell_eval(
+                        data, r, hf, (i_ - origin[n, 0]) / hf, (j - origin[n, 1]) / hf,
+                        (k - origin[n, 2]) / hf, f, g, True,
+                    )  # fmt: skip
+                    for a in range(3):
+                        for b in range(3):
+                            out[base + i_, a, b] = (
+                                g[a, 0] * to_index[0, b]
+                                + g[a, 1] * to_index[1, b]
+                                + g[a, 2] * to_index[2, b]
+                            )
+
+
+@numba.njit(parallel=True, cache=True)
 def eval_points(data, rows, origin, size, leaf, u, f, g):  # pragma: no cover - compiled
     """Value ``f`` (P, 3) and u-gradient ``g`` (P, 3, 3) at points ``u`` of leaves ``leaf``."""
     for p in numba.prange(u.shape[0]):
@@ -281,5 +320,7 @@ def eval_points(data, rows, origin, size, leaf, u, f, g):  # pragma: no cover - 
             data, rows[n], h, (u[p, 0] - origin[n, 0]) / h, (u[p, 1] - origin[n, 1]) / h,
             (u[p, 2] - origin[n, 2]) / h, fp, gp, True,
         )  # fmt: skip
-        f[p] = fp
-        g[p] = gp
+        for i in range(3):
+            f[p, i] = fp[i]
+            for j in range(3):
+                g[p, i, j] = gp[i, j]

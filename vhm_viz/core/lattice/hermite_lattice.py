@@ -9,7 +9,7 @@ import numpy as np
 
 from vhm_viz.core.image import BORDER, ImageGeometry
 from vhm_viz.core.lattice.cage_edges import bin_edges, points_near_binned_edges
-from vhm_viz.core.lattice.hermite import eval_points, leaf_voxels
+from vhm_viz.core.lattice.hermite import eval_points, leaf_jacobians, leaf_voxels
 from vhm_viz.core.lattice.pullback import (
     MARGIN,
     candidate_rows,
@@ -124,15 +124,15 @@ class HermiteLattice:
         b = np.asarray(box, dtype=np.int64)
         leaf_voxels(
             self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaves_in(b),
-            self.end, b, self.mask, False, np.eye(3), out,
+            self.end, b, self.mask, out,
         )  # fmt: skip
 
     def jacobians(self, box, out) -> None:
         """World Jacobians ``J[p, i, j] = d f_i / d x_j`` of the inside voxels of ``box``."""
         b = np.asarray(box, dtype=np.int64)
-        leaf_voxels(
+        leaf_jacobians(
             self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaves_in(b),
-            self.end, b, self.mask, True, self.geometry.world_to_index, out,
+            self.end, b, self.mask, self.geometry.world_to_index, out,
         )  # fmt: skip
 
 

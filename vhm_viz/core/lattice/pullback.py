@@ -16,7 +16,7 @@ import numba
 import numpy as np
 
 from vhm_viz.core.image import BORDER, inside_mask, surface_mask
-from vhm_viz.core.lattice.hermite import cell_eval, control_points
+from vhm_viz.core.lattice.hermite import cell_eval, control_points, inverse3
 
 # Newton on a cell's polynomial: converged when the step is below this (voxels; the step
 # is applied, and convergence is quadratic, so the pre-image is then good to ~1e-10) ...
@@ -318,23 +318,8 @@ def pull_back_rows(
                         data, rows[n], h, (u[0] - origin[n, 0]) / h, (u[1] - origin[n, 1]) / h,
                         (u[2] - origin[n, 2]) / h, f, g, True,
                     )  # fmt: skip
-                    det = (
-                        g[0, 0] * (g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1])
-                        - g[0, 1] * (g[1, 0] * g[2, 2] - g[1, 2] * g[2, 0])
-                        + g[0, 2] * (g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0])
-                    )
-                    if not abs(det) > 1e-300:
+                    if not inverse3(g, gi):
                         break
-                    inv = 1.0 / det
-                    gi[0, 0] = (g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1]) * inv
-                    gi[0, 1] = (g[0, 2] * g[2, 1] - g[0, 1] * g[2, 2]) * inv
-                    gi[0, 2] = (g[0, 1] * g[1, 2] - g[0, 2] * g[1, 1]) * inv
-                    gi[1, 0] = (g[1, 2] * g[2, 0] - g[1, 0] * g[2, 2]) * inv
-                    gi[1, 1] = (g[0, 0] * g[2, 2] - g[0, 2] * g[2, 0]) * inv
-                    gi[1, 2] = (g[0, 2] * g[1, 0] - g[0, 0] * g[1, 2]) * inv
-                    gi[2, 0] = (g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]) * inv
-                    gi[2, 1] = (g[0, 1] * g[2, 0] - g[0, 0] * g[2, 1]) * inv
-                    gi[2, 2] = (g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]) * inv
                     big = 0.0
                     for a in range(3):
                         d = 0.0
