@@ -39,6 +39,7 @@ __all__ = [
     "atomic_directory",
     "remove_stale_temporaries",
     "remove_temporaries_in_progress",
+    "process_running",
 ]
 
 
@@ -304,7 +305,8 @@ def _commit(moves: list[tuple[Path, Path]]) -> None:
         _remove(journal)
 
 
-def _running(pid: int) -> bool:
+def process_running(pid: int) -> bool:
+    """Whether process ``pid`` still runs (files named after it belong to a live process)."""
     if pid == os.getpid():
         return True
     try:
@@ -338,7 +340,7 @@ def remove_stale_temporaries(directory: str | os.PathLike) -> list[str]:
         entries = [e for e in os.scandir(directory) if _TEMPORARY.search(e.name)]
     except OSError:
         return []
-    stale = [e for e in entries if not _running(int(_TEMPORARY.search(e.name).group(1)))]
+    stale = [e for e in entries if not process_running(int(_TEMPORARY.search(e.name).group(1)))]
     handled = []
     for entry in sorted(stale, key=lambda e: not e.name.startswith(".vhm-set-")):
         path = Path(entry.path)

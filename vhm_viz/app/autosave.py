@@ -17,6 +17,7 @@ import re
 import time
 from pathlib import Path
 
+from vhm_viz.atomic import process_running
 from vhm_viz.io import write_text
 
 __all__ = ["Autosave", "AUTOSAVE_INTERVAL_S", "recoverable", "state_folder"]
@@ -40,18 +41,6 @@ def state_folder() -> Path:
     return Path(base) / "autosave"
 
 
-def _alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
-
-
 def recoverable(folder: str | os.PathLike | None = None) -> list[Path]:
     """Autosaves left by explorers that ended without closing their window, newest first.
 
@@ -71,7 +60,7 @@ def recoverable(folder: str | os.PathLike | None = None) -> list[Path]:
     found = []
     for path in folder.iterdir():
         match = _NAME.match(path.name)
-        if match and path.is_file() and not _alive(int(match.group(1))):
+        if match and path.is_file() and not process_running(int(match.group(1))):
             found.append(path)
     return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
 
