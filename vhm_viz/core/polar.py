@@ -218,7 +218,8 @@ def _newton_polar(M, out):  # pragma: no cover - compiled
     if not fro > 1e-200:
         return False
     small_steps = 0
-    for _it in range(30):
+    last = False  # converged: one more unscaled step reaches rounding level
+    for _it in range(31):
         c00 = x11 * x22 - x12 * x21
         c01 = x12 * x20 - x10 * x22
         c02 = x10 * x21 - x11 * x20
@@ -235,7 +236,7 @@ def _newton_polar(M, out):  # pragma: no cover - compiled
         if not det > 1e-21 * nrm2 * math.sqrt(nrm2):
             return False
         g = 1.0
-        if small_steps == 0:
+        if small_steps == 0 and not last:
             g = det ** (-1.0 / 3.0)
         a = 0.5 * g
         b = 0.5 / (g * det)
@@ -248,35 +249,18 @@ def _newton_polar(M, out):  # pragma: no cover - compiled
         n20 = a * x20 + b * c20
         n21 = a * x21 + b * c21
         n22 = a * x22 + b * c22
+        if last:
+            out[0, 0], out[0, 1], out[0, 2] = n00, n01, n02
+            out[1, 0], out[1, 1], out[1, 2] = n10, n11, n12
+            out[2, 0], out[2, 1], out[2, 2] = n20, n21, n22
+            return True
         ch = abs(n00 - x00) + abs(n01 - x01) + abs(n02 - x02) + abs(n10 - x10)
         ch += abs(n11 - x11) + abs(n12 - x12) + abs(n20 - x20) + abs(n21 - x21)
         ch += abs(n22 - x22)
         x00, x01, x02, x10, x11, x12, x20, x21, x22 = n00, n01, n02, n10, n11, n12, n20, n21, n22
         if ch < 1e-3:
             small_steps += 1  # quadratic phase: no more scaling
-        if ch < 1e-8:
-            # quadratic convergence: one more unscaled step reaches rounding level
-            c00 = x11 * x22 - x12 * x21
-            c01 = x12 * x20 - x10 * x22
-            c02 = x10 * x21 - x11 * x20
-            c10 = x02 * x21 - x01 * x22
-            c11 = x00 * x22 - x02 * x20
-            c12 = x01 * x20 - x00 * x21
-            c20 = x01 * x12 - x02 * x11
-            c21 = x02 * x10 - x00 * x12
-            c22 = x00 * x11 - x01 * x10
-            det = x00 * c00 + x01 * c01 + x02 * c02
-            b = 0.5 / det
-            out[0, 0] = 0.5 * x00 + b * c00
-            out[0, 1] = 0.5 * x01 + b * c01
-            out[0, 2] = 0.5 * x02 + b * c02
-            out[1, 0] = 0.5 * x10 + b * c10
-            out[1, 1] = 0.5 * x11 + b * c11
-            out[1, 2] = 0.5 * x12 + b * c12
-            out[2, 0] = 0.5 * x20 + b * c20
-            out[2, 1] = 0.5 * x21 + b * c21
-            out[2, 2] = 0.5 * x22 + b * c22
-            return True
+        last = ch < 1e-8
     return False
 
 
