@@ -1,7 +1,7 @@
 """A command killed outright (SIGKILL) leaves the complete old output set or the complete new one.
 
-A ``deform`` to ``.vts`` (one file) and to ``.mhd`` (headers and voxels of the scan and of
-its mask arrays), and an
+A ``deform`` to ``.vts`` (one file), to ``.mhd`` (headers and voxels of the scan and of
+its mask arrays) and to ``.nii.gz`` with its displacement field and their masks, and an
 ``analyze`` report (five files), are killed at random moments, most of them while the
 outputs are being written (from when the first temporary appears), some anywhere in the
 run. After each kill the output files must be byte for byte the previous set or the set
@@ -10,12 +10,13 @@ which the next write in the folder completes (:func:`vhm_viz.atomic.remove_stale
 called here as that next run would). Then one normal run: it must write the new set and
 leave no temporary of the killed runs behind.
 
-The suite kills the MetaImage ``deform`` three times; ``VHM_VIZ_KILLS=20`` runs the full
-check, 20 kills of each of the three commands (some minutes).
+Each command is killed 20 times (``VHM_VIZ_KILLS`` sets another count): a ``deform`` to
+``.vts``, to ``.mhd`` and to ``.nii.gz`` with ``--write-field``, and an ``analyze``.
 """
 
 from __future__ import annotations
 
+import gzip
 import os
 import random
 import signal
@@ -39,11 +40,24 @@ CASES = {
     "mhd": ("deform", "out.mhd", tuple(f"out{a}.{s}" for a in ("", "_vtkValidPointMask",
             "_vhm_foldover") for s in ("mhd", "raw")), 0.3),  # fmt: skip
     "analyze": ("analyze", "report", REPORT, 4.0),
+    # a resample with its displacement field: the image, its mask array, the field, its mask
+    "field": ("deform", "out.nii.gz", ("out.nii.gz", "out_vtkValidPointMask.nii.gz",
+              "out_vhm_foldover.nii.gz", "field.nii.gz", "field_mask.nii.gz"), 1.5),
 }
+#: Extra arguments of a case's command.
+EXTRA = {"field": lambda folder: ["--write-field", str(folder / "field.nii.gz")]}
+
+
+def _content(path: Path):
+    """A file's bytes (a gzip file's uncompressed bytes: its header holds a name and a time)."""
+    if not path.is_file():
+        return None
+    blob = path.read_bytes()
+    return gzip.decompress(blob) if blob[:2] == b"\x1f\x8b" else blob
 
 
 def _set_of(folder: Path, names) -> dict:
-    return {n: (folder / n).read_bytes() if (folder / n).is_file() else None for n in names}
+    return {n: _content(folder / n) for n in names}
 
 
 def _writing(folder: Path) -> bool:
@@ -63,29 +77,21 @@ def _kill_at_random(command: list, folder: Path, rng: random.Random, write_secon
     proc.wait(timeout=600)
 
 
-#: Kills per case of the full run (``VHM_VIZ_KILLS=20``: 60 runs, minutes); the suite
-#: kills the MetaImage pair's ``deform`` a few times.
-FULL_KILLS = int(os.environ.get("VHM_VIZ_KILLS", "0"))
-_FULL = [
-    pytest.mark.slow,
-    pytest.mark.skipif(not FULL_KILLS, reason="set VHM_VIZ_KILLS=20 for the full run"),
-]
+#: Kills per command (``VHM_VIZ_KILLS`` sets another count).
+KILLS = int(os.environ.get("VHM_VIZ_KILLS", "20"))
 
 
-@pytest.mark.parametrize(
-    ("case", "kills"),
-    [("mhd", 3), pytest.param("mhd", FULL_KILLS, marks=_FULL),
-     pytest.param("vts", FULL_KILLS, marks=_FULL),
-     pytest.param("analyze", FULL_KILLS, marks=_FULL)],
-)  # fmt: skip
-def test_a_killed_command_leaves_the_old_set_or_the_new_one(tmp_path, case, kills):
+@pytest.mark.parametrize("case", list(CASES))
+def test_a_killed_command_leaves_the_old_set_or_the_new_one(tmp_path, case):
+    kills = KILLS
     command_name, output, names, write_seconds = CASES[case]
     head = data_path("volumes", "headsq_64x64x93.vti")
     out = tmp_path / output
     folder = out if command_name == "analyze" else tmp_path
     folder.mkdir(exist_ok=True)
+    extra = EXTRA[case](folder) if case in EXTRA else []
     command = [sys.executable, "-m", "vhm_viz.cli", command_name, str(head), "--scene",
-               str(SCENE), "-o", str(out), "-q"]  # fmt: skip
+               str(SCENE), "-o", str(out), "-q", *extra]  # fmt: skip
     old = {n: f"the previous {n}\n".encode() for n in names}
     rng = random.Random(36)
     states = []

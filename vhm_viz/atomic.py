@@ -146,22 +146,28 @@ def atomic_output_set(paths) -> Iterator[list[Path]]:
         Where to write each output, in the order of ``paths``.
     """
     finals = [Path(p) for p in paths]
-    for directory in {_directory_of(p) for p in finals}:
+    # outputs in a folder an enclosing atomic_directory block stages: written into its
+    # staging folder, moved with the rest of that set when the block ends
+    staged = {k: _enclosing[_key(p.parent)] / p.name
+              for k, p in enumerate(finals) if _key(p.parent) in _enclosing}  # fmt: skip
+    own = [p for k, p in enumerate(finals) if k not in staged]
+    for directory in {_directory_of(p) for p in own}:
         remove_stale_temporaries(directory)
     temps: list[Path] = []
     try:
         with interrupts.deferred():  # own the temporaries before an interrupt can strike
-            for final in finals:
+            for final in own:
                 temps.append(_create_temporary(final))
                 _in_progress.add(temps[-1])
-        yield list(temps)
+        mine = iter(temps)
+        yield [staged[k] if k in staged else next(mine) for k in range(len(finals))]
         for tmp in temps:
             # the data reaches the disk before the names do: a power loss leaves the old
             # file or the whole new one, never an empty file under the final name
             _sync_file(tmp)
         with interrupts.deferred():
             interrupts.check()  # an interrupt received (even one VTK swallowed): no rename
-            _commit(list(zip(temps, finals, strict=True)))
+            _commit(list(zip(temps, own, strict=True)))
             _in_progress.difference_update(temps)
             temps = []
     finally:
@@ -200,7 +206,10 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
     Everything written into the staging folder appears in ``directory`` as one set
     (:func:`atomic_output_set`: the previous files or the new ones, never a mix) when the
     block ends without an error or interrupt; otherwise ``directory`` keeps its previous
-    files, byte for byte, and the staging folder is removed.
+    files, byte for byte, and the staging folder is removed. Atomic writes of this process
+    into ``directory`` inside the block (:func:`atomic_path`, :func:`atomic_output_set`, a
+    nested :func:`atomic_directory`) join the set: the command line writes an image, the
+    arrays beside it and a displacement field as one set this way.
 
     Parameters
     ----------
@@ -217,6 +226,9 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
         stay on one file system).
     """
     directory = Path(directory)
+    if _key(directory) in _enclosing:  # inside a block staging this folder: part of its set
+        yield _enclosing[_key(directory)]
+        return
     directory.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(directory)
     stage = None
@@ -225,7 +237,9 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
             stage = directory / f".vhm-staging.{_token()}"
             stage.mkdir()
             _in_progress.add(stage)
+            _enclosing[_key(directory)] = stage
         yield stage
+        del _enclosing[_key(directory)]
         names = sorted(p.name for p in stage.iterdir() if p.is_file())
         if last in names:
             names.remove(last)
@@ -238,12 +252,21 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
     finally:
         if stage is not None:
             with interrupts.deferred():
+                _enclosing.pop(_key(directory), None)
                 shutil.rmtree(stage, ignore_errors=True)
                 _in_progress.discard(stage)
 
 
 #: This process's temporaries and staging folders not yet renamed or removed.
 _in_progress: set[Path] = set()
+
+#: Folder -> the staging folder of the :func:`atomic_directory` block open on it: every
+#: atomic write into that folder meanwhile joins the block's set.
+_enclosing: dict[Path, Path] = {}
+
+
+def _key(directory: Path) -> Path:
+    return Path(os.path.abspath(directory if str(directory) else "."))
 
 
 def remove_temporaries_in_progress() -> None:

@@ -41,6 +41,7 @@ from vhm_viz.core.image import INTERPOLATIONS
 from vhm_viz.core.volume import DEFAULT_TOLERANCE
 from vhm_viz.io import (
     DATASET_SUFFIXES,
+    atomic_outputs,
     is_image_format,
     output_suffixes,
     read_dataset,
@@ -251,8 +252,9 @@ def deform(args: argparse.Namespace) -> str:
     with timer.stage("checks"):
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
         warning = _check_folds(mesh, result, dfm, flt, resample)
-    with timer.stage("write"):
-        written = write_dataset(out, result, inputs=inputs)  # arrays beside it too
+    # the output, the arrays beside it and a field in the same folder appear as one set
+    with timer.stage("write"), atomic_outputs(out.parent):
+        written = write_dataset(out, result, inputs=inputs)
         field_written = "" if field is None else "; " + write_field(field, field_paths)
     seconds = time.perf_counter() - t0
     if warning:
