@@ -136,6 +136,11 @@ def _distance_to_triangles(points, vertices, faces):
     return cKDTree(samples).query(points)[0]
 
 
+#: ``subprocess.run`` arguments that decode a child's output as UTF-8 (what vhm_viz prints),
+#: whatever the locale of the test process (an ASCII one fails on a non-ASCII name).
+UTF8 = {"text": True, "encoding": "utf-8", "errors": "replace"}
+
+
 def subprocess_env() -> dict:
     """The environment for a child Python process that must import this checkout."""
     import os

@@ -23,7 +23,7 @@ import pytest
 
 pv = pytest.importorskip("pyvista")
 
-from conftest import subprocess_env  # noqa: E402
+from conftest import UTF8, subprocess_env  # noqa: E402
 
 from vhm_viz import read_cage, read_dataset  # noqa: E402
 from vhm_viz.core.errors import CageError  # noqa: E402
@@ -159,7 +159,7 @@ def test_a_header_claiming_a_trillion_voxels_is_refused_unallocated(tmp_path):
         "    print(type(exc).__name__, exc)\n"
     )
     argv = [sys.executable, "-c", code, str(tmp_path / "big.mhd")]
-    done = subprocess.run(argv, capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    done = subprocess.run(argv, capture_output=True, env=subprocess_env(), timeout=120, **UTF8)
     assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
     # refused by the memory it would need or by the data it lacks, named from the header
     assert done.stdout.startswith(("ReadError", "TruncatedError")), done.stdout
@@ -185,7 +185,7 @@ def test_cli_sample_of_mutated_files(tmp_path):
         out = tmp_path / f"out{suffix}"
         argv = [sys.executable, "-m", "vhm_viz.cli", "deform", str(bad), "--scene", str(scene),
                 "-o", str(out), "-q"]  # fmt: skip
-        done = subprocess.run(argv, capture_output=True, text=True, env=subprocess_env(),
+        done = subprocess.run(argv, capture_output=True, env=subprocess_env(), **UTF8,
                               timeout=300)  # fmt: skip
         lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
         assert "Traceback" not in done.stderr, (suffix, kind, done.stderr)

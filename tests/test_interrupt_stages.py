@@ -2,8 +2,9 @@
 
 Each stage (read, solve, map, checks, write) of ``vhm-viz deform`` on the CT head gets a
 signal as soon as the command shows that the stage has begun: the reader's child process
-exists (read), it has ended (solve, a moment later), the warp's progress starts (map)
-and ends (checks), the output's temporary appears (write). The command must
+exists (read), it has ended (solve, a moment later), the warp's progress starts (map),
+the fold check's progress starts (checks), the output's temporary or staging folder
+appears (write). The command must
 then stop in that very stage (its ``--timings`` line ends with it), exit with 128 + the
 signal, and leave the previous output byte-identical with no temporary beside it.
 """
@@ -48,8 +49,9 @@ def _stage_began(stage: str, proc, text: str, folder: Path, seen: dict) -> bool:
     if stage == "map":
         return "warping:" in text
     if stage == "checks":
-        return "warping: 100%" in text
-    return any(".vhm-tmp-" in p.name for p in folder.iterdir())  # write
+        return "checking:" in text
+    # write: the output's temporary, or the staging folder of its set, appears
+    return any(".vhm-tmp-" in p.name or ".vhm-staging." in p.name for p in folder.iterdir())
 
 
 def _signal_in(stage: str, signum: int, command: list, folder: Path):

@@ -28,7 +28,7 @@ import pytest
 
 pytest.importorskip("pyvista")
 
-from conftest import box_cage, subprocess_env  # noqa: E402
+from conftest import UTF8, box_cage, subprocess_env  # noqa: E402
 
 from vhm_viz.core.errors import CageError, ConstraintError, OutsideCageError, SettingError
 from vhm_viz.io.errors import ReadError
@@ -280,7 +280,7 @@ def test_a_scene_file_beyond_the_size_limit_is_refused_unread(folder):
         "    print(type(exc).__name__, exc)\n"
     )
     argv = [sys.executable, "-c", code, str(big), str(MAX_SCENE_BYTES // 2)]
-    done = subprocess.run(argv, capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    done = subprocess.run(argv, capture_output=True, env=subprocess_env(), timeout=120, **UTF8)
     assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
     assert done.stdout.startswith("SceneError") and "at most" in done.stdout, done.stdout
 
@@ -316,8 +316,7 @@ def test_cli_sample_one_line_or_output(folder, tmp_path):
         out = tmp_path / f"out{runs}{'' if command == 'analyze' else src.suffix}"
         argv = [sys.executable, "-m", "vhm_viz.cli", command, str(src), "--scene", str(scene),
                 "-o", str(out), "-q", "--outside", "passthrough"]  # fmt: skip
-        done = subprocess.run(argv, capture_output=True, text=True, env=subprocess_env(),
-                              timeout=300)  # fmt: skip
+        done = subprocess.run(argv, capture_output=True, env=subprocess_env(), timeout=300, **UTF8)
         lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
         assert "Traceback" not in done.stderr, (kind, done.stderr)
         if done.returncode == 0:

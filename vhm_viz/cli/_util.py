@@ -371,7 +371,7 @@ def image_positions(image, ijk) -> np.ndarray:
 FOLD_SLAB_CELLS = 1 << 20
 
 
-def voxel_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
+def voxel_corner_determinants(points, dimensions, rest_det: float, progress=None) -> np.ndarray:
     """:func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants`, slab by slab.
 
     A slab of voxel layers at a time, with an interrupt check between slabs, so that
@@ -383,6 +383,8 @@ def voxel_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray
         Deformed positions in VTK's point order.
     dimensions : (3,) int
     rest_det : float
+    progress : callable, optional
+        ``progress(fraction)`` after each slab.
 
     Returns
     -------
@@ -401,6 +403,8 @@ def voxel_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray
             points[k0 * plane : (k1 + 1) * plane], (nx, ny, k1 - k0 + 1), rest_det
         )
         interrupts.check()
+        if progress is not None:
+            progress(k1 / (nz - 1))
     return det
 
 

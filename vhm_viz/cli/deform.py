@@ -21,6 +21,7 @@ from vhm_viz.cli._field_output import (
 )
 from vhm_viz.cli._util import (
     CLIError,
+    Progress,
     add_convergence_argument,
     add_memory_argument,
     add_quiet_argument,
@@ -251,7 +252,7 @@ def deform(args: argparse.Namespace) -> str:
     # everything that can fail happens before the write: an error never follows an output
     with timer.stage("checks"):
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
-        warning = _check_folds(mesh, result, dfm, flt, resample)
+        warning = _check_folds(mesh, result, dfm, flt, resample, quiet=args.quiet)
     # the output, the arrays beside it and a field in the same folder appear as one set
     with timer.stage("write"), atomic_outputs(out.parent):
         written = write_dataset(out, result, inputs=inputs)
@@ -294,13 +295,14 @@ def _output_type(mesh) -> str:
     return "StructuredGrid"
 
 
-def _check_folds(mesh, result, dfm, flt, resample: bool) -> str | None:
+def _check_folds(mesh, result, dfm, flt, resample: bool, quiet: bool) -> str | None:
     """The fold warning of the output: inverted cells and sampled det J <= 0.
 
     A warped image's cells are judged by the corner Jacobians of its trilinear voxels
     (:func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants`); other 3D cells
     by the tetrahedra they split into, taken from the output's cell arrays when the
-    filter computed them (``--arrays cells``).
+    filter computed them (``--arrays cells``). The cells' check has a progress bar
+    (``checking``).
     """
     import pyvista as pv
 
@@ -309,8 +311,10 @@ def _check_folds(mesh, result, dfm, flt, resample: bool) -> str | None:
     cells = None
     point_det = None
     if not resample:
+        bar = Progress("checking", enabled=not quiet)
+        bar(0.0)
         if isinstance(mesh, pv.ImageData):
-            cells = _voxel_folds(mesh, result)
+            cells = _voxel_folds(mesh, result, bar)
         elif "cell_jacobian_determinant" in result.cell_data:
             det = np.asarray(result.cell_data["cell_jacobian_determinant"])
             finite = np.isfinite(det)
@@ -318,6 +322,7 @@ def _check_folds(mesh, result, dfm, flt, resample: bool) -> str | None:
             cells = {"determinant": det, "summary": summary}
         else:
             cells = cell_quality(mesh, result.points, condition=False)
+        bar.finish()
         if "jacobian_determinant" in result.point_data:
             point_det = np.asarray(result.point_data["jacobian_determinant"])
             if "vhm_outside" in result.point_data:  # passthrough points are not the map's
@@ -325,13 +330,13 @@ def _check_folds(mesh, result, dfm, flt, resample: bool) -> str | None:
     return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det)
 
 
-def _voxel_folds(image, warped) -> dict | None:
+def _voxel_folds(image, warped, progress) -> dict | None:
     """:func:`fold_warning`'s cells of a warped image: its voxels' corner Jacobians."""
     dims = tuple(int(d) for d in image.dimensions)
     if min(dims) < 2:
         return None
     rest_det = float(np.prod(image.spacing) * np.linalg.det(np.asarray(image.direction_matrix)))
-    det = voxel_corner_determinants(warped.points, dims, rest_det)  # interruptible
+    det = voxel_corner_determinants(warped.points, dims, rest_det, progress)  # interruptible
     finite = np.isfinite(det)
     summary = {"cells": int(finite.sum()), "inverted": int(np.count_nonzero(det[finite] <= 0))}
 
