@@ -335,8 +335,13 @@ def _surface_metrics(rest, deformed) -> dict:
     return out
 
 
-#: Points at which ``vhm-viz deform`` samples ``det J`` for its fold warning (evenly spread).
+#: Points at which ``vhm-viz deform`` samples ``det J`` for its fold warning (evenly spread)
+#: when nothing else checks the whole output (a surface, a point cloud).
 FOLD_SAMPLES = 20000
+#: The same beside a check of the whole output -- every cell of a warped volume or tet
+#: mesh, every resampled voxel's pre-image -- where it is a spot check of the continuous
+#: map that costs a small part of the map itself.
+FOLD_SPOT_SAMPLES = 4096
 
 
 def _where(points: np.ndarray, values: np.ndarray) -> str:
@@ -408,7 +413,9 @@ def voxel_corner_determinants(points, dimensions, rest_det: float, progress=None
     return det
 
 
-def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:
+def fold_warning(
+    rest, harmonic_map, cells=None, point_det=None, samples: int = FOLD_SAMPLES
+) -> str | None:
     """One warning line when a deformation folds the data, naming how many and where.
 
     Parameters
@@ -420,7 +427,10 @@ def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:
         :func:`vhm_viz.filters.cell_quality` of the output (3D cells only).
     point_det : (N,) array_like, optional
         ``det J`` at every point, when already computed; else it is sampled exactly at up
-        to :data:`FOLD_SAMPLES` points.
+        to ``samples`` points.
+    samples : int
+        :data:`FOLD_SAMPLES`, or :data:`FOLD_SPOT_SAMPLES` beside a check of the whole
+        output.
 
     Returns
     -------
@@ -443,7 +453,7 @@ def fold_warning(rest, harmonic_map, cells=None, point_det=None) -> str | None:
         )
     n_points = rest.GetNumberOfPoints()
     if point_det is None:
-        idx = np.unique(np.linspace(0, n_points - 1, min(n_points, FOLD_SAMPLES)).astype(int))
+        idx = np.unique(np.linspace(0, n_points - 1, min(n_points, samples)).astype(int))
         jac = harmonic_map.evaluate(_points_of(rest, idx), order=1, outside="nan")[1]
         ok = np.isfinite(jac).all(axis=(1, 2))
         idx, det = idx[ok], np.linalg.det(jac[ok])

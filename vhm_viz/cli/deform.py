@@ -20,6 +20,8 @@ from vhm_viz.cli._field_output import (
     write_field,
 )
 from vhm_viz.cli._util import (
+    FOLD_SAMPLES,
+    FOLD_SPOT_SAMPLES,
     CLIError,
     Progress,
     add_convergence_argument,
@@ -327,7 +329,10 @@ def _check_folds(mesh, result, dfm, flt, resample: bool, quiet: bool) -> str | N
             point_det = np.asarray(result.point_data["jacobian_determinant"])
             if "vhm_outside" in result.point_data:  # passthrough points are not the map's
                 point_det = np.where(result.point_data["vhm_outside"] == 0, point_det, np.nan)
-    return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det)
+    # a resample counts its voxels in folds itself; cells were checked one by one
+    whole = resample or cells is not None
+    samples = FOLD_SPOT_SAMPLES if whole else FOLD_SAMPLES
+    return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det, samples=samples)
 
 
 def _voxel_folds(image, warped, progress) -> dict | None:
