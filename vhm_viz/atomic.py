@@ -239,7 +239,6 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
             _in_progress.add(stage)
             _enclosing[_key(directory)] = stage
         yield stage
-        del _enclosing[_key(directory)]
         names = sorted(p.name for p in stage.iterdir() if p.is_file())
         if last in names:
             names.remove(last)
