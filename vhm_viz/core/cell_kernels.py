@@ -20,6 +20,8 @@ import math
 import numba
 import numpy as np
 
+from vhm_viz.core.mat3 import cofactors3
+
 __all__ = [
     "DEGENERATE_RTOL",
     "singular_values_3x3",
@@ -126,15 +128,9 @@ def _tet_kernel(x, y, tets, rtol, want_cond, det, cond, rest_det, state):  # pra
         r01, r11, r21 = x[i2, 0] - x[i0, 0], x[i2, 1] - x[i0, 1], x[i2, 2] - x[i0, 2]
         r02, r12, r22 = x[i3, 0] - x[i0, 0], x[i3, 1] - x[i0, 1], x[i3, 2] - x[i0, 2]
         # cofactors of R (rows of adj(R)^T)
-        k00 = r11 * r22 - r12 * r21
-        k01 = r12 * r20 - r10 * r22
-        k02 = r10 * r21 - r11 * r20
-        k10 = r02 * r21 - r01 * r22
-        k11 = r00 * r22 - r02 * r20
-        k12 = r01 * r20 - r00 * r21
-        k20 = r01 * r12 - r02 * r11
-        k21 = r02 * r10 - r00 * r12
-        k22 = r00 * r11 - r01 * r10
+        k00, k01, k02, k10, k11, k12, k20, k21, k22 = cofactors3(
+            r00, r01, r02, r10, r11, r12, r20, r21, r22
+        )
         dr = r00 * k00 + r01 * k01 + r02 * k02
         rest_det[t] = dr
         e0 = math.sqrt(r00 * r00 + r10 * r10 + r20 * r20)

@@ -15,6 +15,8 @@ import math
 import numba
 import numpy as np
 
+from vhm_viz.core.mat3 import cofactors3
+
 __all__ = ["project_blocks", "project_stack"]
 
 
@@ -220,15 +222,9 @@ def _newton_polar(M, out):  # pragma: no cover - compiled
     small_steps = 0
     last = False  # converged: one more unscaled step reaches rounding level
     for _it in range(31):
-        c00 = x11 * x22 - x12 * x21
-        c01 = x12 * x20 - x10 * x22
-        c02 = x10 * x21 - x11 * x20
-        c10 = x02 * x21 - x01 * x22
-        c11 = x00 * x22 - x02 * x20
-        c12 = x01 * x20 - x00 * x21
-        c20 = x01 * x12 - x02 * x11
-        c21 = x02 * x10 - x00 * x12
-        c22 = x00 * x11 - x01 * x10
+        c00, c01, c02, c10, c11, c12, c20, c21, c22 = cofactors3(
+            x00, x01, x02, x10, x11, x12, x20, x21, x22
+        )
         det = x00 * c00 + x01 * c01 + x02 * c02
         nrm2 = x00 * x00 + x01 * x01 + x02 * x02 + x10 * x10 + x11 * x11 + x12 * x12
         nrm2 += x20 * x20 + x21 * x21 + x22 * x22
