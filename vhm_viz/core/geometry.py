@@ -156,6 +156,12 @@ def triangulate_polygons(points: np.ndarray, polygons) -> np.ndarray:
     return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
 
 
+@numba.njit(cache=True)
+def _edge_projections(dx, dy, dz, ux, uy, uz, vx, vy, vz):  # pragma: no cover - compiled
+    """``d . u`` and ``d . v``: the offset ``d`` projected on two edges (unnormalised)."""
+    return ux * dx + uy * dy + uz * dz, vx * dx + vy * dy + vz * dz
+
+
 @numba.njit(cache=True, inline="always")
 def closest_point_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):  # pragma: no cover
     """Closest point of the triangle ``(a, b, c)`` to ``p``, compiled, scalar coordinates.
@@ -174,25 +180,21 @@ def closest_point_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):  
     """
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
-    apx, apy, apz = px - ax, py - ay, pz - az
-    d1 = abx * apx + aby * apy + abz * apz
-    d2 = acx * apx + acy * apy + acz * apz
+    # p seen from each corner, along the two edges out of a
+    d1, d2 = _edge_projections(px - ax, py - ay, pz - az, abx, aby, abz, acx, acy, acz)
+    d3, d4 = _edge_projections(px - bx, py - by, pz - bz, abx, aby, abz, acx, acy, acz)
+    d5, d6 = _edge_projections(px - cx, py - cy, pz - cz, abx, aby, abz, acx, acy, acz)
+    # the vertex regions, then the edge regions (disjoint where the area is not zero)
     if d1 <= 0.0 and d2 <= 0.0:
         return ax, ay, az, 4
-    bpx, bpy, bpz = px - bx, py - by, pz - bz
-    d3 = abx * bpx + aby * bpy + abz * bpz
-    d4 = acx * bpx + acy * bpy + acz * bpz
     if d3 >= 0.0 and d4 <= d3:
         return bx, by, bz, 5
+    if d6 >= 0.0 and d5 <= d6:
+        return cx, cy, cz, 6
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
         v = d1 / (d1 - d3)
         return ax + v * abx, ay + v * aby, az + v * abz, 1
-    cpx, cpy, cpz = px - cx, py - cy, pz - cz
-    d5 = abx * cpx + aby * cpy + abz * cpz
-    d6 = acx * cpx + acy * cpy + acz * cpz
-    if d6 >= 0.0 and d5 <= d6:
-        return cx, cy, cz, 6
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
         w = d2 / (d2 - d6)
