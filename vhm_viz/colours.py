@@ -29,6 +29,7 @@ __all__ = [
     "COND_CMAP",
     "FOLD_COLOUR",
     "PARAVIEW_PRESETS",
+    "MEASURES",
     "det_range",
     "cond_range",
     "measure_style",
@@ -109,6 +110,9 @@ _MEASURE_STYLES = {
     "condition_number": (("cond", "cond J"), COND_CMAP, cond_range, False, None, "cond J"),
 }  # fmt: skip
 
+#: The Jacobian measures a view can be coloured by, in menu order.
+MEASURES = tuple(_MEASURE_STYLES)
+
 
 def measure_style(measure: str, values) -> dict:
     """Colour map, range and scale of one measure, for any renderer.
@@ -131,7 +135,7 @@ def measure_style(measure: str, values) -> dict:
             return {"cmap": cmap, "clim": clim(values), "log_scale": log_scale,
                     "below_color": below, "title": title,
                     "paraview_preset": PARAVIEW_PRESETS[name]}  # fmt: skip
-    raise ValueError(f"unknown measure {measure!r} (determinant, condition_number)")
+    raise ValueError(f"unknown measure {measure!r} ({', '.join(MEASURES)})")
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ from threadpoolctl import threadpool_limits
 
 from vhm_viz import interrupts
 from vhm_viz.atomic import atomic_path
+from vhm_viz.colours import MEASURES
 
 __all__ = ["main", "ExplorerController", "start_xvfb"]
 
@@ -48,6 +49,7 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "file",
         nargs="?",
+        metavar="FILE",
         help="data file to open (any format vhm_viz.read_dataset reads, scans in ITK's LPS "
         "frame; default: none)",
     )
@@ -74,7 +76,7 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument(
         "--colour",
-        choices=("none", "determinant", "condition_number"),
+        choices=("none", *MEASURES),
         default="none",
         help="with --screenshot: colour the slices (a volume's orthogonal slices, or a "
         "section of other data) by det J or cond J (default: none, the data's values)",

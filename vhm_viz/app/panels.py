@@ -30,6 +30,8 @@ from PySide6.QtWidgets import (
     QWidget,
 )
 
+from vhm_viz.colours import MEASURES
+
 __all__ = [
     "ConstraintPanel",
     "AnalysisPanel",
@@ -340,8 +342,6 @@ class AnalysisPanel(QWidget):
     live_toggled = Signal(bool)
     clip_toggled = Signal(bool)
 
-    MEASURES = ("determinant", "condition_number")
-
     def __init__(self, parent=None):
         super().__init__(parent)
         lay = QVBoxLayout(self)
@@ -349,7 +349,7 @@ class AnalysisPanel(QWidget):
         self.show_slice = QCheckBox("Slice")
         self.show_slice.toggled.connect(self.slice_toggled)
         self.measure = QComboBox()
-        self.measure.addItems(list(self.MEASURES))
+        self.measure.addItems(list(MEASURES))
         self.measure.currentTextChanged.connect(self.measure_changed)
         self.live = QCheckBox("Live")
         self.live.setToolTip("Update the slice on every drag frame (else on release)")
@@ -434,7 +434,7 @@ class ViewPanel(QWidget):
     transfer_changed = Signal(float, float, float)
     iso_changed = Signal(bool, float)
 
-    COLOURS = ("value", "determinant", "condition_number")
+    COLOURS = ("value", *MEASURES)
     STEPS = 1000  # slider steps over the value range
 
     def __init__(self, parent=None):
