@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
-from vhm_viz.cli._dataset_input import add_dataset_argument, add_threshold_argument, threshold_of
-from vhm_viz.cli._util import add_quiet_argument, check_input, check_output
+from vhm_viz.autocage import auto_cage
+from vhm_viz.cli._dataset_input import (
+    add_dataset_arguments,
+    add_output_argument,
+    grid_options,
+    report_written,
+)
+from vhm_viz.cli._util import check_input, check_output
 from vhm_viz.io import read_dataset, write_cage
 
 HELP = "build an automatic cage (closed, manifold, enclosing) for a dataset"
@@ -20,8 +25,7 @@ DESCRIPTION = (
 
 def add_arguments(p) -> None:
     """The ``cage`` subcommand's arguments."""
-    add_dataset_argument(p)
-    p.add_argument("-o", "--output", required=True, metavar="CAGE.obj", help="output OBJ")
+    add_output_argument(p, "CAGE.obj", "output OBJ")
     p.add_argument(
         "--max-faces",
         type=int,
@@ -38,42 +42,26 @@ def add_arguments(p) -> None:
         "(default: 1%% of the bounding-box diagonal)",
     )
     p.add_argument(
-        "--resolution",
-        type=int,
-        default=None,
-        metavar="VOXELS",
-        help="voxels along the longest bounding-box side of the extraction grid (default: "
-        "1.5 x that side / the offset, within 32-112; --method voxel: the finest that fits "
-        "--max-faces)",
-    )
-    p.add_argument(
         "--method",
         choices=("auto", "offset", "voxel"),
         default="auto",
         help="offset: a surface at the clearance, simplified; voxel: boxes of voxels; auto: "
         "offset, retried at 2 and 4 times the clearance, then voxel (default: auto)",
     )
-    add_threshold_argument(p, "enclose the region", "the volume's bounding box")
-    add_quiet_argument(p, "print nothing on success")
+    add_dataset_arguments(p, "cage")
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cage``; returns the exit status."""
-    # loaded when the command runs, so that the other commands start without it
-    from vhm_viz.autocage import auto_cage
-
     src = check_input(args.input)
     dst = check_output(args.output, (".obj",), inputs=[src])
     cage, report = auto_cage(
         read_dataset(src),
         offset=args.offset,
         max_faces=args.max_faces,
-        resolution=args.resolution,
         method=args.method,
-        threshold=threshold_of(args),
         return_report=True,
+        **grid_options(args),
     )
     write_cage(dst, cage, comment=f"vhm-viz cage of {src.name}\n{report}")
-    if not args.quiet:
-        print(f"{dst}: {report}", file=sys.stdout)
-    return 0
+    return report_written(args, dst, report)
