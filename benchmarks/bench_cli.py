@@ -17,6 +17,17 @@ where the command prints ``--timings``, the stage breakdown.
     python benchmarks/bench_cli.py --compare ../old    # alternate two checkouts, one table
     python benchmarks/bench_cli.py --busy              # also with a busy process beside it
     python benchmarks/bench_cli.py --cold --only demo -r 2  # the first run of the demo
+    python benchmarks/bench_cli.py --anchors           # also the machine anchors, scaled goals
+    python benchmarks/bench_cli.py --anchors only      # the anchors alone
+    python benchmarks/bench_cli.py --huge --only "^3 -> .vti" -r 1  # 512^3 embryo vs 256^3
+
+``--anchors`` times two jobs of other tools (:mod:`machine_anchors`) and prints issue
+#34's goals scaled by this machine's ratio to the machine they were set on. The embryo's
+``.vti`` case always times SimpleITK's ``Resample`` of it in the same run (its goal is a
+multiple of that). ``--huge`` makes the embryo upsampled to 512^3 in the scratch folder
+(each voxel repeated 2x2x2: half the spacing, the same physical extent, uint8) and
+compares its ``.vti`` run with the 256^3 one: time ratio and peak RSS against input +
+output + 1 GB.
 
 Needs ``../shared/data``. Prints the machine's load average before and after.
 """
@@ -34,6 +45,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,10 +53,28 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import data, print_table  # noqa: E402
+from machine_anchors import ISSUE_SECONDS, LABELS, time_anchors  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = ("read", "solve", "map", "checks", "write")
 TIMINGS = re.compile(r"timings:\s*(.*)$", re.MULTILINE)
+EMBRYO_VTI = "embryo 256^3 -> .vti (box cage)"
+HUGE_VTI = "embryo 512^3 -> .vti (box cage, upsampled)"
+
+#: Issue #34's goals where it was measured: case -> (wall seconds, peak RSS in MB or None).
+GOALS = {
+    "embryo 256^3 -> .vts (box cage)": (8.0, 1500),
+    EMBRYO_VTI: (10.0, 1200),
+    "ct head -> .vts (box cage)": (1.5, None),
+    "ct head -> .vti (box cage)": (2.0, None),
+    "dragon 104k tets --arrays cells (box cage)": (3.0, None),
+}
+#: The cold demo's goal (seconds, empty compiled-code cache).
+COLD_DEMO_GOAL = 40.0
+#: Embryo .vti: at most this multiple of SimpleITK's Resample timed in the same run.
+SIMPLEITK_MULTIPLE = 15.0
+#: The 512^3 embryo: at most this multiple of the 256^3 time, 8x the voxels.
+HUGE_MULTIPLE = 9.0
 
 
 # ----------------------------------------------------------------------------------------
@@ -161,9 +191,44 @@ class Case:
     scene: dict | None = None
     output: str = ""
     big: bool = False
+    #: Makes the input in the scratch folder and gives its path (``input`` unused).
+    prepare: Callable[[Path], Path] | None = None
+    #: Run once untimed first (a long case whose compiled code an earlier case cached
+    #: needs none).
+    warmup: bool = True
 
 
-def cases(big: bool) -> list[Case]:
+def upsampled_embryo(scratch: Path) -> Path:
+    """The embryo with each voxel repeated 2x2x2 (512^3, uint8), as ``.vti`` in ``scratch``.
+
+    Half the spacing, the origin a quarter voxel back: the voxels cover the same physical
+    extent (numpy ``repeat``, nearest neighbour: no interpolation).
+    """
+    import pyvista as pv
+
+    from vhm_viz.io import read_dataset
+
+    path = scratch / "embryo_512.vti"
+    if path.exists():
+        return path
+    img = read_dataset(str(data("volumes", "embryo.slc")))
+    nx, ny, nz = img.dimensions
+    values = np.asarray(img.active_scalars).reshape(nz, ny, nx)
+    big = values.repeat(2, axis=0).repeat(2, axis=1).repeat(2, axis=2)
+    spacing = np.asarray(img.spacing, float)
+    direction = np.asarray(img.direction_matrix, float)
+    out = pv.ImageData(
+        dimensions=(2 * nx, 2 * ny, 2 * nz),
+        spacing=tuple(spacing / 2),
+        origin=tuple(np.asarray(img.origin, float) - direction @ (spacing / 4)),
+    )
+    out.direction_matrix = direction
+    out.point_data[img.active_scalars_name] = big.ravel()
+    out.save(str(path))
+    return path
+
+
+def cases(big: bool, huge: bool = False) -> list[Case]:
     """The default set: volumes, tet meshes, surfaces and the certificate."""
     vol = data("volumes")
     out: list[Case] = []
@@ -190,10 +255,14 @@ def cases(big: bool) -> list[Case]:
         deform(f"{label} -> .vts (box cage)", path, ".vts", scene)
         deform(f"{label} -> .vti (box cage)", path, ".vti", scene)
     embryo = vol / "embryo.slc"
-    if big:
+    if big or huge:
         scene = box_scene(bounds_of(embryo))
-        deform("embryo 256^3 -> .vti (box cage)", embryo, ".vti", scene, is_big=True)
+        deform(EMBRYO_VTI, embryo, ".vti", scene, is_big=True)
+    if big:
         deform("embryo 256^3 -> .vts (box cage)", embryo, ".vts", scene, is_big=True)
+    if huge:
+        deform(HUGE_VTI, Path(), ".vti", None, is_big=True)
+        out[-1].prepare, out[-1].warmup = upsampled_embryo, False
     dragon = data("tets", "dragon.tet.vtk")
     dscene = box_scene(bounds_of(dragon), bend=40.0, twist=30.0)
     deform(
@@ -288,11 +357,183 @@ def environment(repo: Path, cache: Path | None) -> dict:
     return env
 
 
+def run_case(case: Case, k: int, scratch: Path, repos: list, args) -> list[dict]:
+    """Run one case ``args.repeats`` times per checkout (quiet, then busy with ``--busy``)."""
+    input_path = case.prepare(scratch) if case.prepare is not None else case.input
+    scene = case.scene
+    if case.prepare is not None and scene is None:
+        scene = box_scene(bounds_of(input_path))
+    scene_path = scratch / f"scene{k}.json"
+    if scene is not None:
+        scene_path.write_text(json.dumps(scene))
+    results = []
+    warmup = 0 if args.cold or not case.warmup else 1
+    for loaded in [False, True] if args.busy else [False]:
+        runs = {str(r): [] for r in repos}
+        for rep in range(args.repeats + warmup):
+            for repo in repos:
+                cache = None
+                if args.cold:
+                    cache = scratch / f"numba-{repos.index(repo)}"
+                    shutil.rmtree(cache, ignore_errors=True)
+                out = scratch / f"out{k}-{repos.index(repo)}{case.output}"
+                if out.is_dir():
+                    shutil.rmtree(out)
+                elif out.exists():
+                    out.unlink()
+                fill = {"input": str(input_path), "scene": str(scene_path), "out": str(out)}
+                argv_ = [a.format(**fill) for a in case.args]
+                if "--timings" not in argv_:
+                    argv_.append("--timings")
+                cmd = [sys.executable, "-m", "vhm_viz.cli", *argv_]
+                busy = busy_process() if loaded else None
+                try:
+                    load = os.getloadavg()[0]
+                    wall, cpu, rss, err, code = run_once(cmd, environment(repo, cache), scratch)
+                finally:
+                    if busy is not None:
+                        busy.kill()
+                        busy.wait()
+                if code != 0 and "unrecognized arguments: --timings" in err:
+                    argv_.remove("--timings")
+                    cmd = [sys.executable, "-m", "vhm_viz.cli", *argv_]
+                    wall, cpu, rss, err, code = run_once(cmd, environment(repo, cache), scratch)
+                if code != 0:
+                    print(f"{case.name}: exit {code}: {err.strip()[-400:]}", flush=True)
+                if rep < warmup:
+                    continue  # warm-up: fills the compiled-code cache
+                run = {"wall": wall, "cpu": cpu, "rss": rss, "load": load, "code": code,
+                       "stages": parse_timings(err)}  # fmt: skip
+                if case.prepare is not None and code == 0:
+                    run["input_mb"], run["output_mb"] = voxel_mb(input_path), voxel_mb(out)
+                runs[str(repo)].append(run)
+        for repo in repos:
+            results.append(
+                {"case": case.name, "busy": loaded, "repo": str(repo), "runs": runs[str(repo)]}
+            )
+            print(
+                f"  {case.name}{' (busy)' if loaded else ''} [{repo.name}]: "
+                + ", ".join(
+                    f"{r['wall']:.2f}s (cpu {r['cpu']:.1f}s, load {r['load']:.1f})"
+                    for r in runs[str(repo)]
+                ),
+                flush=True,
+            )
+    return results
+
+
+#: Bytes of each VTK XML ``DataArray`` type.
+VTK_TYPE_BYTES = {"Int8": 1, "UInt8": 1, "Int16": 2, "UInt16": 2, "Int32": 4, "UInt32": 4,
+                  "Int64": 8, "UInt64": 8, "Float32": 4, "Float64": 8}  # fmt: skip
+
+
+def voxel_mb(path: Path) -> float:
+    """Megabytes of a ``.vti``'s point arrays in memory, from its XML header alone."""
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16).decode("latin-1").split("<AppendedData")[0]
+    extent = [int(v) for v in re.search(r'WholeExtent="([^"]+)"', head).group(1).split()]
+    voxels = math.prod(extent[2 * a + 1] - extent[2 * a] + 1 for a in range(3))
+    points = head[head.index("<PointData") :].split("</PointData>")[0]
+    per_voxel = 0
+    for tag in re.findall(r"<DataArray[^>]*>", points):
+        kind = re.search(r'type="(\w+)"', tag).group(1)
+        comps = re.search(r'NumberOfComponents="(\d+)"', tag)
+        per_voxel += VTK_TYPE_BYTES[kind] * (int(comps.group(1)) if comps else 1)
+    return voxels * per_voxel / 2**20
+
+
+def median_of(results: list, name: str, key: str = "wall") -> float | None:
+    """Median of ``key`` over the quiet runs of case ``name`` (the first checkout's)."""
+    for res in results:
+        if res["case"] == name and not res["busy"]:
+            vals = [r[key] for r in res["runs"] if r["code"] == 0 and key in r]
+            return statistics.median(vals) if vals else None
+    return None
+
+
+def print_anchors(anchors: dict) -> None:
+    """The anchors' table: this machine's time, the issue machine's and their ratio."""
+    rows = []
+    for name, a in anchors.items():
+        t = a["times"]
+        cpu = statistics.median(r["cpu"] for r in a["runs"])
+        rows.append([LABELS[name], f"{a['median']:.2f} s ({min(t):.2f}-{max(t):.2f})",
+                     f"{cpu:.2f} s", a["detail"]["threads"], f"{ISSUE_SECONDS[name]:.2f} s",
+                     f"{a['ratio']:.2f}"])  # fmt: skip
+    print("\nmachine anchors, fresh process each (ratio = this machine / the goals' machine)")
+    print_table(
+        ["anchor", "wall, median (min-max)", "CPU, median", "threads", "issue machine", "ratio"],
+        rows,
+    )
+
+
+def yes(ok: bool) -> str:
+    """``yes`` or ``no``."""
+    return "yes" if ok else "no"
+
+
+def print_goals(results: list, anchors: dict, cold: bool) -> None:
+    """Issue #34's goals beside what was measured, time goals scaled by each anchor ratio."""
+    ratios = {name: a["ratio"] for name, a in anchors.items()}
+    order = [n for n in ("vtk", "simpleitk") if n in ratios]
+    goals = dict(GOALS)
+    if cold:
+        goals = {n: (COLD_DEMO_GOAL, None) for n in (r["case"] for r in results) if "demo" in n}
+    rows = []
+    for name, (seconds, mb) in goals.items():
+        wall, rss = median_of(results, name), median_of(results, name, "rss")
+        if wall is None:
+            continue
+        scaled = [seconds * ratios[n] for n in order] or [seconds]
+        met = " / ".join(yes(wall <= g) for g in scaled)
+        goal, measured = f"<= {seconds:g} s", f"{wall:.2f} s"
+        if mb:
+            goal, measured, met = goal + f", <= {mb} MB", measured + f", {rss:.0f} MB", (
+                met + f"; RSS {yes(rss <= mb)}"
+            )
+        rows.append([name, goal, " / ".join(f"{g:.2f} s" for g in scaled), measured, met])
+    vti, itk = median_of(results, EMBRYO_VTI), anchors.get("simpleitk")
+    if vti is not None and itk is not None:
+        times = vti / itk["median"]
+        cpu = median_of(results, EMBRYO_VTI, "cpu") / statistics.median(
+            r["cpu"] for r in itk["runs"]
+        )
+        rows.append([f"{EMBRYO_VTI} / SimpleITK Resample", f"<= {SIMPLEITK_MULTIPLE:g}x", "-",
+                     f"{times:.1f}x (CPU time {cpu:.1f}x)",
+                     yes(times <= SIMPLEITK_MULTIPLE)])  # fmt: skip
+    huge = median_of(results, HUGE_VTI)
+    if vti is not None and huge is not None:
+        times = huge / vti
+        cpu = median_of(results, HUGE_VTI, "cpu") / median_of(results, EMBRYO_VTI, "cpu")
+        rows.append([f"{HUGE_VTI} / 256^3", f"<= {HUGE_MULTIPLE:g}x", "-",
+                     f"{times:.2f}x (CPU time {cpu:.2f}x)",
+                     yes(times <= HUGE_MULTIPLE)])  # fmt: skip
+        rss = median_of(results, HUGE_VTI, "rss")
+        inp, out = (median_of(results, HUGE_VTI, k) for k in ("input_mb", "output_mb"))
+        bound = inp + out + 1024
+        rows.append([f"{HUGE_VTI} peak RSS", "<= input + output + 1 GB", f"{bound:.0f} MB",
+                     f"{rss:.0f} MB (input {inp:.0f}, output {out:.0f} MB)",
+                     yes(rss <= bound)])  # fmt: skip
+    if not rows:
+        return
+    scale = ", ".join(f"x {ratios[n]:.2f} ({n})" for n in order) or "no anchors timed: unscaled"
+    print(f"\nissue #34's goals; times scaled by this machine's ratio {scale}")
+    print_table(["goal", "issue machine", "scaled here", "measured (median)", "met"], rows)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("-r", "--repeats", type=int, default=3)
     ap.add_argument("--only", default="", help="run the cases whose name contains this")
     ap.add_argument("--big", action="store_true", help="also the 256^3 embryo")
+    ap.add_argument("--huge", action="store_true", help="also the embryo upsampled to 512^3")
+    ap.add_argument(
+        "--anchors",
+        nargs="?",
+        const="also",
+        choices=("also", "only"),
+        help="also time the machine anchors (--anchors only: them alone)",
+    )
     ap.add_argument("--repo", type=Path, default=ROOT, help="checkout whose vhm_viz runs")
     ap.add_argument("--compare", type=Path, help="a second checkout, run alternately")
     ap.add_argument("--cold", action="store_true", help="empty compiled-code cache each run")
@@ -303,87 +544,30 @@ def main(argv=None) -> int:
     print(f"load average before: {os.getloadavg()}", flush=True)
     scratch = Path(tempfile.mkdtemp(prefix="bench_cli_"))
     repos = [args.repo.resolve()] + ([args.compare.resolve()] if args.compare else [])
-    results = []
+    results, anchors = [], {}
     try:
+        pair = (EMBRYO_VTI, HUGE_VTI) if args.huge else ()  # --huge compares the two
         todo = [
             c
-            for c in cases(args.big or "embryo" in args.only)
-            if args.only.lower() in c.name.lower()
+            for c in cases(args.big or "embryo" in args.only, args.huge)
+            if args.only.lower() in c.name.lower() or c.name in pair
         ]
+        if args.anchors == "only":
+            todo = []
+        which = ["vtk", "simpleitk"] if args.anchors else []
+        if any(c.name == EMBRYO_VTI for c in todo) and "simpleitk" not in which:
+            which.append("simpleitk")  # the embryo's goal is a multiple of it, same run
+        if which:
+            anchors = time_anchors(which, args.repeats, scratch, environment(repos[0], None),
+                                   lambda path: box_scene(bounds_of(path)))  # fmt: skip
+            print_anchors(anchors)
         for k, case in enumerate(todo):
-            scene_path = scratch / f"scene{k}.json"
-            if case.scene is not None:
-                scene_path.write_text(json.dumps(case.scene))
-            loads = [False, True] if args.busy else [False]
-            for loaded in loads:
-                runs = {str(r): [] for r in repos}
-                for rep in range(args.repeats + (0 if args.cold else 1)):
-                    for repo in repos:
-                        cache = None
-                        if args.cold:
-                            cache = scratch / f"numba-{repos.index(repo)}"
-                            shutil.rmtree(cache, ignore_errors=True)
-                        out = scratch / f"out{k}-{repos.index(repo)}{case.output}"
-                        if out.is_dir():
-                            shutil.rmtree(out)
-                        elif out.exists():
-                            out.unlink()
-                        fill = {"input": str(case.input), "scene": str(scene_path), "out": str(out)}
-                        argv_ = [a.format(**fill) for a in case.args]
-                        if "--timings" not in argv_:
-                            argv_.append("--timings")
-                        cmd = [sys.executable, "-m", "vhm_viz.cli", *argv_]
-                        busy = busy_process() if loaded else None
-                        try:
-                            load = os.getloadavg()[0]
-                            wall, cpu, rss, err, code = run_once(
-                                cmd, environment(repo, cache), scratch
-                            )
-                        finally:
-                            if busy is not None:
-                                busy.kill()
-                                busy.wait()
-                        if code != 0 and "unrecognized arguments: --timings" in err:
-                            argv_.remove("--timings")
-                            cmd = [sys.executable, "-m", "vhm_viz.cli", *argv_]
-                            wall, cpu, rss, err, code = run_once(
-                                cmd, environment(repo, cache), scratch
-                            )
-                        if code != 0:
-                            print(f"{case.name}: exit {code}: {err.strip()[-400:]}", flush=True)
-                        if rep == 0 and not args.cold:
-                            continue  # warm-up: fills the compiled-code cache
-                        runs[str(repo)].append(
-                            {
-                                "wall": wall,
-                                "cpu": cpu,
-                                "rss": rss,
-                                "load": load,
-                                "code": code,
-                                "stages": parse_timings(err),
-                            }
-                        )
-                for repo in repos:
-                    results.append(
-                        {
-                            "case": case.name,
-                            "busy": loaded,
-                            "repo": str(repo),
-                            "runs": runs[str(repo)],
-                        }
-                    )
-                    print(
-                        f"  {case.name}{' (busy)' if loaded else ''} [{repo.name}]: "
-                        + ", ".join(
-                            f"{r['wall']:.2f}s (cpu {r['cpu']:.1f}s, load {r['load']:.1f})"
-                            for r in runs[str(repo)]
-                        ),
-                        flush=True,
-                    )
+            results += run_case(case, k, scratch, repos, args)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 
     rows = []
+    itk = anchors.get("simpleitk")
     for res in results:
         w = [r["wall"] for r in res["runs"]]
         if not w:
@@ -399,6 +583,9 @@ def main(argv=None) -> int:
         if len(repos) > 1:
             label += f" [{Path(res['repo']).name}]"
         failed = sum(r["code"] != 0 for r in res["runs"])
+        versus = "-"
+        if itk is not None and res["case"] == EMBRYO_VTI:
+            versus = f"{statistics.median(w) / itk['median']:.1f}x SimpleITK"
         rows.append(
             [
                 label,
@@ -406,20 +593,23 @@ def main(argv=None) -> int:
                 f"{statistics.median(c):.2f} s ({min(c):.2f}-{max(c):.2f})",
                 f"{statistics.median(m):.0f} MB",
                 " ".join(f"{s} {stages[s]:.2f}" for s in STAGES if s in stages) or "-",
+                versus,
                 str(failed) if failed else "",
             ]
         )
-    print()
-    kind = "cold (empty compiled-code cache)" if args.cold else "warm (cache filled)"
-    print(f"vhm-viz commands, fresh process each, {kind}, n={args.repeats}")
-    print_table(
-        ["case", "wall, median (min-max)", "CPU, median (min-max)", "peak RSS", "stages (s)",
-         "failed"],
-        rows,
-    )  # fmt: skip
+    if rows:
+        print()
+        kind = "cold (empty compiled-code cache)" if args.cold else "warm (cache filled)"
+        print(f"vhm-viz commands, fresh process each, {kind}, n={args.repeats}")
+        print_table(
+            ["case", "wall, median (min-max)", "CPU, median (min-max)", "peak RSS", "stages (s)",
+             "vs anchor", "failed"],
+            rows,
+        )  # fmt: skip
+    print_goals(results, anchors, args.cold)
     print(f"\nload average after: {os.getloadavg()}")
     if args.json:
-        args.json.write_text(json.dumps(results, indent=1))
+        args.json.write_text(json.dumps({"anchors": anchors, "cases": results}, indent=1))
     return 0
 
 

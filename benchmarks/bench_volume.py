@@ -39,7 +39,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import data, print_table, summary, timed
+from _common import data, print_table, simpleitk_resample, summary, timed
 
 VOLUMES = {
     "head": ("CT head", ("volumes", "headsq_64x64x93.vti"), "otsu"),
@@ -199,7 +199,7 @@ def preimage_errors(vol, hm, out_geo, rng):
 
 
 # ---------------------------------------------------------------------------- SimpleITK
-def simpleitk_resample(img, vol, repeats):
+def simpleitk_resample_check(img, vol, repeats):
     """SimpleITK Resample with a displacement field of the volume's size (the engine's own
     pull-back field on the input grid, ``VolumeDeformation.displacement_field``),
     trilinear, 2 threads; and its largest difference from the engine's resampling onto the
@@ -208,29 +208,16 @@ def simpleitk_resample(img, vol, repeats):
         import SimpleITK as sitk
     except ImportError:
         return None
+    from vhm_viz.io.itk_images import sitk_from_image
+
     geo = vol.geometry
-    nx, ny, nz = geo.dimensions
     pulled = vol.displacement_field(geo)
-    field = sitk.GetImageFromArray(pulled.vectors.reshape(nz, ny, nx, 3), isVector=True)
-    field.SetOrigin(tuple(geo.origin))
-    field.SetSpacing(tuple(geo.spacing))
-    field.SetDirection(tuple(geo.direction.ravel()))
-    transform = sitk.DisplacementFieldTransform(field)
     name = img.active_scalars_name
     values = np.asarray(img.active_scalars)
-    image = sitk.GetImageFromArray(values.reshape(nz, ny, nx))
-    image.SetOrigin(tuple(geo.origin))
-    image.SetSpacing(tuple(geo.spacing))
-    image.SetDirection(tuple(geo.direction.ravel()))
-    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(2)
-    result = []
-
-    def run():
-        result.append(sitk.Resample(image, image, transform, sitk.sitkLinear, 0.0))
-
-    times = timed(run, repeats)
+    field = sitk_from_image(img, np.asarray(pulled.vectors, dtype=np.float64))
+    times, result = simpleitk_resample(sitk_from_image(img, values), field, repeats, 2)
     ours = vol.resample({name: values}, geo).arrays[name]
-    theirs = sitk.GetArrayFromImage(result[-1]).ravel()
+    theirs = sitk.GetArrayFromImage(result).ravel()
     inside = pulled.valid.astype(bool)
     diff = np.abs(theirs[inside].astype(np.float64) - ours[inside].astype(np.float64))
     return times, float(diff.max()), int(inside.sum())
@@ -311,7 +298,7 @@ def run_volume(key, repeats, cache: Path):
     rng = np.random.default_rng(0)
     pos = position_errors(vol, hm, rng)
     pre = preimage_errors(vol, hm, res.geometry, rng)
-    itk = simpleitk_resample(img, vol, repeats)
+    itk = simpleitk_resample_check(img, vol, repeats)
     rss_warp = peak_rss(key, "warp", cache)
     rss_resample = peak_rss(key, "resample", cache)
     return {
