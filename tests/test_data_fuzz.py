@@ -208,3 +208,23 @@ def test_a_cage_of_ten_million_faces_is_refused_unread(tmp_path):
     anchors.write_bytes(b"[" + b"[0, 0, 0], " * 10**7 + b"[0, 0, 0]]")
     with pytest.raises(ReadError, match="anchors files may hold at most"):
         read_anchors(anchors)
+
+
+def test_a_compressed_image_larger_than_the_fixed_cap_reads_back(tmp_path):
+    """A 1.1 GB image that compresses to a few MB (what a resample at 512^3 writes) reads
+    back whole: the reading child's cap grows with the memory there is, since the child
+    holds the dataset and its pickled copy at once (2.2 GB, beyond a fixed 2 GiB)."""
+    shape = (1100, 1000, 1000)
+    img = pv.ImageData(dimensions=shape, spacing=(0.5, 0.5, 0.5))
+    values = np.zeros(img.n_points, dtype=np.uint8)
+    values[::997] = 7
+    img.point_data["v"] = values
+    path = tmp_path / "big.vti"
+    img.save(path)
+    del img, values
+    assert path.stat().st_size < 64 << 20  # far below what it expands to
+    back = read_dataset(path)
+    assert back.dimensions == shape
+    got = np.asarray(back.point_data["v"])
+    assert got.size == np.prod(shape) and got[::997].min() == 7
+    assert int(np.count_nonzero(got)) == len(range(0, got.size, 997))

@@ -19,6 +19,7 @@ import numpy as np
 
 from vhm_viz import interrupts
 from vhm_viz.io.errors import ReadError, first_line
+from vhm_viz.resources import memory_limit
 
 __all__ = ["read_isolated"]
 
@@ -110,8 +111,10 @@ def read_isolated(path, read, what: str = "the reader"):
 def _limit_memory(p: Path) -> None:
     """Cap the reading child's address space: a corrupt count cannot exhaust the machine.
 
-    What it may add to what the process already maps: 2 GiB, or 64 times the file
-    (folder) size when that is more -- far above any real reader's needs.
+    What it may add to what the process already maps: 2 GiB, 64 times the file (folder)
+    size, or half the memory this process may still take (:func:`memory_limit`),
+    whichever is most. The last keeps a compressed file that expands a hundredfold
+    readable: the child holds the dataset and its pickled copy at once.
     """
     try:
         import resource
@@ -119,6 +122,7 @@ def _limit_memory(p: Path) -> None:
         size = sum(f.stat().st_size for f in p.iterdir()) if p.is_dir() else p.stat().st_size
         with open("/proc/self/statm") as fh:
             mapped = int(fh.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
-        resource.setrlimit(resource.RLIMIT_AS, (mapped + max(2 << 30, 64 * size),) * 2)
+        room = memory_limit().available or 0
+        resource.setrlimit(resource.RLIMIT_AS, (mapped + max(2 << 30, 64 * size, room // 2),) * 2)
     except (ImportError, OSError, ValueError):  # pragma: no cover - not Linux
         pass
