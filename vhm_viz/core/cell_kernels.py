@@ -278,31 +278,43 @@ def tetrahedron_measures(
 def _hex_kernel(p, rest_det, out):  # pragma: no cover - compiled
     nz, ny, nx = p.shape[0] - 1, p.shape[1] - 1, p.shape[2] - 1
     for k in numba.prange(nz):
+        # point rows j and j + 1 of planes k and k + 1, one array per coordinate (so the
+        # loop along a row of cells runs in SIMD lanes); row j + 1 is kept for cells j + 1
+        rows = np.empty((2, 2, 3, nx + 1))  # [row j + b parity, plane k + c, xyz, i]
         for j in range(ny):
+            for c in range(2):
+                for b in range(0 if j == 0 else 1, 2):
+                    src = p[k + c, j + b].ravel()
+                    dst = rows[(j + b) % 2, c]
+                    for i in range(nx + 1):
+                        dst[0, i] = src[3 * i]
+                        dst[1, i] = src[3 * i + 1]
+                        dst[2, i] = src[3 * i + 2]
+            r0, r1 = rows[j % 2], rows[(j + 1) % 2]
             for i in range(nx):
                 low = np.inf
+                flag = 0.0  # NaN once a corner's determinant is not finite
                 for c in range(2):
                     for b in range(2):
+                        rb = r1 if b else r0
                         for a in range(2):
-                            ex0 = p[k + c, j + b, i + 1, 0] - p[k + c, j + b, i, 0]
-                            ex1 = p[k + c, j + b, i + 1, 1] - p[k + c, j + b, i, 1]
-                            ex2 = p[k + c, j + b, i + 1, 2] - p[k + c, j + b, i, 2]
-                            ey0 = p[k + c, j + 1, i + a, 0] - p[k + c, j, i + a, 0]
-                            ey1 = p[k + c, j + 1, i + a, 1] - p[k + c, j, i + a, 1]
-                            ey2 = p[k + c, j + 1, i + a, 2] - p[k + c, j, i + a, 2]
-                            ez0 = p[k + 1, j + b, i + a, 0] - p[k, j + b, i + a, 0]
-                            ez1 = p[k + 1, j + b, i + a, 1] - p[k, j + b, i + a, 1]
-                            ez2 = p[k + 1, j + b, i + a, 2] - p[k, j + b, i + a, 2]
+                            ex0 = rb[c, 0, i + 1] - rb[c, 0, i]
+                            ex1 = rb[c, 1, i + 1] - rb[c, 1, i]
+                            ex2 = rb[c, 2, i + 1] - rb[c, 2, i]
+                            ey0 = r1[c, 0, i + a] - r0[c, 0, i + a]
+                            ey1 = r1[c, 1, i + a] - r0[c, 1, i + a]
+                            ey2 = r1[c, 2, i + a] - r0[c, 2, i + a]
+                            ez0 = rb[1, 0, i + a] - rb[0, 0, i + a]
+                            ez1 = rb[1, 1, i + a] - rb[0, 1, i + a]
+                            ez2 = rb[1, 2, i + a] - rb[0, 2, i + a]
                             d = (
                                 ex0 * (ey1 * ez2 - ey2 * ez1)
                                 - ex1 * (ey0 * ez2 - ey2 * ez0)
                                 + ex2 * (ey0 * ez1 - ey1 * ez0)
                             )
-                            if math.isnan(d):
-                                low = d
-                            elif d < low:
-                                low = d
-                out[k, j, i] = low / rest_det
+                            low = d if d < low else low  # branch-free: SIMD lanes
+                            flag += 0.0 * d
+                out[k, j, i] = low / rest_det + flag
 
 
 def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
