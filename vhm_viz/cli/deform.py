@@ -34,11 +34,11 @@ from vhm_viz.cli._util import (
     check_volume_memory,
     fold_warning,
     image_positions,
+    inverted_voxel_cells,
     load_scene,
     quiet_vtk,
     run_filter,
     surface_metrics,
-    voxel_corner_determinants,
 )
 from vhm_viz.core.image import INTERPOLATIONS
 from vhm_viz.core.volume import DEFAULT_TOLERANCE
@@ -341,13 +341,12 @@ def _voxel_folds(image, warped, progress) -> dict | None:
     if min(dims) < 2:
         return None
     rest_det = float(np.prod(image.spacing) * np.linalg.det(np.asarray(image.direction_matrix)))
-    det = voxel_corner_determinants(warped.points, dims, rest_det, progress)  # interruptible
-    finite = np.isfinite(det)
-    summary = {"cells": int(finite.sum()), "inverted": int(np.count_nonzero(det[finite] <= 0))}
+    cells = inverted_voxel_cells(warped.points, dims, rest_det, progress)  # interruptible
 
-    def centres(cells):
+    def centres(index):
         """Rest centres of voxel cells given by index, without extracting the cells."""
-        i, j, k = np.unravel_index(cells, (dims[0] - 1, dims[1] - 1, dims[2] - 1), order="F")
+        i, j, k = np.unravel_index(index, (dims[0] - 1, dims[1] - 1, dims[2] - 1), order="F")
         return image_positions(image, np.column_stack([i, j, k]) + 0.5)
 
-    return {"determinant": det, "summary": summary, "centres": centres}
+    cells["centres"] = centres
+    return cells
