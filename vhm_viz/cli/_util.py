@@ -371,12 +371,17 @@ def image_positions(image, ijk) -> np.ndarray:
     return np.asarray(image.origin, dtype=np.float64) + np.asarray(ijk, dtype=np.float64) @ frame.T
 
 
-#: Cells per slab of :func:`inverted_voxel_cells`: a slab takes a small fraction of a
-#: second, and an interrupt is acted on between slabs.
+#: Cells per slab of :func:`inverted_voxel_cells` at most: a slab takes a small fraction
+#: of a second, and an interrupt is acted on between slabs.
 FOLD_SLAB_CELLS = 1 << 20
+#: Working memory of :func:`inverted_voxel_cells` per cell of a slab (bytes): its smallest
+#: corner determinant and two masks.
+_FOLD_CELL_BYTES = 10
 
 
-def inverted_voxel_cells(points, dimensions, rest_det: float, progress=None) -> dict:
+def inverted_voxel_cells(
+    points, dimensions, rest_det: float, progress=None, memory_budget=None
+) -> dict:
     """The inverted cells of a warped voxel grid, slab by slab, in bounded memory.
 
     :func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants` of a slab of voxel
@@ -392,6 +397,9 @@ def inverted_voxel_cells(points, dimensions, rest_det: float, progress=None) -> 
     rest_det : float
     progress : callable, optional
         ``progress(fraction)`` after each slab.
+    memory_budget : int, optional
+        Bytes of working memory per slab (default: slabs of :data:`FOLD_SLAB_CELLS`
+        cells; a slab is at least one layer of cells).
 
     Returns
     -------
@@ -406,7 +414,10 @@ def inverted_voxel_cells(points, dimensions, rest_det: float, progress=None) -> 
     nx, ny, nz = (int(d) for d in dimensions)
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     plane, cell_plane = nx * ny, max(nx - 1, 0) * max(ny - 1, 0)
-    layers = max(1, FOLD_SLAB_CELLS // max(cell_plane, 1))
+    slab_cells = FOLD_SLAB_CELLS
+    if memory_budget is not None:
+        slab_cells = min(slab_cells, int(memory_budget) // _FOLD_CELL_BYTES)
+    layers = max(1, slab_cells // max(cell_plane, 1))
     checked, inverted, worst = 0, [np.zeros(0, np.int64)], [np.zeros(0)]
     for k0 in range(0, nz - 1, layers):
         k1 = min(k0 + layers, nz - 1)
