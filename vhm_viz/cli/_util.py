@@ -373,7 +373,7 @@ def image_positions(image, ijk) -> np.ndarray:
 
 #: Cells per slab of :func:`inverted_voxel_cells` at most: a slab takes a small fraction
 #: of a second, and an interrupt is acted on between slabs.
-FOLD_SLAB_CELLS = 1 << 20
+FOLD_SLAB_CELLS = 1 << 22
 #: Working memory of :func:`inverted_voxel_cells` per cell of a slab (bytes): its smallest
 #: corner determinant and two masks.
 _FOLD_CELL_BYTES = 10

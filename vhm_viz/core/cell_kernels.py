@@ -275,46 +275,49 @@ def tetrahedron_measures(
 
 
 @numba.njit(cache=True, parallel=True)
-def _hex_kernel(p, rest_det, out):  # pragma: no cover - compiled
+def _hex_kernel(p, rest_det, out, n_runs):  # pragma: no cover - compiled
     nz, ny, nx = p.shape[0] - 1, p.shape[1] - 1, p.shape[2] - 1
-    for k in numba.prange(nz):
-        # point rows j and j + 1 of planes k and k + 1, one array per coordinate (so the
-        # loop along a row of cells runs in SIMD lanes); row j + 1 is kept for cells j + 1
-        rows = np.empty((2, 2, 3, nx + 1))  # [row j + b parity, plane k + c, xyz, i]
-        for j in range(ny):
-            for c in range(2):
-                for b in range(0 if j == 0 else 1, 2):
-                    src = p[k + c, j + b].ravel()
-                    dst = rows[(j + b) % 2, c]
+    for run in numba.prange(n_runs):
+        # each thread a run of cell layers; the point planes k and k + 1 one array per
+        # coordinate (so the loop along a row of cells runs in SIMD lanes), each plane
+        # split once: plane k + 1 is kept for layer k + 1
+        planes = np.empty((2, 3, ny + 1, nx + 1))  # [plane parity, xyz, j, i]
+        k_lo, k_hi = run * nz // n_runs, (run + 1) * nz // n_runs
+        for k in range(k_lo, k_hi):
+            for c in range(0 if k == k_lo else 1, 2):
+                dst = planes[(k + c) % 2]
+                for j in range(ny + 1):
+                    src = p[k + c, j].ravel()
                     for i in range(nx + 1):
-                        dst[0, i] = src[3 * i]
-                        dst[1, i] = src[3 * i + 1]
-                        dst[2, i] = src[3 * i + 2]
-            r0, r1 = rows[j % 2], rows[(j + 1) % 2]
-            for i in range(nx):
-                low = np.inf
-                flag = 0.0  # NaN once a corner's determinant is not finite
-                for c in range(2):
-                    for b in range(2):
-                        rb = r1 if b else r0
-                        for a in range(2):
-                            ex0 = rb[c, 0, i + 1] - rb[c, 0, i]
-                            ex1 = rb[c, 1, i + 1] - rb[c, 1, i]
-                            ex2 = rb[c, 2, i + 1] - rb[c, 2, i]
-                            ey0 = r1[c, 0, i + a] - r0[c, 0, i + a]
-                            ey1 = r1[c, 1, i + a] - r0[c, 1, i + a]
-                            ey2 = r1[c, 2, i + a] - r0[c, 2, i + a]
-                            ez0 = rb[1, 0, i + a] - rb[0, 0, i + a]
-                            ez1 = rb[1, 1, i + a] - rb[0, 1, i + a]
-                            ez2 = rb[1, 2, i + a] - rb[0, 2, i + a]
-                            d = (
-                                ex0 * (ey1 * ez2 - ey2 * ez1)
-                                - ex1 * (ey0 * ez2 - ey2 * ez0)
-                                + ex2 * (ey0 * ez1 - ey1 * ez0)
-                            )
-                            low = d if d < low else low  # branch-free: SIMD lanes
-                            flag += 0.0 * d
-                out[k, j, i] = low / rest_det + flag
+                        dst[0, j, i] = src[3 * i]
+                        dst[1, j, i] = src[3 * i + 1]
+                        dst[2, j, i] = src[3 * i + 2]
+            p0, p1 = planes[k % 2], planes[(k + 1) % 2]
+            for j in range(ny):
+                for i in range(nx):
+                    low = np.inf
+                    flag = 0.0  # NaN once a corner's determinant is not finite
+                    for c in range(2):
+                        pc = p1 if c else p0
+                        for b in range(2):
+                            for a in range(2):
+                                ex0 = pc[0, j + b, i + 1] - pc[0, j + b, i]
+                                ex1 = pc[1, j + b, i + 1] - pc[1, j + b, i]
+                                ex2 = pc[2, j + b, i + 1] - pc[2, j + b, i]
+                                ey0 = pc[0, j + 1, i + a] - pc[0, j, i + a]
+                                ey1 = pc[1, j + 1, i + a] - pc[1, j, i + a]
+                                ey2 = pc[2, j + 1, i + a] - pc[2, j, i + a]
+                                ez0 = p1[0, j + b, i + a] - p0[0, j + b, i + a]
+                                ez1 = p1[1, j + b, i + a] - p0[1, j + b, i + a]
+                                ez2 = p1[2, j + b, i + a] - p0[2, j + b, i + a]
+                                d = (
+                                    ex0 * (ey1 * ez2 - ey2 * ez1)
+                                    - ex1 * (ey0 * ez2 - ey2 * ez0)
+                                    + ex2 * (ey0 * ez1 - ey1 * ez0)
+                                )
+                                low = d if d < low else low  # branch-free: SIMD lanes
+                                flag += 0.0 * d
+                    out[k, j, i] = low / rest_det + flag
 
 
 def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
@@ -348,5 +351,6 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.nd
     cells = (max(nz - 1, 0), max(ny - 1, 0), max(nx - 1, 0))
     out = np.empty(cells)
     if out.size:
-        _hex_kernel(np.ascontiguousarray(p), float(rest_det), out)
+        runs = min(cells[0], numba.get_num_threads())  # one run of layers per thread
+        _hex_kernel(np.ascontiguousarray(p), float(rest_det), out, runs)
     return out.reshape(-1)
