@@ -66,6 +66,32 @@ def test_warped_volume_fold_count_matches_brute_force(folding_volume):
     assert parts == pytest.approx(float(stages["total"]), abs=0.02)
 
 
+def test_fold_count_is_the_same_in_small_slabs(folding_volume):
+    # a memory budget of a layer of cells: the check goes through every layer on its own
+    out = folding_volume / "small.vts"
+    proc = _cli(
+        "deform", str(folding_volume / "image.vti"), "--scene", str(folding_volume / "scene.json"),
+        "-o", str(out), "-q", "--memory-budget", "1K",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    grid = np.asarray(pv.read(out).points).reshape(*DIMS[::-1], 3)
+    dets = trilinear_corner_dets(grid)  # VTK's cell order
+    expected = np.flatnonzero(dets <= 0)
+    m = re.search(
+        r"(\d+) of (\d+) cells inverted \(cell det <= 0; worst (\S+) at \(([^)]*)\)", proc.stderr
+    )
+    assert m, proc.stderr
+    assert int(m.group(1)) == expected.size > 0
+    assert int(m.group(2)) == np.prod(np.array(DIMS) - 1)
+    image = pv.read(folding_volume / "image.vti")
+    assert float(m.group(3)) == pytest.approx(dets.min() / np.prod(image.spacing), rel=5e-3)
+    # the worst cell's rest centre, printed to 4 digits
+    i, j, k = np.unravel_index(np.argmin(dets), np.array(DIMS) - 1, order="F")
+    centre = np.asarray(image.origin) + (np.array([i, j, k]) + 0.5) * np.asarray(image.spacing)
+    shown = [float(v) for v in m.group(4).split(",")]
+    np.testing.assert_allclose(shown, centre, rtol=1e-3, atol=1e-3)
+
+
 def test_threads_option_and_variable(folding_volume):
     d = folding_volume
     args = ["deform", str(d / "image.vti"), "--scene", str(d / "scene.json"),

@@ -80,7 +80,6 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from vhm_viz.autocage import auto_anchors, auto_cage
 from vhm_viz.core.anchors import anchors_from_polylines
 from vhm_viz.core.cage import MIN_FACE_ANGLE, Cage
 from vhm_viz.core.deformer import Deformer
@@ -438,6 +437,9 @@ class Scene:
         if "auto" in self.cage:
             if data is None:
                 raise SceneError("cage", '"auto" needs the data to deform')
+            # imported here: only a scene with an automatic cage needs vhm_viz.autocage
+            from vhm_viz.autocage import auto_cage
+
             return auto_cage(data, **self.cage["auto"])
         return Cage(self.cage["vertices"], self.cage["faces"])
 
@@ -456,6 +458,9 @@ class Scene:
             # a volume's automatic cage encloses the region above its threshold: the
             # anchors go in that region too
             options = self.cage.get("auto") if isinstance(self.cage.get("auto"), dict) else {}
+            # imported here: only automatic anchors need vhm_viz.autocage
+            from vhm_viz.autocage import auto_anchors
+
             return auto_anchors(
                 data,
                 cage,

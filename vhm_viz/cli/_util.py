@@ -371,16 +371,23 @@ def image_positions(image, ijk) -> np.ndarray:
     return np.asarray(image.origin, dtype=np.float64) + np.asarray(ijk, dtype=np.float64) @ frame.T
 
 
-#: Cells per slab of :func:`voxel_corner_determinants`: a slab takes a small fraction of a
-#: second, and an interrupt is acted on between slabs.
-FOLD_SLAB_CELLS = 1 << 20
+#: Cells per slab of :func:`inverted_voxel_cells` at most: a slab takes a small fraction
+#: of a second, and an interrupt is acted on between slabs.
+FOLD_SLAB_CELLS = 1 << 22
+#: Working memory of :func:`inverted_voxel_cells` per cell of a slab (bytes): its smallest
+#: corner determinant and two masks.
+_FOLD_CELL_BYTES = 10
 
 
-def voxel_corner_determinants(points, dimensions, rest_det: float, progress=None) -> np.ndarray:
-    """:func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants`, slab by slab.
+def inverted_voxel_cells(
+    points, dimensions, rest_det: float, progress=None, memory_budget=None
+) -> dict:
+    """The inverted cells of a warped voxel grid, slab by slab, in bounded memory.
 
-    A slab of voxel layers at a time, with an interrupt check between slabs, so that
-    Ctrl-C or SIGTERM stops the fold check of a large warped volume promptly.
+    :func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants` of a slab of voxel
+    layers at a time: only a slab's determinants and the inverted cells are held, and an
+    interrupt is acted on between slabs, so that Ctrl-C or SIGTERM stops the fold check
+    of a large warped volume promptly.
 
     Parameters
     ----------
@@ -390,27 +397,63 @@ def voxel_corner_determinants(points, dimensions, rest_det: float, progress=None
     rest_det : float
     progress : callable, optional
         ``progress(fraction)`` after each slab.
+    memory_budget : int, optional
+        Bytes of working memory per slab (default: slabs of :data:`FOLD_SLAB_CELLS`
+        cells; a slab is at least one layer of cells).
 
     Returns
     -------
-    ((nx - 1) * (ny - 1) * (nz - 1),) float64
+    dict
+        :func:`fold_warning`'s ``cells``: ``summary`` (``cells``: cells with finite
+        corners, ``inverted``: of them with a corner determinant ``<= 0``), ``inverted``
+        (K,) int64 (the inverted cells in VTK's cell order) and ``inverted_determinant``
+        (K,) float64 (their smallest corner determinant relative to the rest voxel's).
     """
     from vhm_viz.core.cell_kernels import hexahedron_corner_determinants
 
     nx, ny, nz = (int(d) for d in dimensions)
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     plane, cell_plane = nx * ny, max(nx - 1, 0) * max(ny - 1, 0)
-    det = np.empty(cell_plane * max(nz - 1, 0))
-    layers = max(1, FOLD_SLAB_CELLS // max(cell_plane, 1))
+    slab_cells = FOLD_SLAB_CELLS
+    if memory_budget is not None:
+        slab_cells = min(slab_cells, int(memory_budget) // _FOLD_CELL_BYTES)
+    layers = max(1, slab_cells // max(cell_plane, 1))
+    checked, inverted, worst = 0, [np.zeros(0, np.int64)], [np.zeros(0)]
     for k0 in range(0, nz - 1, layers):
         k1 = min(k0 + layers, nz - 1)
-        det[k0 * cell_plane : k1 * cell_plane] = hexahedron_corner_determinants(
+        det = hexahedron_corner_determinants(
             points[k0 * plane : (k1 + 1) * plane], (nx, ny, k1 - k0 + 1), rest_det
         )
+        checked += det.size - int(np.count_nonzero(np.isnan(det)))
+        bad = np.flatnonzero(det <= 0)
+        inverted.append(bad + k0 * cell_plane)
+        worst.append(det[bad])
         interrupts.check()
         if progress is not None:
             progress(k1 / (nz - 1))
-    return det
+    bad = np.concatenate(inverted)
+    return {
+        "summary": {"cells": checked, "inverted": int(bad.size)},
+        "inverted": bad,
+        "inverted_determinant": np.concatenate(worst),
+    }
+
+
+def _spot_jacobian_determinants(harmonic_map, points) -> tuple[np.ndarray, np.ndarray]:
+    """Exact ``det J`` at points inside the cage: (which points, their ``det J``).
+
+    Through :func:`~vhm_viz.core.basis.evaluate_map`, the kernel that contracts the basis
+    with the coefficients as it goes (the one the volume lattice is built with): no basis
+    arrays. Points outside the cage, or on a cage edge (no Jacobian), are left out.
+    """
+    from vhm_viz.core.basis import evaluate_map, inside_cage
+
+    cage = harmonic_map.cage
+    _, jac, winding = evaluate_map(
+        points, cage.vertices, cage.faces, harmonic_map.coefficients, order=1
+    )
+    ok = inside_cage(winding) & np.isfinite(jac).all(axis=(1, 2))
+    return ok, np.linalg.det(jac[ok])
 
 
 def fold_warning(
@@ -424,7 +467,10 @@ def fold_warning(
         The rest data (positions in the message are rest positions).
     harmonic_map : HarmonicMap
     cells : dict, optional
-        :func:`vhm_viz.filters.cell_quality` of the output (3D cells only).
+        The output's cells (3D cells only): :func:`vhm_viz.filters.cell_quality` of the
+        output (``determinant`` per cell), or :func:`inverted_voxel_cells` (``inverted``
+        cells and their ``inverted_determinant``); either with its ``summary``, and
+        optionally ``centres(cells)``, the rest centres of cells given by index.
     point_det : (N,) array_like, optional
         ``det J`` at every point, when already computed; else it is sampled exactly at up
         to ``samples`` points.
@@ -441,22 +487,25 @@ def fold_warning(
 
     parts = []
     if cells is not None and cells["summary"]["inverted"]:
-        det = np.asarray(cells["determinant"])
-        bad = np.nonzero(det <= 0)[0]
+        if "inverted" in cells:
+            bad, worst = np.asarray(cells["inverted"]), np.asarray(cells["inverted_determinant"])
+        else:
+            det = np.asarray(cells["determinant"])
+            bad = np.nonzero(det <= 0)[0]
+            worst = det[bad]
         if "centres" in cells:
             centres = np.asarray(cells["centres"](bad))
         else:
             centres = np.asarray(pv.wrap(rest).extract_cells(bad).cell_centers().points)
         parts.append(
             f"{bad.size} of {cells['summary']['cells']} cells inverted "
-            f"(cell det <= 0; {_where(centres, det[bad])})"
+            f"(cell det <= 0; {_where(centres, worst)})"
         )
     n_points = rest.GetNumberOfPoints()
     if point_det is None:
         idx = np.unique(np.linspace(0, n_points - 1, min(n_points, samples)).astype(int))
-        jac = harmonic_map.evaluate(_points_of(rest, idx), order=1, outside="nan")[1]
-        ok = np.isfinite(jac).all(axis=(1, 2))
-        idx, det = idx[ok], np.linalg.det(jac[ok])
+        ok, det = _spot_jacobian_determinants(harmonic_map, _points_of(rest, idx))
+        idx = idx[ok]
         what = f"{idx.size} sampled points"
     else:
         det = np.asarray(point_det, dtype=np.float64)

@@ -34,11 +34,11 @@ from vhm_viz.cli._util import (
     check_volume_memory,
     fold_warning,
     image_positions,
+    inverted_voxel_cells,
     load_scene,
     quiet_vtk,
     run_filter,
     surface_metrics,
-    voxel_corner_determinants,
 )
 from vhm_viz.core.image import INTERPOLATIONS
 from vhm_viz.core.volume import DEFAULT_TOLERANCE
@@ -254,7 +254,9 @@ def deform(args: argparse.Namespace) -> str:
     # everything that can fail happens before the write: an error never follows an output
     with timer.stage("checks"):
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
-        warning = _check_folds(mesh, result, dfm, flt, resample, quiet=args.quiet)
+        warning = _check_folds(
+            mesh, result, dfm, flt, resample, quiet=args.quiet, memory_budget=args.memory_budget
+        )
     # the output, the arrays beside it and a field in the same folder appear as one set
     with timer.stage("write"), atomic_outputs(out.parent):
         written = write_dataset(out, result, inputs=inputs)
@@ -297,14 +299,17 @@ def _output_type(mesh) -> str:
     return "StructuredGrid"
 
 
-def _check_folds(mesh, result, dfm, flt, resample: bool, quiet: bool) -> str | None:
+def _check_folds(
+    mesh, result, dfm, flt, resample: bool, quiet: bool, memory_budget=None
+) -> str | None:
     """The fold warning of the output: inverted cells and sampled det J <= 0.
 
     A warped image's cells are judged by the corner Jacobians of its trilinear voxels
     (:func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants`); other 3D cells
     by the tetrahedra they split into, taken from the output's cell arrays when the
     filter computed them (``--arrays cells``). The cells' check has a progress bar
-    (``checking``).
+    (``checking``); a warped image's is done in slabs of at most ``memory_budget`` bytes
+    (``--memory-budget``).
     """
     import pyvista as pv
 
@@ -316,7 +321,7 @@ def _check_folds(mesh, result, dfm, flt, resample: bool, quiet: bool) -> str | N
         bar = Progress("checking", enabled=not quiet)
         bar(0.0)
         if isinstance(mesh, pv.ImageData):
-            cells = _voxel_folds(mesh, result, bar)
+            cells = _voxel_folds(mesh, result, bar, memory_budget)
         elif "cell_jacobian_determinant" in result.cell_data:
             det = np.asarray(result.cell_data["cell_jacobian_determinant"])
             finite = np.isfinite(det)
@@ -335,19 +340,18 @@ def _check_folds(mesh, result, dfm, flt, resample: bool, quiet: bool) -> str | N
     return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det, samples=samples)
 
 
-def _voxel_folds(image, warped, progress) -> dict | None:
+def _voxel_folds(image, warped, progress, memory_budget=None) -> dict | None:
     """:func:`fold_warning`'s cells of a warped image: its voxels' corner Jacobians."""
     dims = tuple(int(d) for d in image.dimensions)
     if min(dims) < 2:
         return None
     rest_det = float(np.prod(image.spacing) * np.linalg.det(np.asarray(image.direction_matrix)))
-    det = voxel_corner_determinants(warped.points, dims, rest_det, progress)  # interruptible
-    finite = np.isfinite(det)
-    summary = {"cells": int(finite.sum()), "inverted": int(np.count_nonzero(det[finite] <= 0))}
+    cells = inverted_voxel_cells(warped.points, dims, rest_det, progress, memory_budget)
 
-    def centres(cells):
+    def centres(index):
         """Rest centres of voxel cells given by index, without extracting the cells."""
-        i, j, k = np.unravel_index(cells, (dims[0] - 1, dims[1] - 1, dims[2] - 1), order="F")
+        i, j, k = np.unravel_index(index, (dims[0] - 1, dims[1] - 1, dims[2] - 1), order="F")
         return image_positions(image, np.column_stack([i, j, k]) + 0.5)
 
-    return {"determinant": det, "summary": summary, "centres": centres}
+    cells["centres"] = centres
+    return cells

@@ -271,34 +271,49 @@ def tetrahedron_measures(
 
 
 @numba.njit(cache=True, parallel=True)
-def _hex_kernel(p, rest_det, out):  # pragma: no cover - compiled
+def _hex_kernel(p, rest_det, out, n_runs):  # pragma: no cover - compiled
     nz, ny, nx = p.shape[0] - 1, p.shape[1] - 1, p.shape[2] - 1
-    for k in numba.prange(nz):
-        for j in range(ny):
-            for i in range(nx):
-                low = np.inf
-                for c in range(2):
-                    for b in range(2):
-                        for a in range(2):
-                            ex0 = p[k + c, j + b, i + 1, 0] - p[k + c, j + b, i, 0]
-                            ex1 = p[k + c, j + b, i + 1, 1] - p[k + c, j + b, i, 1]
-                            ex2 = p[k + c, j + b, i + 1, 2] - p[k + c, j + b, i, 2]
-                            ey0 = p[k + c, j + 1, i + a, 0] - p[k + c, j, i + a, 0]
-                            ey1 = p[k + c, j + 1, i + a, 1] - p[k + c, j, i + a, 1]
-                            ey2 = p[k + c, j + 1, i + a, 2] - p[k + c, j, i + a, 2]
-                            ez0 = p[k + 1, j + b, i + a, 0] - p[k, j + b, i + a, 0]
-                            ez1 = p[k + 1, j + b, i + a, 1] - p[k, j + b, i + a, 1]
-                            ez2 = p[k + 1, j + b, i + a, 2] - p[k, j + b, i + a, 2]
-                            d = (
-                                ex0 * (ey1 * ez2 - ey2 * ez1)
-                                - ex1 * (ey0 * ez2 - ey2 * ez0)
-                                + ex2 * (ey0 * ez1 - ey1 * ez0)
-                            )
-                            if math.isnan(d):
-                                low = d
-                            elif d < low:
-                                low = d
-                out[k, j, i] = low / rest_det
+    for run in numba.prange(n_runs):
+        # each thread a run of cell layers; the point planes k and k + 1 one array per
+        # coordinate (so the loop along a row of cells runs in SIMD lanes), each plane
+        # split once: plane k + 1 is kept for layer k + 1
+        planes = np.empty((2, 3, ny + 1, nx + 1))  # [plane parity, xyz, j, i]
+        k_lo, k_hi = run * nz // n_runs, (run + 1) * nz // n_runs
+        for k in range(k_lo, k_hi):
+            for c in range(0 if k == k_lo else 1, 2):
+                dst = planes[(k + c) % 2]
+                for j in range(ny + 1):
+                    src = p[k + c, j].ravel()
+                    for i in range(nx + 1):
+                        dst[0, j, i] = src[3 * i]
+                        dst[1, j, i] = src[3 * i + 1]
+                        dst[2, j, i] = src[3 * i + 2]
+            p0, p1 = planes[k % 2], planes[(k + 1) % 2]
+            for j in range(ny):
+                for i in range(nx):
+                    low = np.inf
+                    flag = 0.0  # NaN once a corner's determinant is not finite
+                    for c in range(2):
+                        pc = p1 if c else p0
+                        for b in range(2):
+                            for a in range(2):
+                                ex0 = pc[0, j + b, i + 1] - pc[0, j + b, i]
+                                ex1 = pc[1, j + b, i + 1] - pc[1, j + b, i]
+                                ex2 = pc[2, j + b, i + 1] - pc[2, j + b, i]
+                                ey0 = pc[0, j + 1, i + a] - pc[0, j, i + a]
+                                ey1 = pc[1, j + 1, i + a] - pc[1, j, i + a]
+                                ey2 = pc[2, j + 1, i + a] - pc[2, j, i + a]
+                                ez0 = p1[0, j + b, i + a] - p0[0, j + b, i + a]
+                                ez1 = p1[1, j + b, i + a] - p0[1, j + b, i + a]
+                                ez2 = p1[2, j + b, i + a] - p0[2, j + b, i + a]
+                                d = (
+                                    ex0 * (ey1 * ez2 - ey2 * ez1)
+                                    - ex1 * (ey0 * ez2 - ey2 * ez0)
+                                    + ex2 * (ey0 * ez1 - ey1 * ez0)
+                                )
+                                low = d if d < low else low  # branch-free: SIMD lanes
+                                flag += 0.0 * d
+                    out[k, j, i] = low / rest_det + flag
 
 
 def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
@@ -332,5 +347,6 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.nd
     cells = (max(nz - 1, 0), max(ny - 1, 0), max(nx - 1, 0))
     out = np.empty(cells)
     if out.size:
-        _hex_kernel(np.ascontiguousarray(p), float(rest_det), out)
+        runs = min(cells[0], numba.get_num_threads())  # one run of layers per thread
+        _hex_kernel(np.ascontiguousarray(p), float(rest_det), out, runs)
     return out.reshape(-1)

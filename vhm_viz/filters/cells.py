@@ -21,7 +21,6 @@ import numpy as np
 from vtkmodules.util import numpy_support as ns
 from vtkmodules.vtkFiltersGeneral import vtkDataSetTriangleFilter
 
-from vhm_viz.autocage.proximity import NearDistance, grid_signed_distance
 from vhm_viz.core.basis import inside_cage, winding_number
 from vhm_viz.core.certify import INSIDE, MEETS, OUTSIDE, Region, default_margin
 from vhm_viz.core.geometry import signed_volume
@@ -276,6 +275,9 @@ def _solid_region(surface):
     cube that straddles the surface lie within four of their radii of it, so the exact
     distance covers every later test.
     """
+    # imported here: of the filters, only a closed surface's region needs vhm_viz.autocage
+    from vhm_viz.autocage.proximity import NearDistance, grid_signed_distance
+
     v = np.ascontiguousarray(surface.points, dtype=np.float64)
     f = np.ascontiguousarray(np.asarray(surface.faces).reshape(-1, 4)[:, 1:], dtype=np.int64)
     if signed_volume(v, f) < 0:
