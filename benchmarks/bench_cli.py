@@ -347,9 +347,12 @@ def environment(repo: Path, cache: Path | None) -> dict:
     """The child's environment: ``repo``'s vhm_viz first on the path.
 
     ``cache``: a compiled-code cache folder for the child (default: the caller's own, as
-    a user's command would find it).
+    a user's command would find it). Python's bytecode is cached as an installed
+    package's is (``pip`` compiles it at install): a ``PYTHONDONTWRITEBYTECODE`` in the
+    caller's environment would make every child compile vhm_viz's modules from source.
     """
     env = dict(os.environ)
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
     env["PYTHONPATH"] = str(repo) + os.pathsep + env.get("PYTHONPATH", "")
     if cache is not None:
         env["NUMBA_CACHE_DIR"] = str(cache)
