@@ -20,6 +20,8 @@ import math
 import numba
 import numpy as np
 
+from vhm_viz.core.row_threads import run_rows
+
 __all__ = [
     "DEGENERATE_RTOL",
     "singular_values_3x3",
@@ -34,6 +36,8 @@ DEGENERATE_RTOL = 1e-12
 #: Sweeps of the one-sided Jacobi SVD at most (it converges quadratically: 3 x 3 matrices
 #: need a handful).
 _JACOBI_SWEEPS = 30
+#: Tetrahedra per chunk of :func:`~vhm_viz.core.row_threads.run_rows` at least.
+_TETS_GRAIN = 4096
 
 
 @numba.njit(cache=True)
@@ -113,13 +117,15 @@ def singular_values_3x3(matrices) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, parallel=True)
-def _tet_kernel(x, y, tets, rtol, want_cond, det, cond, rest_det, state):  # pragma: no cover
-    """Per tet: ``det F``, ``cond F``, ``det D_rest`` and a state code.
+@numba.njit(cache=True, nogil=True)
+def _tet_kernel(  # pragma: no cover - compiled
+    start, stop, x, y, tets, rtol, want_cond, det, cond, rest_det, state
+):
+    """Per tet ``start <= t < stop``: ``det F``, ``cond F``, ``det D_rest`` and a state code.
 
     ``state``: 0 measured, 1 degenerate at rest, 2 a corner not finite (deformed).
     """
-    for t in numba.prange(tets.shape[0]):
+    for t in range(start, stop):
         i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
         # rest edge matrix R = [x1 - x0 | x2 - x0 | x3 - x0] (columns)
         r00, r10, r20 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
@@ -259,7 +265,10 @@ def tetrahedron_measures(
     rest_det = np.empty(n_tets)
     state = np.empty(n_tets, dtype=np.int8)
     if n_tets:
-        _tet_kernel(x, y, t, DEGENERATE_RTOL, bool(condition), det, cond, rest_det, state)
+        run_rows(
+            _tet_kernel, n_tets, x, y, t, DEGENERATE_RTOL, bool(condition), det, cond,
+            rest_det, state, grain=_TETS_GRAIN,
+        )  # fmt: skip
     out_det = np.empty(n)
     out_cond = np.empty(n)
     flags = np.empty(n, dtype=np.int8)

@@ -15,11 +15,12 @@ import math
 import numba
 import numpy as np
 
-from vhm_viz.core.basis_lanes import winding_kernel
+from vhm_viz.core.basis_lanes import ROWS_GRAIN, winding_kernel
 from vhm_viz.core.basis_reference import NUMPY_CHUNK
 from vhm_viz.core.cage_tables import read_only
 from vhm_viz.core.geometry import face_normals_and_areas, point_triangle_distance2
 from vhm_viz.core.points import as_points
+from vhm_viz.core.row_threads import run_rows
 
 __all__ = [
     "ON_SURFACE_RTOL",
@@ -246,7 +247,7 @@ def winding_number(points, vertices, faces, *, backend: str = "numba") -> np.nda
     if backend == "numba":
         out = np.zeros(p.shape[0])
         if p.shape[0]:
-            winding_kernel(read_only(p), v, f, out)
+            run_rows(winding_kernel, p.shape[0], read_only(p), v, f, out, grain=ROWS_GRAIN)
         return out
     if backend != "numpy":
         raise ValueError(f"backend must be 'numba' or 'numpy'; got {backend!r}")
