@@ -228,9 +228,10 @@ def _face_terms(E, ce, F, N, inv_twice_area, D, NxD, face_edges, order, acc, acc
             L,
         )
         _scatter(acc, col, buf, 0, 1.0, False, L)
-        _scatter(acc, r0 * S, buf, 1, 1.0, True, L)
-        _scatter(acc, r1 * S, buf, 2, 1.0, True, L)
-        _scatter(acc, r2 * S, buf, 3, 1.0, True, L)
+        # buffer rows 1-3 to the corners (a loop index, not constants: numba compiles a
+        # helper once per combination of constant arguments)
+        for v in range(3):
+            _scatter(acc, _U(F[t, v]) * S, buf, v + 1, 1.0, True, L)
         if order >= 1:
             # grad psi_t = -P ;  grad phi_v += (P x d_v) / 2A, one axis per loop
             for c in range(3):
