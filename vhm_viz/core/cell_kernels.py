@@ -89,9 +89,9 @@ def _jacobi_singular_values(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pra
     return s0, s1, s2
 
 
-@numba.njit(cache=True, parallel=True)
-def _singular_values_rows(m, out):  # pragma: no cover - compiled
-    for k in numba.prange(m.shape[0]):
+@numba.njit(cache=True, nogil=True)
+def _singular_values_rows(start, stop, m, out):  # pragma: no cover - compiled
+    for k in range(start, stop):
         out[k, 0], out[k, 1], out[k, 2] = _jacobi_singular_values(
             m[k, 0, 0], m[k, 0, 1], m[k, 0, 2], m[k, 1, 0], m[k, 1, 1], m[k, 1, 2],
             m[k, 2, 0], m[k, 2, 1], m[k, 2, 2],
@@ -113,7 +113,7 @@ def singular_values_3x3(matrices) -> np.ndarray:
     m = np.ascontiguousarray(matrices, dtype=np.float64).reshape(-1, 3, 3)
     out = np.empty((len(m), 3))
     if len(m):
-        _singular_values_rows(m, out)
+        run_rows(_singular_values_rows, len(m), m, out, grain=4096)
     return out
 
 
@@ -283,10 +283,11 @@ def tetrahedron_measures(
     }
 
 
-@numba.njit(cache=True, parallel=True)
-def _hex_kernel(p, rest_det, out):  # pragma: no cover - compiled
-    nz, ny, nx = p.shape[0] - 1, p.shape[1] - 1, p.shape[2] - 1
-    for k in numba.prange(nz):
+@numba.njit(cache=True, nogil=True)
+def _hex_kernel(start, stop, p, rest_det, out):  # pragma: no cover - compiled
+    """Smallest corner determinant of the cells in z-slices ``start <= k < stop``."""
+    ny, nx = p.shape[1] - 1, p.shape[2] - 1
+    for k in range(start, stop):
         for j in range(ny):
             for i in range(nx):
                 low = np.inf
@@ -345,5 +346,5 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.nd
     cells = (max(nz - 1, 0), max(ny - 1, 0), max(nx - 1, 0))
     out = np.empty(cells)
     if out.size:
-        _hex_kernel(np.ascontiguousarray(p), float(rest_det), out)
+        run_rows(_hex_kernel, cells[0], np.ascontiguousarray(p), float(rest_det), out, grain=1)
     return out.reshape(-1)
