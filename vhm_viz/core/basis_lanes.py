@@ -276,7 +276,7 @@ def _group_basis(
 
 @numba.njit(**_INLINE)
 def _group_scratch(n, n_edges, nm, order, L):  # pragma: no cover - compiled
-    """Scratch of one work item: ``pts, near, E, ce, acc, accg, buf`` (see _group_basis)."""
+    """Scratch of one chunk of rows: ``pts, near, E, ce, acc, accg, buf`` (see _group_basis)."""
     return (
         np.empty(3 * L),
         np.empty(L),

@@ -1,6 +1,6 @@
 """Serial compiled kernels run over ranges of rows on a small pool of threads.
 
-A numba ``parallel=True`` kernel costs seconds more to compile than the same loop written
+A numba ``parallel=True`` kernel costs far more to compile than the same loop written
 serially (the parallel-loop lowering and its generated wrappers), which a first run pays
 for every such kernel. The kernels here are compiled serially with ``nogil=True`` and take
 the range of rows they work on (``start, stop``) as their first two arguments;
