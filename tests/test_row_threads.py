@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import threading
 
 import numba
@@ -65,5 +67,36 @@ def test_a_kernel_error_reaches_the_caller():
             pytest.skip("needs two threads")
         with pytest.raises(ValueError, match="row"):
             run_rows(failing, 4096, grain=256)
+    finally:
+        numba.set_num_threads(before)
+
+
+def _fill_rows(start, stop, out):
+    out[start:stop] = np.arange(start, stop)
+
+
+def _child_fills(conn):
+    out = np.zeros(4096)
+    run_rows(_fill_rows, len(out), out, grain=256)
+    conn.send(float(out.sum()))
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_a_forked_child_gets_working_threads():
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    try:
+        run_rows(_fill_rows, 4096, np.zeros(4096), grain=256)  # the parent's pool exists
+        ctx = multiprocessing.get_context("fork")
+        receive, send = ctx.Pipe(duplex=False)
+        child = ctx.Process(target=_child_fills, args=(send,))
+        child.start()
+        try:
+            assert receive.poll(60), "the child's rows never ran"
+            assert receive.recv() == float(np.arange(4096).sum())
+        finally:
+            child.join(10)
+            if child.is_alive():
+                child.kill()
     finally:
         numba.set_num_threads(before)

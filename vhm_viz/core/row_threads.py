@@ -12,6 +12,7 @@ rows balance themselves.
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -19,7 +20,7 @@ import numba
 
 __all__ = ["run_rows"]
 
-_pool: dict = {"executor": None, "threads": 0}
+_pool: dict = {"executor": None, "threads": 0, "pid": 0}
 _lock = threading.Lock()
 _worker = threading.local()
 #: Chunks per thread: enough for threads that finish early to take over others' work.
@@ -31,14 +32,18 @@ def _mark_worker() -> None:
 
 
 def _executor(threads: int) -> ThreadPoolExecutor:
-    """The shared pool, (re)created with ``threads`` workers when that count changes."""
+    """The shared pool, (re)created with ``threads`` workers when that count changes.
+
+    A forked child inherits the pool but not its threads: it gets a new one.
+    """
     with _lock:
-        if _pool["threads"] != threads:
-            old = _pool["executor"]
+        if _pool["threads"] != threads or _pool["pid"] != os.getpid():
+            old = _pool["executor"] if _pool["pid"] == os.getpid() else None
             _pool["executor"] = ThreadPoolExecutor(
                 threads, thread_name_prefix="vhm-rows", initializer=_mark_worker
             )
             _pool["threads"] = threads
+            _pool["pid"] = os.getpid()
             if old is not None:
                 old.shutdown(wait=False)
         return _pool["executor"]
