@@ -13,6 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from vhm_viz.core.geometry import closest_point_on_triangle, closest_points_on_triangles
+from vhm_viz.core.row_threads import run_rows
 
 __all__ = ["NearDistance", "near_signed_distance"]
 
@@ -163,10 +164,12 @@ def _fill_cells(lo, hi, origin, cs, dims, count_only, start, out):
     return total
 
 
-@numba.njit(cache=True, parallel=True)
-def _grid_query(P, V, F, fn, en, vn, start, faces_in_cell, origin, cs, dims, radius, out_sd, out_f):
-    n = P.shape[0]
-    for ip in numba.prange(n):
+@numba.njit(cache=True, nogil=True)
+def _grid_query(  # pragma: no cover - compiled
+    start, stop, P, V, F, fn, en, vn, cell_start, faces_in_cell, origin, cs, dims, radius,
+    out_sd, out_f,
+):  # fmt: skip
+    for ip in range(start, stop):
         px, py, pz = P[ip, 0], P[ip, 1], P[ip, 2]
         out_sd[ip] = np.inf
         out_f[ip] = -1
@@ -182,7 +185,7 @@ def _grid_query(P, V, F, fn, en, vn, start, faces_in_cell, origin, cs, dims, rad
         bq2 = 0.0
         bf = -1
         breg = 0
-        for s in range(start[c], start[c + 1]):
+        for s in range(cell_start[c], cell_start[c + 1]):
             f = faces_in_cell[s]
             va, vb, vc = F[f, 0], F[f, 1], F[f, 2]
             q0, q1, q2, reg = closest_point_on_triangle(
@@ -248,7 +251,9 @@ def grid_signed_distance(nd: NearDistance, points, radius: float):
     _fill_cells(lo, hi, origin, cs, dims, False, fill, out)
     sd = np.empty(len(P))
     face = np.empty(len(P), dtype=np.int64)
-    _grid_query(
+    run_rows(
+        _grid_query,
+        len(P),
         P,
         nd.V,
         nd.F,

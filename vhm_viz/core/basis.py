@@ -53,7 +53,7 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 
 from vhm_viz.core.basis_kernel import NEAR_EDGE, compiled_evaluation, per_point_evaluation
-from vhm_viz.core.basis_lanes import lanes_map_kernel
+from vhm_viz.core.basis_lanes import ROWS_GRAIN, lanes_map_kernel
 from vhm_viz.core.basis_reference import NUMPY_CHUNK, evaluate_reference
 from vhm_viz.core.cage_tables import (
     CageTables,
@@ -76,6 +76,7 @@ from vhm_viz.core.inside import (
 )
 from vhm_viz.core.limits import check_setting
 from vhm_viz.core.points import as_points
+from vhm_viz.core.row_threads import run_rows
 
 __all__ = [
     "DEFAULT_MEMORY_BUDGET",
@@ -278,7 +279,9 @@ def _evaluate_map_one(p, cd: CageTables, z, order: int):
     winding = np.empty(npts)
     flagged = np.zeros(npts, dtype=np.bool_)
     kernel_args = kernel_arrays(cd)
-    lanes_map_kernel(
+    run_rows(
+        lanes_map_kernel,
+        npts,
         read_only(p),
         *kernel_args,
         NEAR_EDGE,
@@ -288,6 +291,7 @@ def _evaluate_map_one(p, cd: CageTables, z, order: int):
         jac,
         winding,
         flagged,
+        grain=ROWS_GRAIN,
     )
     rows = np.nonzero(flagged)[0]
     if rows.size:

@@ -15,21 +15,24 @@ import math
 import numba
 import numpy as np
 
-from vhm_viz.core.basis_lanes import lanes_kernel
+from vhm_viz.core.basis_lanes import ROWS_GRAIN, lanes_kernel
 from vhm_viz.core.cage_tables import CageTables, kernel_arrays, read_only
 from vhm_viz.core.exact_cross import cross_exact
+from vhm_viz.core.row_threads import run_rows
 
 __all__ = ["NEAR_EDGE", "compiled_evaluation", "lanes_evaluation", "per_point_evaluation"]
 
-_BLOCK = 16  # points per parallel work item (amortises the scratch allocations)
+_GRAIN = 32  # points per chunk of run_rows at least (amortises the scratch allocations)
 #: An edge counts as "near" when ``R - |d| < NEAR_EDGE |d|`` (``p`` within about 1% of its
 #: length from the edge's interior): only then is the solid angle rewritten around it
 #: (see :mod:`vhm_viz.core.basis_reference`), and the SIMD kernel leaves the point over.
 NEAR_EDGE = 1e-4
 
 
-@numba.njit(cache=True, parallel=True, fastmath=False, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
 def _basis_kernel(
+    start,
+    stop,
     points,
     V,
     F,
@@ -49,7 +52,9 @@ def _basis_kernel(
     hessians,
     degenerate,
 ):  # pragma: no cover - compiled
-    """Basis values (and derivatives up to ``order``) of every point, one at a time.
+    """Basis values (and derivatives up to ``order``) of points ``start..stop``, one at a time.
+
+    Run over ranges of points by :func:`vhm_viz.core.row_threads.run_rows`.
 
     Cage arrays as in :func:`~vhm_viz.core.cage_tables.kernel_arrays`, then
     ``face_edge_sign``; ``host[k]`` the face point ``k`` lies on (-1: none). Handles every
@@ -57,12 +62,10 @@ def _basis_kernel(
     around the nearest edge or vertex), on a face (interior limit) and on an edge or
     vertex (``degenerate[k]`` set; the caller restores the values).
     """
-    npts = points.shape[0]
     n = V.shape[0]
     m = F.shape[0]
     ne = edges.shape[0]
-    nblocks = (npts + _BLOCK - 1) // _BLOCK
-    for blk in numba.prange(nblocks):
+    if stop > start:
         e = np.empty((n, 3))
         le = np.empty(n)
         ecr = np.empty((ne, 3))  # e_i x e_j for edge (i, j)
@@ -75,7 +78,7 @@ def _basis_kernel(
         Q = np.empty((3, 3))
         gw = np.empty(3)
         M = np.empty((3, 3))
-        for k in range(blk * _BLOCK, min(npts, (blk + 1) * _BLOCK)):
+        for k in range(start, stop):
             px, py, pz = points[k, 0], points[k, 1], points[k, 2]
             for a in range(n):
                 ex = V[a, 0] - px
@@ -299,7 +302,9 @@ def per_point_evaluation(p: np.ndarray, cd: CageTables, order: int, host: np.nda
     degenerate = np.zeros(npts, dtype=np.bool_)
     if npts:
         # the per-point kernel takes face_edge_sign after face_edges
-        _basis_kernel(
+        run_rows(
+            _basis_kernel,
+            npts,
             read_only(p),
             *kernel_arrays(cd),
             cd.face_edge_sign,
@@ -309,6 +314,7 @@ def per_point_evaluation(p: np.ndarray, cd: CageTables, order: int, host: np.nda
             gradients,
             hessians,
             degenerate,
+            grain=_GRAIN,
         )
     return (
         values,
@@ -344,8 +350,18 @@ def lanes_evaluation(p: np.ndarray, cd: CageTables, order: int, host: np.ndarray
     gradients = np.empty((npts, 3, nm)) if order >= 1 else np.zeros((0, 3, 0))
     flagged = np.zeros(npts, dtype=np.bool_)
     if npts:
-        lanes_kernel(
-            read_only(p), *kernel_arrays(cd), host, NEAR_EDGE, order, values, gradients, flagged
+        run_rows(
+            lanes_kernel,
+            npts,
+            read_only(p),
+            *kernel_arrays(cd),
+            host,
+            NEAR_EDGE,
+            order,
+            values,
+            gradients,
+            flagged,
+            grain=ROWS_GRAIN,
         )
     return values, (gradients if order >= 1 else None), flagged
 

@@ -47,13 +47,16 @@ from vhm_viz.core import vecmath
 # scratch per group is (4 n + n_edges + n + m) * 16 * 8 bytes: it grows with the cage,
 # never with the number of points.
 LANES = 16
-# Groups per parallel work item: amortises the scratch allocation over 256 points.
-_GROUPS_PER_ITEM = 16
+#: Rows per chunk of :func:`vhm_viz.core.row_threads.run_rows` (whole groups, and enough
+#: of them to amortise a chunk's scratch allocation).
+ROWS_GRAIN = 16 * LANES
 _INV_TWO_PI = 1.0 / (2.0 * math.pi)
 
 
 _JIT = dict(cache=True, error_model="numpy", boundscheck=False)
 _INLINE = dict(_JIT, inline="always")
+# The kernels over ranges of points: serial, run on threads by run_rows (see its module).
+_ROWS = dict(_JIT, nogil=True)
 _U = np.uint64
 _S = _U(LANES)  # row length of the flat scratch arrays, as an unsigned offset
 
@@ -225,9 +228,10 @@ def _face_terms(E, ce, F, N, inv_twice_area, D, NxD, face_edges, order, acc, acc
             L,
         )
         _scatter(acc, col, buf, 0, 1.0, False, L)
-        _scatter(acc, r0 * S, buf, 1, 1.0, True, L)
-        _scatter(acc, r1 * S, buf, 2, 1.0, True, L)
-        _scatter(acc, r2 * S, buf, 3, 1.0, True, L)
+        # buffer rows 1-3 to the corners (a loop index, not constants: numba compiles a
+        # helper once per combination of constant arguments)
+        for v in range(3):
+            _scatter(acc, _U(F[t, v]) * S, buf, v + 1, 1.0, True, L)
         if order >= 1:
             # grad psi_t = -P ;  grad phi_v += (P x d_v) / 2A, one axis per loop
             for c in range(3):
@@ -272,7 +276,7 @@ def _group_basis(
 
 @numba.njit(**_INLINE)
 def _group_scratch(n, n_edges, nm, order, L):  # pragma: no cover - compiled
-    """Scratch of one work item: ``pts, near, E, ce, acc, accg, buf`` (see _group_basis)."""
+    """Scratch of one chunk of rows: ``pts, near, E, ce, acc, accg, buf`` (see _group_basis)."""
     return (
         np.empty(3 * L),
         np.empty(L),
@@ -284,42 +288,38 @@ def _group_scratch(n, n_edges, nm, order, L):  # pragma: no cover - compiled
     )
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@numba.njit(**_ROWS)
 def lanes_kernel(
-    points, V, F, N, inv_twice_area, D, NxD, edges, edge_len, inv_4pi_len, face_edges,
-    host, near_edge, order, values, gradients, flagged,
+    start, stop, points, V, F, N, inv_twice_area, D, NxD, edges, edge_len, inv_4pi_len,
+    face_edges, host, near_edge, order, values, gradients, flagged,
 ):  # pragma: no cover - compiled  # fmt: skip
     """Values (``order`` 0) or values and gradients (``order`` 1) of the basis.
 
-    Cage arrays as in :func:`vhm_viz.core.cage_tables.kernel_arrays`; ``flagged[k]`` is
-    set for points this kernel does not handle (near or on a cage edge or vertex, or with
-    a host face): their rows of ``values``/``gradients`` hold placeholders and must be
-    recomputed by the per-point kernel.
+    Of the points ``start <= k < stop`` (``start`` a multiple of ``LANES``; see
+    :func:`vhm_viz.core.row_threads.run_rows`). Cage arrays as in
+    :func:`vhm_viz.core.cage_tables.kernel_arrays`; ``flagged[k]`` is set for points this
+    kernel does not handle (near or on a cage edge or vertex, or with a host face): their
+    rows of ``values``/``gradients`` hold placeholders and must be recomputed by the
+    per-point kernel.
     """
     L = LANES
-    npts = points.shape[0]
     n = V.shape[0]
-    m = F.shape[0]
-    nm = n + m
-    ngroups = (npts + L - 1) // L
-    nitems = (ngroups + _GROUPS_PER_ITEM - 1) // _GROUPS_PER_ITEM
-    for item in numba.prange(nitems):
-        pts, near, E, ce, acc, accg, buf = _group_scratch(n, edges.shape[0], nm, order, L)
-        for grp in range(item * _GROUPS_PER_ITEM, min(ngroups, (item + 1) * _GROUPS_PER_ITEM)):
-            k0 = grp * L
-            _group_basis(
-                points, k0, host, V, F, N, inv_twice_area, D, NxD, edges, edge_len,
-                inv_4pi_len, face_edges, near_edge, order, pts, near, E, ce, acc, accg, buf, L,
-            )  # fmt: skip
-            for j in range(min(L, npts - k0)):
-                k = k0 + j
-                flagged[k] = near[j] > 0.0
-                for c in range(nm):
-                    values[k, c] = acc[c * L + j]
-                if order >= 1:
-                    for r in range(3):
-                        for c in range(nm):
-                            gradients[k, r, c] = accg[(r * nm + c) * L + j]
+    nm = n + F.shape[0]
+    pts, near, E, ce, acc, accg, buf = _group_scratch(n, edges.shape[0], nm, order, L)
+    for k0 in range(start, stop, L):
+        _group_basis(
+            points, k0, host, V, F, N, inv_twice_area, D, NxD, edges, edge_len,
+            inv_4pi_len, face_edges, near_edge, order, pts, near, E, ce, acc, accg, buf, L,
+        )  # fmt: skip
+        for j in range(min(L, stop - k0)):
+            k = k0 + j
+            flagged[k] = near[j] > 0.0
+            for c in range(nm):
+                values[k, c] = acc[c * L + j]
+            if order >= 1:
+                for r in range(3):
+                    for c in range(nm):
+                        gradients[k, r, c] = accg[(r * nm + c) * L + j]
 
 
 @numba.njit(**_INLINE)
@@ -337,99 +337,94 @@ def _add_solid_angles(E, b0, b1, b2, wsum, L):  # pragma: no cover - compiled
         wsum[j] += (0.5 if den < 0.0 else 0.0) if in_plane else w
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
-def winding_kernel(points, V, F, out):  # pragma: no cover - compiled
-    """Generalised winding number (sum of face solid angles / 4 pi) at every point."""
-    L = LANES
-    npts = points.shape[0]
-    n = V.shape[0]
-    S = _S
-    ngroups = (npts + L - 1) // L
-    nitems = (ngroups + _GROUPS_PER_ITEM - 1) // _GROUPS_PER_ITEM
-    for item in numba.prange(nitems):
-        pts = np.empty(3 * L)
-        E = np.empty(4 * n * L)
-        wsum = np.empty(L)
-        for grp in range(item * _GROUPS_PER_ITEM, min(ngroups, (item + 1) * _GROUPS_PER_ITEM)):
-            k0 = grp * L
-            for j in range(L):
-                k = min(k0 + j, npts - 1)
-                pts[j] = points[k, 0]
-                pts[L + j] = points[k, 1]
-                pts[2 * L + j] = points[k, 2]
-                wsum[j] = 0.0
-            _vectors_to_vertices(pts, V, E, L)
-            for t in range(F.shape[0]):
-                b0 = _U(F[t, 0]) * _U(4) * S
-                b1 = _U(F[t, 1]) * _U(4) * S
-                b2 = _U(F[t, 2]) * _U(4) * S
-                _add_solid_angles(E, b0, b1, b2, wsum, L)
-            for j in range(min(L, npts - k0)):
-                out[k0 + j] = wsum[j]
+@numba.njit(**_ROWS)
+def winding_kernel(start, stop, points, V, F, out):  # pragma: no cover - compiled
+    """Generalised winding number (sum of face solid angles / 4 pi) at points ``start..stop``.
 
-
-@numba.njit(cache=True, parallel=True, error_model="numpy")
-def lanes_map_kernel(
-    points, V, F, N, inv_twice_area, D, NxD, edges, edge_len, inv_4pi_len, face_edges,
-    near_edge, order, z, values, jacobians, winding, flagged,
-):  # pragma: no cover - compiled  # fmt: skip
-    """A map ``f = sum_c z_c b_c`` (and its Jacobian) without storing the basis.
-
-    The basis values and gradients of a group of points are contracted with the
-    coefficients ``z`` (``n + m`` rows, 3 columns) as soon as they are complete, so no
-    ``(N, n + m)`` matrices are written or read back (for a large cage that memory traffic
-    costs more than the kernel's arithmetic). ``values[k]`` is ``f``, ``jacobians[k, i, j]`` is
-    ``d f_i / d x_j`` (``order`` 1), ``winding[k]`` the sum of the vertex functions.
-    Flagged points as in :func:`lanes_kernel`.
+    ``start`` a multiple of ``LANES`` (see :func:`vhm_viz.core.row_threads.run_rows`).
     """
     L = LANES
     npts = points.shape[0]
     n = V.shape[0]
-    m = F.shape[0]
-    nm = n + m
     S = _S
-    ngroups = (npts + L - 1) // L
-    nitems = (ngroups + _GROUPS_PER_ITEM - 1) // _GROUPS_PER_ITEM
+    pts = np.empty(3 * L)
+    E = np.empty(4 * n * L)
+    wsum = np.empty(L)
+    for k0 in range(start, stop, L):
+        for j in range(L):
+            k = min(k0 + j, npts - 1)
+            pts[j] = points[k, 0]
+            pts[L + j] = points[k, 1]
+            pts[2 * L + j] = points[k, 2]
+            wsum[j] = 0.0
+        _vectors_to_vertices(pts, V, E, L)
+        for t in range(F.shape[0]):
+            b0 = _U(F[t, 0]) * _U(4) * S
+            b1 = _U(F[t, 1]) * _U(4) * S
+            b2 = _U(F[t, 2]) * _U(4) * S
+            _add_solid_angles(E, b0, b1, b2, wsum, L)
+        for j in range(min(L, stop - k0)):
+            out[k0 + j] = wsum[j]
+
+
+@numba.njit(**_ROWS)
+def lanes_map_kernel(
+    start, stop, points, V, F, N, inv_twice_area, D, NxD, edges, edge_len, inv_4pi_len,
+    face_edges, near_edge, order, z, values, jacobians, winding, flagged,
+):  # pragma: no cover - compiled  # fmt: skip
+    """A map ``f = sum_c z_c b_c`` (and its Jacobian) without storing the basis.
+
+    At the points ``start <= k < stop`` (``start`` a multiple of ``LANES``; see
+    :func:`vhm_viz.core.row_threads.run_rows`). The basis values and gradients of a group
+    of points are contracted with the coefficients ``z`` (``n + m`` rows, 3 columns) as
+    soon as they are complete, so no ``(N, n + m)`` matrices are written or read back (for
+    a large cage that memory traffic costs more than the kernel's arithmetic).
+    ``values[k]`` is ``f``, ``jacobians[k, i, j]`` is ``d f_i / d x_j`` (``order`` 1),
+    ``winding[k]`` the sum of the vertex functions. Flagged points as in
+    :func:`lanes_kernel`.
+    """
+    L = LANES
+    n = V.shape[0]
+    nm = n + F.shape[0]
+    S = _S
     host = np.full(1, -1, dtype=np.int64)
-    for item in numba.prange(nitems):
-        pts, near, E, ce, acc, accg, buf = _group_scratch(n, edges.shape[0], nm, order, L)
-        fz = np.empty(3 * L)
-        jz = np.empty(9 * L)
-        wz = np.empty(L)
-        for grp in range(item * _GROUPS_PER_ITEM, min(ngroups, (item + 1) * _GROUPS_PER_ITEM)):
-            k0 = grp * L
-            _group_basis(
-                points, k0, host, V, F, N, inv_twice_area, D, NxD, edges, edge_len,
-                inv_4pi_len, face_edges, near_edge, order, pts, near, E, ce, acc, accg, buf, L,
-            )  # fmt: skip
-            fz[:] = 0.0
-            jz[:] = 0.0
-            wz[:] = 0.0
-            for c in range(nm):
-                cb = _U(c) * S
-                for i in range(3):
-                    zi = z[c, i]
-                    ob = _U(i) * S
-                    for j in range(_U(L)):
-                        fz[ob + j] += acc[cb + j] * zi
-                if c < n:
-                    for j in range(_U(L)):
-                        wz[j] += acc[cb + j]
-                if order >= 1:
-                    for r in range(3):
-                        gb = (_U(r) * _U(nm) + _U(c)) * S
-                        for i in range(3):
-                            zi = z[c, i]
-                            ob = _U(3 * i + r) * S
-                            for j in range(_U(L)):
-                                jz[ob + j] += accg[gb + j] * zi
-            for j in range(min(L, npts - k0)):
-                k = k0 + j
-                flagged[k] = near[j] > 0.0
-                winding[k] = wz[j]
-                for i in range(3):
-                    values[k, i] = fz[i * L + j]
-                if order >= 1:
+    pts, near, E, ce, acc, accg, buf = _group_scratch(n, edges.shape[0], nm, order, L)
+    fz = np.empty(3 * L)
+    jz = np.empty(9 * L)
+    wz = np.empty(L)
+    for k0 in range(start, stop, L):
+        _group_basis(
+            points, k0, host, V, F, N, inv_twice_area, D, NxD, edges, edge_len,
+            inv_4pi_len, face_edges, near_edge, order, pts, near, E, ce, acc, accg, buf, L,
+        )  # fmt: skip
+        fz[:] = 0.0
+        jz[:] = 0.0
+        wz[:] = 0.0
+        for c in range(nm):
+            cb = _U(c) * S
+            for i in range(3):
+                zi = z[c, i]
+                ob = _U(i) * S
+                for j in range(_U(L)):
+                    fz[ob + j] += acc[cb + j] * zi
+            if c < n:
+                for j in range(_U(L)):
+                    wz[j] += acc[cb + j]
+            if order >= 1:
+                for r in range(3):
+                    gb = (_U(r) * _U(nm) + _U(c)) * S
                     for i in range(3):
-                        for r in range(3):
-                            jacobians[k, i, r] = jz[(3 * i + r) * L + j]
+                        zi = z[c, i]
+                        ob = _U(3 * i + r) * S
+                        for j in range(_U(L)):
+                            jz[ob + j] += accg[gb + j] * zi
+        for j in range(min(L, stop - k0)):
+            k = k0 + j
+            flagged[k] = near[j] > 0.0
+            winding[k] = wz[j]
+            for i in range(3):
+                values[k, i] = fz[i * L + j]
+            if order >= 1:
+                for i in range(3):
+                    for r in range(3):
+                        jacobians[k, i, r] = jz[(3 * i + r) * L + j]

@@ -21,6 +21,7 @@ import numba
 import numpy as np
 
 from vhm_viz.core.mat3 import cofactors3
+from vhm_viz.core.row_threads import run_rows
 
 __all__ = [
     "DEGENERATE_RTOL",
@@ -36,6 +37,8 @@ DEGENERATE_RTOL = 1e-12
 #: Sweeps of the one-sided Jacobi SVD at most (it converges quadratically: 3 x 3 matrices
 #: need a handful).
 _JACOBI_SWEEPS = 30
+#: Tetrahedra per chunk of :func:`~vhm_viz.core.row_threads.run_rows` at least.
+_TETS_GRAIN = 4096
 
 
 @numba.njit(cache=True)
@@ -87,9 +90,9 @@ def _jacobi_singular_values(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pra
     return s0, s1, s2
 
 
-@numba.njit(cache=True, parallel=True)
-def _singular_values_rows(m, out):  # pragma: no cover - compiled
-    for k in numba.prange(m.shape[0]):
+@numba.njit(cache=True, nogil=True)
+def _singular_values_rows(start, stop, m, out):  # pragma: no cover - compiled
+    for k in range(start, stop):
         out[k, 0], out[k, 1], out[k, 2] = _jacobi_singular_values(
             m[k, 0, 0], m[k, 0, 1], m[k, 0, 2], m[k, 1, 0], m[k, 1, 1], m[k, 1, 2],
             m[k, 2, 0], m[k, 2, 1], m[k, 2, 2],
@@ -111,17 +114,19 @@ def singular_values_3x3(matrices) -> np.ndarray:
     m = np.ascontiguousarray(matrices, dtype=np.float64).reshape(-1, 3, 3)
     out = np.empty((len(m), 3))
     if len(m):
-        _singular_values_rows(m, out)
+        run_rows(_singular_values_rows, len(m), m, out, grain=4096)
     return out
 
 
-@numba.njit(cache=True, parallel=True)
-def _tet_kernel(x, y, tets, rtol, want_cond, det, cond, rest_det, state):  # pragma: no cover
-    """Per tet: ``det F``, ``cond F``, ``det D_rest`` and a state code.
+@numba.njit(cache=True, nogil=True)
+def _tet_kernel(  # pragma: no cover - compiled
+    start, stop, x, y, tets, rtol, want_cond, det, cond, rest_det, state
+):
+    """Per tet ``start <= t < stop``: ``det F``, ``cond F``, ``det D_rest`` and a state code.
 
     ``state``: 0 measured, 1 degenerate at rest, 2 a corner not finite (deformed).
     """
-    for t in numba.prange(tets.shape[0]):
+    for t in range(start, stop):
         i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
         # rest edge matrix R = [x1 - x0 | x2 - x0 | x3 - x0] (columns)
         r00, r10, r20 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
@@ -255,7 +260,10 @@ def tetrahedron_measures(
     rest_det = np.empty(n_tets)
     state = np.empty(n_tets, dtype=np.int8)
     if n_tets:
-        _tet_kernel(x, y, t, DEGENERATE_RTOL, bool(condition), det, cond, rest_det, state)
+        run_rows(
+            _tet_kernel, n_tets, x, y, t, DEGENERATE_RTOL, bool(condition), det, cond,
+            rest_det, state, grain=_TETS_GRAIN,
+        )  # fmt: skip
     out_det = np.empty(n)
     out_cond = np.empty(n)
     flags = np.empty(n, dtype=np.int8)
@@ -270,50 +278,48 @@ def tetrahedron_measures(
     }
 
 
-@numba.njit(cache=True, parallel=True)
-def _hex_kernel(p, rest_det, out, n_runs):  # pragma: no cover - compiled
-    nz, ny, nx = p.shape[0] - 1, p.shape[1] - 1, p.shape[2] - 1
-    for run in numba.prange(n_runs):
-        # each thread a run of cell layers; the point planes k and k + 1 one array per
-        # coordinate (so the loop along a row of cells runs in SIMD lanes), each plane
-        # split once: plane k + 1 is kept for layer k + 1
-        planes = np.empty((2, 3, ny + 1, nx + 1))  # [plane parity, xyz, j, i]
-        k_lo, k_hi = run * nz // n_runs, (run + 1) * nz // n_runs
-        for k in range(k_lo, k_hi):
-            for c in range(0 if k == k_lo else 1, 2):
-                dst = planes[(k + c) % 2]
-                for j in range(ny + 1):
-                    src = p[k + c, j].ravel()
-                    for i in range(nx + 1):
-                        dst[0, j, i] = src[3 * i]
-                        dst[1, j, i] = src[3 * i + 1]
-                        dst[2, j, i] = src[3 * i + 2]
-            p0, p1 = planes[k % 2], planes[(k + 1) % 2]
-            for j in range(ny):
-                for i in range(nx):
-                    low = np.inf
-                    flag = 0.0  # NaN once a corner's determinant is not finite
-                    for c in range(2):
-                        pc = p1 if c else p0
-                        for b in range(2):
-                            for a in range(2):
-                                ex0 = pc[0, j + b, i + 1] - pc[0, j + b, i]
-                                ex1 = pc[1, j + b, i + 1] - pc[1, j + b, i]
-                                ex2 = pc[2, j + b, i + 1] - pc[2, j + b, i]
-                                ey0 = pc[0, j + 1, i + a] - pc[0, j, i + a]
-                                ey1 = pc[1, j + 1, i + a] - pc[1, j, i + a]
-                                ey2 = pc[2, j + 1, i + a] - pc[2, j, i + a]
-                                ez0 = p1[0, j + b, i + a] - p0[0, j + b, i + a]
-                                ez1 = p1[1, j + b, i + a] - p0[1, j + b, i + a]
-                                ez2 = p1[2, j + b, i + a] - p0[2, j + b, i + a]
-                                d = (
-                                    ex0 * (ey1 * ez2 - ey2 * ez1)
-                                    - ex1 * (ey0 * ez2 - ey2 * ez0)
-                                    + ex2 * (ey0 * ez1 - ey1 * ez0)
-                                )
-                                low = d if d < low else low  # branch-free: SIMD lanes
-                                flag += 0.0 * d
-                    out[k, j, i] = low / rest_det + flag
+@numba.njit(cache=True, nogil=True)
+def _hex_kernel(start, stop, p, rest_det, out):  # pragma: no cover - compiled
+    """Smallest corner determinant of the cells in z-slices ``start <= k < stop``."""
+    ny, nx = p.shape[1] - 1, p.shape[2] - 1
+    # the point planes k and k + 1 one array per coordinate (so the loop along a row of
+    # cells runs in SIMD lanes), each plane split once: plane k + 1 is kept for layer k + 1
+    planes = np.empty((2, 3, ny + 1, nx + 1))  # [plane parity, xyz, j, i]
+    for k in range(start, stop):
+        for c in range(0 if k == start else 1, 2):
+            dst = planes[(k + c) % 2]
+            for j in range(ny + 1):
+                src = p[k + c, j].ravel()
+                for i in range(nx + 1):
+                    dst[0, j, i] = src[3 * i]
+                    dst[1, j, i] = src[3 * i + 1]
+                    dst[2, j, i] = src[3 * i + 2]
+        p0, p1 = planes[k % 2], planes[(k + 1) % 2]
+        for j in range(ny):
+            for i in range(nx):
+                low = np.inf
+                flag = 0.0  # NaN once a corner's determinant is not finite
+                for c in range(2):
+                    pc = p1 if c else p0
+                    for b in range(2):
+                        for a in range(2):
+                            ex0 = pc[0, j + b, i + 1] - pc[0, j + b, i]
+                            ex1 = pc[1, j + b, i + 1] - pc[1, j + b, i]
+                            ex2 = pc[2, j + b, i + 1] - pc[2, j + b, i]
+                            ey0 = pc[0, j + 1, i + a] - pc[0, j, i + a]
+                            ey1 = pc[1, j + 1, i + a] - pc[1, j, i + a]
+                            ey2 = pc[2, j + 1, i + a] - pc[2, j, i + a]
+                            ez0 = p1[0, j + b, i + a] - p0[0, j + b, i + a]
+                            ez1 = p1[1, j + b, i + a] - p0[1, j + b, i + a]
+                            ez2 = p1[2, j + b, i + a] - p0[2, j + b, i + a]
+                            d = (
+                                ex0 * (ey1 * ez2 - ey2 * ez1)
+                                - ex1 * (ey0 * ez2 - ey2 * ez0)
+                                + ex2 * (ey0 * ez1 - ey1 * ez0)
+                            )
+                            low = d if d < low else low  # branch-free: SIMD lanes
+                            flag += 0.0 * d
+                out[k, j, i] = low / rest_det + flag
 
 
 def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
@@ -347,6 +353,5 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.nd
     cells = (max(nz - 1, 0), max(ny - 1, 0), max(nx - 1, 0))
     out = np.empty(cells)
     if out.size:
-        runs = min(cells[0], numba.get_num_threads())  # one run of layers per thread
-        _hex_kernel(np.ascontiguousarray(p), float(rest_det), out, runs)
+        run_rows(_hex_kernel, cells[0], np.ascontiguousarray(p), float(rest_det), out, grain=1)
     return out.reshape(-1)

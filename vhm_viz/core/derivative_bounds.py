@@ -62,6 +62,7 @@ import numba
 import numpy as np
 
 from vhm_viz.core.geometry import face_normals_and_areas, triangle_distance
+from vhm_viz.core.row_threads import run_rows
 
 __all__ = [
     "cage_distance",
@@ -79,9 +80,9 @@ _MAX_FACE_DEPTH = 8
 _FOUR_PI = 4.0 * math.pi
 
 
-@numba.njit(cache=True, parallel=True)
-def _cage_distance_kernel(points, V, F, out):  # pragma: no cover - compiled
-    for k in numba.prange(points.shape[0]):
+@numba.njit(cache=True, nogil=True)
+def _cage_distance_kernel(start, stop, points, V, F, out):  # pragma: no cover - compiled
+    for k in range(start, stop):
         px, py, pz = points[k, 0], points[k, 1], points[k, 2]
         best = np.inf
         for t in range(F.shape[0]):
@@ -111,7 +112,9 @@ def cage_distance(points, vertices, faces) -> np.ndarray:
     p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.empty(len(p))
     if len(p):
-        _cage_distance_kernel(
+        run_rows(
+            _cage_distance_kernel,
+            len(p),
             p,
             np.ascontiguousarray(vertices, dtype=np.float64),
             np.ascontiguousarray(faces, dtype=np.int64),
@@ -256,9 +259,26 @@ def _fit_affine(px, py, pz, V, F, N, areas, a, b, dist, wv, M, R, A, T):  # prag
         T[i] = X[3, i] - (A[i, 0] * px + A[i, 1] * py + A[i, 2] * pz)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _third_derivative_kernel(
-    centres, radii, fit, A_in, T_in, V, F, N, areas, fc, fr, diam, a, b, out_m3, out_dist
+    start,
+    stop,
+    centres,
+    radii,
+    fit,
+    A_in,
+    T_in,
+    V,
+    F,
+    N,
+    areas,
+    fc,
+    fr,
+    diam,
+    a,
+    b,
+    out_m3,
+    out_dist,
 ):  # pragma: no cover - compiled
     """Bound (3) of the third derivative on each ball, and the centre's distance to the cage.
 
@@ -270,9 +290,8 @@ def _third_derivative_kernel(
     of the centre's distance to the cage (exact where it is below ``r`` plus four times the
     nearest faces' radius).
     """
-    k_total = centres.shape[0]
     m = F.shape[0]
-    for k in numba.prange(k_total):
+    for k in range(start, stop):
         sx = np.empty((3 * _MAX_FACE_DEPTH + 4, 3, 3))
         sd = np.empty((3 * _MAX_FACE_DEPTH + 4, 3, 3))
         sdepth = np.empty(3 * _MAX_FACE_DEPTH + 4, dtype=np.int64)
@@ -310,8 +329,12 @@ def _third_derivative_kernel(
         if fit:
             _fit_affine(px, py, pz, V, F, N, areas, a, b, dist, wv, M, R, A, T)
         else:
-            A[:, :] = A_in[k]
-            T[:] = T_in[k]
+            # element loops: numba's array slice assignment compiles a formatted
+            # shape-mismatch message, costly to compile
+            for i in range(3):
+                T[i] = T_in[k, i]
+                for j in range(3):
+                    A[i, j] = A_in[k, i, j]
         # the residual double-layer density at the vertices, once per cube
         for v in range(V.shape[0]):
             for c in range(3):
@@ -399,9 +422,10 @@ def third_derivative_bounds(harmonic_map, centres, radii, values=None, jacobians
     m3 = np.empty(len(p))
     dist = np.empty(len(p))
     if len(p):
-        _third_derivative_kernel(
-            p, r, fit, jac, t, v, f, normals, areas, fc, fr, diam, a, b, m3, dist
-        )
+        run_rows(
+            _third_derivative_kernel, len(p), p, r, fit, jac, t, v, f, normals, areas, fc, fr,
+            diam, a, b, m3, dist, grain=1,
+        )  # fmt: skip
     return m3, dist
 
 

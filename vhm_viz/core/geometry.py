@@ -7,6 +7,8 @@ import math
 import numba
 import numpy as np
 
+from vhm_viz.core.row_threads import run_rows
+
 
 def face_normals_and_areas(
     vertices: np.ndarray, faces: np.ndarray
@@ -249,9 +251,9 @@ def point_triangle_distance2(p, a, b, c):  # pragma: no cover - compiled
     )
 
 
-@numba.njit(cache=True, parallel=True)
-def _closest_rows(p, a, b, c, q, region):  # pragma: no cover - compiled
-    for k in numba.prange(p.shape[0]):
+@numba.njit(cache=True, nogil=True)
+def _closest_rows(start, stop, p, a, b, c, q, region):  # pragma: no cover - compiled
+    for k in range(start, stop):
         qx, qy, qz, r = closest_point_on_triangle(
             p[k, 0], p[k, 1], p[k, 2], a[k, 0], a[k, 1], a[k, 2],
             b[k, 0], b[k, 1], b[k, 2], c[k, 0], c[k, 1], c[k, 2],
@@ -279,14 +281,14 @@ def closest_points_on_triangles(p, a, b, c):
     q = np.empty((len(rows[0]), 3))
     region = np.empty(len(rows[0]), dtype=np.int8)
     if len(q):
-        _closest_rows(*rows, q, region)
+        run_rows(_closest_rows, len(q), *rows, q, region, grain=4096)
     return q, region
 
 
-@numba.njit(parallel=True, cache=True)
-def _nearest_triangles(points, tri, out_face, out_point):  # pragma: no cover - compiled
+@numba.njit(nogil=True, cache=True)
+def _nearest_triangles(start, stop, points, tri, out_face, out_point):  # pragma: no cover
     """Brute force over the triangles: the nearest one to each point, ties to the lowest."""
-    for p in numba.prange(points.shape[0]):
+    for p in range(start, stop):
         best = np.inf
         bi = -1
         bx, by, bz = 0.0, 0.0, 0.0
@@ -331,7 +333,7 @@ def nearest_points_on_mesh(points, vertices, faces):
     face = np.empty(len(p), dtype=np.int64)
     closest = np.empty((len(p), 3))
     if len(p):
-        _nearest_triangles(p, tri, face, closest)
+        run_rows(_nearest_triangles, len(p), p, tri, face, closest, grain=64)
     return face, closest
 
 

@@ -278,7 +278,7 @@ def inside_mask(geometry: ImageGeometry, vertices, faces, rows=None, i_count=Non
     out = np.zeros((max(k1 - k0, 0), max(j1 - j0, 0), i_count + 1), dtype=np.int16)
     if out.size:
         none = np.zeros((0, 0, 0), dtype=np.uint8)
-        _scanline_winding(np.ascontiguousarray(v[f]), f, i_count, j0, j1, k0, k1, out, none)
+        _scanline_winding(np.ascontiguousarray(v[f]), f, i_count, j0, j1, k0, k1, out, none, 0)
     return out[..., :i_count] >= 1
 
 

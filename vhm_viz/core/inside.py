@@ -15,11 +15,12 @@ import math
 import numba
 import numpy as np
 
-from vhm_viz.core.basis_lanes import winding_kernel
+from vhm_viz.core.basis_lanes import ROWS_GRAIN, winding_kernel
 from vhm_viz.core.basis_reference import NUMPY_CHUNK
 from vhm_viz.core.cage_tables import read_only
 from vhm_viz.core.geometry import face_normals_and_areas, point_triangle_distance2
 from vhm_viz.core.points import as_points
+from vhm_viz.core.row_threads import run_rows
 
 __all__ = [
     "ON_SURFACE_RTOL",
@@ -111,7 +112,8 @@ def surface_hosts(points, vertices, faces, tolerance: float | None = None) -> np
         start, members = _face_grid(first, last, cells)
         cell = np.clip(((p[near] - lo) / size).astype(np.int64), 0, cells - 1)
         out = np.full(near.size, -1, dtype=np.int64)
-        _surface_host_kernel(p[near], v, f, cell, start, members, cells, tol, out)
+        pts = p[near]
+        run_rows(_surface_host_kernel, len(pts), pts, v, f, cell, start, members, cells, tol, out)
         host[near] = out
     return host
 
@@ -129,13 +131,15 @@ def _face_grid(first, last, cells):
     return start.astype(np.int64), np.ascontiguousarray(pairs[:, 1])
 
 
-@numba.njit(cache=True, parallel=True)
-def _surface_host_kernel(points, V, F, cell, start, members, cells, tol, host):  # pragma: no cover
+@numba.njit(cache=True, nogil=True)
+def _surface_host_kernel(  # pragma: no cover - compiled
+    start, stop, points, V, F, cell, cell_start, members, cells, tol, host
+):
     tol2 = tol * tol
-    for k in numba.prange(points.shape[0]):
+    for k in range(start, stop):
         c = (cell[k, 0] * cells + cell[k, 1]) * cells + cell[k, 2]
         found = -1
-        for s in range(start[c], start[c + 1]):
+        for s in range(cell_start[c], cell_start[c + 1]):
             t = members[s]  # ascending: the lowest-numbered face within reach is the host
             d2 = point_triangle_distance2(points[k], V[F[t, 0]], V[F[t, 1]], V[F[t, 2]])
             if d2 <= tol2:
@@ -179,11 +183,11 @@ def surface_points_inside(points, hosts, vertices, faces) -> np.ndarray:
     return p
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _reach_normals(points, V, F, normals, reach, out):  # pragma: no cover - compiled
-    """Sum of the normals of the faces within ``reach`` of each point (few points)."""
+    """Sum of the normals of the faces within ``reach`` of each point (few points: serial)."""
     r2 = reach * reach
-    for k in numba.prange(points.shape[0]):
+    for k in range(points.shape[0]):
         for t in range(F.shape[0]):
             if point_triangle_distance2(points[k], V[F[t, 0]], V[F[t, 1]], V[F[t, 2]]) <= r2:
                 out[k, 0] += normals[t, 0]
@@ -246,7 +250,7 @@ def winding_number(points, vertices, faces, *, backend: str = "numba") -> np.nda
     if backend == "numba":
         out = np.zeros(p.shape[0])
         if p.shape[0]:
-            winding_kernel(read_only(p), v, f, out)
+            run_rows(winding_kernel, p.shape[0], read_only(p), v, f, out, grain=ROWS_GRAIN)
         return out
     if backend != "numpy":
         raise ValueError(f"backend must be 'numba' or 'numpy'; got {backend!r}")

@@ -30,6 +30,8 @@ import math
 
 import numba
 import numpy as np
+from numba.core import types
+from numba.np.linalg import F_INT_nbtype, F_INT_nptype
 
 from vhm_viz.core.constraints import as_matrices, stack_transposed
 from vhm_viz.core.polar import project_blocks, project_stack
@@ -125,6 +127,55 @@ def _dot(a, b):  # pragma: no cover - compiled
     return s
 
 
+#: LAPACK's ``gesv`` as numba's own ``np.linalg.solve`` calls it (its C helper).
+_gesv = types.ExternalFunction(
+    "numba_xgesv",
+    types.intc(
+        types.char,
+        types.intp,
+        types.intp,
+        types.CPointer(types.float64),
+        types.intp,
+        types.CPointer(F_INT_nbtype),
+        types.CPointer(types.float64),
+        types.intp,
+    ),
+)
+_GESV_DOUBLE = ord("d")
+
+
+@numba.njit(cache=True)
+def _solve_symmetric(A, b, pivots):  # pragma: no cover - compiled
+    """``b <- A^-1 b`` for a symmetric ``(k, k)`` ``A`` (overwritten), ``pivots`` (k,) scratch.
+
+    The LAPACK call of ``np.linalg.solve`` (same inputs, same result, bit for bit: a
+    symmetric matrix is its own Fortran-order copy) without the wrapper's generic
+    copies and checks (their compile is much of this module's first-run cost).
+    """
+    k = b.shape[0]
+    for i in range(k):
+        if not math.isfinite(b[i]):
+            raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+        for j in range(k):
+            if not math.isfinite(A[i, j]):
+                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+    info = _gesv(_GESV_DOUBLE, k, 1, A.ctypes, k, pivots.ctypes, b.ctypes, k)
+    if info != 0:
+        raise np.linalg.LinAlgError("Matrix is singular to machine precision.")
+
+
+@numba.njit(cache=True)
+def _assign(dst, src):  # pragma: no cover - compiled
+    """``dst[:, :] = src`` for two arrays of one shape, as a plain loop.
+
+    numba's array slice assignment compiles a run-time formatted shape-mismatch message
+    (string formatting machinery) into the kernel, a large part of its first compile.
+    """
+    for i in range(dst.shape[0]):
+        for j in range(dst.shape[1]):
+            dst[i, j] = src[i, j]
+
+
 @numba.njit(cache=True)
 def run_local_global(
     C_R,
@@ -195,6 +246,7 @@ def run_local_global(
     dF = np.zeros((m, n9))
     dG = np.zeros((m, n9))
     gram = np.zeros((m, m))
+    pivots = np.empty(m, dtype=F_INT_nptype)
     n_hist = 0
     head = 0
     have_prev = False
@@ -270,7 +322,8 @@ def run_local_global(
                     A[i, j] = gram[i, j]
                 A[i, i] += 1e-10 * tr + 1e-300
                 b[i] = _dot(dF[i], f)
-            theta = np.linalg.solve(A, b)
+            _solve_symmetric(A, b, pivots[:k])
+            theta = b
             for i in range(n9):
                 uaf[i] = Tf[i]
             for j in range(k):
@@ -281,9 +334,9 @@ def run_local_global(
             # energy safeguard (an increase below the rounding level of E is not one)
             if ea <= e_tot + max(noise, na) and math.isfinite(ea):
                 accepted = True
-                u[:, :] = ua
-                G[:, :] = Gc
-                T[:, :] = Tc
+                _assign(u, ua)
+                _assign(G, Gc)
+                _assign(T, Tc)
                 e_tot, e_rig, e_sm, noise = ea, ra, sa, na
             else:
                 n_rejected += 1
@@ -297,18 +350,18 @@ def run_local_global(
                 for i in range(n9):
                     uaf[i] = uf[i] + beta * f[i]
                 ea, ra, sa, na = _evaluate(ua, C_R, g, jzp, l_r, const_h, similar, Gc, Tc)
-                u[:, :] = T
+                _assign(u, T)
                 e_tot, e_rig, e_sm, noise = _evaluate(u, C_R, g, jzp, l_r, const_h, similar, G, T)
                 if ea < e_tot and math.isfinite(ea):
-                    u[:, :] = ua
-                    G[:, :] = Gc
-                    T[:, :] = Tc
+                    _assign(u, ua)
+                    _assign(G, Gc)
+                    _assign(T, Tc)
                     e_tot, e_rig, e_sm, noise = ea, ra, sa, na
                     beta = min(2.0 * beta, 64.0)
                 else:
                     beta = 2.0
             else:
-                u[:, :] = T
+                _assign(u, T)
                 e_tot, e_rig, e_sm, noise = _evaluate(u, C_R, g, jzp, l_r, const_h, similar, G, T)
         it += 1
     if converged and it == 0 and rho0 >= 0.0:
@@ -317,7 +370,7 @@ def run_local_global(
         return u.copy(), G.copy(), 0, converged, nrec, n_rejected, rho_last
     # final plain step, so that the returned local matrices are exact projections and the
     # last recorded energy is that of the returned solution z = B [h; u]
-    u[:, :] = T
+    _assign(u, T)
     e_tot, e_rig, e_sm, noise = _evaluate(u, C_R, g, jzp, l_r, const_h, similar, G, T)
     ss = 0.0
     for i in range(n9):
