@@ -152,7 +152,7 @@ def _edge_sign(ay, az, by, bz, py, pz):  # pragma: no cover - compiled
     return 1 if dy > 0.0 else -1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _scanline_winding(tri, vid, i_count, j0, j1, k0, k1, out, crossed, i_lo=0):  # pragma: no cover
     """Winding numbers of the integer grid points ``(i, j, k)`` in a block of rows.
 

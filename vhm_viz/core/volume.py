@@ -338,6 +338,8 @@ class VolumeDeformation(VolumePieces):
         """Indices (VTK order, of the whole grid) of the voxels outside the cage."""
         b = self._in_window(self.window if box is None else box)
         inside = self.lattice.inside(b)
+        if inside.all():  # (the usual case, without a pass that makes indices)
+            return np.zeros(0, dtype=np.int64)
         if b.tolist() == box_of(self.geometry, None).tolist():
             return np.nonzero(~inside.ravel())[0]
         nx, ny, _ = self.geometry.dimensions
@@ -763,27 +765,30 @@ class VolumeDeformation(VolumePieces):
         budget = DEFAULT_MEMORY_BUDGET if self.memory_budget is None else self.memory_budget
         slabs = list(slabs_of(b, _RESAMPLE_BYTES, min(budget, _PULL_BACK_SLAB_BYTES)))
         plane = int((b[1] - b[0] + 1) * (b[3] - b[2] + 1))
+        # one set of slab arrays, reused by every slab (the pull-back writes each voxel's):
+        # new arrays per slab would each be paged in again, one thread zeroing them
+        largest = max((int(slab[5] - slab[4] + 1) for slab in slabs), default=0) * plane
+        buffers = (np.empty((largest, 3)), np.empty(largest, dtype=np.uint8),
+                   np.empty(largest, dtype=np.uint8), np.empty(largest))  # fmt: skip
         for s, slab in enumerate(slabs):
             _check_abort(abort)
             m = int((slab[5] - slab[4] + 1) * plane)
             self._count_slab(m)
-            u = np.zeros((m, 3))
-            state = np.zeros(m, dtype=np.uint8)
-            fold = np.zeros(m, dtype=np.uint8)
-            lat.pull_back(out_geo, slab, boxes, u, state, fold, np.zeros(m))
+            u, state, fold, quality = (a[:m] for a in buffers)
+            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality)
             confirm_tentative(self.map, self.geometry, u, state)
             polish_next_to_edges(self.map, lat, self.geometry, out_geo, slab, u, state)
             if self.outside == "passthrough":
                 pass_through(self.map, self.geometry, out_geo, slab, u, state)
             lo = int((slab[4] - b[4]) * plane)
             yield slice(lo, lo + m), u, state, fold
-            del u, state, fold  # one slab's arrays at a time
-            # and their heap pages handed back: glibc serves them from the heap (below its
-            # dynamic mmap threshold), and the holes they leave would stay resident while
-            # the next slabs' arrays, of other sizes, land elsewhere
-            release_free_memory()
+            del u, state, fold, quality
             if progress is not None:
                 progress(0.5 + 0.5 * (s + 1) / len(slabs), "resample")
+        del buffers
+        # the slabs' transients (index lists, sampling buffers) leave free pages inside
+        # the heap: back to the system
+        release_free_memory()
 
     # ------------------------------------------------------------------ bookkeeping
     def _start_slabs(self) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -27,7 +28,7 @@ from vhm_viz.core.lattice.hermite_lattice import (
     root_index,
     root_keys_of,
 )
-from vhm_viz.core.lattice.nodes import NodeTable, level_node_data, rows_read, stencil_points
+from vhm_viz.core.lattice.nodes import NodeTable, level_node_data, rows_read, stencil_keys
 from vhm_viz.core.memory import grow_in_place, release_free_memory
 
 #: Default largest position error of a mapped voxel, in voxels of the input spacing (the
@@ -163,8 +164,9 @@ def build_lattice(
 
     rounds, in_round = [0], [False]
 
-    def ensure(ijk):
-        keys = np.unique(table.key(ijk.reshape(-1, 3)))
+    def ensure(keys, distinct=False):
+        """Evaluate the points of ``keys`` not in the table (``distinct``: sorted, unique)."""
+        keys = keys if distinct else np.unique(keys)
         new = keys[table.find(keys) < 0]
         if exchange is not None:  # every round, with or without points of its own
             in_round[0] = True  # a round that raises has been agreed by everyone
@@ -193,7 +195,7 @@ def build_lattice(
         )  # fmt: skip
         # builders working together meet the same number of times
         for _ in range(exchange_rounds(root) - rounds[0] if exchange is not None else 0):
-            ensure(np.zeros((0, 3), dtype=np.int64))
+            ensure(np.zeros(0, dtype=np.int64), distinct=True)
     except BaseException:
         # failed between two rounds: the others are waiting in the next one
         if not in_round[0] and rounds[0] < exchange_rounds(root) and hasattr(
@@ -256,7 +258,7 @@ def _mask_rows(window, roots, root):
     return (int(lo[1]), int(hi[1]), int(lo[2]), int(hi[2]))
 
 
-# k-planes of the lattice's masks computed at a time (see _masks).
+# At most this many k-planes of the lattice's masks are computed at a time (see _masks).
 _MASK_PLANES = 16
 
 
@@ -265,7 +267,8 @@ def _masks(lat_geo: ImageGeometry, vertices, faces, rows):
 
     Both have the whole lattice's shape. Outside ``rows`` (default: all) they stay False
     and their zero pages are never written, so a window's build holds the memory of its
-    own rows only. They are made ``_MASK_PLANES`` k-planes at a time:
+    own rows only. They are made a few k-planes at a time (at most ``_MASK_PLANES``),
+    the blocks shared by the compiled kernels' threads:
     :func:`~vhm_viz.core.image.inside_mask` keeps 16-bit winding numbers of the points it
     is asked for, which for a whole window would add to the build's peak (and a few
     planes at a time stay in cache). A row's values do not depend on which others are
@@ -275,11 +278,24 @@ def _masks(lat_geo: ImageGeometry, vertices, faces, rows):
     j0, j1, k0, k1 = (0, ny, 0, nz) if rows is None else rows
     mask = np.zeros((nz, ny, nx), dtype=bool)
     near = np.zeros((nz, ny, nx), dtype=bool)
-    if j1 > j0:
-        for a in range(k0, k1, _MASK_PLANES):
-            b = min(k1, a + _MASK_PLANES)
-            mask[a:b, j0:j1] = inside_mask(lat_geo, vertices, faces, rows=(j0, j1, a, b))
-            near[a:b, j0:j1] = surface_mask(lat_geo, vertices, faces, rows=(j0, j1, a, b))
+    if j1 <= j0 or k1 <= k0:
+        return mask, near
+    workers = numba.get_num_threads()
+    # a few blocks per worker, so that blocks of uneven cost even out
+    planes = min(_MASK_PLANES, max(1, -(-(k1 - k0) // (4 * workers))))
+
+    def block(a):
+        b = min(k1, a + planes)
+        mask[a:b, j0:j1] = inside_mask(lat_geo, vertices, faces, rows=(j0, j1, a, b))
+        near[a:b, j0:j1] = surface_mask(lat_geo, vertices, faces, rows=(j0, j1, a, b))
+
+    starts = range(k0, k1, planes)
+    if workers == 1 or len(starts) == 1:
+        for a in starts:
+            block(a)
+    else:  # the scanline kernel and numpy's array operations release the GIL
+        with ThreadPoolExecutor(min(workers, len(starts))) as pool:
+            list(pool.map(block, starts))
     return mask, near
 
 
@@ -317,27 +333,25 @@ def _build_levels(
         del counts, keep
         if not len(cells):
             break
-        corners = cells[:, None, :] + _CORNERS[None] * h
-        if h > 1:
-            offsets = _test_points(cells, h, lat_geo, V, Fc)
-            has = np.isfinite(offsets[..., 0])
-            tests = cells[:, None, :] + np.rint(np.nan_to_num(offsets) * h).astype(np.int64)
-            ensure(np.concatenate([corners.reshape(-1, 3), tests[has]]))
-        else:
-            ensure(corners.reshape(-1, 3))
-        # the corners as rows of the level's keys, (n, 8), before the level's data is
-        # made: the corners themselves, (n, 8, 3), are not held through it (the finest
-        # level's are a large part of the build's peak)
-        corner_keys = table.key(corners)
-        del corners
+        # the corners as rows of the level's keys, (n, 8): the corners themselves,
+        # (n, 8, 3), are not held through the level (the finest level's would be a large
+        # part of the build's peak)
+        corner_keys = table.key(cells[:, None, :] + _CORNERS[None] * h)
         level_keys = np.unique(corner_keys)
         rows = np.searchsorted(level_keys, corner_keys)
         del corner_keys
         if h > 1:
+            offsets = _test_points(cells, h, lat_geo, V, Fc)
+            has = np.isfinite(offsets[..., 0])
+            tests = cells[:, None, :] + np.rint(np.nan_to_num(offsets) * h).astype(np.int64)
+            ensure(np.concatenate([level_keys, table.key(tests[has])]))
+        else:
+            ensure(level_keys, distinct=True)
+        if h > 1:
             # single-voxel cells skip the stencil: their corners are voxels, which the
             # warp and the Jacobians read exactly whatever the twists (see
             # level_node_data): the finest level's stencil would be many evaluations
-            ensure(stencil_points(table, level_keys, h))
+            ensure(stencil_keys(table, level_keys, h))
         if h == 1:
             # the finest level, the last: the table keeps only the nodes its data reads
             # before that data is made beside it: the others (corners and test points of

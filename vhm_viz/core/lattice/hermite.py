@@ -12,8 +12,12 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from vhm_viz.core.work_items import claim
+
 #: Node data terms, in order: f, f_u, f_v, f_w, f_uv, f_uw, f_vw, f_uvw.
 N_TERMS = 8
+# Leaves that a worker of the voxel kernels claims at a time.
+_LEAVES_PER_CLAIM = 2
 
 
 @numba.njit(cache=True)
@@ -229,54 +233,71 @@ def _owned_box(leaves, q, origin, size, end, box):  # pragma: no cover - compile
 
 
 @numba.njit(parallel=True, cache=True)
-def leaf_voxels(data, rows, origin, size, leaves, end, box, mask, out):  # pragma: no cover
+def leaf_voxels(data, rows, origin, size, leaves, end, box, mask, out, workers):  # pragma: no cover
     """Interpolated positions of the inside voxels of a box, leaf by leaf.
 
     ``box = (i0, i1, j0, j1, k0, k1)`` (inclusive voxel ranges); ``out`` is the box's
     (P, 3) positions, i fastest. Positions are evaluated separably: per voxel row the
     polynomial is reduced to 4 cubic terms in u, then each voxel costs 12 products.
+    Leaves of different sizes cost different times: ``workers``
+    (:func:`~vhm_viz.core.work_items.worker_count`) claim them a few at a time.
     """
+    counter = np.zeros(1, dtype=np.int64)
+    n_leaves = leaves.shape[0]
+    for _ in numba.prange(workers):
+        weights = np.empty((2, 4))  # the v and w weights of a voxel row
+        qrow = np.empty((2, 2, 3))
+        while True:
+            first = claim(counter, _LEAVES_PER_CLAIM)
+            if first >= n_leaves:
+                break
+            for q in range(first, min(first + _LEAVES_PER_CLAIM, n_leaves)):
+                _leaf_voxels_of(data, rows, origin, size, leaves, q, end, box, mask, out,
+                                weights, qrow)  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _leaf_voxels_of(data, rows, origin, size, leaves, q, end, box, mask, out, weights,
+                    qrow):  # pragma: no cover - compiled  # fmt: skip
+    """The voxels of leaf ``leaves[q]`` for :func:`leaf_voxels` (``weights``, ``qrow``: scratch)."""
     nx = box[1] - box[0] + 1
     ny = box[3] - box[2] + 1
-    for q in numba.prange(leaves.shape[0]):
-        n, hf, ia, ib, ja, jb, ka, kb = _owned_box(leaves, q, origin, size, end, box)
-        wv = np.empty(4)
-        ww = np.empty(4)
-        qrow = np.empty((2, 2, 3))
-        r = rows[n]
-        for k in range(ka, kb + 1):
-            ww[0], ww[1], ww[2], ww[3], _, _, _, _ = _weights((k - origin[n, 2]) / hf, hf)
-            for j in range(ja, jb + 1):
-                base = ((k - box[4]) * ny + (j - box[2])) * nx - box[0]
-                wv[0], wv[1], wv[2], wv[3], _, _, _, _ = _weights((j - origin[n, 1]) / hf, hf)
-                # reduce to 4 terms in u: qrow[a, ku] = sum over (b, c, kv, kw)
-                qrow[:] = 0.0
-                for c in range(2):
-                    for b in range(2):
-                        for kw in range(2):
-                            for kv in range(2):
-                                s = wv[2 * b + kv] * ww[2 * c + kw]
-                                for a in range(2):
-                                    node = r[a + 2 * b + 4 * c]
-                                    for ku in range(2):
-                                        t = _term(ku, kv, kw)
-                                        for i in range(3):
-                                            qrow[a, ku, i] += s * data[node, t, i]
-                for i_ in range(ia, ib + 1):
-                    if not mask[k, j, i_]:
-                        continue
-                    a0, a1, a2, a3, _, _, _, _ = _weights((i_ - origin[n, 0]) / hf, hf)
-                    for i in range(3):
-                        out[base + i_, i] = (
-                            a0 * qrow[0, 0, i]
-                            + a1 * qrow[0, 1, i]
-                            + a2 * qrow[1, 0, i]
-                            + a3 * qrow[1, 1, i]
-                        )
+    n, hf, ia, ib, ja, jb, ka, kb = _owned_box(leaves, q, origin, size, end, box)
+    wv, ww = weights[0], weights[1]
+    r = rows[n]
+    for k in range(ka, kb + 1):
+        ww[0], ww[1], ww[2], ww[3], _, _, _, _ = _weights((k - origin[n, 2]) / hf, hf)
+        for j in range(ja, jb + 1):
+            base = ((k - box[4]) * ny + (j - box[2])) * nx - box[0]
+            wv[0], wv[1], wv[2], wv[3], _, _, _, _ = _weights((j - origin[n, 1]) / hf, hf)
+            # reduce to 4 terms in u: qrow[a, ku] = sum over (b, c, kv, kw)
+            qrow[:] = 0.0
+            for c in range(2):
+                for b in range(2):
+                    for kw in range(2):
+                        for kv in range(2):
+                            s = wv[2 * b + kv] * ww[2 * c + kw]
+                            for a in range(2):
+                                node = r[a + 2 * b + 4 * c]
+                                for ku in range(2):
+                                    t = _term(ku, kv, kw)
+                                    for i in range(3):
+                                        qrow[a, ku, i] += s * data[node, t, i]
+            for i_ in range(ia, ib + 1):
+                if not mask[k, j, i_]:
+                    continue
+                a0, a1, a2, a3, _, _, _, _ = _weights((i_ - origin[n, 0]) / hf, hf)
+                for i in range(3):
+                    out[base + i_, i] = (
+                        a0 * qrow[0, 0, i]
+                        + a1 * qrow[0, 1, i]
+                        + a2 * qrow[1, 0, i]
+                        + a3 * qrow[1, 1, i]
+                    )
 
 
 @numba.njit(parallel=True, cache=True)
-def leaf_jacobians(data, rows, origin, size, leaves, end, box, mask, to_index, out):
+def leaf_jacobians(data, rows, origin, size, leaves, end, box, mask, to_index, out, workers):
     """World Jacobians ``df/du @ to_index`` of the inside voxels of a box, leaf by leaf.
 
     As :func:`leaf_voxels`, with ``out`` the box's (P, 3, 3) Jacobians (``to_index`` =
@@ -284,28 +305,35 @@ def leaf_jacobians(data, rows, origin, size, leaves, end, box, mask, to_index, o
     """
     nx = box[1] - box[0] + 1
     ny = box[3] - box[2] + 1
-    for q in numba.prange(leaves.shape[0]):
-        n, hf, ia, ib, ja, jb, ka, kb = _owned_box(leaves, q, origin, size, end, box)
+    counter = np.zeros(1, dtype=np.int64)
+    n_leaves = leaves.shape[0]
+    for _ in numba.prange(workers):
         f = np.empty(3)
         g = np.empty((3, 3))
-        r = rows[n]
-        for k in range(ka, kb + 1):
-            for j in range(ja, jb + 1):
-                base = ((k - box[4]) * ny + (j - box[2])) * nx - box[0]
-                for i_ in range(ia, ib + 1):
-                    if not mask[k, j, i_]:
-                        continue
-                    cell_eval(
-                        data, r, hf, (i_ - origin[n, 0]) / hf, (j - origin[n, 1]) / hf,
-                        (k - origin[n, 2]) / hf, f, g, True,
-                    )  # fmt: skip
-                    for a in range(3):
-                        for b in range(3):
-                            out[base + i_, a, b] = (
-                                g[a, 0] * to_index[0, b]
-                                + g[a, 1] * to_index[1, b]
-                                + g[a, 2] * to_index[2, b]
-                            )
+        while True:
+            first = claim(counter, _LEAVES_PER_CLAIM)
+            if first >= n_leaves:
+                break
+            for q in range(first, min(first + _LEAVES_PER_CLAIM, n_leaves)):
+                n, hf, ia, ib, ja, jb, ka, kb = _owned_box(leaves, q, origin, size, end, box)
+                r = rows[n]
+                for k in range(ka, kb + 1):
+                    for j in range(ja, jb + 1):
+                        base = ((k - box[4]) * ny + (j - box[2])) * nx - box[0]
+                        for i_ in range(ia, ib + 1):
+                            if not mask[k, j, i_]:
+                                continue
+                            cell_eval(
+                                data, r, hf, (i_ - origin[n, 0]) / hf, (j - origin[n, 1]) / hf,
+                                (k - origin[n, 2]) / hf, f, g, True,
+                            )  # fmt: skip
+                            for a in range(3):
+                                for b in range(3):
+                                    out[base + i_, a, b] = (
+                                        g[a, 0] * to_index[0, b]
+                                        + g[a, 1] * to_index[1, b]
+                                        + g[a, 2] * to_index[2, b]
+                                    )
 
 
 @numba.njit(parallel=True, cache=True)

@@ -18,6 +18,7 @@ from vhm_viz.core.lattice.pullback import (
     pull_back_rows,
 )
 from vhm_viz.core.memory import release_free_memory, take_in_place
+from vhm_viz.core.work_items import worker_count
 
 
 class HermiteLattice:
@@ -124,7 +125,7 @@ class HermiteLattice:
         b = np.asarray(box, dtype=np.int64)
         leaf_voxels(
             self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaves_in(b),
-            self.end, b, self.mask, out,
+            self.end, b, self.mask, out, worker_count(),
         )  # fmt: skip
 
     def jacobians(self, box, out) -> None:
@@ -132,7 +133,7 @@ class HermiteLattice:
         b = np.asarray(box, dtype=np.int64)
         leaf_jacobians(
             self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaves_in(b),
-            self.end, b, self.mask, self.geometry.world_to_index, out,
+            self.end, b, self.mask, self.geometry.world_to_index, out, worker_count(),
         )  # fmt: skip
 
 
@@ -254,9 +255,9 @@ class HermiteLattice:
         boxes : (lo, hi) int64 arrays
             :meth:`image_boxes` rounded outward to output voxels.
         u : (P, 3) float64
-            Pre-images of the box's voxels (i fastest), written where found.
+            Pre-images of the box's voxels (i fastest); 0 where none was found.
         state, fold : (P,) uint8
-            Zeroed by the caller; see :func:`pull_back_rows`.
+            See :func:`pull_back_rows` (every voxel's is written).
         quality : (P,) float64
         """
         self._need_pre_images("pull_back")
@@ -276,13 +277,13 @@ class HermiteLattice:
         row_i1 = np.empty(total, dtype=np.int64)
         if total:
             candidate_rows(leaves, lo, hi, b, start, row_leaf, row_i0, row_i1)
-            pull_back_rows(
-                self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaf_cut,
-                self.centre_f, self.centre_ginv, self.rho, self.margins(), *self.cut_flags(),
-                self.last,
-                geometry.origin, geometry.index_to_world, b, start, row_leaf, row_i0, row_i1,
-                u, state, fold, quality,
-            )  # fmt: skip
+        pull_back_rows(
+            self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaf_cut,
+            self.centre_f, self.centre_ginv, self.rho, self.margins(), *self.cut_flags(),
+            self.last,
+            geometry.origin, geometry.index_to_world, b, start, row_leaf, row_i0, row_i1,
+            u, state, fold, quality, worker_count(),
+        )  # fmt: skip
 
     def release_masks(self) -> None:
         """Free the masks, which no part carries: afterwards only :meth:`part` may be used.

@@ -115,12 +115,21 @@ _STENCIL = np.array(
 LEVEL_CHUNK = 8192
 
 
-def stencil_points(table: NodeTable, keys: np.ndarray, h: int) -> np.ndarray:
-    """Lattice points (ijk) that :func:`level_node_data` reads around ``keys`` at level ``h``."""
+def stencil_keys(table: NodeTable, keys: np.ndarray, h: int) -> np.ndarray:
+    """Keys of the lattice points that :func:`level_node_data` reads around ``keys`` at ``h``.
+
+    Each key plus the 18 stencil offsets times ``h`` (a key is linear in the point), the
+    points beyond the lattice left out; 1-D, by key, then by offset.
+    """
     ijk = table.ijk(keys)
-    pts = (ijk[:, None, :] + h * _STENCIL[None]).reshape(-1, 3)
-    ok = np.all((pts >= 0) & (pts <= table.dims - 1), axis=1)
-    return pts[ok]
+    top = table.dims - 1
+    ok = np.ones((len(keys), len(_STENCIL)), dtype=bool)
+    for axis in range(3):
+        at = ijk[:, axis, None] + h * _STENCIL[None, :, axis]
+        ok &= (at >= 0) & (at <= top[axis])
+    del at
+    offsets = h * table.key(_STENCIL)  # a key is linear in ijk
+    return (keys[:, None] + offsets[None])[ok]
 
 
 def rows_read(table: NodeTable, keys: np.ndarray, h: int, twists: bool = True) -> np.ndarray:

@@ -17,6 +17,7 @@ import numpy as np
 
 from vhm_viz.core.image import BORDER, inside_mask, surface_mask
 from vhm_viz.core.lattice.hermite import cell_eval, control_points, inverse3
+from vhm_viz.core.work_items import claim
 
 # Newton on a cell's polynomial: converged when the step is below this (voxels; the step
 # is applied, and convergence is quadratic, so the pre-image is then good to ~1e-10) ...
@@ -26,6 +27,8 @@ _NEWTON_ITERATIONS = 12
 #: How far (voxels) outside its cell a pre-image may lie: cells of different sizes meet
 #: with mismatches of the order of the tolerance, which would otherwise leave gaps.
 MARGIN = 0.25
+# Rows of an output box that a worker of the pull-back claims at a time.
+_ROWS_PER_CLAIM = 4
 
 
 @numba.njit(cache=True)
@@ -228,7 +231,7 @@ def inside_around(block_of, pool, dims, u):  # pragma: no cover - compiled
 def pull_back_rows(
     data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, block_of, pool, dims,
     last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
-    u_out, state, fold, quality,
+    u_out, state, fold, quality, workers,
 ):  # pragma: no cover - compiled  # fmt: skip
     """Pre-images of the output voxels of a box: Newton on the leaves' polynomials.
 
@@ -244,129 +247,155 @@ def pull_back_rows(
     * a second pre-image more than one voxel from the first marks a fold (``fold`` 1); a
       nearer one (the same point, found from a neighbouring leaf) replaces the first when
       it lies deeper inside its leaf (``quality`` = distance outside the leaf).
+
+    Every voxel of the box is written: ``u_out``, ``state``, ``fold`` and ``quality`` are
+    zero where no pre-image was found. Rows cost from nothing (no candidate leaf) to many
+    Newton solves: ``workers`` (:func:`~vhm_viz.core.work_items.worker_count`) claim them
+    a few at a time (:mod:`~vhm_viz.core.work_items`).
     """
+    n_rows = row_start.shape[0] - 1
+    counter = np.zeros(1, dtype=np.int64)
+    for _ in numba.prange(workers):
+        vectors = np.empty((6, 3))  # y, ul, u, f, prev1, prev2 of the row's voxels
+        matrices = np.empty((2, 3, 3))  # g, gi
+        while True:
+            first = claim(counter, _ROWS_PER_CLAIM)
+            if first >= n_rows:
+                break
+            for r in range(first, min(first + _ROWS_PER_CLAIM, n_rows)):
+                _pull_back_row(
+                    r, data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin,
+                    block_of, pool, dims, last, origin_out, to_world_out, box, row_start,
+                    row_leaf, row_i0, row_i1, u_out, state, fold, quality, vectors, matrices,
+                )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _pull_back_row(
+    r, data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, block_of, pool,
+    dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
+    u_out, state, fold, quality, vectors, matrices,
+):  # pragma: no cover - compiled  # fmt: skip
+    """Row ``r`` of :func:`pull_back_rows` (``vectors``, ``matrices``: its scratch)."""
     nx = box[1] - box[0] + 1
     ny = box[3] - box[2] + 1
-    n_rows = row_start.shape[0] - 1
-    step = np.empty(3)
-    for a in range(3):
-        step[a] = to_world_out[a, 0]
-    for r in numba.prange(n_rows):
-        k = box[4] + r // ny
-        j = box[2] + r % ny
-        y = np.empty(3)
-        ul = np.empty(3)
-        u = np.empty(3)
-        f = np.empty(3)
-        g = np.empty((3, 3))
-        gi = np.empty((3, 3))
-        prev1 = np.empty(3)
-        prev2 = np.empty(3)
-        for c in range(row_start[r], row_start[r + 1]):
-            n = row_leaf[c]
-            h = float(size[n])
-            lim = 0.5 * h + rho[n] + margin[n]
-            chained = 0  # consecutive converged voxels before this one
-            for i_ in range(row_i0[c], row_i1[c] + 1):
+    k = box[4] + r // ny
+    j = box[2] + r % ny
+    for v in range(r * nx, (r + 1) * nx):
+        state[v] = 0
+        fold[v] = 0
+        quality[v] = 0.0
+        for a in range(3):
+            u_out[v, a] = 0.0
+    y, ul, u, f, prev1, prev2 = (vectors[0], vectors[1], vectors[2], vectors[3],
+                                 vectors[4], vectors[5])  # fmt: skip
+    g, gi = matrices[0], matrices[1]
+    step = to_world_out[:, 0]
+    for c in range(row_start[r], row_start[r + 1]):
+        n = row_leaf[c]
+        h = float(size[n])
+        lim = 0.5 * h + rho[n] + margin[n]
+        chained = 0  # consecutive converged voxels before this one
+        for i_ in range(row_i0[c], row_i1[c] + 1):
+            for a in range(3):
+                y[a] = origin_out[a] + to_world_out[a, 0] * i_ + (
+                    to_world_out[a, 1] * j + to_world_out[a, 2] * k
+                )
+            far = False
+            for a in range(3):
+                d = 0.0
+                for b in range(3):
+                    d += centre_ginv[n, a, b] * (y[b] - centre_f[n, b])
+                ul[a] = origin[n, a] + 0.5 * h + d
+                if not abs(d) <= lim:  # also catches NaN
+                    far = True
+            if far:
+                chained = 0
+                continue
+            v = ((k - box[4]) * ny + (j - box[2])) * nx + (i_ - box[0])
+            if state[v] == 1 and quality[v] == 0.0:
+                # a pre-image inside its own leaf is known: a pre-image in this leaf
+                # (within rho of the estimate) more than a voxel away would be a fold
+                gap = 0.0
                 for a in range(3):
-                    y[a] = origin_out[a] + to_world_out[a, 0] * i_ + (
-                        to_world_out[a, 1] * j + to_world_out[a, 2] * k
-                    )
-                far = False
+                    gap = max(gap, abs(ul[a] - u_out[v, a]))
+                if gap + rho[n] < 1.0:
+                    chained = 0
+                    continue
+            if chained >= 3:
+                # the pre-images of a row are smooth: quadratic extrapolation
+                for a in range(3):
+                    nxt = 3.0 * u[a] - 3.0 * prev1[a] + prev2[a]
+                    prev2[a] = prev1[a]
+                    prev1[a] = u[a]
+                    u[a] = nxt
+            elif chained > 0:
+                # previous pre-image advanced by the inverse Jacobian (one voxel along i)
                 for a in range(3):
                     d = 0.0
                     for b in range(3):
-                        d += centre_ginv[n, a, b] * (y[b] - centre_f[n, b])
-                    ul[a] = origin[n, a] + 0.5 * h + d
-                    if not abs(d) <= lim:  # also catches NaN
-                        far = True
-                if far:
-                    chained = 0
-                    continue
-                v = ((k - box[4]) * ny + (j - box[2])) * nx + (i_ - box[0])
-                if state[v] == 1 and quality[v] == 0.0:
-                    # a pre-image inside its own leaf is known: a pre-image in this leaf
-                    # (within rho of the estimate) more than a voxel away would be a fold
-                    gap = 0.0
-                    for a in range(3):
-                        gap = max(gap, abs(ul[a] - u_out[v, a]))
-                    if gap + rho[n] < 1.0:
-                        chained = 0
-                        continue
-                if chained >= 3:
-                    # the pre-images of a row are smooth: quadratic extrapolation
-                    for a in range(3):
-                        nxt = 3.0 * u[a] - 3.0 * prev1[a] + prev2[a]
-                        prev2[a] = prev1[a]
-                        prev1[a] = u[a]
-                        u[a] = nxt
-                elif chained > 0:
-                    # previous pre-image advanced by the inverse Jacobian (one voxel along i)
-                    for a in range(3):
-                        d = 0.0
-                        for b in range(3):
-                            d += gi[a, b] * step[b]
-                        prev2[a] = prev1[a]
-                        prev1[a] = u[a]
-                        u[a] += d
-                else:
-                    for a in range(3):
-                        u[a] = ul[a]
-                ok = False
-                for _ in range(_NEWTON_ITERATIONS):
-                    cell_eval(
-                        data, rows[n], h, (u[0] - origin[n, 0]) / h, (u[1] - origin[n, 1]) / h,
-                        (u[2] - origin[n, 2]) / h, f, g, True,
-                    )  # fmt: skip
-                    if not inverse3(g, gi):
-                        break
-                    big = 0.0
-                    for a in range(3):
-                        d = 0.0
-                        for b in range(3):
-                            d += gi[a, b] * (y[b] - f[b])
-                        u[a] += d
-                        big = max(big, abs(d))
-                    if not big < 2.0 * h:  # diverging (or NaN)
-                        break
-                    if big < _NEWTON_STEP:
-                        ok = True
-                        break
-                chained = chained + 1 if ok else 0
-                if not ok:
-                    continue
-                q = 0.0
-                inside_vol = True
+                        d += gi[a, b] * step[b]
+                    prev2[a] = prev1[a]
+                    prev1[a] = u[a]
+                    u[a] += d
+            else:
                 for a in range(3):
-                    # beyond the volume's boundary the border takes over from the margin
-                    below = origin[n, a] - u[a] - (BORDER if origin[n, a] <= 0 else 0.0)
-                    above = u[a] - origin[n, a] - h - (
-                        BORDER if origin[n, a] + size[n] >= last[a] else 0.0
-                    )
-                    q = max(q, below, above)
-                    if u[a] < -BORDER or u[a] > last[a] + BORDER:
-                        inside_vol = False
-                if q > MARGIN or not inside_vol:
+                    u[a] = ul[a]
+            ok = False
+            for _ in range(_NEWTON_ITERATIONS):
+                cell_eval(
+                    data, rows[n], h, (u[0] - origin[n, 0]) / h, (u[1] - origin[n, 1]) / h,
+                    (u[2] - origin[n, 2]) / h, f, g, True,
+                )  # fmt: skip
+                if not inverse3(g, gi):
+                    break
+                big = 0.0
+                for a in range(3):
+                    d = 0.0
+                    for b in range(3):
+                        d += gi[a, b] * (y[b] - f[b])
+                    u[a] += d
+                    big = max(big, abs(d))
+                if not big < 2.0 * h:  # diverging (or NaN)
+                    break
+                if big < _NEWTON_STEP:
+                    ok = True
+                    break
+            chained = chained + 1 if ok else 0
+            if not ok:
+                continue
+            q = 0.0
+            inside_vol = True
+            for a in range(3):
+                # beyond the volume's boundary the border takes over from the margin
+                below = origin[n, a] - u[a] - (BORDER if origin[n, a] <= 0 else 0.0)
+                above = u[a] - origin[n, a] - h - (
+                    BORDER if origin[n, a] + size[n] >= last[a] else 0.0
+                )
+                q = max(q, below, above)
+                if u[a] < -BORDER or u[a] > last[a] + BORDER:
+                    inside_vol = False
+            if q > MARGIN or not inside_vol:
+                continue
+            s = 1
+            if cut[n]:
+                around = inside_around(block_of, pool, dims, u)
+                if around == 0:
                     continue
-                s = 1
-                if cut[n]:
-                    around = inside_around(block_of, pool, dims, u)
-                    if around == 0:
-                        continue
-                    if around < 0:
-                        s = 2
-                if state[v] == 0 or (state[v] == 2 and s == 1):
-                    state[v] = s
+                if around < 0:
+                    s = 2
+            if state[v] == 0 or (state[v] == 2 and s == 1):
+                state[v] = s
+                quality[v] = q
+                for a in range(3):
+                    u_out[v, a] = u[a]
+            elif state[v] == s:
+                apart = 0.0
+                for a in range(3):
+                    apart = max(apart, abs(u[a] - u_out[v, a]))
+                if apart > 1.0:
+                    fold[v] = 1
+                elif q < quality[v]:
                     quality[v] = q
                     for a in range(3):
                         u_out[v, a] = u[a]
-                elif state[v] == s:
-                    apart = 0.0
-                    for a in range(3):
-                        apart = max(apart, abs(u[a] - u_out[v, a]))
-                    if apart > 1.0:
-                        fold[v] = 1
-                    elif q < quality[v]:
-                        quality[v] = q
-                        for a in range(3):
-                            u_out[v, a] = u[a]
