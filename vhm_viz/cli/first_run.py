@@ -23,7 +23,7 @@ __all__ = ["NOTICE", "stamp_path", "compiled_before", "record_compiled"]
 
 #: The line a command prints when its kernels may need compiling.
 NOTICE = (
-    "vhm-viz: compiling numeric kernels once for this machine (about a minute; later "
+    "vhm-viz: compiling numeric kernels once for this machine (up to a minute; later "
     "runs start at once)..."
 )
 

@@ -121,7 +121,7 @@ def take_in_place(holder, key, index) -> np.ndarray:
         or (len(index) and (index[0] < 0 or index[-1] >= len(a)))
     ):
         return a[index]
-    rows = a.reshape(len(a), -1)
+    rows = a.reshape(len(a), -1).view(np.uint8)  # bytes: one compiled move for every dtype
     _move_rows_forward(rows, index)
     del rows
     try:
@@ -133,10 +133,15 @@ def take_in_place(holder, key, index) -> np.ndarray:
 
 @numba.njit(cache=True)
 def _move_rows_forward(rows, index):  # pragma: no cover - compiled
-    """``rows[t] = rows[index[t]]`` for ascending ``index`` (no row read after it moved)."""
+    """``rows[t] = rows[index[t]]`` for ascending ``index`` (no row read after it moved).
+
+    ``rows``: a 2-D byte view; element copies, so no broadcasting checks are compiled.
+    """
+    width = rows.shape[1]
     for t in range(index.shape[0]):
         if index[t] != t:
-            rows[t] = rows[index[t]]
+            for c in range(width):
+                rows[t, c] = rows[index[t], c]
 
 
 #: Bytes of lattice per input voxel a volume job is estimated to hold: nodes (exact values

@@ -83,7 +83,12 @@ class NodeTable:
             table = grow_in_place(vars(self), name, len(new))
             width = math.prod(table.shape[1:])
             rows = new.reshape(len(new), width).astype(table.dtype, copy=False)
-            _merge_from_back(table.reshape(len(table), width), at, rows)
+            # as rows of bytes: one compiled merge serves every field's dtype
+            _merge_from_back(
+                table.reshape(len(table), width).view(np.uint8),
+                at,
+                np.ascontiguousarray(rows).view(np.uint8),
+            )
             setattr(self, name, table)
 
 
@@ -91,17 +96,22 @@ class NodeTable:
 def _merge_from_back(table, at, new):  # pragma: no cover - compiled
     """Merge rows ``new`` into ``table`` at rows ``at`` (ascending), in place.
 
+    ``table`` and ``new`` are 2-D byte views (one row per node).
+
     ``table`` holds its old rows first and room for ``len(new)`` more at its end; old
     rows move back past the new rows that come before them, last first, so that no row
     is overwritten before it has moved.
     """
     n_old = table.shape[0] - new.shape[0]
+    width = table.shape[1]
     j = n_old - 1
     for t in range(new.shape[0] - 1, -1, -1):
         while j >= 0 and j + t + 1 > at[t]:
-            table[j + t + 1] = table[j]
+            for c in range(width):  # element copies: no broadcasting checks to compile
+                table[j + t + 1, c] = table[j, c]
             j -= 1
-        table[at[t]] = new[t]
+        for c in range(width):
+            table[at[t], c] = new[t, c]
 
 
 # Offsets (in units of h) of the lattice points a node's differenced terms read: the six
