@@ -159,13 +159,13 @@ def run_once(cfg: dict, ranks: int, env: dict, folder: Path, threads: int | None
     """Each rank's ``(seconds, peak RSS MB)`` of one pvbatch run.
 
     ``threads``: numba/BLAS threads of a single process (default: all cores); MPI ranks
-    always run one thread each (:func:`~vhm_viz.filters._parallel.mpi_command`).
+    always run one thread each (:func:`~vhm_viz.filters.mpi.mpi_command`).
     """
     path = folder / "cfg.json"
     path.write_text(json.dumps(cfg))
     script = folder / "bench_pv.py"
     script.write_text(SCRIPT)
-    from vhm_viz.filters._parallel import mpi_command
+    from vhm_viz.filters.mpi import mpi_command
 
     # --symmetric: every rank runs the script (without it only rank 0 does, and its
     # barriers wait forever for the satellites, which serve the pipeline instead)

@@ -30,7 +30,7 @@ from vhm_viz.filters import (  # noqa: E402
     output_type_for,
     update,
 )
-from vhm_viz.filters._parallel import (  # noqa: E402
+from vhm_viz.filters.mpi import (  # noqa: E402
     DEAL_RUN,
     balanced_shares,
     dealing_order,
@@ -754,7 +754,7 @@ def test_progress_events_and_abort():
 
 
 def test_lattice_exchange_shares_even_out_the_ranks_busy_time():
-    """The MPI ranks' shares of a round's evaluations (filters._parallel.balanced_shares)."""
+    """The MPI ranks' shares of a round's evaluations (filters.mpi.balanced_shares)."""
 
     def header(busy, seconds=1.0, points=1000):
         return np.array([[1, 10, b, seconds, points] for b in busy], dtype=float)
@@ -774,7 +774,7 @@ def test_lattice_exchange_shares_even_out_the_ranks_busy_time():
 
 
 def test_parts_are_packed_with_their_values_and_rows_taken_straight_from_a_source():
-    """An MPI part's buffer (filters._parallel.pack_part / unpack_part): every field's
+    """An MPI part's buffer (filters.mpi.pack_part / unpack_part): every field's
     values come back exactly (int64 beyond 2**53, bools, odd lengths between 8-byte aligned fields),
     and an (array, index) field is the rows array[index], as if taken first."""
     rng = np.random.default_rng(3)

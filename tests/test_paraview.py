@@ -54,7 +54,7 @@ def paraview_env():
 def _run(env, config: dict, tmp_path: Path, ranks: int = 1, name="cfg") -> str:
     path = tmp_path / f"{name}{ranks}.json"
     path.write_text(json.dumps(config))
-    from vhm_viz.filters._parallel import mpi_command
+    from vhm_viz.filters.mpi import mpi_command
 
     cmd, env = mpi_command(["pvbatch", str(RUN), str(path)], ranks, env)
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
@@ -458,7 +458,7 @@ def test_volume_warp_with_more_ranks_than_planes_finishes(paraview_env, head_sce
         "pvs.UpdatePipeline(proxy=flat)\n"
         "print('vhm-resampled', flat.GetDataInformation().GetNumberOfPoints(), flush=True)\n"
     )
-    from vhm_viz.filters._parallel import mpi_command
+    from vhm_viz.filters.mpi import mpi_command
 
     cmd, env = mpi_command(["pvbatch", str(script)], 3, paraview_env)
     cmd.insert(1, "--oversubscribe")  # 3 ranks on a 2-core machine

@@ -52,7 +52,7 @@ def _ranks_end(env, config: dict, ranks: int, tmp_path: Path) -> list[str]:
     """Each rank's ``last_error`` after the update (the run must end, exit 0)."""
     path = tmp_path / f"{config['filter']}{ranks}.json"
     path.write_text(json.dumps(config))
-    from vhm_viz.filters._parallel import mpi_command
+    from vhm_viz.filters.mpi import mpi_command
 
     cmd, env = mpi_command(["pvbatch", "--symmetric", str(SCRIPT), str(path)], ranks, env)
     cmd.insert(1, "--oversubscribe")  # more ranks than this machine's cores

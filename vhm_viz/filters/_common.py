@@ -36,7 +36,7 @@ from vhm_viz.core.errors import AbortedError
 from vhm_viz.core.image import ImageGeometry
 from vhm_viz.core.limits import check_setting
 from vhm_viz.core.volume import DEFAULT_TOLERANCE, check_tolerance
-from vhm_viz.filters import _parallel
+from vhm_viz.filters import mpi
 from vhm_viz.filters._engines import BindingCache, VolumeEngineCache
 from vhm_viz.filters._map_source import MapSource
 from vhm_viz.filters._vtk import _SDDP, cage_digest, geometry_key
@@ -145,7 +145,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         if self.last_error is None:
             self._guard(self._execute, in_info, out_info)
         failed_here = self.last_error is not None and not isinstance(self.last_error, AbortedError)
-        everyone_ok = _parallel.all_ranks(not failed_here)
+        everyone_ok = mpi.all_ranks(not failed_here)
         if not everyone_ok:
             self._agree_on_error(failed_here)
             out = out_info.GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
@@ -161,16 +161,16 @@ class DeformationSource(VTKPythonAlgorithmBase):
         rank 0 shows it in VTK's output window, naming the failing rank unless every rank
         failed (the same mistake everywhere: no scene, a bad file).
         """
-        everyone_failed = not _parallel.any_rank(not failed_here)
+        everyone_failed = not mpi.any_rank(not failed_here)
         text = _one_line(self.last_error) if failed_here else ""
         codes = np.frombuffer(text.encode("utf-8", "replace")[:2000], dtype=np.uint8)
-        rows = np.column_stack([np.full(len(codes), _parallel.rank()), codes])
-        got = _parallel.gather_rows(rows, 2) if _parallel.process_count() > 1 else rows
+        rows = np.column_stack([np.full(len(codes), mpi.rank()), codes])
+        got = mpi.gather_rows(rows, 2) if mpi.process_count() > 1 else rows
         first = int(got[:, 0].min())
         agreed = bytes(got[got[:, 0] == first, 1].astype(np.uint8)).decode("utf-8", "replace")
         if text != agreed:
             self.last_error = RuntimeError(agreed)
-        if _parallel.rank() == 0:
+        if mpi.rank() == 0:
             where = "" if everyone_failed else f" (rank {first})"
             vtkOutputWindow.GetInstance().DisplayErrorText(f"{self._label()}{where}: {agreed}\n")
 
@@ -200,7 +200,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         """A cage on port 1 must reach every rank whole; never fall back silently."""
         connected = bool(self.GetNumberOfInputConnections(1))
         pd = vtkPolyData.GetData(in_info[1]) if connected else None
-        _parallel.check_whole_cage(connected, 0 if pd is None else pd.GetNumberOfPoints())
+        mpi.check_whole_cage(connected, 0 if pd is None else pd.GetNumberOfPoints())
 
     def _execute(self, in_info, out_info):  # pragma: no cover - every filter defines it
         raise NotImplementedError
@@ -323,7 +323,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
             self.warnings = [text]
             if not self._parallel_reporting:
                 warnings.warn(text, UserWarning, stacklevel=2)
-            elif _parallel.rank() == 0:  # the same solve on every rank: said once
+            elif mpi.rank() == 0:  # the same solve on every rank: said once
                 vtkOutputWindow.GetInstance().DisplayWarningText(f"{self._label()}: {text}\n")
 
     def SetMemoryBudget(self, nbytes: int | None) -> None:
@@ -346,7 +346,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         """
         if self._memory_budget is not None:
             return self._memory_budget
-        shared = _parallel.ranks_on_this_machine() if self._parallel_reporting else 1
+        shared = mpi.ranks_on_this_machine() if self._parallel_reporting else 1
         return None if shared <= 1 else max(DEFAULT_MEMORY_BUDGET // shared, 1 << 20)
 
     def SetTolerance(self, voxels: float) -> None:
@@ -386,7 +386,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
             cage_key,
             data,
             geometry_key(data),
-            mpi=_parallel.process_count() > 1,
+            mpi=mpi.process_count() > 1,
             keep_deformer=not self._parallel_reporting,
         )
         if hm is None:
@@ -439,13 +439,13 @@ class DeformationSource(VTKPythonAlgorithmBase):
         )
 
     def _lattice_exchange(self):
-        """A :class:`~vhm_viz.filters._parallel.LatticeExchange` under MPI, else None.
+        """A :class:`~vhm_viz.filters.mpi.LatticeExchange` under MPI, else None.
 
         Under MPI (ParaView) the ranks build their lattices together, each point evaluated
         once: the ranks update in step there.
         """
-        if self._parallel_reporting and _parallel.process_count() > 1:
-            return _parallel.LatticeExchange()
+        if self._parallel_reporting and mpi.process_count() > 1:
+            return mpi.LatticeExchange()
         return None
 
     def _progress(self, lo: float, hi: float):

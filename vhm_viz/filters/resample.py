@@ -20,7 +20,7 @@ from vhm_viz.core.volume import (
     pull_back_shares,
     window_of,
 )
-from vhm_viz.filters import _parallel
+from vhm_viz.filters import mpi
 from vhm_viz.filters._common import DeformationSource
 from vhm_viz.filters._vtk import (
     add_lattice_counts,
@@ -204,7 +204,7 @@ class HarmonicResampleFilter(DeformationSource):
                 self.GetInputAlgorithm(1, 0).UpdatePiece(0, 1, 0)
 
     def _mpi(self) -> bool:
-        return self._parallel_reporting and _parallel.process_count() > 1
+        return self._parallel_reporting and mpi.process_count() > 1
 
     def _information(self, in_info, out_info):
         img = vtkImageData.GetData(in_info[0], 0)
@@ -249,7 +249,7 @@ class HarmonicResampleFilter(DeformationSource):
             # the planes this rank pulls back (for whichever rank's piece holds them), not
             # its own piece; nothing if the information pass failed (RequestData says so)
             shared = self._shared
-            box = None if shared is None else _work_box(shared, _parallel.rank())
+            box = None if shared is None else _work_box(shared, mpi.rank())
             if box is not None:
                 window = window_of(
                     shared["table"], box, shared["input"], self._geometry,
@@ -351,7 +351,7 @@ class HarmonicResampleFilter(DeformationSource):
             return np.concatenate([lo, hi, [float(outside), margin]])
 
         vol.build(progress=self._progress(0.0, 0.5), abort=self._aborted)
-        rows = _parallel.gather_rows_of(bounds, 8)
+        rows = mpi.gather_rows_of(bounds, 8)
         lo, hi = rows[:, 0:3].min(axis=0), rows[:, 3:6].max(axis=0)
         # (with the "error" policy each piece refuses outside voxels when resampled)
         any_outside = bool(rows[:, 6].max() > 0)
@@ -363,7 +363,7 @@ class HarmonicResampleFilter(DeformationSource):
             keep = self._outside == "passthrough" and any_outside
             geo = output_grid(geo_in, lo, hi, tolerance=self._tolerance, spacing=self._spacing,
                               keep_input=keep)  # fmt: skip
-        table = _parallel.gather_rows_of(lambda: vol.reach_table(geo, own(vol.lattice)), 12)
+        table = mpi.gather_rows_of(lambda: vol.reach_table(geo, own(vol.lattice)), 12)
         table = table.astype(np.int64)
         # which output planes each rank pulls back: shares of the work and of the leaves,
         # whichever pieces the pipeline asks for (they need not hold equal work)
@@ -375,7 +375,7 @@ class HarmonicResampleFilter(DeformationSource):
                                    *vol.pull_back_spans(geo, mine),
                                    [vol.lattice.stats["evaluations"]]])[None, :]  # fmt: skip
 
-        summed = _parallel.gather_rows_of(counts, 3 * nz + 1).sum(axis=0)
+        summed = mpi.gather_rows_of(counts, 3 * nz + 1).sum(axis=0)
         pairs, *spans = summed[:-1].reshape(3, nz)
         # each rank's even share of the build counts in its time: the cuts lean on the
         # leaves, most of its memory (the build may be more work than the pull-back).
@@ -383,7 +383,7 @@ class HarmonicResampleFilter(DeformationSource):
         # percent over the distinct evaluations, the work the constant prices
         # (LatticeExchange.distinct would add up the builds again if a rank rebuilt)
         build = lattice_build_work(summed[-1], len(hm.cage.vertices) + len(hm.cage.faces))
-        cuts = pull_back_shares(pairs, geo, _parallel.process_count(), spans, build)
+        cuts = pull_back_shares(pairs, geo, mpi.process_count(), spans, build)
         self._shared = {"key": key, "geometry": geo, "input": geo_in, "table": table,
                         "any_outside": any_outside, "margin": float(rows[:, 7].max()),
                         "cuts": cuts}  # fmt: skip
@@ -396,8 +396,8 @@ class HarmonicResampleFilter(DeformationSource):
         last_k = geo_in.dimensions[2] - 1
         # this rank's root k-layers: a share of the work, not of the layers (the cage
         # holds more of the volume in some layers than in others)
-        cuts = layer_shares(geo_in, hm.cage, root, _parallel.process_count())
-        me = _parallel.rank()
+        cuts = layer_shares(geo_in, hm.cage, root, mpi.process_count())
+        me = mpi.rank()
         first, final = int(cuts[me]), int(cuts[me + 1]) - 1
         nx, ny, _ = geo_in.dimensions
         if final < first:  # more ranks than layers: no cells, a share of the evaluations
@@ -430,7 +430,7 @@ class HarmonicResampleFilter(DeformationSource):
         ext = np.asarray(ext, dtype=np.int64)
         piece_key = None if shared is None else (shared["key"], tuple(ext.tolist()))
         have = self._piece_engine is not None and self._piece_key == piece_key
-        if _parallel.all_ranks(have):
+        if mpi.all_ranks(have):
             return self._piece_engine
         self._piece_engine = self._piece_key = None
         found = {}
@@ -442,7 +442,7 @@ class HarmonicResampleFilter(DeformationSource):
             found["vol"], found["own"] = self._window_engine(hm, shared["input"])
             return ext
 
-        pieces = _parallel.gather_rows_of(window_engine, 6).astype(np.int64)
+        pieces = mpi.gather_rows_of(window_engine, 6).astype(np.int64)
         vol, own = found["vol"], found["own"]
         n = len(pieces)
         # boxes[r][q]: what rank r pulls back for rank q
@@ -462,11 +462,11 @@ class HarmonicResampleFilter(DeformationSource):
                 found["leaves"].append(leaves[hit])
             return np.zeros((0, 1))
 
-        _parallel.gather_rows_of(leaves_for_each_rank, 1)
+        mpi.gather_rows_of(leaves_for_each_rank, 1)
         stats = dict(vol.lattice.stats)
         leaves = found.pop("leaves")
 
-        me = _parallel.rank()
+        me = mpi.rank()
         # the window's lattice now only hands out its leaves: the engine lets go of it
         # (it is built again if ever needed) and its masks go before any part is made
         lat = vol.lattice
@@ -481,7 +481,7 @@ class HarmonicResampleFilter(DeformationSource):
             # boxes then need only their own
             return lat.part(leaves[q], release=True)
 
-        got = _parallel.send_parts(part_for, PART_FIELDS)
+        got = mpi.send_parts(part_for, PART_FIELDS)
         lat = None  # (what the own part left of it)
         release_free_memory()
         joined = join_parts(got, vol.map, vol.geometry, tolerance=self._tolerance,
@@ -517,7 +517,7 @@ class HarmonicResampleFilter(DeformationSource):
         """
         vol, boxes = self._piece(in_info, img, ext)
         geo = self._geometry
-        me, n = _parallel.rank(), len(boxes)
+        me, n = mpi.rank(), len(boxes)
         ext = np.asarray(ext, dtype=np.int64)
         empty = bool((ext[1::2] < ext[0::2]).any())
         voxels = 0 if empty else _voxels(ext)
@@ -564,7 +564,7 @@ class HarmonicResampleFilter(DeformationSource):
             return np.zeros((0, 1))
 
         # every rank pulls back before any sends: an error on one stops them all here
-        _parallel.gather_rows_of(pull_back, 1)
+        mpi.gather_rows_of(pull_back, 1)
         nothing = {name: np.zeros((0,) + shape, dtype=dtype)
                    for name, (shape, dtype) in fields.items()}  # fmt: skip
 
@@ -572,7 +572,7 @@ class HarmonicResampleFilter(DeformationSource):
             part, outgoing[q] = outgoing[q], None
             return nothing if part is None else part
 
-        for r, part in enumerate(_parallel.send_parts(part_for, fields)):
+        for r, part in enumerate(mpi.send_parts(part_for, fields)):
             if r == me or boxes[r][me] is None:
                 continue
             rows = _rows_of(piece, ext, boxes[r][me])

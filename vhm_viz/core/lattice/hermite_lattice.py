@@ -316,7 +316,7 @@ class HermiteLattice:
 
         ``copy`` False: the fields taken from the lattice's arrays are ``(array, index)``
         pairs (the part's rows are ``array[index]``), for a caller that copies them
-        straight into a buffer (:func:`~vhm_viz.filters._parallel.send_parts`), so that
+        straight into a buffer (:func:`~vhm_viz.filters.mpi.send_parts`), so that
         a copy of the part and its packed buffer are not held together.
         """
         self._need_pre_images("part")

@@ -350,6 +350,21 @@ class LatticeExchange:
         self.distinct = 0
 
     def __call__(self, keys, evaluate):
+        """One round: ``evaluate`` this rank's share of every rank's ``keys``.
+
+        Parameters
+        ----------
+        keys : (N,) int64 array_like
+            Lattice point keys this rank needs in this round.
+        evaluate : callable
+            ``evaluate(keys) -> (f (M, 3), fu (M, 3, 3), inside (M,) bool)``, the exact
+            map at points of any rank.
+
+        Returns
+        -------
+        tuple of arrays
+            ``f``, ``fu`` and ``inside`` at this rank's ``keys``, in their order.
+        """
         if _controller() is None:
             return evaluate(keys)
         now = time.perf_counter()
