@@ -94,3 +94,38 @@ def test_use_threads_sets_numba_and_caps_at_its_pool(monkeypatch):
         assert use_threads(big) == numba.config.NUMBA_NUM_THREADS
     finally:
         numba.set_num_threads(before)
+
+
+@pytest.mark.parametrize(("setting", "expected"), [(None, 1), ("2", 2)])
+def test_a_command_gives_blas_one_thread_unless_asked(setting, expected):
+    """After a command's thread set-up every loaded BLAS (numpy's and scipy's OpenBLAS)
+    runs ``VHM_BLAS_THREADS`` threads, one by default: its spinning pool beside numba's
+    kernels or another busy process made a small QR many times slower."""
+    code = (
+        "import scipy.linalg, threadpoolctl\n"
+        "from vhm_viz.core.threads import use_threads\n"
+        "use_threads()\n"
+        "print(sorted({i['num_threads'] for i in threadpoolctl.threadpool_info()"
+        " if i['user_api'] == 'blas'}))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "VHM_BLAS_THREADS"}
+    if setting is not None:
+        env["VHM_BLAS_THREADS"] = setting
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == f"[{expected}]"
+
+
+def test_a_bad_blas_thread_count_is_one_line():
+    env = dict(os.environ, VHM_BLAS_THREADS="many")
+    done = subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", "cage", "--help"], capture_output=True, env=env
+    )
+    assert done.returncode == 0  # help needs no threads
+    done = subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", "deform", "nothing.vti", "--scene", "s.json",
+         "-o", "o.vts"],
+        capture_output=True, text=True, env=env,
+    )  # fmt: skip
+    assert done.returncode != 0 and "Traceback" not in done.stderr
+    assert "VHM_BLAS_THREADS must be a positive integer; got 'many'" in done.stderr

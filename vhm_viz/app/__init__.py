@@ -16,11 +16,10 @@ import sys
 import time
 from pathlib import Path
 
-from threadpoolctl import threadpool_limits
-
 from vhm_viz import interrupts
 from vhm_viz.atomic import atomic_path
 from vhm_viz.colours import MEASURES
+from vhm_viz.core.threads import limit_blas_threads
 
 __all__ = ["main", "ExplorerController", "start_xvfb"]
 
@@ -95,11 +94,7 @@ def run(args) -> int:
 
     if getattr(args, "screenshot", None):
         return screenshot(args)
-    # The explorer's linear algebra is small (QR of a few hundred columns, products with
-    # 3 columns) but runs next to Qt, VTK, a worker thread and numba's parallel kernels;
-    # OpenBLAS's spinning pool then fights them for the cores and a small QR can take many
-    # times longer than with one thread.
-    threadpool_limits(limits=int(os.environ.get("VHM_BLAS_THREADS", "1")), user_api="blas")
+    limit_blas_threads()
 
     app = QApplication.instance() or QApplication(sys.argv[:1])
 
@@ -171,7 +166,7 @@ def screenshot(args) -> int:
     from vhm_viz.io import refuse_inputs
 
     refuse_inputs(out, [Path(p) for p in (args.file, args.scene, args.cage) if p])
-    threadpool_limits(limits=int(os.environ.get("VHM_BLAS_THREADS", "1")), user_api="blas")
+    limit_blas_threads()
     app = QApplication.instance() or QApplication(sys.argv[:1])  # noqa: F841 - kept alive
     win = ExplorerWindow(dialogs=False)
     try:

@@ -18,11 +18,22 @@ import os
 from pathlib import Path
 
 import numba
+from threadpoolctl import threadpool_limits
 
-__all__ = ["THREADS_VARIABLE", "available_cpus", "cgroup_cpu_limit", "thread_count", "use_threads"]
+__all__ = [
+    "BLAS_THREADS_VARIABLE",
+    "THREADS_VARIABLE",
+    "available_cpus",
+    "cgroup_cpu_limit",
+    "limit_blas_threads",
+    "thread_count",
+    "use_threads",
+]
 
 #: Environment variable that sets the thread count (a positive integer).
 THREADS_VARIABLE = "VHM_THREADS"
+#: Environment variable that sets BLAS/LAPACK's thread count (a positive integer; default 1).
+BLAS_THREADS_VARIABLE = "VHM_BLAS_THREADS"
 
 
 def _cgroup_path(proc_cgroup: Path) -> tuple[str | None, str | None]:
@@ -144,4 +155,29 @@ def use_threads(requested: int | None = None, ranks_on_machine: int = 1) -> int:
     """
     n = min(thread_count(requested, ranks_on_machine), numba.config.NUMBA_NUM_THREADS)
     numba.set_num_threads(n)
+    limit_blas_threads()
+    return n
+
+
+def limit_blas_threads() -> int:
+    """Give BLAS/LAPACK one thread, or ``VHM_BLAS_THREADS``; returns the count set.
+
+    The linear algebra here is small (a QR of a few hundred columns, products with three
+    columns), and OpenBLAS's pool spins while it waits: beside numba's kernels, Qt's
+    threads or another busy process on the cores, a small QR then takes many times
+    longer than on one thread. Applies to the BLAS libraries loaded so far.
+
+    Raises
+    ------
+    ValueError
+        ``VHM_BLAS_THREADS`` is not a positive integer.
+    """
+    text = os.environ.get(BLAS_THREADS_VARIABLE, "").strip() or "1"
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ValueError(f"{BLAS_THREADS_VARIABLE} must be a positive integer; got {text!r}")
+    threadpool_limits(limits=n, user_api="blas")
     return n
