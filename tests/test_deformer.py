@@ -206,10 +206,13 @@ def test_random_init_converges_to_identity_solution(own_bent):
 
 
 def test_previous_init_warm_start_is_fast(own_bent):
-    dfm, _ = own_bent
+    """From the solved state, a tighter tolerance takes a fraction of the cold solve's
+    iterations (a start that ignored it would take more than the cold solve; the exact
+    count moves with rounding, e.g. BLAS's thread count)."""
+    dfm, cold = own_bent
     z = dfm.coefficients.copy()
     rep = dfm.solve(init="previous", tolerance=1e-10)
-    assert rep.converged and rep.iterations <= 20
+    assert rep.converged and rep.iterations <= cold.iterations / 5, (rep, cold)
     np.testing.assert_allclose(dfm.coefficients, z, atol=1e-8 * np.abs(z).max())
 
 
