@@ -447,13 +447,14 @@ def _spot_jacobian_determinants(harmonic_map, points) -> tuple[np.ndarray, np.nd
     arrays. Points outside the cage, or on a cage edge (no Jacobian), are left out.
     """
     from vhm_viz.core.basis import evaluate_map, inside_cage
+    from vhm_viz.core.metrics import jacobian_determinant
 
     cage = harmonic_map.cage
     _, jac, winding = evaluate_map(
         points, cage.vertices, cage.faces, harmonic_map.coefficients, order=1
     )
     ok = inside_cage(winding) & np.isfinite(jac).all(axis=(1, 2))
-    return ok, np.linalg.det(jac[ok])
+    return ok, jacobian_determinant(jac[ok])
 
 
 def fold_warning(
