@@ -1,0 +1,118 @@
+"""The GPU path (``device="cuda"``) against the CPU path, and its refusal without a GPU.
+
+The GPU kernels run in a child process under numba's CUDA simulator
+(``NUMBA_ENABLE_CUDASIM=1`` must be set before numba is imported), which runs every GPU
+thread in Python: the cage and the point sets are tiny. With ``VHM_TEST_REAL_GPU=1`` (set
+by ``benchmarks/gpu_check.sh`` on a machine with a GPU) the child runs on the real device.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import box_cage, simple_cage
+
+from vhm_viz.core.errors import DeviceUnavailableError, SettingError
+from vhm_viz.core.harmonic_map import HarmonicMap
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Compares HarmonicMap.evaluate(device="cuda") with device="cpu" on a small bent box cage:
+# points inside, outside (passthrough), next to a cage edge (the CPU per-point kernel's
+# points) and on a face; prints the largest relative differences as JSON.
+_COMPARE = r"""
+import json, sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from conftest import box_cage, simple_cage
+from vhm_viz.core.harmonic_map import HarmonicMap
+from vhm_viz.core.basis import evaluate_map
+
+v, f = box_cage((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 2)
+cage = simple_cage(v, f)
+t = v.copy()
+t[:, 0] += 0.3 * t[:, 2] ** 2  # a bend
+t[:, 1] *= 1.0 + 0.2 * t[:, 0]
+hm = HarmonicMap.from_target_cage(cage, t)
+rng = np.random.default_rng(7)
+inside = rng.uniform(-0.9, 0.9, (24, 3))
+outside = rng.uniform(1.1, 1.6, (6, 3)) * rng.choice([-1.0, 1.0], (6, 3))
+near_edge = np.array([[1.0 - 1e-9, 1.0 - 1e-9, 0.3]])  # next to the edge x = y = 1
+on_face = np.array([[1.0, 0.2, -0.4]])
+points = np.vstack([inside, outside, near_edge, on_face])
+
+def rel(a, b):
+    scale = np.abs(b).max()
+    return float(np.abs(a - b).max() / scale)
+
+out = {}
+for order in (0, 1):
+    cpu = hm.evaluate(points, order=order, outside="passthrough")
+    gpu = hm.evaluate(points, order=order, outside="passthrough", device="cuda")
+    out[f"values{order}"] = rel(gpu[0], cpu[0])
+    if order:
+        out["jacobians"] = rel(gpu[1], cpu[1])
+# the fused map of the basis module, with its winding numbers
+cpu = evaluate_map(points, v, f, hm.coefficients, order=1)
+gpu = evaluate_map(points, v, f, hm.coefficients, order=1, device="cuda")
+out["map"] = rel(gpu[0], cpu[0])
+out["map_jacobians"] = rel(gpu[1], cpu[1])
+out["winding"] = rel(gpu[2], cpu[2])
+out["outside_equal"] = bool(
+    (np.isnan(hm.evaluate(points, outside="nan", device="cuda")[0])
+     == np.isnan(hm.evaluate(points, outside="nan")[0])).all()
+)
+print(json.dumps(out))
+"""
+
+
+def _child_env(simulate: bool) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
+    env.pop("NUMBA_ENABLE_CUDASIM", None)
+    if simulate:
+        env["NUMBA_ENABLE_CUDASIM"] = "1"
+    return env
+
+
+def test_gpu_map_equals_cpu_map():
+    """Values, Jacobians and winding numbers equal the CPU path's to 1e-12 relative."""
+    simulate = os.environ.get("VHM_TEST_REAL_GPU") != "1"
+    run = subprocess.run(
+        [sys.executable, "-c", _COMPARE, str(Path(__file__).parent)],
+        env=_child_env(simulate),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    diffs = json.loads(run.stdout.strip().splitlines()[-1])
+    assert diffs.pop("outside_equal")
+    for name, value in diffs.items():
+        assert value <= 1e-12, (name, value)
+
+
+def _gpu_usable() -> bool:
+    from numba import cuda
+
+    return cuda.is_available()
+
+
+def test_cuda_without_gpu_is_one_clear_error():
+    """Without a GPU, device="cuda" raises DeviceUnavailableError, a SettingError."""
+    if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1" or _gpu_usable():
+        pytest.skip("this process has a GPU (or the simulator)")
+    v, f = box_cage()
+    hm = HarmonicMap.identity(simple_cage(v, f))
+    with pytest.raises(DeviceUnavailableError, match="NVIDIA GPU") as info:
+        hm.evaluate(np.full((2, 3), 0.5), device="cuda")
+    assert isinstance(info.value, SettingError)
+    assert "device 'cpu'" in str(info.value)
+    with pytest.raises(SettingError, match="must be one of cpu, cuda"):
+        hm.evaluate(np.full((2, 3), 0.5), device="gpu")
