@@ -30,12 +30,13 @@ _COMPARE = r"""
 import json, sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
-from conftest import box_cage, simple_cage
-from vhm_viz.core.harmonic_map import HarmonicMap
+from conftest import box_cage
 from vhm_viz.core.basis import evaluate_map
+from vhm_viz.core.cage import Cage
+from vhm_viz.core.harmonic_map import HarmonicMap
 
 v, f = box_cage((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 2)
-cage = simple_cage(v, f)
+cage = Cage(v, f)
 t = v.copy()
 t[:, 0] += 0.3 * t[:, 2] ** 2  # a bend
 t[:, 1] *= 1.0 + 0.2 * t[:, 0]
@@ -64,6 +65,16 @@ gpu = evaluate_map(points, v, f, hm.coefficients, order=1, device="cuda")
 out["map"] = rel(gpu[0], cpu[0])
 out["map_jacobians"] = rel(gpu[1], cpu[1])
 out["winding"] = rel(gpu[2], cpu[2])
+# the volume engine: the lattice's exact evaluations on the GPU (a tiny grid, every voxel
+# exact), then the warp and the Jacobians of its voxels
+from vhm_viz.core.image import ImageGeometry
+from vhm_viz.core.volume import VolumeDeformation
+geo = ImageGeometry((-0.8, -0.7, -0.75), (0.4, 0.35, 0.5), (5, 5, 4))
+vol_cpu = VolumeDeformation(hm, geo)
+vol_gpu = VolumeDeformation(hm, geo, device="cuda")
+out["warp"] = rel(vol_gpu.warp(), vol_cpu.warp())
+out["voxel_jacobians"] = rel(vol_gpu.jacobians(), vol_cpu.jacobians())
+out["engine_on_gpu"] = vol_gpu.map.device == "cuda" and vol_cpu.map.device == "cpu"
 out["outside_equal"] = bool(
     (np.isnan(hm.evaluate(points, outside="nan", device="cuda")[0])
      == np.isnan(hm.evaluate(points, outside="nan")[0])).all()
@@ -82,7 +93,7 @@ def _child_env(simulate: bool) -> dict:
 
 
 def test_gpu_map_equals_cpu_map():
-    """Values, Jacobians and winding numbers equal the CPU path's to 1e-12 relative."""
+    """Values, Jacobians, winding numbers, warped voxels equal the CPU path's (1e-12 rel.)."""
     simulate = os.environ.get("VHM_TEST_REAL_GPU") != "1"
     run = subprocess.run(
         [sys.executable, "-c", _COMPARE, str(Path(__file__).parent)],
@@ -94,6 +105,7 @@ def test_gpu_map_equals_cpu_map():
     assert run.returncode == 0, run.stderr[-3000:]
     diffs = json.loads(run.stdout.strip().splitlines()[-1])
     assert diffs.pop("outside_equal")
+    assert diffs.pop("engine_on_gpu")
     for name, value in diffs.items():
         assert value <= 1e-12, (name, value)
 
@@ -116,3 +128,20 @@ def test_cuda_without_gpu_is_one_clear_error():
     assert "device 'cpu'" in str(info.value)
     with pytest.raises(SettingError, match="must be one of cpu, cuda"):
         hm.evaluate(np.full((2, 3), 0.5), device="gpu")
+
+
+def test_cli_device_cuda_without_gpu_is_one_line(tmp_path, capsys):
+    """``vhm-viz deform ... --device cuda`` without a GPU: one line, before any work."""
+    pytest.importorskip("pyvista")
+    if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1" or _gpu_usable():
+        pytest.skip("this process has a GPU (or the simulator)")
+    from vhm_viz.cli import main
+
+    argv = ["deform", tmp_path / "in.vti", "--scene", tmp_path / "s.json", "-o", tmp_path / "o.vts"]
+    rc = main([*map(str, argv), "--device", "cuda", "-q"])
+    err = capsys.readouterr().err
+    assert rc != 0
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("vhm-viz deform: error: device 'cuda' needs an NVIDIA GPU")
+    assert not (tmp_path / "o.vts").exists()

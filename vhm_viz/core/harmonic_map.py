@@ -29,6 +29,10 @@ class HarmonicMap:
         (normally a validated :class:`vhm_viz.Cage`).
     coefficients : (n + m, 3) array_like
         ``z = [a; b]``: vertex coefficients ``a_v`` first, then face coefficients ``b_t``.
+    device : {"cpu", "cuda"}
+        Where :meth:`evaluate` and the volume engine's exact evaluations run by default:
+        the CPU, or an NVIDIA GPU (:mod:`vhm_viz.core.cuda_map`; refused with
+        :class:`~vhm_viz.core.errors.DeviceUnavailableError` where there is none).
 
     Notes
     -----
@@ -38,8 +42,9 @@ class HarmonicMap:
     function unrelated to the deformation the user set up.
     """
 
-    def __init__(self, cage, coefficients):
+    def __init__(self, cage, coefficients, *, device: str = "cpu"):
         self.cage = cage
+        self.device = require_device(device)
         z = np.array(coefficients, dtype=np.float64)
         n, m = len(cage.vertices), len(cage.faces)
         if z.shape != (n + m, 3):
@@ -114,6 +119,14 @@ class HarmonicMap:
             ),
         )
 
+    def on(self, device: str) -> HarmonicMap:
+        """The same map, evaluated on ``device`` by default (itself if already so)."""
+        if require_device(device) == self.device:
+            return self
+        other = HarmonicMap.__new__(HarmonicMap)
+        other.__dict__.update(self.__dict__, device=device)
+        return other
+
     # ---------------------------------------------------------------- properties
     @property
     def coefficients(self) -> np.ndarray:
@@ -145,7 +158,7 @@ class HarmonicMap:
         order: int = 0,
         outside: str = "error",
         memory_budget: int | None = None,
-        device: str = "cpu",
+        device: str | None = None,
     ):
         """Map values and, on request, Jacobians and Hessians, in one pass over the basis.
 
@@ -159,11 +172,12 @@ class HarmonicMap:
             them where they are (identity value, Jacobian I, Hessian 0); or fill with NaN.
         memory_budget : int, optional
             Bytes of basis arrays per chunk (:func:`~vhm_viz.core.basis.chunk_rows`).
-        device : {"cpu", "cuda"}
-            Where the closed forms are evaluated: the CPU (default) or an NVIDIA GPU
+        device : {"cpu", "cuda"}, optional
+            Where the closed forms are evaluated: the CPU or an NVIDIA GPU
             (:mod:`vhm_viz.core.cuda_map`, values and Jacobians only, equal to the CPU's to
             rounding); :class:`~vhm_viz.core.errors.DeviceUnavailableError` when this
-            machine has no usable GPU.
+            machine has no usable GPU. Default: the map's :attr:`device` ("cpu" unless
+            made otherwise).
 
         Returns
         -------
@@ -172,7 +186,8 @@ class HarmonicMap:
         H : (N, 3, 3, 3) ndarray or None
         """
         check_outside_policy(outside)
-        if require_device(device) == "cuda":
+        device = self.device if device is None else require_device(device)
+        if device == "cuda":
             return self._evaluate_fused(points, order, outside, device)
         p = as_points(points)
         npts = len(p)
