@@ -24,8 +24,8 @@ from vhm_viz.core.harmonic_map import HarmonicMap
 ROOT = Path(__file__).resolve().parents[1]
 
 # Compares HarmonicMap.evaluate(device="cuda") with device="cpu" on a small bent box cage:
-# points inside, outside (passthrough), next to a cage edge (the CPU per-point kernel's
-# points) and on a face; prints the largest relative differences as JSON.
+# points inside, outside (each outside policy), next to a cage edge (the CPU per-point
+# kernel's points) and on a face; prints the largest relative differences as JSON.
 _COMPARE = r"""
 import json, sys
 import numpy as np
@@ -33,6 +33,7 @@ sys.path.insert(0, sys.argv[1])
 from conftest import box_cage
 from vhm_viz.core.basis import evaluate_map
 from vhm_viz.core.cage import Cage
+from vhm_viz.core.errors import OutsideCageError
 from vhm_viz.core.harmonic_map import HarmonicMap
 
 v, f = box_cage((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 2)
@@ -74,6 +75,12 @@ vol_cpu = VolumeDeformation(hm, geo)
 vol_gpu = VolumeDeformation(hm, geo, device="cuda")
 out["warp"] = rel(vol_gpu.warp(), vol_cpu.warp())
 out["voxel_jacobians"] = rel(vol_gpu.jacobians(), vol_cpu.jacobians())
+def refused(device):
+    try:
+        hm.evaluate(points, device=device)
+    except OutsideCageError as exc:
+        return exc.indices.tolist()
+out["refused_equal"] = refused("cuda") == refused("cpu") == list(range(24, 30))
 out["engine_on_gpu"] = vol_gpu.map.device == "cuda" and vol_cpu.map.device == "cpu"
 out["outside_equal"] = bool(
     (np.isnan(hm.evaluate(points, outside="nan", device="cuda")[0])
@@ -106,6 +113,7 @@ def test_gpu_map_equals_cpu_map():
     diffs = json.loads(run.stdout.strip().splitlines()[-1])
     assert diffs.pop("outside_equal")
     assert diffs.pop("engine_on_gpu")
+    assert diffs.pop("refused_equal")
     for name, value in diffs.items():
         assert value <= 1e-12, (name, value)
 

@@ -28,8 +28,9 @@ from vhm_viz.core.face_formulas import edge_log_argument, face_terms, solid_angl
 
 __all__ = ["THREADS_PER_BLOCK", "map_on_gpu"]
 
-#: Threads per block of the map kernel (one point each).
-THREADS_PER_BLOCK = 128
+#: Threads per block of the map kernel (one point each). Small blocks spread the lattice's
+#: chunks of ten thousand points or so over every multiprocessor.
+THREADS_PER_BLOCK = 64
 _INV_TWO_PI = 1.0 / (2.0 * math.pi)
 
 _edge_log_argument = cuda.jit(device=True)(edge_log_argument)
