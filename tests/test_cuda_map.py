@@ -90,6 +90,32 @@ print(json.dumps(out))
 """
 
 
+# Compiles the real map kernel to PTX for a Hopper GPU (sm_90), which needs CUDA's NVVM
+# library but no GPU: the simulator runs the kernel as Python, so only this catches code
+# that numba cannot compile for a GPU. Device functions take the compute capability of the
+# current device, which a machine without a GPU lacks: it is given (sm_90) for this check.
+_PTX = r"""
+import sys
+from types import SimpleNamespace
+from numba import cuda, types as T
+from numba.cuda.cudadrv import nvvm
+try:
+    nvvm.NVVM()
+except Exception as exc:
+    print("NO NVVM", exc)
+    sys.exit(0)
+if not cuda.is_available():
+    import numba.cuda.dispatcher as dispatcher
+    dispatcher.get_current_device = lambda: SimpleNamespace(compute_capability=(9, 0))
+from vhm_viz.core import cuda_map
+f1, f2, f3, i2 = T.float64[::1], T.float64[:, ::1], T.float64[:, :, ::1], T.int64[:, ::1]
+args = (f2, f2, i2, f2, f1, f3, f3, i2, f1, f1, i2, T.float64, T.int64, f2, f2, f3, f1,
+        T.uint8[::1])
+ptx, _ = cuda.compile_ptx(cuda_map._map_kernel.py_func, args, cc=(9, 0))
+print("PTX", len(ptx), "entry" if ".entry" in ptx else "no kernel")
+"""
+
+
 def _child_env(simulate: bool) -> dict:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
@@ -116,6 +142,21 @@ def test_gpu_map_equals_cpu_map():
     assert diffs.pop("refused_equal")
     for name, value in diffs.items():
         assert value <= 1e-12, (name, value)
+
+
+def test_map_kernel_compiles_for_the_gpu():
+    """The map kernel (and the shared face formulas in it) compiles to PTX for sm_90."""
+    run = subprocess.run(
+        [sys.executable, "-c", _PTX],
+        env=_child_env(False),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    if run.stdout.startswith("NO NVVM"):
+        pytest.skip(f"CUDA's NVVM library is not installed: {run.stdout.strip()}")
+    assert run.stdout.startswith("PTX ") and run.stdout.split()[2] == "entry", run.stdout
 
 
 def _gpu_usable() -> bool:
