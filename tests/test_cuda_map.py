@@ -159,6 +159,24 @@ def test_map_kernel_compiles_for_the_gpu():
     assert run.stdout.startswith("PTX ") and run.stdout.split()[2] == "entry", run.stdout
 
 
+def test_cpu_path_does_not_import_numba_cuda():
+    """Importing the map and the volume engine, and evaluating on the CPU, leave numba.cuda."""
+    code = (
+        "import sys, numpy as np\n"
+        f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from conftest import box_cage, simple_cage\n"
+        "import vhm_viz.core.volume\n"
+        "from vhm_viz.core.harmonic_map import HarmonicMap\n"
+        "HarmonicMap.identity(simple_cage(*box_cage())).evaluate(np.full((1, 3), 0.5), order=1)\n"
+        "print('numba.cuda' in sys.modules)\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], env=_child_env(False), capture_output=True, text=True
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.strip() == "False"
+
+
 def _gpu_usable() -> bool:
     from numba import cuda
 
