@@ -40,6 +40,7 @@ from vhm_viz.cli._util import (
     run_filter,
     surface_metrics,
 )
+from vhm_viz.core.devices import DEVICES, require_device
 from vhm_viz.core.image import INTERPOLATIONS
 from vhm_viz.core.volume import DEFAULT_TOLERANCE
 from vhm_viz.io import (
@@ -143,6 +144,13 @@ def add_arguments(p) -> None:
         help="volume resampling: resample onto this image's grid (origin, spacing, "
         "dimensions, direction) instead (default: a grid holding the whole deformed volume)",
     )
+    p.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="cpu",
+        help="volumes: where the lattice's exact map evaluations run: cpu, or cuda (an "
+        "NVIDIA GPU, with numba-cuda; the same result to rounding) (default: cpu)",
+    )
     add_field_arguments(p)
     add_convergence_argument(p)
     add_memory_argument(p)
@@ -185,6 +193,7 @@ def deform(args: argparse.Namespace) -> str:
     from vhm_viz.core.volume import check_tolerance
     from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter
 
+    require_device(args.device)  # no GPU: one line, before any work
     src = check_input(args.input)
     arrays = _parse_arrays(args.arrays)
     try:
@@ -244,6 +253,7 @@ def deform(args: argparse.Namespace) -> str:
     flt.SetOutsidePolicy(args.outside)
     flt.SetTolerance(tolerance)
     flt.SetMemoryBudget(args.memory_budget)
+    flt.SetDevice(args.device)
     if volume:  # a job that cannot fit is refused before it allocates
         check_volume_memory(mesh, dfm.harmonic_map, resample=resample, output=out,
                             memory_budget=args.memory_budget, spacing=args.spacing,

@@ -63,6 +63,7 @@ from vhm_viz.core.cage_tables import (
     separate_shells,
     shell_cages,
 )
+from vhm_viz.core.devices import require_device
 from vhm_viz.core.inside import (
     ON_SURFACE_RTOL,
     WINDING_TOLERANCE,
@@ -209,7 +210,7 @@ def evaluate_basis(
     return BasisEvaluation(values, gradients, hessians)
 
 
-def evaluate_map(points, vertices, faces, coefficients, *, order: int = 1):
+def evaluate_map(points, vertices, faces, coefficients, *, order: int = 1, device: str = "cpu"):
     """A map ``f = sum_v a_v phi_v + sum_t b_t psi_t`` and its Jacobian, without the basis.
 
     The same numbers as ``evaluate_basis(...).values @ coefficients`` (and the gradients),
@@ -230,6 +231,10 @@ def evaluate_map(points, vertices, faces, coefficients, *, order: int = 1):
         ``z = [a; b]``.
     order : {0, 1}
         Values only, or values and Jacobians.
+    device : {"cpu", "cuda"}
+        Where the points away from the cage edges are evaluated: the CPU kernel, or the
+        GPU (:mod:`vhm_viz.core.cuda_map`; :class:`~vhm_viz.core.errors.DeviceUnavailableError`
+        without one). Points near an edge always take the per-point CPU kernel.
 
     Returns
     -------
@@ -241,6 +246,7 @@ def evaluate_map(points, vertices, faces, coefficients, *, order: int = 1):
     """
     if order not in (0, 1):
         raise ValueError(f"order must be 0 or 1; got {order!r}")
+    require_device(device)
     p = as_points(points)
     cd = prepare_cage(vertices, faces)
     z = np.ascontiguousarray(coefficients, dtype=np.float64)
@@ -251,7 +257,7 @@ def evaluate_map(points, vertices, faces, coefficients, *, order: int = 1):
     if npts == 0:
         return np.zeros((0, 3)), (np.zeros((0, 3, 3)) if order else None), np.zeros(0)
     if not cd.shells:
-        return _evaluate_map_one(p, cd, z, order)
+        return _evaluate_map_one(p, cd, z, order, device)
     # Several outward shells: a shell's basis functions involve its own faces only, so
     # each shell is a cage of its own for the fused kernel. A point keeps the shells whose
     # own winding number puts it inside (the rule of separate_shells) and every hole
@@ -261,7 +267,7 @@ def evaluate_map(points, vertices, faces, coefficients, *, order: int = 1):
     jac = np.zeros((npts, 3, 3)) if order else None
     winding = np.zeros(npts)
     for cols, sub, every_point in shell_cages(cd):
-        v_s, j_s, w_s = _evaluate_map_one(p, sub, np.ascontiguousarray(z[cols]), order)
+        v_s, j_s, w_s = _evaluate_map_one(p, sub, np.ascontiguousarray(z[cols]), order, device)
         keep = slice(None) if every_point else w_s >= 0.5
         values[keep] += v_s[keep]
         winding[keep] += w_s[keep]
@@ -270,29 +276,24 @@ def evaluate_map(points, vertices, faces, coefficients, *, order: int = 1):
     return values, jac, winding
 
 
-def _evaluate_map_one(p, cd: CageTables, z, order: int):
+def _evaluate_map_one(p, cd: CageTables, z, order: int, device: str = "cpu"):
     """:func:`evaluate_map` for a cage of one outward shell (and any holes)."""
     n, m = cd.vertices.shape[0], cd.faces.shape[0]
     npts = p.shape[0]
-    values = np.empty((npts, 3))
-    jac = np.empty((npts, 3, 3)) if order else np.zeros((0, 3, 3))
-    winding = np.empty(npts)
-    flagged = np.zeros(npts, dtype=np.bool_)
     kernel_args = kernel_arrays(cd)
-    run_rows(
-        lanes_map_kernel,
-        npts,
-        read_only(p),
-        *kernel_args,
-        NEAR_EDGE,
-        order,
-        read_only(z),
-        values,
-        jac,
-        winding,
-        flagged,
-        grain=ROWS_GRAIN,
-    )
+    if device == "cuda":
+        from vhm_viz.core.cuda_map import map_on_gpu  # imports numba.cuda: only on request
+
+        values, jac, winding, flagged = map_on_gpu(p, kernel_args, NEAR_EDGE, order, z)
+    else:
+        values = np.empty((npts, 3))
+        jac = np.empty((npts, 3, 3)) if order else np.zeros((0, 3, 3))
+        winding = np.empty(npts)
+        flagged = np.zeros(npts, dtype=np.bool_)
+        run_rows(
+            lanes_map_kernel, npts, read_only(p), *kernel_args, NEAR_EDGE, order,
+            read_only(z), values, jac, winding, flagged, grain=ROWS_GRAIN,
+        )  # fmt: skip
     rows = np.nonzero(flagged)[0]
     if rows.size:
         host = np.full(rows.size, -1, dtype=np.int64)

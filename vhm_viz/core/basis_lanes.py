@@ -40,7 +40,7 @@ import math
 import numba
 import numpy as np
 
-from vhm_viz.core import vecmath
+from vhm_viz.core import face_formulas, vecmath
 
 # Points per group. LLVM vectorises the lane loops 4 wide (AVX2), so 16 lanes are four
 # vector iterations: fewer lanes leave the loop overhead in charge, more gain nothing. The
@@ -59,6 +59,13 @@ _INLINE = dict(_JIT, inline="always")
 _ROWS = dict(_JIT, nogil=True)
 _U = np.uint64
 _S = _U(LANES)  # row length of the flat scratch arrays, as an unsigned offset
+
+# One face's closed form (paper Appendix A), shared with the GPU kernels of
+# vhm_viz.core.cuda_map: inlined into the lane loops, which stay vectorisable because
+# the transcendental functions (vecmath's) are applied here, outside the shared formulas.
+_edge_log_argument = numba.njit(**_INLINE)(face_formulas.edge_log_argument)
+_solid_angle_parts = numba.njit(**_INLINE)(face_formulas.solid_angle_parts)
+_one_face = numba.njit(**_INLINE)(face_formulas.face_terms)
 
 
 @numba.njit(**_JIT)
@@ -88,17 +95,6 @@ def _corner(E, base, j):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _solid_angle_den(x0, y0, z0, l0, x1, y1, z1, l1, x2, y2, z2, l2):  # pragma: no cover
-    """Denominator of the solid angle's ``atan2`` (Van Oosterom and Strackee) from corners."""
-    return (
-        l0 * l1 * l2
-        + (x0 * x1 + y0 * y1 + z0 * z1) * l2
-        + (x0 * x2 + y0 * y2 + z0 * z2) * l1
-        + (x1 * x2 + y1 * y2 + z1 * z2) * l0
-    )
-
-
-@numba.njit(**_JIT)
 def _edge_logs(E, edges, edge_len, inv_4pi_len, near_edge, ce, near, L):  # pragma: no cover
     """Per edge and lane: ``C = log(1 + 2|d| / (R - |d|)) / (4 pi |d|)``; flags near edges.
 
@@ -116,19 +112,9 @@ def _edge_logs(E, edges, edge_len, inv_4pi_len, near_edge, ce, near, L):  # prag
         for j in range(_U(L)):
             ux, uy, uz, li = _corner(E, bi, j)
             wx, wy, wz, lj = _corner(E, bj, j)
-            cx = uy * wz - uz * wy
-            cy = uz * wx - ux * wz
-            cz = ux * wy - uy * wx
-            uw = ux * wx + uy * wy + uz * wz
-            lilj = li * lj
-            big = li + lj + dl
-            # R - |d| = num / den without cancellation (see basis_reference._edge_terms_numpy)
-            neg = uw <= 0.0
-            num = 2.0 * (cx * cx + cy * cy + cz * cz) if neg else 2.0 * (lilj + uw)
-            den = (lilj - uw) * big if neg else big
-            ok = (num > 0.0) & (num >= limit * den)  # also False on a vertex (0 / 0)
-            near[j] += 0.0 if ok else 1.0
-            ce[out + j] = vecmath.log1p(2.0 * dl * den / num if ok else 1.0) * c4
+            arg, is_near = _edge_log_argument(ux, uy, uz, li, wx, wy, wz, lj, dl, limit)
+            near[j] += 1.0 if is_near else 0.0
+            ce[out + j] = vecmath.log1p(arg) * c4
 
 
 @numba.njit(**_INLINE)
@@ -147,37 +133,18 @@ def _face_values(E, ce, b0, b1, b2, q0, q1, q2, n_t, NxD_t, ia, buf, L):  # prag
         x0, y0, z0, l0 = _corner(E, b0, j)
         x1, y1, z1, l1 = _corner(E, b1, j)
         x2, y2, z2, l2 = _corner(E, b2, j)
-        # Jv_v = e_{v+2} x e_{v+1}
-        j0x = y2 * z1 - z2 * y1
-        j0y = z2 * x1 - x2 * z1
-        j0z = x2 * y1 - y2 * x1
-        j1x = y0 * z2 - z0 * y2
-        j1y = z0 * x2 - x0 * z2
-        j1z = x0 * y2 - y0 * x2
-        j2x = y1 * z0 - z1 * y0
-        j2y = z1 * x0 - x1 * z0
-        j2z = x1 * y0 - y1 * x0
-        det = -(x0 * j0x + y0 * j0y + z0 * j0z)
-        den = _solid_angle_den(x0, y0, z0, l0, x1, y1, z1, l1, x2, y2, z2, l2)
+        det, den = _solid_angle_parts(x0, y0, z0, l0, x1, y1, z1, l1, x2, y2, z2, l2)
         w = vecmath.atan2(det, den) * _INV_TWO_PI
         # exactly in the plane, inside the triangle: the interior limit
         w = 0.5 if (det == 0.0) & (den < 0.0) else w
-        hd = x0 * nx + y0 * ny + z0 * nz
-        c0 = ce[q0 + j]
-        c1 = ce[q1 + j]
-        c2 = ce[q2 + j]
-        qx = -w * nx + c0 * m0x + c1 * m1x + c2 * m2x
-        qy = -w * ny + c0 * m0y + c1 * m1y + c2 * m2y
-        qz = -w * nz + c0 * m0z + c1 * m1z + c2 * m2z
-        buf[j] = (
-            -w * hd
-            - c0 * (j0x * nx + j0y * ny + j0z * nz)
-            - c1 * (j1x * nx + j1y * ny + j1z * nz)
-            - c2 * (j2x * nx + j2y * ny + j2z * nz)
-        )
-        buf[S + j] = (qx * j0x + qy * j0y + qz * j0z) * ia
-        buf[_U(2) * S + j] = (qx * j1x + qy * j1y + qz * j1z) * ia
-        buf[_U(3) * S + j] = (qx * j2x + qy * j2y + qz * j2z) * ia
+        psi, f0, f1, f2, qx, qy, qz = _one_face(
+            x0, y0, z0, x1, y1, z1, x2, y2, z2, w, ce[q0 + j], ce[q1 + j], ce[q2 + j],
+            nx, ny, nz, m0x, m0y, m0z, m1x, m1y, m1z, m2x, m2y, m2z, ia,
+        )  # fmt: skip
+        buf[j] = psi
+        buf[S + j] = f0
+        buf[_U(2) * S + j] = f1
+        buf[_U(3) * S + j] = f2
         buf[_U(4) * S + j] = qx
         buf[_U(5) * S + j] = qy
         buf[_U(6) * S + j] = qz
@@ -329,8 +296,7 @@ def _add_solid_angles(E, b0, b1, b2, wsum, L):  # pragma: no cover - compiled
         x0, y0, z0, l0 = _corner(E, b0, j)
         x1, y1, z1, l1 = _corner(E, b1, j)
         x2, y2, z2, l2 = _corner(E, b2, j)
-        det = x0 * (y1 * z2 - z1 * y2) + y0 * (z1 * x2 - x1 * z2) + z0 * (x1 * y2 - y1 * x2)
-        den = _solid_angle_den(x0, y0, z0, l0, x1, y1, z1, l1, x2, y2, z2, l2)
+        det, den = _solid_angle_parts(x0, y0, z0, l0, x1, y1, z1, l1, x2, y2, z2, l2)
         w = vecmath.atan2(det, den) * _INV_TWO_PI
         # exactly in the plane: 1/2 inside the triangle, 0 on its edges and corners
         in_plane = (det == 0.0) & (den <= 0.0)

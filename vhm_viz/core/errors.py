@@ -83,3 +83,16 @@ class SettingError(ValueError):
         super().__init__(f"{field} {detail}")
         self.field = field
         self.detail = detail
+
+
+class DeviceUnavailableError(SettingError):
+    """A computing device was asked for (``device="cuda"``) that this machine cannot give.
+
+    Parameters
+    ----------
+    detail : str
+        What is missing and what to change; the message is ``f"device {detail}"``.
+    """
+
+    def __init__(self, detail: str):
+        super().__init__("device", detail)

@@ -8,10 +8,13 @@ from vhm_viz.core.basis import (
     chunk_rows,
     classify_inside,
     evaluate_inside,
+    evaluate_map,
     hessian5_to_full,
+    surface_points_inside,
 )
 from vhm_viz.core.binding import check_outside_policy
-from vhm_viz.core.errors import OutsideCageError, describe_indices
+from vhm_viz.core.devices import require_device
+from vhm_viz.core.errors import OutsideCageError, SettingError, describe_indices
 from vhm_viz.core.geometry import face_normals_and_areas
 from vhm_viz.core.points import as_points
 
@@ -26,6 +29,10 @@ class HarmonicMap:
         (normally a validated :class:`vhm_viz.Cage`).
     coefficients : (n + m, 3) array_like
         ``z = [a; b]``: vertex coefficients ``a_v`` first, then face coefficients ``b_t``.
+    device : {"cpu", "cuda"}
+        Where :meth:`evaluate` and the volume engine's exact evaluations run by default:
+        the CPU, or an NVIDIA GPU (:mod:`vhm_viz.core.cuda_map`; refused with
+        :class:`~vhm_viz.core.errors.DeviceUnavailableError` where there is none).
 
     Notes
     -----
@@ -35,8 +42,9 @@ class HarmonicMap:
     function unrelated to the deformation the user set up.
     """
 
-    def __init__(self, cage, coefficients):
+    def __init__(self, cage, coefficients, *, device: str = "cpu"):
         self.cage = cage
+        self.device = require_device(device)
         z = np.array(coefficients, dtype=np.float64)
         n, m = len(cage.vertices), len(cage.faces)
         if z.shape != (n + m, 3):
@@ -111,6 +119,14 @@ class HarmonicMap:
             ),
         )
 
+    def on(self, device: str) -> HarmonicMap:
+        """The same map, evaluated on ``device`` by default (itself if already so)."""
+        if require_device(device) == self.device:
+            return self
+        other = HarmonicMap.__new__(HarmonicMap)
+        other.__dict__.update(self.__dict__, device=device)
+        return other
+
     # ---------------------------------------------------------------- properties
     @property
     def coefficients(self) -> np.ndarray:
@@ -136,7 +152,13 @@ class HarmonicMap:
         return classify_inside(points, self.cage.vertices, self.cage.faces)[0]
 
     def evaluate(
-        self, points, *, order: int = 0, outside: str = "error", memory_budget: int | None = None
+        self,
+        points,
+        *,
+        order: int = 0,
+        outside: str = "error",
+        memory_budget: int | None = None,
+        device: str | None = None,
     ):
         """Map values and, on request, Jacobians and Hessians, in one pass over the basis.
 
@@ -150,6 +172,12 @@ class HarmonicMap:
             them where they are (identity value, Jacobian I, Hessian 0); or fill with NaN.
         memory_budget : int, optional
             Bytes of basis arrays per chunk (:func:`~vhm_viz.core.basis.chunk_rows`).
+        device : {"cpu", "cuda"}, optional
+            Where the closed forms are evaluated: the CPU or an NVIDIA GPU
+            (:mod:`vhm_viz.core.cuda_map`, values and Jacobians only, equal to the CPU's to
+            rounding); :class:`~vhm_viz.core.errors.DeviceUnavailableError` when this
+            machine has no usable GPU. Default: the map's :attr:`device` ("cpu" unless
+            made otherwise).
 
         Returns
         -------
@@ -158,6 +186,9 @@ class HarmonicMap:
         H : (N, 3, 3, 3) ndarray or None
         """
         check_outside_policy(outside)
+        device = self.device if device is None else require_device(device)
+        if device == "cuda":
+            return self._evaluate_fused(points, order, outside, device)
         p = as_points(points)
         npts = len(p)
         f = p.copy()
@@ -180,14 +211,36 @@ class HarmonicMap:
                 jac[rows][sel] = np.swapaxes(_times(b.gradients[sel], z), 1, 2)
             if order >= 2:
                 hess[rows][sel] = hessian5_to_full(np.swapaxes(_times(b.hessians[sel], z), 1, 2))
-        if outside == "nan" and not inside.all():
-            out = ~inside
-            f[out] = np.nan
-            if jac is not None:
-                jac[out] = np.nan
-            if hess is not None:
-                hess[out] = np.nan
-        return f, jac, hess
+        return _outside_nan(outside, inside, f, jac, hess)
+
+    def _evaluate_fused(self, points, order: int, outside: str, device: str):
+        """:meth:`evaluate` through the fused map kernels (no basis arrays), on ``device``.
+
+        The same inside test and surface rule as the basis path: points on the surface
+        that the winding number puts outside are evaluated just inside.
+        """
+        if order not in (0, 1):
+            raise SettingError(
+                "order", f"must be 0 or 1 on device {device!r} (Hessians: device 'cpu'); "
+                f"got {order!r}"
+            )  # fmt: skip
+        p = as_points(points)
+        V, F = self.cage.vertices, self.cage.faces
+        z = self._z_local  # relative to the offset (see __init__)
+        f, jac, winding = evaluate_map(p, V, F, z, order=order, device=device)
+        inside, hosts = classify_inside(p, V, F, winding)
+        if not inside.all() and outside == "error":
+            self._raise_outside(p, 0, inside)
+        on = np.nonzero(hosts >= 0)[0]
+        if on.size:
+            q = surface_points_inside(p[on], hosts[on], V, F)
+            f[on], j_on, _ = evaluate_map(q, V, F, z, order=order, device=device)
+            if order:
+                jac[on] = j_on
+        f = np.where(inside[:, None], self._offset + f, p)
+        if order:
+            jac[~inside] = np.eye(3)
+        return _outside_nan(outside, inside, f, jac, None)
 
     def _raise_outside(self, p, start, inside_chunk):
         """Raise OutsideCageError naming every outside point (scans the rest cheaply)."""
@@ -222,6 +275,16 @@ class HarmonicMap:
 
     def __repr__(self) -> str:
         return f"HarmonicMap(n_vertices={len(self.cage.vertices)}, n_faces={len(self.cage.faces)})"
+
+
+def _outside_nan(outside: str, inside: np.ndarray, f, jac, hess) -> tuple:
+    """``(f, jac, hess)``, with NaN at the outside points under the ``"nan"`` policy."""
+    if outside == "nan" and not inside.all():
+        out = ~inside
+        for arr in (f, jac, hess):
+            if arr is not None:
+                arr[out] = np.nan
+    return f, jac, hess
 
 
 def _times(basis: np.ndarray, z: np.ndarray) -> np.ndarray:

@@ -43,6 +43,7 @@ import numpy as np
 
 from vhm_viz.core.basis import DEFAULT_MEMORY_BUDGET
 from vhm_viz.core.binding import check_outside_policy
+from vhm_viz.core.devices import require_device
 from vhm_viz.core.displacement import (
     FIELD_KINDS,
     DisplacementField,
@@ -192,6 +193,12 @@ class VolumeDeformation(VolumePieces):
         Resampling and :meth:`output_geometry` refuse it. Default: True without a
         window, False with one (a window's engine only warps and analyses, unless its
         leaves are to be joined for resampling: :meth:`for_piece`).
+    device : {"cpu", "cuda"}
+        Where the lattice's exact evaluations of the map and its Jacobians run: the CPU
+        (default) or an NVIDIA GPU (:mod:`vhm_viz.core.cuda_map`; the same values to
+        rounding). :class:`~vhm_viz.core.errors.DeviceUnavailableError` without a GPU.
+        The lattice's refinement, its per-voxel polynomials and the pull-back run on the
+        CPU either way.
 
     Notes
     -----
@@ -211,8 +218,11 @@ class VolumeDeformation(VolumePieces):
         window=None,
         exchange=None,
         pre_images: bool | None = None,
+        device: str = "cpu",
     ):
-        self.map = harmonic_map
+        self.device = require_device(device)
+        same = getattr(harmonic_map, "device", "cpu") == self.device
+        self.map = harmonic_map if same else harmonic_map.on(self.device)
         self.exchange = exchange
         self.geometry = geometry
         self.tolerance = check_tolerance(tolerance)
@@ -286,7 +296,7 @@ class VolumeDeformation(VolumePieces):
             self.map, self.geometry, tolerance=self.tolerance, outside=outside,
             memory_budget=self.memory_budget, root=self.root,
             window=None if self.window is None else self.window.tolist(),
-            exchange=self.exchange, pre_images=self.pre_images,
+            exchange=self.exchange, pre_images=self.pre_images, device=self.device,
         )  # fmt: skip
         other._lattice = self._lattice
         return other

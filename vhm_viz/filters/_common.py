@@ -32,6 +32,7 @@ from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm
 from vhm_viz import interrupts
 from vhm_viz.core.basis import DEFAULT_MEMORY_BUDGET
 from vhm_viz.core.binding import check_outside_policy
+from vhm_viz.core.devices import require_device
 from vhm_viz.core.errors import AbortedError
 from vhm_viz.core.image import ImageGeometry
 from vhm_viz.core.limits import check_setting
@@ -66,6 +67,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self._outside = "error"
         self._memory_budget = None
         self._tolerance = DEFAULT_TOLERANCE
+        self._device = "cpu"
         self._parallel_reporting = False
         self._allow_unconverged = False
         self._warned_report = None
@@ -326,6 +328,14 @@ class DeformationSource(VTKPythonAlgorithmBase):
             elif mpi.rank() == 0:  # the same solve on every rank: said once
                 vtkOutputWindow.GetInstance().DisplayWarningText(f"{self._label()}: {text}\n")
 
+    def SetDevice(self, device: str) -> None:
+        """Where a volume's exact map evaluations run: ``"cpu"`` (default) or ``"cuda"``.
+
+        ``"cuda"`` needs an NVIDIA GPU (see :mod:`vhm_viz.core.devices`); the results are
+        the same to rounding.
+        """
+        self._set_option("_device", require_device(device))
+
     def SetMemoryBudget(self, nbytes: int | None) -> None:
         """Bytes of basis arrays per chunk while binding, in [1, 2**40] (None: the default).
 
@@ -436,6 +446,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
             window=window,
             pre_images=pre_images,
             exchange=self._lattice_exchange(),
+            device=self._device,
         )
 
     def _lattice_exchange(self):

@@ -112,6 +112,7 @@ class VolumeEngineCache:
         window=None,
         pre_images: bool = True,
         exchange=None,
+        device: str = "cpu",
     ) -> VolumeDeformation:
         """The engine of ``harmonic_map`` on ``geometry``.
 
@@ -134,6 +135,8 @@ class VolumeEngineCache:
             False for warping and analysing voxels only (a faster lattice).
         exchange : LatticeExchange, optional
             Under MPI, the ranks' shared evaluation of the lattice points.
+        device : {"cpu", "cuda"}
+            Where the lattice's exact evaluations run (see :class:`VolumeDeformation`).
 
         Returns
         -------
@@ -146,6 +149,7 @@ class VolumeEngineCache:
             budget,
             None if window is None else tuple(int(v) for v in window),
             bool(pre_images),
+            device,
         )
         if self.engine is not None and key == self.key:
             if self.engine.outside != outside:
@@ -164,6 +168,7 @@ class VolumeEngineCache:
             window=window,
             exchange=exchange,
             pre_images=pre_images,
+            device=device,
         )
         self.key = key
         return self.engine

@@ -124,6 +124,7 @@ def exact_data(hm, points, to_index, shells, memory_budget=None, abort=None):
     V = np.ascontiguousarray(cage.vertices, dtype=np.float64)
     F = np.ascontiguousarray(cage.faces, dtype=np.int64)
     z = np.asarray(hm.coefficients)
+    device = getattr(hm, "device", "cpu")  # HarmonicMap.device: where the closed forms run
     n = len(V)
     P = len(points)
     f = np.empty((P, 3))
@@ -135,7 +136,7 @@ def exact_data(hm, points, to_index, shells, memory_budget=None, abort=None):
         if abort is not None and abort():
             raise AbortedError("aborted")
         e = min(P, s + rows)
-        f[s:e], jac[s:e], wind = evaluate_map(points[s:e], V, F, z, order=1)
+        f[s:e], jac[s:e], wind = evaluate_map(points[s:e], V, F, z, order=1, device=device)
         inside[s:e] = inside_cage(wind)
     out = np.nonzero(~inside)[0]
     if out.size:
