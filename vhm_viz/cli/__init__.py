@@ -101,13 +101,12 @@ EXIT_NOT_CONVERGED = 3
 
 
 def named_command(argv: list[str]) -> str | None:
-    """The subcommand a command line names, or None (none, or not one of :data:`COMMANDS`).
+    """The subcommand a command line starts with, or None.
 
-    The top-level options (``-h``, ``--version``) take no value, so the subcommand is
-    the first argument that is not an option.
+    None when the first argument is not one of :data:`COMMANDS`: no command, an unknown
+    one, or a top-level option before it (``vhm-viz -h deform`` shows every command).
     """
-    name = next((a for a in argv if not a.startswith("-")), None)
-    return name if name in COMMANDS else None
+    return argv[0] if argv and argv[0] in COMMANDS else None
 
 
 def _not_converged(exc: BaseException) -> bool:
