@@ -78,7 +78,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from vhm_viz.core.anchors import anchors_from_polylines
 from vhm_viz.core.cage import MIN_FACE_ANGLE, Cage
@@ -792,6 +791,8 @@ def _resolve(base_dir: Path | None, text: str) -> Path:
 
 def _interpolate_jacobian(j: np.ndarray, s: float) -> np.ndarray:
     """Interpolate ``I -> j = scale * R`` by rotation angle and scale."""
+    from scipy.spatial.transform import Rotation  # here: importing it is slow, rarely used
+
     scale = np.cbrt(np.linalg.det(j))
     rot = Rotation.from_matrix(j / scale)
     return (1 + s * (scale - 1)) * Rotation.from_rotvec(s * rot.as_rotvec()).as_matrix()

@@ -25,7 +25,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from vhm_viz.core.errors import SettingError
 from vhm_viz.core.limits import check_setting
@@ -493,6 +492,8 @@ def explorer_data_reference(src):
 
 def explorer_v1_to_current(d: dict) -> dict:
     """The explorer's old single-file scene (``{"vhm_viz_scene": 1, ...}``) as this format."""
+    from scipy.spatial.transform import Rotation  # here: importing it is slow, rarely used
+
     if d.get("vhm_viz_scene") != 1:
         version = d.get("vhm_viz_scene")
         raise SceneError("vhm_viz_scene", f"unsupported explorer scene version {version}")

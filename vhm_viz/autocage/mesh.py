@@ -11,10 +11,9 @@ import itertools
 import warnings
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse import csgraph
 
 from vhm_viz.core.cage import Cage
+from vhm_viz.core.components import edge_components
 
 __all__ = [
     "BOX_TRIANGLES",
@@ -61,25 +60,6 @@ def face_edges(F: np.ndarray) -> np.ndarray:
     (2 m, 2) int array
     """
     return np.concatenate([F[:, [0, 1]], F[:, [1, 2]]])
-
-
-def edge_components(n: int, edges: np.ndarray) -> tuple[int, np.ndarray]:
-    """Connected components of ``n`` vertices joined by ``edges``.
-
-    Parameters
-    ----------
-    n : int
-        Vertex count (vertices on no edge are components of their own).
-    edges : (k, 2) int array
-
-    Returns
-    -------
-    count : int
-    labels : (n,) int32
-        Component of every vertex, ``0 .. count - 1``.
-    """
-    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    return csgraph.connected_components(graph, directed=False)
 
 
 def faces_of(poly) -> np.ndarray:

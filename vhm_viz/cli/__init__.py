@@ -5,7 +5,9 @@ exposing ``HELP``, ``DESCRIPTION`` (and optionally ``EPILOG``), ``add_arguments(
 and ``run(args) -> int``. Every subcommand also takes ``--timings`` (the stage breakdown,
 :mod:`vhm_viz.cli.timings`) and ``--threads`` (:mod:`vhm_viz.core.threads`); a command
 records its stages in ``args.timer``. Subcommands simply raise; :func:`main` reports
-every error as one line on stderr with a non-zero exit status.
+every error as one line on stderr with a non-zero exit status. A command line that names
+its subcommand imports only that subcommand's module (each imports what it uses), so a
+command starts without loading the others' libraries.
 
 Exit statuses:
 
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import importlib
 import os
 import sys
@@ -32,7 +35,6 @@ from vhm_viz import __version__, interrupts
 from vhm_viz.cli.first_run import NOTICE, compiled_before, record_compiled
 from vhm_viz.cli.timings import StageTimer
 from vhm_viz.core.threads import THREADS_VARIABLE, use_threads
-from vhm_viz.scene import NotConverged
 
 #: The subcommands (modules of this package), in the order ``--help`` shows them.
 COMMANDS = ("demo", "deform", "analyze", "cage", "anchors", "explore", "paraview")
@@ -51,8 +53,15 @@ def _threads(text: str) -> int:
     return value
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Build the argument parser with every registered subcommand."""
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """Build the argument parser with every registered subcommand.
+
+    Parameters
+    ----------
+    only : str, optional
+        Register just this subcommand (one of :data:`COMMANDS`): the one a command line
+        names, so that only its module is imported. The top-level usage line is the same.
+    """
     parser = argparse.ArgumentParser(
         prog="vhm-viz",
         description="Variational harmonic maps for space deformation of meshes, "
@@ -60,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"vhm-viz {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
+    for name in COMMANDS if only is None else (only,):
         module = importlib.import_module(f"vhm_viz.cli.{name}")
         p = sub.add_parser(
             name,
@@ -91,13 +100,56 @@ def build_parser() -> argparse.ArgumentParser:
 EXIT_NOT_CONVERGED = 3
 
 
+def named_command(argv: list[str]) -> str | None:
+    """The subcommand a command line starts with, or None.
+
+    None when the first argument is not one of :data:`COMMANDS`: no command, an unknown
+    one, or a top-level option before it (``vhm-viz -h deform`` shows every command).
+    """
+    return argv[0] if argv and argv[0] in COMMANDS else None
+
+
+def _not_converged(exc: BaseException) -> bool:
+    """Whether ``exc`` is the scene's :class:`~vhm_viz.scene.NotConverged`.
+
+    Only a command that imported :mod:`vhm_viz.scene` can raise it; the others need not
+    import it to tell.
+    """
+    scene = sys.modules.get("vhm_viz.scene")
+    return scene is not None and isinstance(exc, scene.NotConverged)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the process exit status."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run the command line; returns the process exit status.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The arguments; None: ``sys.argv[1:]``, and this process is the command (it ends
+        when the command does).
+    """
+    status = _run_command(argv)
+    if argv is None:
+        # The process ends next. Python's last garbage collections at exit would walk
+        # every object made so far (numba's types, VTK's wrappers), a large share of a
+        # short command's time, only for the memory to go back to the system anyway:
+        # frozen objects are left out of them.
+        gc.freeze()
+    return status
+
+
+def _run_command(argv: list[str] | None) -> int:
+    """:func:`main` but for the process's end."""
+    words = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(named_command(words))
+    args = parser.parse_args(words)
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
+    if argv is None:
+        # the modules imported so far live as long as the process: the collector's full
+        # passes while the command runs need not walk their objects again and again
+        gc.freeze()
     args.timer = StageTimer()
     first_run = args.command in COMPILING and not compiled_before(args.command)
     if first_run and not getattr(args, "quiet", False):
@@ -117,10 +169,10 @@ def main(argv: list[str] | None = None) -> int:
             if argv is None:  # this process is the command: end it now (see _end_now)
                 _end_now(None, args, status)
             return status
-        except NotConverged as exc:
-            print(f"vhm-viz {args.command}: {one_line(exc)}", file=sys.stderr)
-            return EXIT_NOT_CONVERGED
         except Exception as exc:  # noqa: BLE001 - every error is one line and a non-zero exit
+            if _not_converged(exc):
+                print(f"vhm-viz {args.command}: {one_line(exc)}", file=sys.stderr)
+                return EXIT_NOT_CONVERGED
             print(f"vhm-viz {args.command}: error: {one_line(exc)}", file=sys.stderr)
             return 1
         finally:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from vhm_viz.autocage import auto_anchors
 from vhm_viz.cli._dataset_input import (
     add_dataset_arguments,
     add_output_argument,
@@ -36,6 +35,8 @@ def add_arguments(p) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``anchors``; returns the exit status."""
+    from vhm_viz.autocage import auto_anchors  # here: ``vhm-viz --help`` skips its libraries
+
     src = check_input(args.input)
     cage_path = check_input(args.cage, CAGE_SUFFIXES)
     dst = check_output(args.output, (".json",), inputs=[src, cage_path])

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from vhm_viz.autocage import auto_cage
 from vhm_viz.cli._dataset_input import (
     add_dataset_arguments,
     add_output_argument,
@@ -53,6 +52,8 @@ def add_arguments(p) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cage``; returns the exit status."""
+    from vhm_viz.autocage import auto_cage  # here: ``vhm-viz --help`` skips its libraries
+
     src = check_input(args.input)
     dst = check_output(args.output, (".obj",), inputs=[src])
     cage, report = auto_cage(

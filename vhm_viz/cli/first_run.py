@@ -15,8 +15,6 @@ import platform
 import sys
 from pathlib import Path
 
-import numba
-
 import vhm_viz
 
 __all__ = ["NOTICE", "stamp_path", "compiled_before", "record_compiled"]
@@ -30,6 +28,8 @@ NOTICE = (
 
 def _sources_key() -> str:
     """A digest of what the compiled code depends on: sources, numba, Python, machine."""
+    import numba  # here: ``vhm-viz --help`` and the commands without kernels skip it
+
     h = hashlib.sha256()
     h.update(f"{numba.__version__} {sys.version} {platform.machine()}".encode())
     root = Path(vhm_viz.__file__).resolve().parent

@@ -49,8 +49,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.csgraph as csgraph
 
 from vhm_viz.core.basis_kernel import NEAR_EDGE, compiled_evaluation, per_point_evaluation
 from vhm_viz.core.basis_lanes import ROWS_GRAIN, lanes_map_kernel
@@ -63,6 +61,7 @@ from vhm_viz.core.cage_tables import (
     separate_shells,
     shell_cages,
 )
+from vhm_viz.core.components import edge_components
 from vhm_viz.core.devices import require_device
 from vhm_viz.core.inside import (
     ON_SURFACE_RTOL,
@@ -442,8 +441,7 @@ def domain_columns(vertices, faces) -> tuple[np.ndarray, ...]:
     if len(hole_faces):
         f = cd.faces[hole_faces]
         e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
-        graph = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-        _, labels = csgraph.connected_components(graph, directed=False)
+        _, labels = edge_components(n, e)
         for lab in np.unique(labels[f[:, 0]]):
             fids = hole_faces[labels[f[:, 0]] == lab]
             vids = np.unique(cd.faces[fids])

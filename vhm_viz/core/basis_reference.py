@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.sparse as sp
 
 from vhm_viz.core.cage_tables import CageTables
 from vhm_viz.core.exact_cross import cross_exact_np
@@ -114,6 +113,8 @@ def _evaluate_chunk(p, cd: CageTables, order: int, host):
     for v in range(3):
         P = P + C[v][..., None] * cd.n_cross_d[None, :, v]
     psi = -w * h_dist - sum(C[v] * dot(Jv[v], N) for v in range(3))
+
+    import scipy.sparse as sp  # here: importing it is slow, the compiled path skips it
 
     nm = n + m
     values = np.zeros((npts, nm))

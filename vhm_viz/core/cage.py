@@ -18,9 +18,9 @@ vertices are kept, with a warning.
 from __future__ import annotations
 
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
 
 from vhm_viz.core.cage_validation import (
     AREA_RTOL,
@@ -34,6 +34,9 @@ from vhm_viz.core.geometry import face_normals_and_areas, signed_volume
 from vhm_viz.core.inside import classify_inside, winding_number
 from vhm_viz.core.self_intersection import self_intersections
 from vhm_viz.core.slivers import MIN_FACE_ANGLE, SliverError, face_angles, repair_slivers
+
+if TYPE_CHECKING:
+    import scipy.sparse
 
 __all__ = [
     "AREA_RTOL",
@@ -203,13 +206,15 @@ class Cage:
         return _readonly(edges)
 
     @cached_property
-    def vertex_faces(self) -> sp.csr_matrix:
+    def vertex_faces(self) -> scipy.sparse.csr_matrix:
         """Vertex-face incidence, a read-only ``scipy.sparse.csr_matrix`` of shape (n, m).
 
         Entry ``(v, t)`` is 1 when face ``t`` uses vertex ``v``. The faces around vertex
         ``v`` are ``vertex_faces.indices[vertex_faces.indptr[v]:vertex_faces.indptr[v+1]]``
         (sorted ascending); ``vertex_faces @ x`` sums a per-face quantity onto vertices.
         """
+        import scipy.sparse as sp  # here: importing it is slow, most commands skip it
+
         m = self.n_faces
         mat = sp.csr_matrix(
             (

@@ -15,9 +15,8 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.csgraph as csgraph
 
+from vhm_viz.core.components import edge_components
 from vhm_viz.core.geometry import face_normals_and_areas
 
 __all__ = [
@@ -115,8 +114,7 @@ def _outward_shells(v: np.ndarray, f: np.ndarray, edges: np.ndarray) -> tuple:
     them. Returns ``()`` for a single shell (nothing to separate).
     """
     n = len(v)
-    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    count, labels = csgraph.connected_components(graph, directed=False)
+    count, labels = edge_components(n, edges)
     used = np.unique(f)
     shell_ids = np.unique(labels[used])
     if len(shell_ids) < 2:

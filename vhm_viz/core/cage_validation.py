@@ -49,9 +49,8 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
+from vhm_viz.core.components import edge_components
 from vhm_viz.core.errors import CageError, describe_indices
 from vhm_viz.core.geometry import face_normals_and_areas, signed_volume
 from vhm_viz.core.inside import winding_number
@@ -255,12 +254,10 @@ def validate_cage(
     f0, f1 = he_face[h0], he_face[h1]
     same_dir = he[h0, 0] == he[h1, 0]
     # face components, and orientation classes on the doubled graph (face, parity)
-    adj = sp.coo_matrix((np.ones(len(f0)), (f0, f1)), shape=(m, m))
-    ncomp, comp = connected_components(adj, directed=False)
+    ncomp, comp = edge_components(m, np.stack([f0, f1], axis=1))
     src = np.concatenate([f0, f0 + m])
     dst = np.concatenate([f1 + m * same_dir, f1 + m * (~same_dir)])
-    dbl = sp.coo_matrix((np.ones(len(src)), (src, dst)), shape=(2 * m, 2 * m))
-    _, lab = connected_components(dbl, directed=False)
+    _, lab = edge_components(2 * m, np.stack([src, dst], axis=1))
     if same_dir.any():
         nonorientable = lab[:m] == lab[m:]
         if nonorientable.any():

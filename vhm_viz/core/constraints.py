@@ -19,7 +19,6 @@ from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg as sla
-from scipy.spatial import cKDTree
 
 from vhm_viz.core.errors import ConstraintError, describe_indices
 
@@ -125,8 +124,10 @@ def check_duplicate_points(
     ConstraintError
         A duplicate (same targets) or a contradiction (different targets).
     """
-    if len(points) < 2:
+    if len(points) < 2 or not _may_have_close_pair(points, tol):
         return
+    from scipy.spatial import cKDTree  # here: importing it is slow, most scenes skip it
+
     pairs = cKDTree(points).query_pairs(tol, output_type="ndarray")
     if len(pairs):
         i, j = (int(v) for v in pairs[0])
@@ -135,6 +136,31 @@ def check_duplicate_points(
             f"{what} {i} and {j} are at the same point "
             + ("with different targets (contradictory)" if differ else "(duplicate: remove one)")
         )
+
+
+#: Up to this many points, :func:`check_duplicate_points` first compares all pairs directly.
+_DIRECT_PAIRS_MAX = 1024
+
+
+def _may_have_close_pair(points: np.ndarray, tol: float) -> bool:
+    """Whether two of ``points`` may lie within ``tol``: False only when surely none do.
+
+    A direct comparison of every pair, in blocks of rows, with twice the distance (the
+    KD-tree that names the pair decides near the threshold); True for many points.
+    """
+    n = len(points)
+    if n > _DIRECT_PAIRS_MAX:
+        return True
+    p = np.asarray(points, dtype=np.float64)
+    limit = (2.0 * tol) ** 2
+    later = np.arange(n)
+    for start in range(0, n, 128):
+        block = p[start : start + 128]
+        d2 = ((block[:, None, :] - p[None, :, :]) ** 2).sum(axis=-1)  # (b, n)
+        rows = np.arange(start, start + len(block))[:, None]
+        if np.any((d2 <= limit) & (later[None, :] > rows)):
+            return True
+    return False
 
 
 def domain_of(values: np.ndarray, domains: tuple, n: int) -> np.ndarray:

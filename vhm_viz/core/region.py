@@ -8,7 +8,6 @@ lie inside it, so that the octree keeps only the cubes that matter.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from vhm_viz.core.derivative_bounds import cage_distance
 from vhm_viz.core.inside import inside_cage, winding_number
@@ -211,6 +210,8 @@ class _Balls:
         # classes of radius (top/2^(k+1), top/2^k]; the tiny ones share the last class
         cls = np.minimum(np.floor(-np.log2(np.maximum(rad, top * 1e-6) / top)), 16).astype(int)
         self.classes = []
+        from scipy.spatial import cKDTree  # here: importing it is slow, most regions skip it
+
         for k in np.unique(cls):
             ids = np.nonzero(cls == k)[0]
             self.classes.append((ids, cKDTree(c[ids]), float(rad[ids].max())))

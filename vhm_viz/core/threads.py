@@ -165,7 +165,8 @@ def limit_blas_threads() -> int:
     The linear algebra here is small (a QR of a few hundred columns, products with three
     columns), and OpenBLAS's pool spins while it waits: beside numba's kernels, Qt's
     threads or another busy process on the cores, a small QR then takes many times
-    longer than on one thread. Applies to the BLAS libraries loaded so far.
+    longer than on one thread. Applies to the BLAS libraries loaded so far: numpy's and
+    SciPy's (loaded here when not yet, as the solver and the compiled kernels load it).
 
     Raises
     ------
@@ -179,5 +180,7 @@ def limit_blas_threads() -> int:
         n = 0
     if n < 1:
         raise ValueError(f"{BLAS_THREADS_VARIABLE} must be a positive integer; got {text!r}")
+    import scipy.linalg  # noqa: F401 - loads SciPy's own BLAS, so that the limit reaches it
+
     threadpool_limits(limits=n, user_api="blas")
     return n

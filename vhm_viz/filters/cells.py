@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import numpy as np
 from vtkmodules.util import numpy_support as ns
-from vtkmodules.vtkFiltersGeneral import vtkDataSetTriangleFilter
 
 from vhm_viz.core.basis import inside_cage, winding_number
 from vhm_viz.core.certify import INSIDE, MEETS, OUTSIDE, Region, default_margin
@@ -124,6 +123,8 @@ def cell_tetrahedra(ds, chunk_tets: int = _CHUNK_TETS):
 
 def _triangulated(ds):
     """Tets of any 3D cells through ``vtkDataSetTriangleFilter`` (points kept as they are)."""
+    from vtkmodules.vtkFiltersGeneral import vtkDataSetTriangleFilter  # here: slow to import
+
     tagged = ds.NewInstance()
     tagged.ShallowCopy(ds)
     ids = ns.numpy_to_vtk(np.arange(ds.GetNumberOfCells(), dtype=np.int64), deep=1)

@@ -13,8 +13,6 @@ from vtkmodules.vtkCommonDataModel import (
     vtkUnstructuredGrid,
 )
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
-from vtkmodules.vtkFiltersCore import vtkCellCenters
-from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearGridToPointSet
 
 from vhm_viz.core.binding import cofactor_normals
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
@@ -68,6 +66,9 @@ def _new_output(inp):
 
 def _as_point_set(inp):
     """Image and rectilinear data as a structured grid (VTK's own converters)."""
+    # here: importing VTK's filter modules is slow, a resample never comes here
+    from vtkmodules.vtkFiltersGeneral import vtkImageDataToPointSet, vtkRectilinearGridToPointSet
+
     if inp.IsA("vtkImageData"):
         conv = vtkImageDataToPointSet()
     elif inp.IsA("vtkRectilinearGrid"):
@@ -334,6 +335,8 @@ class HarmonicDeformationFilter(DeformationSource):
 
 
 def _cell_centres(ds) -> np.ndarray:
+    from vtkmodules.vtkFiltersCore import vtkCellCenters  # here: importing it is slow
+
     cc = vtkCellCenters()
     cc.SetInputData(ds)
     cc.VertexCellsOff()

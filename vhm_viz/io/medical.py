@@ -20,7 +20,6 @@ import struct
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from vhm_viz.atomic import atomic_output_set, atomic_path
 from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
@@ -292,6 +291,8 @@ def write_nifti(path, image) -> None:
         ``.nii`` or ``.nii.gz`` (gzip-compressed).
     image : pyvista.ImageData
     """
+    from scipy.spatial.transform import Rotation  # here: importing it is slow, rarely used
+
     path = Path(path)
     values = volume_array(image)
     if values.dtype.name not in _NIFTI_TYPES:

@@ -10,10 +10,9 @@ nearest-face service, :func:`~vhm_viz.core.geometry.nearest_points_on_mesh`.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.csgraph as csgraph
 
 from vhm_viz.core.basis import chunk_rows, evaluate_map, inside_cage
+from vhm_viz.core.components import edge_components
 from vhm_viz.core.errors import AbortedError
 from vhm_viz.core.geometry import nearest_points_on_mesh
 
@@ -72,8 +71,7 @@ class CageShells:
         n = len(vertices)
         f = np.asarray(faces)
         edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-        graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-        _, labels = csgraph.connected_components(graph, directed=False)
+        _, labels = edge_components(n, edges)
         face_label = labels[f[:, 0]]
         x = np.asarray(vertices)[f]
         vol = np.einsum("ij,ij->i", x[:, 0], np.cross(x[:, 1], x[:, 2]))

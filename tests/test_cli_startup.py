@@ -1,0 +1,87 @@
+"""What a fresh process imports before any work: only what the command uses.
+
+A command pays for every library it imports, on every run; the dispatcher imports only
+the subcommand the command line names, and the heavy libraries (PyVista, VTK, SciPy's
+spatial module, the automatic cage) are imported where they are used. Each case runs in
+a new interpreter and reads ``sys.modules`` there.
+"""
+
+import json
+import subprocess
+import sys
+
+import pytest
+from conftest import subprocess_env
+
+#: Libraries that no help text and no numeric-core import needs.
+HEAVY = ("pyvista", "vtkmodules", "scipy.spatial", "vhm_viz.autocage")
+
+
+def _imported(code: str) -> tuple[list[str], set[str]]:
+    """What a new interpreter prints running ``code``, and the modules it then holds."""
+    probe = code + "\nimport json, sys\nprint(json.dumps(sorted(sys.modules)))\n"
+    res = subprocess.run(
+        [sys.executable, "-c", probe],
+        capture_output=True,
+        text=True,
+        env=subprocess_env(),
+        timeout=120,
+    )
+    assert res.returncode == 0, res.stderr
+    *printed, modules = res.stdout.splitlines()
+    return printed, set(json.loads(modules))
+
+
+def _heavy(modules: set[str]) -> list[str]:
+    return sorted(m for m in modules for h in HEAVY if m == h or m.startswith(h + "."))
+
+
+def test_the_numeric_core_imports_no_vtk_and_no_scipy_spatial():
+    _, modules = _imported(
+        "import vhm_viz.core, vhm_viz.core.deformer, vhm_viz.core.volume, vhm_viz.scene"
+    )
+    assert "vhm_viz.core.deformer" in modules
+    assert not _heavy(modules)
+
+
+@pytest.mark.parametrize(
+    ("words", "overview"),
+    [(["--help"], True), (["-h", "deform"], True), (["deform", "--help"], False),
+     (["analyze", "--help"], False)],
+)  # fmt: skip
+def test_help_imports_only_what_it_shows(words, overview):
+    code = (
+        "import contextlib, io, sys\n"
+        f"sys.argv = ['vhm-viz', *{words!r}]\n"
+        "from vhm_viz.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()) as out:\n"
+        "    try:\n"
+        "        main()\n"
+        "    except SystemExit as exc:\n"
+        "        assert exc.code == 0, exc.code\n"
+        "assert 'usage: vhm-viz' in out.getvalue()\n"
+    )
+    code += "print(all(c in out.getvalue() for c in ('demo', 'cage', 'paraview')))\n"
+    printed, modules = _imported(code)
+    assert not _heavy(modules)
+    others = {"vhm_viz.cli.cage", "vhm_viz.cli.demo", "vhm_viz.cli.anchors"}
+    if overview:  # the overview lists every subcommand
+        assert printed == ["True"]
+        assert others <= modules
+    else:  # a named subcommand's help: the other subcommands' modules stay unimported
+        assert f"vhm_viz.cli.{words[0]}" in modules
+        assert not modules & others
+
+
+def test_an_unknown_command_still_lists_every_command():
+    res = subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", "defrom", "x.vtp"],
+        capture_output=True,
+        text=True,
+        env=subprocess_env(),
+        timeout=120,
+    )
+    assert res.returncode == 2
+    assert "invalid choice: 'defrom'" in res.stderr
+    for name in ("demo", "deform", "analyze", "cage", "anchors", "explore", "paraview"):
+        assert name in res.stderr.split("choose from", 1)[1]
