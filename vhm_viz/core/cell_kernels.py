@@ -279,7 +279,7 @@ def tetrahedron_measures(
 
 
 #: Rows of cells (along j) that :func:`_hex_kernel` sweeps through every layer at a time:
-#: a band's edge and cross-product planes stay in a core's cache.
+#: a band's point and cross-product planes stay in a core's cache.
 _HEX_BAND = 16
 
 
@@ -296,8 +296,6 @@ def _hex_kernel(start, stop, p, rest_det, out):  # pragma: no cover - compiled
     band = min(_HEX_BAND, stop - start)
     planes = np.empty((2, 3, band + 1, nx + 1))  # [plane parity, xyz, j, i]
     cross = np.empty((2, 4, 3, band, nx))  # [plane parity, corner a + 2 b, xyz, j, i]
-    ex = np.empty((3, band + 1, nx))
-    ey = np.empty((3, band, nx + 1))
     ez = np.empty((3, band + 1, nx + 1))
     for j0 in range(start, stop, band):
         rows = min(band, stop - j0)
@@ -310,20 +308,17 @@ def _hex_kernel(start, stop, p, rest_det, out):  # pragma: no cover - compiled
                     plane[0, j, i] = src[3 * i]
                     plane[1, j, i] = src[3 * i + 1]
                     plane[2, j, i] = src[3 * i + 2]
-            for e in range(3):
-                for j in range(rows + 1):
-                    for i in range(nx):
-                        ex[e, j, i] = plane[e, j, i + 1] - plane[e, j, i]
-                for j in range(rows):
-                    for i in range(nx + 1):
-                        ey[e, j, i] = plane[e, j + 1, i] - plane[e, j, i]
             for j in range(rows):
                 for b in range(2):
                     for a in range(2):
                         x = cross[q, a + 2 * b]
                         for i in range(nx):
-                            x0, x1, x2 = ex[0, j + b, i], ex[1, j + b, i], ex[2, j + b, i]
-                            y0, y1, y2 = ey[0, j, i + a], ey[1, j, i + a], ey[2, j, i + a]
+                            x0 = plane[0, j + b, i + 1] - plane[0, j + b, i]
+                            x1 = plane[1, j + b, i + 1] - plane[1, j + b, i]
+                            x2 = plane[2, j + b, i + 1] - plane[2, j + b, i]
+                            y0 = plane[0, j + 1, i + a] - plane[0, j, i + a]
+                            y1 = plane[1, j + 1, i + a] - plane[1, j, i + a]
+                            y2 = plane[2, j + 1, i + a] - plane[2, j, i + a]
                             x[0, j, i] = x1 * y2 - x2 * y1
                             x[1, j, i] = x2 * y0 - x0 * y2
                             x[2, j, i] = x0 * y1 - x1 * y0
