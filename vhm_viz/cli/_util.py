@@ -340,8 +340,18 @@ def _surface_metrics(rest, deformed) -> dict:
 FOLD_SAMPLES = 20000
 #: The same beside a check of the whole output -- every cell of a warped volume or tet
 #: mesh, every resampled voxel's pre-image -- where it is a spot check of the continuous
-#: map that costs a small part of the map itself.
+#: map that costs a small part of the map itself: at most this many points, and at most
+#: one in :data:`FOLD_SPOT_SPREAD` of the data's (:func:`spot_samples`).
 FOLD_SPOT_SAMPLES = 4096
+#: The spot check evaluates the exact map at one point in this many of the data's at most
+#: (and at no fewer than ``_FOLD_SPOT_LEAST`` points): a small part of the map's own work.
+FOLD_SPOT_SPREAD = 16
+_FOLD_SPOT_LEAST = 256
+
+
+def spot_samples(n_points: int) -> int:
+    """Points of the spot check beside a check of the whole output of ``n_points`` points."""
+    return min(FOLD_SPOT_SAMPLES, max(_FOLD_SPOT_LEAST, int(n_points) // FOLD_SPOT_SPREAD))
 
 
 def _where(points: np.ndarray, values: np.ndarray) -> str:
@@ -476,7 +486,7 @@ def fold_warning(
         ``det J`` at every point, when already computed; else it is sampled exactly at up
         to ``samples`` points.
     samples : int
-        :data:`FOLD_SAMPLES`, or :data:`FOLD_SPOT_SAMPLES` beside a check of the whole
+        :data:`FOLD_SAMPLES`, or :func:`spot_samples` beside a check of the whole
         output.
 
     Returns

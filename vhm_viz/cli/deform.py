@@ -21,7 +21,6 @@ from vhm_viz.cli._field_output import (
 )
 from vhm_viz.cli._util import (
     FOLD_SAMPLES,
-    FOLD_SPOT_SAMPLES,
     CLIError,
     Progress,
     add_convergence_argument,
@@ -38,6 +37,7 @@ from vhm_viz.cli._util import (
     load_scene,
     quiet_vtk,
     run_filter,
+    spot_samples,
     surface_metrics,
 )
 from vhm_viz.core.devices import DEVICES, require_device
@@ -346,7 +346,7 @@ def _check_folds(
                 point_det = np.where(result.point_data["vhm_outside"] == 0, point_det, np.nan)
     # a resample counts its voxels in folds itself; cells were checked one by one
     whole = resample or cells is not None
-    samples = FOLD_SPOT_SAMPLES if whole else FOLD_SAMPLES
+    samples = spot_samples(mesh.GetNumberOfPoints()) if whole else FOLD_SAMPLES
     return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det, samples=samples)
 
 

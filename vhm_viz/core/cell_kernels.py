@@ -278,48 +278,74 @@ def tetrahedron_measures(
     }
 
 
+#: Rows of cells (along j) that :func:`_hex_kernel` sweeps through every layer at a time:
+#: a band's point and cross-product planes stay in a core's cache.
+_HEX_BAND = 16
+
+
 @numba.njit(cache=True, nogil=True)
 def _hex_kernel(start, stop, p, rest_det, out):  # pragma: no cover - compiled
-    """Smallest corner determinant of the cells in z-slices ``start <= k < stop``."""
-    ny, nx = p.shape[1] - 1, p.shape[2] - 1
-    # the point planes k and k + 1 one array per coordinate (so the loop along a row of
-    # cells runs in SIMD lanes), each plane split once: plane k + 1 is kept for layer k + 1
-    planes = np.empty((2, 3, ny + 1, nx + 1))  # [plane parity, xyz, j, i]
-    for k in range(start, stop):
-        for c in range(0 if k == start else 1, 2):
-            dst = planes[(k + c) % 2]
-            for j in range(ny + 1):
-                src = p[k + c, j].ravel()
+    """Smallest corner determinant of the cells in rows ``start <= j < stop``, every layer.
+
+    The determinant at corner ``(a, b, c)`` is ``ez(a, b) . (ex(b, c) x ey(a, c))``; the
+    cross products of a point plane serve the layers of cells below and above it, so
+    each is made once. A band of rows goes through the layers; per plane, one array per
+    coordinate (the loops along a row run in SIMD lanes).
+    """
+    nz, nx = p.shape[0] - 1, p.shape[2] - 1
+    band = min(_HEX_BAND, stop - start)
+    planes = np.empty((2, 3, band + 1, nx + 1))  # [plane parity, xyz, j, i]
+    cross = np.empty((2, 4, 3, band, nx))  # [plane parity, corner a + 2 b, xyz, j, i]
+    ez = np.empty((3, band + 1, nx + 1))
+    for j0 in range(start, stop, band):
+        rows = min(band, stop - j0)
+        for k in range(nz + 1):
+            q = k % 2
+            plane = planes[q]
+            for j in range(rows + 1):
+                src = p[k, j0 + j].ravel()
                 for i in range(nx + 1):
-                    dst[0, j, i] = src[3 * i]
-                    dst[1, j, i] = src[3 * i + 1]
-                    dst[2, j, i] = src[3 * i + 2]
-        p0, p1 = planes[k % 2], planes[(k + 1) % 2]
-        for j in range(ny):
-            for i in range(nx):
-                low = np.inf
-                flag = 0.0  # NaN once a corner's determinant is not finite
-                for c in range(2):
-                    pc = p1 if c else p0
+                    plane[0, j, i] = src[3 * i]
+                    plane[1, j, i] = src[3 * i + 1]
+                    plane[2, j, i] = src[3 * i + 2]
+            for j in range(rows):
+                for b in range(2):
+                    for a in range(2):
+                        x = cross[q, a + 2 * b]
+                        for i in range(nx):
+                            x0 = plane[0, j + b, i + 1] - plane[0, j + b, i]
+                            x1 = plane[1, j + b, i + 1] - plane[1, j + b, i]
+                            x2 = plane[2, j + b, i + 1] - plane[2, j + b, i]
+                            y0 = plane[0, j + 1, i + a] - plane[0, j, i + a]
+                            y1 = plane[1, j + 1, i + a] - plane[1, j, i + a]
+                            y2 = plane[2, j + 1, i + a] - plane[2, j, i + a]
+                            x[0, j, i] = x1 * y2 - x2 * y1
+                            x[1, j, i] = x2 * y0 - x0 * y2
+                            x[2, j, i] = x0 * y1 - x1 * y0
+            if k == 0:
+                continue
+            below = planes[1 - q]
+            for e in range(3):
+                for j in range(rows + 1):
+                    for i in range(nx + 1):
+                        ez[e, j, i] = plane[e, j, i] - below[e, j, i]
+            c0, c1 = cross[1 - q], cross[q]  # the layer's bottom and top planes
+            for j in range(rows):
+                for i in range(nx):
+                    low = np.inf
+                    flag = 0.0  # NaN once a corner's determinant is not finite
                     for b in range(2):
                         for a in range(2):
-                            ex0 = pc[0, j + b, i + 1] - pc[0, j + b, i]
-                            ex1 = pc[1, j + b, i + 1] - pc[1, j + b, i]
-                            ex2 = pc[2, j + b, i + 1] - pc[2, j + b, i]
-                            ey0 = pc[0, j + 1, i + a] - pc[0, j, i + a]
-                            ey1 = pc[1, j + 1, i + a] - pc[1, j, i + a]
-                            ey2 = pc[2, j + 1, i + a] - pc[2, j, i + a]
-                            ez0 = p1[0, j + b, i + a] - p0[0, j + b, i + a]
-                            ez1 = p1[1, j + b, i + a] - p0[1, j + b, i + a]
-                            ez2 = p1[2, j + b, i + a] - p0[2, j + b, i + a]
-                            d = (
-                                ex0 * (ey1 * ez2 - ey2 * ez1)
-                                - ex1 * (ey0 * ez2 - ey2 * ez0)
-                                + ex2 * (ey0 * ez1 - ey1 * ez0)
-                            )
-                            low = d if d < low else low  # branch-free: SIMD lanes
-                            flag += 0.0 * d
-                out[k, j, i] = low / rest_det + flag
+                            c = a + 2 * b
+                            z0 = ez[0, j + b, i + a]
+                            z1 = ez[1, j + b, i + a]
+                            z2 = ez[2, j + b, i + a]
+                            d0 = z0 * c0[c, 0, j, i] + z1 * c0[c, 1, j, i] + z2 * c0[c, 2, j, i]
+                            d1 = z0 * c1[c, 0, j, i] + z1 * c1[c, 1, j, i] + z2 * c1[c, 2, j, i]
+                            low = d0 if d0 < low else low  # branch-free: SIMD lanes
+                            low = d1 if d1 < low else low
+                            flag += 0.0 * d0 + 0.0 * d1
+                    out[k - 1, j0 + j, i] = low / rest_det + flag
 
 
 def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
@@ -353,5 +379,7 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.nd
     cells = (max(nz - 1, 0), max(ny - 1, 0), max(nx - 1, 0))
     out = np.empty(cells)
     if out.size:
-        run_rows(_hex_kernel, cells[0], np.ascontiguousarray(p), float(rest_det), out, grain=1)
+        run_rows(
+            _hex_kernel, cells[1], np.ascontiguousarray(p), float(rest_det), out, grain=_HEX_BAND
+        )
     return out.reshape(-1)

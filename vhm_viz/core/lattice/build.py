@@ -317,20 +317,30 @@ def _build_levels(
     level_data: list = []
     h = root
     n_levels = int(math.log2(root)) + 1
+    parent_cut = np.ones(len(cells), dtype=bool)  # (the root cells: none known)
     while len(cells):
         if abort is not None and abort():
             raise AbortedError("aborted")
         if w is not None and h < root:
             # only cells that own a voxel of the window matter (each cell's refinement is
             # its own: the window's leaves are the whole lattice's)
-            cells = cells[_owns_voxel_of(cells, h, end, w)]
-        # only cells with a voxel inside the cage matter
-        counts = np.zeros((len(cells), 3), dtype=np.int64)
-        _count_inside(mask, near, cells, h, last, counts)
-        keep = counts[:, 0] > 0
-        # cut: the cage passes through the cell (voxels outside, or next to the surface)
-        cells, cut = cells[keep], (counts[keep, 1] > 0) | (counts[keep, 2] > 0)
-        del counts, keep
+            own = _owns_voxel_of(cells, h, end, w)
+            cells, parent_cut = cells[own], parent_cut[own]
+        # only cells with a voxel inside the cage matter; cut: the cage passes through the
+        # cell (voxels outside, or next to the surface). A cell lies in its parent's
+        # closed box: in an uncut parent its voxels are all inside and none is next to the
+        # surface, so only the children of cut cells are counted voxel by voxel
+        keep = np.all(cells <= last, axis=1)  # (a voxel of the volume in the cell)
+        cut = np.zeros(len(cells), dtype=bool)
+        scan = np.flatnonzero(parent_cut)
+        if len(scan):
+            counts = np.zeros((len(scan), 3), dtype=np.int64)
+            _count_inside(mask, near, np.ascontiguousarray(cells[scan]), h, last, counts)
+            keep[scan] = counts[:, 0] > 0
+            cut[scan] = (counts[:, 1] > 0) | (counts[:, 2] > 0)
+            del counts
+        cells, cut = cells[keep], cut[keep]
+        del keep, scan
         if not len(cells):
             break
         # the corners as rows of the level's keys, (n, 8): the corners themselves,
@@ -351,7 +361,7 @@ def _build_levels(
             # single-voxel cells skip the stencil: their corners are voxels, which the
             # warp and the Jacobians read exactly whatever the twists (see
             # level_node_data): the finest level's stencil would be many evaluations
-            ensure(stencil_keys(table, level_keys, h))
+            ensure(stencil_keys(table, level_keys, h), distinct=True)
         if h == 1:
             # the finest level, the last: the table keeps only the nodes its data reads
             # before that data is made beside it: the others (corners and test points of
@@ -376,6 +386,7 @@ def _build_levels(
             progress(min(0.95, len(level_data) / n_levels), "lattice")
         if not split.any():
             break
+        parent_cut = np.repeat(cut[split], len(_CORNERS))
         cells = (cells[split][:, None, :] + _CORNERS[None] * (h // 2)).reshape(-1, 3)
         h //= 2
     # the levels hold their own copies of the node data: hand the table's memory back

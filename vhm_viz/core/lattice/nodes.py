@@ -15,6 +15,7 @@ import numpy as np
 
 from vhm_viz.core.lattice.hermite import N_TERMS
 from vhm_viz.core.memory import grow_in_place, release_free_memory, take_in_place
+from vhm_viz.core.row_threads import run_rows
 
 
 class NodeTable:
@@ -114,32 +115,58 @@ def _merge_from_back(table, at, new):  # pragma: no cover - compiled
             table[at[t], c] = new[t, c]
 
 
-# Offsets (in units of h) of the lattice points a node's differenced terms read: the six
-# along the axes (twists) and the twelve edge diagonals (f_uvw from the twists of the six).
-_STENCIL = np.array(
-    [d for d in np.ndindex(3, 3, 3) if 0 < sum(abs(x - 1) for x in d) <= 2], dtype=np.int64
-) - 1
+# The stencil: the lattice points a node's differenced terms read, offsets of -1, 0 or 1
+# times h along each axis with one or two of them non-zero -- the six along the axes
+# (twists) and the twelve edge diagonals (f_uvw from the twists of the six). Kernels walk
+# the 3 x 3 x 3 offsets ``o``: ``(o % 3 - 1, o // 3 % 3 - 1, o // 9 - 1)``.
 
 
-#: Nodes whose twists :func:`level_node_data` computes at a time.
+#: Nodes whose neighbours :func:`rows_read` looks up at a time.
 LEVEL_CHUNK = 8192
 
 
 def stencil_keys(table: NodeTable, keys: np.ndarray, h: int) -> np.ndarray:
     """Keys of the lattice points that :func:`level_node_data` reads around ``keys`` at ``h``.
 
-    Each key plus the 18 stencil offsets times ``h`` (a key is linear in the point), the
-    points beyond the lattice left out; 1-D, by key, then by offset.
+    Each key plus the 18 stencil offsets times ``h``, the points beyond the lattice left
+    out; distinct and ascending. The nodes of a level lie on the lattice's points of
+    step ``h``: the stencil is marked on that coarser grid (a byte a point, by
+    :func:`_mark_stencil`), whose marks in order are the keys in order.
     """
-    ijk = table.ijk(keys)
-    top = table.dims - 1
-    ok = np.ones((len(keys), len(_STENCIL)), dtype=bool)
-    for axis in range(3):
-        at = ijk[:, axis, None] + h * _STENCIL[None, :, axis]
-        ok &= (at >= 0) & (at <= top[axis])
-    del at
-    offsets = h * table.key(_STENCIL)  # a key is linear in ijk
-    return (keys[:, None] + offsets[None])[ok]
+    if h < 1 or ((table.dims - 1) % h).any():
+        raise ValueError(f"the lattice's points of step {h} do not span it")
+    coarse = (table.dims - 1) // h + 1
+    marks = np.zeros(int(np.prod(coarse)), dtype=bool)
+    keys = np.ascontiguousarray(keys, dtype=np.int64)
+    run_rows(_mark_stencil, len(keys), keys, table.dims, int(h), coarse, marks, grain=4096)
+    flat = np.flatnonzero(marks)
+    del marks
+    i = flat % coarse[0]
+    j = (flat // coarse[0]) % coarse[1]
+    k = flat // (coarse[0] * coarse[1])
+    return h * (i + table.dims[0] * (j + table.dims[1] * k))
+
+
+@numba.njit(cache=True, nogil=True)
+def _mark_stencil(start, stop, keys, dims, h, coarse, marks):  # pragma: no cover - compiled
+    """Mark the stencil points around the nodes ``start..stop`` on the grid of step ``h``.
+
+    ``coarse``: that grid's points per axis. Marks are only ever set, so chunks on
+    several threads may share ``marks``.
+    """
+    for n in range(start, stop):
+        key = keys[n]
+        i = key % dims[0] // h
+        j = (key // dims[0]) % dims[1] // h
+        k = key // (dims[0] * dims[1]) // h
+        for o in range(27):
+            dx, dy, dz = o % 3 - 1, (o // 3) % 3 - 1, o // 9 - 1
+            moved = (dx != 0) + (dy != 0) + (dz != 0)
+            if moved == 0 or moved == 3:
+                continue
+            a, b, c = i + dx, j + dy, k + dz
+            if 0 <= a < coarse[0] and 0 <= b < coarse[1] and 0 <= c < coarse[2]:
+                marks[a + coarse[0] * (b + coarse[1] * c)] = True
 
 
 def rows_read(table: NodeTable, keys: np.ndarray, h: int, twists: bool = True) -> np.ndarray:
@@ -179,42 +206,134 @@ def level_node_data(table: NodeTable, keys: np.ndarray, h: int, twists: bool = T
     where the warp and the Jacobians are exact whatever the twists; the twists only shape
     the polynomial between voxels (pre-images), and there they may differ between a
     window and the whole grid next to a root cell's border.
+
+    Compiled (:func:`_node_rows`), in chunks of nodes on the threads of
+    :func:`~vhm_viz.core.row_threads.run_rows`: a chunk finds its nodes' stencil rows by
+    walking the sorted table beside its sorted keys, and holds nothing else; a row does
+    not depend on the chunk that made it.
     """
-    rows = table.find(keys)
+    keys = np.asarray(keys, dtype=np.int64)
+    order = None
+    if np.any(keys[1:] <= keys[:-1]):  # (a level's keys come sorted and distinct)
+        keys, order = np.unique(keys, return_inverse=True)
     out = np.empty((len(keys), N_TERMS, 3))
-    # in chunks of nodes: a whole fine level's neighbour tables and twists (about 400
-    # bytes a node) would be the build's peak. A node's twists depend on the table
-    # alone, so the chunks give the same numbers
-    slot = np.full(len(table.keys), -1, dtype=np.int64) if twists else None
-    for c0 in range(0, len(rows), LEVEL_CHUNK):
-        chunk = rows[c0 : c0 + LEVEL_CHUNK]
-        out[c0 : c0 + len(chunk), 0] = table.f[chunk]
-        out[c0 : c0 + len(chunk), 1:4] = np.swapaxes(table.fu[chunk], 1, 2)
-        if not twists:  # a lattice for the voxels only (see build_lattice's pre_images)
-            out[c0 : c0 + len(chunk), 4:] = 0.0
+    if len(keys):
+        run_rows(
+            _node_rows, len(keys), np.ascontiguousarray(keys), table.keys, table.f, table.fu,
+            table.dims, int(h), bool(twists), out, grain=_NODE_GRAIN,
+        )  # fmt: skip
+    return out if order is None else out[order]
+
+
+#: Nodes per chunk of :func:`_node_rows` at least (smaller levels take one thread).
+_NODE_GRAIN = 1024
+
+
+@numba.njit(cache=True, nogil=True)
+def _stencil_rows(start, stop, keys, table_keys, dims, h, rows):  # pragma: no cover
+    """Table rows of the 3 x 3 x 3 lattice points of step ``h`` around nodes ``start..stop``.
+
+    ``rows[n - start, (dx + 1) + 3 (dy + 1) + 9 (dz + 1)]`` for offsets with at most two
+    non-zero components (the point itself, its 6 axis and 12 edge-diagonal neighbours);
+    -1 where the point is beyond the lattice, absent from the table, or a cube corner.
+    The keys are ascending, and so are those of each offset: one walk through the
+    table per offset.
+    """
+    n_table = table_keys.shape[0]
+    for o in range(27):
+        dx, dy, dz = o % 3 - 1, (o // 3) % 3 - 1, o // 9 - 1
+        if dx != 0 and dy != 0 and dz != 0:
+            rows[:, o] = -1
             continue
-        # the nodes whose twists are read: the chunk's and their neighbours along the
-        # axes (f_uvw differences the twists of those), each looked up once
-        near = _axis_neighbours(table, chunk, h)
-        around = np.unique(np.concatenate([chunk, near[near >= 0]]))
-        slot[around] = np.arange(len(around))
-        mixed = _twists(table, around, _axis_neighbours(table, around, h), h)
-        here = slot[chunk]
-        out[c0 : c0 + len(chunk), 4:7] = mixed[here]
-        # f_uvw: differences along the third axis of each twist, averaged over the three
-        third = np.zeros((len(chunk), 3))
-        for axis, pair in ((2, 0), (1, 1), (0, 2)):  # twist (0, 1) along w, ...
-            at = mixed[:, pair]
-            third += _difference(at, here, _slot_of(slot, near[:, axis, 0]),
-                                 _slot_of(slot, near[:, axis, 1]), h)  # fmt: skip
-        out[c0 : c0 + len(chunk), 7] = third / 3.0
-        slot[around] = -1
-    return out
+        shift = h * (dx + dims[0] * (dy + dims[1] * dz))
+        t = np.searchsorted(table_keys, keys[start] + shift)
+        for n in range(start, stop):
+            key = keys[n]
+            i = key % dims[0] + h * dx
+            j = (key // dims[0]) % dims[1] + h * dy
+            k = key // (dims[0] * dims[1]) + h * dz
+            if i < 0 or j < 0 or k < 0 or i >= dims[0] or j >= dims[1] or k >= dims[2]:
+                rows[n - start, o] = -1
+                continue
+            q = key + shift
+            while t < n_table and table_keys[t] < q:
+                t += 1
+            rows[n - start, o] = t if t < n_table and table_keys[t] == q else -1
 
 
-def _slot_of(slot, rows):
-    """Positions in ``slot``'s numbering of table rows (-1 stays -1)."""
-    return np.where(rows >= 0, slot[np.maximum(rows, 0)], -1)
+@numba.njit(cache=True, nogil=True)
+def _difference(values, col, i, here, plus, minus, h):  # pragma: no cover - compiled
+    """d/du of ``values[:, i, col]`` at row ``here`` from rows ``plus``, ``minus`` (-1: none).
+
+    Central where both neighbours are there, one-sided where one is, else 0.
+    """
+    if plus >= 0 and minus >= 0:
+        return (values[plus, i, col] - values[minus, i, col]) / (2.0 * h)
+    if plus >= 0:
+        return (values[plus, i, col] - values[here, i, col]) / h
+    if minus >= 0:
+        return (values[here, i, col] - values[minus, i, col]) / h
+    return 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _twist(fu, around, centre, pair, h, out):  # pragma: no cover - compiled
+    """Symmetrised mixed derivative ``pair`` (0: uv, 1: uw, 2: vw) at a stencil point.
+
+    ``out[i] = (d/du_b f_u_a + d/du_a f_u_b)_i / 2``, differenced from the exact Jacobians
+    of the points ``+-h`` along the pair's axes ``a`` and ``b``; ``around``: the stencil
+    rows (:func:`_stencil_rows`) of a node, ``centre``: the point's stencil index.
+    """
+    a = 0 if pair < 2 else 1
+    b = 1 if pair == 0 else 2
+    sa, sb = 3**a, 3**b  # a unit step along the axis, in stencil indices
+    row = around[centre]
+    for i in range(3):
+        d_b = _difference(fu, a, i, row, around[centre + sb], around[centre - sb], h)
+        d_a = _difference(fu, b, i, row, around[centre + sa], around[centre - sa], h)
+        out[i] = 0.5 * (d_b + d_a)
+
+
+@numba.njit(cache=True, nogil=True)
+def _node_rows(start, stop, keys, table_keys, f, fu, dims, h, twists, out):  # pragma: no cover
+    """:func:`level_node_data`'s rows of the nodes ``start <= n < stop``."""
+    around = np.empty((stop - start, 27), dtype=np.int64)
+    _stencil_rows(start, stop, keys, table_keys, dims, h, around)
+    here = np.empty((3, 3))  # the node's twists uv, uw, vw
+    plus = np.empty(3)
+    minus = np.empty(3)
+    third = np.empty(3)
+    for n in range(start, stop):
+        rows = around[n - start]
+        r = rows[13]
+        for i in range(3):
+            out[n, 0, i] = f[r, i]
+            for a in range(3):
+                out[n, 1 + a, i] = fu[r, i, a]
+        if not twists:  # a lattice for the voxels only (see build_lattice's pre_images)
+            out[n, 4:] = 0.0
+            continue
+        for pair in range(3):
+            _twist(fu, rows, 13, pair, h, here[pair])
+            out[n, 4 + pair] = here[pair]
+        # f_uvw: the difference of twist uv along w, uw along v and vw along u, averaged
+        third[:] = 0.0
+        for pair in range(3):
+            step = 3 ** (2 - pair)
+            p, m = rows[13 + step], rows[13 - step]
+            if p >= 0:
+                _twist(fu, rows, 13 + step, pair, h, plus)
+            if m >= 0:
+                _twist(fu, rows, 13 - step, pair, h, minus)
+            for i in range(3):
+                if p >= 0 and m >= 0:
+                    third[i] += (plus[i] - minus[i]) / (2.0 * h)
+                elif p >= 0:
+                    third[i] += (plus[i] - here[pair, i]) / h
+                elif m >= 0:
+                    third[i] += (here[pair, i] - minus[i]) / h
+        for i in range(3):
+            out[n, 7, i] = third[i] / 3.0
 
 
 def _axis_neighbours(table: NodeTable, rows: np.ndarray, h: int) -> np.ndarray:
@@ -228,33 +347,4 @@ def _axis_neighbours(table: NodeTable, rows: np.ndarray, h: int) -> np.ndarray:
             n[:, axis] += sign * h
             ok = (n[:, axis] >= 0) & (n[:, axis] <= top[axis])
             out[ok, axis, side] = table.find(table.key(n[ok]))
-    return out
-
-
-def _difference(values, here, plus, minus, h):
-    """d/du of ``values`` at ``here`` from its neighbours: central, one-sided, else 0.
-
-    ``here``, ``plus``, ``minus``: rows of ``values`` (-1: no neighbour on that side).
-    """
-    d = np.zeros((len(here),) + values.shape[1:])
-    both = (plus >= 0) & (minus >= 0)
-    fwd = (plus >= 0) & ~both
-    bwd = (minus >= 0) & ~both
-    d[both] = (values[plus[both]] - values[minus[both]]) / (2.0 * h)
-    d[fwd] = (values[plus[fwd]] - values[here[fwd]]) / h
-    d[bwd] = (values[here[bwd]] - values[minus[bwd]]) / h
-    return d
-
-
-def _twists(table: NodeTable, rows: np.ndarray, near: np.ndarray, h: int) -> np.ndarray:
-    """Symmetrised mixed derivatives ``(P, 3, 3)`` (pairs uv, uw, vw) at table rows.
-
-    ``(d/du_b f_u_a + d/du_a f_u_b) / 2`` by :func:`_difference` of the exact Jacobians
-    at the neighbours ``near`` (:func:`_axis_neighbours`).
-    """
-    out = np.empty((len(rows), 3, 3))
-    for pair, (a, b) in enumerate(((0, 1), (0, 2), (1, 2))):
-        d_b = _difference(table.fu[:, :, a], rows, near[:, b, 0], near[:, b, 1], h)
-        d_a = _difference(table.fu[:, :, b], rows, near[:, a, 0], near[:, a, 1], h)
-        out[:, pair] = 0.5 * (d_b + d_a)
     return out
