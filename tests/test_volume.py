@@ -1021,9 +1021,9 @@ def test_cut_flags_cover_every_cube_the_pull_back_reads_and_equal_the_masks():
         assert inside_around(block_of, pool, dims, p) == expected
 
 
-def test_node_data_made_in_chunks_equals_one_pass(monkeypatch):
-    """The twists of a level are made in chunks of nodes (the build's peak memory): with
-    chunks of 7 nodes the lattice is bit for bit the one-chunk lattice."""
+def test_rows_read_in_chunks_equals_one_pass(monkeypatch):
+    """The rows a level's node data reads are found in chunks of nodes (the build's peak
+    memory): with chunks of 7 nodes the lattice is bit for bit the one-chunk lattice."""
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.2), (30, 28, 40))
     hm = _random_bend(_cage_around((0, 0, 0), (29, 27, 46.8), 0.03), 0.02, seed=4)
     monkeypatch.setattr(nodes, "LEVEL_CHUNK", 10**9)
