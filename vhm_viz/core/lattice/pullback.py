@@ -271,6 +271,38 @@ def pull_back_rows(
 
 
 @numba.njit(cache=True)
+def _near_span(n, h, lim, centre_f, centre_ginv, origin, origin_out, to_world_out, j, k, i0,
+               i1):  # pragma: no cover - compiled  # fmt: skip
+    """The voxels ``i0..i1`` of output row ``(j, k)`` whose estimate may lie near leaf ``n``.
+
+    The linear pre-image estimate's offset from the leaf's centre, ``d = G_c^-1 (y - f_c)``,
+    is affine in ``i``: each axis's ``|d_a| <= lim`` is an interval of ``i``. Returned one
+    voxel wider than those intervals' intersection (rounding), which the row's loop tests
+    voxel by voxel all the same; ``i_lo > i_hi`` when there is none (or the estimate is
+    not finite).
+    """
+    lo = float(i0)
+    hi = float(i1)
+    for a in range(3):
+        d0 = 0.0
+        slope = 0.0
+        for b in range(3):
+            yb = origin_out[b] + to_world_out[b, 1] * j + to_world_out[b, 2] * k - centre_f[n, b]
+            d0 += centre_ginv[n, a, b] * yb
+            slope += centre_ginv[n, a, b] * to_world_out[b, 0]
+        if slope != 0.0:
+            t0 = (-lim - d0) / slope
+            t1 = (lim - d0) / slope
+            lo = max(lo, min(t0, t1) - 1.0)
+            hi = min(hi, max(t0, t1) + 1.0)
+        elif not abs(d0) <= 2.0 * lim:
+            hi = lo - 1.0
+        if not lo <= hi:  # empty, or NaN
+            return i0, i0 - 1
+    return max(int(math.floor(lo)), i0), min(int(math.ceil(hi)), i1)
+
+
+@numba.njit(cache=True)
 def _pull_back_row(
     r, data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, block_of, pool,
     dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
@@ -295,8 +327,10 @@ def _pull_back_row(
         n = row_leaf[c]
         h = float(size[n])
         lim = 0.5 * h + rho[n] + margin[n]
+        i_lo, i_hi = _near_span(n, h, lim, centre_f, centre_ginv, origin, origin_out,
+                                to_world_out, j, k, row_i0[c], row_i1[c])  # fmt: skip
         chained = 0  # consecutive converged voxels before this one
-        for i_ in range(row_i0[c], row_i1[c] + 1):
+        for i_ in range(i_lo, i_hi + 1):
             for a in range(3):
                 y[a] = origin_out[a] + to_world_out[a, 0] * i_ + (
                     to_world_out[a, 1] * j + to_world_out[a, 2] * k
