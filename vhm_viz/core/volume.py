@@ -69,6 +69,7 @@ from vhm_viz.core.partition import (
 from vhm_viz.core.preimages import (
     confirm_tentative,
     exact_preimages,
+    leaves_near_edges,
     pass_through,
     polish_next_to_edges,
 )
@@ -761,6 +762,7 @@ class VolumeDeformation(VolumePieces):
         lat = self.build(progress=scaled_progress(progress, 0.0, 0.5), abort=abort)
         self._refuse_outside()
         boxes = self.candidate_boxes(out_geo)
+        near_edge = leaves_near_edges(lat)
         self._start_slabs()
         budget = DEFAULT_MEMORY_BUDGET if self.memory_budget is None else self.memory_budget
         slabs = list(slabs_of(b, _RESAMPLE_BYTES, min(budget, _PULL_BACK_SLAB_BYTES)))
@@ -775,7 +777,7 @@ class VolumeDeformation(VolumePieces):
             m = int((slab[5] - slab[4] + 1) * plane)
             self._count_slab(m)
             u, state, fold, quality = (a[:m] for a in buffers)
-            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality)
+            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality, near_edge)
             confirm_tentative(self.map, self.geometry, u, state)
             polish_next_to_edges(self.map, lat, self.geometry, out_geo, slab, u, state)
             if self.outside == "passthrough":

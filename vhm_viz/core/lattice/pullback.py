@@ -29,6 +29,9 @@ _NEWTON_ITERATIONS = 12
 MARGIN = 0.25
 # Rows of an output box that a worker of the pull-back claims at a time.
 _ROWS_PER_CLAIM = 4
+#: Bit of a pull-back's ``state`` set when the pre-image lies in a leaf flagged
+#: ``near_edge`` (:func:`pull_back_rows`): the caller looks closer at those only.
+NEAR_EDGE = 4
 
 
 @numba.njit(cache=True)
@@ -229,8 +232,8 @@ def inside_around(block_of, pool, dims, u):  # pragma: no cover - compiled
 
 @numba.njit(parallel=True, cache=True)
 def pull_back_rows(
-    data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, block_of, pool, dims,
-    last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
+    data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, block_of, pool,
+    dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
     u_out, state, fold, quality, workers,
 ):  # pragma: no cover - compiled  # fmt: skip
     """Pre-images of the output voxels of a box: Newton on the leaves' polynomials.
@@ -243,7 +246,8 @@ def pull_back_rows(
     volume's half-voxel border is kept:
 
     * ``state`` 1 (inside the cage), or 2 when the leaf crosses the cage and the voxels
-      around it disagree (the caller checks those with the winding number);
+      around it disagree (the caller checks those with the winding number), plus
+      :data:`NEAR_EDGE` when the pre-image's leaf is flagged in ``near_edge``;
     * a second pre-image more than one voxel from the first marks a fold (``fold`` 1); a
       nearer one (the same point, found from a neighbouring leaf) replaces the first when
       it lies deeper inside its leaf (``quality`` = distance outside the leaf).
@@ -264,7 +268,7 @@ def pull_back_rows(
                 break
             for r in range(first, min(first + _ROWS_PER_CLAIM, n_rows)):
                 _pull_back_row(
-                    r, data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin,
+                    r, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin,
                     block_of, pool, dims, last, origin_out, to_world_out, box, row_start,
                     row_leaf, row_i0, row_i1, u_out, state, fold, quality, vectors, matrices,
                 )  # fmt: skip
@@ -304,8 +308,8 @@ def _near_span(n, h, lim, centre_f, centre_ginv, origin, origin_out, to_world_ou
 
 @numba.njit(cache=True)
 def _pull_back_row(
-    r, data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, block_of, pool,
-    dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
+    r, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, block_of,
+    pool, dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
     u_out, state, fold, quality, vectors, matrices,
 ):  # pragma: no cover - compiled  # fmt: skip
     """Row ``r`` of :func:`pull_back_rows` (``vectors``, ``matrices``: its scratch)."""
@@ -347,7 +351,7 @@ def _pull_back_row(
                 chained = 0
                 continue
             v = ((k - box[4]) * ny + (j - box[2])) * nx + (i_ - box[0])
-            if state[v] == 1 and quality[v] == 0.0:
+            if state[v] & 3 == 1 and quality[v] == 0.0:
                 # a pre-image inside its own leaf is known: a pre-image in this leaf
                 # (within rho of the estimate) more than a voxel away would be a fold
                 gap = 0.0
@@ -418,18 +422,20 @@ def _pull_back_row(
                     continue
                 if around < 0:
                     s = 2
-            if state[v] == 0 or (state[v] == 2 and s == 1):
-                state[v] = s
+            known = state[v] & 3
+            if known == 0 or (known == 2 and s == 1):
+                state[v] = s | (NEAR_EDGE if near_edge[n] else 0)
                 quality[v] = q
                 for a in range(3):
                     u_out[v, a] = u[a]
-            elif state[v] == s:
+            elif known == s:
                 apart = 0.0
                 for a in range(3):
                     apart = max(apart, abs(u[a] - u_out[v, a]))
                 if apart > 1.0:
                     fold[v] = 1
                 elif q < quality[v]:
+                    state[v] = s | (NEAR_EDGE if near_edge[n] else 0)
                     quality[v] = q
                     for a in range(3):
                         u_out[v, a] = u[a]
