@@ -54,7 +54,7 @@ def _weights(t, h):  # pragma: no cover - compiled
     )
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath={"contract"})  # fused multiply-adds
 def cell_eval(data, rows, h, tu, tv, tw, f, grad, want_grad):  # pragma: no cover
     """Value (and u-gradient) of a cell's tricubic Hermite polynomial.
 
@@ -163,7 +163,7 @@ def control_points(data, rows, h, cp):  # pragma: no cover - compiled
                     )
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath={"contract"})  # fused multiply-adds
 def inverse3(g, out):  # pragma: no cover - compiled
     """``out = g^-1`` of a 3x3 matrix by its adjugate; False when ``g`` is singular.
 

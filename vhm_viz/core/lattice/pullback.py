@@ -20,8 +20,9 @@ from vhm_viz.core.lattice.hermite import cell_eval, control_points, inverse3
 from vhm_viz.core.work_items import claim
 
 # Newton on a cell's polynomial: converged when the step is below this (voxels; the step
-# is applied, and convergence is quadratic, so the pre-image is then good to ~1e-10) ...
-_NEWTON_STEP = 1e-4
+# is applied, and convergence is quadratic, so the pre-image is then good to ~1e-6 voxel,
+# far below the tolerance; a smaller step costs a further evaluation for most voxels) ...
+_NEWTON_STEP = 1e-3
 # ... within this many iterations.
 _NEWTON_ITERATIONS = 12
 #: How far (voxels) outside its cell a pre-image may lie: cells of different sizes meet
