@@ -144,6 +144,42 @@ def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
     return int(same.sum())
 
 
+@numba.njit(cache=True)
+def slab_outcome(state, fold, valid, foldover):  # pragma: no cover - compiled
+    """A finished slab's masks in one pass: ``valid = state > 0``, ``foldover = fold``.
+
+    Parameters
+    ----------
+    state, fold : (P,) uint8
+        The slab's (after :func:`confirm_tentative`, :func:`polish_next_to_edges` and
+        :func:`pass_through`).
+    valid, foldover : (P,) uint8 out
+
+    Returns
+    -------
+    rows : (R,) int64
+        The voxels with a pre-image (``state > 0``), ascending.
+    identity : int
+        How many were left in place (``state`` 3).
+    """
+    count = 0
+    identity = 0
+    for p in range(state.shape[0]):
+        valid[p] = state[p] > 0
+        foldover[p] = fold[p]
+        if state[p]:
+            count += 1
+            if state[p] == 3:
+                identity += 1
+    rows = np.empty(count, dtype=np.int64)
+    count = 0
+    for p in range(state.shape[0]):
+        if state[p]:
+            rows[count] = p
+            count += 1
+    return rows, identity
+
+
 def pass_through(harmonic_map, geometry: ImageGeometry, out_geo: ImageGeometry, slab, u,
                  state) -> int:  # fmt: skip
     """Outside voxels left in place: output voxels outside the cage with no pre-image.

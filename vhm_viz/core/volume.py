@@ -72,6 +72,7 @@ from vhm_viz.core.preimages import (
     leaves_near_edges,
     pass_through,
     polish_next_to_edges,
+    slab_outcome,
 )
 from vhm_viz.core.volume_kernels import (
     box_ijk,
@@ -580,10 +581,8 @@ class VolumeDeformation(VolumePieces):
         plane = int((b[1] - b[0] + 1) * (b[3] - b[2] + 1))
         identity = 0
         for rows, u, state, fold in self._pull_back_slabs(out_geo, b, progress, abort):
-            identity += int(np.count_nonzero(state == 3))
-            ok = np.flatnonzero(state).astype(np.int64, copy=False)
-            valid[rows] = state > 0
-            foldover[rows] = fold
+            ok, left = slab_outcome(state, fold, valid[rows], foldover[rows])
+            identity += left
             if vectors is not None:
                 slab = b.copy()
                 slab[4], slab[5] = b[4] + rows.start // plane, b[4] + rows.stop // plane - 1
