@@ -85,18 +85,16 @@ def confirm_tentative(harmonic_map, geometry: ImageGeometry, u, state) -> None:
 
 @numba.njit(cache=True)
 def _rows_with(state, mask, value):  # pragma: no cover - compiled
-    """Indices ``p`` where ``state[p] & mask == value``, in one pass (no boolean array)."""
+    """Indices ``p`` where ``state[p] & mask == value``, ascending (no boolean array)."""
     count = 0
+    for p in range(state.shape[0]):  # (no branches: a slab's states alternate often)
+        count += state[p] & mask == value
+    out = np.empty(count + 1, dtype=np.int64)
+    q = 0
     for p in range(state.shape[0]):
-        if state[p] & mask == value:
-            count += 1
-    out = np.empty(count, dtype=np.int64)
-    count = 0
-    for p in range(state.shape[0]):
-        if state[p] & mask == value:
-            out[count] = p
-            count += 1
-    return out
+        out[q] = p
+        q += state[p] & mask == value
+    return out[:count]
 
 
 def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
@@ -162,22 +160,20 @@ def slab_outcome(state, fold, valid, foldover):  # pragma: no cover - compiled
     identity : int
         How many were left in place (``state`` 3).
     """
-    count = 0
+    found = 0
     identity = 0
-    for p in range(state.shape[0]):
-        valid[p] = state[p] > 0
+    for p in range(state.shape[0]):  # (no branches: runs of states alternate often)
+        s = state[p]
+        valid[p] = s != 0
         foldover[p] = fold[p]
-        if state[p]:
-            count += 1
-            if state[p] == 3:
-                identity += 1
-    rows = np.empty(count, dtype=np.int64)
-    count = 0
+        found += s != 0
+        identity += s == 3
+    rows = np.empty(found + 1, dtype=np.int64)
+    q = 0
     for p in range(state.shape[0]):
-        if state[p]:
-            rows[count] = p
-            count += 1
-    return rows, identity
+        rows[q] = p
+        q += state[p] != 0
+    return rows[:found], identity
 
 
 def pass_through(harmonic_map, geometry: ImageGeometry, out_geo: ImageGeometry, slab, u,
