@@ -276,7 +276,7 @@ def pull_back_rows(
 
 
 @numba.njit(cache=True)
-def _near_span(n, h, lim, centre_f, centre_ginv, origin, origin_out, to_world_out, j, k, i0,
+def _near_span(n, lim, centre_f, centre_ginv, origin_out, to_world_out, j, k, i0,
                i1):  # pragma: no cover - compiled  # fmt: skip
     """The voxels ``i0..i1`` of output row ``(j, k)`` whose estimate may lie near leaf ``n``.
 
@@ -332,8 +332,8 @@ def _pull_back_row(
         n = row_leaf[c]
         h = float(size[n])
         lim = 0.5 * h + rho[n] + margin[n]
-        i_lo, i_hi = _near_span(n, h, lim, centre_f, centre_ginv, origin, origin_out,
-                                to_world_out, j, k, row_i0[c], row_i1[c])  # fmt: skip
+        i_lo, i_hi = _near_span(n, lim, centre_f, centre_ginv, origin_out, to_world_out, j, k,
+                                row_i0[c], row_i1[c])  # fmt: skip
         chained = 0  # consecutive converged voxels before this one
         for i_ in range(i_lo, i_hi + 1):
             for a in range(3):
