@@ -9,7 +9,10 @@ and with the ``"passthrough"`` policy the output voxels outside the cage left wi
 take their own position (:func:`pass_through`).
 
 ``state`` of a slab's voxels: 0 no pre-image, 1 inside the cage, 2 found by the lattice
-next to the cage (to be confirmed), 3 left in place outside it.
+next to the cage (to be confirmed), 3 left in place outside it; the lattice adds
+:data:`~vhm_viz.core.lattice.pullback.NEAR_EDGE` to 1 and 2 where the pre-image lies in a
+leaf that comes near a cage edge (:func:`leaves_near_edges`), which
+:func:`polish_next_to_edges` clears.
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ import numpy as np
 
 from vhm_viz.core.basis import evaluate_map, inside_cage, winding_number
 from vhm_viz.core.image import BORDER, ImageGeometry, inside_mask
+from vhm_viz.core.lattice.cage_edges import cells_near_edges
+from vhm_viz.core.lattice.pullback import NEAR_EDGE
 
 __all__ = ["exact_preimages"]
 
@@ -34,6 +39,31 @@ _EXACT_NEAR_EDGE = 1.5
 _EXACT_ITERATIONS = 6
 
 
+def leaves_near_edges(lattice) -> np.ndarray:
+    """Leaves that may hold pre-images within the polishing band of a cage edge.
+
+    A leaf's pre-images lie within its margin (:meth:`HermiteLattice.margins`), so that
+    those :func:`polish_next_to_edges` polishes lie in leaves that the band plus the
+    margin reaches; the pull-back marks the pre-images of these leaves only.
+
+    Returns
+    -------
+    (L,) bool
+    """
+    size = lattice.leaf_size
+    out = np.zeros(len(size), dtype=np.bool_)
+    if not len(size) or not len(lattice.edge_a):
+        return out
+    band = _EXACT_NEAR_EDGE + float(np.max(lattice.margins()))
+    for h in np.unique(size):
+        pick = np.flatnonzero(size == h)
+        near = np.zeros(len(pick), dtype=np.bool_)
+        cells_near_edges(np.ascontiguousarray(lattice.leaf_origin[pick]), int(h),
+                         lattice.edge_a, lattice.edge_b, band, near)  # fmt: skip
+        out[pick] = near
+    return out
+
+
 def confirm_tentative(harmonic_map, geometry: ImageGeometry, u, state) -> None:
     """Pre-images next to the cage (``state`` 2): keep those the winding number puts inside.
 
@@ -44,13 +74,27 @@ def confirm_tentative(harmonic_map, geometry: ImageGeometry, u, state) -> None:
         The input grid (``u`` are its continuous indices).
     u : (P, 3) float64
     state : (P,) uint8
-        Set to 1 (inside) or 0 where it was 2.
+        Set to 1 (inside) or 0 where it was 2 (its :data:`NEAR_EDGE` bit kept where 1).
     """
-    t = np.nonzero(state == 2)[0]
+    t = _rows_with(state, 3, 2)  # with or without NEAR_EDGE
     if t.size:
         cage = harmonic_map.cage
         ins = inside_cage(winding_number(geometry.points(u[t]), cage.vertices, cage.faces))
-        state[t] = np.where(ins, 1, 0)
+        state[t] = np.where(ins, (state[t] & NEAR_EDGE) | 1, 0)
+
+
+@numba.njit(cache=True)
+def _rows_with(state, mask, value):  # pragma: no cover - compiled
+    """Indices ``p`` where ``state[p] & mask == value``, ascending (no boolean array)."""
+    count = 0
+    for p in range(state.shape[0]):  # (no branches: a slab's states alternate often)
+        count += state[p] & mask == value
+    out = np.empty(count + 1, dtype=np.int64)
+    q = 0
+    for p in range(state.shape[0]):
+        out[q] = p
+        q += state[p] & mask == value
+    return out[:count]
 
 
 def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
@@ -58,7 +102,8 @@ def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
     """Pre-images next to a cage edge: Newton's method on the exact map from there.
 
     Kept where it converges within a voxel of the lattice's pre-image (the same branch
-    of a fold); elsewhere the lattice's pre-image stays.
+    of a fold); elsewhere the lattice's pre-image stays. Only the pre-images marked
+    :data:`NEAR_EDGE` are looked at; the mark is cleared (``state`` 1 after).
 
     Parameters
     ----------
@@ -78,9 +123,10 @@ def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
     int
         How many pre-images were replaced.
     """
-    rows = np.nonzero(state == 1)[0]
+    rows = _rows_with(state, 0xFF, 1 | NEAR_EDGE)
     if not rows.size:
         return 0
+    state[rows] = 1
     rows = rows[lattice.near_cage_edges(u[rows], _EXACT_NEAR_EDGE)]
     if not rows.size:
         return 0
@@ -94,6 +140,40 @@ def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
     same = np.linalg.norm(exact - u[rows], axis=1) <= 1.0
     u[rows[same]] = exact[same]
     return int(same.sum())
+
+
+@numba.njit(cache=True)
+def slab_outcome(state, fold, valid, foldover):  # pragma: no cover - compiled
+    """A finished slab's masks in one pass: ``valid = state > 0``, ``foldover = fold``.
+
+    Parameters
+    ----------
+    state, fold : (P,) uint8
+        The slab's (after :func:`confirm_tentative`, :func:`polish_next_to_edges` and
+        :func:`pass_through`).
+    valid, foldover : (P,) uint8 out
+
+    Returns
+    -------
+    rows : (R,) int64
+        The voxels with a pre-image (``state > 0``), ascending.
+    identity : int
+        How many were left in place (``state`` 3).
+    """
+    found = 0
+    identity = 0
+    for p in range(state.shape[0]):  # (no branches: runs of states alternate often)
+        s = state[p]
+        valid[p] = s != 0
+        foldover[p] = fold[p]
+        found += s != 0
+        identity += s == 3
+    rows = np.empty(found + 1, dtype=np.int64)
+    q = 0
+    for p in range(state.shape[0]):
+        rows[q] = p
+        q += state[p] != 0
+    return rows[:found], identity
 
 
 def pass_through(harmonic_map, geometry: ImageGeometry, out_geo: ImageGeometry, slab, u,

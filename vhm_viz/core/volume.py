@@ -70,8 +70,10 @@ from vhm_viz.core.partition import (
 from vhm_viz.core.preimages import (
     confirm_tentative,
     exact_preimages,
+    leaves_near_edges,
     pass_through,
     polish_next_to_edges,
+    slab_outcome,
 )
 from vhm_viz.core.volume_kernels import (
     box_ijk,
@@ -589,10 +591,8 @@ class VolumeDeformation(VolumePieces):
         plane = int((b[1] - b[0] + 1) * (b[3] - b[2] + 1))
         identity = 0
         for rows, u, state, fold in self._pull_back_slabs(out_geo, b, progress, abort):
-            identity += int(np.count_nonzero(state == 3))
-            ok = np.flatnonzero(state).astype(np.int64, copy=False)
-            valid[rows] = state > 0
-            foldover[rows] = fold
+            ok, left = slab_outcome(state, fold, valid[rows], foldover[rows])
+            identity += left
             if vectors is not None:
                 slab = b.copy()
                 slab[4], slab[5] = b[4] + rows.start // plane, b[4] + rows.stop // plane - 1
@@ -771,6 +771,7 @@ class VolumeDeformation(VolumePieces):
         lat = self.build(progress=scaled_progress(progress, 0.0, 0.5), abort=abort)
         self._refuse_outside()
         boxes = self.candidate_boxes(out_geo)
+        near_edge = leaves_near_edges(lat)
         self._start_slabs()
         budget = DEFAULT_MEMORY_BUDGET if self.memory_budget is None else self.memory_budget
         slabs = list(slabs_of(b, _RESAMPLE_BYTES, min(budget, _PULL_BACK_SLAB_BYTES)))
@@ -785,7 +786,7 @@ class VolumeDeformation(VolumePieces):
             m = int((slab[5] - slab[4] + 1) * plane)
             self._count_slab(m)
             u, state, fold, quality = (a[:m] for a in buffers)
-            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality)
+            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality, near_edge)
             confirm_tentative(self.map, self.geometry, u, state)
             polish_next_to_edges(self.map, lat, self.geometry, out_geo, slab, u, state)
             if self.outside == "passthrough":

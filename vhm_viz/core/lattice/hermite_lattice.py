@@ -243,7 +243,8 @@ class HermiteLattice:
         lo, hi = self.image_boxes(geometry, self.margins(), BORDER)
         return np.floor(lo).astype(np.int64), np.ceil(hi).astype(np.int64)
 
-    def pull_back(self, geometry: ImageGeometry, box, boxes, u, state, fold, quality) -> None:
+    def pull_back(self, geometry: ImageGeometry, box, boxes, u, state, fold, quality,
+                  near_edge=None) -> None:  # fmt: skip
         """Pre-images (input voxel indices) of the voxels of an output box.
 
         Parameters
@@ -259,8 +260,13 @@ class HermiteLattice:
         state, fold : (P,) uint8
             See :func:`pull_back_rows` (every voxel's is written).
         quality : (P,) float64
+        near_edge : (L,) bool, optional
+            Leaves whose pre-images get :data:`~vhm_viz.core.lattice.pullback.NEAR_EDGE`
+            in ``state`` (default: every leaf).
         """
         self._need_pre_images("pull_back")
+        if near_edge is None:
+            near_edge = np.ones(len(self.leaf_size), dtype=np.bool_)
         b = np.asarray(box, dtype=np.int64)
         lo, hi = boxes
         leaves = np.nonzero(
@@ -278,7 +284,7 @@ class HermiteLattice:
         if total:
             candidate_rows(leaves, lo, hi, b, start, row_leaf, row_i0, row_i1)
         pull_back_rows(
-            self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaf_cut,
+            self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaf_cut, near_edge,
             self.centre_f, self.centre_ginv, self.rho, self.margins(), *self.cut_flags(),
             self.last,
             geometry.origin, geometry.index_to_world, b, start, row_leaf, row_i0, row_i1,

@@ -20,8 +20,9 @@ from vhm_viz.core.lattice.hermite import cell_eval, control_points, inverse3
 from vhm_viz.core.work_items import claim
 
 # Newton on a cell's polynomial: converged when the step is below this (voxels; the step
-# is applied, and convergence is quadratic, so the pre-image is then good to ~1e-10) ...
-_NEWTON_STEP = 1e-4
+# is applied, and convergence is quadratic, so the pre-image is then good to ~1e-6 voxel,
+# far below the tolerance; a smaller step costs a further evaluation for most voxels) ...
+_NEWTON_STEP = 1e-3
 # ... within this many iterations.
 _NEWTON_ITERATIONS = 12
 #: How far (voxels) outside its cell a pre-image may lie: cells of different sizes meet
@@ -29,6 +30,9 @@ _NEWTON_ITERATIONS = 12
 MARGIN = 0.25
 # Rows of an output box that a worker of the pull-back claims at a time.
 _ROWS_PER_CLAIM = 4
+#: Bit of a pull-back's ``state`` set when the pre-image lies in a leaf flagged
+#: ``near_edge`` (:func:`pull_back_rows`): the caller looks closer at those only.
+NEAR_EDGE = 4
 
 
 @numba.njit(cache=True)
@@ -229,8 +233,8 @@ def inside_around(block_of, pool, dims, u):  # pragma: no cover - compiled
 
 @numba.njit(parallel=True, cache=True)
 def pull_back_rows(
-    data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, block_of, pool, dims,
-    last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
+    data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, block_of, pool,
+    dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
     u_out, state, fold, quality, workers,
 ):  # pragma: no cover - compiled  # fmt: skip
     """Pre-images of the output voxels of a box: Newton on the leaves' polynomials.
@@ -243,7 +247,8 @@ def pull_back_rows(
     volume's half-voxel border is kept:
 
     * ``state`` 1 (inside the cage), or 2 when the leaf crosses the cage and the voxels
-      around it disagree (the caller checks those with the winding number);
+      around it disagree (the caller checks those with the winding number), plus
+      :data:`NEAR_EDGE` when the pre-image's leaf is flagged in ``near_edge``;
     * a second pre-image more than one voxel from the first marks a fold (``fold`` 1); a
       nearer one (the same point, found from a neighbouring leaf) replaces the first when
       it lies deeper inside its leaf (``quality`` = distance outside the leaf).
@@ -264,16 +269,48 @@ def pull_back_rows(
                 break
             for r in range(first, min(first + _ROWS_PER_CLAIM, n_rows)):
                 _pull_back_row(
-                    r, data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin,
+                    r, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin,
                     block_of, pool, dims, last, origin_out, to_world_out, box, row_start,
                     row_leaf, row_i0, row_i1, u_out, state, fold, quality, vectors, matrices,
                 )  # fmt: skip
 
 
 @numba.njit(cache=True)
+def _near_span(n, lim, centre_f, centre_ginv, origin_out, to_world_out, j, k, i0,
+               i1):  # pragma: no cover - compiled  # fmt: skip
+    """The voxels ``i0..i1`` of output row ``(j, k)`` whose estimate may lie near leaf ``n``.
+
+    The linear pre-image estimate's offset from the leaf's centre, ``d = G_c^-1 (y - f_c)``,
+    is affine in ``i``: each axis's ``|d_a| <= lim`` is an interval of ``i``. Returned one
+    voxel wider than those intervals' intersection (rounding), which the row's loop tests
+    voxel by voxel all the same; ``i_lo > i_hi`` when there is none (or the estimate is
+    not finite).
+    """
+    lo = float(i0)
+    hi = float(i1)
+    for a in range(3):
+        d0 = 0.0
+        slope = 0.0
+        for b in range(3):
+            yb = origin_out[b] + to_world_out[b, 1] * j + to_world_out[b, 2] * k - centre_f[n, b]
+            d0 += centre_ginv[n, a, b] * yb
+            slope += centre_ginv[n, a, b] * to_world_out[b, 0]
+        if slope != 0.0:
+            t0 = (-lim - d0) / slope
+            t1 = (lim - d0) / slope
+            lo = max(lo, min(t0, t1) - 1.0)
+            hi = min(hi, max(t0, t1) + 1.0)
+        elif not abs(d0) <= 2.0 * lim:
+            hi = lo - 1.0
+        if not lo <= hi:  # empty, or NaN
+            return i0, i0 - 1
+    return max(int(math.floor(lo)), i0), min(int(math.ceil(hi)), i1)
+
+
+@numba.njit(cache=True)
 def _pull_back_row(
-    r, data, rows, origin, size, cut, centre_f, centre_ginv, rho, margin, block_of, pool,
-    dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
+    r, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, block_of,
+    pool, dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
     u_out, state, fold, quality, vectors, matrices,
 ):  # pragma: no cover - compiled  # fmt: skip
     """Row ``r`` of :func:`pull_back_rows` (``vectors``, ``matrices``: its scratch)."""
@@ -295,8 +332,10 @@ def _pull_back_row(
         n = row_leaf[c]
         h = float(size[n])
         lim = 0.5 * h + rho[n] + margin[n]
+        i_lo, i_hi = _near_span(n, lim, centre_f, centre_ginv, origin_out, to_world_out, j, k,
+                                row_i0[c], row_i1[c])  # fmt: skip
         chained = 0  # consecutive converged voxels before this one
-        for i_ in range(row_i0[c], row_i1[c] + 1):
+        for i_ in range(i_lo, i_hi + 1):
             for a in range(3):
                 y[a] = origin_out[a] + to_world_out[a, 0] * i_ + (
                     to_world_out[a, 1] * j + to_world_out[a, 2] * k
@@ -313,7 +352,7 @@ def _pull_back_row(
                 chained = 0
                 continue
             v = ((k - box[4]) * ny + (j - box[2])) * nx + (i_ - box[0])
-            if state[v] == 1 and quality[v] == 0.0:
+            if state[v] & 3 == 1 and quality[v] == 0.0:
                 # a pre-image inside its own leaf is known: a pre-image in this leaf
                 # (within rho of the estimate) more than a voxel away would be a fold
                 gap = 0.0
@@ -384,18 +423,20 @@ def _pull_back_row(
                     continue
                 if around < 0:
                     s = 2
-            if state[v] == 0 or (state[v] == 2 and s == 1):
-                state[v] = s
+            known = state[v] & 3
+            if known == 0 or (known == 2 and s == 1):
+                state[v] = s | (NEAR_EDGE if near_edge[n] else 0)
                 quality[v] = q
                 for a in range(3):
                     u_out[v, a] = u[a]
-            elif state[v] == s:
+            elif known == s:
                 apart = 0.0
                 for a in range(3):
                     apart = max(apart, abs(u[a] - u_out[v, a]))
                 if apart > 1.0:
                     fold[v] = 1
                 elif q < quality[v]:
+                    state[v] = s | (NEAR_EDGE if near_edge[n] else 0)
                     quality[v] = q
                     for a in range(3):
                         u_out[v, a] = u[a]
