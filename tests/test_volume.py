@@ -850,11 +850,18 @@ class _ThreadExchange:
     def __init__(self, n):
 
         self.n = n
-        self.meet = threading.Barrier(n, timeout=60)
+        # the failures as all builders met: a builder failing in a round's evaluation must
+        # not be seen at that round's first meeting by a slower builder, which would then
+        # leave without meeting the failed one again
+        self.meet = threading.Barrier(n, action=self._take_failures, timeout=60)
         self.keys = [None] * n
         self.data = [None] * n
         self.failed = [False] * n
+        self.failed_at_meeting = False
         self.evaluated = [[] for _ in range(n)]
+
+    def _take_failures(self):
+        self.failed_at_meeting = any(self.failed)
 
     def builder(self, r):
         exchange = self
@@ -863,7 +870,7 @@ class _ThreadExchange:
             def __call__(self, keys, evaluate):
                 exchange.keys[r] = keys
                 exchange.meet.wait()
-                if any(exchange.failed):
+                if exchange.failed_at_meeting:
                     raise RuntimeError("another builder failed")
                 distinct = np.unique(np.concatenate(exchange.keys))
                 mine = distinct[r :: exchange.n]
@@ -875,7 +882,7 @@ class _ThreadExchange:
                     raise
                 exchange.evaluated[r].append(mine)
                 exchange.meet.wait()
-                if any(exchange.failed):
+                if exchange.failed_at_meeting:
                     raise RuntimeError("another builder failed")
                 f = np.empty((len(distinct), 3))
                 fu = np.empty((len(distinct), 3, 3))
