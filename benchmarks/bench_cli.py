@@ -118,11 +118,14 @@ def rotation(axis: int, degrees: float) -> np.ndarray:
     return r
 
 
-def bend_twist_constraints(lo, hi, bend: float, twist: float) -> dict:
+def bend_twist_constraints(lo, hi, bend: float, twist: float, points=None) -> dict:
     """Hold one end of the long axis, bend the other by ``bend`` and twist it by ``twist``.
 
     The moving end goes where a circular arc of the axis's length and angle ``bend`` ends,
-    with the Jacobian of that bend times the twist about the long axis.
+    with the Jacobian of that bend times the twist about the long axis. With ``points``
+    (the data's points, ``(N, 3)``), both ends move to the nearest of them, so that they
+    lie inside a cage that hugs the data (on the long axis they may lie outside it); the
+    moving end's offset from the axis turns with the bend.
     """
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     size = hi - lo
@@ -131,7 +134,12 @@ def bend_twist_constraints(lo, hi, bend: float, twist: float) -> dict:
     centre = (lo + hi) / 2
     p0, p1 = centre.copy(), centre.copy()
     p0[long], p1[long] = lo[long] + 0.1 * size[long], hi[long] - 0.1 * size[long]
+    if points is not None:
+        points = np.asarray(points, float)
+        p0, p1 = (points[np.argmin(((points - p) ** 2).sum(axis=1))] for p in (p0, p1))
     length = float(p1[long] - p0[long])
+    off_axis = p1 - p0
+    off_axis[long] = 0.0
     theta = math.radians(bend)
     target = p0.copy()
     if theta:
@@ -141,6 +149,7 @@ def bend_twist_constraints(lo, hi, bend: float, twist: float) -> dict:
         target[long] += length
     bend_axis = 3 - long - side
     jac = rotation(bend_axis, -bend if (bend_axis + 1) % 3 == long else bend)
+    target = target + jac @ off_axis
     jac = jac @ rotation(long, twist)
     return {
         "positions": [p0.tolist(), p1.tolist()],
@@ -150,8 +159,12 @@ def bend_twist_constraints(lo, hi, bend: float, twist: float) -> dict:
     }
 
 
-def box_scene(bounds, bend=30.0, twist=20.0, pad=0.06, anchors=12) -> dict:
-    """A scene with a padded 192-triangle box cage and anchors on the data's long axis."""
+def box_scene(bounds, bend=30.0, twist=20.0, pad=0.06, anchors=12, points=None) -> dict:
+    """A scene with a padded 192-triangle box cage and anchors on the data's long axis.
+
+    ``points``: the data's points, for constraints on them
+    (:func:`bend_twist_constraints`).
+    """
     lo, hi = np.asarray(bounds[0::2], float), np.asarray(bounds[1::2], float)
     grow = pad * (hi - lo)
     v, f = box_cage(lo - grow, hi + grow, 4)
@@ -165,7 +178,7 @@ def box_scene(bounds, bend=30.0, twist=20.0, pad=0.06, anchors=12) -> dict:
         "version": 1,
         "cage": {"vertices": v.tolist(), "faces": f.tolist()},
         "anchors": pts.tolist(),
-        "constraints": bend_twist_constraints(lo, hi, bend, twist),
+        "constraints": bend_twist_constraints(lo, hi, bend, twist, points),
         "mode": "rigid",
         "alpha": 0.01,
     }
@@ -176,6 +189,13 @@ def bounds_of(path: Path) -> list:
     from vhm_viz.io import read_dataset
 
     return list(read_dataset(str(path)).bounds)
+
+
+def points_of(path: Path) -> np.ndarray:
+    """The dataset's points ``(N, 3)`` as ``vhm_viz.read_dataset`` reads it."""
+    from vhm_viz.io import read_dataset
+
+    return np.asarray(read_dataset(str(path)).points, dtype=float)
 
 
 # ----------------------------------------------------------------------------------------
@@ -269,7 +289,8 @@ def cases(big: bool, huge: bool = False) -> list[Case]:
         "dragon 104k tets --arrays cells (box cage)", dragon, ".vtu", dscene, ("--arrays", "cells")
     )
     arma = data("armadillo", "armadillo_173k.ply")
-    ascene = box_scene(bounds_of(arma), bend=25.0, twist=15.0)
+    # the hand-made cage hugs the body: constraints on it, not on the bounds' long axis
+    ascene = box_scene(bounds_of(arma), bend=25.0, twist=15.0, points=points_of(arma))
     ascene["cage"] = str(data("armadillo", "cage_500f.obj"))
     ascene["anchors"] = {"auto": 12}  # the bounds' long axis leaves the body
     deform("armadillo 173k (hand-made cage_500f)", arma, ".vtp", ascene)
