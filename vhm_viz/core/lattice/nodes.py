@@ -230,6 +230,23 @@ _NODE_GRAIN = 1024
 
 
 @numba.njit(cache=True, nogil=True)
+def _first_not_below(sorted_keys, q):  # pragma: no cover - compiled
+    """The first index of ascending ``sorted_keys`` whose key is not below ``q``.
+
+    A binary search written out: loops and scalars only, cheaper to compile than
+    ``np.searchsorted`` in a kernel.
+    """
+    lo, hi = 0, sorted_keys.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if sorted_keys[mid] < q:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@numba.njit(cache=True, nogil=True)
 def _stencil_rows(start, stop, keys, table_keys, dims, h, rows):  # pragma: no cover
     """Table rows of the 3 x 3 x 3 lattice points of step ``h`` around nodes ``start..stop``.
 
@@ -243,10 +260,11 @@ def _stencil_rows(start, stop, keys, table_keys, dims, h, rows):  # pragma: no c
     for o in range(27):
         dx, dy, dz = o % 3 - 1, (o // 3) % 3 - 1, o // 9 - 1
         if dx != 0 and dy != 0 and dz != 0:
-            rows[:, o] = -1
+            for n in range(stop - start):
+                rows[n, o] = -1
             continue
         shift = h * (dx + dims[0] * (dy + dims[1] * dz))
-        t = np.searchsorted(table_keys, keys[start] + shift)
+        t = _first_not_below(table_keys, keys[start] + shift)
         for n in range(start, stop):
             key = keys[n]
             i = key % dims[0] + h * dx
@@ -303,28 +321,33 @@ def _node_rows(start, stop, keys, table_keys, f, fu, dims, h, twists, out):  # p
     plus = np.empty(3)
     minus = np.empty(3)
     third = np.empty(3)
+    centre = around.shape[1] // 2  # 13, not a literal: one specialisation of _twist
     for n in range(start, stop):
         rows = around[n - start]
-        r = rows[13]
+        r = rows[centre]
         for i in range(3):
             out[n, 0, i] = f[r, i]
             for a in range(3):
                 out[n, 1 + a, i] = fu[r, i, a]
         if not twists:  # a lattice for the voxels only (see build_lattice's pre_images)
-            out[n, 4:] = 0.0
+            for t in range(4, out.shape[1]):
+                for i in range(3):
+                    out[n, t, i] = 0.0
             continue
         for pair in range(3):
-            _twist(fu, rows, 13, pair, h, here[pair])
-            out[n, 4 + pair] = here[pair]
+            _twist(fu, rows, centre, pair, h, here[pair])
+            for i in range(3):
+                out[n, 4 + pair, i] = here[pair, i]
         # f_uvw: the difference of twist uv along w, uw along v and vw along u, averaged
-        third[:] = 0.0
+        for i in range(3):
+            third[i] = 0.0
         for pair in range(3):
             step = 3 ** (2 - pair)
-            p, m = rows[13 + step], rows[13 - step]
+            p, m = rows[centre + step], rows[centre - step]
             if p >= 0:
-                _twist(fu, rows, 13 + step, pair, h, plus)
+                _twist(fu, rows, centre + step, pair, h, plus)
             if m >= 0:
-                _twist(fu, rows, 13 - step, pair, h, minus)
+                _twist(fu, rows, centre - step, pair, h, minus)
             for i in range(3):
                 if p >= 0 and m >= 0:
                     third[i] += (plus[i] - minus[i]) / (2.0 * h)
