@@ -413,16 +413,16 @@ def test_memory_bound_slabs_do_not_grow_with_the_volume():
 
 
 def test_pull_back_slabs_stay_small_whatever_the_budget():
-    """A larger budget does not make the pull-back's slabs larger than 16 MB of arrays."""
-    geo = ImageGeometry((0, 0, 0), (1, 1, 1), (64, 64, 80))
-    cage = _cage_around((-1.0, -1.0, -1.0), (65.0, 65.0, 81.0), 0.0)
+    """A larger budget does not make the pull-back's slabs larger than 64 MiB of arrays."""
+    geo = ImageGeometry((0, 0, 0), (1, 1, 1), (128, 128, 80))
+    cage = _cage_around((-1.0, -1.0, -1.0), (129.0, 129.0, 81.0), 0.0)
     hm = _random_bend(cage, 0.002, seed=2)
-    plane = 64 * 64
+    plane = 128 * 128
     for budget in (None, 2**30):
         vol = VolumeDeformation(hm, geo, memory_budget=budget)
         vol.resample({"v": np.zeros(geo.n_points, np.float32)}, geometry=geo)
         assert vol.slab_count == 2  # 73 planes, then 7
-        assert vol.largest_slab * 56 <= 16 * 2**20 < (vol.largest_slab + plane) * 56
+        assert vol.largest_slab * 56 <= 64 * 2**20 < (vol.largest_slab + plane) * 56
 
 
 def test_outside_policies_and_abort(bend):

@@ -148,13 +148,16 @@ def _move_rows_forward(rows, index):  # pragma: no cover - compiled
 #: and Jacobians, 12 float64 each, with their tables) at about one per 32 voxels near the
 #: default tolerance, where the map bends most; the lattice is coarser where it does not.
 LATTICE_BYTES_PER_VOXEL = 8
-#: Slab working arrays per voxel: a warp slab's positions, a pull-back slab's state.
-_SLAB_VOXEL_BYTES = {"warp": 16, "resample": 56}
+#: Slab working arrays per voxel: a warp slab's positions; a pull-back slab's pre-image,
+#: state, fold, quality, outside flag and one sampled float64 component.
+SLAB_VOXEL_BYTES = {"warp": 16, "resample": 56}
 #: Bytes per voxel besides the output data: a warp's float64 positions (and the fold
 #: check's corner determinants, float64 per voxel); a resample's valid and fold masks.
 _EXTRA_VOXEL_BYTES = {"warp": 3 * 8 + 8, "resample": 2}
-#: The pull-back slabs stay within this (see :mod:`vhm_viz.core.volume`).
-_PULL_BACK_SLAB_BYTES = 16 * 2**20
+#: A pull-back slab's working arrays stay within this whatever the memory budget, since
+#: each process (each MPI rank) holds them; fewer slabs mean fewer of the serial steps
+#: and thread hand-overs between a slab's kernels.
+PULL_BACK_SLAB_BYTES = 64 * 2**20
 
 
 def volume_job_bytes(
@@ -188,11 +191,11 @@ def volume_job_bytes(
         Bytes of ``output`` (data, positions and masks), ``lattice``, ``slab`` (working
         arrays of one slab and one evaluation chunk), ``write`` and their ``total``.
     """
-    if kind not in _SLAB_VOXEL_BYTES:
+    if kind not in SLAB_VOXEL_BYTES:
         raise ValueError(f"kind must be 'warp' or 'resample'; got {kind!r}")
     input_voxels, output_voxels = int(input_voxels), int(output_voxels)
     data = output_voxels * int(value_bytes)
-    slab = min(int(memory_budget), _PULL_BACK_SLAB_BYTES) if kind == "resample" else memory_budget
+    slab = min(int(memory_budget), PULL_BACK_SLAB_BYTES) if kind == "resample" else memory_budget
     parts = {
         "output": data + output_voxels * _EXTRA_VOXEL_BYTES[kind],
         "lattice": input_voxels * LATTICE_BYTES_PER_VOXEL,

@@ -59,7 +59,7 @@ from vhm_viz.core.lattice import (
     build_lattice,
     check_tolerance,
 )
-from vhm_viz.core.memory import release_free_memory
+from vhm_viz.core.memory import PULL_BACK_SLAB_BYTES, SLAB_VOXEL_BYTES, release_free_memory
 from vhm_viz.core.partition import (
     equal_cuts,
     lattice_build_work,
@@ -109,13 +109,8 @@ __all__ = [
 #: Volumes of at most this many voxels are evaluated exactly at every voxel (a lattice of
 #: single-voxel cells): a lattice would not save evaluations there.
 EXACT_VOXELS = 32768
-# Working bytes per output voxel of a resampling slab (pre-image, state, fold, quality,
-# outside flag, one sampled float64 component), and per voxel of a warp slab.
-_RESAMPLE_BYTES = 56
-_WARP_BYTES = 16
-# A pull-back slab's working arrays stay within this whatever the memory budget: larger
-# slabs resample no faster, and each process (each MPI rank) would hold them.
-_PULL_BACK_SLAB_BYTES = 16 * 2**20
+_RESAMPLE_BYTES = SLAB_VOXEL_BYTES["resample"]
+_WARP_BYTES = SLAB_VOXEL_BYTES["warp"]
 
 
 @dataclass
@@ -774,7 +769,7 @@ class VolumeDeformation(VolumePieces):
         near_edge = leaves_near_edges(lat)
         self._start_slabs()
         budget = DEFAULT_MEMORY_BUDGET if self.memory_budget is None else self.memory_budget
-        slabs = list(slabs_of(b, _RESAMPLE_BYTES, min(budget, _PULL_BACK_SLAB_BYTES)))
+        slabs = list(slabs_of(b, _RESAMPLE_BYTES, min(budget, PULL_BACK_SLAB_BYTES)))
         plane = int((b[1] - b[0] + 1) * (b[3] - b[2] + 1))
         # one set of slab arrays, reused by every slab (the pull-back writes each voxel's):
         # new arrays per slab would each be paged in again, one thread zeroing them
