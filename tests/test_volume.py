@@ -1599,3 +1599,18 @@ def test_resampling_boxes_into_one_set_of_arrays_equals_resampling_it_whole(bend
                       np.zeros(n, np.uint8), np.zeros(n, np.uint8))  # fmt: skip
     with pytest.raises(ValueError, match="out array 'v' is float32"):
         vol.resample(arrays, out, box=piece, out=wrong)
+
+
+def test_an_unknown_interpolation_is_refused_naming_the_kinds():
+    """The engine and the resample filter refuse an interpolation they do not have, with
+    the kinds they do have."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (8, 8, 8))
+    hm = _random_bend(_cage_around((-1, -1, -1), (8, 8, 8), 0.0), 0.002, seed=1)
+    vol = VolumeDeformation(hm, geo)
+    with pytest.raises(ValueError, match="linear.*nearest.*cubic.*'spline'"):
+        vol.resample({"v": np.zeros(geo.n_points)}, interpolation="spline")
+    flt = HarmonicResampleFilter()
+    with pytest.raises(ValueError, match="linear.*nearest.*cubic.*'spline'"):
+        flt.SetInterpolation("spline")
+    flt.SetInterpolation("nearest")
+    assert flt.GetInterpolation() == "nearest"

@@ -21,10 +21,25 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["ImageGeometry", "INTERPOLATIONS", "BORDER", "inside_mask", "surface_mask", "sample"]
+__all__ = [
+    "ImageGeometry",
+    "INTERPOLATIONS",
+    "BORDER",
+    "check_interpolation",
+    "inside_mask",
+    "surface_mask",
+    "sample",
+]
 
 #: Interpolation kinds of :func:`sample`.
 INTERPOLATIONS = ("linear", "nearest", "cubic")
+
+
+def check_interpolation(kind: str) -> str:
+    """``kind`` if it is one of :data:`INTERPOLATIONS`, else a ValueError naming them."""
+    if kind not in INTERPOLATIONS:
+        raise ValueError(f"interpolation must be one of {INTERPOLATIONS}; got {kind!r}")
+    return kind
 #: The input volume extends this many voxels beyond its outer grid points, where the
 #: nearest boundary values are used (``vtkImageReslice``'s default border): each voxel
 #: then stands for a full cube.
@@ -445,8 +460,7 @@ def sample(volume: np.ndarray, indices: np.ndarray, rows: np.ndarray, kind: str,
         Written in the rows ``rows``; float64 for linear and cubic, the volume's dtype (or
         float64) for nearest.
     """
-    if kind not in INTERPOLATIONS:
-        raise ValueError(f"interpolation must be one of {INTERPOLATIONS}; got {kind!r}")
+    check_interpolation(kind)
     if rows.size == 0:
         return
     kernel = {"linear": _sample_linear, "nearest": _sample_nearest, "cubic": _sample_cubic}[kind]

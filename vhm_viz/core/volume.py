@@ -51,7 +51,7 @@ from vhm_viz.core.displacement import (
     subtract_grid_points,
 )
 from vhm_viz.core.errors import AbortedError, OutsideCageError, describe_indices
-from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry
+from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry, check_interpolation
 from vhm_viz.core.lattice import (
     DEFAULT_ROOT,
     DEFAULT_TOLERANCE,
@@ -539,10 +539,7 @@ class VolumeDeformation(VolumePieces):
             rounded and clipped to their type's range. With ``out``: ``out``, its arrays
             filled and its counts set.
         """
-        if interpolation not in INTERPOLATIONS:
-            raise ValueError(
-                f"interpolation must be one of {INTERPOLATIONS}; got {interpolation!r}"
-            )
+        check_interpolation(interpolation)
         src = self.geometry
         ib = box_of(src, input_box)
         nx, ny, nz = (int(n) for n in ib[1::2] - ib[0::2] + 1)

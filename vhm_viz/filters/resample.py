@@ -8,7 +8,7 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from vhm_viz.core.displacement import DisplacementField
-from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry
+from vhm_viz.core.image import ImageGeometry, check_interpolation
 from vhm_viz.core.lattice import PART_FIELDS, join_parts
 from vhm_viz.core.memory import release_free_memory
 from vhm_viz.core.volume import (
@@ -136,9 +136,7 @@ class HarmonicResampleFilter(DeformationSource):
 
     def SetInterpolation(self, kind: str) -> None:
         """``"linear"`` (trilinear, default), ``"nearest"`` (label maps) or ``"cubic"``."""
-        if kind not in INTERPOLATIONS:
-            raise ValueError(f"interpolation must be one of {INTERPOLATIONS}; got {kind!r}")
-        self._set_option("_interpolation", kind)
+        self._set_option("_interpolation", check_interpolation(kind))
 
     def GetInterpolation(self) -> str:
         """The interpolation kind."""
