@@ -429,10 +429,12 @@ def inverted_voxel_cells(
         slab_cells = min(slab_cells, int(memory_budget) // _FOLD_CELL_BYTES)
     layers = max(1, slab_cells // max(cell_plane, 1))
     checked, inverted, worst = 0, [np.zeros(0, np.int64)], [np.zeros(0)]
+    # one buffer for every slab's determinants: paged in once, not once per slab
+    buffer = np.empty(min(layers, max(nz - 1, 0)) * cell_plane)
     for k0 in range(0, nz - 1, layers):
         k1 = min(k0 + layers, nz - 1)
         det = hexahedron_corner_determinants(
-            points[k0 * plane : (k1 + 1) * plane], (nx, ny, k1 - k0 + 1), rest_det
+            points[k0 * plane : (k1 + 1) * plane], (nx, ny, k1 - k0 + 1), rest_det, buffer
         )
         checked += det.size - int(np.count_nonzero(np.isnan(det)))
         bad = np.flatnonzero(det <= 0)

@@ -348,7 +348,7 @@ def _hex_kernel(start, stop, p, rest_det, out):  # pragma: no cover - compiled
                     out[k - 1, j0 + j, i] = low / rest_det + flag
 
 
-def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
+def hexahedron_corner_determinants(points, dimensions, rest_det: float, out=None) -> np.ndarray:
     """Smallest corner Jacobian determinant of each cell of a deformed voxel grid.
 
     The grid's cell ``(i, j, k)`` is the trilinear image of a rest voxel; at each of its
@@ -366,6 +366,9 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.nd
     rest_det : float
         ``det`` of the rest voxel's edge matrix: ``sx * sy * sz * det(direction)`` for an
         image with spacing ``s`` and direction matrix ``direction``; not 0.
+    out : (M,) float64 array, optional
+        Written and returned (its first ``(nx - 1) * (ny - 1) * (nz - 1)`` entries): a
+        buffer reused across calls, such as the slabs of one grid, is paged in once.
 
     Returns
     -------
@@ -377,7 +380,13 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.nd
         raise ValueError(f"rest_det must be finite and non-zero; got {rest_det}")
     p = np.asarray(points, dtype=np.float64).reshape(nz, ny, nx, 3)
     cells = (max(nz - 1, 0), max(ny - 1, 0), max(nx - 1, 0))
-    out = np.empty(cells)
+    n_cells = cells[0] * cells[1] * cells[2]
+    if out is None:
+        out = np.empty(cells)
+    else:
+        if out.dtype != np.float64 or out.ndim != 1 or len(out) < n_cells:
+            raise ValueError(f"out must be a float64 vector of at least {n_cells} entries")
+        out = out[:n_cells].reshape(cells)
     if out.size:
         run_rows(
             _hex_kernel, cells[1], np.ascontiguousarray(p), float(rest_det), out, grain=_HEX_BAND
