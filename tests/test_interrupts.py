@@ -271,3 +271,29 @@ def test_explorer_jobs_see_the_signal_as_a_cancel(qtbot):
     # with the parentless runner already collected
     qtbot.wait(100)
     assert seen == [signal.SIGTERM, "cancelled"]
+
+
+_IMPORT_DURING_SIGNAL = r"""
+import os, signal, sys, threading, time
+sys.path.insert(0, sys.argv[1])
+from vhm_viz import interrupts
+pid = os.getpid()
+threading.Timer(0.2, os.kill, (pid, signal.SIGINT)).start()
+try:
+    with interrupts.handled():
+        import slow_module  # the signal arrives while it is being imported
+        time.sleep(5)  # the signal, delivered again, ends this
+    print("not interrupted")
+except interrupts.Interrupted as exc:
+    print("interrupted", exc.exit_status, "module complete:", sys.modules["slow_module"].DONE)
+"""
+
+
+def test_a_signal_during_an_import_is_raised_once_the_import_is_done(tmp_path):
+    """An exception raised inside an import leaves the module half made (VTK's modules
+    then fail to load, or crash, for the rest of the process): the signal is raised as
+    soon as the import is over, and the module is whole."""
+    (tmp_path / "slow_module.py").write_text("import time\ntime.sleep(0.6)\nDONE = True\n")
+    run = subprocess.run([sys.executable, "-c", _IMPORT_DURING_SIGNAL, str(tmp_path)],
+                         capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert run.stdout.strip() == "interrupted 130 module complete: True", run.stderr

@@ -38,7 +38,10 @@ from collections.abc import Callable, Iterator
 __all__ = ["Interrupted", "check", "deferred", "handled", "pending", "ending_now", "end_now"]
 
 _state = {"pending": None, "raised": False, "defer": 0, "depth": 0, "on_signal": None,
-          "end_now": None}  # fmt: skip
+          "end_now": None, "retry": False}  # fmt: skip
+#: Seconds after which a signal that arrived while a module was being imported is
+#: delivered again (see :func:`_handler`).
+_IMPORT_RETRY_SECONDS = 0.02
 
 
 class Interrupted(BaseException):
@@ -76,14 +79,51 @@ def check() -> None:
         raise Interrupted(signum)
 
 
-def _handler(signum, _frame) -> None:
+#: Functions that Python calls around ``os.fork`` (logging's at-fork handlers): an
+#: exception raised in them is printed as "Exception ignored" with a traceback, and lost.
+_AT_FORK = frozenset({"_acquireLock", "_releaseLock", "_after_at_fork_child_reinit_locks"})
+
+
+def _importing(frame) -> bool:
+    """Whether ``frame`` or a caller of it imports a module or runs an at-fork handler."""
+    while frame is not None:
+        code = frame.f_code
+        if code.co_filename.startswith("<frozen importlib") or code.co_name in _AT_FORK:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _deliver_again(signum: int) -> None:
+    """Send ``signum`` to the main thread again shortly, while signals are still handled."""
+    main = threading.main_thread().ident
+
+    def again() -> None:
+        if _state["retry"] and _state["depth"]:
+            signal.pthread_kill(main, signum)
+
+    timer = threading.Timer(_IMPORT_RETRY_SECONDS, again)
+    timer.daemon = True
+    timer.start()
+
+
+def _handler(signum, frame) -> None:
     first = _state["pending"] is None
     if first:
         _state["pending"] = signum
     if _state["on_signal"] is not None:
         _state["on_signal"](signum)
         return
-    if first and not _state["defer"] and not _state["raised"]:
+    if (first or _state["retry"]) and not _state["defer"] and not _state["raised"]:
+        if _importing(frame):
+            # an exception inside an import leaves the module half made (VTK's wrapped
+            # modules then fail to load for the rest of the process, or crash), and one
+            # inside an at-fork handler is printed and lost: raise once that is over, from
+            # the same signal delivered again
+            _state["retry"] = True
+            _deliver_again(signum)
+            return
+        _state["retry"] = False
         _state["raised"] = True
         raise Interrupted(signum)
 
@@ -124,7 +164,7 @@ def handled(
     # getsignal gives None for a handler installed outside Python: signal.signal cannot
     # restore it (TypeError), so that signal stays with its owner
     previous = {s: h for s in signals if (h := signal.getsignal(s)) is not None}
-    _state.update(pending=None, raised=False, defer=0, on_signal=on_signal)
+    _state.update(pending=None, raised=False, defer=0, on_signal=on_signal, retry=False)
     _state["depth"] = 1
     try:
         for s in previous:
@@ -133,7 +173,7 @@ def handled(
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
-        _state.update(depth=0, on_signal=None, defer=0, pending=None, raised=False)
+        _state.update(depth=0, on_signal=None, defer=0, pending=None, raised=False, retry=False)
 
 
 @contextlib.contextmanager
