@@ -1,0 +1,101 @@
+"""The solver's LAPACK calls equal SciPy's functions bit for bit, without ``scipy.linalg``.
+
+:mod:`vhm_viz.core.lapack` loads SciPy's compiled LAPACK wrappers without running the
+``scipy.linalg`` package's ``__init__``; its QR and triangular solves must give exactly
+what :func:`scipy.linalg.qr` and :func:`scipy.linalg.solve_triangular` give.
+"""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+from conftest import subprocess_env
+
+from vhm_viz.core import lapack
+
+RNG = np.random.default_rng(34)
+
+
+def _matrices():
+    tall = RNG.standard_normal((40, 12))
+    wide = RNG.standard_normal((7, 19))
+    deficient = tall[:, :6] @ RNG.standard_normal((6, 12))  # rank 6 of 12 columns
+    return {"tall": tall, "tall_fortran": np.asfortranarray(tall), "tall_T": wide.T,
+            "wide": wide, "rank_deficient": deficient}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", list(_matrices()))
+@pytest.mark.parametrize(("economic", "pivoting"), [(True, False), (False, True), (False, False)])
+def test_qr_is_scipys_bit_for_bit(name, economic, pivoting):
+    a = _matrices()[name]
+    mode = "economic" if economic else "full"
+    expected = sla.qr(a.copy(order="K"), mode=mode, pivoting=pivoting, check_finite=False)
+    got = lapack.qr(a.copy(order="K"), economic=economic, pivoting=pivoting)
+    assert len(got) == len(expected)
+    for g, e in zip(got, expected, strict=True):
+        assert g.shape == e.shape and g.dtype == e.dtype
+        assert np.array_equal(g, e)
+    q, r = got[0], got[1]
+    cols = got[2] if pivoting else np.arange(a.shape[1])
+    assert np.allclose(q @ r, a[:, cols], atol=1e-12)
+
+
+def test_qr_overwrites_a_fortran_input_only_when_allowed():
+    a = np.asfortranarray(RNG.standard_normal((30, 8)))
+    kept = a.copy()
+    q, r = lapack.qr(a, economic=True)
+    assert np.array_equal(a, kept)
+    q2, r2 = lapack.qr(a, economic=True, overwrite_a=True)
+    assert np.array_equal(q2, q) and np.array_equal(r2, r)
+    assert not np.array_equal(a, kept)  # the packed factors or Q went into a
+
+
+@pytest.mark.parametrize("transpose", [False, True])
+@pytest.mark.parametrize("order", ["C", "F"])
+@pytest.mark.parametrize("rhs", [(9,), (9, 4)])
+def test_solve_triangular_is_scipys_bit_for_bit(transpose, order, rhs):
+    a = np.triu(RNG.standard_normal((9, 9))) + 4 * np.eye(9)
+    a = np.asarray(a, order=order)
+    b = RNG.standard_normal(rhs)
+    trans = "T" if transpose else "N"
+    expected = sla.solve_triangular(a, b, trans=trans, check_finite=False)
+    got = lapack.solve_triangular(a, b, transpose=transpose)
+    assert np.array_equal(got, expected)
+    assert np.allclose((a.T if transpose else a) @ got, b)
+
+
+def test_a_singular_triangle_is_refused():
+    a = np.triu(np.ones((4, 4)))
+    a[2, 2] = 0.0
+    with pytest.raises(np.linalg.LinAlgError, match="diagonal 2"):
+        lapack.solve_triangular(a, np.ones(4))
+
+
+def test_a_solve_in_a_fresh_process_does_not_import_scipy_linalg():
+    """The deformer's factorisations and numba's LAPACK calls (Anderson's solves) run on
+    the extensions loaded by file; ``scipy.linalg`` itself stays unimported."""
+    code = (
+        "import json, sys\n"
+        "import numpy as np\n"
+        "from vhm_viz.core.deformer import Deformer\n"
+        "from vhm_viz.core.threads import use_threads\n"
+        "from vhm_viz.examples import bar_cage\n"
+        "use_threads()\n"
+        "z = (np.arange(6) + 0.5) * 5.0 / 6.0\n"
+        "d = Deformer(bar_cage(), np.column_stack([np.zeros(6), np.zeros(6), z]))\n"
+        "ends = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 5.0]])\n"
+        "d.set_constraints(positions=ends, targets=ends + [[0, 0, 0], [1.0, 0, -0.5]])\n"
+        "assert d.solve().iterations > 1\n"
+        "print(json.dumps(sorted(m for m in sys.modules if m.startswith('scipy.linalg'))))\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=subprocess_env(),
+        timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    loaded = set(json.loads(res.stdout.splitlines()[-1]))
+    assert "scipy.linalg.cython_lapack" in loaded  # what the solver calls
+    assert "scipy.linalg" not in loaded
