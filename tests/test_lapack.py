@@ -5,9 +5,13 @@
 what :func:`scipy.linalg.qr` and :func:`scipy.linalg.solve_triangular` give.
 """
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import scipy.linalg as sla
+from conftest import subprocess_env
 
 from vhm_viz.core import lapack
 
@@ -67,3 +71,27 @@ def test_a_singular_triangle_is_refused():
     a[2, 2] = 0.0
     with pytest.raises(np.linalg.LinAlgError, match="diagonal 2"):
         lapack.solve_triangular(a, np.ones(4))
+
+
+def test_scipy_linalg_imported_afterwards_works_beside_it():
+    """Loaded first, the extensions do not spoil a later ``import scipy.linalg``: its
+    functions, its Cython modules (which import the ones loaded here) and ours agree."""
+    code = (
+        "import numpy as np\n"
+        "from vhm_viz.core import lapack\n"
+        "lapack.register_cython_linalg()\n"
+        "a = np.random.default_rng(1).standard_normal((9, 5))\n"
+        "ours = lapack.qr(a, pivoting=True)\n"
+        "import scipy.linalg as sla\n"
+        "import scipy.linalg.cython_lapack\n"
+        "theirs = sla.qr(a, pivoting=True, check_finite=False)\n"
+        "assert all(np.array_equal(x, y) for x, y in zip(ours, theirs))\n"
+        "q, r = sla.qr_update(*sla.qr(a)[:2], np.ones(9), np.ones(5))\n"
+        "assert np.allclose(q @ r, a + np.outer(np.ones(9), np.ones(5)))\n"
+        "print('ok')\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=subprocess_env()
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "ok"
