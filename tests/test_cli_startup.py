@@ -117,17 +117,31 @@ def test_deforming_a_volume_imports_no_scipy_linalg(tmp_path):
     (tmp_path / "scene.json").write_text(json.dumps(_cube_scene(-1.0, 6.0)))
     words = ["deform", str(tmp_path / "small.vti"), "--scene", str(tmp_path / "scene.json"),
              "-o", str(tmp_path / "bent.vts"), "-q"]  # fmt: skip
-    code = (
-        "import sys\n"
-        f"sys.argv = ['vhm-viz', *{words!r}]\n"
-        "from vhm_viz.cli import main\n"
-        "try:\n"
-        "    main()\n"
-        "except SystemExit as exc:\n"
-        "    assert not exc.code, exc.code\n"
-    )
+    code = f"from vhm_viz.cli import main\nassert main({words!r}) == 0\n"
     printed, modules = _imported(code)
     assert printed and printed[0].startswith("deformed 216 voxels")
     assert (tmp_path / "bent.vts").is_file()
     assert "scipy.linalg.cython_lapack" in modules  # what the solver calls
     assert "scipy.linalg" not in modules
+
+
+def test_the_command_process_ends_as_python_would_but_for_the_teardown():
+    """A command line's process ends without Python's teardown, but its threads are
+    joined, its ``atexit`` handlers run, its output is flushed and its status kept."""
+    code = (
+        "import atexit, sys, threading, time\n"
+        "atexit.register(lambda: print('atexit handler ran', file=sys.stderr))\n"
+        "threading.Thread(target=lambda: (time.sleep(0.2), print('thread done'))).start()\n"
+        "sys.argv = ['vhm-viz']\n"  # no subcommand: the overview, exit status 2
+        "from vhm_viz.cli import main\n"
+        "main()\n"
+        "print('not reached')\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=subprocess_env(),
+        timeout=120,
+    )  # fmt: skip
+    assert res.returncode == 2, res.stderr
+    assert "usage: vhm-viz" in res.stdout and "thread done" in res.stdout
+    assert "not reached" not in res.stdout
+    assert res.stderr.strip().endswith("atexit handler ran")
