@@ -120,22 +120,49 @@ def _not_converged(exc: BaseException) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the process exit status.
+    """Run the command line; returns the exit status.
 
     Parameters
     ----------
     argv : list of str, optional
-        The arguments; None: ``sys.argv[1:]``, and this process is the command (it ends
-        when the command does).
+        The arguments; None: ``sys.argv[1:]``, and this process is the command: it ends
+        when the command does, with that status (:func:`_end_process`).
     """
     status = _run_command(argv)
     if argv is None:
-        # The process ends next. Python's last garbage collections at exit would walk
-        # every object made so far (numba's types, VTK's wrappers), a large share of a
-        # short command's time, only for the memory to go back to the system anyway:
-        # frozen objects are left out of them.
-        gc.freeze()
+        _end_process(status)
     return status
+
+
+def _end_process(status: int) -> None:
+    """End the process that ran the command, as Python's exit does but for its teardown.
+
+    The command is done, its outputs written and on the disk. Python's exit would then
+    tear its modules down and collect every object made so far (numba's types and
+    compiled code, VTK's wrappers), a noticeable share of a short command's time, only
+    for the memory to go back to the system anyway. Everything else of that exit happens
+    here, in its order: the threads are joined (and the thread pools' own exit hooks
+    run), then the ``atexit`` handlers (logging's, a coverage tool's), then the standard
+    streams are flushed.
+    """
+    import atexit
+    import threading
+
+    shutdown_threads = getattr(threading, "_shutdown", None)
+    run_exit_handlers = getattr(atexit, "_run_exitfuncs", None)
+    if shutdown_threads is None or run_exit_handlers is None:  # pragma: no cover
+        sys.exit(status)  # another Python: its own exit
+    shutdown_threads()
+    run_exit_handlers()
+    _flush_and_exit(status)
+
+
+def _flush_and_exit(status: int) -> None:
+    """Flush stdout and stderr, then end the process with ``status`` at once."""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(status)
 
 
 def _run_command(argv: list[str] | None) -> int:
@@ -203,10 +230,7 @@ def _end_now(signum: int | None, args, status: int | None = None) -> None:
         status = 128 + signum
         print(f"vhm-viz {args.command}: {interrupts.Interrupted(signum)}", file=sys.stderr)
     args.timer.report(args.timings)
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(OSError, ValueError):
-            stream.flush()
-    os._exit(status)
+    _flush_and_exit(status)
 
 
 def one_line(exc: BaseException) -> str:

@@ -353,7 +353,8 @@ def lanes_map_kernel(
     n = V.shape[0]
     nm = n + F.shape[0]
     S = _S
-    host = np.full(1, -1, dtype=np.int64)
+    host = np.empty(1, dtype=np.int64)  # (np.full compiles a function of its own)
+    host[0] = -1
     pts, near, E, ce, acc, accg, buf = _group_scratch(n, edges.shape[0], nm, order, L)
     fz = np.empty(3 * L)
     jz = np.empty(9 * L)

@@ -18,8 +18,8 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-import scipy.linalg as sla
 
+from vhm_viz.core import lapack
 from vhm_viz.core.errors import ConstraintError, describe_indices
 
 __all__ = [
@@ -270,7 +270,7 @@ def factor_least_squares(Jhat: np.ndarray, Hhat: np.ndarray, lambda_: float) -> 
     A = np.empty((d3 + len(Hhat), Jhat.shape[1]), order="F")
     A[:d3] = Jhat
     np.multiply(Hhat, lambda_, out=A[d3:])
-    q, r = sla.qr(A, mode="economic", overwrite_a=True, check_finite=False)
+    q, r = lapack.qr(A, economic=True, overwrite_a=True)
     del A
     return r, np.ascontiguousarray(q[:d3].T)
 
@@ -335,7 +335,7 @@ def factor_constraints(
     c = K.shape[0]
     scale = 1.0 / np.linalg.norm(K, axis=1)
     Ks = K * scale[:, None]
-    Q, R, piv = sla.qr(Ks.T, mode="full", pivoting=True, check_finite=False)
+    Q, R, piv = lapack.qr(Ks.T, pivoting=True)
     diag = np.abs(np.diag(R))
     rank = int(np.count_nonzero(diag > _RANK_TOL * diag[0]))
     if rank < c:
@@ -349,16 +349,16 @@ def factor_constraints(
     Q1, Q2 = Q[:, :c], Q[:, c:]
     E = np.zeros((c, c))
     E[np.arange(c), piv] = scale[piv]
-    P = Q1 @ sla.solve_triangular(R[:c, :c], E, trans="T", check_finite=False)  # (N, c)
+    P = Q1 @ lapack.solve_triangular(R[:c, :c], E, transpose=True)  # (N, c)
     M2 = RA @ Q2
-    U2, T2 = sla.qr(M2, mode="economic", check_finite=False)
+    U2, T2 = lapack.qr(M2, economic=True)
     d2 = np.abs(np.diag(T2))
     if d2.min() <= 1e-12 * d2.max():
         raise ConstraintError(
             "the constraints, anchors and smoothness samples do not determine the map "
             "(a free direction remains, e.g. the translation): add position constraints"
         )
-    X = sla.solve_triangular(T2, U2.T @ np.hstack([W, RA @ P]), check_finite=False)
+    X = lapack.solve_triangular(T2, U2.T @ np.hstack([W, RA @ P]))
     d3 = W.shape[1]
     B_R = Q2 @ X[:, :d3]
     B_h = P - Q2 @ X[:, d3:]

@@ -34,6 +34,7 @@ from numba.core import types
 from numba.np.linalg import F_INT_nbtype, F_INT_nptype
 
 from vhm_viz.core.constraints import as_matrices, stack_transposed
+from vhm_viz.core.lapack import register_cython_linalg
 from vhm_viz.core.polar import project_blocks, project_stack
 
 __all__ = [
@@ -142,6 +143,7 @@ _gesv = types.ExternalFunction(
     ),
 )
 _GESV_DOUBLE = ord("d")
+register_cython_linalg()  # the BLAS and LAPACK numba calls, found by name
 
 
 @numba.njit(cache=True)

@@ -180,7 +180,10 @@ def limit_blas_threads() -> int:
         n = 0
     if n < 1:
         raise ValueError(f"{BLAS_THREADS_VARIABLE} must be a positive integer; got {text!r}")
-    import scipy.linalg  # noqa: F401 - loads SciPy's own BLAS, so that the limit reaches it
+    from vhm_viz.core.lapack import flapack, register_cython_linalg
+
+    flapack()  # loads SciPy's own BLAS, so that the limit reaches it
+    register_cython_linalg()  # numba's kernels then find it without all of scipy.linalg
 
     threadpool_limits(limits=n, user_api="blas")
     return n

@@ -413,10 +413,12 @@ class VolumeDeformation(VolumePieces):
             lo = (slab[4] - b[4]) * plane
             view = out[lo : lo + (slab[5] - slab[4] + 1) * plane]
             self._count_slab(len(view))
-            fill_outside(
-                self.geometry.origin, self.geometry.index_to_world, slab, lat.inside(slab),
-                self.outside == "nan", view,
-            )  # fmt: skip
+            inside = lat.inside(slab)
+            if not inside.all():  # nothing to fill: no call (nor its compile on a first run)
+                fill_outside(
+                    self.geometry.origin, self.geometry.index_to_world, slab, inside,
+                    self.outside == "nan", view,
+                )  # fmt: skip
             lat.warp(slab, view)
             if progress is not None:
                 progress(0.6 + 0.4 * (s + 1) / len(slabs), "warp")

@@ -202,7 +202,11 @@ def leaf_summaries(data, rows, size, centre_f, centre_ginv, rho):  # pragma: no 
         g = np.empty((3, 3))
         f = np.empty(3)
         cell_eval(data, rows[n], h, 0.5, 0.5, 0.5, f, g, True)
-        gi = np.full((3, 3), np.nan)
+        # NaN where g is singular, filled in a loop (np.full compiles a function of its own)
+        gi = np.empty((3, 3))
+        for i in range(3):
+            for j in range(3):
+                gi[i, j] = np.nan
         inverse3(g, gi)
         for i in range(3):
             centre_f[n, i] = f[i]

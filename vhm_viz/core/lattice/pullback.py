@@ -52,19 +52,25 @@ def _clip_net(cp, axis, t0, t1):  # pragma: no cover - compiled
                 idx[q] = (line % 4) + 4 * q + 16 * (line // 4)
             else:
                 idx[q] = (line % 4) + 4 * (line // 4) + 16 * q
+        # scalar loops over the coordinates: row arithmetic (array expressions) compiles
+        # many times slower, for the same operations
         for q in range(4):
-            b[q] = cp[idx[q]]
+            for c in range(3):
+                b[q, c] = cp[idx[q], c]
         # keep [0, t1]: the left half of a split at t1
         for r in range(1, 4):
             for q in range(3, r - 1, -1):
-                b[q] = (1.0 - t1) * b[q - 1] + t1 * b[q]
+                for c in range(3):
+                    b[q, c] = (1.0 - t1) * b[q - 1, c] + t1 * b[q, c]
         # keep [t0 / t1, 1] of that: the right half of a split
         s = t0 / t1 if t1 > 0.0 else 0.0
         for r in range(1, 4):
             for q in range(0, 4 - r):
-                b[q] = (1.0 - s) * b[q] + s * b[q + 1]
+                for c in range(3):
+                    b[q, c] = (1.0 - s) * b[q, c] + s * b[q + 1, c]
         for q in range(4):
-            cp[idx[q]] = b[q]
+            for c in range(3):
+                cp[idx[q], c] = b[q, c]
 
 
 @numba.njit(parallel=True, cache=True)
