@@ -8,6 +8,7 @@ from conftest import trilinear_corner_dets
 
 from vhm_viz.core.cell_kernels import (
     hexahedron_corner_determinants,
+    inverted_hexahedra,
     singular_values_3x3,
     tetrahedron_measures,
 )
@@ -128,8 +129,8 @@ def test_hexahedra_match_brute_force_and_find_inverted_cells():
     p += 0.15 * rng.normal(size=p.shape)
     p[3, 2, 2] += [2.0, 0.0, 0.0]  # pushed through its neighbours: folds cells around it
     p[5, 4, 5] = np.nan
-    out = hexahedron_corner_determinants(p.reshape(-1, 3), dims, -2.0)
-    ref = trilinear_corner_dets(p) / -2.0
+    out = hexahedron_corner_determinants(p.reshape(-1, 3), dims, 2.0)
+    ref = trilinear_corner_dets(p) / 2.0
     np.testing.assert_allclose(out, ref, rtol=1e-12)
     assert np.isnan(out).sum() == np.isnan(ref).sum() > 0
     assert (out[np.isfinite(out)] >= 0).any() and (out[np.isfinite(out)] < 0).any()
@@ -137,8 +138,52 @@ def test_hexahedra_match_brute_force_and_find_inverted_cells():
         hexahedron_corner_determinants(p.reshape(-1, 3), dims, 0.0)
     # into a larger buffer used before (slabs of one grid): the same values, in the buffer
     buffer = np.full(len(ref) + 5, 7.0)
-    again = hexahedron_corner_determinants(p.reshape(-1, 3), dims, -2.0, buffer)
+    again = hexahedron_corner_determinants(p.reshape(-1, 3), dims, 2.0, buffer)
     np.testing.assert_array_equal(again, out)
-    assert np.shares_memory(again, buffer) and (buffer[len(ref):] == 7.0).all()
+    assert np.shares_memory(again, buffer) and (buffer[len(ref) :] == 7.0).all()
     with pytest.raises(ValueError, match="at least"):
-        hexahedron_corner_determinants(p.reshape(-1, 3), dims, -2.0, np.empty(len(ref) - 1))
+        hexahedron_corner_determinants(p.reshape(-1, 3), dims, 2.0, np.empty(len(ref) - 1))
+
+
+def test_a_mirrored_image_is_not_inverted_by_its_mirror_frame():
+    # a left-handed image (negative rest determinant) deformed by the same displacement
+    # as its right-handed twin, mirrored: the same volume ratios, the same folds
+    rng = np.random.default_rng(4)
+    dims = (7, 6, 5)
+    k, j, i = np.meshgrid(*(np.arange(n) for n in dims[::-1]), indexing="ij")
+    p = np.stack([i, j, k], axis=-1).astype(float) + 0.3 * rng.normal(size=(*dims[::-1], 3))
+    ref = trilinear_corner_dets(p) / 1.5
+    assert (ref <= 0).any() and (ref > 0).any()
+    mirrored = p * [-1.0, 1.0, 1.0]
+    out = hexahedron_corner_determinants(mirrored.reshape(-1, 3), dims, -1.5)
+    np.testing.assert_allclose(out, ref, rtol=1e-12)
+    found = inverted_hexahedra(mirrored.reshape(-1, 3), dims, -1.5)
+    np.testing.assert_array_equal(found["inverted"], np.flatnonzero(ref <= 0))
+
+
+@pytest.mark.parametrize("rest_det", [0.7, -0.7])
+def test_inverted_hexahedra_are_those_of_the_per_cell_kernel(rest_det):
+    # thousands of inverted cells (more than a chunk's first room), NaN points, and
+    # near-degenerate cells: a layer squashed flat to rounding, a cell's corner on 0
+    rng = np.random.default_rng(8)
+    dims = (31, 23, 17)
+    k, j, i = np.meshgrid(*(np.arange(n) for n in dims[::-1]), indexing="ij")
+    p = np.stack([i, j, k], axis=-1).astype(float)
+    p += 0.45 * rng.normal(size=p.shape)
+    p[9, :, :, 2] = p[8, :, :, 2] + 1e-15 * rng.normal(size=p.shape[1:3])
+    p[12, 3, 4] = p[12, 3, 3]  # an edge of length 0: corner determinants exactly 0
+    p[2, 7, 30] = [np.nan, 0.0, 0.0]  # on the grid's i = nx - 1 face: in 4 cells
+    p[14, 20, 5, 1] = np.inf  # inside: in 8 cells
+    pts = p.reshape(-1, 3)
+    every = hexahedron_corner_determinants(pts, dims, rest_det)
+    found = inverted_hexahedra(pts, dims, rest_det)
+    bad = np.flatnonzero(every <= 0)
+    assert bad.size > 4096
+    np.testing.assert_array_equal(found["inverted"], bad)
+    np.testing.assert_array_equal(found["determinant"], every[bad])
+    assert found["cells"] == np.isfinite(every).sum() == every.size - 4 - 8
+    # and both are the brute force's (numpy's determinants, their own rounding)
+    ref = trilinear_corner_dets(p * [np.sign(rest_det), 1.0, 1.0]) / abs(rest_det)
+    clear = np.abs(ref) > 1e-9
+    np.testing.assert_array_equal((every <= 0)[clear], (ref <= 0)[clear])
+    np.testing.assert_allclose(every[clear], ref[clear], rtol=1e-9)

@@ -90,6 +90,14 @@ def test_fold_count_is_the_same_in_small_slabs(folding_volume):
     centre = np.asarray(image.origin) + (np.array([i, j, k]) + 0.5) * np.asarray(image.spacing)
     shown = [float(v) for v in m.group(4).split(",")]
     np.testing.assert_allclose(shown, centre, rtol=1e-3, atol=1e-3)
+    # the box of every inverted cell's rest centre
+    box = re.search(r"cell det <= 0; [^;]*within \(([^)]*)\)-\(([^)]*)\)", proc.stderr)
+    assert box, proc.stderr
+    ijk = np.column_stack(np.unravel_index(expected, np.array(DIMS) - 1, order="F"))
+    centres = np.asarray(image.origin) + (ijk + 0.5) * np.asarray(image.spacing)
+    lo, hi = ([float(v) for v in text.split(",")] for text in box.groups())
+    np.testing.assert_allclose(lo, centres.min(axis=0), rtol=1e-3, atol=1e-3)
+    np.testing.assert_allclose(hi, centres.max(axis=0), rtol=1e-3, atol=1e-3)
 
 
 def test_threads_option_and_variable(folding_volume):

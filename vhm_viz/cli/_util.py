@@ -342,7 +342,7 @@ FOLD_SAMPLES = 20000
 #: mesh, every resampled voxel's pre-image -- where it is a spot check of the continuous
 #: map that costs a small part of the map itself: at most this many points, and at most
 #: one in :data:`FOLD_SPOT_SPREAD` of the data's (:func:`spot_samples`).
-FOLD_SPOT_SAMPLES = 4096
+FOLD_SPOT_SAMPLES = 1024
 #: The spot check evaluates the exact map at one point in this many of the data's at most
 #: (and at no fewer than ``_FOLD_SPOT_LEAST`` points): a small part of the map's own work.
 FOLD_SPOT_SPREAD = 16
@@ -359,8 +359,10 @@ def _where(points: np.ndarray, values: np.ndarray) -> str:
     k = int(np.argmin(values))
     fmt = lambda p: "(" + ", ".join(f"{c:.4g}" for c in p) + ")"  # noqa: E731
     text = f"worst {values[k]:.3g} at {fmt(points[k])}"
-    if len(points) > 1:
-        text += f", within {fmt(points.min(0))}-{fmt(points.max(0))}"
+    if len(points) > 1:  # column by column: numpy's axis-0 reduction of (K, 3) is slow
+        lo = [points[:, c].min() for c in range(points.shape[1])]
+        hi = [points[:, c].max() for c in range(points.shape[1])]
+        text += f", within {fmt(lo)}-{fmt(hi)}"
     return text
 
 
@@ -384,9 +386,9 @@ def image_positions(image, ijk) -> np.ndarray:
 #: Cells per slab of :func:`inverted_voxel_cells` at most: a slab takes a small fraction
 #: of a second, and an interrupt is acted on between slabs.
 FOLD_SLAB_CELLS = 1 << 22
-#: Working memory of :func:`inverted_voxel_cells` per cell of a slab (bytes): its smallest
-#: corner determinant and two masks.
-_FOLD_CELL_BYTES = 10
+#: Working memory of :func:`inverted_voxel_cells` per cell of a slab at most (bytes): an
+#: inverted cell's index and determinant (no memory per cell that is not inverted).
+_FOLD_CELL_BYTES = 16
 
 
 def inverted_voxel_cells(
@@ -394,10 +396,9 @@ def inverted_voxel_cells(
 ) -> dict:
     """The inverted cells of a warped voxel grid, slab by slab, in bounded memory.
 
-    :func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants` of a slab of voxel
-    layers at a time: only a slab's determinants and the inverted cells are held, and an
-    interrupt is acted on between slabs, so that Ctrl-C or SIGTERM stops the fold check
-    of a large warped volume promptly.
+    :func:`~vhm_viz.core.cell_kernels.inverted_hexahedra` of a slab of voxel layers at a
+    time: only the inverted cells are held, and an interrupt is acted on between slabs,
+    so that Ctrl-C or SIGTERM stops the fold check of a large warped volume promptly.
 
     Parameters
     ----------
@@ -419,7 +420,7 @@ def inverted_voxel_cells(
         (K,) int64 (the inverted cells in VTK's cell order) and ``inverted_determinant``
         (K,) float64 (their smallest corner determinant relative to the rest voxel's).
     """
-    from vhm_viz.core.cell_kernels import hexahedron_corner_determinants
+    from vhm_viz.core.cell_kernels import inverted_hexahedra
 
     nx, ny, nz = (int(d) for d in dimensions)
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -429,17 +430,14 @@ def inverted_voxel_cells(
         slab_cells = min(slab_cells, int(memory_budget) // _FOLD_CELL_BYTES)
     layers = max(1, slab_cells // max(cell_plane, 1))
     checked, inverted, worst = 0, [np.zeros(0, np.int64)], [np.zeros(0)]
-    # one buffer for every slab's determinants: paged in once, not once per slab
-    buffer = np.empty(min(layers, max(nz - 1, 0)) * cell_plane)
     for k0 in range(0, nz - 1, layers):
         k1 = min(k0 + layers, nz - 1)
-        det = hexahedron_corner_determinants(
-            points[k0 * plane : (k1 + 1) * plane], (nx, ny, k1 - k0 + 1), rest_det, buffer
+        slab = inverted_hexahedra(
+            points[k0 * plane : (k1 + 1) * plane], (nx, ny, k1 - k0 + 1), rest_det
         )
-        checked += det.size - int(np.count_nonzero(np.isnan(det)))
-        bad = np.flatnonzero(det <= 0)
-        inverted.append(bad + k0 * cell_plane)
-        worst.append(det[bad])
+        checked += slab["cells"]
+        inverted.append(slab["inverted"] + k0 * cell_plane)
+        worst.append(slab["determinant"])
         interrupts.check()
         if progress is not None:
             progress(k1 / (nz - 1))

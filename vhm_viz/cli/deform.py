@@ -315,7 +315,7 @@ def _check_folds(
     """The fold warning of the output: inverted cells and sampled det J <= 0.
 
     A warped image's cells are judged by the corner Jacobians of its trilinear voxels
-    (:func:`~vhm_viz.core.cell_kernels.hexahedron_corner_determinants`); other 3D cells
+    (:func:`~vhm_viz.core.cell_kernels.inverted_hexahedra`); other 3D cells
     by the tetrahedra they split into, taken from the output's cell arrays when the
     filter computed them (``--arrays cells``). The cells' check has a progress bar
     (``checking``); a warped image's is done in slabs of at most ``memory_budget`` bytes

@@ -10,7 +10,8 @@ arrays:
 * :func:`hexahedron_corner_determinants` -- for a deformed voxel grid (a warped image),
   the determinant of the trilinear cell's Jacobian at each of its eight corners, relative
   to the rest voxel's. A trilinear cell is inverted where one of them is ``<= 0``; the
-  smallest one per cell is returned.
+  smallest one per cell is returned. :func:`inverted_hexahedra` counts the cells as the
+  same kernel goes and keeps the inverted ones alone.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ __all__ = [
     "singular_values_3x3",
     "tetrahedron_measures",
     "hexahedron_corner_determinants",
+    "inverted_hexahedra",
 ]
 
 #: Rest tetrahedra with ``|det D_rest|`` at most this times their longest edge cubed are
@@ -281,22 +283,39 @@ def tetrahedron_measures(
 #: Rows of cells (along j) that :func:`_hex_kernel` sweeps through every layer at a time:
 #: a band's point and cross-product planes stay in a core's cache.
 _HEX_BAND = 16
+#: Inverted cells a chunk of :func:`_hex_kernel` has room for at first (it doubles).
+_HEX_FIRST_ROOM = 1024
 
 
 @numba.njit(cache=True, nogil=True)
-def _hex_kernel(start, stop, p, rest_det, out):  # pragma: no cover - compiled
+def _hex_kernel(start, stop, p, sign, scale, out):  # pragma: no cover - compiled
     """Smallest corner determinant of the cells in rows ``start <= j < stop``, every layer.
 
     The determinant at corner ``(a, b, c)`` is ``ez(a, b) . (ex(b, c) x ey(a, c))``; the
     cross products of a point plane serve the layers of cells below and above it, so
     each is made once. A band of rows goes through the layers; per plane, one array per
-    coordinate (the loops along a row run in SIMD lanes).
+    coordinate (the loops along a row run in SIMD lanes). ``ez`` is multiplied by
+    ``sign`` (that of the rest voxel's determinant, an exact product), so the smallest
+    product is the smallest ratio to the rest voxel once divided by ``scale`` (its
+    absolute value). A cell with a corner determinant that is not finite (a point that
+    is not finite) gets NaN: the sum of its eight determinants less itself is added.
+
+    Each row of cells' values go to ``out[k, j]`` where ``out`` has a layer per layer
+    of cells, else to a scratch row. Returns the counts and the inverted cells (value
+    ``<= 0``) met: ``(not finite, inverted, their cell indices, their values)``, the
+    indices ``(k * (ny - 1) + j) * (nx - 1) + i`` in the order met.
     """
-    nz, nx = p.shape[0] - 1, p.shape[2] - 1
+    nz, ny, nx = p.shape[0] - 1, p.shape[1] - 1, p.shape[2] - 1
     band = min(_HEX_BAND, stop - start)
     planes = np.empty((2, 3, band + 1, nx + 1))  # [plane parity, xyz, j, i]
     cross = np.empty((2, 4, 3, band, nx))  # [plane parity, corner a + 2 b, xyz, j, i]
     ez = np.empty((3, band + 1, nx + 1))
+    scratch = np.empty(nx)
+    write = out.shape[0] == nz
+    n_nan = 0
+    n_bad = 0
+    bad_cell = np.empty(_HEX_FIRST_ROOM, dtype=np.int64)
+    bad_value = np.empty(_HEX_FIRST_ROOM)
     for j0 in range(start, stop, band):
         rows = min(band, stop - j0)
         for k in range(nz + 1):
@@ -328,12 +347,13 @@ def _hex_kernel(start, stop, p, rest_det, out):  # pragma: no cover - compiled
             for e in range(3):
                 for j in range(rows + 1):
                     for i in range(nx + 1):
-                        ez[e, j, i] = plane[e, j, i] - below[e, j, i]
+                        ez[e, j, i] = (plane[e, j, i] - below[e, j, i]) * sign
             c0, c1 = cross[1 - q], cross[q]  # the layer's bottom and top planes
             for j in range(rows):
+                row = out[k - 1, j0 + j] if write else scratch
                 for i in range(nx):
                     low = np.inf
-                    flag = 0.0  # NaN once a corner's determinant is not finite
+                    total = 0.0
                     for b in range(2):
                         for a in range(2):
                             c = a + 2 * b
@@ -344,8 +364,62 @@ def _hex_kernel(start, stop, p, rest_det, out):  # pragma: no cover - compiled
                             d1 = z0 * c1[c, 0, j, i] + z1 * c1[c, 1, j, i] + z2 * c1[c, 2, j, i]
                             low = d0 if d0 < low else low  # branch-free: SIMD lanes
                             low = d1 if d1 < low else low
-                            flag += 0.0 * d0 + 0.0 * d1
-                    out[k - 1, j0 + j, i] = low / rest_det + flag
+                            total += d0 + d1
+                    row[i] = low / scale + (total - total)  # + 0, or NaN
+                row_nan = 0
+                row_bad = 0
+                for i in range(nx):
+                    v = row[i]
+                    row_nan += v != v
+                    row_bad += v <= 0.0
+                n_nan += row_nan
+                if row_bad == 0:
+                    continue
+                if n_bad + row_bad > bad_cell.size:
+                    room = max(2 * bad_cell.size, n_bad + row_bad)
+                    grown_cell = np.empty(room, dtype=np.int64)
+                    grown_value = np.empty(room)
+                    grown_cell[:n_bad] = bad_cell[:n_bad]
+                    grown_value[:n_bad] = bad_value[:n_bad]
+                    bad_cell, bad_value = grown_cell, grown_value
+                first = ((k - 1) * ny + j0 + j) * nx
+                for i in range(nx):
+                    if row[i] <= 0.0:
+                        bad_cell[n_bad] = first + i
+                        bad_value[n_bad] = row[i]
+                        n_bad += 1
+    return n_nan, n_bad, bad_cell[:n_bad], bad_value[:n_bad]
+
+
+def _hex_grid(points, dimensions, rest_det):
+    """Points as ``(nz, ny, nx, 3)`` and the cells' shape ``(nz-1, ny-1, nx-1)``."""
+    nx, ny, nz = (int(d) for d in dimensions)
+    if not rest_det or not math.isfinite(rest_det):
+        raise ValueError(f"rest_det must be finite and non-zero; got {rest_det}")
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(nz, ny, nx, 3))
+    return p, (max(nz - 1, 0), max(ny - 1, 0), max(nx - 1, 0))
+
+
+def _run_hex_kernel(p, cells, rest_det: float, out) -> tuple[int, np.ndarray, np.ndarray]:
+    """:func:`_hex_kernel` over every row of cells, on threads.
+
+    Returns the cells that are not finite, and the inverted cells (indices ascending, in
+    VTK's cell order) with their values.
+    """
+    sign, scale = math.copysign(1.0, rest_det), abs(float(rest_det))
+    chunks = []
+
+    def chunk(start, stop):
+        chunks.append((start, _hex_kernel(start, stop, p, sign, scale, out)))
+
+    if 0 not in cells:
+        run_rows(chunk, cells[1], grain=_HEX_BAND)
+    chunks.sort(key=lambda c: c[0])
+    n_nan = sum(c[1][0] for c in chunks)
+    bad = np.concatenate([np.zeros(0, np.int64)] + [c[1][2] for c in chunks])
+    value = np.concatenate([np.zeros(0)] + [c[1][3] for c in chunks])
+    order = np.argsort(bad, kind="stable")
+    return n_nan, bad[order], value[order]
 
 
 def hexahedron_corner_determinants(points, dimensions, rest_det: float, out=None) -> np.ndarray:
@@ -355,7 +429,8 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float, out=None
     eight corners the Jacobian of the trilinear map has the cell's three edges from that
     corner (along i, j and k) as columns. Its determinant, divided by the rest voxel's
     (``rest_det``), is the local volume ratio there; the cell is inverted where one is
-    ``<= 0``.
+    ``<= 0``. (:func:`inverted_hexahedra` gives the same numbers for the inverted cells
+    alone, without an array per cell.)
 
     Parameters
     ----------
@@ -365,21 +440,19 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float, out=None
         Points along i, j and k (``nx, ny, nz``).
     rest_det : float
         ``det`` of the rest voxel's edge matrix: ``sx * sy * sz * det(direction)`` for an
-        image with spacing ``s`` and direction matrix ``direction``; not 0.
+        image with spacing ``s`` and direction matrix ``direction``; not 0 (negative for
+        a left-handed frame).
     out : (M,) float64 array, optional
         Written and returned (its first ``(nx - 1) * (ny - 1) * (nz - 1)`` entries): a
-        buffer reused across calls, such as the slabs of one grid, is paged in once.
+        buffer reused across calls.
 
     Returns
     -------
     ((nx - 1) * (ny - 1) * (nz - 1),) float64
-        Per cell in VTK's cell order; NaN where a corner is not finite.
+        Per cell in VTK's cell order, the smallest of the eight ratios; NaN where one is
+        not finite (a point that is not finite).
     """
-    nx, ny, nz = (int(d) for d in dimensions)
-    if not rest_det or not math.isfinite(rest_det):
-        raise ValueError(f"rest_det must be finite and non-zero; got {rest_det}")
-    p = np.asarray(points, dtype=np.float64).reshape(nz, ny, nx, 3)
-    cells = (max(nz - 1, 0), max(ny - 1, 0), max(nx - 1, 0))
+    p, cells = _hex_grid(points, dimensions, rest_det)
     n_cells = cells[0] * cells[1] * cells[2]
     if out is None:
         out = np.empty(cells)
@@ -387,8 +460,30 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float, out=None
         if out.dtype != np.float64 or out.ndim != 1 or len(out) < n_cells:
             raise ValueError(f"out must be a float64 vector of at least {n_cells} entries")
         out = out[:n_cells].reshape(cells)
-    if out.size:
-        run_rows(
-            _hex_kernel, cells[1], np.ascontiguousarray(p), float(rest_det), out, grain=_HEX_BAND
-        )
+    _run_hex_kernel(p, cells, rest_det, out)
     return out.reshape(-1)
+
+
+def inverted_hexahedra(points, dimensions, rest_det: float) -> dict:
+    """The inverted cells of a deformed voxel grid, and how many cells were measured.
+
+    The numbers of :func:`hexahedron_corner_determinants` (the same kernel, bit for bit)
+    for the cells whose smallest ratio is ``<= 0``, counted as the kernel goes: no array
+    of a value per cell is made or scanned.
+
+    Parameters
+    ----------
+    points, dimensions, rest_det
+        As for :func:`hexahedron_corner_determinants`: ``(nx * ny * nz, 3)`` positions in
+        VTK's point order, ``(nx, ny, nz)`` and the rest voxel's determinant.
+
+    Returns
+    -------
+    dict
+        ``cells`` (int): cells whose eight ratios are finite; ``inverted`` (K,) int64: the
+        inverted cells in VTK's cell order, ascending; ``determinant`` (K,) float64: their
+        smallest corner ratio (``<= 0``).
+    """
+    p, cells = _hex_grid(points, dimensions, rest_det)
+    n_nan, bad, value = _run_hex_kernel(p, cells, rest_det, np.empty((0, 0, 0)))
+    return {"cells": cells[0] * cells[1] * cells[2] - n_nan, "inverted": bad, "determinant": value}
