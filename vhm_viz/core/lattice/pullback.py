@@ -38,6 +38,9 @@ NEAR_EDGE = 4
 #: Sub-cells per axis into which :func:`subcell_tests` splits a leaf: each has its own
 #: linear estimate and nonlinearity bound, far tighter than the leaf's.
 SUBCELLS = 2
+# How much wider (voxels) than the exact interval of a row's voxels that pass a sub-cell's
+# test its range is taken: the rounding of the interval's ends.
+_HAIR = 1e-6
 # Numbers per sub-cell in :func:`subcell_tests`: for each axis ``a`` the coefficients of
 # ``d_a = c_a + p_a j + q_a k + s_a i``, then the bound on ``|d_a|``.
 _TEST_WIDTH = 13
@@ -353,7 +356,7 @@ def pull_back_rows(
     for _ in numba.prange(workers):
         vectors = np.empty((6, 3))  # y, ul, u, f, prev1, prev2 of the row's voxels
         matrices = np.empty((2, 3, 3))  # g, gi
-        spans = np.empty((SUBCELLS**3, 7))  # the row's sub-cell tests: d0 (3), slope (3), bound
+        spans = np.empty((SUBCELLS**3, 2), dtype=np.int64)  # voxels passing sub-cell tests
         while True:
             first = claim(counter, _ROWS_PER_CLAIM)
             if first >= n_rows:
@@ -387,32 +390,35 @@ def _near_span(n, lim, centre_f, centre_ginv, origin_out, to_world_out, j, k, i0
             yb = origin_out[b] + to_world_out[b, 1] * j + to_world_out[b, 2] * k - centre_f[n, b]
             d0 += centre_ginv[n, a, b] * yb
             slope += centre_ginv[n, a, b] * to_world_out[b, 0]
-        lo, hi = _axis_span(d0, slope, lim, lo, hi)
+        lo, hi = _axis_span(d0, slope, lim, 2.0 * lim, 1.0, lo, hi)
         if not lo <= hi:  # empty, or NaN
             return i0, i0 - 1
     return max(int(math.floor(lo)), i0), min(int(math.ceil(hi)), i1)
 
 
 @numba.njit(cache=True)
-def _axis_span(d0, slope, lim, lo, hi):  # pragma: no cover - compiled
-    """``[lo, hi]`` cut to where ``|d0 + slope i| <= lim``, one voxel wider (rounding)."""
+def _axis_span(d0, slope, lim, flat_lim, pad, lo, hi):  # pragma: no cover - compiled
+    """``[lo, hi]`` cut to where ``|d0 + slope i| <= lim``, ``pad`` wider (rounding).
+
+    With no slope: all of it where ``|d0| <= flat_lim``, else empty (``lo > hi``).
+    """
     if slope != 0.0:
         t0 = (-lim - d0) / slope
         t1 = (lim - d0) / slope
-        return max(lo, min(t0, t1) - 1.0), min(hi, max(t0, t1) + 1.0)
-    if not abs(d0) <= 2.0 * lim:
+        return max(lo, min(t0, t1) - pad), min(hi, max(t0, t1) + pad)
+    if not abs(d0) <= flat_lim:
         return lo, lo - 1.0
     return lo, hi
 
 
 @numba.njit(cache=True)
 def _subcell_spans(test, j, k, i0, i1, spans):  # pragma: no cover - compiled
-    """The sub-cell tests of one leaf (:func:`subcell_tests`) along output row ``(j, k)``.
+    """The voxels of output row ``(j, k)`` that pass each sub-cell test of one leaf.
 
-    Writes the tests of the sub-cells that some voxel of ``i0..i1`` may pass into the
-    first rows of ``spans`` (``d0`` and slope in ``i`` per axis, then the bound) and
-    returns ``(i_lo, i_hi, count)``: the voxels that may pass one (one voxel wider, as
-    :func:`_near_span`) and how many sub-cells were kept.
+    ``test``: the leaf's rows of :func:`subcell_tests`. Writes the voxel ranges of
+    ``i0..i1`` that pass a sub-cell's test (a hair wider than the exact intervals, for
+    rounding) into the first rows of ``spans`` and returns ``(i_lo, i_hi, count)``:
+    the range they cover together and how many were written.
     """
     i_lo = i1 + 1
     i_hi = i0 - 1
@@ -423,29 +429,27 @@ def _subcell_spans(test, j, k, i0, i1, spans):  # pragma: no cover - compiled
         hi = float(i1)
         for a in range(3):
             d0 = test[s, 4 * a] + test[s, 4 * a + 1] * j + test[s, 4 * a + 2] * k
-            slope = test[s, 4 * a + 3]
-            spans[count, a] = d0
-            spans[count, 3 + a] = slope
-            lo, hi = _axis_span(d0, slope, lim, lo, hi)
-        if not lo <= hi:  # empty, or NaN
+            lo, hi = _axis_span(d0, test[s, 4 * a + 3], lim, lim, _HAIR, lo, hi)
+            if not lo <= hi:  # empty, or NaN
+                break
+        if not lo <= hi:
             continue
-        spans[count, 6] = lim
+        a, b = max(int(math.ceil(lo)), i0), min(int(math.floor(hi)), i1)
+        if a > b:
+            continue
+        spans[count, 0] = a
+        spans[count, 1] = b
         count += 1
-        i_lo = min(i_lo, max(int(math.floor(lo)), i0))
-        i_hi = max(i_hi, min(int(math.ceil(hi)), i1))
+        i_lo = min(i_lo, a)
+        i_hi = max(i_hi, b)
     return i_lo, i_hi, count
 
 
 @numba.njit(cache=True)
-def _passes_subcell(spans, count, i):  # pragma: no cover - compiled
-    """Whether voxel ``i`` of the row passes one of the ``count`` sub-cell tests kept."""
+def _in_spans(spans, count, i):  # pragma: no cover - compiled
+    """Whether voxel ``i`` lies in one of the first ``count`` ranges of ``spans``."""
     for s in range(count):
-        ok = True
-        for a in range(3):
-            if not abs(spans[s, a] + spans[s, 3 + a] * i) <= spans[s, 6]:
-                ok = False
-                break
-        if ok:
+        if spans[s, 0] <= i <= spans[s, 1]:
             return True
     return False
 
@@ -477,11 +481,15 @@ def _pull_back_row(
         lim = 0.5 * h + rho[n] + margin[n]
         i_lo, i_hi = _near_span(n, lim, centre_f, centre_ginv, origin_out, to_world_out, j, k,
                                 row_i0[c], row_i1[c])  # fmt: skip
-        kept = 0
-        if tests.shape[0] > 0 and i_lo <= i_hi:
+        tested = tests.shape[0] > 0
+        kept = 0  # voxel ranges in ``spans`` that pass a sub-cell test
+        if tested and i_lo <= i_hi:
             i_lo, i_hi, kept = _subcell_spans(tests[n], j, k, i_lo, i_hi, spans)
         chained = 0  # consecutive converged voxels before this one
         for i_ in range(i_lo, i_hi + 1):
+            if tested and not _in_spans(spans, kept, i_):
+                chained = 0
+                continue
             for a in range(3):
                 y[a] = origin_out[a] + to_world_out[a, 0] * i_ + (
                     to_world_out[a, 1] * j + to_world_out[a, 2] * k
@@ -494,7 +502,7 @@ def _pull_back_row(
                 ul[a] = origin[n, a] + 0.5 * h + d
                 if not abs(d) <= lim:  # also catches NaN
                     far = True
-            if far or (tests.shape[0] > 0 and not _passes_subcell(spans, kept, i_)):
+            if far:
                 chained = 0
                 continue
             v = ((k - box[4]) * ny + (j - box[2])) * nx + (i_ - box[0])
