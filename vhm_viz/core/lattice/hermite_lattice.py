@@ -263,7 +263,7 @@ class HermiteLattice:
         near_edge : (L,) bool, optional
             Leaves whose pre-images get :data:`~vhm_viz.core.lattice.pullback.NEAR_EDGE`
             in ``state`` (default: every leaf).
-        tests : (L, S, 13) float64, optional
+        tests : (L, S, 3, 5) float64, optional
             :func:`~vhm_viz.core.lattice.pullback.subcell_tests` on this output grid:
             fewer Newton solves that end outside their leaf (default: the leaves' own).
         """
@@ -287,7 +287,7 @@ class HermiteLattice:
         if total:
             candidate_rows(leaves, lo, hi, b, start, row_leaf, row_i0, row_i1)
         if tests is None:
-            tests = np.zeros((0, 1, 13))
+            tests = np.zeros((0, 1, 3, 5))
         pull_back_rows(
             self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaf_cut, near_edge,
             self.centre_f, self.centre_ginv, self.rho, self.margins(), tests, *self.cut_flags(),

@@ -41,9 +41,9 @@ SUBCELLS = 2
 # How much wider (voxels) than the exact interval of a row's voxels that pass a sub-cell's
 # test its range is taken: the rounding of the interval's ends.
 _HAIR = 1e-6
-# Numbers per sub-cell in :func:`subcell_tests`: for each axis ``a`` the coefficients of
+# Numbers per sub-cell and axis ``a`` in :func:`subcell_tests`: the coefficients of
 # ``d_a = c_a + p_a j + q_a k + s_a i``, then the bound on ``|d_a|``.
-_TEST_WIDTH = 13
+_TEST_WIDTH = 5
 
 
 @numba.njit(cache=True)
@@ -135,8 +135,11 @@ def subcell_tests(lattice, geometry) -> np.ndarray:
     ``d = G_s^-1 (y - f_s)`` (value and inverse Jacobian at the sub-cell's centre) within
     ``rho_s`` of ``u - u_s``, ``rho_s`` bounding the sub-cell polynomial's nonlinearity
     as :func:`~vhm_viz.core.lattice.hermite.leaf_summaries` bounds the leaf's; so
-    ``|d|_inf <= h_s / 2 + rho_s + margin``. On an output grid ``d`` is affine in the
-    voxel index: the test is stored as those coefficients and the bound.
+    ``|d|_inf <= h_s / 2 + rho_s + margin``, and ``u_s + d`` lies within ``rho_s`` of the
+    input volume grown by its half-voxel border (the pull-back keeps no pre-image
+    beyond). Both bound each axis's ``d_a`` to an interval; on an output grid ``d`` is
+    affine in the voxel index: the test is stored as those coefficients, shifted to the
+    interval's middle, and its half-width.
 
     Parameters
     ----------
@@ -146,14 +149,16 @@ def subcell_tests(lattice, geometry) -> np.ndarray:
 
     Returns
     -------
-    (L, SUBCELLS**3, 13) float64
-        For sub-cell ``a + 2 b + 4 c`` of leaf ``n``: ``c_x, p_x, q_x, s_x, c_y, ...,
-        s_z, bound``, with ``d_x = c_x + p_x j + q_x k + s_x i``. A sub-cell whose
-        Jacobian is singular gets zeros and an infinite bound (any voxel may be there).
+    (L, SUBCELLS**3, 3, 5) float64
+        For sub-cell ``a + 2 b + 4 c`` of leaf ``n`` and axis ``x``: ``c, p, q, s, bound``:
+        the voxel ``(i, j, k)`` passes where ``|c + p j + q k + s i| <= bound`` on every
+        axis. A sub-cell whose Jacobian is singular gets zeros and infinite bounds (any
+        voxel may be there), one out of the volume's reach a bound of -1 (none).
     """
-    tests = np.empty((len(lattice.leaf_size), SUBCELLS**3, _TEST_WIDTH))
+    tests = np.empty((len(lattice.leaf_size), SUBCELLS**3, 3, _TEST_WIDTH))
     if len(tests):
-        _subcell_tests(lattice.data, lattice.leaf_rows, lattice.leaf_size, lattice.margins(),
+        _subcell_tests(lattice.data, lattice.leaf_rows, lattice.leaf_origin, lattice.leaf_size,
+                       lattice.margins(), lattice.last.astype(np.float64),
                        np.asarray(geometry.origin, dtype=np.float64),
                        np.ascontiguousarray(geometry.index_to_world, dtype=np.float64),
                        tests)  # fmt: skip
@@ -161,7 +166,8 @@ def subcell_tests(lattice, geometry) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True)
-def _subcell_tests(data, rows, size, margin, origin_out, to_world_out, tests):  # pragma: no cover
+def _subcell_tests(data, rows, origin, size, margin, last, origin_out, to_world_out,
+                   tests):  # pragma: no cover - compiled  # fmt: skip
     """:func:`subcell_tests` of every leaf into ``tests``."""
     for n in numba.prange(rows.shape[0]):
         h = float(size[n])
@@ -181,23 +187,31 @@ def _subcell_tests(data, rows, size, margin, origin_out, to_world_out, tests):  
                       (corner[1] + 0.5) / SUBCELLS, (corner[2] + 0.5) / SUBCELLS, f, g,
                       True)  # fmt: skip
             worst = net_nonlinearity(cp, f, gi, hs) if inverse3(g, gi) else np.inf
-            row = tests[n, s]
-            if not np.isfinite(worst):
-                row[:] = 0.0
-                row[_TEST_WIDTH - 1] = np.inf
-                continue
             for a in range(3):
-                c = 0.0
+                row = tests[n, s, a]
+                if not np.isfinite(worst):
+                    row[:] = 0.0
+                    row[_TEST_WIDTH - 1] = np.inf
+                    continue
+                lim = 0.5 * hs + worst + margin[n]
+                centre = origin[n, a] + (corner[a] + 0.5) * hs
+                lower = max(-lim, -BORDER - centre - worst)
+                upper = min(lim, last[a] + BORDER - centre + worst)
+                if not lower <= upper:
+                    row[:] = 0.0
+                    row[_TEST_WIDTH - 1] = -1.0
+                    continue
+                c = -0.5 * (lower + upper)
                 for b in range(3):
                     c += gi[a, b] * (origin_out[b] - f[b])
-                row[4 * a] = c
+                row[0] = c
                 for t in range(3):
                     d = 0.0
                     for b in range(3):
                         d += gi[a, b] * to_world_out[b, t]
                     # (j, k, i) order: the row's constant part first
-                    row[4 * a + 1 + (t + 2) % 3] = d
-            row[_TEST_WIDTH - 1] = 0.5 * hs + worst + margin[n]
+                    row[1 + (t + 2) % 3] = d
+                row[_TEST_WIDTH - 1] = 0.5 * (upper - lower)
 
 
 @numba.njit(cache=True)
@@ -424,12 +438,14 @@ def _subcell_spans(test, j, k, i0, i1, spans):  # pragma: no cover - compiled
     i_hi = i0 - 1
     count = 0
     for s in range(test.shape[0]):
-        lim = test[s, _TEST_WIDTH - 1]
         lo = float(i0)
         hi = float(i1)
         for a in range(3):
-            d0 = test[s, 4 * a] + test[s, 4 * a + 1] * j + test[s, 4 * a + 2] * k
-            lo, hi = _axis_span(d0, test[s, 4 * a + 3], lim, lim, _HAIR, lo, hi)
+            t = test[s, a]
+            if not t[4] >= 0.0:  # out of the volume's reach
+                hi = lo - 1.0
+                break
+            lo, hi = _axis_span(t[0] + t[1] * j + t[2] * k, t[3], t[4], t[4], _HAIR, lo, hi)
             if not lo <= hi:  # empty, or NaN
                 break
         if not lo <= hi:
