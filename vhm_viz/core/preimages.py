@@ -24,7 +24,6 @@ from vhm_viz.core.basis import evaluate_map, inside_cage, winding_number
 from vhm_viz.core.image import BORDER, ImageGeometry, inside_mask
 from vhm_viz.core.lattice.cage_edges import cells_near_edges
 from vhm_viz.core.lattice.pullback import NEAR_EDGE
-from vhm_viz.core.row_threads import run_rows
 
 __all__ = ["exact_preimages"]
 
@@ -35,9 +34,6 @@ __all__ = ["exact_preimages"]
 # tolerance where the map compresses. The band is wide enough that those errors stay
 # below the tolerance's order farther out (the benchmark measures them).
 _EXACT_NEAR_EDGE = 1.5
-# Voxels of a slab per chunk of its scans (:func:`_rows_with`, :func:`slab_outcome`), which
-# run on threads chunk by chunk.
-_SCAN_CHUNK = 1 << 16
 # Newton on the exact map starts from the lattice's pre-image, a few hundredths of a voxel
 # off: two or three steps converge; more means it left for another branch.
 _EXACT_ITERATIONS = 6
@@ -87,41 +83,18 @@ def confirm_tentative(harmonic_map, geometry: ImageGeometry, u, state) -> None:
         state[t] = np.where(ins, (state[t] & NEAR_EDGE) | 1, 0)
 
 
-def _rows_with(state, mask, value, match=True):
-    """Indices ``p`` where ``(state[p] & mask == value) == match``, ascending."""
-    chunks = -(-len(state) // _SCAN_CHUNK)
-    counts = np.zeros(chunks + 1, dtype=np.int64)
-    run_rows(_count_with, chunks, state, mask, value, match, counts, grain=1)
-    return _chunk_rows(state, mask, value, match, counts)
-
-
-def _chunk_rows(state, mask, value, match, counts):
-    """:func:`_rows_with` from each chunk's count (``counts[c + 1]``, chunk ``c``)."""
-    offsets = np.cumsum(counts)
-    out = np.empty(int(offsets[-1]), dtype=np.int64)
-    run_rows(_fill_with, len(counts) - 1, state, mask, value, match, offsets, out, grain=1)
-    return out
-
-
-@numba.njit(nogil=True, cache=True)
-def _count_with(start, stop, state, mask, value, match, counts):  # pragma: no cover
-    """How many voxels of each chunk ``start <= c < stop`` :func:`_rows_with` lists."""
-    for c in range(start, stop):
-        m = 0
-        for p in range(c * _SCAN_CHUNK, min((c + 1) * _SCAN_CHUNK, state.shape[0])):
-            m += (state[p] & mask == value) == match  # (no branches: states alternate often)
-        counts[c + 1] = m
-
-
-@numba.njit(nogil=True, cache=True)
-def _fill_with(start, stop, state, mask, value, match, offsets, out):  # pragma: no cover
-    """The indices of :func:`_rows_with` of chunks ``start <= c < stop``, from ``offsets``."""
-    for c in range(start, stop):
-        q = offsets[c]
-        for p in range(c * _SCAN_CHUNK, min((c + 1) * _SCAN_CHUNK, state.shape[0])):
-            if (state[p] & mask == value) == match:
-                out[q] = p
-                q += 1
+@numba.njit(cache=True)
+def _rows_with(state, mask, value):  # pragma: no cover - compiled
+    """Indices ``p`` where ``state[p] & mask == value``, ascending (no boolean array)."""
+    count = 0
+    for p in range(state.shape[0]):  # (no branches: a slab's states alternate often)
+        count += state[p] & mask == value
+    out = np.empty(count + 1, dtype=np.int64)
+    q = 0
+    for p in range(state.shape[0]):
+        out[q] = p
+        q += state[p] & mask == value
+    return out[:count]
 
 
 def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
@@ -169,8 +142,9 @@ def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
     return int(same.sum())
 
 
-def slab_outcome(state, fold, valid, foldover):
-    """A finished slab's masks: ``valid = state > 0``, ``foldover = fold`` (on threads).
+@numba.njit(cache=True)
+def slab_outcome(state, fold, valid, foldover):  # pragma: no cover - compiled
+    """A finished slab's masks in one pass: ``valid = state > 0``, ``foldover = fold``.
 
     Parameters
     ----------
@@ -186,28 +160,20 @@ def slab_outcome(state, fold, valid, foldover):
     identity : int
         How many were left in place (``state`` 3).
     """
-    chunks = -(-len(state) // _SCAN_CHUNK)
-    counts = np.zeros(chunks + 1, dtype=np.int64)
-    identity = np.zeros(chunks, dtype=np.int64)
-    run_rows(_outcome_chunks, chunks, state, fold, valid, foldover, counts, identity, grain=1)
-    return _chunk_rows(state, 0xFF, 0, False, counts), int(identity.sum())
-
-
-@numba.njit(nogil=True, cache=True)
-def _outcome_chunks(start, stop, state, fold, valid, foldover, counts,
-                    identity):  # pragma: no cover - compiled  # fmt: skip
-    """:func:`slab_outcome`'s masks and counts of chunks ``start <= c < stop``."""
-    for c in range(start, stop):
-        found = 0
-        left = 0
-        for p in range(c * _SCAN_CHUNK, min((c + 1) * _SCAN_CHUNK, state.shape[0])):
-            s = state[p]  # (no branches: runs of states alternate often)
-            valid[p] = s != 0
-            foldover[p] = fold[p]
-            found += s != 0
-            left += s == 3
-        counts[c + 1] = found
-        identity[c] = left
+    found = 0
+    identity = 0
+    for p in range(state.shape[0]):  # (no branches: runs of states alternate often)
+        s = state[p]
+        valid[p] = s != 0
+        foldover[p] = fold[p]
+        found += s != 0
+        identity += s == 3
+    rows = np.empty(found + 1, dtype=np.int64)
+    q = 0
+    for p in range(state.shape[0]):
+        rows[q] = p
+        q += state[p] != 0
+    return rows[:found], identity
 
 
 def pass_through(harmonic_map, geometry: ImageGeometry, out_geo: ImageGeometry, slab, u,
