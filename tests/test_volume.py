@@ -33,7 +33,7 @@ from vhm_viz.core.errors import AbortedError, OutsideCageError  # noqa: E402
 from vhm_viz.core.image import ImageGeometry, inside_mask, surface_mask  # noqa: E402
 from vhm_viz.core.lattice import PART_FIELDS, build_lattice, join_parts, nodes  # noqa: E402
 from vhm_viz.core.lattice.nodes import NodeTable  # noqa: E402
-from vhm_viz.core.lattice.pullback import inside_around  # noqa: E402
+from vhm_viz.core.lattice.pullback import SUBCELLS, inside_around, subcell_tests  # noqa: E402
 from vhm_viz.core.memory import take_in_place  # noqa: E402
 from vhm_viz.core.metrics import jacobian_measures  # noqa: E402
 from vhm_viz.core.volume import (  # noqa: E402
@@ -1499,6 +1499,47 @@ def test_equal_cuts_are_the_nearest_boundaries_to_equal_shares():
             target = below[-1] * r / parts
             assert abs(below[cuts[r]] - target) <= np.abs(below - target).min() + 1e-12
     np.testing.assert_array_equal(equal_cuts(np.zeros(6), 3), [0, 2, 4, 6])
+
+
+def test_subcell_tests_hold_the_image_of_their_subcell(bend):
+    """Each sub-cell's test of the pull-back: ``d`` is the linear pre-image estimate from
+    the sub-cell's centre, ``G_s^-1 (y - f_s)`` (value and Jacobian from the lattice's
+    polynomial), affine in the output index and shifted per axis; every point of the
+    sub-cell within the volume's half-voxel border passes it, and the bound is tighter
+    than the leaf's own (half its size, its rho and its margin)."""
+    geo, _, _, vol = bend
+    out = vol.output_geometry()
+    lat = vol.lattice
+    tests = subcell_tests(lat, out)
+    assert tests.shape == (len(lat.leaf_size), SUBCELLS**3, 3, 5)
+    rng = np.random.default_rng(7)
+    leaves = rng.choice(len(lat.leaf_size), size=min(60, len(lat.leaf_size)), replace=False)
+    to_index = np.linalg.inv(out.index_to_world)
+    last = np.asarray(geo.dimensions) - 1.0
+    tighter = tried = 0
+    for n in leaves:
+        h = float(lat.leaf_size[n])
+        for s in range(SUBCELLS**3):
+            corner = np.array([s % SUBCELLS, (s // SUBCELLS) % SUBCELLS, s // SUBCELLS**2])
+            lo = lat.leaf_origin[n] + corner * h / SUBCELLS
+            centre = lo + 0.5 * h / SUBCELLS
+            # points inside the sub-cell (kept off its faces: a face is shared with the next
+            # leaf, whose polynomial the lattice evaluates there) and the volume's border
+            u = lo + (0.02 + 0.96 * rng.random((40, 3))) * h / SUBCELLS
+            u = u[((u >= -0.5) & (u <= last + 0.5)).all(axis=1)]
+            if not len(u):
+                continue
+            tried += 1
+            f_c, g_c = lat.evaluate(centre[None], gradient=True)
+            y = lat.evaluate(u)
+            ijk = (y - out.origin) @ to_index.T
+            c, p, q, slope, bound = tests[n, s].T
+            d = c + ijk[:, 1:2] * p + ijk[:, 2:3] * q + ijk[:, 0:1] * slope
+            shift = d - (y - f_c) @ np.linalg.inv(g_c[0]).T
+            np.testing.assert_allclose(shift - shift[0], 0.0, atol=1e-8 * h)
+            assert (np.abs(d) <= bound).all()
+            tighter += (bound < 0.5 * h + lat.rho[n] + lat.margins()[n]).all()
+    assert tried > 0 and tighter == tried
 
 
 def test_pull_back_pairs_count_every_voxels_candidate_leaves(bend):

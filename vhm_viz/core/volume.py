@@ -59,6 +59,7 @@ from vhm_viz.core.lattice import (
     build_lattice,
     check_tolerance,
 )
+from vhm_viz.core.lattice.pullback import subcell_tests
 from vhm_viz.core.memory import PULL_BACK_SLAB_BYTES, SLAB_VOXEL_BYTES, release_free_memory
 from vhm_viz.core.partition import (
     equal_cuts,
@@ -766,6 +767,7 @@ class VolumeDeformation(VolumePieces):
         self._refuse_outside()
         boxes = self.candidate_boxes(out_geo)
         near_edge = leaves_near_edges(lat)
+        tests = subcell_tests(lat, out_geo)
         self._start_slabs()
         budget = DEFAULT_MEMORY_BUDGET if self.memory_budget is None else self.memory_budget
         slabs = list(slabs_of(b, _RESAMPLE_BYTES, min(budget, PULL_BACK_SLAB_BYTES)))
@@ -780,7 +782,7 @@ class VolumeDeformation(VolumePieces):
             m = int((slab[5] - slab[4] + 1) * plane)
             self._count_slab(m)
             u, state, fold, quality = (a[:m] for a in buffers)
-            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality, near_edge)
+            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality, near_edge, tests)
             confirm_tentative(self.map, self.geometry, u, state)
             polish_next_to_edges(self.map, lat, self.geometry, out_geo, slab, u, state)
             if self.outside == "passthrough":

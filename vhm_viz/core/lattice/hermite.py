@@ -214,15 +214,27 @@ def leaf_summaries(data, rows, size, centre_f, centre_ginv, rho):  # pragma: no 
                 centre_ginv[n, i, j] = gi[i, j]
         cp = np.empty((64, 3))
         control_points(data, rows[n], h, cp)
-        worst = 0.0
-        for q in range(64):
-            lin = ((q % 4) / 3.0 - 0.5, ((q // 4) % 4) / 3.0 - 0.5, (q // 16) / 3.0 - 0.5)
-            for i in range(3):
-                d = -lin[i] * h
-                for j in range(3):
-                    d += gi[i, j] * (cp[q, j] - f[j])
-                worst = max(worst, abs(d))
+        worst = net_nonlinearity(cp, f, gi, h)
         rho[n] = worst if np.isfinite(worst) else np.inf
+
+
+@numba.njit(cache=True)
+def net_nonlinearity(cp, f, gi, h):  # pragma: no cover - compiled
+    """Bound of ``|G_c^-1 (f(u) - f_c) - (u - u_c)|_inf`` over a cell from its Bezier net.
+
+    ``cp`` (64, 3): the cell's control points; ``f``, ``gi``: value and inverse Jacobian
+    at its centre; ``h``: its size. The net of that tricubic is ``cp`` mapped the same
+    way minus the net of the linear ``u - u_c`` (points at the cell's thirds).
+    """
+    worst = 0.0
+    for q in range(64):
+        lin = ((q % 4) / 3.0 - 0.5, ((q // 4) % 4) / 3.0 - 0.5, (q // 16) / 3.0 - 0.5)
+        for i in range(3):
+            d = -lin[i] * h
+            for j in range(3):
+                d += gi[i, j] * (cp[q, j] - f[j])
+            worst = max(worst, abs(d))
+    return worst
 
 
 @numba.njit(cache=True)

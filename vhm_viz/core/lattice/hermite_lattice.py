@@ -244,7 +244,7 @@ class HermiteLattice:
         return np.floor(lo).astype(np.int64), np.ceil(hi).astype(np.int64)
 
     def pull_back(self, geometry: ImageGeometry, box, boxes, u, state, fold, quality,
-                  near_edge=None) -> None:  # fmt: skip
+                  near_edge=None, tests=None) -> None:  # fmt: skip
         """Pre-images (input voxel indices) of the voxels of an output box.
 
         Parameters
@@ -263,6 +263,9 @@ class HermiteLattice:
         near_edge : (L,) bool, optional
             Leaves whose pre-images get :data:`~vhm_viz.core.lattice.pullback.NEAR_EDGE`
             in ``state`` (default: every leaf).
+        tests : (L, S, 3, 5) float64, optional
+            :func:`~vhm_viz.core.lattice.pullback.subcell_tests` on this output grid:
+            fewer Newton solves that end outside their leaf (default: the leaves' own).
         """
         self._need_pre_images("pull_back")
         if near_edge is None:
@@ -283,9 +286,11 @@ class HermiteLattice:
         row_i1 = np.empty(total, dtype=np.int64)
         if total:
             candidate_rows(leaves, lo, hi, b, start, row_leaf, row_i0, row_i1)
+        if tests is None:
+            tests = np.zeros((0, 1, 3, 5))
         pull_back_rows(
             self.data, self.leaf_rows, self.leaf_origin, self.leaf_size, self.leaf_cut, near_edge,
-            self.centre_f, self.centre_ginv, self.rho, self.margins(), *self.cut_flags(),
+            self.centre_f, self.centre_ginv, self.rho, self.margins(), tests, *self.cut_flags(),
             self.last,
             geometry.origin, geometry.index_to_world, b, start, row_leaf, row_i0, row_i1,
             u, state, fold, quality, worker_count(),

@@ -3,7 +3,9 @@
 Each leaf keeps its value and inverse Jacobian at the centre and a bound ``rho`` of its
 nonlinearity (:func:`~vhm_viz.core.lattice.hermite.leaf_summaries`): an output voxel
 whose linear pre-image estimate misses the leaf by more than ``rho`` has no pre-image in
-it; Newton's method on the leaf's polynomial finds the others. Pre-images in leaves the
+it; the same test on each of its sub-cells (:func:`subcell_tests`), whose bounds are far
+tighter, skips most of the voxels next to the leaf; Newton's method on the leaf's
+polynomial finds the others. Pre-images in leaves the
 cage crosses are checked against the inside and surface flags of the grid cube around
 them (:func:`cut_blocks`), or the winding number where those cannot tell.
 """
@@ -16,7 +18,7 @@ import numba
 import numpy as np
 
 from vhm_viz.core.image import BORDER, inside_mask, surface_mask
-from vhm_viz.core.lattice.hermite import cell_eval, control_points, inverse3
+from vhm_viz.core.lattice.hermite import cell_eval, control_points, inverse3, net_nonlinearity
 from vhm_viz.core.work_items import claim
 
 # Newton on a cell's polynomial: converged when the step is below this (voxels; the step
@@ -33,44 +35,55 @@ _ROWS_PER_CLAIM = 4
 #: Bit of a pull-back's ``state`` set when the pre-image lies in a leaf flagged
 #: ``near_edge`` (:func:`pull_back_rows`): the caller looks closer at those only.
 NEAR_EDGE = 4
+#: Sub-cells per axis into which :func:`subcell_tests` splits a leaf: each has its own
+#: linear estimate and nonlinearity bound, far tighter than the leaf's.
+SUBCELLS = 2
+# How much wider (voxels) than the exact interval of a row's voxels that pass a sub-cell's
+# test its range is taken: the rounding of the interval's ends.
+_HAIR = 1e-6
+# Numbers per sub-cell and axis ``a`` in :func:`subcell_tests`: the coefficients of
+# ``d_a = c_a + p_a j + q_a k + s_a i``, then the bound on ``|d_a|``.
+_TEST_WIDTH = 5
 
 
 @numba.njit(cache=True)
 def _clip_net(cp, axis, t0, t1):  # pragma: no cover - compiled
     """Restrict a tricubic Bezier net to ``t0 <= t <= t1`` along one axis (de Casteljau).
 
-    The new net's control points bound the image of the restricted cell only.
+    The new net's control points bound the image of the restricted cell only. Written in
+    scalar loops: row arithmetic (array expressions) compiles many times slower, for the
+    same operations.
     """
     b = np.empty((4, 3))
+    idx = np.empty(4, dtype=np.int64)
+    stride = 1 if axis == 0 else (4 if axis == 1 else 16)
+    s = t0 / t1 if t1 > 0.0 else 0.0
     for line in range(16):
         # the 4 control points of this line along ``axis``
-        idx = np.empty(4, dtype=np.int64)
+        lo, hi = line % 4, line // 4
+        if axis == 0:
+            first = 4 * lo + 16 * hi
+        elif axis == 1:
+            first = lo + 16 * hi
+        else:
+            first = lo + 4 * hi
         for q in range(4):
-            if axis == 0:
-                idx[q] = q + 4 * (line % 4) + 16 * (line // 4)
-            elif axis == 1:
-                idx[q] = (line % 4) + 4 * q + 16 * (line // 4)
-            else:
-                idx[q] = (line % 4) + 4 * (line // 4) + 16 * q
-        # scalar loops over the coordinates: row arithmetic (array expressions) compiles
-        # many times slower, for the same operations
-        for q in range(4):
-            for c in range(3):
-                b[q, c] = cp[idx[q], c]
+            idx[q] = first + stride * q
+            for a in range(3):
+                b[q, a] = cp[idx[q], a]
         # keep [0, t1]: the left half of a split at t1
         for r in range(1, 4):
             for q in range(3, r - 1, -1):
-                for c in range(3):
-                    b[q, c] = (1.0 - t1) * b[q - 1, c] + t1 * b[q, c]
+                for a in range(3):
+                    b[q, a] = (1.0 - t1) * b[q - 1, a] + t1 * b[q, a]
         # keep [t0 / t1, 1] of that: the right half of a split
-        s = t0 / t1 if t1 > 0.0 else 0.0
         for r in range(1, 4):
             for q in range(0, 4 - r):
-                for c in range(3):
-                    b[q, c] = (1.0 - s) * b[q, c] + s * b[q + 1, c]
+                for a in range(3):
+                    b[q, a] = (1.0 - s) * b[q, a] + s * b[q + 1, a]
         for q in range(4):
-            for c in range(3):
-                cp[idx[q], c] = b[q, c]
+            for a in range(3):
+                cp[idx[q], a] = b[q, a]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -114,6 +127,93 @@ def output_boxes(data, rows, origin, size, lower, upper, origin_out, to_out, mar
                 pad = max(pad, s)
             lo[n, a] -= margin[n] * pad
             hi[n, a] += margin[n] * pad
+
+
+def subcell_tests(lattice, geometry) -> np.ndarray:
+    """Per leaf and sub-cell, the test that an output voxel may have a pre-image there.
+
+    A leaf is split into ``SUBCELLS``^3 sub-cells. A pre-image ``u`` in sub-cell ``s``
+    (grown by the leaf's margin) of an output voxel ``y`` has its linear estimate
+    ``d = G_s^-1 (y - f_s)`` (value and inverse Jacobian at the sub-cell's centre) within
+    ``rho_s`` of ``u - u_s``, ``rho_s`` bounding the sub-cell polynomial's nonlinearity
+    as :func:`~vhm_viz.core.lattice.hermite.leaf_summaries` bounds the leaf's; so
+    ``|d|_inf <= h_s / 2 + rho_s + margin``, and ``u_s + d`` lies within ``rho_s`` of the
+    input volume grown by its half-voxel border (the pull-back keeps no pre-image
+    beyond). Both bound each axis's ``d_a`` to an interval; on an output grid ``d`` is
+    affine in the voxel index: the test is stored as those coefficients, shifted to the
+    interval's middle, and its half-width.
+
+    Parameters
+    ----------
+    lattice : HermiteLattice
+    geometry : ImageGeometry
+        The output grid.
+
+    Returns
+    -------
+    (L, SUBCELLS**3, 3, 5) float64
+        For sub-cell ``a + 2 b + 4 c`` of leaf ``n`` and axis ``x``: ``c, p, q, s, bound``:
+        the voxel ``(i, j, k)`` passes where ``|c + p j + q k + s i| <= bound`` on every
+        axis. A sub-cell whose Jacobian is singular gets zeros and infinite bounds (any
+        voxel may be there), one out of the volume's reach a bound of -1 (none).
+    """
+    tests = np.empty((len(lattice.leaf_size), SUBCELLS**3, 3, _TEST_WIDTH))
+    if len(tests):
+        _subcell_tests(lattice.data, lattice.leaf_rows, lattice.leaf_origin, lattice.leaf_size,
+                       lattice.margins(), lattice.last.astype(np.float64),
+                       np.asarray(geometry.origin, dtype=np.float64),
+                       np.ascontiguousarray(geometry.index_to_world, dtype=np.float64),
+                       tests)  # fmt: skip
+    return tests
+
+
+@numba.njit(parallel=True, cache=True)
+def _subcell_tests(data, rows, origin, size, margin, last, origin_out, to_world_out,
+                   tests):  # pragma: no cover - compiled  # fmt: skip
+    """:func:`subcell_tests` of every leaf into ``tests``."""
+    for n in numba.prange(rows.shape[0]):
+        h = float(size[n])
+        hs = h / SUBCELLS
+        net = np.empty((64, 3))
+        control_points(data, rows[n], h, net)
+        cp = np.empty((64, 3))
+        f = np.empty(3)
+        g = np.empty((3, 3))
+        gi = np.empty((3, 3))
+        for s in range(SUBCELLS**3):
+            corner = (s % SUBCELLS, (s // SUBCELLS) % SUBCELLS, s // SUBCELLS**2)
+            cp[:] = net
+            for a in range(3):
+                _clip_net(cp, a, corner[a] / SUBCELLS, (corner[a] + 1.0) / SUBCELLS)
+            cell_eval(data, rows[n], h, (corner[0] + 0.5) / SUBCELLS,
+                      (corner[1] + 0.5) / SUBCELLS, (corner[2] + 0.5) / SUBCELLS, f, g,
+                      True)  # fmt: skip
+            worst = net_nonlinearity(cp, f, gi, hs) if inverse3(g, gi) else np.inf
+            for a in range(3):
+                row = tests[n, s, a]
+                if not np.isfinite(worst):
+                    row[:] = 0.0
+                    row[_TEST_WIDTH - 1] = np.inf
+                    continue
+                lim = 0.5 * hs + worst + margin[n]
+                centre = origin[n, a] + (corner[a] + 0.5) * hs
+                lower = max(-lim, -BORDER - centre - worst)
+                upper = min(lim, last[a] + BORDER - centre + worst)
+                if not lower <= upper:
+                    row[:] = 0.0
+                    row[_TEST_WIDTH - 1] = -1.0
+                    continue
+                c = -0.5 * (lower + upper)
+                for b in range(3):
+                    c += gi[a, b] * (origin_out[b] - f[b])
+                row[0] = c
+                for t in range(3):
+                    d = 0.0
+                    for b in range(3):
+                        d += gi[a, b] * to_world_out[b, t]
+                    # (j, k, i) order: the row's constant part first
+                    row[1 + (t + 2) % 3] = d
+                row[_TEST_WIDTH - 1] = 0.5 * (upper - lower)
 
 
 @numba.njit(cache=True)
@@ -239,17 +339,20 @@ def inside_around(block_of, pool, dims, u):  # pragma: no cover - compiled
 
 @numba.njit(parallel=True, cache=True)
 def pull_back_rows(
-    data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, block_of, pool,
-    dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
+    data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, tests, block_of,
+    pool, dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
     u_out, state, fold, quality, workers,
 ):  # pragma: no cover - compiled  # fmt: skip
     """Pre-images of the output voxels of a box: Newton on the leaves' polynomials.
 
     For every row of the box and every leaf whose image box crosses it, each voxel ``y``
     gets a linear pre-image estimate from the leaf's centre; a leaf more than ``rho`` plus
-    the margin away is skipped, otherwise Newton's method on the leaf's polynomial starts
-    from that estimate (or from the previous voxel's pre-image, advanced by the inverse
-    Jacobian). A converged pre-image within the margin of its leaf and within the input
+    the margin away is skipped, and so is one none of whose sub-cells' tests passes
+    (``tests``: :func:`subcell_tests`, or empty for none); otherwise Newton's method on
+    the leaf's polynomial starts from that estimate (or from the previous voxel's
+    pre-image, advanced by the inverse Jacobian). A voxel whose pre-image inside another
+    leaf is known is skipped where every pre-image this leaf may hold lies within a voxel
+    of it (the same point). A converged pre-image within the margin of its leaf and within the input
     volume's half-voxel border is kept:
 
     * ``state`` 1 (inside the cage), or 2 when the leaf crosses the cage and the voxels
@@ -269,6 +372,7 @@ def pull_back_rows(
     for _ in numba.prange(workers):
         vectors = np.empty((6, 3))  # y, ul, u, f, prev1, prev2 of the row's voxels
         matrices = np.empty((2, 3, 3))  # g, gi
+        spans = np.empty((SUBCELLS**3, 2), dtype=np.int64)  # voxels passing sub-cell tests
         while True:
             first = claim(counter, _ROWS_PER_CLAIM)
             if first >= n_rows:
@@ -276,8 +380,9 @@ def pull_back_rows(
             for r in range(first, min(first + _ROWS_PER_CLAIM, n_rows)):
                 _pull_back_row(
                     r, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin,
-                    block_of, pool, dims, last, origin_out, to_world_out, box, row_start,
+                    tests, block_of, pool, dims, last, origin_out, to_world_out, box, row_start,
                     row_leaf, row_i0, row_i1, u_out, state, fold, quality, vectors, matrices,
+                    spans,
                 )  # fmt: skip
 
 
@@ -301,25 +406,79 @@ def _near_span(n, lim, centre_f, centre_ginv, origin_out, to_world_out, j, k, i0
             yb = origin_out[b] + to_world_out[b, 1] * j + to_world_out[b, 2] * k - centre_f[n, b]
             d0 += centre_ginv[n, a, b] * yb
             slope += centre_ginv[n, a, b] * to_world_out[b, 0]
-        if slope != 0.0:
-            t0 = (-lim - d0) / slope
-            t1 = (lim - d0) / slope
-            lo = max(lo, min(t0, t1) - 1.0)
-            hi = min(hi, max(t0, t1) + 1.0)
-        elif not abs(d0) <= 2.0 * lim:
-            hi = lo - 1.0
+        lo, hi = _axis_span(d0, slope, lim, 2.0 * lim, 1.0, lo, hi)
         if not lo <= hi:  # empty, or NaN
             return i0, i0 - 1
     return max(int(math.floor(lo)), i0), min(int(math.ceil(hi)), i1)
 
 
 @numba.njit(cache=True)
+def _axis_span(d0, slope, lim, flat_lim, pad, lo, hi):  # pragma: no cover - compiled
+    """``[lo, hi]`` cut to where ``|d0 + slope i| <= lim``, ``pad`` wider (rounding).
+
+    With no slope: all of it where ``|d0| <= flat_lim``, else empty (``lo > hi``).
+    """
+    if slope != 0.0:
+        t0 = (-lim - d0) / slope
+        t1 = (lim - d0) / slope
+        return max(lo, min(t0, t1) - pad), min(hi, max(t0, t1) + pad)
+    if not abs(d0) <= flat_lim:
+        return lo, lo - 1.0
+    return lo, hi
+
+
+@numba.njit(cache=True)
+def _subcell_spans(test, j, k, i0, i1, spans):  # pragma: no cover - compiled
+    """The voxels of output row ``(j, k)`` that pass each sub-cell test of one leaf.
+
+    ``test``: the leaf's rows of :func:`subcell_tests`. Writes the voxel ranges of
+    ``i0..i1`` that pass a sub-cell's test (a hair wider than the exact intervals, for
+    rounding) into the first rows of ``spans`` and returns ``(i_lo, i_hi, count)``:
+    the range they cover together and how many were written.
+    """
+    i_lo = i1 + 1
+    i_hi = i0 - 1
+    count = 0
+    for s in range(test.shape[0]):
+        lo = float(i0)
+        hi = float(i1)
+        for a in range(3):
+            t = test[s, a]
+            if not t[4] >= 0.0:  # out of the volume's reach
+                hi = lo - 1.0
+                break
+            lo, hi = _axis_span(t[0] + t[1] * j + t[2] * k, t[3], t[4], t[4], _HAIR, lo, hi)
+            if not lo <= hi:  # empty, or NaN
+                break
+        if not lo <= hi:
+            continue
+        a, b = max(int(math.ceil(lo)), i0), min(int(math.floor(hi)), i1)
+        if a > b:
+            continue
+        spans[count, 0] = a
+        spans[count, 1] = b
+        count += 1
+        i_lo = min(i_lo, a)
+        i_hi = max(i_hi, b)
+    return i_lo, i_hi, count
+
+
+@numba.njit(cache=True)
+def _in_spans(spans, count, i):  # pragma: no cover - compiled
+    """Whether voxel ``i`` lies in one of the first ``count`` ranges of ``spans``."""
+    for s in range(count):
+        if spans[s, 0] <= i <= spans[s, 1]:
+            return True
+    return False
+
+
+@numba.njit(cache=True)
 def _pull_back_row(
-    r, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, block_of,
-    pool, dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
-    u_out, state, fold, quality, vectors, matrices,
+    r, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, tests,
+    block_of, pool, dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0,
+    row_i1, u_out, state, fold, quality, vectors, matrices, spans,
 ):  # pragma: no cover - compiled  # fmt: skip
-    """Row ``r`` of :func:`pull_back_rows` (``vectors``, ``matrices``: its scratch)."""
+    """Row ``r`` of :func:`pull_back_rows` (``vectors``, ``matrices``, ``spans``: scratch)."""
     nx = box[1] - box[0] + 1
     ny = box[3] - box[2] + 1
     k = box[4] + r // ny
@@ -340,8 +499,15 @@ def _pull_back_row(
         lim = 0.5 * h + rho[n] + margin[n]
         i_lo, i_hi = _near_span(n, lim, centre_f, centre_ginv, origin_out, to_world_out, j, k,
                                 row_i0[c], row_i1[c])  # fmt: skip
+        tested = tests.shape[0] > 0
+        kept = 0  # voxel ranges in ``spans`` that pass a sub-cell test
+        if tested and i_lo <= i_hi:
+            i_lo, i_hi, kept = _subcell_spans(tests[n], j, k, i_lo, i_hi, spans)
         chained = 0  # consecutive converged voxels before this one
         for i_ in range(i_lo, i_hi + 1):
+            if tested and not _in_spans(spans, kept, i_):
+                chained = 0
+                continue
             for a in range(3):
                 y[a] = origin_out[a] + to_world_out[a, 0] * i_ + (
                     to_world_out[a, 1] * j + to_world_out[a, 2] * k
@@ -359,12 +525,16 @@ def _pull_back_row(
                 continue
             v = ((k - box[4]) * ny + (j - box[2])) * nx + (i_ - box[0])
             if state[v] & 3 == 1 and quality[v] == 0.0:
-                # a pre-image inside its own leaf is known: a pre-image in this leaf
-                # (within rho of the estimate) more than a voxel away would be a fold
-                gap = 0.0
+                # a pre-image inside its own leaf is known: one in this leaf lies within
+                # rho of the estimate and within the leaf's margin; if all of that is
+                # within a voxel of the known one it is the same point (not a fold)
+                same = True
                 for a in range(3):
-                    gap = max(gap, abs(ul[a] - u_out[v, a]))
-                if gap + rho[n] < 1.0:
+                    near_lo = max(ul[a] - rho[n], origin[n, a] - margin[n])
+                    near_hi = min(ul[a] + rho[n], origin[n, a] + h + margin[n])
+                    if not (near_lo > u_out[v, a] - 1.0 and near_hi < u_out[v, a] + 1.0):
+                        same = False
+                if same:
                     chained = 0
                     continue
             if chained >= 3:
