@@ -187,7 +187,7 @@ def build_lattice(
 
     try:
         roots = _window_roots(window, root, n_root, geometry, exchange is not None)
-        mask, near = _masks(lat_geo, V, Fc, _mask_rows(window, roots, root))
+        mask, near = _masks(lat_geo, V, Fc, _mask_rows(window, roots, root), pre_images)
         lattice = _build_levels(
             ensure, table, harmonic_map, geometry, lat_geo, tolerance, root, last, n_root,
             mask, near, (edge_a, edge_b), roots, None if exchange is not None else abort,
@@ -262,10 +262,12 @@ def _mask_rows(window, roots, root):
 _MASK_PLANES = 16
 
 
-def _masks(lat_geo: ImageGeometry, vertices, faces, rows):
+def _masks(lat_geo: ImageGeometry, vertices, faces, rows, surface=True):
     """Inside and next-to-the-surface masks of the lattice points, computed in ``rows``.
 
-    Both have the whole lattice's shape. Outside ``rows`` (default: all) they stay False
+    Both have the whole lattice's shape; without ``surface`` the second is empty
+    (0, 0, 0): only pre-images read it (a lattice without them leaves it out, see
+    :func:`_count_inside`). Outside ``rows`` (default: all) they stay False
     and their zero pages are never written, so a window's build holds the memory of its
     own rows only. They are made a few k-planes at a time (at most ``_MASK_PLANES``),
     the blocks shared by the compiled kernels' threads:
@@ -277,7 +279,7 @@ def _masks(lat_geo: ImageGeometry, vertices, faces, rows):
     nx, ny, nz = lat_geo.dimensions
     j0, j1, k0, k1 = (0, ny, 0, nz) if rows is None else rows
     mask = np.zeros((nz, ny, nx), dtype=bool)
-    near = np.zeros((nz, ny, nx), dtype=bool)
+    near = np.zeros((nz, ny, nx) if surface else (0, 0, 0), dtype=bool)
     if j1 <= j0 or k1 <= k0:
         return mask, near
     workers = numba.get_num_threads()
@@ -287,7 +289,8 @@ def _masks(lat_geo: ImageGeometry, vertices, faces, rows):
     def block(a):
         b = min(k1, a + planes)
         mask[a:b, j0:j1] = inside_mask(lat_geo, vertices, faces, rows=(j0, j1, a, b))
-        near[a:b, j0:j1] = surface_mask(lat_geo, vertices, faces, rows=(j0, j1, a, b))
+        if surface:
+            near[a:b, j0:j1] = surface_mask(lat_geo, vertices, faces, rows=(j0, j1, a, b))
 
     starts = range(k0, k1, planes)
     if workers == 1 or len(starts) == 1:
@@ -465,7 +468,7 @@ def _assemble(
         centre_ginv=centre_ginv,
         rho=rho,
         mask=mask,
-        near=near,
+        near=near if pre_images else None,
         edge_a=edges[0],
         edge_b=edges[1],
         stats=stats,
@@ -475,7 +478,14 @@ def _assemble(
 
 @numba.njit(parallel=True, cache=True)
 def _count_inside(mask, near, origins, h, last, counts):  # pragma: no cover - compiled
-    """Inside, outside and next-to-the-surface voxels of the volume in each closed cell."""
+    """Inside, outside and next-to-the-surface voxels of the volume in each closed cell.
+
+    An empty ``near`` (a lattice without pre-images) counts no voxel next to the surface:
+    a cell is then cut only where voxels are outside. Which cells are kept is the same
+    either way (the children of an uncut parent are all inside), only ``leaf_cut``,
+    which the pull-back alone reads, differs.
+    """
+    surface = near.size > 0
     for c in numba.prange(origins.shape[0]):
         nin = 0
         nout = 0
@@ -487,7 +497,7 @@ def _count_inside(mask, near, origins, h, last, counts):  # pragma: no cover - c
                         nin += 1
                     else:
                         nout += 1
-                    if near[k, j, i]:
+                    if surface and near[k, j, i]:
                         nnear += 1
         counts[c, 0] = nin
         counts[c, 1] = nout

@@ -42,7 +42,8 @@ class HermiteLattice:
     leaf_rows : (L, 8) int64
         Data rows of the corners (corner ``a + 2 b + 4 c`` at ``origin + (a, b, c) size``).
     leaf_cut : (L,) bool
-        The cage passes through the cell (voxels outside it, or next to its surface).
+        The cage passes through the cell (voxels outside it, or next to its surface);
+        without pre-images only voxels outside it count (the surface is not marked).
     mask : (Nz, Ny, Nx) bool or None
         Inside the cage, for every lattice point (the volume's voxels and the lattice's
         overhang beyond them); a window's lattice fills only its root cells' rows. None
@@ -51,7 +52,7 @@ class HermiteLattice:
     near : (Nz, Ny, Nx) bool or None
         Lattice points next to the cage surface (:func:`~vhm_viz.core.image.surface_mask`):
         pre-images in grid cubes touching them are checked with the winding number. Filled
-        as ``mask`` is.
+        as ``mask`` is; None in a lattice without pre-images, which never reads it.
     edge_a, edge_b : (E, 3) float64
         End points of the cage's edges, in voxel indices (:meth:`near_cage_edges`).
     pre_images : bool
