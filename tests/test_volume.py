@@ -30,6 +30,7 @@ from vhm_viz import Cage, HarmonicMap, read_cage  # noqa: E402
 from vhm_viz.cli import main  # noqa: E402
 from vhm_viz.core.basis import inside_cage, winding_number  # noqa: E402
 from vhm_viz.core.errors import AbortedError, OutsideCageError  # noqa: E402
+from vhm_viz.core.geometry import nearest_points_on_mesh  # noqa: E402
 from vhm_viz.core.image import ImageGeometry, inside_mask, surface_mask  # noqa: E402
 from vhm_viz.core.lattice import PART_FIELDS, build_lattice, join_parts, nodes  # noqa: E402
 from vhm_viz.core.lattice.nodes import NodeTable  # noqa: E402
@@ -672,6 +673,15 @@ def test_surface_mask_catches_every_cube_the_cage_crosses():
             inside_mask(geo, cage.vertices, cage.faces, rows=rows), inside[k0:k1, j0:j1]
         )
     assert near[10:27].any() and near[:, 7:30].any()
+    # marked points are next to the surface, within one grid step of it (brute force),
+    # also in a grid that the cage reaches past on its low sides: crossings outside the
+    # grid mark nothing
+    inner = ImageGeometry(geo.origin + rot @ (sp * 12), sp, (30, 30, 30), rot)
+    for grid, marks in ((geo, near), (inner, surface_mask(inner, cage.vertices, cage.faces))):
+        marked = grid.points(np.argwhere(marks)[:, ::-1].astype(float))
+        closest = nearest_points_on_mesh(marked, cage.vertices, cage.faces)[1]
+        gap = np.linalg.norm(marked - closest, axis=1)
+        assert marks.any() and (gap <= np.linalg.norm(sp) * (1 + 1e-9)).all()
 
     def cubes(a, op):
         """``op`` over the 8 corners of every grid cube."""

@@ -242,15 +242,15 @@ def _scanline_winding(tri, vid, i_count, j0, j1, k0, k1, out, crossed, i_lo=0): 
                 else:  # leaving: points with i > x
                     i0 = int(math.floor(x)) + 1
                     d = -1
-                if i0 < 0:
-                    i0 = 0
                 if i0 > i_count:
                     continue
-                if out.size:
-                    out[k - k0, j - j0, i0] += d
+                # a crossing before point i_lo - 1 lies outside the grid edges that
+                # ``crossed`` describes: it marks no point
                 c = i0 - i_lo
                 if crossed.size and 0 <= c < crossed.shape[2]:
                     crossed[k - k0, j - j0, c] = 1
+                if out.size:
+                    out[k - k0, j - j0, max(i0, 0)] += d
     for k in range(out.shape[0]):
         for j in range(out.shape[1]):
             acc = 0
