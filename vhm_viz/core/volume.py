@@ -191,11 +191,13 @@ class VolumeDeformation(VolumePieces):
         window, False with one (a window's engine only warps and analyses, unless its
         leaves are to be joined for resampling: :meth:`for_piece`).
     device : {"cpu", "cuda"}
-        Where the lattice's exact evaluations of the map and its Jacobians run: the CPU
-        (default) or an NVIDIA GPU (:mod:`vhm_viz.core.cuda_map`; the same values to
-        rounding). :class:`~vhm_viz.core.errors.DeviceUnavailableError` without a GPU.
-        The lattice's refinement, its per-voxel polynomials and the pull-back run on the
-        CPU either way.
+        Where the lattice's exact evaluations of the map and its Jacobians, and the
+        pull-back's Newton solves, run: the CPU (default) or an NVIDIA GPU
+        (:mod:`vhm_viz.core.cuda_map`, :mod:`vhm_viz.core.lattice.cuda_pullback`; the same
+        values to rounding, pre-images within the tolerance).
+        :class:`~vhm_viz.core.errors.DeviceUnavailableError` without a GPU. The lattice's
+        refinement, its per-voxel polynomials, the candidate lists and the sampling run on
+        the CPU either way.
 
     Notes
     -----
@@ -778,7 +780,7 @@ class VolumeDeformation(VolumePieces):
             m = int((slab[5] - slab[4] + 1) * plane)
             self._count_slab(m)
             u, state, fold, quality = (a[:m] for a in buffers)
-            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality, near_edge)
+            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality, near_edge, self.device)
             confirm_tentative(self.map, self.geometry, u, state)
             polish_next_to_edges(self.map, lat, self.geometry, out_geo, slab, u, state)
             if self.outside == "passthrough":

@@ -7,14 +7,17 @@ compile it with ``numba.njit`` for the CPU, :mod:`vhm_viz.core.lattice.cuda_pull
 is shared by the map's kernels). The functions are free of ``numba``; those that call
 another are made by a factory that is given the target's compiled callee
 (:func:`cell_evaluator`, :func:`newton_solver`), since a compiled function can only call
-compiled ones.
+compiled ones. Larger and smaller values are picked with conditional expressions, not
+``max`` and ``min``, which numba's CUDA target does not compile for two scalars; they
+select as numba's ``max`` and ``min`` do (``b if b > a else a``), so that the CPU's
+results do not change.
 
 * :func:`hermite_weights` and :func:`cell_evaluator`: the tricubic Hermite polynomial of
   a cell (:mod:`~vhm_viz.core.lattice.hermite` describes its node data);
 * :func:`inverse3`: a 3x3 inverse by the adjugate;
 * :func:`linear_estimate`, :func:`known_inside`, :func:`newton_solver`,
-  :func:`leaf_excess`, :func:`inside_around` and :func:`keep_preimage`: one (voxel, leaf)
-  pair of the pull-back (:func:`~vhm_viz.core.lattice.pullback.pull_back_rows` documents
+  :func:`inside_around` and :func:`preimage_keeper`: one (voxel, leaf) pair of the
+  pull-back (:func:`~vhm_viz.core.lattice.pullback.pull_back_rows` documents
   what they decide).
 """
 
@@ -26,17 +29,17 @@ from vhm_viz.core.image import BORDER
 
 __all__ = [
     "FLAG_BLOCK",
+    "MARGIN",
     "NEWTON_ITERATIONS",
     "NEWTON_STEP",
     "cell_evaluator",
     "hermite_weights",
     "inside_around",
     "inverse3",
-    "keep_preimage",
     "known_inside",
-    "leaf_excess",
     "linear_estimate",
     "newton_solver",
+    "preimage_keeper",
 ]
 
 #: Newton on a cell's polynomial: converged when the step is below this (voxels; the step
@@ -49,6 +52,9 @@ NEWTON_ITERATIONS = 12
 #: crosses are kept for the pull-back
 #: (:func:`~vhm_viz.core.lattice.pullback.cut_blocks`): 8^3 lattice points, 512 bytes.
 FLAG_BLOCK = 8
+#: How far (voxels) outside its cell a pre-image may lie: cells of different sizes meet
+#: with mismatches of the order of the tolerance, which would otherwise leave gaps.
+MARGIN = 0.25
 
 
 def hermite_weights(t, h):
@@ -206,7 +212,8 @@ def known_inside(state, quality, u_out, v, ul, rho_n):
     if state[v] & 3 == 1 and quality[v] == 0.0:
         gap = 0.0
         for a in range(3):
-            gap = max(gap, abs(ul[a] - u_out[v, a]))
+            d = abs(ul[a] - u_out[v, a])
+            gap = d if d > gap else gap
         if gap + rho_n < 1.0:
             return True
     return False
@@ -251,7 +258,7 @@ def newton_solver(cell_eval, inverse3):
                 for b in range(3):
                     d += gi[a, b] * (y[b] - f[b])
                 u[a] += d
-                big = max(big, abs(d))
+                big = abs(d) if abs(d) > big else big
             if not big < 2.0 * h:  # diverging (or NaN)
                 return False
             if big < NEWTON_STEP:
@@ -261,25 +268,6 @@ def newton_solver(cell_eval, inverse3):
     return newton_on_cell
 
 
-def leaf_excess(u, origin, size, n, last):
-    """How far (voxels) pre-image ``u`` lies outside leaf ``n``, and whether it is in the volume.
-
-    Returns ``(q, inside)``: ``q`` is the largest distance outside the leaf along an axis
-    (0 inside), where beyond the volume's boundary the half-voxel border takes over from
-    the leaf's margin; ``inside``: ``u`` lies within the volume's half-voxel border.
-    """
-    q = 0.0
-    inside = True
-    h = size[n]
-    for a in range(3):
-        below = origin[n, a] - u[a] - (BORDER if origin[n, a] <= 0 else 0.0)
-        above = u[a] - origin[n, a] - h - (BORDER if origin[n, a] + size[n] >= last[a] else 0.0)
-        q = max(q, below, above)
-        if u[a] < -BORDER or u[a] > last[a] + BORDER:
-            inside = False
-    return q, inside
-
-
 def inside_around(block_of, pool, dims, u):
     """Whether ``u`` is inside the cage, from the grid cube around it.
 
@@ -287,9 +275,12 @@ def inside_around(block_of, pool, dims, u):
     corners agree; -1 (ask the winding number) when the surface runs next to the cube, or
     the cube's flags were not kept (:func:`~vhm_viz.core.lattice.pullback.cut_blocks`).
     """
-    i0 = min(max(int(math.floor(u[0])), 0), dims[0] - 2)
-    j0 = min(max(int(math.floor(u[1])), 0), dims[1] - 2)
-    k0 = min(max(int(math.floor(u[2])), 0), dims[2] - 2)
+    i0 = int(math.floor(u[0]))
+    j0 = int(math.floor(u[1]))
+    k0 = int(math.floor(u[2]))
+    i0 = dims[0] - 2 if dims[0] - 2 < i0 else (i0 if i0 > 0 else 0)
+    j0 = dims[1] - 2 if dims[1] - 2 < j0 else (j0 if j0 > 0 else 0)
+    k0 = dims[2] - 2 if dims[2] - 2 < k0 else (k0 if k0 > 0 else 0)
     count = 0
     for c in range(2):
         for b in range(2):
@@ -306,30 +297,60 @@ def inside_around(block_of, pool, dims, u):
     return count if count == 0 or count == 8 else -1
 
 
-def keep_preimage(state, fold, quality, u_out, v, u, s, mark, q):
-    """Merge a found pre-image ``u`` of voxel ``v`` with what the voxel has.
+def preimage_keeper(inside_around):
+    """``keep_preimage`` of a target, calling its compiled :func:`inside_around`."""
 
-    ``s``: 1 inside the cage, 2 to be confirmed; ``mark``: the bits added to a kept
-    ``state`` (:data:`~vhm_viz.core.lattice.pullback.NEAR_EDGE` or 0); ``q``: its
-    distance outside its leaf. The first pre-image is kept (a confirmed one replaces one to
-    be confirmed); another of the same kind more than one voxel away marks a fold, a nearer
-    one (the same point from a neighbouring leaf) replaces it when it lies deeper inside
-    its leaf.
-    """
-    known = state[v] & 3
-    if known == 0 or (known == 2 and s == 1):
-        state[v] = s | mark
-        quality[v] = q
+    def keep_preimage(state, fold, quality, u_out, v, u, n, origin, size, cut, mark, last,
+                      block_of, pool, dims):  # fmt: skip
+        """Keep pre-image ``u`` of voxel ``v``, found in leaf ``n``, if it counts.
+
+        It counts within :data:`MARGIN` of its leaf (beyond the volume's boundary the
+        half-voxel border takes over from the margin) and within the volume's half-voxel
+        border; in a leaf the cage crosses (``cut``), where the grid cube around it is
+        not outside (:func:`inside_around`): ``s`` 1 inside, 2 to be confirmed.
+
+        It is merged with what the voxel has: the first pre-image is kept (a confirmed
+        one replaces one to be confirmed, with ``mark`` added to its ``state``:
+        :data:`~vhm_viz.core.lattice.pullback.NEAR_EDGE` or 0); another of the same kind
+        more than one voxel away marks a fold; a nearer one (the same point from a
+        neighbouring leaf) replaces it when it lies deeper inside its leaf (``quality``:
+        the distance outside its leaf).
+        """
+        q = 0.0
+        h = size[n]
         for a in range(3):
-            u_out[v, a] = u[a]
-    elif known == s:
-        apart = 0.0
-        for a in range(3):
-            apart = max(apart, abs(u[a] - u_out[v, a]))
-        if apart > 1.0:
-            fold[v] = 1
-        elif q < quality[v]:
+            below = origin[n, a] - u[a] - (BORDER if origin[n, a] <= 0 else 0.0)
+            above = u[a] - origin[n, a] - h - (BORDER if origin[n, a] + h >= last[a] else 0.0)
+            q = below if below > q else q
+            q = above if above > q else q
+            if u[a] < -BORDER or u[a] > last[a] + BORDER:
+                return
+        if q > MARGIN:
+            return
+        s = 1
+        if cut[n]:
+            around = inside_around(block_of, pool, dims, u)
+            if around == 0:
+                return
+            if around < 0:
+                s = 2
+        known = state[v] & 3
+        if known == 0 or (known == 2 and s == 1):
             state[v] = s | mark
             quality[v] = q
             for a in range(3):
                 u_out[v, a] = u[a]
+        elif known == s:
+            apart = 0.0
+            for a in range(3):
+                d = abs(u[a] - u_out[v, a])
+                apart = d if d > apart else apart
+            if apart > 1.0:
+                fold[v] = 1
+            elif q < quality[v]:
+                state[v] = s | mark
+                quality[v] = q
+                for a in range(3):
+                    u_out[v, a] = u[a]
+
+    return keep_preimage

@@ -21,9 +21,6 @@ from vhm_viz.core.lattice.cell_formulas import FLAG_BLOCK
 from vhm_viz.core.lattice.hermite import cell_eval, control_points, inverse3
 from vhm_viz.core.work_items import claim
 
-#: How far (voxels) outside its cell a pre-image may lie: cells of different sizes meet
-#: with mismatches of the order of the tolerance, which would otherwise leave gaps.
-MARGIN = 0.25
 # Rows of an output box that a worker of the pull-back claims at a time.
 _ROWS_PER_CLAIM = 4
 #: Bit of a pull-back's ``state`` set when the pre-image lies in a leaf flagged
@@ -200,9 +197,8 @@ def cut_blocks(lattice, lat_geo=None, vertices=None, faces=None):
 _linear_estimate = numba.njit(cache=True)(cell_formulas.linear_estimate)
 _known_inside = numba.njit(cache=True)(cell_formulas.known_inside)
 _newton_on_cell = numba.njit(cell_formulas.newton_solver(cell_eval, inverse3))
-_leaf_excess = numba.njit(cache=True)(cell_formulas.leaf_excess)
 inside_around = numba.njit(cache=True)(cell_formulas.inside_around)
-_keep_preimage = numba.njit(cache=True)(cell_formulas.keep_preimage)
+_keep_preimage = numba.njit(cell_formulas.preimage_keeper(inside_around))
 
 
 @numba.njit(parallel=True, cache=True)
@@ -345,15 +341,7 @@ def _pull_back_row(
             chained = chained + 1 if ok else 0
             if not ok:
                 continue
-            q, inside_vol = _leaf_excess(u, origin, size, n, last)
-            if q > MARGIN or not inside_vol:
-                continue
-            s = 1
-            if cut[n]:
-                around = inside_around(block_of, pool, dims, u)
-                if around == 0:
-                    continue
-                if around < 0:
-                    s = 2
-            _keep_preimage(state, fold, quality, u_out, v, u, s,
-                           NEAR_EDGE if near_edge[n] else 0, q)  # fmt: skip
+            _keep_preimage(
+                state, fold, quality, u_out, v, u, n, origin, size, cut,
+                NEAR_EDGE if near_edge[n] else 0, last, block_of, pool, dims,
+            )  # fmt: skip
