@@ -193,12 +193,15 @@ def cut_blocks(lattice, lat_geo=None, vertices=None, faces=None):
 
 
 # One (voxel, leaf) pair of the pull-back: the arithmetic's one home, shared with the
-# GPU's kernel (vhm_viz.core.lattice.cuda_pullback), is cell_formulas.
-_linear_estimate = numba.njit(cache=True)(cell_formulas.linear_estimate)
-_known_inside = numba.njit(cache=True)(cell_formulas.known_inside)
-_newton_on_cell = numba.njit(cell_formulas.newton_solver(cell_eval, inverse3))
+# GPU's kernel (vhm_viz.core.lattice.cuda_pullback), is cell_formulas. Its steps are
+# inlined into the row's loop (calls into separately compiled functions would slow it);
+# the cell's polynomial and the inverse are not, being compiled with fused multiply-adds.
+_INLINE = dict(inline="always")
+_linear_estimate = numba.njit(**_INLINE)(cell_formulas.linear_estimate)
+_known_inside = numba.njit(**_INLINE)(cell_formulas.known_inside)
+_newton_on_cell = numba.njit(**_INLINE)(cell_formulas.newton_solver(cell_eval, inverse3))
 inside_around = numba.njit(cache=True)(cell_formulas.inside_around)
-_keep_preimage = numba.njit(cell_formulas.preimage_keeper(inside_around))
+_keep_preimage = numba.njit(**_INLINE)(cell_formulas.preimage_keeper(inside_around))
 
 
 @numba.njit(parallel=True, cache=True)
@@ -277,7 +280,9 @@ def _near_span(n, lim, centre_f, centre_ginv, origin_out, to_world_out, j, k, i0
     return max(int(math.floor(lo)), i0), min(int(math.ceil(hi)), i1)
 
 
-@numba.njit(cache=True)
+# No reference counting: the row allocates nothing, and the inlined steps would count
+# every array they are given, for every (voxel, leaf) pair.
+@numba.njit(cache=True, _nrt=False)
 def _pull_back_row(
     r, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, block_of,
     pool, dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
