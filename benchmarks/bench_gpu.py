@@ -1,4 +1,4 @@
-"""CPU against GPU: the closed-form map with Jacobians, and the volume warp.
+"""CPU against GPU: the closed-form map with Jacobians, the volume warp and the resample.
 
 The numeric core alone (no VTK), on synthetic data, since a machine with a GPU may have
 neither VTK nor ``../shared``: the bar's box cage of
@@ -12,7 +12,17 @@ and swollen (a Green Coordinates map of the moved cage, so no solve is needed), 
 * **warp**: :class:`~vhm_viz.core.volume.VolumeDeformation` of a ``--volume``^3 grid
   (default 256) inside the cage, a lattice without pre-images and the forward warp of
   every voxel, as the warp filter runs it; ``device="cuda"`` evaluates the lattice's
-  exact points on the GPU, the rest runs on the CPU.
+  exact points on the GPU, the rest runs on the CPU;
+* **resample**: :meth:`~vhm_viz.core.volume.VolumeDeformation.resample` end to end
+  (lattice with pre-images, pull-back, sampling; no file I/O), every run with a fresh
+  engine, of the 256^3 embryo's box-cage bend scene (``bench_scaling.py``'s) given by
+  ``--embryo NPZ``, else of the ``--volume``^3 grid in the bar's cage with synthetic
+  values. ``device="cuda"`` also runs the pull-back's Newton solves on the GPU. The
+  difference column gives the largest value difference relative to the value range, and
+  how many voxels' masks differ. The NPZ (the embryo's grid, voxels and solved map) is
+  written by ``--prepare-embryo NPZ`` on a machine with VTK and ``../shared``;
+  ``benchmarks/gpu_check.sh`` uses ``benchmarks/out/embryo_scene.npz`` when it is there
+  (carry it to the GPU machine).
 
 Each row gives the median and the spread (min-max) of ``--repeats`` timed runs after one
 untimed run (which compiles, or loads from the cache, every kernel; its time is the
@@ -22,6 +32,8 @@ largest CPU value. ``--out FILE`` writes the table there too. ``--quick`` takes 
 
     python benchmarks/bench_gpu.py                 # 173k points, 256^3, -r 5
     python benchmarks/bench_gpu.py --devices cpu   # the CPU rows only
+    python benchmarks/bench_gpu.py --prepare-embryo benchmarks/out/embryo_scene.npz
+    python benchmarks/bench_gpu.py --only resample --embryo benchmarks/out/embryo_scene.npz
     NUMBA_ENABLE_CUDASIM=1 python benchmarks/bench_gpu.py --quick
 """
 
@@ -41,6 +53,7 @@ from _common import print_table, summary, timed
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vhm_viz.core.basis import evaluate_map  # noqa: E402
+from vhm_viz.core.cage import Cage  # noqa: E402
 from vhm_viz.core.devices import require_device  # noqa: E402
 from vhm_viz.core.errors import DeviceUnavailableError  # noqa: E402
 from vhm_viz.core.harmonic_map import HarmonicMap  # noqa: E402
@@ -117,6 +130,63 @@ def warp_rows(hm, size: int, devices, repeats: int) -> list[list[str]]:
     return rows
 
 
+def prepare_embryo(path: Path) -> None:
+    """Write the embryo's grid, voxels and solved box-cage bend map to ``path`` (NPZ)."""
+    from _common import data
+    from bench_scaling import solve
+
+    from vhm_viz.io import read_dataset
+
+    embryo = data("volumes", "embryo.slc")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    solve(embryo, path.with_suffix(".map.npz"))
+    saved = dict(np.load(path.with_suffix(".map.npz")))
+    path.with_suffix(".map.npz").unlink()
+    img = read_dataset(str(embryo))
+    np.savez_compressed(
+        path, **saved, origin=img.origin, spacing=img.spacing, dimensions=img.dimensions,
+        direction=img.direction_matrix, values=np.asarray(img.active_scalars),
+    )  # fmt: skip
+
+
+def resample_case(hm, size: int, embryo: Path | None):
+    """``(label, map, grid, values)`` of the resample rows: the embryo's, or synthetic."""
+    if embryo is not None:
+        z = np.load(embryo)
+        emb = HarmonicMap(Cage(z["vertices"], z["faces"]), z["z"])
+        geo = ImageGeometry(z["origin"], z["spacing"], z["dimensions"], z["direction"])
+        dims = "x".join(str(int(d)) for d in geo.dimensions)
+        return f"resample embryo {dims}, {len(z['faces'])} faces", emb, geo, z["values"]
+    lo, hi = inside_box(hm.cage, 0.02)
+    geo = ImageGeometry(lo, (hi - lo) / (size - 1), (size, size, size))
+    x = geo.points(np.indices((size,) * 3)[::-1].reshape(3, -1).T.astype(np.float64))
+    values = (np.sin(x @ np.array([3.0, 2.0, 1.0]) / np.ptp(x)) * 1000).astype(np.int16)
+    return f"resample {size}^3 (synthetic)", hm, geo, values
+
+
+def resample_rows(hm, size: int, embryo, devices, repeats: int) -> list[list[str]]:
+    """Rows of the resample benchmark (end to end, a fresh engine per run)."""
+    label, hm, geo, values = resample_case(hm, size, embryo)
+    arrays = {"values": values}
+    rows, reference = [], None
+    for device in devices:
+        t0 = time.perf_counter()
+        res = VolumeDeformation(hm, geo, device=device).resample(arrays)
+        first = time.perf_counter() - t0
+        times = timed(lambda d=device: VolumeDeformation(hm, geo, device=d).resample(arrays),
+                      repeats)  # fmt: skip
+        out = res.arrays["values"].astype(np.float64)
+        if reference is None:
+            reference, diff = (out, res.valid), "-"
+        else:
+            span = max(float(np.ptp(reference[0])), 1e-300)
+            masks = int((res.valid != reference[1]).sum())
+            diff = f"{np.abs(out - reference[0]).max() / span:.1e}, {masks} masks"
+        rows.append([label, device, f"{first:.3g} s", summary(times), diff])
+        del res, out
+    return rows
+
+
 def main(argv=None) -> int:
     """Run the benchmark and print (and optionally write) its table."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -124,10 +194,18 @@ def main(argv=None) -> int:
     parser.add_argument("--volume", type=int, default=256, metavar="SIZE")
     parser.add_argument("-r", "--repeats", type=int, default=5)
     parser.add_argument("--devices", nargs="+", default=["cpu", "cuda"], choices=["cpu", "cuda"])
-    parser.add_argument("--only", choices=["map", "warp"], default=None)
+    parser.add_argument("--only", choices=["map", "warp", "resample"], default=None)
+    parser.add_argument("--embryo", type=Path, default=None, metavar="NPZ",
+                        help="resample this scene (--prepare-embryo writes it)")
+    parser.add_argument("--prepare-embryo", type=Path, default=None, metavar="NPZ",
+                        help="write the embryo scene for --embryo, then stop")
     parser.add_argument("--quick", action="store_true", help="tiny sizes (simulator dry run)")
     parser.add_argument("--out", type=Path, default=None, help="also write the table here")
     args = parser.parse_args(argv)
+    if args.prepare_embryo is not None:
+        prepare_embryo(args.prepare_embryo)
+        print(f"wrote {args.prepare_embryo}")
+        return 0
     if args.quick:
         args.points, args.volume, args.repeats = 32, 4, 1
     if "cuda" in args.devices:
@@ -148,6 +226,9 @@ def main(argv=None) -> int:
         rows += map_rows(hm, args.points, args.devices, args.repeats)
     if args.only in (None, "warp"):
         rows += warp_rows(hm, args.volume, args.devices, args.repeats)
+    if args.only in (None, "resample"):
+        embryo = None if args.quick else args.embryo
+        rows += resample_rows(hm, args.volume, embryo, args.devices, args.repeats)
     headers = ["what", "device", "first", "median (min-max, n)", "max rel. diff"]
     table = io.StringIO()
     with contextlib.redirect_stdout(table):

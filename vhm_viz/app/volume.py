@@ -16,16 +16,24 @@ A volume (an image with point scalars) is never bound voxel by voxel: a 256^3 sc
 * the **deformed volume** for volume rendering and isosurfaces: the pull-back resampling
   of :class:`~vhm_viz.core.volume.VolumeDeformation` on a grid of at most
   :data:`RENDER_VOXELS` voxels (run in the background after each full solve).
+
+The deformed volume is resampled on an NVIDIA GPU when one is usable
+(:mod:`vhm_viz.core.lattice.cuda_pullback`): the device setting is ``VHM_DEVICE``
+(:data:`DEVICE_VARIABLE`), ``auto`` by default (the GPU when present, else the CPU,
+silently), or ``cpu`` / ``cuda``; ``cuda`` without a usable GPU falls back to the CPU
+with one status line (:meth:`VolumeView.device`).
 """
 
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pyvista as pv
 
 from vhm_viz.app.analysis import SliceProbe
+from vhm_viz.core.devices import resolve_device
 from vhm_viz.core.image import ImageGeometry, inside_mask
 from vhm_viz.core.volume import VolumeDeformation
 from vhm_viz.filters._common import image_geometry
@@ -38,7 +46,12 @@ __all__ = [
     "OUTLINE_SAMPLES",
     "RENDER_VOXELS",
     "displayed",
+    "DEVICE_VARIABLE",
 ]
+
+#: Environment variable with the volume views' device setting: ``auto`` (default),
+#: ``cpu`` or ``cuda`` (:func:`~vhm_viz.core.devices.resolve_device`).
+DEVICE_VARIABLE = "VHM_DEVICE"
 
 #: Samples per side of a slice while dragging (and of the det J / cond J colouring).
 DRAG_SAMPLES = 96
@@ -83,12 +96,18 @@ class VolumeView:
     image : pyvista.ImageData
         With point scalars (the first point array when none is active; a multi-component
         array shows its magnitude).
+    device : {"auto", "cpu", "cuda"}, optional
+        Where the deformed volume is resampled (default: ``$VHM_DEVICE``, else
+        ``"auto"``); see :meth:`device`.
     """
 
     AXES = ("x", "y", "z")
 
-    def __init__(self, image):
+    def __init__(self, image, device: str | None = None):
         self.image = image
+        #: The device setting (:meth:`device` resolves it).
+        self.device_setting = os.environ.get(DEVICE_VARIABLE, "auto") if device is None else device
+        self._device = None
         self.name = _scalar_name(image)
         values = np.asarray(image.point_data[self.name])
         if values.ndim > 1:
@@ -187,6 +206,22 @@ class VolumeView:
         img.point_data.active_scalars_name = "values"
         return img
 
+    def device(self) -> tuple[str, str | None]:
+        """Where :meth:`deformed_image` resamples, and why not on the device asked for.
+
+        Resolved once per view (:func:`~vhm_viz.core.devices.resolve_device`):
+        ``("cuda", None)`` with a usable GPU unless the setting is ``cpu``; otherwise
+        ``("cpu", reason)``, the reason a status line, or None where the CPU was asked for
+        (or ``auto`` found no GPU).
+        """
+        if self._device is None:
+            device, reason = resolve_device(self.device_setting)
+            if reason is not None:
+                reason = (f"volume views run on the CPU ({DEVICE_VARIABLE}="
+                          f"{self.device_setting}: {reason})")  # fmt: skip
+            self._device = (device, reason)
+        return self._device
+
     def rest_image(self, voxels: int = RENDER_VOXELS):
         """The input subsampled like :meth:`deformed_image` (before any solve)."""
         vol, geo = self._subsampled(voxels)
@@ -196,7 +231,8 @@ class VolumeView:
         """The deformed volume on a regular grid (pull-back resampling), for rendering.
 
         The input is subsampled by :meth:`render_step` first, so that the lattice and the
-        resampled grid stay small; voxels outside the cage stay in place.
+        resampled grid stay small; voxels outside the cage stay in place. Resampled on the
+        :meth:`device`.
 
         Returns
         -------
@@ -204,7 +240,7 @@ class VolumeView:
             Point arrays ``"values"`` (float32) and ``"vtkValidPointMask"``.
         """
         vol, geo = self._subsampled(voxels)
-        vd = VolumeDeformation(harmonic_map, geo, outside="passthrough")
+        vd = VolumeDeformation(harmonic_map, geo, outside="passthrough", device=self.device()[0])
         out = vd.resample({"values": vol.ravel()}, progress=progress, abort=abort)
         return self._to_image(out.geometry, out.arrays["values"], out.valid)
 

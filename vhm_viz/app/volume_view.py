@@ -71,6 +71,9 @@ class VolumeDisplay:
         self.slice_rested = lambda: None
         #: Called with (message, details) when a control fails.
         self.report_error = lambda message, details="": None
+        #: Called with a one-line message to show in the status bar.
+        self.report_status = lambda message: None
+        self._device_reported = None  # the volume whose device fallback was reported
         self._slice_timer = QTimer()
         self._slice_timer.setSingleShot(True)
         self._slice_timer.setInterval(SLICE_DELAY_MS)
@@ -266,6 +269,10 @@ class VolumeDisplay:
             return None
         hm = self.ctrl.deformer.harmonic_map
         self.stale = False
+        reason = vol.device()[1]
+        if reason is not None and self._device_reported is not vol:
+            self._device_reported = vol  # once per volume
+            self.report_status(reason)
 
         def job(progress, cancelled):
             return vol.deformed_image(hm, progress=progress, abort=cancelled)

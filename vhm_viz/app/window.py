@@ -141,6 +141,7 @@ class ExplorerWindow(QMainWindow):
         )
         self.volume_display.request_image = self.refresh_volume_image
         self.volume_display.report_error = self.report_error
+        self.volume_display.report_status = lambda message: self.status(message, 15000)
         self.analysis_view.volume = self.volume_display
         self.gizmo = RotationGizmo(
             self.plotter, self.ctrl, self.drag.rotated, self.drag.gizmo_released

@@ -10,10 +10,13 @@ from __future__ import annotations
 
 from vhm_viz.core.errors import DeviceUnavailableError, SettingError
 
-__all__ = ["DEVICES", "check_device", "require_device"]
+__all__ = ["DEVICES", "DEVICE_SETTINGS", "check_device", "require_device", "resolve_device"]
 
 #: The devices the map can be evaluated on.
 DEVICES = ("cpu", "cuda")
+#: What a user may ask for where a fallback is better than an error (the explorer):
+#: a device, or ``"auto"`` (the GPU when one is usable, else the CPU).
+DEVICE_SETTINGS = ("auto", *DEVICES)
 
 
 def check_device(device: str) -> str:
@@ -60,3 +63,28 @@ def require_device(device: str) -> str:
             "use device 'cpu' (the default)"
         )
     return device
+
+
+def resolve_device(setting: str) -> tuple[str, str | None]:
+    """The device to use for a setting, falling back to the CPU instead of failing.
+
+    Parameters
+    ----------
+    setting : {"auto", "cpu", "cuda"}
+        ``"auto"``: the GPU when one is usable, else the CPU, silently.
+
+    Returns
+    -------
+    device : {"cpu", "cuda"}
+    reason : str or None
+        Why the CPU is used instead of what was asked for (``"cuda"`` without a usable
+        GPU, or a setting that names no device), one line; None when the setting is met.
+    """
+    if setting not in DEVICE_SETTINGS:
+        return "cpu", f"device must be one of {', '.join(DEVICE_SETTINGS)}; got {setting!r}"
+    if setting == "cpu":
+        return "cpu", None
+    try:
+        return require_device("cuda"), None
+    except DeviceUnavailableError as exc:
+        return "cpu", (None if setting == "auto" else str(exc).split(";")[0])

@@ -192,11 +192,13 @@ class VolumeDeformation(VolumePieces):
         window, False with one (a window's engine only warps and analyses, unless its
         leaves are to be joined for resampling: :meth:`for_piece`).
     device : {"cpu", "cuda"}
-        Where the lattice's exact evaluations of the map and its Jacobians run: the CPU
-        (default) or an NVIDIA GPU (:mod:`vhm_viz.core.cuda_map`; the same values to
-        rounding). :class:`~vhm_viz.core.errors.DeviceUnavailableError` without a GPU.
-        The lattice's refinement, its per-voxel polynomials and the pull-back run on the
-        CPU either way.
+        Where the lattice's exact evaluations of the map and its Jacobians, and the
+        pull-back's Newton solves, run: the CPU (default) or an NVIDIA GPU
+        (:mod:`vhm_viz.core.cuda_map`, :mod:`vhm_viz.core.lattice.cuda_pullback`; the same
+        values to rounding, pre-images within the tolerance).
+        :class:`~vhm_viz.core.errors.DeviceUnavailableError` without a GPU. The lattice's
+        refinement, its per-voxel polynomials, the candidate lists and the sampling run on
+        the CPU either way.
 
     Notes
     -----
@@ -767,7 +769,7 @@ class VolumeDeformation(VolumePieces):
         self._refuse_outside()
         boxes = self.candidate_boxes(out_geo)
         near_edge = leaves_near_edges(lat)
-        tests = subcell_tests(lat, out_geo)
+        tests = subcell_tests(lat, out_geo) if self.device == "cpu" else None
         self._start_slabs()
         budget = DEFAULT_MEMORY_BUDGET if self.memory_budget is None else self.memory_budget
         slabs = list(slabs_of(b, _RESAMPLE_BYTES, min(budget, PULL_BACK_SLAB_BYTES)))
@@ -782,7 +784,8 @@ class VolumeDeformation(VolumePieces):
             m = int((slab[5] - slab[4] + 1) * plane)
             self._count_slab(m)
             u, state, fold, quality = (a[:m] for a in buffers)
-            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality, near_edge, tests)
+            lat.pull_back(out_geo, slab, boxes, u, state, fold, quality, near_edge, tests,
+                          self.device)  # fmt: skip
             confirm_tentative(self.map, self.geometry, u, state)
             polish_next_to_edges(self.map, lat, self.geometry, out_geo, slab, u, state)
             if self.outside == "passthrough":

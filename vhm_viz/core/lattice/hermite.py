@@ -12,6 +12,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from vhm_viz.core.lattice import cell_formulas
 from vhm_viz.core.work_items import claim
 
 #: Node data terms, in order: f, f_u, f_v, f_w, f_uv, f_uw, f_vw, f_uvw.
@@ -32,104 +33,11 @@ def _term(du, dv, dw):  # pragma: no cover - compiled
     return 7
 
 
-@numba.njit(cache=True)
-def _weights(t, h):  # pragma: no cover - compiled
-    """Cubic Hermite weights on ``[0, h]`` at ``t * h`` and their u-derivatives.
-
-    Returns ``(w0, w1, w2, w3, d0, d1, d2, d3)``: the left value, left derivative (times
-    ``h``, so that it multiplies ``df/du``), right value and right derivative weights,
-    then their derivatives in ``u``.
-    """
-    t2 = t * t
-    t3 = t2 * t
-    return (
-        2.0 * t3 - 3.0 * t2 + 1.0,
-        h * (t3 - 2.0 * t2 + t),
-        -2.0 * t3 + 3.0 * t2,
-        h * (t3 - t2),
-        (6.0 * t2 - 6.0 * t) / h,
-        3.0 * t2 - 4.0 * t + 1.0,
-        (-6.0 * t2 + 6.0 * t) / h,
-        3.0 * t2 - 2.0 * t,
-    )
-
-
-@numba.njit(cache=True, fastmath={"contract"})  # fused multiply-adds
-def cell_eval(data, rows, h, tu, tv, tw, f, grad, want_grad):  # pragma: no cover
-    """Value (and u-gradient) of a cell's tricubic Hermite polynomial.
-
-    Parameters
-    ----------
-    data : (Q, 8, 3) float64
-        Node data rows.
-    rows : (8,) int
-        Data rows of the corners, corner ``a + 2 b + 4 c`` at offset ``(a, b, c) * h``.
-    h : float
-        Cell size (voxels).
-    tu, tv, tw : float
-        Local coordinates (0..1 inside the cell; the polynomial extrapolates outside).
-    f : (3,) out
-    grad : (3, 3) out
-        ``grad[i, j] = d f_i / d u_j`` when ``want_grad``.
-    want_grad : bool
-    """
-    u0, u1, u2, u3, du0, du1, du2, du3 = _weights(tu, h)
-    v0, v1, v2, v3, dv0, dv1, dv2, dv3 = _weights(tv, h)
-    w0, w1, w2, w3, dw0, dw1, dw2, dw3 = _weights(tw, h)
-    # separably: the 8 corners' terms reduced along w (corners c = 0, 1), then along v
-    # (b = 0, 1), then along u (a = 0, 1); about half the products of a sum over every
-    # corner and term
-    for i in range(3):
-        fi = 0.0
-        gu = 0.0
-        gv = 0.0
-        gw = 0.0
-        for a in range(2):
-            s0 = 0.0  # reduced along v and w: the u-value (s0) and u-derivative (s1) terms,
-            s1 = 0.0  # their v-derivatives (sv0, sv1) and w-derivatives (sw0, sw1)
-            sv0 = 0.0
-            sv1 = 0.0
-            sw0 = 0.0
-            sw1 = 0.0
-            for b in range(2):
-                r0 = rows[a + 2 * b]
-                r1 = rows[a + 2 * b + 4]
-                # terms (u kind, v kind) reduced along w: f, f_u, f_v, f_uv
-                p00, p10 = data[r0, 0, i], data[r1, 0, i]
-                p01, p11 = data[r0, 3, i], data[r1, 3, i]
-                q00, q10 = data[r0, 1, i], data[r1, 1, i]
-                q01, q11 = data[r0, 5, i], data[r1, 5, i]
-                m00, m10 = data[r0, 2, i], data[r1, 2, i]
-                m01, m11 = data[r0, 6, i], data[r1, 6, i]
-                n00, n10 = data[r0, 4, i], data[r1, 4, i]
-                n01, n11 = data[r0, 7, i], data[r1, 7, i]
-                e00 = w0 * p00 + w1 * p01 + w2 * p10 + w3 * p11
-                e10 = w0 * q00 + w1 * q01 + w2 * q10 + w3 * q11
-                e01 = w0 * m00 + w1 * m01 + w2 * m10 + w3 * m11
-                e11 = w0 * n00 + w1 * n01 + w2 * n10 + w3 * n11
-                y0, y1, dy0, dy1 = (v0, v1, dv0, dv1) if b == 0 else (v2, v3, dv2, dv3)
-                s0 += y0 * e00 + y1 * e01
-                s1 += y0 * e10 + y1 * e11
-                if want_grad:
-                    sv0 += dy0 * e00 + dy1 * e01
-                    sv1 += dy0 * e10 + dy1 * e11
-                    d00 = dw0 * p00 + dw1 * p01 + dw2 * p10 + dw3 * p11
-                    d10 = dw0 * q00 + dw1 * q01 + dw2 * q10 + dw3 * q11
-                    d01 = dw0 * m00 + dw1 * m01 + dw2 * m10 + dw3 * m11
-                    d11 = dw0 * n00 + dw1 * n01 + dw2 * n10 + dw3 * n11
-                    sw0 += y0 * d00 + y1 * d01
-                    sw1 += y0 * d10 + y1 * d11
-            x0, x1, dx0, dx1 = (u0, u1, du0, du1) if a == 0 else (u2, u3, du2, du3)
-            fi += x0 * s0 + x1 * s1
-            if want_grad:
-                gu += dx0 * s0 + dx1 * s1
-                gv += x0 * sv0 + x1 * sv1
-                gw += x0 * sw0 + x1 * sw1
-        f[i] = fi
-        if want_grad:
-            grad[i, 0] = gu
-            grad[i, 1] = gv
-            grad[i, 2] = gw
+# The cell's polynomial, one home for the CPU's kernels and the GPU's
+# (vhm_viz.core.lattice.cell_formulas); cell_eval and inverse3 with fused multiply-adds.
+_weights = numba.njit(cache=True)(cell_formulas.hermite_weights)
+cell_eval = numba.njit(fastmath={"contract"})(cell_formulas.cell_evaluator(_weights))
+inverse3 = numba.njit(cache=True, fastmath={"contract"})(cell_formulas.inverse3)
 
 
 @numba.njit(cache=True)
@@ -161,31 +69,6 @@ def control_points(data, rows, h, cp):  # pragma: no cover - compiled
                         + sb * sc * data[r, 6, i]
                         + sa * sb * sc * data[r, 7, i]
                     )
-
-
-@numba.njit(cache=True, fastmath={"contract"})  # fused multiply-adds
-def inverse3(g, out):  # pragma: no cover - compiled
-    """``out = g^-1`` of a 3x3 matrix by its adjugate; False when ``g`` is singular.
-
-    Singular: ``|det g| <= 1e-300`` or not finite; ``out`` is then left untouched.
-    """
-    c00 = g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1]
-    c01 = g[1, 2] * g[2, 0] - g[1, 0] * g[2, 2]
-    c02 = g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]
-    det = g[0, 0] * c00 + g[0, 1] * c01 + g[0, 2] * c02
-    if not abs(det) > 1e-300:
-        return False
-    r = 1.0 / det
-    out[0, 0] = c00 * r
-    out[1, 0] = c01 * r
-    out[2, 0] = c02 * r
-    out[0, 1] = (g[0, 2] * g[2, 1] - g[0, 1] * g[2, 2]) * r
-    out[1, 1] = (g[0, 0] * g[2, 2] - g[0, 2] * g[2, 0]) * r
-    out[2, 1] = (g[0, 1] * g[2, 0] - g[0, 0] * g[2, 1]) * r
-    out[0, 2] = (g[0, 1] * g[1, 2] - g[0, 2] * g[1, 1]) * r
-    out[1, 2] = (g[0, 2] * g[1, 0] - g[0, 0] * g[1, 2]) * r
-    out[2, 2] = (g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]) * r
-    return True
 
 
 @numba.njit(parallel=True, cache=True)

@@ -9,9 +9,9 @@ import numpy as np
 
 from vhm_viz.core.image import BORDER, ImageGeometry
 from vhm_viz.core.lattice.cage_edges import bin_edges, points_near_binned_edges
+from vhm_viz.core.lattice.cell_formulas import MARGIN
 from vhm_viz.core.lattice.hermite import eval_points, leaf_jacobians, leaf_voxels
 from vhm_viz.core.lattice.pullback import (
-    MARGIN,
     candidate_rows,
     cut_blocks,
     output_boxes,
@@ -245,7 +245,7 @@ class HermiteLattice:
         return np.floor(lo).astype(np.int64), np.ceil(hi).astype(np.int64)
 
     def pull_back(self, geometry: ImageGeometry, box, boxes, u, state, fold, quality,
-                  near_edge=None, tests=None) -> None:  # fmt: skip
+                  near_edge=None, tests=None, device: str = "cpu") -> None:  # fmt: skip
         """Pre-images (input voxel indices) of the voxels of an output box.
 
         Parameters
@@ -266,7 +266,11 @@ class HermiteLattice:
             in ``state`` (default: every leaf).
         tests : (L, S, 3, 5) float64, optional
             :func:`~vhm_viz.core.lattice.pullback.subcell_tests` on this output grid:
-            fewer Newton solves that end outside their leaf (default: the leaves' own).
+            fewer Newton solves that end outside their leaf (default: the leaves' own;
+            the CPU's only).
+        device : {"cpu", "cuda"}
+            Where the Newton solves run (``"cuda"``:
+            :func:`~vhm_viz.core.lattice.cuda_pullback.pull_back_on_gpu`).
         """
         self._need_pre_images("pull_back")
         if near_edge is None:
@@ -287,6 +291,12 @@ class HermiteLattice:
         row_i1 = np.empty(total, dtype=np.int64)
         if total:
             candidate_rows(leaves, lo, hi, b, start, row_leaf, row_i0, row_i1)
+        if device == "cuda":
+            from vhm_viz.core.lattice.cuda_pullback import pull_back_on_gpu
+
+            pull_back_on_gpu(self, geometry, b, start, row_leaf, row_i0, row_i1, near_edge,
+                             u, state, fold, quality)  # fmt: skip
+            return
         if tests is None:
             tests = np.zeros((0, 1, 3, 5))
         pull_back_rows(

@@ -18,18 +18,11 @@ import numba
 import numpy as np
 
 from vhm_viz.core.image import BORDER, inside_mask, surface_mask
+from vhm_viz.core.lattice import cell_formulas
+from vhm_viz.core.lattice.cell_formulas import FLAG_BLOCK
 from vhm_viz.core.lattice.hermite import cell_eval, control_points, inverse3, net_nonlinearity
 from vhm_viz.core.work_items import claim
 
-# Newton on a cell's polynomial: converged when the step is below this (voxels; the step
-# is applied, and convergence is quadratic, so the pre-image is then good to ~1e-6 voxel,
-# far below the tolerance; a smaller step costs a further evaluation for most voxels) ...
-_NEWTON_STEP = 1e-3
-# ... within this many iterations.
-_NEWTON_ITERATIONS = 12
-#: How far (voxels) outside its cell a pre-image may lie: cells of different sizes meet
-#: with mismatches of the order of the tolerance, which would otherwise leave gaps.
-MARGIN = 0.25
 # Rows of an output box that a worker of the pull-back claims at a time.
 _ROWS_PER_CLAIM = 4
 #: Bit of a pull-back's ``state`` set when the pre-image lies in a leaf flagged
@@ -245,11 +238,6 @@ def candidate_rows(leaves, ilo, ihi, box, row_start, row_leaf, row_i0, row_i1): 
                     row_start[r + 1] += 1
 
 
-#: Edge of the blocks in which the inside and surface flags around the leaves the cage
-#: crosses are kept for the pull-back (:func:`cut_blocks`): 8^3 lattice points, 512 bytes.
-FLAG_BLOCK = 8
-
-
 @numba.njit(cache=True)
 def _mark_cut_blocks(origin, size, cut, margin, dims, marks):  # pragma: no cover
     """Mark the blocks holding the grid cubes around the pre-images of the cut leaves.
@@ -310,31 +298,16 @@ def cut_blocks(lattice, lat_geo=None, vertices=None, faces=None):
     return block_of, pool, dims
 
 
-@numba.njit(cache=True)
-def inside_around(block_of, pool, dims, u):  # pragma: no cover - compiled
-    """Whether ``u`` is inside the cage, from the grid cube around it.
-
-    8 (inside) or 0 (outside) when the cage does not cross the cube's edges and the
-    corners agree; -1 (ask the winding number) when the surface runs next to the cube, or
-    the cube's flags were not kept (:func:`cut_blocks`).
-    """
-    i0 = min(max(int(math.floor(u[0])), 0), dims[0] - 2)
-    j0 = min(max(int(math.floor(u[1])), 0), dims[1] - 2)
-    k0 = min(max(int(math.floor(u[2])), 0), dims[2] - 2)
-    count = 0
-    for c in range(2):
-        for b in range(2):
-            for a in range(2):
-                k, j, i = k0 + c, j0 + b, i0 + a
-                blk = block_of[k // FLAG_BLOCK, j // FLAG_BLOCK, i // FLAG_BLOCK]
-                if blk < 0:
-                    return -1
-                flags = pool[blk, k % FLAG_BLOCK, j % FLAG_BLOCK, i % FLAG_BLOCK]
-                if flags & 2:
-                    return -1
-                if flags & 1:
-                    count += 1
-    return count if count == 0 or count == 8 else -1
+# One (voxel, leaf) pair of the pull-back: the arithmetic's one home, shared with the
+# GPU's kernel (vhm_viz.core.lattice.cuda_pullback), is cell_formulas. Its steps are
+# inlined into the row's loop (calls into separately compiled functions would slow it);
+# the cell's polynomial and the inverse are not, being compiled with fused multiply-adds.
+_INLINE = dict(inline="always")
+_linear_estimate = numba.njit(**_INLINE)(cell_formulas.linear_estimate)
+_known_inside = numba.njit(**_INLINE)(cell_formulas.known_inside)
+_newton_on_cell = numba.njit(**_INLINE)(cell_formulas.newton_solver(cell_eval, inverse3))
+inside_around = numba.njit(cache=True)(cell_formulas.inside_around)
+_keep_preimage = numba.njit(**_INLINE)(cell_formulas.preimage_keeper(inside_around))
 
 
 @numba.njit(parallel=True, cache=True)
@@ -472,7 +445,9 @@ def _in_spans(spans, count, i):  # pragma: no cover - compiled
     return False
 
 
-@numba.njit(cache=True)
+# No reference counting: the row allocates nothing, and the inlined steps would count
+# every array they are given, for every (voxel, leaf) pair.
+@numba.njit(cache=True, _nrt=False)
 def _pull_back_row(
     r, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, tests,
     block_of, pool, dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0,
@@ -512,31 +487,13 @@ def _pull_back_row(
                 y[a] = origin_out[a] + to_world_out[a, 0] * i_ + (
                     to_world_out[a, 1] * j + to_world_out[a, 2] * k
                 )
-            far = False
-            for a in range(3):
-                d = 0.0
-                for b in range(3):
-                    d += centre_ginv[n, a, b] * (y[b] - centre_f[n, b])
-                ul[a] = origin[n, a] + 0.5 * h + d
-                if not abs(d) <= lim:  # also catches NaN
-                    far = True
-            if far:
+            if _linear_estimate(centre_f, centre_ginv, origin, n, h, lim, y, ul):
                 chained = 0
                 continue
             v = ((k - box[4]) * ny + (j - box[2])) * nx + (i_ - box[0])
-            if state[v] & 3 == 1 and quality[v] == 0.0:
-                # a pre-image inside its own leaf is known: one in this leaf lies within
-                # rho of the estimate and within the leaf's margin; if all of that is
-                # within a voxel of the known one it is the same point (not a fold)
-                same = True
-                for a in range(3):
-                    near_lo = max(ul[a] - rho[n], origin[n, a] - margin[n])
-                    near_hi = min(ul[a] + rho[n], origin[n, a] + h + margin[n])
-                    if not (near_lo > u_out[v, a] - 1.0 and near_hi < u_out[v, a] + 1.0):
-                        same = False
-                if same:
-                    chained = 0
-                    continue
+            if _known_inside(state, quality, u_out, v, ul, rho[n], origin, n, h, margin[n]):
+                chained = 0
+                continue
             if chained >= 3:
                 # the pre-images of a row are smooth: quadratic extrapolation
                 for a in range(3):
@@ -556,63 +513,12 @@ def _pull_back_row(
             else:
                 for a in range(3):
                     u[a] = ul[a]
-            ok = False
-            for _ in range(_NEWTON_ITERATIONS):
-                cell_eval(
-                    data, rows[n], h, (u[0] - origin[n, 0]) / h, (u[1] - origin[n, 1]) / h,
-                    (u[2] - origin[n, 2]) / h, f, g, True,
-                )  # fmt: skip
-                if not inverse3(g, gi):
-                    break
-                big = 0.0
-                for a in range(3):
-                    d = 0.0
-                    for b in range(3):
-                        d += gi[a, b] * (y[b] - f[b])
-                    u[a] += d
-                    big = max(big, abs(d))
-                if not big < 2.0 * h:  # diverging (or NaN)
-                    break
-                if big < _NEWTON_STEP:
-                    ok = True
-                    break
+            ok = _newton_on_cell(data, rows[n], h, origin[n, 0], origin[n, 1], origin[n, 2],
+                                 y, u, f, g, gi)  # fmt: skip
             chained = chained + 1 if ok else 0
             if not ok:
                 continue
-            q = 0.0
-            inside_vol = True
-            for a in range(3):
-                # beyond the volume's boundary the border takes over from the margin
-                below = origin[n, a] - u[a] - (BORDER if origin[n, a] <= 0 else 0.0)
-                above = u[a] - origin[n, a] - h - (
-                    BORDER if origin[n, a] + size[n] >= last[a] else 0.0
-                )
-                q = max(q, below, above)
-                if u[a] < -BORDER or u[a] > last[a] + BORDER:
-                    inside_vol = False
-            if q > MARGIN or not inside_vol:
-                continue
-            s = 1
-            if cut[n]:
-                around = inside_around(block_of, pool, dims, u)
-                if around == 0:
-                    continue
-                if around < 0:
-                    s = 2
-            known = state[v] & 3
-            if known == 0 or (known == 2 and s == 1):
-                state[v] = s | (NEAR_EDGE if near_edge[n] else 0)
-                quality[v] = q
-                for a in range(3):
-                    u_out[v, a] = u[a]
-            elif known == s:
-                apart = 0.0
-                for a in range(3):
-                    apart = max(apart, abs(u[a] - u_out[v, a]))
-                if apart > 1.0:
-                    fold[v] = 1
-                elif q < quality[v]:
-                    state[v] = s | (NEAR_EDGE if near_edge[n] else 0)
-                    quality[v] = q
-                    for a in range(3):
-                        u_out[v, a] = u[a]
+            _keep_preimage(
+                state, fold, quality, u_out, v, u, n, origin, size, cut,
+                NEAR_EDGE if near_edge[n] else 0, last, block_of, pool, dims,
+            )  # fmt: skip
