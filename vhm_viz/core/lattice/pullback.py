@@ -21,6 +21,7 @@ from vhm_viz.core.image import BORDER, inside_mask, surface_mask
 from vhm_viz.core.lattice import cell_formulas
 from vhm_viz.core.lattice.cell_formulas import FLAG_BLOCK
 from vhm_viz.core.lattice.hermite import cell_eval, control_points, inverse3, net_nonlinearity
+from vhm_viz.core.row_threads import run_rows
 from vhm_viz.core.work_items import claim
 
 # Rows of an output box that a worker of the pull-back claims at a time.
@@ -79,7 +80,6 @@ def _clip_net(cp, axis, t0, t1):  # pragma: no cover - compiled
                 cp[idx[q], a] = b[q, a]
 
 
-@numba.njit(parallel=True, cache=True)
 def output_boxes(data, rows, origin, size, lower, upper, origin_out, to_out, margin, lo, hi):
     """Per leaf: the box of output-grid indices its image can reach.
 
@@ -87,10 +87,19 @@ def output_boxes(data, rows, origin, size, lower, upper, origin_out, to_out, mar
     ``lower <= u <= upper`` (the volume: cells overhang it); ``margin[n]`` (input voxels)
     around that adds at most that times the largest corner Jacobian (output voxels per
     input voxel), a first-order bound that the rounding of the box to whole voxels covers.
+    Written into ``lo``, ``hi`` ((L, 3) float64), on the row threads.
     """  # noqa: D401
-    for n in numba.prange(rows.shape[0]):
+    run_rows(_output_boxes, rows.shape[0], data, rows, origin, size, lower, upper, origin_out,
+             to_out, margin, lo, hi, grain=64)  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _output_boxes(start, stop, data, rows, origin, size, lower, upper, origin_out, to_out,
+                  margin, lo, hi):  # pragma: no cover - compiled  # fmt: skip
+    """:func:`output_boxes` of leaves ``start <= n < stop``."""
+    cp = np.empty((64, 3))
+    for n in range(start, stop):
         h = float(size[n])
-        cp = np.empty((64, 3))
         control_points(data, rows[n], h, cp)
         for a in range(3):
             t0 = max((lower[a] - origin[n, a]) / h, 0.0)
@@ -151,62 +160,66 @@ def subcell_tests(lattice, geometry) -> np.ndarray:
         voxel may be there), one out of the volume's reach a bound of -1 (none).
     """
     tests = np.empty((len(lattice.leaf_size), SUBCELLS**3, 3, _TEST_WIDTH))
-    if len(tests):
-        _subcell_tests(lattice.data, lattice.leaf_rows, lattice.leaf_origin, lattice.leaf_size,
-                       lattice.margins(), lattice.last.astype(np.float64),
-                       np.asarray(geometry.origin, dtype=np.float64),
-                       np.ascontiguousarray(geometry.index_to_world, dtype=np.float64),
-                       tests)  # fmt: skip
+    run_rows(_subcell_tests, len(tests), lattice.data, lattice.leaf_rows, lattice.leaf_origin,
+             lattice.leaf_size, lattice.margins(), lattice.last.astype(np.float64),
+             np.asarray(geometry.origin, dtype=np.float64),
+             np.ascontiguousarray(geometry.index_to_world, dtype=np.float64), tests,
+             grain=64)  # fmt: skip
     return tests
 
 
-@numba.njit(parallel=True, cache=True)
-def _subcell_tests(data, rows, origin, size, margin, last, origin_out, to_world_out,
-                   tests):  # pragma: no cover - compiled  # fmt: skip
-    """:func:`subcell_tests` of every leaf into ``tests``."""
-    for n in numba.prange(rows.shape[0]):
+# A serial kernel over a range of leaves, run on the row threads, with scalar loops and
+# no allocation per leaf: a parallel loop or slice assignments compile many times slower.
+@numba.njit(cache=True, nogil=True)
+def _subcell_tests(start, stop, data, rows, origin, size, margin, last, origin_out,
+                   to_world_out, tests):  # pragma: no cover - compiled  # fmt: skip
+    """:func:`subcell_tests` of leaves ``start <= n < stop`` into ``tests``."""
+    net = np.empty((64, 3))
+    cp = np.empty((64, 3))
+    f = np.empty(3)
+    g = np.empty((3, 3))
+    gi = np.empty((3, 3))
+    width = tests.shape[3]
+    for n in range(start, stop):
         h = float(size[n])
         hs = h / SUBCELLS
-        net = np.empty((64, 3))
         control_points(data, rows[n], h, net)
-        cp = np.empty((64, 3))
-        f = np.empty(3)
-        g = np.empty((3, 3))
-        gi = np.empty((3, 3))
         for s in range(SUBCELLS**3):
-            corner = (s % SUBCELLS, (s // SUBCELLS) % SUBCELLS, s // SUBCELLS**2)
-            cp[:] = net
-            for a in range(3):
-                _clip_net(cp, a, corner[a] / SUBCELLS, (corner[a] + 1.0) / SUBCELLS)
-            cell_eval(data, rows[n], h, (corner[0] + 0.5) / SUBCELLS,
-                      (corner[1] + 0.5) / SUBCELLS, (corner[2] + 0.5) / SUBCELLS, f, g,
-                      True)  # fmt: skip
+            c0, c1, c2 = s % SUBCELLS, (s // SUBCELLS) % SUBCELLS, s // SUBCELLS**2
+            for q in range(64):
+                for a in range(3):
+                    cp[q, a] = net[q, a]
+            for a in range(3):  # (a loop: one specialisation of _clip_net's axis)
+                corner = c0 if a == 0 else (c1 if a == 1 else c2)
+                _clip_net(cp, a, corner / SUBCELLS, (corner + 1.0) / SUBCELLS)
+            cell_eval(data, rows[n], h, (c0 + 0.5) / SUBCELLS, (c1 + 0.5) / SUBCELLS,
+                      (c2 + 0.5) / SUBCELLS, f, g, True)  # fmt: skip
             worst = net_nonlinearity(cp, f, gi, hs) if inverse3(g, gi) else np.inf
             for a in range(3):
-                row = tests[n, s, a]
+                for w in range(width):
+                    tests[n, s, a, w] = 0.0
                 if not np.isfinite(worst):
-                    row[:] = 0.0
-                    row[_TEST_WIDTH - 1] = np.inf
+                    tests[n, s, a, width - 1] = np.inf
                     continue
                 lim = 0.5 * hs + worst + margin[n]
-                centre = origin[n, a] + (corner[a] + 0.5) * hs
+                corner = c0 if a == 0 else (c1 if a == 1 else c2)
+                centre = origin[n, a] + (corner + 0.5) * hs
                 lower = max(-lim, -BORDER - centre - worst)
                 upper = min(lim, last[a] + BORDER - centre + worst)
                 if not lower <= upper:
-                    row[:] = 0.0
-                    row[_TEST_WIDTH - 1] = -1.0
+                    tests[n, s, a, width - 1] = -1.0
                     continue
                 c = -0.5 * (lower + upper)
                 for b in range(3):
                     c += gi[a, b] * (origin_out[b] - f[b])
-                row[0] = c
+                tests[n, s, a, 0] = c
                 for t in range(3):
                     d = 0.0
                     for b in range(3):
                         d += gi[a, b] * to_world_out[b, t]
                     # (j, k, i) order: the row's constant part first
-                    row[1 + (t + 2) % 3] = d
-                row[_TEST_WIDTH - 1] = 0.5 * (upper - lower)
+                    tests[n, s, a, 1 + (t + 2) % 3] = d
+                tests[n, s, a, width - 1] = 0.5 * (upper - lower)
 
 
 @numba.njit(cache=True)
@@ -310,12 +323,11 @@ inside_around = numba.njit(cache=True)(cell_formulas.inside_around)
 _keep_preimage = numba.njit(**_INLINE)(cell_formulas.preimage_keeper(inside_around))
 
 
-@numba.njit(parallel=True, cache=True)
 def pull_back_rows(
     data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, tests, block_of,
     pool, dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
     u_out, state, fold, quality, workers,
-):  # pragma: no cover - compiled  # fmt: skip
+) -> None:  # fmt: skip
     """Pre-images of the output voxels of a box: Newton on the leaves' polynomials.
 
     For every row of the box and every leaf whose image box crosses it, each voxel ``y``
@@ -338,11 +350,27 @@ def pull_back_rows(
     Every voxel of the box is written: ``u_out``, ``state``, ``fold`` and ``quality`` are
     zero where no pre-image was found. Rows cost from nothing (no candidate leaf) to many
     Newton solves: ``workers`` (:func:`~vhm_viz.core.work_items.worker_count`) claim them
-    a few at a time (:mod:`~vhm_viz.core.work_items`).
+    a few at a time (:mod:`~vhm_viz.core.work_items`), each a serial compiled worker on
+    the row threads (:func:`~vhm_viz.core.row_threads.run_rows`): numba's parallel loop
+    would cost far more to compile, for the same schedule.
     """
-    n_rows = row_start.shape[0] - 1
     counter = np.zeros(1, dtype=np.int64)
-    for _ in numba.prange(workers):
+    run_rows(
+        _pull_back_worker, workers, counter, data, rows, origin, size, cut, near_edge, centre_f,
+        centre_ginv, rho, margin, tests, block_of, pool, dims, last, origin_out, to_world_out,
+        box, row_start, row_leaf, row_i0, row_i1, u_out, state, fold, quality, grain=1,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _pull_back_worker(
+    start, stop, counter, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho,
+    margin, tests, block_of, pool, dims, last, origin_out, to_world_out, box, row_start,
+    row_leaf, row_i0, row_i1, u_out, state, fold, quality,
+):  # pragma: no cover - compiled  # fmt: skip
+    """Workers ``start <= w < stop`` of :func:`pull_back_rows`, one after the other."""
+    n_rows = row_start.shape[0] - 1
+    for _ in range(start, stop):
         vectors = np.empty((6, 3))  # y, ul, u, f, prev1, prev2 of the row's voxels
         matrices = np.empty((2, 3, 3))  # g, gi
         spans = np.empty((SUBCELLS**3, 2), dtype=np.int64)  # voxels passing sub-cell tests
