@@ -23,6 +23,11 @@ Inside a kernel compiled with ``parallel=True``::
                 break
             for item in range(first, min(first + CHUNK, n_items)):
                 ...
+
+or, cheaper to compile, in a serial ``nogil`` kernel ``worker(start, stop, counter, ...)``
+whose loop over ``range(start, stop)`` takes the place of the ``prange``, run on the row
+threads as ``run_rows(worker, workers, counter, ..., grain=1)``
+(:func:`~vhm_viz.core.row_threads.run_rows`; the pull-back's rows do so).
 """
 
 from __future__ import annotations
