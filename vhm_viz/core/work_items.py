@@ -27,7 +27,7 @@ Inside a kernel compiled with ``parallel=True``::
 or, cheaper to compile, in a serial ``nogil`` kernel ``worker(start, stop, counter, ...)``
 whose loop over ``range(start, stop)`` takes the place of the ``prange``, run on the row
 threads as ``run_rows(worker, workers, counter, ..., grain=1)``
-(:func:`~vhm_viz.core.row_threads.run_rows`).
+(:func:`~vhm_viz.core.row_threads.run_rows`; the pull-back's rows do so).
 """
 
 from __future__ import annotations

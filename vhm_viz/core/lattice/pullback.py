@@ -323,12 +323,11 @@ inside_around = numba.njit(cache=True)(cell_formulas.inside_around)
 _keep_preimage = numba.njit(**_INLINE)(cell_formulas.preimage_keeper(inside_around))
 
 
-@numba.njit(parallel=True, cache=True)
 def pull_back_rows(
     data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho, margin, tests, block_of,
     pool, dims, last, origin_out, to_world_out, box, row_start, row_leaf, row_i0, row_i1,
     u_out, state, fold, quality, workers,
-):  # pragma: no cover - compiled  # fmt: skip
+) -> None:  # fmt: skip
     """Pre-images of the output voxels of a box: Newton on the leaves' polynomials.
 
     For every row of the box and every leaf whose image box crosses it, each voxel ``y``
@@ -351,11 +350,27 @@ def pull_back_rows(
     Every voxel of the box is written: ``u_out``, ``state``, ``fold`` and ``quality`` are
     zero where no pre-image was found. Rows cost from nothing (no candidate leaf) to many
     Newton solves: ``workers`` (:func:`~vhm_viz.core.work_items.worker_count`) claim them
-    a few at a time (:mod:`~vhm_viz.core.work_items`).
+    a few at a time (:mod:`~vhm_viz.core.work_items`), each a serial compiled worker on
+    the row threads (:func:`~vhm_viz.core.row_threads.run_rows`): numba's parallel loop
+    would cost far more to compile, for the same schedule.
     """
-    n_rows = row_start.shape[0] - 1
     counter = np.zeros(1, dtype=np.int64)
-    for _ in numba.prange(workers):
+    run_rows(
+        _pull_back_worker, workers, counter, data, rows, origin, size, cut, near_edge, centre_f,
+        centre_ginv, rho, margin, tests, block_of, pool, dims, last, origin_out, to_world_out,
+        box, row_start, row_leaf, row_i0, row_i1, u_out, state, fold, quality, grain=1,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _pull_back_worker(
+    start, stop, counter, data, rows, origin, size, cut, near_edge, centre_f, centre_ginv, rho,
+    margin, tests, block_of, pool, dims, last, origin_out, to_world_out, box, row_start,
+    row_leaf, row_i0, row_i1, u_out, state, fold, quality,
+):  # pragma: no cover - compiled  # fmt: skip
+    """Workers ``start <= w < stop`` of :func:`pull_back_rows`, one after the other."""
+    n_rows = row_start.shape[0] - 1
+    for _ in range(start, stop):
         vectors = np.empty((6, 3))  # y, ul, u, f, prev1, prev2 of the row's voxels
         matrices = np.empty((2, 3, 3))  # g, gi
         spans = np.empty((SUBCELLS**3, 2), dtype=np.int64)  # voxels passing sub-cell tests
