@@ -136,13 +136,6 @@ def test_hexahedra_match_brute_force_and_find_inverted_cells():
     assert (out[np.isfinite(out)] >= 0).any() and (out[np.isfinite(out)] < 0).any()
     with pytest.raises(ValueError, match="rest_det"):
         hexahedron_corner_determinants(p.reshape(-1, 3), dims, 0.0)
-    # into a larger buffer used before (slabs of one grid): the same values, in the buffer
-    buffer = np.full(len(ref) + 5, 7.0)
-    again = hexahedron_corner_determinants(p.reshape(-1, 3), dims, 2.0, buffer)
-    np.testing.assert_array_equal(again, out)
-    assert np.shares_memory(again, buffer) and (buffer[len(ref) :] == 7.0).all()
-    with pytest.raises(ValueError, match="at least"):
-        hexahedron_corner_determinants(p.reshape(-1, 3), dims, 2.0, np.empty(len(ref) - 1))
 
 
 def test_a_mirrored_image_is_not_inverted_by_its_mirror_frame():

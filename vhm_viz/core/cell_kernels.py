@@ -422,7 +422,7 @@ def _run_hex_kernel(p, cells, rest_det: float, out) -> tuple[int, np.ndarray, np
     return n_nan, bad[order], value[order]
 
 
-def hexahedron_corner_determinants(points, dimensions, rest_det: float, out=None) -> np.ndarray:
+def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
     """Smallest corner Jacobian determinant of each cell of a deformed voxel grid.
 
     The grid's cell ``(i, j, k)`` is the trilinear image of a rest voxel; at each of its
@@ -442,9 +442,6 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float, out=None
         ``det`` of the rest voxel's edge matrix: ``sx * sy * sz * det(direction)`` for an
         image with spacing ``s`` and direction matrix ``direction``; not 0 (negative for
         a left-handed frame).
-    out : (M,) float64 array, optional
-        Written and returned (its first ``(nx - 1) * (ny - 1) * (nz - 1)`` entries): a
-        buffer reused across calls.
 
     Returns
     -------
@@ -453,13 +450,7 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float, out=None
         not finite (a point that is not finite).
     """
     p, cells = _hex_grid(points, dimensions, rest_det)
-    n_cells = cells[0] * cells[1] * cells[2]
-    if out is None:
-        out = np.empty(cells)
-    else:
-        if out.dtype != np.float64 or out.ndim != 1 or len(out) < n_cells:
-            raise ValueError(f"out must be a float64 vector of at least {n_cells} entries")
-        out = out[:n_cells].reshape(cells)
+    out = np.empty(cells)
     _run_hex_kernel(p, cells, rest_det, out)
     return out.reshape(-1)
 
