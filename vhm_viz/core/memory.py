@@ -151,8 +151,9 @@ LATTICE_BYTES_PER_VOXEL = 8
 #: Slab working arrays per voxel: a warp slab's positions; a pull-back slab's pre-image,
 #: state, fold, quality, outside flag and one sampled float64 component.
 SLAB_VOXEL_BYTES = {"warp": 16, "resample": 56}
-#: Bytes per voxel besides the output data: a warp's float64 positions (and the fold
-#: check's corner determinants, float64 per voxel); a resample's valid and fold masks.
+#: Bytes per voxel besides the output data: a warp's float64 positions and room for the
+#: fold check's inverted cells (an index and a determinant, 16 bytes each: up to half of
+#: the cells); a resample's valid and fold masks.
 _EXTRA_VOXEL_BYTES = {"warp": 3 * 8 + 8, "resample": 2}
 #: A pull-back slab's working arrays stay within this whatever the memory budget, since
 #: each process (each MPI rank) holds them; fewer slabs mean fewer of the serial steps
