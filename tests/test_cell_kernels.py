@@ -180,3 +180,39 @@ def test_inverted_hexahedra_are_those_of_the_per_cell_kernel(rest_det):
     clear = np.abs(ref) > 1e-9
     np.testing.assert_array_equal((every <= 0)[clear], (ref <= 0)[clear])
     np.testing.assert_allclose(every[clear], ref[clear], rtol=1e-9)
+
+
+def test_inverted_hexahedra_of_boxes_are_those_cells_of_the_whole_grid():
+    # boxes of every shape (blocks, layers, rows, single cells) over a folded grid with
+    # points that are not finite: their cells alone, with the whole kernel's numbers
+    rng = np.random.default_rng(11)
+    dims = (29, 21, 15)
+    k, j, i = np.meshgrid(*(np.arange(n) for n in dims[::-1]), indexing="ij")
+    p = np.stack([i, j, k], axis=-1).astype(float) + 0.45 * rng.normal(size=(*dims[::-1], 3))
+    p[4, 6, 7] = np.nan
+    pts = p.reshape(-1, 3)
+    every = hexahedron_corner_determinants(pts, dims, -0.9)
+    boxes = np.array(
+        [
+            [0, 27, 0, 19, 0, 0],  # the first layer of cells
+            [3, 10, 2, 9, 1, 8],  # a block (holding the NaN point's cells)
+            [27, 27, 0, 19, 1, 13],  # the last column of cells
+            [12, 20, 15, 15, 5, 5],  # a row
+            [14, 14, 3, 3, 9, 9],  # a cell
+        ]
+    )
+    chosen = np.zeros((dims[2] - 1, dims[1] - 1, dims[0] - 1), dtype=bool)
+    for i0, i1, j0, j1, k0, k1 in boxes:
+        chosen[k0 : k1 + 1, j0 : j1 + 1, i0 : i1 + 1] = True
+    chosen = chosen.reshape(-1)
+    found = inverted_hexahedra(pts, dims, -0.9, boxes)
+    bad = np.flatnonzero(chosen & (every <= 0))
+    assert bad.size > 100
+    np.testing.assert_array_equal(found["inverted"], bad)
+    np.testing.assert_array_equal(found["determinant"], every[bad])
+    assert found["cells"] == np.isfinite(every[chosen]).sum() < chosen.sum()
+    empty = inverted_hexahedra(pts, dims, -0.9, np.zeros((0, 6), np.int64))
+    assert empty["cells"] == 0 and empty["inverted"].size == 0
+    for wrong in ([0, 28, 0, 0, 0, 0], [5, 4, 0, 0, 0, 0], [0, 0, -1, 0, 0, 0]):
+        with pytest.raises(ValueError, match="cell ranges"):
+            inverted_hexahedra(pts, dims, -0.9, [wrong])

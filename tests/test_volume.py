@@ -1298,7 +1298,7 @@ def test_resample_pieces_read_only_the_window_their_preimages_reach(tmp_path):
     ref = {n: np.asarray(whole.point_data[n]).reshape(nz, ny, nx) for n in
            ("v", "vtkValidPointMask", "vhm_foldover")}  # fmt: skip
     assert ref["vtkValidPointMask"].mean() > 0.5
-    vol, out_geo = flt._volume_engine, flt._geometry
+    vol, out_geo = flt.volume_engine, flt._geometry
     read = []
     for piece in range(4):
         flt = pipeline()

@@ -392,13 +392,14 @@ _FOLD_CELL_BYTES = 16
 
 
 def inverted_voxel_cells(
-    points, dimensions, rest_det: float, progress=None, memory_budget=None
+    points, dimensions, rest_det: float, progress=None, memory_budget=None, unproven=None
 ) -> dict:
     """The inverted cells of a warped voxel grid, slab by slab, in bounded memory.
 
     :func:`~vhm_viz.core.cell_kernels.inverted_hexahedra` of a slab of voxel layers at a
-    time: only the inverted cells are held, and an interrupt is acted on between slabs,
-    so that Ctrl-C or SIGTERM stops the fold check of a large warped volume promptly.
+    time (or of a group of ``unproven`` boxes): only the inverted cells are held, and an
+    interrupt is acted on between slabs, so that Ctrl-C or SIGTERM stops the fold check of
+    a large warped volume promptly.
 
     Parameters
     ----------
@@ -411,14 +412,19 @@ def inverted_voxel_cells(
     memory_budget : int, optional
         Bytes of working memory per slab (default: slabs of :data:`FOLD_SLAB_CELLS`
         cells; a slab is at least one layer of cells).
+    unproven : (K, 6) int array_like, optional
+        The only cells to measure (inclusive cell ranges,
+        :meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`): the others are
+        proven not inverted, and counted as measured cells.
 
     Returns
     -------
     dict
         :func:`fold_warning`'s ``cells``: ``summary`` (``cells``: cells with finite
-        corners, ``inverted``: of them with a corner determinant ``<= 0``), ``inverted``
-        (K,) int64 (the inverted cells in VTK's cell order) and ``inverted_determinant``
-        (K,) float64 (their smallest corner determinant relative to the rest voxel's).
+        corners, ``inverted``: of them with a corner determinant ``<= 0``, ``proven``:
+        of them proven not inverted without being measured), ``inverted`` (K,) int64 (the
+        inverted cells in VTK's cell order) and ``inverted_determinant`` (K,) float64
+        (their smallest corner determinant relative to the rest voxel's).
     """
     from vhm_viz.core.cell_kernels import inverted_hexahedra
 
@@ -428,24 +434,43 @@ def inverted_voxel_cells(
     slab_cells = FOLD_SLAB_CELLS
     if memory_budget is not None:
         slab_cells = min(slab_cells, int(memory_budget) // _FOLD_CELL_BYTES)
-    layers = max(1, slab_cells // max(cell_plane, 1))
-    checked, inverted, worst = 0, [np.zeros(0, np.int64)], [np.zeros(0)]
-    for k0 in range(0, nz - 1, layers):
-        k1 = min(k0 + layers, nz - 1)
-        slab = inverted_hexahedra(
-            points[k0 * plane : (k1 + 1) * plane], (nx, ny, k1 - k0 + 1), rest_det
-        )
-        checked += slab["cells"]
-        inverted.append(slab["inverted"] + k0 * cell_plane)
-        worst.append(slab["determinant"])
-        interrupts.check()
-        if progress is not None:
-            progress(k1 / (nz - 1))
-    bad = np.concatenate(inverted)
+    checked, proven, inverted, worst = 0, 0, [np.zeros(0, np.int64)], [np.zeros(0)]
+    if unproven is not None:
+        boxes = np.asarray(unproven, dtype=np.int64).reshape(-1, 6)
+        ends = np.cumsum(np.prod(boxes[:, 1::2] - boxes[:, 0::2] + 1, axis=1))
+        proven = cell_plane * max(nz - 1, 0) - int(ends[-1] if ends.size else 0)
+        # groups of boxes of about slab_cells cells
+        group_of = (ends - 1) // max(slab_cells, 1)
+        groups = np.split(boxes, np.flatnonzero(np.diff(group_of)) + 1)
+        for g, group in enumerate(groups):
+            part = inverted_hexahedra(points, dimensions, rest_det, group)
+            checked += part["cells"]
+            inverted.append(part["inverted"])
+            worst.append(part["determinant"])
+            interrupts.check()
+            if progress is not None:
+                progress((g + 1) / len(groups))
+        bad = np.concatenate(inverted)
+        order = np.argsort(bad, kind="stable")
+        bad, worst = bad[order], np.concatenate(worst)[order]
+    else:
+        layers = max(1, slab_cells // max(cell_plane, 1))
+        for k0 in range(0, nz - 1, layers):
+            k1 = min(k0 + layers, nz - 1)
+            slab = inverted_hexahedra(
+                points[k0 * plane : (k1 + 1) * plane], (nx, ny, k1 - k0 + 1), rest_det
+            )
+            checked += slab["cells"]
+            inverted.append(slab["inverted"] + k0 * cell_plane)
+            worst.append(slab["determinant"])
+            interrupts.check()
+            if progress is not None:
+                progress(k1 / (nz - 1))
+        bad, worst = np.concatenate(inverted), np.concatenate(worst)
     return {
-        "summary": {"cells": checked, "inverted": int(bad.size)},
+        "summary": {"cells": checked + proven, "inverted": int(bad.size), "proven": proven},
         "inverted": bad,
-        "inverted_determinant": np.concatenate(worst),
+        "inverted_determinant": worst,
     }
 
 

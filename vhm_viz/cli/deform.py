@@ -32,7 +32,6 @@ from vhm_viz.cli._util import (
     check_output,
     check_volume_memory,
     fold_warning,
-    image_positions,
     inverted_voxel_cells,
     load_scene,
     quiet_vtk,
@@ -278,6 +277,12 @@ def deform(args: argparse.Namespace) -> str:
     return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {outputs}" + field_written
 
 
+#: Voxel cells of a warped image from which its fold check measures only the cells that
+#: the volume engine's lattice does not prove unfolded: below it, measuring every cell
+#: takes less time than loading the proof's compiled kernels.
+PROOF_MIN_CELLS = 1 << 23
+
+
 def _summary(mesh, result, reports, flt, resample: bool, volume: bool, tolerance) -> list[str]:
     iterations = sum(r.iterations for r in reports)
     kind = "voxels" if volume else "points"
@@ -315,7 +320,9 @@ def _check_folds(
     """The fold warning of the output: inverted cells and sampled det J <= 0.
 
     A warped image's cells are judged by the corner Jacobians of its trilinear voxels
-    (:func:`~vhm_viz.core.cell_kernels.inverted_hexahedra`); other 3D cells
+    (:func:`~vhm_viz.core.cell_kernels.inverted_hexahedra`), measured where the volume
+    engine's lattice does not prove them unfolded
+    (:meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`); other 3D cells
     by the tetrahedra they split into, taken from the output's cell arrays when the
     filter computed them (``--arrays cells``). The cells' check has a progress bar
     (``checking``); a warped image's is done in slabs of at most ``memory_budget`` bytes
@@ -324,6 +331,7 @@ def _check_folds(
     import pyvista as pv
 
     from vhm_viz.filters import cell_quality
+    from vhm_viz.filters._vtk import image_geometry
 
     cells = None
     point_det = None
@@ -331,7 +339,16 @@ def _check_folds(
         bar = Progress("checking", enabled=not quiet)
         bar(0.0)
         if isinstance(mesh, pv.ImageData):
-            cells = _voxel_folds(mesh, result, bar, memory_budget)
+            engine = flt.volume_engine  # its lattice proves most voxel cells unfolded
+            unproven = None
+            cells = int(np.prod(np.asarray(mesh.dimensions) - 1))
+            if (
+                cells >= PROOF_MIN_CELLS
+                and engine is not None
+                and engine.geometry.same_as(image_geometry(mesh))
+            ):
+                unproven = engine.unproven_cells()
+            cells = _voxel_folds(mesh, result, bar, memory_budget, unproven)
         elif "cell_jacobian_determinant" in result.cell_data:
             det = np.asarray(result.cell_data["cell_jacobian_determinant"])
             finite = np.isfinite(det)
@@ -350,18 +367,30 @@ def _check_folds(
     return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det, samples=samples)
 
 
-def _voxel_folds(image, warped, progress, memory_budget=None) -> dict | None:
-    """:func:`fold_warning`'s cells of a warped image: its voxels' corner Jacobians."""
+def _voxel_folds(image, warped, progress, memory_budget=None, unproven=None) -> dict | None:
+    """:func:`fold_warning`'s cells of a warped image: its voxels' corner Jacobians.
+
+    ``unproven``: the only cells to measure (the volume engine's
+    :meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`; default: all).
+    """
     dims = tuple(int(d) for d in image.dimensions)
     if min(dims) < 2:
         return None
     rest_det = float(np.prod(image.spacing) * np.linalg.det(np.asarray(image.direction_matrix)))
-    cells = inverted_voxel_cells(warped.points, dims, rest_det, progress, memory_budget)
+    cells = inverted_voxel_cells(warped.points, dims, rest_det, progress, memory_budget, unproven)
 
     def centres(index):
         """Rest centres of voxel cells given by index, without extracting the cells."""
-        i, j, k = np.unravel_index(index, (dims[0] - 1, dims[1] - 1, dims[2] - 1), order="F")
-        return image_positions(image, np.column_stack([i, j, k]) + 0.5)
+        index = np.asarray(index, dtype=np.int64)
+        row, i = np.divmod(index, dims[0] - 1)
+        k, j = np.divmod(row, dims[1] - 1)
+        frame = np.asarray(image.direction_matrix, dtype=np.float64) * np.asarray(image.spacing)
+        out = np.empty((index.size, 3))
+        for c in range(3):  # column by column: no (K, 3) index array
+            out[:, c] = image.origin[c] + frame[c, 0] * (i + 0.5)
+            out[:, c] += frame[c, 1] * (j + 0.5)
+            out[:, c] += frame[c, 2] * (k + 0.5)
+        return out
 
     cells["centres"] = centres
     return cells

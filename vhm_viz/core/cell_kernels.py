@@ -283,6 +283,8 @@ def tetrahedron_measures(
 #: Rows of cells (along j) that :func:`_hex_kernel` sweeps through every layer at a time:
 #: a band's point and cross-product planes stay in a core's cache.
 _HEX_BAND = 16
+#: Boxes of cells that a thread of :func:`inverted_hexahedra` takes at a time at least.
+_HEX_BOXES = 16
 #: Inverted cells a chunk of :func:`_hex_kernel` has room for at first (it doubles).
 _HEX_FIRST_ROOM = 1024
 
@@ -391,6 +393,75 @@ def _hex_kernel(start, stop, p, sign, scale, out):  # pragma: no cover - compile
     return n_nan, n_bad, bad_cell[:n_bad], bad_value[:n_bad]
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _hex_box_kernel(start, stop, p, boxes, sign, scale):  # pragma: no cover - compiled
+    """:func:`_hex_kernel`'s values for the cells of ``boxes[start:stop]`` alone.
+
+    ``boxes`` (K, 6): inclusive cell ranges ``i0, i1, j0, j1, k0, k1``. Each cell's eight
+    corner determinants are made from its own points (the boxes are small and scattered:
+    rows too short to share work along), with the same operations in the same order as
+    :func:`_hex_kernel` (the same numbers, bit for bit). Returns ``(cells measured, not
+    finite, inverted, their cell indices, their values)``.
+    """
+    ny, nx = p.shape[1] - 1, p.shape[2] - 1
+    n_cells = 0
+    n_nan = 0
+    n_bad = 0
+    bad_cell = np.empty(_HEX_FIRST_ROOM, dtype=np.int64)
+    bad_value = np.empty(_HEX_FIRST_ROOM)
+    for q in range(start, stop):
+        i0, i1, j0, j1, k0, k1 = boxes[q]
+        n_cells += (i1 - i0 + 1) * (j1 - j0 + 1) * (k1 - k0 + 1)
+        for k in range(k0, k1 + 1):
+            for j in range(j0, j1 + 1):
+                for i in range(i0, i1 + 1):
+                    low = np.inf
+                    total = 0.0
+                    for b in range(2):
+                        for a in range(2):
+                            z0 = (p[k + 1, j + b, i + a, 0] - p[k, j + b, i + a, 0]) * sign
+                            z1 = (p[k + 1, j + b, i + a, 1] - p[k, j + b, i + a, 1]) * sign
+                            z2 = (p[k + 1, j + b, i + a, 2] - p[k, j + b, i + a, 2]) * sign
+                            d0 = _corner(p[k], j, i, a, b, z0, z1, z2)
+                            d1 = _corner(p[k + 1], j, i, a, b, z0, z1, z2)
+                            low = d0 if d0 < low else low
+                            low = d1 if d1 < low else low
+                            total += d0 + d1
+                    v = low / scale + (total - total)  # + 0, or NaN
+                    if v != v:
+                        n_nan += 1
+                    elif v <= 0.0:
+                        if n_bad == bad_cell.size:
+                            grown_cell = np.empty(2 * n_bad, dtype=np.int64)
+                            grown_value = np.empty(2 * n_bad)
+                            grown_cell[:n_bad] = bad_cell
+                            grown_value[:n_bad] = bad_value
+                            bad_cell, bad_value = grown_cell, grown_value
+                        bad_cell[n_bad] = (k * ny + j) * nx + i
+                        bad_value[n_bad] = v
+                        n_bad += 1
+    return n_cells, n_nan, n_bad, bad_cell[:n_bad], bad_value[:n_bad]
+
+
+@numba.njit(cache=True, inline="always")
+def _corner(plane, j, i, a, b, z0, z1, z2):  # pragma: no cover - compiled
+    """``z . (x x y)`` at a cell's corner ``(a, b)`` in a plane of points.
+
+    As in :func:`_hex_kernel`: ``x`` is the edge along i at row ``j + b``, ``y`` the edge
+    along j at column ``i + a``.
+    """
+    x0 = plane[j + b, i + 1, 0] - plane[j + b, i, 0]
+    x1 = plane[j + b, i + 1, 1] - plane[j + b, i, 1]
+    x2 = plane[j + b, i + 1, 2] - plane[j + b, i, 2]
+    y0 = plane[j + 1, i + a, 0] - plane[j, i + a, 0]
+    y1 = plane[j + 1, i + a, 1] - plane[j, i + a, 1]
+    y2 = plane[j + 1, i + a, 2] - plane[j, i + a, 2]
+    w0 = x1 * y2 - x2 * y1
+    w1 = x2 * y0 - x0 * y2
+    w2 = x0 * y1 - x1 * y0
+    return z0 * w0 + z1 * w1 + z2 * w2
+
+
 def _hex_grid(points, dimensions, rest_det):
     """Points as ``(nz, ny, nx, 3)`` and the cells' shape ``(nz-1, ny-1, nx-1)``."""
     nx, ny, nz = (int(d) for d in dimensions)
@@ -455,26 +526,51 @@ def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.nd
     return out.reshape(-1)
 
 
-def inverted_hexahedra(points, dimensions, rest_det: float) -> dict:
+def inverted_hexahedra(points, dimensions, rest_det: float, boxes=None) -> dict:
     """The inverted cells of a deformed voxel grid, and how many cells were measured.
 
-    The numbers of :func:`hexahedron_corner_determinants` (the same kernel, bit for bit)
-    for the cells whose smallest ratio is ``<= 0``, counted as the kernel goes: no array
-    of a value per cell is made or scanned.
+    The numbers of :func:`hexahedron_corner_determinants` (bit for bit) for the cells
+    whose smallest ratio is ``<= 0``, counted as the kernel goes: no array of a value per
+    cell is made or scanned.
 
     Parameters
     ----------
     points, dimensions, rest_det
         As for :func:`hexahedron_corner_determinants`: ``(nx * ny * nz, 3)`` positions in
         VTK's point order, ``(nx, ny, nz)`` and the rest voxel's determinant.
+    boxes : (K, 6) int array_like, optional
+        Only the cells of these boxes (inclusive cell ranges ``i0, i1, j0, j1, k0, k1``,
+        disjoint, within the grid's ``nx - 1`` by ``ny - 1`` by ``nz - 1`` cells) are
+        measured, each from its own eight points: the cells a proof leaves over
+        (:meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`). Default: all.
 
     Returns
     -------
     dict
-        ``cells`` (int): cells whose eight ratios are finite; ``inverted`` (K,) int64: the
-        inverted cells in VTK's cell order, ascending; ``determinant`` (K,) float64: their
-        smallest corner ratio (``<= 0``).
+        ``cells`` (int): measured cells whose eight ratios are finite; ``inverted`` (K,)
+        int64: the inverted cells in VTK's cell order, ascending; ``determinant`` (K,)
+        float64: their smallest corner ratio (``<= 0``).
     """
     p, cells = _hex_grid(points, dimensions, rest_det)
-    n_nan, bad, value = _run_hex_kernel(p, cells, rest_det, np.empty((0, 0, 0)))
-    return {"cells": cells[0] * cells[1] * cells[2] - n_nan, "inverted": bad, "determinant": value}
+    if boxes is None:
+        n_nan, bad, value = _run_hex_kernel(p, cells, rest_det, np.empty((0, 0, 0)))
+        return {"cells": cells[0] * cells[1] * cells[2] - n_nan, "inverted": bad,
+                "determinant": value}  # fmt: skip
+    boxes = np.ascontiguousarray(boxes, dtype=np.int64).reshape(-1, 6)
+    top = np.repeat(np.asarray(cells[::-1], dtype=np.int64) - 1, 2)
+    if boxes.size and (
+        (boxes < 0).any() or (boxes > top).any() or (boxes[:, 1::2] < boxes[:, 0::2]).any()
+    ):
+        raise ValueError(f"boxes must be non-empty cell ranges within {cells[::-1]} cells")
+    sign, scale = math.copysign(1.0, rest_det), abs(float(rest_det))
+    chunks = []
+
+    def chunk(start, stop):
+        chunks.append(_hex_box_kernel(start, stop, p, boxes, sign, scale))
+
+    run_rows(chunk, len(boxes), grain=_HEX_BOXES)
+    bad = np.concatenate([np.zeros(0, np.int64)] + [c[3] for c in chunks])
+    value = np.concatenate([np.zeros(0)] + [c[4] for c in chunks])
+    order = np.argsort(bad, kind="stable")
+    measured = sum(c[0] - c[1] for c in chunks)
+    return {"cells": int(measured), "inverted": bad[order], "determinant": value[order]}

@@ -427,6 +427,30 @@ class VolumeDeformation(VolumePieces):
                 progress(0.6 + 0.4 * (s + 1) / len(slabs), "warp")
         return out
 
+    def unproven_cells(self, box=None) -> np.ndarray:
+        """The voxel cells of a box whose warp (:meth:`warp`) is not proven unfolded.
+
+        Every other cell of the warped voxels has corner Jacobian determinants of the
+        rest voxel's sign: the lattice's polynomials prove it
+        (:mod:`~vhm_viz.core.lattice.fold_proof`). A fold check measures these alone
+        (:func:`~vhm_viz.core.cell_kernels.inverted_hexahedra`'s ``boxes``).
+
+        Parameters
+        ----------
+        box : (i0, i1, j0, j1, k0, k1), optional
+            Inclusive voxel ranges (default: the window); its cells have their lowest
+            corner at ``i0 .. i1 - 1`` and so on.
+
+        Returns
+        -------
+        (K, 6) int64
+            Disjoint inclusive cell ranges ``i0, i1, j0, j1, k0, k1``, relative to the
+            box's first cell.
+        """
+        b = self._in_window(self.window if box is None else box)
+        sign = float(np.sign(np.linalg.det(self.geometry.index_to_world)))
+        return self.lattice.unproven_cells(b, sign)
+
     def jacobian_slabs(self, box=None, progress=None, abort=None):
         """World Jacobians of the voxels of a box, slab by slab (bounded memory).
 

@@ -89,8 +89,11 @@ class DeformationSource(VTKPythonAlgorithmBase):
         return self._source.solve_reports
 
     @property
-    def _volume_engine(self):
-        """The volume engine of the last update (None before one)."""
+    def volume_engine(self):
+        """The volume engine of the last update of an image, or None.
+
+        A :class:`~vhm_viz.core.volume.VolumeDeformation`.
+        """
         return self._volumes.engine
 
     # ------------------------------------------------------------------ pipeline ports

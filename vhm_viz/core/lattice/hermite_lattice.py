@@ -10,6 +10,7 @@ import numpy as np
 from vhm_viz.core.image import BORDER, ImageGeometry
 from vhm_viz.core.lattice.cage_edges import bin_edges, points_near_binned_edges
 from vhm_viz.core.lattice.cell_formulas import MARGIN
+from vhm_viz.core.lattice.fold_proof import unproven_boxes
 from vhm_viz.core.lattice.hermite import eval_points, leaf_jacobians, leaf_voxels
 from vhm_viz.core.lattice.pullback import (
     candidate_rows,
@@ -18,6 +19,7 @@ from vhm_viz.core.lattice.pullback import (
     pull_back_rows,
 )
 from vhm_viz.core.memory import release_free_memory, take_in_place
+from vhm_viz.core.row_threads import run_rows
 from vhm_viz.core.work_items import worker_count
 
 
@@ -137,6 +139,41 @@ class HermiteLattice:
             self.end, b, self.mask, self.geometry.world_to_index, out, worker_count(),
         )  # fmt: skip
 
+    def unproven_cells(self, box, rest_sign: float) -> np.ndarray:
+        """Boxes of the voxel cells of ``box`` whose warp the leaves do not prove unfolded.
+
+        :mod:`~vhm_viz.core.lattice.fold_proof`: the other cells of the warped voxels
+        (:meth:`warp`) have corner Jacobian determinants of the sign of the rest voxel's.
+
+        Parameters
+        ----------
+        box : (i0, i1, j0, j1, k0, k1)
+            Inclusive voxel ranges; its cells are those with their lowest corner at
+            ``i0 .. i1 - 1`` and so on.
+        rest_sign : float
+            The sign of the rest voxel's determinant (negative for a left-handed frame).
+
+        Returns
+        -------
+        (K, 6) int64
+            Disjoint inclusive cell ranges, relative to the box's first cell.
+        """
+        b = np.asarray(box, dtype=np.int64)
+        first, last = b[0::2], b[1::2] - 1
+        if (last < first).any() or not len(self.leaf_size):
+            return np.zeros((0, 6), dtype=np.int64)
+        parts = []
+
+        def roots(start, stop):
+            parts.append((start, unproven_boxes(
+                start, stop, self.data, self.leaf_rows, self.leaf_origin, self.leaf_size,
+                self.leaf_cut, float(rest_sign), self.root_start, self.root_count,
+                self.n_root, self.root, self.last, first, last,
+            )))  # fmt: skip
+
+        run_rows(roots, len(self.root_start), grain=64)
+        parts.sort(key=lambda part: part[0])
+        return np.concatenate([np.zeros((0, 6), np.int64)] + [b for _, b in parts])
 
     def evaluate(self, u, *, gradient: bool = False):
         """The interpolated map at continuous voxel indices.
