@@ -20,8 +20,9 @@ A leaf owns the voxels ``[o, o + h)``; the cells with a corner at ``o + h`` also
 corners owned by the neighbouring leaves. Those agree with ``P`` when each such neighbour
 has the same size, shares its corner nodes' data rows with the leaf (a tricubic Hermite
 polynomial on a face, an edge or a corner depends on those nodes' data alone) and has no
-voxel outside the cage (a voxel outside is not the polynomial's value). Then all the
-leaf's ``h^3`` cells are proven; otherwise the ``(h - 1)^3`` cells between its own voxels.
+voxel outside the cage (a voxel outside is not the polynomial's value). Of a proven
+leaf's ``h^3`` cells, the ``(h - 1)^3`` between its own voxels are proven, and each cell
+with far corners where every neighbour owning one of them agrees.
 
 Voxels in pruned cells (no voxel inside the cage) belong to no leaf: their cells are
 measured.
@@ -111,14 +112,18 @@ def _leaf_at(x, origin, size, root_start, root_count, n_root, root):  # pragma: 
 
 
 @numba.njit(cache=True)
-def _neighbours_agree(n, origin, size, rows, cut, cells, lookup):  # pragma: no cover
-    """Whether the leaves owning the corners ``o + h`` of leaf ``n``'s cells agree with it.
+def _neighbours_agree(n, origin, size, rows, cut, cells, lookup, agree):  # pragma: no cover
+    """Which leaves owning the corners ``o + h`` of leaf ``n``'s cells agree with it.
 
+    ``agree[off]`` for ``off = 1 .. 7`` (bit ``a`` set: ``o_a + h`` on axis ``a``): the
+    leaf owning voxel ``o + off h`` has the leaf's size, is not cut and shares its data
+    rows at their common corners (or owns no corner of the image's cells there).
     ``lookup``: ``(root_start, root_count, n_root, root)`` of :func:`_leaf_at`.
     """
     h = size[n]
     x = np.empty(3, dtype=np.int64)
     for off in range(1, 8):
+        agree[off] = True
         needed = True
         for a in range(3):
             x[a] = origin[n, a] + ((off >> a) & 1) * h
@@ -130,7 +135,8 @@ def _neighbours_agree(n, origin, size, rows, cut, cells, lookup):  # pragma: no 
         if m == n:
             continue  # the lattice's far end: the leaf owns its far voxels
         if m < 0 or size[m] != h or cut[m]:
-            return False
+            agree[off] = False
+            continue
         for c in range(8):  # corners of n on m's closed box: the same data rows
             cm = 0
             on = True
@@ -141,8 +147,7 @@ def _neighbours_agree(n, origin, size, rows, cut, cells, lookup):  # pragma: no 
                 elif d != 0:
                     on = False
             if on and rows[m, cm] != rows[n, c]:
-                return False
-    return True
+                agree[off] = False
 
 
 @numba.njit(cache=True)
@@ -172,11 +177,16 @@ def _unowned_runs(r0, r1, origin, size, lo, root, free, boxes, count, first,
     ``r0 .. r1``: the root's leaves; ``free``: scratch ``(root, root, root)`` bool. The
     cells come in runs along i. Returns ``(boxes, count)``.
     """
-    free[:] = True
+    for k in range(root):  # loops, not slices: less code to load from the cache
+        for j in range(root):
+            for i in range(root):
+                free[k, j, i] = True
     for n in range(r0, r1):
-        o = origin[n] - lo
         h = size[n]
-        free[o[2] : o[2] + h, o[1] : o[1] + h, o[0] : o[0] + h] = False
+        for k in range(origin[n, 2] - lo[2], origin[n, 2] - lo[2] + h):
+            for j in range(origin[n, 1] - lo[1], origin[n, 1] - lo[1] + h):
+                for i in range(origin[n, 0] - lo[0], origin[n, 0] - lo[0] + h):
+                    free[k, j, i] = False
     a = np.empty(3, dtype=np.int64)
     b = np.empty(3, dtype=np.int64)
     for k in range(root):
@@ -204,8 +214,9 @@ def unproven_boxes(start, stop, data, rows, origin, size, cut, sign, root_start,
     voxel's determinant; ``cells``: the image's cells per axis. A leaf not cut with a bound
     (``sum beta_a^2``) of at most :data:`PROOF_BOUND` proves its ``(h - 1)^3`` inner
     cells, and all its ``h^3`` cells where its neighbours agree with it (module
-    documentation). Per root cell: each leaf's unproven cells (all of them, or the three
-    layers at ``o + h - 1``), and the cells of voxels that no leaf owns (pruned cells).
+    documentation). Per root cell: each leaf's unproven cells (all of them, or those of
+    its far faces, edges and corner where a neighbour does not agree), and the cells of
+    voxels that no leaf owns (pruned cells).
     Returns ``(K, 6)`` int64 inclusive boxes relative to ``first``, disjoint.
     """
     leaves = 0 if stop <= start else root_start[stop - 1] + root_count[stop - 1] - root_start[start]
@@ -214,6 +225,7 @@ def unproven_boxes(start, stop, data, rows, origin, size, cut, sign, root_start,
     cp, g, gi = np.empty((64, 3)), np.empty((3, 3)), np.empty((3, 3))
     lo, hi = np.empty(3, dtype=np.int64), np.empty(3, dtype=np.int64)
     free = np.empty((root, root, root), dtype=np.bool_)
+    agree = np.empty(8, dtype=np.bool_)
     count = 0
     for r in range(start, stop):
         corner = (r % n_root[0], (r // n_root[0]) % n_root[1], r // (n_root[0] * n_root[1]))
@@ -233,7 +245,7 @@ def unproven_boxes(start, stop, data, rows, origin, size, cut, sign, root_start,
             owned += vol
         r0, r1 = root_start[r], root_start[r] + root_count[r]
         if owned != clipped:  # pruned cells: their voxels are no leaf's
-            boxes, count = _unowned_runs(r0, r1, origin, size, lo.copy(), root, free, boxes,
+            boxes, count = _unowned_runs(r0, r1, origin, size, lo, root, free, boxes,
                                          count, first, last)  # fmt: skip
         for n in range(r0, r1):
             h = size[n]
@@ -243,13 +255,18 @@ def unproven_boxes(start, stop, data, rows, origin, size, cut, sign, root_start,
             if cut[n] or not _spread(data, rows[n], float(h), sign, cp, g, gi) <= PROOF_BOUND:
                 boxes, count = _add_box(boxes, count, lo, hi, first, last)
                 continue
-            if _neighbours_agree(n, origin, size, rows, cut, cells, lookup):
-                continue
-            # the inner (h - 1)^3 cells are proven: the three layers at o + h - 1 are not
-            for a in range(3):
-                keep = lo[a]
-                lo[a] = hi[a]
+            _neighbours_agree(n, origin, size, rows, cut, cells, lookup, agree)
+            # the inner (h - 1)^3 cells are proven; a cell at o_a + h - 1 on the axes of a
+            # set S (bits) is where the leaves at every offset within S agree
+            for far in range(1, 8):
+                proven = True
+                for off in range(1, 8):
+                    if off & ~far == 0 and not agree[off]:
+                        proven = False
+                if proven:
+                    continue
+                for a in range(3):
+                    lo[a] = origin[n, a] + ((far >> a) & 1) * (h - 1)
+                    hi[a] = origin[n, a] + h - 1 - (1 - ((far >> a) & 1))
                 boxes, count = _add_box(boxes, count, lo, hi, first, last)
-                lo[a] = keep
-                hi[a] -= 1
     return boxes[:count]
