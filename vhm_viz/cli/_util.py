@@ -386,6 +386,10 @@ def image_positions(image, ijk) -> np.ndarray:
 #: Cells per slab of :func:`inverted_voxel_cells` at most: a slab takes a small fraction
 #: of a second, and an interrupt is acted on between slabs.
 FOLD_SLAB_CELLS = 1 << 22
+#: Share of a grid's cells above which :func:`inverted_voxel_cells` sweeps every cell
+#: rather than measuring the unproven ones alone: the sweep shares each plane's work
+#: between the layers of cells and runs along whole rows, several times faster per cell.
+_SWEEP_FRACTION = 0.2
 #: Working memory of :func:`inverted_voxel_cells` per cell of a slab at most (bytes): an
 #: inverted cell's index and determinant (no memory per cell that is not inverted).
 _FOLD_CELL_BYTES = 16
@@ -415,7 +419,8 @@ def inverted_voxel_cells(
     unproven : (K, 6) int array_like, optional
         The only cells to measure (inclusive cell ranges,
         :meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`): the others are
-        proven not inverted, and counted as measured cells.
+        proven not inverted, and counted as measured cells. Where they are more than
+        :data:`_SWEEP_FRACTION` of the cells, every cell is measured.
 
     Returns
     -------
@@ -435,10 +440,11 @@ def inverted_voxel_cells(
     if memory_budget is not None:
         slab_cells = min(slab_cells, int(memory_budget) // _FOLD_CELL_BYTES)
     checked, proven, inverted, worst = 0, 0, [np.zeros(0, np.int64)], [np.zeros(0)]
-    if unproven is not None:
-        boxes = np.asarray(unproven, dtype=np.int64).reshape(-1, 6)
-        ends = np.cumsum(np.prod(boxes[:, 1::2] - boxes[:, 0::2] + 1, axis=1))
-        proven = cell_plane * max(nz - 1, 0) - int(ends[-1] if ends.size else 0)
+    boxes = np.asarray([] if unproven is None else unproven, dtype=np.int64).reshape(-1, 6)
+    ends = np.cumsum(np.prod(boxes[:, 1::2] - boxes[:, 0::2] + 1, axis=1))
+    all_cells = cell_plane * max(nz - 1, 0)
+    if unproven is not None and (ends[-1] if ends.size else 0) <= _SWEEP_FRACTION * all_cells:
+        proven = all_cells - int(ends[-1] if ends.size else 0)
         # groups of boxes of about slab_cells cells
         group_of = (ends - 1) // max(slab_cells, 1)
         groups = np.split(boxes, np.flatnonzero(np.diff(group_of)) + 1)
