@@ -7,8 +7,9 @@ Everything a volume engine needs from an image that is not the harmonic map itse
 * :func:`inside_mask` -- which grid points lie inside a closed cage, by counting signed
   crossings along grid rows (a scan-line voxeliser). It costs a few operations per row
   and triangle instead of a winding-number evaluation per voxel;
-* :func:`sample` -- nearest, trilinear or cubic (Catmull-Rom) interpolation of point data
-  at continuous indices, with the half-voxel border of ``vtkImageReslice``.
+* :func:`sample_point` -- nearest, trilinear or cubic (Catmull-Rom) interpolation of point
+  data at a continuous index, with the half-voxel border of ``vtkImageReslice``, for the
+  compiled loops over voxels that resample a volume.
 
 Voxel ``(i, j, k)`` sits at ``origin + direction @ (spacing * (i, j, k))``, ``i`` fastest
 (VTK's point order). Point data arrays are used as ``(nz, ny, nx[, c])`` views.
@@ -28,10 +29,10 @@ __all__ = [
     "check_interpolation",
     "inside_mask",
     "surface_mask",
-    "sample",
+    "sample_point",
 ]
 
-#: Interpolation kinds of :func:`sample`.
+#: Interpolation kinds (:func:`sample_point` takes their index here).
 INTERPOLATIONS = ("linear", "nearest", "cubic")
 
 
@@ -370,38 +371,6 @@ def _clamp(i, n):  # pragma: no cover - compiled
     return 0 if i < 0 else (n - 1 if i > n - 1 else i)
 
 
-@numba.njit(parallel=True, cache=True)
-def _sample_nearest(vol, u, rows, out):  # pragma: no cover - compiled
-    nz, ny, nx, nc = vol.shape
-    for r in numba.prange(rows.shape[0]):
-        p = rows[r]
-        i = _clamp(int(math.floor(u[p, 0] + 0.5)), nx)
-        j = _clamp(int(math.floor(u[p, 1] + 0.5)), ny)
-        k = _clamp(int(math.floor(u[p, 2] + 0.5)), nz)
-        for c in range(nc):
-            out[p, c] = vol[k, j, i, c]
-
-
-@numba.njit(parallel=True, cache=True)
-def _sample_linear(vol, u, rows, out):  # pragma: no cover - compiled
-    nz, ny, nx, nc = vol.shape
-    for r in numba.prange(rows.shape[0]):
-        p = rows[r]
-        # clamp to the grid: within the half-voxel border the boundary values are used
-        x = min(max(u[p, 0], 0.0), nx - 1.0)
-        y = min(max(u[p, 1], 0.0), ny - 1.0)
-        z = min(max(u[p, 2], 0.0), nz - 1.0)
-        i0, j0, k0 = int(x), int(y), int(z)
-        fx, fy, fz = x - i0, y - j0, z - k0
-        i1, j1, k1 = min(i0 + 1, nx - 1), min(j0 + 1, ny - 1), min(k0 + 1, nz - 1)
-        for c in range(nc):
-            a = (1 - fx) * vol[k0, j0, i0, c] + fx * vol[k0, j0, i1, c]
-            b = (1 - fx) * vol[k0, j1, i0, c] + fx * vol[k0, j1, i1, c]
-            d = (1 - fx) * vol[k1, j0, i0, c] + fx * vol[k1, j0, i1, c]
-            e = (1 - fx) * vol[k1, j1, i0, c] + fx * vol[k1, j1, i1, c]
-            out[p, c] = (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
-
-
 @numba.njit(inline="always", cache=True)
 def _catmull_rom(t, w):  # pragma: no cover - compiled
     """Keys' cubic convolution weights (a = -1/2) of the taps at -1, 0, 1, 2."""
@@ -413,55 +382,72 @@ def _catmull_rom(t, w):  # pragma: no cover - compiled
     w[3] = 0.5 * t3 - 0.5 * t2
 
 
-@numba.njit(parallel=True, cache=True)
-def _sample_cubic(vol, u, rows, out):  # pragma: no cover - compiled
-    nz, ny, nx, nc = vol.shape
-    for r in numba.prange(rows.shape[0]):
-        p = rows[r]
-        wx = np.empty(4)
-        wy = np.empty(4)
-        wz = np.empty(4)
-        x = min(max(u[p, 0], 0.0), nx - 1.0)
-        y = min(max(u[p, 1], 0.0), ny - 1.0)
-        z = min(max(u[p, 2], 0.0), nz - 1.0)
-        i0, j0, k0 = int(math.floor(x)), int(math.floor(y)), int(math.floor(z))
-        _catmull_rom(x - i0, wx)
-        _catmull_rom(y - j0, wy)
-        _catmull_rom(z - k0, wz)
-        for c in range(nc):
-            acc = 0.0
-            for a in range(4):
-                kk = _clamp(k0 - 1 + a, nz)
-                for b in range(4):
-                    jj = _clamp(j0 - 1 + b, ny)
-                    row = 0.0
-                    for d in range(4):
-                        row += wx[d] * vol[kk, jj, _clamp(i0 - 1 + d, nx), c]
-                    acc += wz[a] * wy[b] * row
-            out[p, c] = acc
+@numba.njit(inline="always", cache=True)
+def sample_point(vol, u, p, kind, weights, round_clip, lo, hi, out):  # pragma: no cover
+    """Interpolate point data at one continuous index, into the same row of ``out``.
 
-
-def sample(volume: np.ndarray, indices: np.ndarray, rows: np.ndarray, kind: str, out: np.ndarray):
-    """Interpolate point data at continuous indices (within the half-voxel border).
+    For the compiled loops over voxels that resample a volume, inlined into them: they
+    run on their own threads and hold the scratch, so nothing is allocated here; a
+    constant ``kind`` leaves them the code of that kind only. Within the half-voxel
+    border beyond the grid the boundary values are used (:data:`BORDER`).
 
     Parameters
     ----------
-    volume : (nz, ny, nx, c) array, any numeric dtype
+    vol : (nz, ny, nx, c) array, any numeric dtype
         Point data of the grid (a view of VTK's i-fastest array).
-    indices : (P, 3) float64
-        Continuous (i, j, k) indices; only the rows in ``rows`` are read. They must lie
-        within ``[-0.5, n - 0.5]`` (beyond the grid the boundary values are used).
-    rows : (R,) int64
-        Which rows of ``indices`` (and ``out``) to compute.
-    kind : {"linear", "nearest", "cubic"}
-        Trilinear; nearest voxel (values copied exactly, for label maps); Catmull-Rom
-        cubic convolution (Keys 1981, ``a = -1/2``: interpolating, may overshoot).
+    u : (P, 3) float64
+        Continuous (i, j, k) indices; row ``p``, within ``[-0.5, n - 0.5]``, is read.
+    p : int
+    kind : int
+        Index into :data:`INTERPOLATIONS`: 0 trilinear; 1 nearest voxel (values copied
+        exactly, for label maps); 2 Catmull-Rom cubic convolution (Keys 1981,
+        ``a = -1/2``: interpolating, may overshoot).
+    weights : (3, 4) float64
+        Scratch of the cubic's weights.
+    round_clip : bool
+        Round trilinear and cubic values and clip them to ``[lo, hi]`` (an integer
+        ``out``); nearest values are copied as they are.
+    lo, hi : float
     out : (P, c) array
-        Written in the rows ``rows``; float64 for linear and cubic, the volume's dtype (or
-        float64) for nearest.
+        Row ``p`` is written (cast to its dtype).
     """
-    check_interpolation(kind)
-    if rows.size == 0:
+    nz, ny, nx, nc = vol.shape
+    if kind == 1:
+        i = _clamp(int(math.floor(u[p, 0] + 0.5)), nx)
+        j = _clamp(int(math.floor(u[p, 1] + 0.5)), ny)
+        k = _clamp(int(math.floor(u[p, 2] + 0.5)), nz)
+        for c in range(nc):
+            out[p, c] = vol[k, j, i, c]
         return
-    kernel = {"linear": _sample_linear, "nearest": _sample_nearest, "cubic": _sample_cubic}[kind]
-    kernel(volume, indices, rows, out)
+    # clamp to the grid: within the half-voxel border the boundary values are used
+    x = min(max(u[p, 0], 0.0), nx - 1.0)
+    y = min(max(u[p, 1], 0.0), ny - 1.0)
+    z = min(max(u[p, 2], 0.0), nz - 1.0)
+    if kind == 0:
+        i0, j0, k0 = int(x), int(y), int(z)
+        fx, fy, fz = x - i0, y - j0, z - k0
+        i1, j1, k1 = min(i0 + 1, nx - 1), min(j0 + 1, ny - 1), min(k0 + 1, nz - 1)
+        for c in range(nc):
+            a = (1 - fx) * vol[k0, j0, i0, c] + fx * vol[k0, j0, i1, c]
+            b = (1 - fx) * vol[k0, j1, i0, c] + fx * vol[k0, j1, i1, c]
+            d = (1 - fx) * vol[k1, j0, i0, c] + fx * vol[k1, j0, i1, c]
+            e = (1 - fx) * vol[k1, j1, i0, c] + fx * vol[k1, j1, i1, c]
+            v = (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
+            out[p, c] = min(max(np.rint(v), lo), hi) if round_clip else v
+        return
+    i0, j0, k0 = int(math.floor(x)), int(math.floor(y)), int(math.floor(z))
+    wx, wy, wz = weights[0], weights[1], weights[2]
+    _catmull_rom(x - i0, wx)
+    _catmull_rom(y - j0, wy)
+    _catmull_rom(z - k0, wz)
+    for c in range(nc):
+        acc = 0.0
+        for a in range(4):
+            kk = _clamp(k0 - 1 + a, nz)
+            for b in range(4):
+                jj = _clamp(j0 - 1 + b, ny)
+                row = 0.0
+                for d in range(4):
+                    row += wx[d] * vol[kk, jj, _clamp(i0 - 1 + d, nx), c]
+                acc += wz[a] * wy[b] * row
+        out[p, c] = min(max(np.rint(acc), lo), hi) if round_clip else acc

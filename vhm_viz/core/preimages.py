@@ -142,40 +142,6 @@ def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
     return int(same.sum())
 
 
-@numba.njit(cache=True)
-def slab_outcome(state, fold, valid, foldover):  # pragma: no cover - compiled
-    """A finished slab's masks in one pass: ``valid = state > 0``, ``foldover = fold``.
-
-    Parameters
-    ----------
-    state, fold : (P,) uint8
-        The slab's (after :func:`confirm_tentative`, :func:`polish_next_to_edges` and
-        :func:`pass_through`).
-    valid, foldover : (P,) uint8 out
-
-    Returns
-    -------
-    rows : (R,) int64
-        The voxels with a pre-image (``state > 0``), ascending.
-    identity : int
-        How many were left in place (``state`` 3).
-    """
-    found = 0
-    identity = 0
-    for p in range(state.shape[0]):  # (no branches: runs of states alternate often)
-        s = state[p]
-        valid[p] = s != 0
-        foldover[p] = fold[p]
-        found += s != 0
-        identity += s == 3
-    rows = np.empty(found + 1, dtype=np.int64)
-    q = 0
-    for p in range(state.shape[0]):
-        rows[q] = p
-        q += state[p] != 0
-    return rows[:found], identity
-
-
 def pass_through(harmonic_map, geometry: ImageGeometry, out_geo: ImageGeometry, slab, u,
                  state) -> int:  # fmt: skip
     """Outside voxels left in place: output voxels outside the cage with no pre-image.
