@@ -383,7 +383,7 @@ def _catmull_rom(t, w):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always", cache=True)
-def sample_point(vol, u, p, kind, weights, round_clip, lo, hi, out):  # pragma: no cover
+def sample_point(vol, u, p, shift, kind, weights, round_clip, lo, hi, out):  # pragma: no cover
     """Interpolate point data at one continuous index, into the same row of ``out``.
 
     For the compiled loops over voxels that resample a volume, inlined into them: they
@@ -396,8 +396,11 @@ def sample_point(vol, u, p, kind, weights, round_clip, lo, hi, out):  # pragma: 
     vol : (nz, ny, nx, c) array, any numeric dtype
         Point data of the grid (a view of VTK's i-fastest array).
     u : (P, 3) float64
-        Continuous (i, j, k) indices; row ``p``, within ``[-0.5, n - 0.5]``, is read.
+        Continuous (i, j, k) indices, of ``vol`` less ``shift``: ``u[p] - shift`` must lie
+        within ``[-0.5, n - 0.5]``.
     p : int
+    shift : (3,) float64
+        Where ``vol`` starts in the indices of ``u`` (a box of a larger grid; or zeros).
     kind : int
         Index into :data:`INTERPOLATIONS`: 0 trilinear; 1 nearest voxel (values copied
         exactly, for label maps); 2 Catmull-Rom cubic convolution (Keys 1981,
@@ -413,16 +416,16 @@ def sample_point(vol, u, p, kind, weights, round_clip, lo, hi, out):  # pragma: 
     """
     nz, ny, nx, nc = vol.shape
     if kind == 1:
-        i = _clamp(int(math.floor(u[p, 0] + 0.5)), nx)
-        j = _clamp(int(math.floor(u[p, 1] + 0.5)), ny)
-        k = _clamp(int(math.floor(u[p, 2] + 0.5)), nz)
+        i = _clamp(int(math.floor((u[p, 0] - shift[0]) + 0.5)), nx)
+        j = _clamp(int(math.floor((u[p, 1] - shift[1]) + 0.5)), ny)
+        k = _clamp(int(math.floor((u[p, 2] - shift[2]) + 0.5)), nz)
         for c in range(nc):
             out[p, c] = vol[k, j, i, c]
         return
     # clamp to the grid: within the half-voxel border the boundary values are used
-    x = min(max(u[p, 0], 0.0), nx - 1.0)
-    y = min(max(u[p, 1], 0.0), ny - 1.0)
-    z = min(max(u[p, 2], 0.0), nz - 1.0)
+    x = min(max(u[p, 0] - shift[0], 0.0), nx - 1.0)
+    y = min(max(u[p, 1] - shift[1], 0.0), ny - 1.0)
+    z = min(max(u[p, 2] - shift[2], 0.0), nz - 1.0)
     if kind == 0:
         i0, j0, k0 = int(x), int(y), int(z)
         fx, fy, fz = x - i0, y - j0, z - k0

@@ -617,14 +617,14 @@ class VolumeDeformation(VolumePieces):
                 slab = b.copy()
                 slab[4], slab[5] = b[4] + rows.start // plane, b[4] + rows.stop // plane - 1
                 self._pull_back_displacements(vectors[rows], u, state, out_geo, slab)
-            if input_box is not None:  # indices of the box's arrays (in place: no copies
-                u -= ib[0::2]  # of a slab; rows without a pre-image are not read)
             if row_counts is None:  # the first slab is the largest
                 row_counts = np.empty((len(state) // width, 3), dtype=np.int64)
-            tally += finish_slab(state, fold, u, valid[rows], foldover[rows],
-                                 [(result[name][rows], vol) for name, vol in volumes.items()],
-                                 interpolation, fill_value, width, row_counts)  # fmt: skip
-            del u, state, fold  # before the next slab's arrays are made
+            # (the volumes hold the input box: their indices are shifted as they are read)
+            samples = [(result[name][rows], vol) for name, vol in volumes.items()]
+            tally += finish_slab(state, fold, u, valid[rows], foldover[rows], samples,
+                                 interpolation, fill_value, width, row_counts,
+                                 ib[0::2])  # fmt: skip
+            del u, state, fold, samples  # before the next slab's arrays are made
         counts = {
             "voxels": n,
             "valid": int(tally[0]),

@@ -106,7 +106,7 @@ def fill_outside(origin, to_world, box, inside, nan, out):  # pragma: no cover -
 
 
 def finish_slab(state, fold, u, valid, foldover, samples, kind: str, fill_value: float,
-                row_width: int, counts) -> tuple[int, int, int]:  # fmt: skip
+                row_width: int, counts, shift=None) -> tuple[int, int, int]:  # fmt: skip
     """A pulled-back slab's masks and sampled arrays, in one pass over its voxels.
 
     ``valid = state > 0`` and ``foldover = fold``; each input volume is sampled at the
@@ -122,7 +122,7 @@ def finish_slab(state, fold, u, valid, foldover, samples, kind: str, fill_value:
         :func:`~vhm_viz.core.preimages.polish_next_to_edges` and
         :func:`~vhm_viz.core.preimages.pass_through`).
     u : (P, 3) float64
-        Pre-images (input voxel indices of the volumes' arrays) where ``state > 0``.
+        Pre-images (input voxel indices) where ``state > 0``.
     valid, foldover : (P,) uint8 out
     samples : list of (out, volume)
         ``out`` (P,) or (P, c) of the volume's dtype, written; ``volume`` (nz, ny, nx, c).
@@ -132,6 +132,9 @@ def finish_slab(state, fold, u, valid, foldover, samples, kind: str, fill_value:
     row_width : int
         Voxels per output row (``P`` is a multiple): the unit of the threads' chunks.
     counts : (R, 3) int64 scratch, ``R >= P / row_width``
+    shift : (3,) array_like, optional
+        The input voxel where the volumes start (they hold a box of the input grid);
+        default the first.
 
     Returns
     -------
@@ -139,6 +142,7 @@ def finish_slab(state, fold, u, valid, foldover, samples, kind: str, fill_value:
         How many voxels have a pre-image, are left in place (``state`` 3), are folded.
     """
     code = INTERPOLATIONS.index(kind)
+    shift = np.zeros(3) if shift is None else np.asarray(shift, dtype=np.float64).reshape(3)
     n_rows = len(state) // row_width
     if not samples:  # the masks alone: a volume without components
         samples = [(np.empty((len(state), 0), dtype=np.uint8), np.empty((1, 1, 1, 0), np.uint8))]
@@ -150,7 +154,7 @@ def finish_slab(state, fold, u, valid, foldover, samples, kind: str, fill_value:
             info = np.iinfo(dtype)
             fill = np.clip(np.rint(fill_value), info.min, info.max)
             lo, hi = float(info.min), float(info.max)
-        run_rows(_finisher(code), n_rows, row_width, state, fold, u, volume,
+        run_rows(_finisher(code), n_rows, row_width, state, fold, u, shift, volume,
                  integer and kind != "nearest", lo, hi, np.asarray(fill).astype(dtype).reshape(1),
                  a == 0, valid, foldover, counts, out.reshape(len(out), -1), grain=64)  # fmt: skip
     total = counts[:n_rows].sum(axis=0)
@@ -177,7 +181,7 @@ def _finish_rows(kind: int):
     voxels with a pre-image, the fill, then the sampling of the listed voxels.
     """
 
-    def finish_rows(start, stop, width, state, fold, u, vol, round_clip, lo, hi, fill, masks,
+    def finish_rows(start, stop, width, state, fold, u, shift, vol, round_clip, lo, hi, fill, masks,
                     valid, foldover, counts, out):  # pragma: no cover - compiled  # fmt: skip
         """Rows ``start <= r < stop`` of a slab (its masks too if ``masks``)."""
         weights = np.empty((3, 4))
@@ -208,7 +212,7 @@ def _finish_rows(kind: int):
             for q in range(first * nc, (first + width) * nc):
                 flat[q] = value
             for t in range(count):
-                sample_point(vol, u, found[t], kind, weights, round_clip, lo, hi, out)
+                sample_point(vol, u, found[t], shift, kind, weights, round_clip, lo, hi, out)
 
     return finish_rows
 
