@@ -69,11 +69,10 @@ from vhm_viz.core.partition import (
     window_of,
 )
 from vhm_viz.core.preimages import (
-    confirm_tentative,
     exact_preimages,
     leaves_near_edges,
     pass_through,
-    polish_next_to_edges,
+    settle_preimages,
 )
 from vhm_viz.core.volume_kernels import (
     box_ijk,
@@ -812,8 +811,7 @@ class VolumeDeformation(VolumePieces):
             u, state, fold, quality = (a[:m] for a in buffers)
             lat.pull_back(out_geo, slab, boxes, u, state, fold, quality, near_edge, tests,
                           self.device)  # fmt: skip
-            confirm_tentative(self.map, self.geometry, u, state)
-            polish_next_to_edges(self.map, lat, self.geometry, out_geo, slab, u, state)
+            settle_preimages(self.map, lat, self.geometry, out_geo, slab, u, state)
             if self.outside == "passthrough":
                 pass_through(self.map, self.geometry, out_geo, slab, u, state)
             lo = int((slab[4] - b[4]) * plane)
