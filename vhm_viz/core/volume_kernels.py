@@ -13,7 +13,13 @@ import numba
 import numpy as np
 
 from vhm_viz.core.basis import DEFAULT_MEMORY_BUDGET
-from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry, sample_point
+from vhm_viz.core.image import (
+    INTERPOLATIONS,
+    ImageGeometry,
+    sample_cubic,
+    sample_linear,
+    sample_nearest,
+)
 from vhm_viz.core.metrics import jacobian_measures
 from vhm_viz.core.row_threads import run_rows
 
@@ -110,10 +116,11 @@ def finish_slab(state, fold, u, valid, foldover, samples, kind: str, fill_value:
     """A pulled-back slab's masks and sampled arrays, in one pass over its voxels.
 
     ``valid = state > 0`` and ``foldover = fold``; each input volume is sampled at the
-    pre-images where ``state > 0`` (:func:`~vhm_viz.core.image.sample_point`) and takes the
-    fill value elsewhere. One compiled pass per array, row by row on the row threads
-    (:func:`~vhm_viz.core.row_threads.run_rows`): no slab-wide list of the voxels with a
-    pre-image, no buffer of their values, no separate fill, nothing left serial.
+    pre-images where ``state > 0`` (:func:`~vhm_viz.core.image.sample_linear` and its
+    kin) and takes the fill value elsewhere. One compiled pass per array, row by row on
+    the row threads (:func:`~vhm_viz.core.row_threads.run_rows`): no slab-wide list of
+    the voxels with a pre-image, no buffer of their values, no separate fill, nothing
+    left serial.
 
     Parameters
     ----------
@@ -175,10 +182,12 @@ def _finish_rows(kind: int):
     """:func:`finish_slab`'s kernel for one array, with the interpolation ``kind`` fixed.
 
     A serial kernel over a range of output rows, run on the row threads: a parallel loop
-    would compile many times slower for the same work, and one kernel of every kind would
-    compile them all where a command uses one. Each row is done in passes without a
-    branch per voxel (a row's states alternate too often): the masks, the list of its
-    voxels with a pre-image, the fill, then the sampling of the listed voxels.
+    would compile many times slower for the same work, and a kernel that chose the kind
+    as it runs would compile all three where a command uses one (``kind`` is a constant
+    here: the branches of the other kinds are dropped before they are compiled). Each
+    row is done in passes without a branch per voxel (a row's states alternate too
+    often): the masks, the list of its voxels with a pre-image, the fill, then the
+    sampling of the listed voxels.
     """
 
     def finish_rows(start, stop, width, state, fold, u, shift, vol, round_clip, lo, hi, fill, masks,
@@ -211,8 +220,15 @@ def _finish_rows(kind: int):
                 count += state[p] != 0
             for q in range(first * nc, (first + width) * nc):
                 flat[q] = value
-            for t in range(count):
-                sample_point(vol, u, found[t], shift, kind, weights, round_clip, lo, hi, out)
+            if kind == 0:
+                for t in range(count):
+                    sample_linear(vol, u, found[t], shift, weights, round_clip, lo, hi, out)
+            elif kind == 1:
+                for t in range(count):
+                    sample_nearest(vol, u, found[t], shift, weights, round_clip, lo, hi, out)
+            else:
+                for t in range(count):
+                    sample_cubic(vol, u, found[t], shift, weights, round_clip, lo, hi, out)
 
     return finish_rows
 
