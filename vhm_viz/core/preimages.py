@@ -119,6 +119,8 @@ def _rows_with(state, passes):  # pragma: no cover - compiled
     count = 0
     for p in range(state.shape[0]):  # (no branches: a slab's states alternate often)
         count += passes[state[p]]
+    if count == 0:  # (most slabs: no second pass)
+        return np.empty(0, dtype=np.int64)
     out = np.empty(count + 1, dtype=np.int64)
     q = 0
     for p in range(state.shape[0]):
