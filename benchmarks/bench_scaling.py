@@ -21,9 +21,14 @@ spread (min-max) of the wall times, the speed-up over one thread and the efficie
 (``os.sched_getaffinity``) and that count itself. The load average is printed before and
 after each thread count: on a shared machine, compare runs made at a low load.
 
+``--compare DIR`` also runs another checkout's vhm_viz (say, the main branch's) for each
+thread count, alternating with this one's, and gives its rows beside (an A/B in one run,
+under the same load).
+
     python benchmarks/bench_scaling.py              # -r 3, 1, 2, 4, ... threads
     python benchmarks/bench_scaling.py -r 5 --threads 1 2
     python benchmarks/bench_scaling.py --only warp
+    python benchmarks/bench_scaling.py --threads 1 2 --only resample --compare ../main
 """
 
 from __future__ import annotations
@@ -122,6 +127,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, nargs="+", help="thread counts (default 1, 2, 4, ...)")
     ap.add_argument("--only", choices=OPERATIONS, help="one operation only")
     ap.add_argument("--json", type=Path, help="write the raw results here")
+    ap.add_argument("--compare", type=Path, help="another checkout, run alternately")
     ap.add_argument("--child", nargs=2, metavar=("MAP", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     embryo = data("volumes", "embryo.slc")
@@ -131,36 +137,41 @@ def main(argv=None) -> int:
         Path(args.child[1]).write_text(json.dumps(result))
         return 0
     counts = args.threads or thread_counts(len(os.sched_getaffinity(0)))
+    repos = [ROOT] + ([args.compare.resolve()] if args.compare else [])
     results = []
     with tempfile.TemporaryDirectory(prefix="bench_scaling_") as scratch:
         saved = Path(scratch) / "map.npz"
         solve(embryo, saved)
         for n in counts:
-            print(f"{n} threads, load average before: {os.getloadavg()}", flush=True)
-            out = Path(scratch) / f"{n}.json"
-            env = {**os.environ, "VHM_THREADS": str(n), "PYTHONPATH": str(ROOT)}
-            cmd = [sys.executable, __file__, "-r", str(args.repeats), "--child", str(saved),
-                   str(out)] + (["--only", args.only] if args.only else [])  # fmt: skip
-            subprocess.run(cmd, env=env, check=True)
-            results.append(json.loads(out.read_text()))
-            print(f"  load average after: {os.getloadavg()}", flush=True)
-    base = {op: statistics.median(r["total"] for r in results[0][op]) for op in operations}
-    base_threads = results[0]["threads"]
+            for repo in repos:
+                print(f"{n} threads [{repo.name}], load average before: {os.getloadavg()}",
+                      flush=True)  # fmt: skip
+                out = Path(scratch) / f"{n}-{repos.index(repo)}.json"
+                env = {**os.environ, "VHM_THREADS": str(n), "PYTHONPATH": str(repo)}
+                cmd = [sys.executable, __file__, "-r", str(args.repeats), "--child", str(saved),
+                       str(out)] + (["--only", args.only] if args.only else [])  # fmt: skip
+                subprocess.run(cmd, env=env, check=True)
+                results.append({**json.loads(out.read_text()), "repo": repo.name})
+                print(f"  load average after: {os.getloadavg()}", flush=True)
     rows = []
-    for res in results:
-        row = [str(res["threads"])]
-        for op in operations:
-            totals = [r["total"] for r in res[op]]
-            speed = base[op] / statistics.median(totals)
-            row += [
-                spread(totals),
-                f"{statistics.median(r['build'] for r in res[op]):.3g} s",
-                f"{statistics.median(r['rest'] for r in res[op]):.3g} s",
-                f"{speed:.2f}x",
-                f"{100 * speed * base_threads / res['threads']:.0f}%",
-            ]
-        row.append(" ".join(f"{x:.2f}" for x in res["load"]))
-        rows.append(row)
+    for repo in repos:
+        mine = [res for res in results if res["repo"] == repo.name]
+        base = {op: statistics.median(r["total"] for r in mine[0][op]) for op in operations}
+        base_threads = mine[0]["threads"]
+        for res in mine:
+            row = [str(res["threads"]) + (f" [{repo.name}]" if len(repos) > 1 else "")]
+            for op in operations:
+                totals = [r["total"] for r in res[op]]
+                speed = base[op] / statistics.median(totals)
+                row += [
+                    spread(totals),
+                    f"{statistics.median(r['build'] for r in res[op]):.3g} s",
+                    f"{statistics.median(r['rest'] for r in res[op]):.3g} s",
+                    f"{speed:.2f}x",
+                    f"{100 * speed * base_threads / res['threads']:.0f}%",
+                ]
+            row.append(" ".join(f"{x:.2f}" for x in res["load"]))
+            rows.append(row)
     headers = ["threads"]
     for op in operations:
         headers += [f"{op}, median (min-max)", "lattice", "rest", "speed-up", "efficiency"]

@@ -7,8 +7,10 @@ Everything a volume engine needs from an image that is not the harmonic map itse
 * :func:`inside_mask` -- which grid points lie inside a closed cage, by counting signed
   crossings along grid rows (a scan-line voxeliser). It costs a few operations per row
   and triangle instead of a winding-number evaluation per voxel;
-* :func:`sample` -- nearest, trilinear or cubic (Catmull-Rom) interpolation of point data
-  at continuous indices, with the half-voxel border of ``vtkImageReslice``.
+* :func:`sample_linear`, :func:`sample_nearest`, :func:`sample_cubic` -- trilinear,
+  nearest or cubic (Catmull-Rom) interpolation of point data at a continuous index, with
+  the half-voxel border of ``vtkImageReslice``, for the compiled loops over voxels that
+  resample a volume.
 
 Voxel ``(i, j, k)`` sits at ``origin + direction @ (spacing * (i, j, k))``, ``i`` fastest
 (VTK's point order). Point data arrays are used as ``(nz, ny, nx[, c])`` views.
@@ -28,10 +30,12 @@ __all__ = [
     "check_interpolation",
     "inside_mask",
     "surface_mask",
-    "sample",
+    "sample_cubic",
+    "sample_linear",
+    "sample_nearest",
 ]
 
-#: Interpolation kinds of :func:`sample`.
+#: Interpolation kinds (:func:`sample_linear`, :func:`sample_nearest`, :func:`sample_cubic`).
 INTERPOLATIONS = ("linear", "nearest", "cubic")
 
 
@@ -370,38 +374,6 @@ def _clamp(i, n):  # pragma: no cover - compiled
     return 0 if i < 0 else (n - 1 if i > n - 1 else i)
 
 
-@numba.njit(parallel=True, cache=True)
-def _sample_nearest(vol, u, rows, out):  # pragma: no cover - compiled
-    nz, ny, nx, nc = vol.shape
-    for r in numba.prange(rows.shape[0]):
-        p = rows[r]
-        i = _clamp(int(math.floor(u[p, 0] + 0.5)), nx)
-        j = _clamp(int(math.floor(u[p, 1] + 0.5)), ny)
-        k = _clamp(int(math.floor(u[p, 2] + 0.5)), nz)
-        for c in range(nc):
-            out[p, c] = vol[k, j, i, c]
-
-
-@numba.njit(parallel=True, cache=True)
-def _sample_linear(vol, u, rows, out):  # pragma: no cover - compiled
-    nz, ny, nx, nc = vol.shape
-    for r in numba.prange(rows.shape[0]):
-        p = rows[r]
-        # clamp to the grid: within the half-voxel border the boundary values are used
-        x = min(max(u[p, 0], 0.0), nx - 1.0)
-        y = min(max(u[p, 1], 0.0), ny - 1.0)
-        z = min(max(u[p, 2], 0.0), nz - 1.0)
-        i0, j0, k0 = int(x), int(y), int(z)
-        fx, fy, fz = x - i0, y - j0, z - k0
-        i1, j1, k1 = min(i0 + 1, nx - 1), min(j0 + 1, ny - 1), min(k0 + 1, nz - 1)
-        for c in range(nc):
-            a = (1 - fx) * vol[k0, j0, i0, c] + fx * vol[k0, j0, i1, c]
-            b = (1 - fx) * vol[k0, j1, i0, c] + fx * vol[k0, j1, i1, c]
-            d = (1 - fx) * vol[k1, j0, i0, c] + fx * vol[k1, j0, i1, c]
-            e = (1 - fx) * vol[k1, j1, i0, c] + fx * vol[k1, j1, i1, c]
-            out[p, c] = (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
-
-
 @numba.njit(inline="always", cache=True)
 def _catmull_rom(t, w):  # pragma: no cover - compiled
     """Keys' cubic convolution weights (a = -1/2) of the taps at -1, 0, 1, 2."""
@@ -413,55 +385,90 @@ def _catmull_rom(t, w):  # pragma: no cover - compiled
     w[3] = 0.5 * t3 - 0.5 * t2
 
 
-@numba.njit(parallel=True, cache=True)
-def _sample_cubic(vol, u, rows, out):  # pragma: no cover - compiled
-    nz, ny, nx, nc = vol.shape
-    for r in numba.prange(rows.shape[0]):
-        p = rows[r]
-        wx = np.empty(4)
-        wy = np.empty(4)
-        wz = np.empty(4)
-        x = min(max(u[p, 0], 0.0), nx - 1.0)
-        y = min(max(u[p, 1], 0.0), ny - 1.0)
-        z = min(max(u[p, 2], 0.0), nz - 1.0)
-        i0, j0, k0 = int(math.floor(x)), int(math.floor(y)), int(math.floor(z))
-        _catmull_rom(x - i0, wx)
-        _catmull_rom(y - j0, wy)
-        _catmull_rom(z - k0, wz)
-        for c in range(nc):
-            acc = 0.0
-            for a in range(4):
-                kk = _clamp(k0 - 1 + a, nz)
-                for b in range(4):
-                    jj = _clamp(j0 - 1 + b, ny)
-                    row = 0.0
-                    for d in range(4):
-                        row += wx[d] * vol[kk, jj, _clamp(i0 - 1 + d, nx), c]
-                    acc += wz[a] * wy[b] * row
-            out[p, c] = acc
+@numba.njit(inline="always", cache=True)
+def sample_linear(vol, u, p, shift, weights, round_clip, lo, hi, out):  # pragma: no cover
+    """Trilinear interpolation of point data at one continuous index, into a row of ``out``.
 
-
-def sample(volume: np.ndarray, indices: np.ndarray, rows: np.ndarray, kind: str, out: np.ndarray):
-    """Interpolate point data at continuous indices (within the half-voxel border).
+    The point samplers (this, :func:`sample_nearest`, :func:`sample_cubic`: one per
+    kind of :data:`INTERPOLATIONS`, the same parameters) are inlined into the compiled
+    loops over voxels that resample a volume: those run on their own threads and hold
+    the scratch, so nothing is allocated here, and a loop compiles the code of its kind
+    only. Within the half-voxel border beyond the grid the boundary values are used
+    (:data:`BORDER`).
 
     Parameters
     ----------
-    volume : (nz, ny, nx, c) array, any numeric dtype
+    vol : (nz, ny, nx, c) array, any numeric dtype
         Point data of the grid (a view of VTK's i-fastest array).
-    indices : (P, 3) float64
-        Continuous (i, j, k) indices; only the rows in ``rows`` are read. They must lie
-        within ``[-0.5, n - 0.5]`` (beyond the grid the boundary values are used).
-    rows : (R,) int64
-        Which rows of ``indices`` (and ``out``) to compute.
-    kind : {"linear", "nearest", "cubic"}
-        Trilinear; nearest voxel (values copied exactly, for label maps); Catmull-Rom
-        cubic convolution (Keys 1981, ``a = -1/2``: interpolating, may overshoot).
+    u : (P, 3) float64
+        Continuous (i, j, k) indices, of ``vol`` less ``shift``: ``u[p] - shift`` must lie
+        within ``[-0.5, n - 0.5]``.
+    p : int
+        The row of ``u`` read and of ``out`` written (cast to its dtype).
+    shift : (3,) float64
+        Where ``vol`` starts in the indices of ``u`` (a box of a larger grid; or zeros).
+    weights : (3, 4) float64
+        Scratch (of the cubic's weights).
+    round_clip : bool
+        Round the value and clip it to ``[lo, hi]`` (an integer ``out``; the nearest
+        voxel's values are copied as they are).
+    lo, hi : float
     out : (P, c) array
-        Written in the rows ``rows``; float64 for linear and cubic, the volume's dtype (or
-        float64) for nearest.
     """
-    check_interpolation(kind)
-    if rows.size == 0:
-        return
-    kernel = {"linear": _sample_linear, "nearest": _sample_nearest, "cubic": _sample_cubic}[kind]
-    kernel(volume, indices, rows, out)
+    nz, ny, nx, nc = vol.shape
+    # clamp to the grid: within the half-voxel border the boundary values are used
+    x = min(max(u[p, 0] - shift[0], 0.0), nx - 1.0)
+    y = min(max(u[p, 1] - shift[1], 0.0), ny - 1.0)
+    z = min(max(u[p, 2] - shift[2], 0.0), nz - 1.0)
+    i0, j0, k0 = int(x), int(y), int(z)
+    fx, fy, fz = x - i0, y - j0, z - k0
+    i1, j1, k1 = min(i0 + 1, nx - 1), min(j0 + 1, ny - 1), min(k0 + 1, nz - 1)
+    for c in range(nc):
+        a = (1 - fx) * vol[k0, j0, i0, c] + fx * vol[k0, j0, i1, c]
+        b = (1 - fx) * vol[k0, j1, i0, c] + fx * vol[k0, j1, i1, c]
+        d = (1 - fx) * vol[k1, j0, i0, c] + fx * vol[k1, j0, i1, c]
+        e = (1 - fx) * vol[k1, j1, i0, c] + fx * vol[k1, j1, i1, c]
+        v = (1 - fz) * ((1 - fy) * a + fy * b) + fz * ((1 - fy) * d + fy * e)
+        out[p, c] = min(max(np.rint(v), lo), hi) if round_clip else v
+
+
+@numba.njit(inline="always", cache=True)
+def sample_nearest(vol, u, p, shift, weights, round_clip, lo, hi, out):  # pragma: no cover
+    """The nearest voxel's values at one point, copied exactly (for label maps).
+
+    As :func:`sample_linear` (``round_clip`` does not apply).
+    """
+    nz, ny, nx, nc = vol.shape
+    i = _clamp(int(math.floor((u[p, 0] - shift[0]) + 0.5)), nx)
+    j = _clamp(int(math.floor((u[p, 1] - shift[1]) + 0.5)), ny)
+    k = _clamp(int(math.floor((u[p, 2] - shift[2]) + 0.5)), nz)
+    for c in range(nc):
+        out[p, c] = vol[k, j, i, c]
+
+
+@numba.njit(inline="always", cache=True)
+def sample_cubic(vol, u, p, shift, weights, round_clip, lo, hi, out):  # pragma: no cover
+    """Catmull-Rom cubic convolution at one point (interpolating, may overshoot).
+
+    Keys 1981, ``a = -1/2``; as :func:`sample_linear`.
+    """
+    nz, ny, nx, nc = vol.shape
+    x = min(max(u[p, 0] - shift[0], 0.0), nx - 1.0)
+    y = min(max(u[p, 1] - shift[1], 0.0), ny - 1.0)
+    z = min(max(u[p, 2] - shift[2], 0.0), nz - 1.0)
+    i0, j0, k0 = int(math.floor(x)), int(math.floor(y)), int(math.floor(z))
+    wx, wy, wz = weights[0], weights[1], weights[2]
+    _catmull_rom(x - i0, wx)
+    _catmull_rom(y - j0, wy)
+    _catmull_rom(z - k0, wz)
+    for c in range(nc):
+        acc = 0.0
+        for a in range(4):
+            kk = _clamp(k0 - 1 + a, nz)
+            for b in range(4):
+                jj = _clamp(j0 - 1 + b, ny)
+                row = 0.0
+                for d in range(4):
+                    row += wx[d] * vol[kk, jj, _clamp(i0 - 1 + d, nx), c]
+                acc += wz[a] * wy[b] * row
+        out[p, c] = min(max(np.rint(acc), lo), hi) if round_clip else acc

@@ -4,9 +4,10 @@ The volume engine pulls output voxels back with Newton's method on the lattice's
 polynomials (:meth:`~vhm_viz.core.lattice.HermiteLattice.pull_back`); these functions
 finish a slab of its pre-images. Those that the lattice found next to the cage are
 checked with the winding number (:func:`confirm_tentative`), those next to a cage edge
-are polished on the exact map (:func:`polish_next_to_edges`, :func:`exact_preimages`),
-and with the ``"passthrough"`` policy the output voxels outside the cage left without one
-take their own position (:func:`pass_through`).
+are polished on the exact map (:func:`polish_next_to_edges`, :func:`exact_preimages`;
+:func:`settle_preimages` does both steps), and with the ``"passthrough"`` policy the
+output voxels outside the cage left without one take their own position
+(:func:`pass_through`).
 
 ``state`` of a slab's voxels: 0 no pre-image, 1 inside the cage, 2 found by the lattice
 next to the cage (to be confirmed), 3 left in place outside it; the lattice adds
@@ -64,7 +65,20 @@ def leaves_near_edges(lattice) -> np.ndarray:
     return out
 
 
-def confirm_tentative(harmonic_map, geometry: ImageGeometry, u, state) -> None:
+def settle_preimages(harmonic_map, lattice, geometry: ImageGeometry,
+                     out_geo: ImageGeometry, slab, u, state) -> None:  # fmt: skip
+    """:func:`confirm_tentative`, then :func:`polish_next_to_edges`, from one scan of a slab.
+
+    The voxels either may change (``state`` 2, with or without :data:`NEAR_EDGE`, or
+    ``1 | NEAR_EDGE``) are found in one pass over the slab's states, not one per step.
+    Parameters as for :func:`polish_next_to_edges`.
+    """
+    rows = _rows_with(state, _UNSETTLED)
+    confirm_tentative(harmonic_map, geometry, u, state, rows)
+    polish_next_to_edges(harmonic_map, lattice, geometry, out_geo, slab, u, state, rows)
+
+
+def confirm_tentative(harmonic_map, geometry: ImageGeometry, u, state, rows=None) -> None:
     """Pre-images next to the cage (``state`` 2): keep those the winding number puts inside.
 
     Parameters
@@ -75,30 +89,48 @@ def confirm_tentative(harmonic_map, geometry: ImageGeometry, u, state) -> None:
     u : (P, 3) float64
     state : (P,) uint8
         Set to 1 (inside) or 0 where it was 2 (its :data:`NEAR_EDGE` bit kept where 1).
+    rows : (R,) int64, optional
+        Ascending voxels among which those with ``state`` 2 are (default: all).
     """
-    t = _rows_with(state, 3, 2)  # with or without NEAR_EDGE
+    if rows is None:
+        t = _rows_with(state, _TENTATIVE)
+    else:
+        t = rows[_TENTATIVE[state[rows]]]
     if t.size:
         cage = harmonic_map.cage
         ins = inside_cage(winding_number(geometry.points(u[t]), cage.vertices, cage.faces))
         state[t] = np.where(ins, (state[t] & NEAR_EDGE) | 1, 0)
 
 
+def _states(test) -> np.ndarray:
+    """(256,) bool: which ``state`` values pass ``test``."""
+    return np.array([test(v) for v in range(256)], dtype=np.bool_)
+
+
+# the states that confirm_tentative and polish_next_to_edges look at, and either
+_TENTATIVE = _states(lambda v: v & 3 == 2)  # with or without NEAR_EDGE
+_NEAR_EDGE_FOUND = _states(lambda v: v == 1 | NEAR_EDGE)
+_UNSETTLED = _TENTATIVE | _NEAR_EDGE_FOUND
+
+
 @numba.njit(cache=True)
-def _rows_with(state, mask, value):  # pragma: no cover - compiled
-    """Indices ``p`` where ``state[p] & mask == value``, ascending (no boolean array)."""
+def _rows_with(state, passes):  # pragma: no cover - compiled
+    """Indices ``p`` where ``passes[state[p]]``, ascending (no boolean array)."""
     count = 0
     for p in range(state.shape[0]):  # (no branches: a slab's states alternate often)
-        count += state[p] & mask == value
+        count += passes[state[p]]
+    if count == 0:  # (most slabs: no second pass)
+        return np.empty(0, dtype=np.int64)
     out = np.empty(count + 1, dtype=np.int64)
     q = 0
     for p in range(state.shape[0]):
         out[q] = p
-        q += state[p] & mask == value
+        q += passes[state[p]]
     return out[:count]
 
 
 def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
-                         out_geo: ImageGeometry, slab, u, state) -> int:  # fmt: skip
+                         out_geo: ImageGeometry, slab, u, state, rows=None) -> int:  # fmt: skip
     """Pre-images next to a cage edge: Newton's method on the exact map from there.
 
     Kept where it converges within a voxel of the lattice's pre-image (the same branch
@@ -117,13 +149,18 @@ def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
     u : (P, 3) float64
         The slab's pre-images (input indices), replaced where polished.
     state : (P,) uint8
+    rows : (R,) int64, optional
+        Ascending voxels among which those marked are (default: all).
 
     Returns
     -------
     int
         How many pre-images were replaced.
     """
-    rows = _rows_with(state, 0xFF, 1 | NEAR_EDGE)
+    if rows is None:
+        rows = _rows_with(state, _NEAR_EDGE_FOUND)
+    else:
+        rows = rows[_NEAR_EDGE_FOUND[state[rows]]]
     if not rows.size:
         return 0
     state[rows] = 1
@@ -140,40 +177,6 @@ def polish_next_to_edges(harmonic_map, lattice, geometry: ImageGeometry,
     same = np.linalg.norm(exact - u[rows], axis=1) <= 1.0
     u[rows[same]] = exact[same]
     return int(same.sum())
-
-
-@numba.njit(cache=True)
-def slab_outcome(state, fold, valid, foldover):  # pragma: no cover - compiled
-    """A finished slab's masks in one pass: ``valid = state > 0``, ``foldover = fold``.
-
-    Parameters
-    ----------
-    state, fold : (P,) uint8
-        The slab's (after :func:`confirm_tentative`, :func:`polish_next_to_edges` and
-        :func:`pass_through`).
-    valid, foldover : (P,) uint8 out
-
-    Returns
-    -------
-    rows : (R,) int64
-        The voxels with a pre-image (``state > 0``), ascending.
-    identity : int
-        How many were left in place (``state`` 3).
-    """
-    found = 0
-    identity = 0
-    for p in range(state.shape[0]):  # (no branches: runs of states alternate often)
-        s = state[p]
-        valid[p] = s != 0
-        foldover[p] = fold[p]
-        found += s != 0
-        identity += s == 3
-    rows = np.empty(found + 1, dtype=np.int64)
-    q = 0
-    for p in range(state.shape[0]):
-        rows[q] = p
-        q += state[p] != 0
-    return rows[:found], identity
 
 
 def pass_through(harmonic_map, geometry: ImageGeometry, out_geo: ImageGeometry, slab, u,

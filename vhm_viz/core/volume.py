@@ -69,12 +69,10 @@ from vhm_viz.core.partition import (
     window_of,
 )
 from vhm_viz.core.preimages import (
-    confirm_tentative,
     exact_preimages,
     leaves_near_edges,
     pass_through,
-    polish_next_to_edges,
-    slab_outcome,
+    settle_preimages,
 )
 from vhm_viz.core.volume_kernels import (
     box_ijk,
@@ -82,7 +80,7 @@ from vhm_viz.core.volume_kernels import (
     check_out_arrays,
     fast_jacobian_measures,
     fill_outside,
-    sample_into,
+    finish_slab,
     scaled_progress,
     slabs_of,
 )
@@ -609,25 +607,28 @@ class VolumeDeformation(VolumePieces):
             if vectors is None or vectors.shape != (n, 3) or vectors.dtype != np.float64 \
                     or not vectors.flags.c_contiguous:  # fmt: skip
                 raise ValueError(f"out.displacement must be a contiguous float64 ({n}, 3) array")
-        plane = int((b[1] - b[0] + 1) * (b[3] - b[2] + 1))
-        identity = 0
+        width = int(b[1] - b[0] + 1)
+        plane = width * int(b[3] - b[2] + 1)
+        tally = np.zeros(3, dtype=np.int64)  # valid, identity, foldover
+        row_counts = None  # per output row of a slab (finish_slab's scratch)
         for rows, u, state, fold in self._pull_back_slabs(out_geo, b, progress, abort):
-            ok, left = slab_outcome(state, fold, valid[rows], foldover[rows])
-            identity += left
             if vectors is not None:
                 slab = b.copy()
                 slab[4], slab[5] = b[4] + rows.start // plane, b[4] + rows.stop // plane - 1
                 self._pull_back_displacements(vectors[rows], u, state, out_geo, slab)
-            if input_box is not None:  # indices of the box's arrays (in place: no copies
-                u -= ib[0::2]  # of a slab; rows without a pre-image are not read)
-            for name, vol in volumes.items():
-                sample_into(result[name][rows], vol, u, ok, interpolation, fill_value)
-            del u, state, fold, ok  # before the next slab's arrays are made
+            if row_counts is None:  # the first slab is the largest
+                row_counts = np.empty((len(state) // width, 3), dtype=np.int64)
+            # (the volumes hold the input box: their indices are shifted as they are read)
+            samples = [(result[name][rows], vol) for name, vol in volumes.items()]
+            tally += finish_slab(state, fold, u, valid[rows], foldover[rows], samples,
+                                 interpolation, fill_value, width, row_counts,
+                                 ib[0::2])  # fmt: skip
+            del u, state, fold, samples  # before the next slab's arrays are made
         counts = {
             "voxels": n,
-            "valid": int(valid.sum()),
-            "identity": int(identity),
-            "foldover": int(foldover.sum()),
+            "valid": int(tally[0]),
+            "identity": int(tally[1]),
+            "foldover": int(tally[2]),
         }
         if out is not None:
             out.geometry, out.counts = out_geo.sub(b), counts
@@ -810,8 +811,7 @@ class VolumeDeformation(VolumePieces):
             u, state, fold, quality = (a[:m] for a in buffers)
             lat.pull_back(out_geo, slab, boxes, u, state, fold, quality, near_edge, tests,
                           self.device)  # fmt: skip
-            confirm_tentative(self.map, self.geometry, u, state)
-            polish_next_to_edges(self.map, lat, self.geometry, out_geo, slab, u, state)
+            settle_preimages(self.map, lat, self.geometry, out_geo, slab, u, state)
             if self.outside == "passthrough":
                 pass_through(self.map, self.geometry, out_geo, slab, u, state)
             lo = int((slab[4] - b[4]) * plane)

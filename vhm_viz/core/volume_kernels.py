@@ -13,8 +13,15 @@ import numba
 import numpy as np
 
 from vhm_viz.core.basis import DEFAULT_MEMORY_BUDGET
-from vhm_viz.core.image import ImageGeometry, sample
+from vhm_viz.core.image import (
+    INTERPOLATIONS,
+    ImageGeometry,
+    sample_cubic,
+    sample_linear,
+    sample_nearest,
+)
 from vhm_viz.core.metrics import jacobian_measures
+from vhm_viz.core.row_threads import run_rows
 
 __all__ = ["fast_jacobian_measures"]
 
@@ -104,39 +111,126 @@ def fill_outside(origin, to_world, box, inside, nan, out):  # pragma: no cover -
                     )  # fmt: skip
 
 
-def sample_into(out, volume, u, rows, kind: str, fill_value: float) -> None:
-    """Sample ``volume`` at ``u[rows]`` into ``out`` (its dtype), fill elsewhere."""
-    dtype = volume.dtype
-    comps = volume.shape[3]
-    integer = np.issubdtype(dtype, np.integer)
-    fill = fill_value
-    lo = hi = 0.0
-    if integer:
-        info = np.iinfo(dtype)
-        fill = np.clip(np.rint(fill_value), info.min, info.max)
-        lo, hi = float(info.min), float(info.max)
-    flat = out.reshape(len(out), comps)
-    flat[...] = np.asarray(fill).astype(dtype)
-    if not rows.size:
-        return
-    # one buffer row per slab voxel (the kernels write the rows asked for in place); the
-    # rows are stored with no temporaries (a slab is a million voxels)
-    buf = np.empty((len(u), comps), dtype=dtype if kind == "nearest" else np.float64)
-    sample(volume, u, rows, kind, buf)
-    _store_rows(buf, rows, integer and kind != "nearest", lo, hi, flat)
+def finish_slab(state, fold, u, valid, foldover, samples, kind: str, fill_value: float,
+                row_width: int, counts, shift=None) -> tuple[int, int, int]:  # fmt: skip
+    """A pulled-back slab's masks and sampled arrays, in one pass over its voxels.
+
+    ``valid = state > 0`` and ``foldover = fold``; each input volume is sampled at the
+    pre-images where ``state > 0`` (:func:`~vhm_viz.core.image.sample_linear` and its
+    kin) and takes the fill value elsewhere. One compiled pass per array, row by row on
+    the row threads (:func:`~vhm_viz.core.row_threads.run_rows`): no slab-wide list of
+    the voxels with a pre-image, no buffer of their values, no separate fill, nothing
+    left serial.
+
+    Parameters
+    ----------
+    state, fold : (P,) uint8
+        The slab's (after :func:`~vhm_viz.core.preimages.confirm_tentative`,
+        :func:`~vhm_viz.core.preimages.polish_next_to_edges` and
+        :func:`~vhm_viz.core.preimages.pass_through`).
+    u : (P, 3) float64
+        Pre-images (input voxel indices) where ``state > 0``.
+    valid, foldover : (P,) uint8 out
+    samples : list of (out, volume)
+        ``out`` (P,) or (P, c) of the volume's dtype, written; ``volume`` (nz, ny, nx, c).
+    kind : {"linear", "nearest", "cubic"}
+    fill_value : float
+        Value where there is no pre-image (rounded and clipped for integer arrays).
+    row_width : int
+        Voxels per output row (``P`` is a multiple): the unit of the threads' chunks.
+    counts : (R, 3) int64 scratch, ``R >= P / row_width``
+    shift : (3,) array_like, optional
+        The input voxel where the volumes start (they hold a box of the input grid);
+        default the first.
+
+    Returns
+    -------
+    valid, identity, foldover : int
+        How many voxels have a pre-image, are left in place (``state`` 3), are folded.
+    """
+    code = INTERPOLATIONS.index(kind)
+    shift = np.zeros(3) if shift is None else np.asarray(shift, dtype=np.float64).reshape(3)
+    n_rows = len(state) // row_width
+    if not samples:  # the masks alone: a volume without components
+        samples = [(np.empty((len(state), 0), dtype=np.uint8), np.empty((1, 1, 1, 0), np.uint8))]
+    for a, (out, volume) in enumerate(samples):
+        dtype = volume.dtype
+        integer = np.issubdtype(dtype, np.integer)
+        fill, lo, hi = fill_value, 0.0, 0.0
+        if integer:
+            info = np.iinfo(dtype)
+            fill = np.clip(np.rint(fill_value), info.min, info.max)
+            lo, hi = float(info.min), float(info.max)
+        run_rows(_finisher(code), n_rows, row_width, state, fold, u, shift, volume,
+                 integer and kind != "nearest", lo, hi, np.asarray(fill).astype(dtype).reshape(1),
+                 a == 0, valid, foldover, counts, out.reshape(len(out), -1), grain=64)  # fmt: skip
+    total = counts[:n_rows].sum(axis=0)
+    return int(total[0]), int(total[1]), int(total[2])
 
 
-@numba.njit(cache=True)
-def _store_rows(buf, rows, round_clip, lo, hi, out):  # pragma: no cover - compiled
-    """``out[rows] = buf[rows]``, rounded and clipped to ``[lo, hi]`` if ``round_clip``."""
-    if round_clip:
-        for r in rows:
-            for c in range(buf.shape[1]):
-                out[r, c] = min(max(np.rint(buf[r, c]), lo), hi)
-    else:  # (no float in between: 64-bit labels are copied exactly)
-        for r in rows:
-            for c in range(buf.shape[1]):
-                out[r, c] = buf[r, c]
+def _finisher(kind: int):
+    """The compiled :func:`_finish_rows` of one interpolation (compiled when first used)."""
+    if kind not in _FINISHERS:
+        _FINISHERS[kind] = numba.njit(cache=True, nogil=True)(_finish_rows(kind))
+    return _FINISHERS[kind]
+
+
+_FINISHERS: dict = {}
+
+
+def _finish_rows(kind: int):
+    """:func:`finish_slab`'s kernel for one array, with the interpolation ``kind`` fixed.
+
+    A serial kernel over a range of output rows, run on the row threads: a parallel loop
+    would compile many times slower for the same work, and a kernel that chose the kind
+    as it runs would compile all three where a command uses one (``kind`` is a constant
+    here: the branches of the other kinds are dropped before they are compiled). Each
+    row is done in passes without a branch per voxel (a row's states alternate too
+    often): the masks, the list of its voxels with a pre-image, the fill, then the
+    sampling of the listed voxels.
+    """
+
+    def finish_rows(start, stop, width, state, fold, u, shift, vol, round_clip, lo, hi, fill, masks,
+                    valid, foldover, counts, out):  # pragma: no cover - compiled  # fmt: skip
+        """Rows ``start <= r < stop`` of a slab (its masks too if ``masks``)."""
+        weights = np.empty((3, 4))
+        found = np.empty(width + 1, dtype=np.int64)
+        nc = out.shape[1]
+        flat = out.reshape(-1)
+        value = fill[0]
+        for r in range(start, stop):
+            first = r * width
+            if masks:
+                with_preimage = 0
+                identity = 0
+                folded = 0
+                for p in range(first, first + width):
+                    s = state[p]
+                    valid[p] = s != 0
+                    foldover[p] = fold[p]
+                    with_preimage += s != 0
+                    identity += s == 3
+                    folded += fold[p]
+                counts[r, 0] = with_preimage
+                counts[r, 1] = identity
+                counts[r, 2] = folded
+            count = 0
+            for p in range(first, first + width):
+                found[count] = p
+                count += state[p] != 0
+            for q in range(first * nc, (first + width) * nc):
+                flat[q] = value
+            if kind == 0:
+                for t in range(count):
+                    sample_linear(vol, u, found[t], shift, weights, round_clip, lo, hi, out)
+            elif kind == 1:
+                for t in range(count):
+                    sample_nearest(vol, u, found[t], shift, weights, round_clip, lo, hi, out)
+            else:
+                for t in range(count):
+                    sample_cubic(vol, u, found[t], shift, weights, round_clip, lo, hi, out)
+
+    return finish_rows
 
 
 @numba.njit(parallel=True, cache=True)

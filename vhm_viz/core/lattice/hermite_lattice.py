@@ -294,7 +294,7 @@ class HermiteLattice:
         boxes : (lo, hi) int64 arrays
             :meth:`image_boxes` rounded outward to output voxels.
         u : (P, 3) float64
-            Pre-images of the box's voxels (i fastest); 0 where none was found.
+            Pre-images of the box's voxels (i fastest), where ``state > 0``.
         state, fold : (P,) uint8
             See :func:`pull_back_rows` (every voxel's is written).
         quality : (P,) float64

@@ -347,12 +347,14 @@ def pull_back_rows(
       nearer one (the same point, found from a neighbouring leaf) replaces the first when
       it lies deeper inside its leaf (``quality`` = distance outside the leaf).
 
-    Every voxel of the box is written: ``u_out``, ``state``, ``fold`` and ``quality`` are
-    zero where no pre-image was found. Rows cost from nothing (no candidate leaf) to many
-    Newton solves: ``workers`` (:func:`~vhm_viz.core.work_items.worker_count`) claim them
-    a few at a time (:mod:`~vhm_viz.core.work_items`), each a serial compiled worker on
-    the row threads (:func:`~vhm_viz.core.row_threads.run_rows`): numba's parallel loop
-    would cost far more to compile, for the same schedule.
+    ``state`` and ``fold`` are written for every voxel of the box (zero where no
+    pre-image was found), ``u_out`` and ``quality`` only where ``state > 0``: nothing
+    reads them elsewhere, and zeroing them would write 32 bytes per output voxel. Rows
+    cost from nothing (no candidate leaf) to many Newton solves: ``workers``
+    (:func:`~vhm_viz.core.work_items.worker_count`) claim them a few at a time
+    (:mod:`~vhm_viz.core.work_items`), each a serial compiled worker on the row threads
+    (:func:`~vhm_viz.core.row_threads.run_rows`): numba's parallel loop would cost far
+    more to compile, for the same schedule.
     """
     counter = np.zeros(1, dtype=np.int64)
     run_rows(
@@ -486,12 +488,9 @@ def _pull_back_row(
     ny = box[3] - box[2] + 1
     k = box[4] + r // ny
     j = box[2] + r % ny
-    for v in range(r * nx, (r + 1) * nx):
+    for v in range(r * nx, (r + 1) * nx):  # (u_out and quality are read where state > 0)
         state[v] = 0
         fold[v] = 0
-        quality[v] = 0.0
-        for a in range(3):
-            u_out[v, a] = 0.0
     y, ul, u, f, prev1, prev2 = (vectors[0], vectors[1], vectors[2], vectors[3],
                                  vectors[4], vectors[5])  # fmt: skip
     g, gi = matrices[0], matrices[1]
