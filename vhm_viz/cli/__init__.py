@@ -2,9 +2,11 @@
 
 Each subcommand lives in its own module of this package, listed in :data:`COMMANDS`,
 exposing ``HELP``, ``DESCRIPTION`` (and optionally ``EPILOG``), ``add_arguments(parser)``
-and ``run(args) -> int``. Every subcommand also takes ``--timings`` (the stage breakdown,
-:mod:`vhm_viz.cli.timings`) and ``--threads`` (:mod:`vhm_viz.core.threads`); a command
-records its stages in ``args.timer``. Subcommands simply raise; :func:`main` reports
+and ``run(args) -> int``, and optionally ``RUN_IMPORTS``, the libraries it imports when
+it runs (not for its help), imported with the start-up's modules
+(:func:`_finish_start_up`). Every subcommand also takes ``--timings`` (the stage
+breakdown, :mod:`vhm_viz.cli.timings`) and ``--threads`` (:mod:`vhm_viz.core.threads`);
+a command records its stages in ``args.timer``. Subcommands simply raise; :func:`main` reports
 every error as one line on stderr with a non-zero exit status. A command line that names
 its subcommand imports only that subcommand's module (each imports what it uses), so a
 command starts without loading the others' libraries.
@@ -34,7 +36,6 @@ import sys
 from vhm_viz import __version__, interrupts
 from vhm_viz.cli.first_run import NOTICE, compiled_before, record_compiled
 from vhm_viz.cli.timings import StageTimer
-from vhm_viz.core.threads import THREADS_VARIABLE, use_threads
 
 #: The subcommands (modules of this package), in the order ``--help`` shows them.
 COMMANDS = ("demo", "deform", "analyze", "cage", "anchors", "explore", "paraview")
@@ -67,6 +68,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         description="Variational harmonic maps for space deformation of meshes, "
         "tet meshes, point clouds and volumes.",
     )
+    from vhm_viz.core.threads import THREADS_VARIABLE  # numba: with the command's modules
+
     parser.add_argument("--version", action="version", version=f"vhm-viz {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS if only is None else (only,):
@@ -168,16 +171,19 @@ def _flush_and_exit(status: int) -> None:
 def _run_command(argv: list[str] | None) -> int:
     """:func:`main` but for the process's end."""
     words = sys.argv[1:] if argv is None else list(argv)
+    if argv is None:
+        gc.disable()  # through the start-up: see _finish_start_up
     parser = build_parser(named_command(words))
     args = parser.parse_args(words)
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
-    if argv is None:
-        # the modules imported so far live as long as the process: the collector's full
-        # passes while the command runs need not walk their objects again and again
-        gc.freeze()
     args.timer = StageTimer()
+    if argv is None and args.command in COMPILING:
+        # the kernels' OpenMP threads wait asleep between parallel loops (unless the user
+        # says otherwise): spinning, they take the cores from this process's own Python
+        # work between the loops, and from other processes on a shared machine
+        os.environ.setdefault("OMP_WAIT_POLICY", "passive")
     first_run = args.command in COMPILING and not compiled_before(args.command)
     if first_run and not getattr(args, "quiet", False):
         print(NOTICE, file=sys.stderr, flush=True)
@@ -185,6 +191,10 @@ def _run_command(argv: list[str] | None) -> int:
     ending = interrupts.ending_now(lambda signum: _end_now(signum, args))
     with interrupts.handled(), ending if argv is None else contextlib.nullcontext():
         try:
+            if argv is None:
+                _finish_start_up(args.command)
+            from vhm_viz.core.threads import use_threads
+
             use_threads(args.threads)
             status = int(args.func(args) or 0)
             if first_run and status == 0:
@@ -204,6 +214,22 @@ def _run_command(argv: list[str] | None) -> int:
             return 1
         finally:
             args.timer.report(args.timings)
+
+
+def _finish_start_up(command: str) -> None:
+    """Import the libraries ``command`` runs with, then hand the collector its objects.
+
+    The collector is off from the command line's start: modules, classes and functions made
+    while importing live as long as the process, and the collector would only walk them,
+    again and again, finding nothing. The command module's ``RUN_IMPORTS`` (the libraries
+    it imports when it runs, not for its help) are imported here too; then everything so
+    far is frozen out of the collector's passes (:func:`gc.freeze`) and the collector is
+    on again for what the command itself makes.
+    """
+    for name in getattr(sys.modules[f"vhm_viz.cli.{command}"], "RUN_IMPORTS", ()):
+        importlib.import_module(name)
+    gc.freeze()
+    gc.enable()
 
 
 def _end_now(signum: int | None, args, status: int | None = None) -> None:

@@ -45,12 +45,12 @@ def check_field_output(args: argparse.Namespace, volume: bool, inputs) -> tuple 
     Raises :class:`~vhm_viz.cli._util.CLIError` for another suffix, an input that is not
     a volume, or a path that is an input or the output.
     """
+    if args.write_field is None:
+        return None
     from vhm_viz.cli._util import CLIError, check_output
     from vhm_viz.io import suffix_of
     from vhm_viz.io.fields import FIELD_SUFFIXES, mask_path_of
 
-    if args.write_field is None:
-        return None
     field = Path(args.write_field)
     if suffix_of(field) not in FIELD_SUFFIXES:
         raise CLIError(

@@ -55,6 +55,9 @@ ANALYSIS_FILES = {
 }
 
 
+#: The libraries ``analyze`` imports when it runs (not for its help).
+RUN_IMPORTS = ("pyvista", "vhm_viz.filters")
+
 HELP = "figures and metrics of a deformation (Figure 4 slices, Figure 12 histogram)"
 
 DESCRIPTION = (

@@ -13,6 +13,9 @@ from vhm_viz.cli._dataset_input import (
 from vhm_viz.cli._util import check_input, check_output
 from vhm_viz.io import CAGE_SUFFIXES, read_cage, read_dataset, write_anchors
 
+#: The libraries ``anchors`` imports when it runs (not for its help).
+RUN_IMPORTS = ("vhm_viz.autocage",)
+
 HELP = "place anchors on the medial axis/surface of a dataset, inside its cage"
 
 DESCRIPTION = (

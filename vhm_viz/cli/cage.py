@@ -13,6 +13,9 @@ from vhm_viz.cli._dataset_input import (
 from vhm_viz.cli._util import check_input, check_output
 from vhm_viz.io import read_dataset, write_cage
 
+#: The libraries ``cage`` imports when it runs (not for its help).
+RUN_IMPORTS = ("vhm_viz.autocage",)
+
 HELP = "build an automatic cage (closed, manifold, enclosing) for a dataset"
 
 DESCRIPTION = (

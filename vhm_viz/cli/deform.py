@@ -52,6 +52,8 @@ from vhm_viz.io import (
     write_dataset,
 )
 
+#: The libraries ``deform`` imports when it runs (not for its help).
+RUN_IMPORTS = ("pyvista", "vhm_viz.filters")
 #: What ``deform`` writes: the input's type, or an image a volume is resampled onto.
 OUTPUT_TYPES = ("PolyData", "UnstructuredGrid", "StructuredGrid", "ImageData")
 ALL_OUTPUT_SUFFIXES = tuple(sorted({s for t in OUTPUT_TYPES for s in output_suffixes(t)}))

@@ -38,6 +38,9 @@ from vhm_viz.io import json_text, write_dataset, write_text
 from vhm_viz.scene import Scene
 from vhm_viz.tetra import tetrahedralize
 
+#: The libraries ``demo`` imports when it runs (not for its help).
+RUN_IMPORTS = ("pyvista", "vhm_viz.filters")
+
 HELP = "run the bundled bar demo end to end (surface, tets, volume, figures)"
 
 DESCRIPTION = (

@@ -114,7 +114,13 @@ def read_vtk_file(path):
     ReadError
         The reader crashed, or VTK reported an error reading the file.
     """
-    return read_isolated(path, read_vtk, f"VTK's {suffix_of(path)} reader")
+    suffix = suffix_of(path)
+    if suffix in _WRITERS:
+        # the reader's VTK module (its writer's): loaded here, before the reading child is
+        # forked, the child shares it instead of loading it, and a write of the result in
+        # this format finds it loaded
+        importlib.import_module(f"vtkmodules.{_WRITERS[suffix][0]}")
+    return read_isolated(path, read_vtk, f"VTK's {suffix} reader")
 
 
 def read_vtk(path, reader=None):

@@ -1,0 +1,64 @@
+"""The process a command runs in: collector and OpenMP threads as the command line sets them.
+
+A ``vhm-viz`` process imports its libraries with the garbage collector off, then freezes
+what the imports made out of the collector's passes and turns it on again for the
+command's own objects; a command that runs compiled kernels has their OpenMP threads
+sleep between parallel loops unless the user chose otherwise (``OMP_WAIT_POLICY``). Each
+case runs the command in a new interpreter and reads that state from its ``atexit``
+handler, which runs once the command is done.
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import data_path, subprocess_env
+
+SCENE = Path(__file__).resolve().parents[1] / "vhm_viz" / "scenes" / "head_scene.json"
+
+
+def _process_state(tmp_path: Path, policy: str | None) -> list[str]:
+    """``gc.isenabled()``, ``gc.get_freeze_count() > 0`` and OMP_WAIT_POLICY after a deform."""
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    words = ["deform", str(head), "--scene", str(SCENE), "-o", str(tmp_path / "bent.vti"), "-q"]
+    code = (
+        "import atexit, gc, os, sys\n"
+        "atexit.register(lambda: print(gc.isenabled(), gc.get_freeze_count() > 0,\n"
+        "                              os.environ.get('OMP_WAIT_POLICY'), file=sys.stderr))\n"
+        f"sys.argv = ['vhm-viz', *{words!r}]\n"
+        "from vhm_viz.cli import main\n"
+        "main()\n"
+    )
+    env = subprocess_env()
+    env.pop("OMP_WAIT_POLICY", None)
+    if policy is not None:
+        env["OMP_WAIT_POLICY"] = policy
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600
+    )
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "bent.vti").is_file()
+    return res.stderr.strip().splitlines()[-1].split()
+
+
+@pytest.mark.parametrize(("policy", "expected"), [(None, "passive"), ("active", "active")])
+def test_a_command_process_collects_again_and_its_kernel_threads_sleep(tmp_path, policy, expected):
+    enabled, frozen, seen = _process_state(tmp_path, policy)
+    assert enabled == "True"  # the collector is on again for the command's objects
+    assert frozen == "True"  # the start-up's objects are out of its passes
+    assert seen == expected  # the user's choice is kept
+
+
+def test_a_command_called_from_python_leaves_the_process_alone(tmp_path):
+    """``main(argv)`` runs inside someone else's process: no freeze, no environment change."""
+    import gc
+
+    from vhm_viz.cli import main
+
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    before = (gc.isenabled(), gc.get_freeze_count(), os.environ.get("OMP_WAIT_POLICY"))
+    words = ["deform", str(head), "--scene", str(SCENE), "-o", str(tmp_path / "bent.vts"), "-q"]
+    assert main(words) == 0
+    assert (gc.isenabled(), gc.get_freeze_count(), os.environ.get("OMP_WAIT_POLICY")) == before
