@@ -63,7 +63,8 @@ def test_warped_volume_fold_count_matches_brute_force(folding_volume):
     stages = dict(re.findall(r"(\w+) ([0-9.]+) s", line[0]))
     assert {"read", "solve", "map", "checks", "write", "other", "total"} <= set(stages)
     parts = sum(float(v) for k, v in stages.items() if k != "total")
-    assert parts == pytest.approx(float(stages["total"]), abs=0.02)
+    # each printed value is rounded to 0.01 s: the sum is within half of that per value
+    assert parts == pytest.approx(float(stages["total"]), abs=0.005 * len(stages) + 1e-9)
 
 
 def test_fold_count_is_the_same_in_small_slabs(folding_volume):
