@@ -306,18 +306,20 @@ def _print_note(note: str) -> None:
     print(f"vhm-viz: note: {note}", file=sys.stderr)
 
 
-def surface_metrics(rest, deformed) -> dict:
-    """``E_rigid`` and ``E_volume`` where defined (triangle surfaces / solid meshes).
+def surface_metrics(rest, deformed, rigid: bool = True) -> dict:
+    """``E_rigid`` (with ``rigid``) and ``E_volume`` where defined.
 
-    A measure the data does not allow (all triangles degenerate, zero volume) is left out.
+    ``E_rigid`` of triangle surfaces, ``E_volume`` of closed triangle surfaces and solid
+    meshes. A measure the data does not allow (all triangles degenerate, zero volume) is
+    left out.
     """
     try:
-        return _surface_metrics(rest, deformed)
+        return _surface_metrics(rest, deformed, rigid)
     except (ValueError, ZeroDivisionError, FloatingPointError):
         return {}
 
 
-def _surface_metrics(rest, deformed) -> dict:
+def _surface_metrics(rest, deformed, rigid: bool) -> dict:
     import pyvista as pv
 
     out: dict = {}
@@ -325,7 +327,8 @@ def _surface_metrics(rest, deformed) -> dict:
         surf = rest if rest.is_all_triangles else rest.triangulate()
         dsurf = deformed if deformed.is_all_triangles else deformed.triangulate()
         tris = np.asarray(surf.faces).reshape(-1, 4)[:, 1:]
-        out["E_rigid"] = float(rigidity_distortion(surf.points, dsurf.points, tris))
+        if rigid:
+            out["E_rigid"] = float(rigidity_distortion(surf.points, dsurf.points, tris))
         if rest.n_open_edges == 0:
             out["E_volume"] = float(volume_change(surf.points, dsurf.points, tris))
     elif isinstance(rest, pv.UnstructuredGrid) and rest.n_cells:
@@ -336,8 +339,12 @@ def _surface_metrics(rest, deformed) -> dict:
 
 
 #: Points at which ``vhm-viz deform`` samples ``det J`` for its fold warning (evenly spread)
-#: when nothing else checks the whole output (a surface, a point cloud).
+#: when nothing else checks the whole output (a surface, a point cloud): at most this many,
+#: and at most one in :data:`FOLD_SAMPLE_SPREAD` of the data's (:func:`fold_samples`).
 FOLD_SAMPLES = 20000
+#: The exact Jacobians at a point cost about what the map's value there does (both sum
+#: over the cage's faces): one point in this many keeps the check a small part of the map.
+FOLD_SAMPLE_SPREAD = 8
 #: The same beside a check of the whole output -- every cell of a warped volume or tet
 #: mesh, every resampled voxel's pre-image -- where it is a spot check of the continuous
 #: map that costs a small part of the map itself: at most this many points, and at most
@@ -347,6 +354,11 @@ FOLD_SPOT_SAMPLES = 1024
 #: (and at no fewer than ``_FOLD_SPOT_LEAST`` points): a small part of the map's own work.
 FOLD_SPOT_SPREAD = 16
 _FOLD_SPOT_LEAST = 256
+
+
+def fold_samples(n_points: int) -> int:
+    """Points of the fold warning's ``det J`` samples of an output of ``n_points`` points."""
+    return min(FOLD_SAMPLES, max(_FOLD_SPOT_LEAST, int(n_points) // FOLD_SAMPLE_SPREAD))
 
 
 def spot_samples(n_points: int) -> int:
@@ -517,7 +529,7 @@ def fold_warning(
         ``det J`` at every point, when already computed; else it is sampled exactly at up
         to ``samples`` points.
     samples : int
-        :data:`FOLD_SAMPLES`, or :func:`spot_samples` beside a check of the whole
+        :func:`fold_samples`, or :func:`spot_samples` beside a check of the whole
         output.
 
     Returns

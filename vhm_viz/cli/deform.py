@@ -20,7 +20,6 @@ from vhm_viz.cli._field_output import (
     write_field,
 )
 from vhm_viz.cli._util import (
-    FOLD_SAMPLES,
     CLIError,
     Progress,
     add_convergence_argument,
@@ -31,6 +30,7 @@ from vhm_viz.cli._util import (
     check_input,
     check_output,
     check_volume_memory,
+    fold_samples,
     fold_warning,
     inverted_voxel_cells,
     load_scene,
@@ -297,7 +297,7 @@ def _summary(mesh, result, reports, flt, resample: bool, volume: bool, tolerance
         parts.append(f"{stats['foldover']} in folds")
         parts.append(f"grid {'x'.join(str(d) for d in result.dimensions)}")
     else:
-        metrics = surface_metrics(mesh, result)
+        metrics = surface_metrics(mesh, result, rigid=False)  # the line shows E_volume
         if "E_volume" in metrics:
             parts.append(f"E_volume {metrics['E_volume']:.4f}")
         parts.append(f"{flt.outside_count} {kind} outside the cage")
@@ -365,7 +365,8 @@ def _check_folds(
                 point_det = np.where(result.point_data["vhm_outside"] == 0, point_det, np.nan)
     # a resample counts its voxels in folds itself; cells were checked one by one
     whole = resample or cells is not None
-    samples = spot_samples(mesh.GetNumberOfPoints()) if whole else FOLD_SAMPLES
+    n_points = mesh.GetNumberOfPoints()
+    samples = spot_samples(n_points) if whole else fold_samples(n_points)
     return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det, samples=samples)
 
 
