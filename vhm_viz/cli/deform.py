@@ -332,8 +332,8 @@ def _check_folds(
     """
     import pyvista as pv
 
+    from vhm_viz.core.image import ImageGeometry
     from vhm_viz.filters import cell_quality
-    from vhm_viz.filters._vtk import image_geometry
 
     cells = None
     point_det = None
@@ -343,12 +343,9 @@ def _check_folds(
         if isinstance(mesh, pv.ImageData):
             engine = flt.volume_engine  # its lattice proves most voxel cells unfolded
             unproven = None
-            cells = int(np.prod(np.asarray(mesh.dimensions) - 1))
-            if (
-                cells >= PROOF_MIN_CELLS
-                and engine is not None
-                and engine.geometry.same_as(image_geometry(mesh))
-            ):
+            n_cells = int(np.prod(np.asarray(mesh.dimensions) - 1))
+            grid = ImageGeometry(mesh.origin, mesh.spacing, mesh.dimensions, mesh.direction_matrix)
+            if n_cells >= PROOF_MIN_CELLS and engine is not None and engine.geometry.same_as(grid):
                 unproven = engine.unproven_cells()
             cells = _voxel_folds(mesh, result, bar, memory_budget, unproven)
         elif "cell_jacobian_determinant" in result.cell_data:
