@@ -33,7 +33,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from vhm_viz.core.lattice.hermite import control_points
+from vhm_viz.core.lattice.hermite import control_points, leaf_owning
 
 #: Largest ``sum beta_a^2`` (see the module documentation) of a proven leaf.
 PROOF_BOUND = 0.81
@@ -87,38 +87,14 @@ def _spread(data, r, h, sign, cp, g, gi):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _leaf_at(x, origin, size, root_start, root_count, n_root, root):  # pragma: no cover
-    """The leaf owning voxel ``x`` (3,) int, clamped onto the lattice, or -1 (pruned).
-
-    Leaves own ``[o, o + h)``, closed at the lattice's far end.
-    """
-    r = 0
-    scale = 1
-    p = np.empty(3, dtype=np.int64)
-    for a in range(3):
-        top = n_root[a] * root
-        p[a] = min(max(x[a], 0), top)
-        r += min(p[a] // root, n_root[a] - 1) * scale
-        scale *= n_root[a]
-    for n in range(root_start[r], root_start[r] + root_count[r]):
-        inside = True
-        for a in range(3):
-            lo, hi = origin[n, a], origin[n, a] + size[n]
-            if p[a] < lo or p[a] > hi or (p[a] == hi and hi != n_root[a] * root):
-                inside = False
-        if inside:
-            return n
-    return -1
-
-
-@numba.njit(cache=True)
 def _neighbours_agree(n, origin, size, rows, cut, cells, lookup, agree):  # pragma: no cover
     """Which leaves owning the corners ``o + h`` of leaf ``n``'s cells agree with it.
 
     ``agree[off]`` for ``off = 1 .. 7`` (bit ``a`` set: ``o_a + h`` on axis ``a``): the
     leaf owning voxel ``o + off h`` has the leaf's size, is not cut and shares its data
     rows at their common corners (or owns no corner of the image's cells there).
-    ``lookup``: ``(root_start, root_count, n_root, root)`` of :func:`_leaf_at`.
+    ``lookup``: ``(root_start, root_count, n_root, root)`` of
+    :func:`~vhm_viz.core.lattice.hermite.leaf_owning`.
     """
     h = size[n]
     x = np.empty(3, dtype=np.int64)
@@ -131,7 +107,7 @@ def _neighbours_agree(n, origin, size, rows, cut, cells, lookup, agree):  # prag
                 needed = False  # no cell of the image has a corner there
         if not needed:
             continue
-        m = _leaf_at(x, origin, size, lookup[0], lookup[1], lookup[2], lookup[3])
+        m = leaf_owning(float(x[0]), float(x[1]), float(x[2]), origin, size, *lookup)
         if m == n:
             continue  # the lattice's far end: the leaf owns its far voxels
         if m < 0 or size[m] != h or cut[m]:

@@ -9,6 +9,8 @@ contain the cell's image.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -145,6 +147,36 @@ def _owned_box(leaves, q, origin, size, end, box):  # pragma: no cover - compile
     ja, jb = _owned_range(origin[n, 1], h, end[1], box[2], box[3])
     ka, kb = _owned_range(origin[n, 2], h, end[2], box[4], box[5])
     return n, float(h), ia, ib, ja, jb, ka, kb
+
+
+@numba.njit(cache=True)
+def leaf_owning(x0, x1, x2, origin, size, root_start, root_count, n_root, root):  # pragma: no cover
+    """The leaf owning the point ``(x0, x1, x2)`` (voxel indices), or -1 (a pruned cell).
+
+    Leaves own half-open boxes ``[o, o + h)``, closed at the lattice's far end; a point
+    beyond the lattice is clamped onto it. ``root_start``, ``root_count``: each root
+    cell's leaves; ``n_root``: root cells per axis; ``root``: their size.
+    """
+    x = (x0, x1, x2)
+    c = np.empty(3)
+    r = 0
+    scale = 1
+    for a in range(3):
+        top = n_root[a] * root
+        c[a] = min(max(x[a], 0.0), float(top))
+        r += min(int(math.floor(c[a] / root)), n_root[a] - 1) * scale
+        scale *= n_root[a]
+    for n in range(root_start[r], root_start[r] + root_count[r]):
+        inside = True
+        for a in range(3):
+            lo = origin[n, a]
+            hi = lo + size[n]
+            if c[a] < lo or c[a] > hi or (c[a] == hi and hi != n_root[a] * root):
+                inside = False
+                break
+        if inside:
+            return n
+    return -1
 
 
 @numba.njit(parallel=True, cache=True)

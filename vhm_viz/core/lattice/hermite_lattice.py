@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 
@@ -11,7 +9,12 @@ from vhm_viz.core.image import BORDER, ImageGeometry
 from vhm_viz.core.lattice.cage_edges import bin_edges, points_near_binned_edges
 from vhm_viz.core.lattice.cell_formulas import MARGIN
 from vhm_viz.core.lattice.fold_proof import unproven_boxes
-from vhm_viz.core.lattice.hermite import eval_points, leaf_jacobians, leaf_voxels
+from vhm_viz.core.lattice.hermite import (
+    eval_points,
+    leaf_jacobians,
+    leaf_owning,
+    leaf_voxels,
+)
 from vhm_viz.core.lattice.pullback import (
     candidate_rows,
     cut_blocks,
@@ -449,24 +452,5 @@ def locate_leaves(origin, size, root_start, root_count, n_root, root, u, out):  
     Points beyond the lattice are clamped onto it; points in pruned cells get -1.
     """
     for p in numba.prange(u.shape[0]):
-        out[p] = -1
-        x = np.empty(3)
-        r = 0
-        scale = 1
-        for a in range(3):
-            top = n_root[a] * root
-            x[a] = min(max(u[p, a], 0.0), float(top))
-            ra = min(int(math.floor(x[a] / root)), n_root[a] - 1)
-            r += ra * scale
-            scale *= n_root[a]
-        for n in range(root_start[r], root_start[r] + root_count[r]):
-            ok = True
-            for a in range(3):
-                lo = origin[n, a]
-                hi = lo + size[n]
-                if x[a] < lo or x[a] > hi or (x[a] == hi and hi != n_root[a] * root):
-                    ok = False
-                    break
-            if ok:
-                out[p] = n
-                break
+        out[p] = leaf_owning(u[p, 0], u[p, 1], u[p, 2], origin, size, root_start, root_count,
+                             n_root, root)  # fmt: skip
