@@ -6,6 +6,7 @@ exact re-evaluation of the witnesses.
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -197,6 +198,34 @@ def test_deform_warns_when_the_output_folds(files, tmp_path, capsys):
     )  # fmt: skip
     assert rc == 0 and err.strip() == ""  # no fold, no warning
     assert "cell_jacobian_determinant" in pv.read(tmp_path / "b.vtu").cell_data
+
+
+def test_surface_fold_warning_samples_the_exact_det(files, tmp_path, capsys):
+    # a surface has no cells to measure: det J is sampled at points; the worst sample
+    # named is det J there, as central differences of the solved map give it
+    from vhm_viz.cli._util import fold_samples
+
+    d, _, _ = files
+    rc, out, err = _run(
+        capsys, "deform", d / "bar.vtp", "--scene", d / "push.json", "-o", tmp_path / "s.vtp", "-q"
+    )
+    assert rc == 0, err
+    found = re.search(
+        r"det J <= 0 at (\d+) of (\d+) sampled points \(worst (\S+) at \((\S+), (\S+), (\S+)\)",
+        err,
+    )
+    assert found, err
+    bad, sampled = int(found[1]), int(found[2])
+    assert 0 < bad < sampled == fold_samples(pv.read(d / "bar.vtp").n_points)
+    worst, at = float(found[3]), np.array([float(found[k]) for k in (4, 5, 6)])
+    dfm = Scene.load(d / "push.json").build()
+    Scene.load(d / "push.json").solve(dfm)
+    h = 1e-5
+    steps = np.vstack([at + h * np.eye(3), at - h * np.eye(3)])
+    f = dfm.harmonic_map.map(steps)
+    jac = (f[:3] - f[3:]).T / (2 * h)  # column j: d f / d x_j
+    # printed to 3 significant digits, at a position printed to 4
+    assert np.linalg.det(jac) == pytest.approx(worst, rel=5e-3, abs=1e-4)
 
 
 def _dragon_scene(path, degrees=66.0):

@@ -342,9 +342,10 @@ def _surface_metrics(rest, deformed, rigid: bool) -> dict:
 #: when nothing else checks the whole output (a surface, a point cloud): at most this many,
 #: and at most one in :data:`FOLD_SAMPLE_SPREAD` of the data's (:func:`fold_samples`).
 FOLD_SAMPLES = 20000
-#: The exact Jacobians at a point cost about what the map's value there does (both sum
-#: over the cage's faces): one point in this many keeps the check a small part of the map.
-FOLD_SAMPLE_SPREAD = 8
+#: The exact Jacobian at a point costs about twice the map's value there (both sum over
+#: the cage's faces; the Jacobian three gradients besides the value): one point in this
+#: many keeps the check a small part of the map.
+FOLD_SAMPLE_SPREAD = 16
 #: The same beside a check of the whole output -- every cell of a warped volume or tet
 #: mesh, every resampled voxel's pre-image -- where it is a spot check of the continuous
 #: map that costs a small part of the map itself: at most this many points, and at most
@@ -495,18 +496,14 @@ def inverted_voxel_cells(
 def _spot_jacobian_determinants(harmonic_map, points) -> tuple[np.ndarray, np.ndarray]:
     """Exact ``det J`` at points inside the cage: (which points, their ``det J``).
 
-    Through :func:`~vhm_viz.core.basis.evaluate_map`, the kernel that contracts the basis
-    with the coefficients as it goes (the one the volume lattice is built with): no basis
-    arrays. Points outside the cage, or on a cage edge (no Jacobian), are left out.
+    Through :meth:`~vhm_viz.core.harmonic_map.HarmonicMap.jacobian`, the basis kernel that
+    solving the scene has already run (a sample of points needs no kernel of its own).
+    Points outside the cage, or on a cage edge (no Jacobian), are left out.
     """
-    from vhm_viz.core.basis import evaluate_map, inside_cage
     from vhm_viz.core.metrics import jacobian_determinant
 
-    cage = harmonic_map.cage
-    _, jac, winding = evaluate_map(
-        points, cage.vertices, cage.faces, harmonic_map.coefficients, order=1
-    )
-    ok = inside_cage(winding) & np.isfinite(jac).all(axis=(1, 2))
+    jac = harmonic_map.jacobian(points, outside="nan")
+    ok = np.isfinite(jac).all(axis=(1, 2))
     return ok, jacobian_determinant(jac[ok])
 
 
