@@ -2,13 +2,12 @@
 
 A ``vhm-viz`` process imports its libraries with the garbage collector off, then freezes
 what the imports made out of the collector's passes and turns it on again for the
-command's own objects; a command that runs compiled kernels has their OpenMP threads
-sleep between parallel loops unless the user chose otherwise (``OMP_WAIT_POLICY``). Each
+command's own objects; the numeric core has the compiled kernels' OpenMP threads sleep
+between parallel loops unless the user chose otherwise (``OMP_WAIT_POLICY``). Each
 case runs the command in a new interpreter and reads that state from its ``atexit``
 handler, which runs once the command is done.
 """
 
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -51,14 +50,29 @@ def test_a_command_process_collects_again_and_its_kernel_threads_sleep(tmp_path,
     assert seen == expected  # the user's choice is kept
 
 
-def test_a_command_called_from_python_leaves_the_process_alone(tmp_path):
-    """``main(argv)`` runs inside someone else's process: no freeze, no environment change."""
+def test_a_command_called_from_python_leaves_the_collector_alone(tmp_path):
+    """``main(argv)`` runs inside someone else's process: the collector as it was."""
     import gc
 
     from vhm_viz.cli import main
 
     head = data_path("volumes", "headsq_64x64x93.vti")
-    before = (gc.isenabled(), gc.get_freeze_count(), os.environ.get("OMP_WAIT_POLICY"))
+    before = (gc.isenabled(), gc.get_freeze_count())
     words = ["deform", str(head), "--scene", str(SCENE), "-o", str(tmp_path / "bent.vts"), "-q"]
     assert main(words) == 0
-    assert (gc.isenabled(), gc.get_freeze_count(), os.environ.get("OMP_WAIT_POLICY")) == before
+    assert (gc.isenabled(), gc.get_freeze_count()) == before
+
+
+@pytest.mark.parametrize(("policy", "expected"), [(None, "passive"), ("active", "active")])
+def test_the_numeric_core_has_kernel_threads_sleep_unless_told(policy, expected):
+    """Used from Python (a notebook, ParaView), the core sets OpenMP's policy as a command."""
+    env = subprocess_env()
+    env.pop("OMP_WAIT_POLICY", None)
+    if policy is not None:
+        env["OMP_WAIT_POLICY"] = policy
+    code = "import os, vhm_viz.core.volume; print(os.environ.get('OMP_WAIT_POLICY'))"
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == [expected]

@@ -179,11 +179,6 @@ def _run_command(argv: list[str] | None) -> int:
         parser.print_help()
         return 2
     args.timer = StageTimer()
-    if argv is None and args.command in COMPILING:
-        # the kernels' OpenMP threads wait asleep between parallel loops (unless the user
-        # says otherwise): spinning, they take the cores from this process's own Python
-        # work between the loops, and from other processes on a shared machine
-        os.environ.setdefault("OMP_WAIT_POLICY", "passive")
     first_run = args.command in COMPILING and not compiled_before(args.command)
     if first_run and not getattr(args, "quiet", False):
         print(NOTICE, file=sys.stderr, flush=True)
