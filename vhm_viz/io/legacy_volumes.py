@@ -1,8 +1,8 @@
 """A volume format vhm_viz reads but does not write: SLC.
 
-It goes through VTK's reader (:mod:`vhm_viz.io.vtk_files`) after a check of the header
-against the file, and what that reader gets wrong is put right here: voxels left
-uninitialised.
+After a check of the header against the file, the 8-bit variants (every SLC file met in
+practice) are decoded here, as VTK's reader reads them but for the voxels that reader leaves
+uninitialised; others go through VTK's reader (:mod:`vhm_viz.io.vtk_files`).
 """
 
 from __future__ import annotations
@@ -51,65 +51,67 @@ def check_slc(p: Path) -> None:
     need(p, f"{nz} slices of {nx} x {ny}", pos, len(blob))
 
 
-def _slc_voxels(p: Path) -> np.ndarray | None:
-    """The voxels of an 8-bit SLC file, ``(nz, ny, nx)``, missing ones set to 0.
+def _slc_image(p: Path):
+    """The grid and voxels of an 8-bit SLC file: ``(dimensions, spacing, voxels)``, or None.
 
-    VTK's SLC reader leaves a voxel uninitialised when a slice's run-length code stops
-    short of it (files whose every slice stops one voxel short exist): its value then
-    changes from run to run, and so does the region above a threshold. Returns None for
-    files this decoder does not handle (other than 8 bits).
+    Decoded here, in this process (:func:`~vhm_viz.io.run_length.decode_slices`): no
+    library parses the file, so none can crash on it. The grid is VTK's reading of the
+    header (origin 0, the header's spacing; ``voxels`` is ``(nz, ny * nx)``). A voxel that a
+    slice's run-length code stops short of is 0 (VTK's reader leaves it uninitialised, so
+    that its value changes from run to run; files whose every slice stops one voxel short
+    exist). None for files this decoder does not handle (other than 8 bits).
     """
     raw = p.read_bytes()
     head = re.match(
         # magic; nx ny nz bits; spacing (3); units, origin, model, compression; icon w h
-        rb"\s*11111\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(?:\S+\s+){3}"
+        rb"\s*11111\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\S+)\s+(\S+)\s+(\S+)\s+"
         rb"(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+(\d+)\s+X",
         raw,
     )
     if head is None:
         return None
     nx, ny, nz, bits = (int(head.group(i)) for i in range(1, 5))
-    compression = int(head.group(8))
-    icon_w, icon_h = int(head.group(9)), int(head.group(10))
+    try:
+        spacing = tuple(float(head.group(i)) for i in range(5, 8))
+    except ValueError:
+        return None
+    compression = int(head.group(11))
+    icon_w, icon_h = int(head.group(12)), int(head.group(13))
     if bits != 8 or compression not in (0, 1):
         return None
     pos = head.end() + 3 * icon_w * icon_h
-    out = np.zeros((nz, ny * nx), dtype=np.uint8)
+    starts = np.zeros(nz, dtype=np.int64)
+    sizes = np.zeros(nz, dtype=np.int64)
+    slice_head = re.compile(rb"\s*(\d+)\s+X")
     for z in range(nz):
-        m = re.match(rb"\s*(\d+)\s+X", raw[pos : pos + 64])
+        m = slice_head.match(raw, pos)
         if m is None:
             return None
-        size = int(m.group(1))
-        pos += m.end()
-        code = raw[pos : pos + size]
-        pos += size
-        if compression == 0:
-            values = np.frombuffer(code, dtype=np.uint8)
-        else:
-            values, i = bytearray(), 0
-            while i < len(code):
-                count = code[i] & 0x7F
-                if count == 0:
-                    break
-                if code[i] & 0x80:  # a run of literal bytes
-                    values += code[i + 1 : i + 1 + count]
-                    i += 1 + count
-                else:  # one byte repeated
-                    values += code[i + 1 : i + 2] * count
-                    i += 2
-            values = np.frombuffer(bytes(values), dtype=np.uint8)
-        n = min(len(values), ny * nx)
-        out[z, :n] = values[:n]
-    return out
+        starts[z] = m.end()
+        sizes[z] = min(int(m.group(1)), len(raw) - m.end())
+        pos = m.end() + int(m.group(1))
+    out = np.zeros((nz, ny * nx), dtype=np.uint8)
+    blob = np.frombuffer(raw, dtype=np.uint8)
+    if compression == 0:
+        for z in range(nz):
+            n = min(int(sizes[z]), ny * nx)
+            out[z, :n] = blob[starts[z] : starts[z] + n]
+    else:
+        from vhm_viz.io.run_length import decode_slices  # compiled: only for SLC files
+
+        decode_slices(blob, starts, sizes, out)
+    return (nx, ny, nz), spacing, out
 
 
 def read_slc(path):
-    """An SLC volume through VTK, its voxels decoded here (:func:`_slc_voxels`)."""
+    """An SLC volume, decoded here (:func:`_slc_image`); other variants through VTK's reader."""
+    import pyvista as pv
+
     p = Path(path)
-    data = read_vtk_file(p)
-    voxels = _slc_voxels(p)
-    name = getattr(data, "active_scalars_name", None)
-    if voxels is None or name is None or data.point_data[name].size != voxels.size:
-        return data
-    data.point_data[name] = voxels.ravel()
-    return data
+    decoded = _slc_image(p)
+    if decoded is None:
+        return read_vtk_file(p)
+    dimensions, spacing, voxels = decoded
+    image = pv.ImageData(dimensions=dimensions, spacing=spacing, origin=(0.0, 0.0, 0.0))
+    image.point_data["SLCImage"] = voxels.reshape(-1)
+    return image
