@@ -284,7 +284,7 @@ def test_the_readme_scene_is_the_example_file_and_it_works(tmp_path, capsys):
     from vhm_viz.cli import main
     from vhm_viz.scene_fields import DEFAULT_SOLVER, SCENE_FIELDS
 
-    readme = (REPO / "README.md").read_text()
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
     folder = REPO / "vhm_viz" / "scenes"
     text = (folder / "bar_scene.json").read_text()
     assert "```json\n" + text.rstrip("\n") + "\n```" in readme

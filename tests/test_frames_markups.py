@@ -191,7 +191,9 @@ def test_the_working_with_scans_example_runs(tmp_path, monkeypatch):
     import re
     from pathlib import Path
 
-    text = (Path(__file__).resolve().parents[1] / "docs" / "working-with-scans.md").read_text()
+    text = (Path(__file__).resolve().parents[1] / "docs" / "working-with-scans.md").read_text(
+        encoding="utf-8"
+    )
     (block,) = re.findall(r"```python\n(.*?)```", text, re.S)
     monkeypatch.chdir(tmp_path)
     space: dict = {}
