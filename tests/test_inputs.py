@@ -239,6 +239,49 @@ def test_a_reader_that_crashes_takes_only_its_child_process(models):
         read_isolated(models / "bin.ply", lambda p: ctypes.string_at(0), "a reader")
 
 
+def test_an_image_read_in_a_child_is_the_image_vtk_reads(tmp_path):
+    """The child hands an image back as its grid and arrays: all of them, where they were."""
+    rng = np.random.default_rng(3)
+    image = pv.ImageData()
+    image.extent = (2, 9, -3, 4, 5, 10)  # an extent that does not start at 0
+    image.origin = (1.5, -2.0, 0.25)
+    image.spacing = (0.5, 0.75, 1.25)
+    image.direction_matrix = examples.rotation("z", 30.0) @ examples.rotation("x", 10.0)
+    n, c = image.n_points, image.n_cells
+    image.point_data["density"] = rng.integers(-500, 3000, n).astype(np.int16)
+    image.point_data["flow"] = rng.normal(size=(n, 3)).astype(np.float32)
+    image.cell_data["label"] = rng.integers(0, 4, c).astype(np.uint8)
+    image.point_data.active_scalars_name = "density"
+    path = tmp_path / "offset.vti"
+    image.save(path)
+    got, vtk = read_dataset(path), pv.read(path)  # ours went through a child
+    assert tuple(got.extent) == tuple(vtk.extent) == (2, 9, -3, 4, 5, 10)
+    np.testing.assert_array_equal(got.points, vtk.points)  # the same physical points
+    np.testing.assert_array_equal(got.direction_matrix, vtk.direction_matrix)
+    assert got.active_scalars_name == "density"
+    for part, ref in ((got.point_data, vtk.point_data), (got.cell_data, vtk.cell_data)):
+        assert list(part.keys()) == list(ref.keys())
+        for name in ref.keys():
+            assert part[name].dtype == ref[name].dtype
+            np.testing.assert_array_equal(part[name], ref[name])
+
+
+def test_work_handed_to_a_read_runs_once_while_the_child_reads(tmp_path):
+    children = Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children")
+    if not children.exists():
+        pytest.skip("no /proc/.../children here")
+    seen = []
+
+    def work():
+        seen.append(children.read_text().split())  # this process's children, now
+
+    read_dataset(data_path("volumes", "headsq_64x64x93.vti"), meanwhile=work)
+    assert len(seen) == 1 and seen[0]  # once, while the reading child was there
+    np.save(tmp_path / "points.npy", np.zeros((4, 3)))
+    read_dataset(tmp_path / "points.npy", meanwhile=work)  # read here: the work runs after
+    assert len(seen) == 2 and seen[1] == []
+
+
 def test_volume_with_missing_voxels_is_refused(tmp_path):
     raw = data_path("volumes", "HeadMRVolume.raw")
     (tmp_path / "head.mhd").write_text(data_path("volumes", "HeadMRVolume.mhd").read_text())

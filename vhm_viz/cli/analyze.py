@@ -35,6 +35,7 @@ from vhm_viz.cli._util import (
 )
 from vhm_viz.core.certify import certify_injectivity
 from vhm_viz.core.metrics import finite_or_none
+from vhm_viz.core.threads import load_compiled_runtime
 from vhm_viz.io import atomic_outputs, json_text, read_dataset, write_dataset, write_text
 
 #: Files written by ``analyze`` into the output directory.
@@ -160,7 +161,8 @@ def analyze(args: argparse.Namespace) -> str:
     )
     timer = args.timer
     with timer.stage("read"):
-        mesh = read_dataset(src)
+        # numba's runtime loads while a child reads the input
+        mesh = read_dataset(src, meanwhile=load_compiled_runtime)
 
     t0 = time.perf_counter()
     with timer.stage("solve"):

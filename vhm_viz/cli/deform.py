@@ -41,6 +41,7 @@ from vhm_viz.cli._util import (
 )
 from vhm_viz.core.devices import DEVICES, require_device
 from vhm_viz.core.image import INTERPOLATIONS
+from vhm_viz.core.threads import load_compiled_runtime
 from vhm_viz.core.volume import DEFAULT_TOLERANCE
 from vhm_viz.io import (
     DATASET_SUFFIXES,
@@ -209,7 +210,8 @@ def deform(args: argparse.Namespace) -> str:
     out = Path(args.output)
     timer = args.timer
     with timer.stage("read"):
-        mesh = read_dataset(src)
+        # numba's runtime loads while a child reads the input
+        mesh = read_dataset(src, meanwhile=load_compiled_runtime)
     volume = isinstance(mesh, pv.ImageData)
     resample = volume and is_image_format(out)
     out_type = "ImageData" if resample else _output_type(mesh)

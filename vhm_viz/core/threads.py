@@ -26,6 +26,7 @@ __all__ = [
     "available_cpus",
     "cgroup_cpu_limit",
     "limit_blas_threads",
+    "load_compiled_runtime",
     "thread_count",
     "use_threads",
 ]
@@ -187,3 +188,19 @@ def limit_blas_threads() -> int:
 
     threadpool_limits(limits=n, user_api="blas")
     return n
+
+
+@numba.njit(cache=True)
+def _no_work():  # pragma: no cover - compiled
+    return 0
+
+
+def load_compiled_runtime() -> None:
+    """Load numba's runtime for compiled code now (its CPU target and type registries).
+
+    The first compiled kernel a process calls loads it, a noticeable part of a short
+    command. Called while the process would otherwise wait (for a child reading its
+    input: :func:`vhm_viz.io.read_dataset`'s ``meanwhile``), it costs nothing, and the
+    first kernel then loads only itself.
+    """
+    _no_work()

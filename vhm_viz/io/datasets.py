@@ -16,6 +16,7 @@ import numpy as np
 
 from vhm_viz.atomic import atomic_directory, atomic_path, refuse_inputs
 from vhm_viz.io.errors import ReadError, first_line
+from vhm_viz.io.isolated import meanwhile as read_meanwhile
 from vhm_viz.io.registry import (
     array_file,
     dataset_suffixes,
@@ -28,7 +29,7 @@ from vhm_viz.io.registry import (
 __all__ = ["read_dataset", "write_dataset", "check_dataset"]
 
 
-def read_dataset(path):
+def read_dataset(path, *, meanwhile=None):
     """Read a mesh, tet mesh, point cloud or volume; never crash, never guess.
 
     Every file is checked before a library parses it, and a file that is truncated,
@@ -56,6 +57,10 @@ def read_dataset(path):
         largest series) or one DICOM file (with or without ``.dcm``: the series it
         belongs to; :mod:`~vhm_viz.io.dicom`). ``.npy``/``.xyz``/``.txt``/``.csv`` hold
         one point per row (the first three columns are x, y, z).
+    meanwhile : callable(), optional
+        Work for this process while a child process reads the file: run once before
+        this returns, also when no child reads it (then after the read); a read that
+        fails may have run it. See :func:`~vhm_viz.io.isolated.meanwhile`.
 
     Returns
     -------
@@ -94,7 +99,8 @@ def read_dataset(path):
             check = fmt.function("check")
             if check is not None:
                 check(p)
-            data = fmt.function("read")(p)
+            with read_meanwhile(meanwhile):
+                data = fmt.function("read")(p)
         except ReadError:
             raise
         except MemoryError as exc:

@@ -3,7 +3,8 @@
 A library reader (VTK's, in C++) that dereferences a corrupt count ends the process it
 runs in. :func:`read_isolated` runs it in a child and turns a crash into a
 :class:`~vhm_viz.io.ReadError` naming the file; the child's address space is capped, so
-a corrupt count cannot exhaust the machine's memory either.
+a corrupt count cannot exhaust the machine's memory either. While the child reads, this
+process does the work :func:`meanwhile` hands it, if any.
 """
 
 from __future__ import annotations
@@ -21,7 +22,41 @@ from vhm_viz import interrupts
 from vhm_viz.io.errors import ReadError, first_line
 from vhm_viz.resources import memory_limit
 
-__all__ = ["read_isolated"]
+__all__ = ["meanwhile", "read_isolated"]
+
+#: The work handed to the reads in progress (:func:`meanwhile`), innermost last; each a
+#: list holding the work until a read (or the block's end) takes it.
+_pending: list[list] = []
+
+
+@contextlib.contextmanager
+def meanwhile(work):
+    """Run ``work()`` here while a forked child reads, in the block; else when it ends.
+
+    Work a process would do anyway, done while it waits for the child instead of after:
+    the first read in a child within the block runs it once, after the fork; if no read in
+    the block forks (a format read in this process), it runs when the block ends, unless
+    the block raises.
+
+    Parameters
+    ----------
+    work : callable() or None
+        None: nothing to do.
+    """
+    held = [] if work is None else [work]
+    _pending.append(held)
+    try:
+        yield
+    finally:
+        _pending.remove(held)
+    if held:
+        held.pop()()
+
+
+def _take_pending() -> None:
+    """Run the innermost block's work (:func:`meanwhile`), if no read has taken it yet."""
+    if _pending and _pending[-1]:
+        _pending[-1].pop()()
 
 
 def read_isolated(path, read, what: str = "the reader"):
@@ -67,11 +102,7 @@ def read_isolated(path, read, what: str = "the reader"):
             os.dup2(quiet, 2)
             _limit_memory(p)
             try:
-                data = read(p)
-                direction = (
-                    np.array(data.direction_matrix) if hasattr(data, "direction_matrix") else None
-                )
-                payload = ("ok", (data, direction))
+                payload = ("ok", _parcel(read(p)))
             except BaseException as exc:  # noqa: BLE001 - everything goes back as text
                 payload = ("error", first_line(exc))
             with os.fdopen(write_end, "wb") as fh:
@@ -83,6 +114,7 @@ def read_isolated(path, read, what: str = "the reader"):
     os.close(write_end)
     try:
         interrupts.check()  # a signal during the fork may have been swallowed by its hooks
+        _take_pending()
         with os.fdopen(read_end, "rb") as fh:
             blob = fh.read()
         _, status = os.waitpid(pid, 0)
@@ -102,7 +134,57 @@ def read_isolated(path, read, what: str = "the reader"):
     kind, value = pickle.loads(blob)  # noqa: S301 - our own child's data
     if kind == "error":
         raise ReadError(f"{p}: cannot read ({value})")
-    data, direction = value
+    return _unpack(value)
+
+
+def _parcel(data):
+    """What the child sends back of a dataset ``read`` returned (:func:`_unpack` opens it).
+
+    An image with numeric arrays goes as its grid and its arrays' numpy data, which pickle
+    writes as they are in memory. Anything else goes as the dataset, which PyVista pickles
+    through VTK's legacy writer (several times slower for a large image, and without the
+    image's direction, which travels beside it).
+    """
+    import pyvista as pv
+
+    if isinstance(data, pv.ImageData) and not data.field_data.keys():
+        arrays = {
+            where: [(name, np.asarray(part[name])) for name in part.keys()]
+            for where, part in (("point", data.point_data), ("cell", data.cell_data))
+        }
+        if all(a.dtype.kind in "biuf" for part in arrays.values() for _, a in part):
+            grid = {
+                "extent": tuple(data.extent),
+                "origin": tuple(data.origin),
+                "spacing": tuple(data.spacing),
+                "direction": np.array(data.direction_matrix, dtype=np.float64),
+                "active": (data.point_data.active_scalars_name, data.cell_data.active_scalars_name),
+            }
+            return "image", (grid, arrays)
+    direction = np.array(data.direction_matrix) if hasattr(data, "direction_matrix") else None
+    return "dataset", (data, direction)
+
+
+def _unpack(parcel):
+    """The dataset of a child's :func:`_parcel`."""
+    import pyvista as pv
+
+    kind, (first, second) = parcel
+    if kind == "image":
+        grid, arrays = first, second
+        image = pv.ImageData()
+        image.extent = grid["extent"]
+        image.origin = grid["origin"]
+        image.spacing = grid["spacing"]
+        image.direction_matrix = grid["direction"]
+        for where, part in (("point", image.point_data), ("cell", image.cell_data)):
+            for name, values in arrays[where]:
+                part[name] = values
+        for part, name in zip((image.point_data, image.cell_data), grid["active"], strict=True):
+            if name is not None:
+                part.active_scalars_name = name
+        return image
+    data, direction = first, second
     if direction is not None:
         data.direction_matrix = direction
     return data
