@@ -190,7 +190,11 @@ def _run_command(argv: list[str] | None) -> int:
                 _finish_start_up(args.command)
             from vhm_viz.core.threads import use_threads
 
-            use_threads(args.threads)
+            threads = use_threads(args.threads)
+            if argv is None and args.command in COMPILING:
+                from vhm_viz.cli._util import use_vtk_threads
+
+                use_vtk_threads(threads)  # process-wide: only where the process is the command
             status = int(args.func(args) or 0)
             if first_run and status == 0:
                 record_compiled(args.command)

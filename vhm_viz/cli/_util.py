@@ -6,6 +6,7 @@ subcommand's module and stays quick.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 import warnings
@@ -104,6 +105,22 @@ def quiet_vtk() -> None:
     warnings.filterwarnings("ignore", module="pyvista")
     warnings.filterwarnings("ignore", module="pytetwild")
     warnings.filterwarnings("ignore", category=DeprecationWarning)
+
+
+def use_vtk_threads(threads: int) -> None:
+    """Run VTK's own parallel loops on ``threads`` threads, unless the user chose a backend.
+
+    VTK's wheels run them (the value ranges an XML writer computes for every array, among
+    others) on one thread unless told otherwise; its ``VTK_SMP_BACKEND_IN_USE`` variable,
+    when set, is the user's choice and is kept. Process-wide: only for a process that is
+    wholly a command.
+    """
+    from vtkmodules.vtkCommonCore import vtkSMPTools
+
+    if os.environ.get("VTK_SMP_BACKEND_IN_USE"):
+        return
+    if vtkSMPTools.SetBackend("STDThread"):
+        vtkSMPTools.Initialize(int(threads))
 
 
 def observe_progress(algorithm, progress: Progress) -> None:
