@@ -89,6 +89,15 @@ def test_no_inverted_cell_is_proven_in_a_folding_map(mirror):
     assert 0.2 < fraction < 1.0
 
 
+@pytest.mark.parametrize("push", [25.0, 35.0])
+def test_no_inverted_cell_is_proven_as_a_fold_starts(push):
+    # folds just starting: leaves whose bound fails next to inverted cells, where the
+    # octants' own bounds decide (a loose octant bound proves inverted cells here)
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), DIMS)
+    fraction, inverted, _ = _check(_box_map((0, 0, 0), np.array(DIMS) - 1.0, push, seed=1), geo)
+    assert inverted > 100 and 0.2 < fraction < 1.0
+
+
 def test_cells_next_to_voxels_outside_the_cage_are_measured():
     # the image reaches beyond the cage: pruned cells, cut leaves and passed-through voxels
     geo = ImageGeometry((-6.0, -6.0, -6.0), (1.0, 1.0, 1.0), (52, 48, 48))

@@ -13,6 +13,11 @@ points are ``3 / h`` times the differences of the leaf's net along ``a`` (``h``:
 leaf's size), which contain its values: their largest distance bounds ``beta_a``.
 A leaf whose ``det G`` has the sign of the rest voxel's and whose bound is at most
 :data:`PROOF_BOUND` is *proven*: none of the cells between its own voxels is inverted.
+A leaf whose bound fails is split in its eight octants (de Casteljau halves of its net,
+the same polynomial): each octant is proven with its own reference ``G`` (the mean of
+its derivative net; any non-singular reference serves the argument) and its own bound,
+which is tighter on the smaller box. Every cell between a leaf's voxels lies in one
+octant's closed box (the octants' sizes are whole voxels).
 The bound's margin (``|D|_2 <= 0.9``, so every ratio is at least ``0.1^3`` of the
 reference's) is far above the rounding of the warped points and of the determinants.
 
@@ -44,9 +49,10 @@ def _spread(data, r, h, sign, cp, g, gi):  # pragma: no cover - compiled
     """``sum_a beta_a^2`` of the leaf with corner rows ``r`` and size ``h``, or inf.
 
     inf where the reference Jacobian ``G`` does not have the sign ``sign`` of the rest
-    voxel's determinant (or is singular, or the data is not finite). ``cp``, ``g``,
-    ``gi``: scratch (64, 3), (3, 3), (3, 3).
+    voxel's determinant (or is singular, or the data is not finite). ``cp``: (64, 3), the
+    leaf's net on return; ``g``, ``gi``: scratch (3, 3).
     """
+    control_points(data, r, h, cp)
     g[:] = 0.0
     for c in range(8):
         for i in range(3):
@@ -64,8 +70,16 @@ def _spread(data, r, h, sign, cp, g, gi):  # pragma: no cover - compiled
         for a in range(3):
             a1, a2 = (a + 1) % 3, (a + 2) % 3
             gi[a, i] = (g[i1, a1] * g[i2, a2] - g[i1, a2] * g[i2, a1]) / det
-    control_points(data, r, h, cp)
-    k = 3.0 / h
+    return _bound(cp, 3.0 / h, gi)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _bound(cp, k, gi):  # pragma: no cover - compiled
+    """``sum_a beta_a^2`` of a net against a reference ``G`` (``gi``: ``G^-1``).
+
+    ``beta_a``: the largest ``|G^-1 d - e_a|`` over the points ``d`` of the derivative
+    net along ``a`` (``k`` times the net's differences). inf when a point is not finite.
+    """
     total = 0.0
     for a in range(3):
         stride = 1 if a == 0 else (4 if a == 1 else 16)
@@ -84,6 +98,82 @@ def _spread(data, r, h, sign, cp, g, gi):  # pragma: no cover - compiled
                 worst = s if s == s else np.inf
         total += worst
     return total
+
+
+@numba.njit(cache=True)
+def _half(src, dst, axis, upper):  # pragma: no cover - compiled
+    """``dst``: the half (``upper``: the far one) of the Bezier net ``src`` along ``axis``.
+
+    De Casteljau at 1/2 along ``axis`` for each of the 16 rows of a (64, 3) net.
+    """
+    stride = 1 if axis == 0 else (4 if axis == 1 else 16)
+    for m in range(64):
+        if (m // stride) % 4 != 0:
+            continue
+        for i in range(3):
+            p0 = src[m, i]
+            p1 = src[m + stride, i]
+            p2 = src[m + 2 * stride, i]
+            p3 = src[m + 3 * stride, i]
+            mid = 0.125 * (p0 + 3.0 * p1 + 3.0 * p2 + p3)
+            if upper:
+                dst[m, i] = mid
+                dst[m + stride, i] = 0.25 * (p1 + 2.0 * p2 + p3)
+                dst[m + 2 * stride, i] = 0.5 * (p2 + p3)
+                dst[m + 3 * stride, i] = p3
+            else:
+                dst[m, i] = p0
+                dst[m + stride, i] = 0.5 * (p0 + p1)
+                dst[m + 2 * stride, i] = 0.25 * (p0 + 2.0 * p1 + p2)
+                dst[m + 3 * stride, i] = mid
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _net_spread(cp, h, sign, g, gi):  # pragma: no cover - compiled
+    """``sum_a beta_a^2`` of a net of size ``h`` against the mean of its derivative net.
+
+    inf where that reference's determinant does not have the sign ``sign`` (or the net
+    is not finite). ``g``, ``gi``: scratch (3, 3).
+    """
+    k = 3.0 / h
+    g[:] = 0.0
+    for a in range(3):
+        stride = 1 if a == 0 else (4 if a == 1 else 16)
+        for m in range(64):
+            if (m // stride) % 4 == 3:
+                continue
+            for i in range(3):
+                g[i, a] += (k / 48.0) * (cp[m + stride, i] - cp[m, i])
+    det = (
+        g[0, 0] * (g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1])
+        - g[0, 1] * (g[1, 0] * g[2, 2] - g[1, 2] * g[2, 0])
+        + g[0, 2] * (g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0])
+    )
+    if not det * sign > 0.0:
+        return np.inf
+    for i in range(3):
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        for a in range(3):
+            a1, a2 = (a + 1) % 3, (a + 2) % 3
+            gi[a, i] = (g[i1, a1] * g[i2, a2] - g[i1, a2] * g[i2, a1]) / det
+    return _bound(cp, k, gi)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _octants_proven(cp, h, sign, halves, g, gi, proven):  # pragma: no cover - compiled
+    """Which octants of the net ``cp`` (size ``h``) their own bounds prove; how many.
+
+    ``proven[c]`` for octant ``c`` (bit ``a``: the far half along axis ``a``).
+    ``halves``: scratch (3, 64, 3).
+    """
+    count = 0
+    for c in range(8):
+        _half(cp, halves[0], 0, (c & 1) != 0)
+        _half(halves[0], halves[1], 1, (c & 2) != 0)
+        _half(halves[1], halves[2], 2, (c & 4) != 0)
+        proven[c] = _net_spread(halves[2], 0.5 * h, sign, g, gi) <= PROOF_BOUND
+        count += proven[c]
+    return count
 
 
 @numba.njit(cache=True)
@@ -199,6 +289,8 @@ def unproven_boxes(start, stop, data, rows, origin, size, cut, sign, root_start,
     boxes = np.empty((stop - start + 3 * leaves, 6), dtype=np.int64)
     lookup = (root_start, root_count, n_root, root)
     cp, g, gi = np.empty((64, 3)), np.empty((3, 3)), np.empty((3, 3))
+    halves = np.empty((3, 64, 3))
+    octant = np.empty(8, dtype=np.bool_)
     lo, hi = np.empty(3, dtype=np.int64), np.empty(3, dtype=np.int64)
     free = np.empty((root, root, root), dtype=np.bool_)
     agree = np.empty(8, dtype=np.bool_)
@@ -228,12 +320,24 @@ def unproven_boxes(start, stop, data, rows, origin, size, cut, sign, root_start,
             for a in range(3):
                 lo[a] = origin[n, a]
                 hi[a] = lo[a] + h - 1
-            if cut[n] or not _spread(data, rows[n], float(h), sign, cp, g, gi) <= PROOF_BOUND:
+            if cut[n]:
                 boxes, count = _add_box(boxes, count, lo, hi, first, last)
                 continue
+            octant[:] = True
+            if not _spread(data, rows[n], float(h), sign, cp, g, gi) <= PROOF_BOUND:
+                # (cp: the leaf's net) an octant proves its own cells
+                if h < 2 or _octants_proven(cp, float(h), sign, halves, g, gi, octant) == 0:
+                    boxes, count = _add_box(boxes, count, lo, hi, first, last)
+                    continue
+                for c in range(8):
+                    if not octant[c]:
+                        _octant_box(origin[n], h, c, lo, hi)
+                        boxes, count = _add_box(boxes, count, lo, hi, first, last)
             _neighbours_agree(n, origin, size, rows, cut, cells, lookup, agree)
-            # the inner (h - 1)^3 cells are proven; a cell at o_a + h - 1 on the axes of a
-            # set S (bits) is where the leaves at every offset within S agree
+            # the inner (h - 1)^3 cells are proven (by the leaf or its octants); a cell at
+            # o_a + h - 1 on the axes of a set S (bits) is where the leaves at every offset
+            # within S agree. Its part in each octant on that side not proven by itself
+            # (whose cells are measured already)
             for far in range(1, 8):
                 proven = True
                 for off in range(1, 8):
@@ -241,8 +345,32 @@ def unproven_boxes(start, stop, data, rows, origin, size, cut, sign, root_start,
                         proven = False
                 if proven:
                     continue
-                for a in range(3):
-                    lo[a] = origin[n, a] + ((far >> a) & 1) * (h - 1)
-                    hi[a] = origin[n, a] + h - 1 - (1 - ((far >> a) & 1))
-                boxes, count = _add_box(boxes, count, lo, hi, first, last)
+                for c in range(8):
+                    if c & far != far or not octant[c]:
+                        continue
+                    _octant_box(origin[n], h, c, lo, hi)
+                    for a in range(3):
+                        if (far >> a) & 1:
+                            lo[a] = origin[n, a] + h - 1
+                        else:
+                            hi[a] = min(hi[a], origin[n, a] + h - 2)
+                    if (lo <= hi).all():
+                        boxes, count = _add_box(boxes, count, lo, hi, first, last)
     return boxes[:count]
+
+
+@numba.njit(cache=True)
+def _octant_box(o, h, c, lo, hi):  # pragma: no cover - compiled
+    """``lo``, ``hi``: the cells of octant ``c`` of the leaf at ``o`` of size ``h``.
+
+    The whole leaf for ``h`` 1 (no octants; then only ``c`` 7 is its box, the others
+    empty). Cells with their lowest corner in the octant's voxels.
+    """
+    half = h // 2
+    for a in range(3):
+        upper = (c >> a) & 1
+        if h < 2:
+            lo[a], hi[a] = o[a], o[a] - 1 + upper
+        else:
+            lo[a] = o[a] + upper * half
+            hi[a] = lo[a] + half - 1
