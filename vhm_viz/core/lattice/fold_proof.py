@@ -58,6 +58,15 @@ def _spread(data, r, h, sign, cp, g, gi):  # pragma: no cover - compiled
         for i in range(3):
             for a in range(3):
                 g[i, a] += 0.125 * data[r[c], 1 + a, i]
+    return _spread_against(cp, 3.0 / h, g, sign, gi)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _spread_against(cp, k, g, sign, gi):  # pragma: no cover - compiled
+    """:func:`_bound` of a net against the reference ``g``, or inf.
+
+    inf unless ``det g`` has the sign ``sign``. ``gi``: ``g``'s inverse on return.
+    """
     det = (
         g[0, 0] * (g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1])
         - g[0, 1] * (g[1, 0] * g[2, 2] - g[1, 2] * g[2, 0])
@@ -70,7 +79,7 @@ def _spread(data, r, h, sign, cp, g, gi):  # pragma: no cover - compiled
         for a in range(3):
             a1, a2 = (a + 1) % 3, (a + 2) % 3
             gi[a, i] = (g[i1, a1] * g[i2, a2] - g[i1, a2] * g[i2, a1]) / det
-    return _bound(cp, 3.0 / h, gi)
+    return _bound(cp, k, gi)
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -144,19 +153,7 @@ def _net_spread(cp, h, sign, g, gi):  # pragma: no cover - compiled
                 continue
             for i in range(3):
                 g[i, a] += (k / 48.0) * (cp[m + stride, i] - cp[m, i])
-    det = (
-        g[0, 0] * (g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1])
-        - g[0, 1] * (g[1, 0] * g[2, 2] - g[1, 2] * g[2, 0])
-        + g[0, 2] * (g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0])
-    )
-    if not det * sign > 0.0:
-        return np.inf
-    for i in range(3):
-        i1, i2 = (i + 1) % 3, (i + 2) % 3
-        for a in range(3):
-            a1, a2 = (a + 1) % 3, (a + 2) % 3
-            gi[a, i] = (g[i1, a1] * g[i2, a2] - g[i1, a2] * g[i2, a1]) / det
-    return _bound(cp, k, gi)
+    return _spread_against(cp, k, g, sign, gi)
 
 
 @numba.njit(cache=True, error_model="numpy")
