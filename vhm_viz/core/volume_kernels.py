@@ -125,9 +125,8 @@ def finish_slab(state, fold, u, valid, foldover, samples, kind: str, fill_value:
     Parameters
     ----------
     state, fold : (P,) uint8
-        The slab's (after :func:`~vhm_viz.core.preimages.confirm_tentative`,
-        :func:`~vhm_viz.core.preimages.polish_next_to_edges` and
-        :func:`~vhm_viz.core.preimages.pass_through`).
+        The slab's (after :func:`~vhm_viz.core.preimages.settle_preimages`, which
+        confirms and polishes them, and :func:`~vhm_viz.core.preimages.pass_through`).
     u : (P, 3) float64
         Pre-images (input voxel indices) where ``state > 0``.
     valid, foldover : (P,) uint8 out
