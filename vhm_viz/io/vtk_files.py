@@ -73,8 +73,7 @@ def write_vtk_file(path, data) -> None:
         # file (every VTK reader since 8.1 and ParaView read it)
         writer.SetCompressorTypeToLZ4()
         # the appended data as raw bytes, not base64 text: a quarter smaller, and encoding
-        # it would take most of the write (every VTK XML reader, ParaView's and meshio's
-        # read both)
+        # it would take most of the write (every VTK XML reader and ParaView read both)
         writer.SetEncodeAppendedData(False)
     writer.AddObserver("ProgressEvent", _abort_when_interrupted)
     with atomic_path(path) as tmp:
