@@ -472,9 +472,9 @@ def inverted_voxel_cells(
     checked, proven, inverted, worst = 0, 0, [np.zeros(0, np.int64)], [np.zeros(0)]
     boxes = np.asarray([] if unproven is None else unproven, dtype=np.int64).reshape(-1, 6)
     ends = np.cumsum(np.prod(boxes[:, 1::2] - boxes[:, 0::2] + 1, axis=1))
-    all_cells = cell_plane * max(nz - 1, 0)
-    if unproven is not None and (ends[-1] if ends.size else 0) <= _SWEEP_FRACTION * all_cells:
-        proven = all_cells - int(ends[-1] if ends.size else 0)
+    n_unproven, all_cells = int(ends[-1]) if ends.size else 0, cell_plane * max(nz - 1, 0)
+    if unproven is not None and n_unproven <= _SWEEP_FRACTION * all_cells:
+        proven = all_cells - n_unproven
         # groups of boxes of about slab_cells cells
         group_of = (ends - 1) // max(slab_cells, 1)
         groups = np.split(boxes, np.flatnonzero(np.diff(group_of)) + 1)
