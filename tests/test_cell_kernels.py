@@ -211,6 +211,13 @@ def test_inverted_hexahedra_of_boxes_are_those_cells_of_the_whole_grid():
     np.testing.assert_array_equal(found["inverted"], bad)
     np.testing.assert_array_equal(found["determinant"], every[bad])
     assert found["cells"] == np.isfinite(every[chosen]).sum() < chosen.sum()
+    # one box of the whole grid: thousands of inverted cells in one chunk, more than its
+    # first room
+    whole = inverted_hexahedra(pts, dims, -0.9, [[0, 27, 0, 19, 0, 13]])
+    bad = np.flatnonzero(every <= 0)
+    assert bad.size > 2048
+    np.testing.assert_array_equal(whole["inverted"], bad)
+    np.testing.assert_array_equal(whole["determinant"], every[bad])
     empty = inverted_hexahedra(pts, dims, -0.9, np.zeros((0, 6), np.int64))
     assert empty["cells"] == 0 and empty["inverted"].size == 0
     for wrong in ([0, 28, 0, 0, 0, 0], [5, 4, 0, 0, 0, 0], [0, 0, -1, 0, 0, 0]):

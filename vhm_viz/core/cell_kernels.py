@@ -285,12 +285,14 @@ def tetrahedron_measures(
 _HEX_BAND = 16
 #: Boxes of cells that a thread of :func:`inverted_hexahedra` takes at a time at least.
 _HEX_BOXES = 16
-#: Inverted cells a chunk of :func:`_hex_kernel` has room for at first (it doubles).
+#: Inverted cells a chunk of the hexahedron kernels has room for at first (:func:`_with_room`).
 _HEX_FIRST_ROOM = 1024
 
 
-@numba.njit(cache=True, nogil=True)
-def _hex_kernel(start, stop, p, sign, scale, out):  # pragma: no cover - compiled
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _hex_kernel(
+    start, stop, p, sign, scale, out, planes, cross, ez, scratch, bad_cell, bad_value
+):  # pragma: no cover - compiled
     """Smallest corner determinant of the cells in rows ``start <= j < stop``, every layer.
 
     The determinant at corner ``(a, b, c)`` is ``ez(a, b) . (ex(b, c) x ey(a, c))``; the
@@ -303,32 +305,30 @@ def _hex_kernel(start, stop, p, sign, scale, out):  # pragma: no cover - compile
     is not finite) gets NaN: the sum of its eight determinants less itself is added.
 
     Each row of cells' values go to ``out[k, j]`` where ``out`` has a layer per layer
-    of cells, else to a scratch row. Returns the counts and the inverted cells (value
-    ``<= 0``) met: ``(not finite, inverted, their cell indices, their values)``, the
-    indices ``(k * (ny - 1) + j) * (nx - 1) + i`` in the order met.
+    of cells, else to ``scratch`` (a row). The inverted cells (value ``<= 0``) go to
+    ``bad_cell`` (their indices ``(k * (ny - 1) + j) * (nx - 1) + i``, in the order met)
+    and ``bad_value`` while there is room. Returns ``(not finite, inverted)`` counts: where
+    the second exceeds the room, the call is to be repeated with more.
+
+    The working planes come from the caller (:func:`_run_hex_kernel`), as does all memory:
+    a kernel that allocates carries numba's allocation and error paths, code that every
+    process loads from the cache before the kernel's first call.
     """
     nz, ny, nx = p.shape[0] - 1, p.shape[1] - 1, p.shape[2] - 1
     band = min(_HEX_BAND, stop - start)
-    planes = np.empty((2, 3, band + 1, nx + 1))  # [plane parity, xyz, j, i]
-    cross = np.empty((2, 4, 3, band, nx))  # [plane parity, corner a + 2 b, xyz, j, i]
-    ez = np.empty((3, band + 1, nx + 1))
-    scratch = np.empty(nx)
     write = out.shape[0] == nz
     n_nan = 0
     n_bad = 0
-    bad_cell = np.empty(_HEX_FIRST_ROOM, dtype=np.int64)
-    bad_value = np.empty(_HEX_FIRST_ROOM)
     for j0 in range(start, stop, band):
         rows = min(band, stop - j0)
         for k in range(nz + 1):
             q = k % 2
             plane = planes[q]
             for j in range(rows + 1):
-                src = p[k, j0 + j].ravel()
                 for i in range(nx + 1):
-                    plane[0, j, i] = src[3 * i]
-                    plane[1, j, i] = src[3 * i + 1]
-                    plane[2, j, i] = src[3 * i + 2]
+                    plane[0, j, i] = p[k, j0 + j, i, 0]
+                    plane[1, j, i] = p[k, j0 + j, i, 1]
+                    plane[2, j, i] = p[k, j0 + j, i, 2]
             for j in range(rows):
                 for b in range(2):
                     for a in range(2):
@@ -377,40 +377,36 @@ def _hex_kernel(start, stop, p, sign, scale, out):  # pragma: no cover - compile
                 n_nan += row_nan
                 if row_bad == 0:
                     continue
-                if n_bad + row_bad > bad_cell.size:
-                    room = max(2 * bad_cell.size, n_bad + row_bad)
-                    grown_cell = np.empty(room, dtype=np.int64)
-                    grown_value = np.empty(room)
-                    grown_cell[:n_bad] = bad_cell[:n_bad]
-                    grown_value[:n_bad] = bad_value[:n_bad]
-                    bad_cell, bad_value = grown_cell, grown_value
                 first = ((k - 1) * ny + j0 + j) * nx
                 for i in range(nx):
                     if row[i] <= 0.0:
-                        bad_cell[n_bad] = first + i
-                        bad_value[n_bad] = row[i]
+                        if n_bad < bad_cell.size:
+                            bad_cell[n_bad] = first + i
+                            bad_value[n_bad] = row[i]
                         n_bad += 1
-    return n_nan, n_bad, bad_cell[:n_bad], bad_value[:n_bad]
+    return n_nan, n_bad
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _hex_box_kernel(start, stop, p, boxes, sign, scale):  # pragma: no cover - compiled
+def _hex_box_kernel(
+    start, stop, p, boxes, sign, scale, bad_cell, bad_value
+):  # pragma: no cover - compiled
     """:func:`_hex_kernel`'s values for the cells of ``boxes[start:stop]`` alone.
 
     ``boxes`` (K, 6): inclusive cell ranges ``i0, i1, j0, j1, k0, k1``. Each cell's eight
     corner determinants are made from its own points (the boxes are small and scattered:
     rows too short to share work along), with the same operations in the same order as
-    :func:`_hex_kernel` (the same numbers, bit for bit). Returns ``(cells measured, not
-    finite, inverted, their cell indices, their values)``.
+    :func:`_hex_kernel` (the same numbers, bit for bit). The inverted cells go to
+    ``bad_cell`` and ``bad_value`` while there is room, as in :func:`_hex_kernel`.
+    Returns ``(cells measured, not finite, inverted)``.
     """
     ny, nx = p.shape[1] - 1, p.shape[2] - 1
     n_cells = 0
     n_nan = 0
     n_bad = 0
-    bad_cell = np.empty(_HEX_FIRST_ROOM, dtype=np.int64)
-    bad_value = np.empty(_HEX_FIRST_ROOM)
     for q in range(start, stop):
-        i0, i1, j0, j1, k0, k1 = boxes[q]
+        i0, i1, j0, j1 = boxes[q, 0], boxes[q, 1], boxes[q, 2], boxes[q, 3]
+        k0, k1 = boxes[q, 4], boxes[q, 5]
         n_cells += (i1 - i0 + 1) * (j1 - j0 + 1) * (k1 - k0 + 1)
         for k in range(k0, k1 + 1):
             for j in range(j0, j1 + 1):
@@ -431,16 +427,11 @@ def _hex_box_kernel(start, stop, p, boxes, sign, scale):  # pragma: no cover - c
                     if v != v:
                         n_nan += 1
                     elif v <= 0.0:
-                        if n_bad == bad_cell.size:
-                            grown_cell = np.empty(2 * n_bad, dtype=np.int64)
-                            grown_value = np.empty(2 * n_bad)
-                            grown_cell[:n_bad] = bad_cell
-                            grown_value[:n_bad] = bad_value
-                            bad_cell, bad_value = grown_cell, grown_value
-                        bad_cell[n_bad] = (k * ny + j) * nx + i
-                        bad_value[n_bad] = v
+                        if n_bad < bad_cell.size:
+                            bad_cell[n_bad] = (k * ny + j) * nx + i
+                            bad_value[n_bad] = v
                         n_bad += 1
-    return n_cells, n_nan, n_bad, bad_cell[:n_bad], bad_value[:n_bad]
+    return n_cells, n_nan, n_bad
 
 
 @numba.njit(cache=True, inline="always")
@@ -481,16 +472,43 @@ def _run_hex_kernel(p, cells, rest_det: float, out) -> tuple[int, np.ndarray, np
     chunks = []
 
     def chunk(start, stop):
-        chunks.append((start, _hex_kernel(start, stop, p, sign, scale, out)))
+        band, nx = min(_HEX_BAND, stop - start), cells[2]
+        planes = np.empty((2, 3, band + 1, nx + 1))  # [plane parity, xyz, j, i]
+        cross = np.empty((2, 4, 3, band, nx))  # [plane parity, corner a + 2 b, xyz, j, i]
+        ez, scratch = np.empty((3, band + 1, nx + 1)), np.empty(nx)
+
+        def kernel(bad_cell, bad_value):
+            return _hex_kernel(start, stop, p, sign, scale, out, planes, cross, ez, scratch,
+                               bad_cell, bad_value)  # fmt: skip
+
+        (n_nan, _), bad, value = _with_room(kernel)
+        chunks.append((start, n_nan, bad, value))
 
     if 0 not in cells:
         run_rows(chunk, cells[1], grain=_HEX_BAND)
     chunks.sort(key=lambda c: c[0])
-    n_nan = sum(c[1][0] for c in chunks)
-    bad = np.concatenate([np.zeros(0, np.int64)] + [c[1][2] for c in chunks])
-    value = np.concatenate([np.zeros(0)] + [c[1][3] for c in chunks])
+    n_nan = sum(c[1] for c in chunks)
+    bad = np.concatenate([np.zeros(0, np.int64)] + [c[2] for c in chunks])
+    value = np.concatenate([np.zeros(0)] + [c[3] for c in chunks])
     order = np.argsort(bad, kind="stable")
     return n_nan, bad[order], value[order]
+
+
+def _with_room(kernel):
+    """``kernel(bad_cell, bad_value)`` with room for the inverted cells it meets.
+
+    The kernel returns counts ending with the inverted cells it met, and keeps as many as
+    there is room for; it is called again with room for all of them where they did not
+    fit (a chunk with more than :data:`_HEX_FIRST_ROOM` inverted cells). Returns
+    ``(counts, cell indices, values)``.
+    """
+    room = _HEX_FIRST_ROOM
+    while True:
+        bad_cell, bad_value = np.empty(room, dtype=np.int64), np.empty(room)
+        counts = kernel(bad_cell, bad_value)
+        if counts[-1] <= room:
+            return counts, bad_cell[: counts[-1]], bad_value[: counts[-1]]
+        room = counts[-1]
 
 
 def hexahedron_corner_determinants(points, dimensions, rest_det: float) -> np.ndarray:
@@ -566,11 +584,14 @@ def inverted_hexahedra(points, dimensions, rest_det: float, boxes=None) -> dict:
     chunks = []
 
     def chunk(start, stop):
-        chunks.append(_hex_box_kernel(start, stop, p, boxes, sign, scale))
+        def kernel(bad_cell, bad_value):
+            return _hex_box_kernel(start, stop, p, boxes, sign, scale, bad_cell, bad_value)
+
+        chunks.append(_with_room(kernel))
 
     run_rows(chunk, len(boxes), grain=_HEX_BOXES)
-    bad = np.concatenate([np.zeros(0, np.int64)] + [c[3] for c in chunks])
-    value = np.concatenate([np.zeros(0)] + [c[4] for c in chunks])
+    bad = np.concatenate([np.zeros(0, np.int64)] + [c[1] for c in chunks])
+    value = np.concatenate([np.zeros(0)] + [c[2] for c in chunks])
     order = np.argsort(bad, kind="stable")
-    measured = sum(c[0] - c[1] for c in chunks)
+    measured = sum(c[0][0] - c[0][1] for c in chunks)
     return {"cells": int(measured), "inverted": bad[order], "determinant": value[order]}
