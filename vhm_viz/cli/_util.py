@@ -363,25 +363,18 @@ FOLD_SAMPLES = 20000
 #: the cage's faces; the Jacobian three gradients besides the value): one point in this
 #: many keeps the check a small part of the map.
 FOLD_SAMPLE_SPREAD = 16
-#: The same beside a check of the whole output -- every cell of a warped volume or tet
-#: mesh, every resampled voxel's pre-image -- where it is a spot check of the continuous
-#: map that costs a small part of the map itself: at most this many points, and at most
-#: one in :data:`FOLD_SPOT_SPREAD` of the data's (:func:`spot_samples`).
-FOLD_SPOT_SAMPLES = 1024
-#: The spot check evaluates the exact map at one point in this many of the data's at most
-#: (and at no fewer than ``_FOLD_SPOT_LEAST`` points): a small part of the map's own work.
-FOLD_SPOT_SPREAD = 16
-_FOLD_SPOT_LEAST = 256
+#: Points of the spot check beside a check of the whole output -- every cell of a warped
+#: volume or tet mesh, every resampled voxel's pre-image -- at most (evenly spread): there
+#: the output's own check finds its folds, and this one samples the exact ``det J`` of the
+#: continuous map itself, at a cost that stays a small part of even a fast map's (a
+#: volume engine's map is far cheaper per voxel than the exact Jacobian). Also the fewest
+#: points of :func:`fold_samples`.
+FOLD_SPOT_SAMPLES = 256
 
 
 def fold_samples(n_points: int) -> int:
     """Points of the fold warning's ``det J`` samples of an output of ``n_points`` points."""
-    return min(FOLD_SAMPLES, max(_FOLD_SPOT_LEAST, int(n_points) // FOLD_SAMPLE_SPREAD))
-
-
-def spot_samples(n_points: int) -> int:
-    """Points of the spot check beside a check of the whole output of ``n_points`` points."""
-    return min(FOLD_SPOT_SAMPLES, max(_FOLD_SPOT_LEAST, int(n_points) // FOLD_SPOT_SPREAD))
+    return min(FOLD_SAMPLES, max(FOLD_SPOT_SAMPLES, int(n_points) // FOLD_SAMPLE_SPREAD))
 
 
 def _where(points: np.ndarray, values: np.ndarray) -> str:
@@ -543,7 +536,7 @@ def fold_warning(
         ``det J`` at every point, when already computed; else it is sampled exactly at up
         to ``samples`` points.
     samples : int
-        :func:`fold_samples`, or :func:`spot_samples` beside a check of the whole
+        :func:`fold_samples`, or :data:`FOLD_SPOT_SAMPLES` beside a check of the whole
         output.
 
     Returns

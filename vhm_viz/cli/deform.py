@@ -20,6 +20,7 @@ from vhm_viz.cli._field_output import (
     write_field,
 )
 from vhm_viz.cli._util import (
+    FOLD_SPOT_SAMPLES,
     CLIError,
     Progress,
     add_convergence_argument,
@@ -36,7 +37,6 @@ from vhm_viz.cli._util import (
     load_scene,
     quiet_vtk,
     run_filter,
-    spot_samples,
     surface_metrics,
 )
 from vhm_viz.core.devices import DEVICES, require_device
@@ -365,7 +365,7 @@ def _check_folds(
     # a resample counts its voxels in folds itself; cells were checked one by one
     whole = resample or cells is not None
     n_points = mesh.GetNumberOfPoints()
-    samples = spot_samples(n_points) if whole else fold_samples(n_points)
+    samples = FOLD_SPOT_SAMPLES if whole else fold_samples(n_points)
     return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det, samples=samples)
 
 
