@@ -168,6 +168,48 @@ def test_cells_without_volume_get_nan():
     assert cell_quality(pv.Sphere(), pv.Sphere().points) is None
 
 
+def test_tets_beside_surface_cells_are_measured_as_stored(bar_tets):
+    # a tet mesh with its boundary triangles and a vertex cell (as medit and Gmsh files
+    # come): the tets are taken as stored, the others get NaN; with a hexahedron too,
+    # every cell goes through VTK's triangulation, and the tets' numbers are the same
+    points, tets = bar_tets
+    rng = np.random.default_rng(4)
+    moved = points + 0.08 * rng.normal(size=points.shape)
+    tris = tets[::5, :3]
+    cells = [np.hstack([np.full((len(tets), 1), 4), tets]).ravel()]
+    cells.append(np.hstack([np.full((len(tris), 1), 3), tris]).ravel())
+    cells.append(np.array([1, 7]))
+    types = [pv.CellType.TETRA] * len(tets) + [pv.CellType.TRIANGLE] * len(tris)
+    types += [pv.CellType.VERTEX]
+    order = rng.permutation(len(types))  # the kinds interleaved
+    starts = np.cumsum([0] + [5] * len(tets) + [4] * len(tris) + [2])[:-1]
+    flat = np.concatenate(cells)
+    lengths = np.array([5] * len(tets) + [4] * len(tris) + [2])
+    grid = pv.UnstructuredGrid(
+        np.concatenate([flat[starts[i] : starts[i] + lengths[i]] for i in order]),
+        np.asarray(types)[order],
+        points,
+    )
+    q = cell_quality(grid, moved)
+    is_tet = np.asarray(grid.celltypes) == pv.CellType.TETRA
+    stored = grid.cells_dict[pv.CellType.TETRA]
+    ratio = _signed_volumes(moved, stored) / _signed_volumes(points, stored)
+    np.testing.assert_allclose(q["determinant"][is_tet], ratio, rtol=1e-9)
+    assert np.isnan(q["determinant"][~is_tet]).all()
+    assert q["summary"]["cells"] == len(tets) and q["summary"]["inverted"] == (ratio <= 0).sum()
+    hexa = pv.UnstructuredGrid(
+        np.array([8, *range(len(points), len(points) + 8)]),
+        np.array([pv.CellType.HEXAHEDRON]),
+        np.vstack([points, pv.Box(bounds=(5, 6, 5, 6, 5, 6)).points[:8]]),
+    )
+    mixed = grid.merge(hexa, merge_points=False)
+    assert mixed.n_cells == grid.n_cells + 1
+    q2 = cell_quality(mixed, np.vstack([moved, mixed.points[len(points) :]]))
+    # VTK may store a tet from another corner: the same det F, to rounding of |F|^3
+    np.testing.assert_allclose(q2["determinant"][: grid.n_cells], q["determinant"], atol=1e-12)
+    assert q2["determinant"][-1] == pytest.approx(1.0)
+
+
 def test_deformation_filter_writes_the_same_cell_arrays(bar_tets):
     points, tets = bar_tets
     dfm = _solved("push", top_height=2.5)

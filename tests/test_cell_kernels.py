@@ -110,6 +110,30 @@ def test_cells_take_the_worst_tet_and_flag_rest_problems():
     assert m["determinant"][0] == 1.0 and np.isnan(m["condition_number"][0])
 
 
+@pytest.mark.parametrize("condition", [True, False])
+def test_a_cell_per_tet_gives_the_per_cell_reduction_s_numbers(condition):
+    # one tet per cell skips the reduction over cells: the same arrays, bit for bit, for
+    # measured, inverted, flattened, degenerate, rest-inverted and not finite tets
+    rng = np.random.default_rng(21)
+    n = 500
+    x = rng.normal(size=(4 * n, 3))
+    tets = np.arange(4 * n).reshape(n, 4)
+    a = rng.normal(size=(n, 3, 3))
+    a[::7] = _near_flat(rng, len(a[::7]), 0.0)  # flattened exactly
+    y = np.einsum("tij,tkj->tki", a, x.reshape(n, 4, 3)).reshape(-1, 3)
+    x[4 * 11 + 3] = x[4 * 11]  # a degenerate rest tet
+    tets[13] = tets[13, [0, 2, 1, 3]]  # stored inverted at rest
+    y[4 * 17 + 1] = np.nan  # a corner not mapped
+    y[4 * 19 + 2, 0] = np.inf
+    alone = tetrahedron_measures(x, y, tets, condition=condition)
+    reduced = tetrahedron_measures(x, y, tets, owner=np.arange(n), n_cells=n, condition=condition)
+    for key in ("determinant", "condition_number", "rest_inverted", "degenerate"):
+        np.testing.assert_array_equal(alone[key], reduced[key])
+    assert alone["degenerate"][11] and alone["rest_inverted"][13]
+    assert np.isnan(alone["determinant"][[11, 17, 19]]).all()
+    assert (alone["determinant"] <= 0).sum() > n // 7
+
+
 def test_hexahedra_of_an_affine_map_have_its_determinant():
     dims = (5, 4, 3)
     spacing = np.array([0.5, 0.7, 1.1])

@@ -1,4 +1,9 @@
-"""The one closest-point routine against brute force over dense triangle samples."""
+"""Geometry helpers against independent references.
+
+The one closest-point routine against brute force over dense triangle samples; volumes and
+open edges against VTK's own (``vtkCellSizeFilter``, ``vtkFeatureEdges`` through
+PyVista).
+"""
 
 from __future__ import annotations
 
@@ -9,7 +14,10 @@ import pytest
 from vhm_viz.core.geometry import (
     closest_points_on_triangles,
     nearest_points_on_mesh,
+    open_edge_count,
     point_triangle_distance2,
+    signed_volume,
+    tetrahedra_volume,
 )
 
 
@@ -84,3 +92,56 @@ def test_nearest_points_on_mesh_is_the_brute_force_minimum(n_points):
     d = np.linalg.norm(q - rows, axis=1).reshape(n_points, len(faces))
     np.testing.assert_array_equal(face, d.argmin(axis=1))
     np.testing.assert_allclose(np.linalg.norm(closest - points, axis=1), d.min(axis=1))
+
+
+def _triangles_of(surface):
+    return np.asarray(surface.faces).reshape(-1, 4)[:, 1:]
+
+
+def test_open_edges_are_vtks():
+    pv = pytest.importorskip("pyvista")
+    sphere = pv.Sphere(theta_resolution=40, phi_resolution=30)
+    cut = sphere.clip("x", origin=(0.1, 0, 0)).triangulate()
+    two = pv.Sphere(center=(3, 0, 0)).merge(cut).triangulate()  # a closed and an open part
+    # an edge of three triangles (open: not manifold) and a stray triangle
+    fin = pv.PolyData(
+        np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [5, 5, 5.0]]),
+        np.array([3, 0, 1, 2, 3, 1, 0, 3, 3, 0, 1, 4, 3, 5, 2, 4]),
+    )
+    for mesh in (sphere, cut, two, fin):
+        expected = mesh.n_open_edges
+        assert open_edge_count(_triangles_of(mesh), mesh.n_points) == expected
+    assert sphere.n_open_edges == 0 and cut.n_open_edges > 0
+    assert open_edge_count(np.zeros((0, 3), int), 0) == 0
+
+
+def test_volumes_are_vtks():
+    pv = pytest.importorskip("pyvista")
+    from vtkmodules.vtkFiltersCore import vtkMassProperties
+
+    rng = np.random.default_rng(3)
+    # a closed surface far from the origin, scaled unevenly: VTK's volume of its solid
+    shape = pv.Sphere(theta_resolution=60, phi_resolution=40).scale([1.0, 2.0, 0.5])
+    mass = vtkMassProperties()
+    mass.SetInputData(shape)
+    mass.Update()
+    far = np.asarray(shape.points, dtype=np.float64) + [1e4, -3e3, 2e3]
+    got = signed_volume(far, _triangles_of(shape))
+    assert got == pytest.approx(mass.GetVolume(), rel=1e-9)
+    assert signed_volume(far, _triangles_of(shape)[:, ::-1]) == pytest.approx(-got, rel=1e-12)
+    # tets, some inverted: VTK's signed cell volumes, summed
+    points = rng.normal(size=(400, 3))
+    tets = rng.integers(0, 400, size=(900, 4))
+    tets = tets[np.array([len(set(t)) == 4 for t in tets])]
+    grid = pv.UnstructuredGrid(
+        np.hstack([np.full((len(tets), 1), 4), tets]).ravel(),
+        np.full(len(tets), pv.CellType.TETRA),
+        points,
+    )
+    got = tetrahedra_volume(points, tets)
+    assert got == pytest.approx(grid.volume, rel=1e-12, abs=1e-12)
+    corners = points[tets]
+    signed = np.linalg.det(corners[:, 1:] - corners[:, :1]) / 6.0
+    assert (signed < 0).any() and got == pytest.approx(signed.sum(), rel=1e-12, abs=1e-12)
+    with pytest.raises(ValueError, match="index"):
+        tetrahedra_volume(points, [[0, 1, 2, 400]])

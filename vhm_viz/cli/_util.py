@@ -339,6 +339,9 @@ def surface_metrics(rest, deformed, rigid: bool = True) -> dict:
 def _surface_metrics(rest, deformed, rigid: bool) -> dict:
     import pyvista as pv
 
+    from vhm_viz.core.geometry import open_edge_count, tetrahedra_volume
+    from vhm_viz.filters.cells import tetra_cells
+
     out: dict = {}
     if isinstance(rest, pv.PolyData) and rest.n_cells and rest.GetNumberOfPolys():
         surf = rest if rest.is_all_triangles else rest.triangulate()
@@ -346,12 +349,16 @@ def _surface_metrics(rest, deformed, rigid: bool) -> dict:
         tris = np.asarray(surf.faces).reshape(-1, 4)[:, 1:]
         if rigid:
             out["E_rigid"] = float(rigidity_distortion(surf.points, dsurf.points, tris))
-        if rest.n_open_edges == 0:
+        if open_edge_count(tris, surf.n_points) == 0:
             out["E_volume"] = float(volume_change(surf.points, dsurf.points, tris))
     elif isinstance(rest, pv.UnstructuredGrid) and rest.n_cells:
-        v0 = float(rest.volume)
+        tets = tetra_cells(rest)  # a tet mesh: its volumes without VTK's cell sizes
+        if tets is None:
+            v0, v1 = float(rest.volume), float(deformed.volume)
+        else:
+            v0, v1 = (tetrahedra_volume(d.points, tets[0]) for d in (rest, deformed))
         if v0 > 0:
-            out["E_volume"] = abs(float(deformed.volume) - v0) / v0
+            out["E_volume"] = abs(v1 - v0) / v0
     return out
 
 

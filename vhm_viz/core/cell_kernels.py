@@ -266,17 +266,24 @@ def tetrahedron_measures(
             _tet_kernel, n_tets, x, y, t, DEGENERATE_RTOL, bool(condition), det, cond,
             rest_det, state, grain=_TETS_GRAIN,
         )  # fmt: skip
-    out_det = np.empty(n)
-    out_cond = np.empty(n)
-    flags = np.empty(n, dtype=np.int8)
-    _reduce_cells(own, det, cond, rest_det, state, n, out_det, out_cond, flags)
+    if owner is None and n == n_tets:  # a cell per tet: _reduce_cells' numbers, in numpy
+        measured = state == 0
+        out_det = np.where(measured, np.where(det < np.inf, det, np.inf), np.nan)
+        out_cond = np.where(measured, np.where(cond > -np.inf, cond, -np.inf), np.nan)
+        rest_inverted, degenerate = rest_det < 0.0, state == 1
+    else:
+        out_det = np.empty(n)
+        out_cond = np.empty(n)
+        flags = np.empty(n, dtype=np.int8)
+        _reduce_cells(own, det, cond, rest_det, state, n, out_det, out_cond, flags)
+        rest_inverted, degenerate = (flags & 1).astype(bool), (flags & 2).astype(bool)
     if not condition:
         out_cond[:] = np.nan
     return {
         "determinant": out_det,
         "condition_number": out_cond,
-        "rest_inverted": (flags & 1).astype(bool),
-        "degenerate": (flags & 2).astype(bool),
+        "rest_inverted": rest_inverted,
+        "degenerate": degenerate,
     }
 
 

@@ -58,12 +58,113 @@ def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     from the origin the per-face terms would otherwise be huge and cancel, leaving nothing
     of a small volume, not even its sign.
     """
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    if len(v):
-        v = v - v.mean(axis=0)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if not len(f):
+        return 0.0
+    # coordinate by coordinate: contiguous columns, no (m, 3) temporaries
+    x, y, z = (v[:, k] - v[:, k].mean() for k in range(3))
+    a, b, c = f[:, 0], f[:, 1], f[:, 2]
+    return float(_triple_products(x, y, z, a, b, c).sum() / 6.0)
+
+
+def tetrahedra_volume(vertices: np.ndarray, tets: np.ndarray) -> float:
+    """Sum of the signed volumes of tetrahedra.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float array
+    tets : (m, 4) int array
+        Corners ``p0, p1, p2, p3``; a tetrahedron's volume is
+        ``det(p1 - p0, p2 - p0, p3 - p0) / 6``, positive when the three edges from ``p0``
+        are right-handed (VTK's orientation of its tetra cells).
+
+    Returns
+    -------
+    float
+        Volume in length units cubed; inverted tetrahedra count negative.
+    """
+    v = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
+    t = np.ascontiguousarray(tets, dtype=np.int64).reshape(-1, 4)
+    if t.size and (t.min() < 0 or t.max() >= len(v)):
+        raise ValueError(f"tets must index the {len(v)} vertices")
+    return float(_tetrahedra_volume(v, t) / 6.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _tetrahedra_volume(v, t):  # pragma: no cover - compiled
+    """Sum of ``det(p1 - p0, p2 - p0, p3 - p0)`` over the tetrahedra ``t``."""
+    total = 0.0
+    for i in range(t.shape[0]):
+        p0, p1, p2, p3 = t[i, 0], t[i, 1], t[i, 2], t[i, 3]
+        ax, ay, az = v[p1, 0] - v[p0, 0], v[p1, 1] - v[p0, 1], v[p1, 2] - v[p0, 2]
+        bx, by, bz = v[p2, 0] - v[p0, 0], v[p2, 1] - v[p0, 1], v[p2, 2] - v[p0, 2]
+        cx, cy, cz = v[p3, 0] - v[p0, 0], v[p3, 1] - v[p0, 1], v[p3, 2] - v[p0, 2]
+        total += ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+    return total
+
+
+def _triple_products(x, y, z, a, b, c) -> np.ndarray:
+    """``p_a . (p_b x p_c)`` per row of index arrays, from coordinate columns."""
+    ax, ay, az = x[a], y[a], z[a]
+    bx, by, bz = x[b], y[b], z[b]
+    cx, cy, cz = x[c], y[c], z[c]
+    return ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+
+
+def open_edge_count(faces: np.ndarray, n_points: int) -> int:
+    """Edges of a triangle mesh that do not join exactly two triangles: none where closed.
+
+    Boundary edges (of one triangle) and non-manifold ones (of three or more): the count of
+    PyVista's ``n_open_edges`` (``vtkFeatureEdges``), without building the edges. Each
+    point's edges to larger points are gathered by counting, not sorting, and matched.
+
+    Parameters
+    ----------
+    faces : (m, 3) int array
+        Triangles; indices in ``[0, n_points)``.
+    n_points : int
+
+    Returns
+    -------
+    int
+    """
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if not len(f):
+        return 0
+    a = f.ravel()
+    b = f[:, [1, 2, 0]].ravel()
+    low, high = np.minimum(a, b), np.maximum(a, b)
+    start = np.zeros(int(n_points) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(low, minlength=int(n_points)), out=start[1:])
+    cursor = start[:-1].copy()
+    return int(_open_edges(low, high, start, cursor, np.empty(len(low), np.int64)))
+
+
+@numba.njit(cache=True, nogil=True)
+def _open_edges(low, high, start, cursor, slots):  # pragma: no cover - compiled
+    """Edges ``(low[e], high[e])`` that do not occur twice: each point's larger ends, sorted."""
+    for e in range(low.size):
+        slots[cursor[low[e]]] = high[e]
+        cursor[low[e]] += 1
+    n_open = 0
+    for v in range(start.size - 1):
+        s, t = start[v], start[v + 1]
+        for i in range(s + 1, t):  # insertion sort: a point has a handful of edges
+            key = slots[i]
+            j = i - 1
+            while j >= s and slots[j] > key:
+                slots[j + 1] = slots[j]
+                j -= 1
+            slots[j + 1] = key
+        i = s
+        while i < t:
+            j = i + 1
+            while j < t and slots[j] == slots[i]:
+                j += 1
+            n_open += j - i != 2
+            i = j
+    return n_open
 
 
 def _newell_normal(p: np.ndarray) -> np.ndarray:

@@ -390,7 +390,9 @@ def cell_measures(
         raise ValueError(f"rest and deformed points differ in shape: {x.shape} vs {y.shape}")
     index = _simplices(tets, len(x), 4, "tets")
     t = len(index)
-    owner = np.arange(t) if cells is None else np.asarray(cells, dtype=np.int64).reshape(-1)
+    if cells is None:
+        return tetrahedron_measures(x, y, index, None, n_cells, condition=condition)
+    owner = np.asarray(cells, dtype=np.int64).reshape(-1)
     if owner.shape != (t,):
         raise ValueError(f"cells must have one entry per tet ({t}); got {owner.shape}")
     if n_cells is None:

@@ -22,12 +22,19 @@ from vtkmodules.util import numpy_support as ns
 
 from vhm_viz.core.basis import inside_cage, winding_number
 from vhm_viz.core.certify import INSIDE, MEETS, OUTSIDE, Region, default_margin
-from vhm_viz.core.geometry import signed_volume
+from vhm_viz.core.geometry import open_edge_count, signed_volume
 from vhm_viz.core.metrics import cell_measures, cell_summary
 from vhm_viz.filters._vtk import numpy_points
 from vhm_viz.io import cell_types
 
-__all__ = ["CELL_ARRAYS", "cell_tetrahedra", "cell_quality", "add_cell_arrays", "region_of"]
+__all__ = [
+    "CELL_ARRAYS",
+    "cell_tetrahedra",
+    "tetra_cells",
+    "cell_quality",
+    "add_cell_arrays",
+    "region_of",
+]
 
 #: Cell arrays written by the analysis (and, on request, the deformation) filter.
 CELL_ARRAYS = ("cell_jacobian_determinant", "cell_condition_number", "cell_inverted")
@@ -113,12 +120,34 @@ def cell_tetrahedra(ds, chunk_tets: int = _CHUNK_TETS):
         return
     if not _has_3d_cells(ds):
         return
+    tets = tetra_cells(ds)
+    yield _triangulated(ds) if tets is None else tets
+
+
+def tetra_cells(ds):
+    """The tetra cells of an unstructured grid whose only 3D cells are tetra.
+
+    Parameters
+    ----------
+    ds : vtkUnstructuredGrid
+
+    Returns
+    -------
+    tuple or None
+        ``(tets, cells)``: the point ids ``(T, 4)`` int64 of the tetra cells and their cell
+        ids ``(T,)``, ascending (other cells, of lower dimension, are left out); None where
+        another kind of 3D cell is present (:func:`cell_tetrahedra` splits those).
+    """
     types = cell_types(ds)
-    if np.all(types == _VTK_TETRA):
-        conn = ns.vtk_to_numpy(ds.GetCells().GetConnectivityArray()).astype(np.int64)
-        yield conn.reshape(-1, 4), np.arange(len(types), dtype=np.int64)
-        return
-    yield _triangulated(ds)
+    is_tetra = types == _VTK_TETRA
+    if not is_tetra.all() and any(_cell_dimension(t) == 3 for t in np.unique(types[~is_tetra])):
+        return None
+    conn = ns.vtk_to_numpy(ds.GetCells().GetConnectivityArray()).astype(np.int64, copy=False)
+    if is_tetra.all():
+        return conn.reshape(-1, 4), np.arange(len(types), dtype=np.int64)
+    cells = np.flatnonzero(is_tetra)
+    offsets = ns.vtk_to_numpy(ds.GetCells().GetOffsetsArray())
+    return conn[offsets[cells][:, None] + np.arange(4)], cells
 
 
 def _triangulated(ds):
@@ -180,9 +209,12 @@ def cell_quality(ds, deformed_points, *, condition: bool = True) -> dict | None:
     for tets, cells in cell_tetrahedra(ds):
         if len(tets) == 0:
             continue
-        # renumber the chunk's cells so the work arrays stay the chunk's size
-        used, local = np.unique(cells, return_inverse=True)
-        m = cell_measures(rest, moved, tets, local, len(used), condition=condition)
+        if np.all(cells[1:] > cells[:-1]):  # a cell per tet (a tet mesh): as they come
+            used = cells
+            m = cell_measures(rest, moved, tets, condition=condition)
+        else:  # renumber the chunk's cells so the work arrays stay the chunk's size
+            used, local = np.unique(cells, return_inverse=True)
+            m = cell_measures(rest, moved, tets, local, len(used), condition=condition)
         det[used], cond[used] = m["determinant"], m["condition_number"]
         degenerate[used] |= m["degenerate"]
         if _dimensions(ds) is None:  # a lattice's tets are ours: it stores no orientation
@@ -257,7 +289,7 @@ def region_of(ds, cage=None):
         return Region.tetrahedra(numpy_points(ds), np.concatenate(tets))
     if isinstance(ds, pv.PolyData) and ds.n_cells and ds.GetNumberOfPolys():
         surf = ds.triangulate() if not ds.is_all_triangles else ds
-        if surf.n_open_edges == 0:
+        if open_edge_count(np.asarray(surf.faces).reshape(-1, 4)[:, 1:], surf.n_points) == 0:
             return _solid_region(surf)
     if cage is None:
         raise ValueError(
