@@ -24,6 +24,7 @@ from vhm_viz.filters import (  # noqa: E402
     cell_quality,
     update,
 )
+from vhm_viz.filters.cells import cell_centres  # noqa: E402
 
 
 def _signed_volumes(points, tets):
@@ -208,6 +209,21 @@ def test_tets_beside_surface_cells_are_measured_as_stored(bar_tets):
     # VTK may store a tet from another corner: the same det F, to rounding of |F|^3
     np.testing.assert_allclose(q2["determinant"][: grid.n_cells], q["determinant"], atol=1e-12)
     assert q2["determinant"][-1] == pytest.approx(1.0)
+
+
+def test_cell_centres_are_vtks(bar_tets):
+    points, tets = bar_tets
+    grid = _tet_grid(points, tets)
+    mixed = grid.merge(pv.PolyData(points[:40], np.array([3, 0, 1, 2, 3, 5, 6, 7, 1, 9])))
+    hexa = mixed.merge(pv.ImageData(dimensions=(2, 2, 2), origin=(4, 4, 4)))
+    for ds, index in (
+        (grid, np.arange(0, grid.n_cells, 7)),
+        (mixed, np.arange(mixed.n_cells - 5, mixed.n_cells)),  # tets, triangles, a vertex
+        (hexa, np.array([3, hexa.n_cells - 1])),  # with a hexahedron: VTK's
+        (pv.ImageData(dimensions=(4, 3, 5)).cast_to_structured_grid(), np.array([0, 5, 23])),
+    ):
+        expected = np.asarray(ds.extract_cells(index).cell_centers().points)
+        np.testing.assert_allclose(cell_centres(ds, index), expected, rtol=1e-6, atol=1e-6)
 
 
 def test_deformation_filter_writes_the_same_cell_arrays(bar_tets):

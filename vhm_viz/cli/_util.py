@@ -551,8 +551,6 @@ def fold_warning(
     str or None
         None when no cell is inverted and no sampled ``det J`` is ``<= 0``.
     """
-    import pyvista as pv
-
     parts = []
     if cells is not None and cells["summary"]["inverted"]:
         if "inverted" in cells:
@@ -564,7 +562,9 @@ def fold_warning(
         if "centres" in cells:
             centres = np.asarray(cells["centres"](bad))
         else:
-            centres = np.asarray(pv.wrap(rest).extract_cells(bad).cell_centers().points)
+            from vhm_viz.filters.cells import cell_centres
+
+            centres = cell_centres(rest, bad)
         parts.append(
             f"{bad.size} of {cells['summary']['cells']} cells inverted "
             f"(cell det <= 0; {_where(centres, worst)})"

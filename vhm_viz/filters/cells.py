@@ -31,6 +31,7 @@ __all__ = [
     "CELL_ARRAYS",
     "cell_tetrahedra",
     "tetra_cells",
+    "cell_centres",
     "cell_quality",
     "add_cell_arrays",
     "region_of",
@@ -176,6 +177,38 @@ def _triangulated(ds):
     conn = ns.vtk_to_numpy(out.GetCells().GetConnectivityArray()).astype(np.int64)
     owner = ns.vtk_to_numpy(out.GetCellData().GetArray(_ID_ARRAY)).astype(np.int64)
     return conn.reshape(-1, 4), owner
+
+
+#: VTK's linear simplices (vertex, line, triangle, tetra): a cell's centre is its points'
+#: mean (the image of its parametric centre).
+_SIMPLICES = (1, 3, 5, 10)
+
+
+def cell_centres(ds, cells) -> np.ndarray:
+    """Centres of the cells ``cells`` (indices) of a dataset: VTK's cell centres.
+
+    Linear simplices' centres in an unstructured grid are their points' mean, taken from
+    the connectivity; other cells' go through VTK (``cell_centers`` of the extracted cells).
+
+    Returns
+    -------
+    (K, 3) float64
+    """
+    import pyvista as pv  # only here: ParaView's Python may lack PyVista
+
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1)
+    if not ds.IsA("vtkUnstructuredGrid") or not np.isin(cell_types(ds)[cells], _SIMPLICES).all():
+        return np.asarray(pv.wrap(ds).extract_cells(cells).cell_centers().points, np.float64)
+    conn = ns.vtk_to_numpy(ds.GetCells().GetConnectivityArray())
+    offsets = ns.vtk_to_numpy(ds.GetCells().GetOffsetsArray())
+    points = numpy_points(ds)
+    out = np.empty((len(cells), 3))
+    sizes = offsets[cells + 1] - offsets[cells]
+    for size in np.unique(sizes):
+        take = np.flatnonzero(sizes == size)
+        ids = conn[offsets[cells[take]][:, None] + np.arange(size)]
+        out[take] = points[ids].mean(axis=1)
+    return out
 
 
 def cell_quality(ds, deformed_points, *, condition: bool = True) -> dict | None:
