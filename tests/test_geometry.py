@@ -113,6 +113,8 @@ def test_open_edges_are_vtks():
         assert open_edge_count(_triangles_of(mesh), mesh.n_points) == expected
     assert sphere.n_open_edges == 0 and cut.n_open_edges > 0
     assert open_edge_count(np.zeros((0, 3), int), 0) == 0
+    with pytest.raises(ValueError, match="index"):
+        open_edge_count([[0, 1, 3]], 3)
 
 
 def test_volumes_are_vtks():

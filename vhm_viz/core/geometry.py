@@ -129,26 +129,36 @@ def open_edge_count(faces: np.ndarray, n_points: int) -> int:
     -------
     int
     """
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    f = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
     if not len(f):
         return 0
-    a = f.ravel()
-    b = f[:, [1, 2, 0]].ravel()
-    low, high = np.minimum(a, b), np.maximum(a, b)
+    if f.min() < 0 or f.max() >= n_points:
+        raise ValueError(f"faces must index the {n_points} points")
     start = np.zeros(int(n_points) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(low, minlength=int(n_points)), out=start[1:])
-    cursor = start[:-1].copy()
-    return int(_open_edges(low, high, start, cursor, np.empty(len(low), np.int64)))
+    return int(_open_edges(f, start, np.empty(int(n_points), np.int64), np.empty(f.size, np.int64)))
 
 
 @numba.njit(cache=True, nogil=True)
-def _open_edges(low, high, start, cursor, slots):  # pragma: no cover - compiled
-    """Edges ``(low[e], high[e])`` that do not occur twice: each point's larger ends, sorted."""
-    for e in range(low.size):
-        slots[cursor[low[e]]] = high[e]
-        cursor[low[e]] += 1
+def _open_edges(faces, start, cursor, slots):  # pragma: no cover - compiled
+    """Edges of ``faces`` that do not occur twice: each point's larger ends, sorted in place.
+
+    ``start`` (points + 1) zeros; ``cursor`` (points) and ``slots`` (edges) scratch.
+    """
+    for t in range(faces.shape[0]):
+        for c in range(3):
+            a, b = faces[t, c], faces[t, (c + 1) % 3]
+            start[min(a, b) + 1] += 1
+    for v in range(cursor.size):
+        start[v + 1] += start[v]
+        cursor[v] = start[v]
+    for t in range(faces.shape[0]):
+        for c in range(3):
+            a, b = faces[t, c], faces[t, (c + 1) % 3]
+            low = min(a, b)
+            slots[cursor[low]] = max(a, b)
+            cursor[low] += 1
     n_open = 0
-    for v in range(start.size - 1):
+    for v in range(cursor.size):
         s, t = start[v], start[v + 1]
         for i in range(s + 1, t):  # insertion sort: a point has a handful of edges
             key = slots[i]
