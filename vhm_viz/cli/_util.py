@@ -368,8 +368,9 @@ def _surface_metrics(rest, deformed, rigid: bool) -> dict:
 FOLD_SAMPLES = 20000
 #: The exact Jacobian at a point costs about twice the map's value there (both sum over
 #: the cage's faces; the Jacobian three gradients besides the value): one point in this
-#: many keeps the check a small part of the map.
-FOLD_SAMPLE_SPREAD = 16
+#: many holds the samples to about a sixteenth of the map's work, so that with the
+#: summary's measures (``E_volume``) the checks stay a small part of the map.
+FOLD_SAMPLE_SPREAD = 32
 #: Points of the spot check beside a check of the whole output -- every cell of a warped
 #: volume or tet mesh, every resampled voxel's pre-image -- at most (evenly spread): there
 #: the output's own check finds its folds, and this one samples the exact ``det J`` of the
