@@ -596,6 +596,71 @@ def fold_warning(
     )
 
 
+def load_check_kernels(data, *, cells: bool = True, voxels: bool = False):
+    """Start loading the compiled kernels of ``data``'s checks, on a second thread.
+
+    The checks after the map -- the summary's ``E_volume`` (:func:`surface_metrics`) and
+    the fold check's cells (:func:`~vhm_viz.filters.cell_quality`,
+    :func:`inverted_voxel_cells`) -- run compiled kernels that a process loads from
+    numba's cache before their first call: a fixed cost that a small map cannot amortise.
+    Started before the solve, which leaves a core idle, the thread calls the same numeric
+    functions on a tiny input of the same types, so it loads what they will load; it
+    touches no VTK object. Join it before the checks (a check that finds its kernel still
+    loading waits for it).
+
+    Parameters
+    ----------
+    data : pyvista.DataSet
+        The input.
+    cells : bool
+        The fold check measures the cells of an unstructured grid (not when the filter
+        measured them itself: ``--arrays cells``).
+    voxels : bool
+        The fold check measures a warped image's voxel cells (a forward warp).
+
+    Returns
+    -------
+    threading.Thread
+    """
+    import threading
+
+    import pyvista as pv
+
+    from vhm_viz.core.geometry import open_edge_count, tetrahedra_volume
+    from vhm_viz.core.metrics import cell_measures
+    from vhm_viz.filters.cells import tetra_cells
+
+    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    tet = np.array([[0, 1, 2, 3]])
+    work = []
+    if isinstance(data, pv.ImageData) and voxels:
+        cube = np.stack(np.meshgrid([0.0, 1], [0.0, 1], [0.0, 1], indexing="ij"), -1)
+        work.append(lambda: inverted_voxel_cells(cube.reshape(-1, 3), (2, 2, 2), 1.0))
+    elif isinstance(data, pv.UnstructuredGrid):
+        found = tetra_cells(data)
+        if found is None:  # other 3D cells: split into tets, reduced per cell
+            if cells:
+                work.append(lambda: cell_measures(corners, corners, tet, [0], 1, condition=False))
+        elif len(found[0]):  # a tet mesh: its volumes (E_volume) and a cell per tet
+            work.append(lambda: tetrahedra_volume(corners, tet))
+            if cells:
+                work.append(lambda: cell_measures(corners, corners, tet, condition=False))
+    elif isinstance(data, pv.PolyData):
+        faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+        work.append(lambda: open_edge_count(faces, 4))  # E_volume of a closed surface
+
+    def run():
+        for step in work:
+            try:
+                step()
+            except Exception:  # noqa: BLE001 - the checks themselves meet it and say so
+                pass
+
+    thread = threading.Thread(target=run, name="vhm-check-kernels", daemon=True)
+    thread.start()
+    return thread
+
+
 #: ``--memory-budget`` suffixes: powers of 1024.
 _SIZE_UNITS = {"": 1, "B": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 

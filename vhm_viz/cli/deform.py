@@ -34,6 +34,7 @@ from vhm_viz.cli._util import (
     fold_samples,
     fold_warning,
     inverted_voxel_cells,
+    load_check_kernels,
     load_scene,
     quiet_vtk,
     run_filter,
@@ -231,6 +232,11 @@ def deform(args: argparse.Namespace) -> str:
     field_paths = check_field_output(args, volume, inputs)
 
     t0 = time.perf_counter()
+    # the checks' kernels load on a second thread while the solve leaves a core idle (a
+    # daemon: should the solve fail, it ends on its own)
+    check_kernels = load_check_kernels(
+        mesh, cells="cells" not in arrays, voxels=volume and not resample
+    )
     with timer.stage("solve"):
         solved = build_and_solve(
             scene, mesh, quiet=args.quiet, allow_unconverged=args.allow_unconverged
@@ -266,6 +272,7 @@ def deform(args: argparse.Namespace) -> str:
         field = None if field_paths is None else field_of(args, mesh, result, dfm, tolerance)
     # everything that can fail happens before the write: an error never follows an output
     with timer.stage("checks"):
+        check_kernels.join()
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
         warning = _check_folds(
             mesh, result, dfm, flt, resample, quiet=args.quiet, memory_budget=args.memory_budget

@@ -1,0 +1,98 @@
+"""The checks' compiled kernels, loaded before the checks run them.
+
+``load_check_kernels`` calls the checks' numeric functions on tiny inputs on a second
+thread, so that the checks themselves load nothing: in a fresh process (where no kernel
+is loaded yet), every ``Dispatcher.compile`` the real checks make after the warm-up is
+counted, for each kind of data ``deform`` checks.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+RUNNER = r"""
+import json, sys
+import numpy as np
+import numba.core.dispatcher as dispatcher
+import pyvista as pv
+
+from vhm_viz import examples
+from vhm_viz.cli._util import inverted_voxel_cells, load_check_kernels, surface_metrics
+from vhm_viz.filters import cell_quality
+
+compiled = []
+original = dispatcher.Dispatcher.compile
+
+
+def logged(self, sig):
+    before = len(self.overloads)
+    out = original(self, sig)
+    if len(self.overloads) > before:  # a new signature: compiled or loaded from the cache
+        compiled.append(self.py_func.__name__)
+    return out
+
+
+dispatcher.Dispatcher.compile = logged
+rng = np.random.default_rng(0)
+points, tets = examples.bar_tets(4)
+grid = pv.UnstructuredGrid(
+    np.hstack([np.full((len(tets), 1), 4), tets]).ravel(),
+    np.full(len(tets), pv.CellType.TETRA), points,
+)
+hexes = pv.ImageData(dimensions=(4, 3, 5)).cast_to_unstructured_grid()
+surface = pv.Sphere()
+image = pv.ImageData(dimensions=(6, 5, 7), spacing=(0.5, 0.4, 0.3))
+
+
+def moved(ds):
+    return np.asarray(ds.points) + 0.01 * rng.normal(size=(ds.n_points, 3))
+
+
+def image_checks():
+    inverted_voxel_cells(moved(image), image.dimensions, 0.06)
+
+
+def mesh_checks(ds):
+    def run():
+        out = ds.copy()
+        out.points = moved(ds)
+        surface_metrics(ds, out, rigid=False)
+        if not isinstance(ds, pv.PolyData):
+            cell_quality(ds, out.points, condition=False)
+    return run
+
+
+report = {}
+for name, data, checks, kw in (
+    ("image", image, image_checks, {"voxels": True}),
+    ("surface", surface, mesh_checks(surface), {}),
+    ("tets", grid, mesh_checks(grid), {}),
+    ("hexahedra", hexes, mesh_checks(hexes), {}),
+):
+    compiled.clear()
+    load_check_kernels(data, **kw).join()
+    warmed = list(compiled)
+    compiled.clear()
+    checks()
+    report[name] = {"warm-up": warmed, "checks": list(compiled)}
+print(json.dumps(report))
+"""
+
+
+def test_the_checks_load_no_kernel_after_the_warm_up():
+    proc = subprocess.run(
+        [sys.executable, "-c", RUNNER], capture_output=True, text=True, timeout=600,
+        env=dict(os.environ),
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    for name, seen in report.items():
+        assert seen["checks"] == [], (name, seen)
+    # and the warm-up loaded each kind's own kernels
+    assert "_hex_kernel" in report["image"]["warm-up"]
+    assert "_open_edges" in report["surface"]["warm-up"]
+    assert {"_tet_kernel", "_tetrahedra_volume"} <= set(report["tets"]["warm-up"])
+    assert "_reduce_cells" in report["hexahedra"]["warm-up"]
