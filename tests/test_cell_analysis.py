@@ -94,6 +94,16 @@ def test_cells_take_the_worst_of_their_tets_and_flat_tets_are_degenerate():
     assert s == {**s, "cells": 1, "inverted": 1, "degenerate": 1, "rest_inverted": 0}
 
 
+def test_a_cell_per_tet_and_cells_beyond_them():
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0], [1, 1, 1.0]])
+    tets = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    m = cell_measures(x, 2.0 * x, tets, n_cells=4)  # cells 2 and 3 have no tet
+    np.testing.assert_allclose(m["determinant"][:2], 8.0)
+    assert np.isnan(m["determinant"][2:]).all()
+    with pytest.raises(ValueError, match="cell ids"):
+        cell_measures(x, x, tets, n_cells=1)
+
+
 # ------------------------------------------------------------------------- against brute force
 @pytest.mark.parametrize(
     ("kind", "height", "folds"), [("push", 2.5, True), ("bend-u", None, False)]

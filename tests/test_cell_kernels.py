@@ -132,6 +132,8 @@ def test_a_cell_per_tet_gives_the_per_cell_reduction_s_numbers(condition):
     assert alone["degenerate"][11] and alone["rest_inverted"][13]
     assert np.isnan(alone["determinant"][[11, 17, 19]]).all()
     assert (alone["determinant"] <= 0).sum() > n // 7
+    with pytest.raises(ValueError, match="n_cells"):  # a tet's cell beyond the arrays
+        tetrahedron_measures(x, y, tets, n_cells=n - 1, condition=condition)
 
 
 def test_hexahedra_of_an_affine_map_have_its_determinant():

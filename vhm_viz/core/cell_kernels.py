@@ -257,6 +257,8 @@ def tetrahedron_measures(
         else np.ascontiguousarray(owner, dtype=np.int64).reshape(-1)
     )
     n = n_tets if n_cells is None else int(n_cells)
+    if owner is None and n < n_tets:
+        raise ValueError(f"{n_tets} tets, each its own cell, need n_cells >= {n_tets}; got {n}")
     det = np.empty(n_tets)
     cond = np.empty(n_tets)
     rest_det = np.empty(n_tets)
