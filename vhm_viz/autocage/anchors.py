@@ -183,7 +183,28 @@ def _ball_centre(points: np.ndarray, rounds: int = 30) -> np.ndarray:
     return c
 
 
-def _farthest_point_anchors(centres, skeleton, part, targets, seeds, count, on_skeleton):
+class _Trees:
+    """KD-trees of the candidates' centres, each built once per set of candidates.
+
+    The placement asks for the same sets again and again (all candidates, a part's, its
+    skeleton's, the allowed ones of a part: often all of them), and building a tree over
+    a volume's hundreds of thousands of candidates costs more than the queries.
+    """
+
+    def __init__(self, centres: np.ndarray):
+        self.centres = centres
+        self._built: dict = {}
+
+    def of(self, index=None) -> cKDTree:
+        """The tree of ``centres[index]`` (ascending candidate indices; None: all)."""
+        every = index is None or len(index) == len(self.centres)  # ascending: all of them
+        key = "all" if every else np.asarray(index, dtype=np.int64).tobytes()
+        if key not in self._built:
+            self._built[key] = cKDTree(self.centres if every else self.centres[index])
+        return self._built[key]
+
+
+def _farthest_point_anchors(trees, skeleton, part, targets, seeds, count, on_skeleton):
     """Farthest-point sampling, over the skeleton or over the shape's points.
 
     ``on_skeleton``: the skeleton voxel farthest from all anchors gets the next one (the
@@ -191,22 +212,18 @@ def _farthest_point_anchors(centres, skeleton, part, targets, seeds, count, on_s
     gets it, in the part of the candidate nearest to the target: on that part's skeleton
     when that is nearer to the target than every anchor (a limb), else halfway from the
     target towards the skeleton (a fat part, whose skeleton is far from its surface).
-    Returns candidate indices, ``seeds`` first.
+    Returns candidate indices, ``seeds`` first. ``trees``: the candidates' :class:`_Trees`.
     """
+    centres = trees.centres
     chosen = list(seeds)
-    tree_all = cKDTree(centres)
+    tree_all = trees.of()
     by_part = {}
 
     def part_trees(k):
         if k not in by_part:
             members = np.flatnonzero(part == k)
             sk = members[skeleton[members]]
-            by_part[k] = (
-                members,
-                cKDTree(centres[members]),
-                sk,
-                cKDTree(centres[sk]) if len(sk) else None,
-            )
+            by_part[k] = (members, trees.of(members), sk, trees.of(sk) if len(sk) else None)
         return by_part[k]
 
     if on_skeleton:
@@ -253,7 +270,7 @@ def _closest_pair(points: np.ndarray) -> float:
     return float(cKDTree(points).query(points, k=2)[0][:, 1].min())
 
 
-def _minimax_rounds(centres, allowed, part, targets, chosen, rounds: int = 40):
+def _minimax_rounds(trees, allowed, part, targets, chosen, rounds: int = 40):
     """Lloyd iterations towards the centres of the balls around what each anchor covers.
 
     Every round moves each anchor to (the ``allowed`` candidate of its part nearest to)
@@ -261,12 +278,13 @@ def _minimax_rounds(centres, allowed, part, targets, chosen, rounds: int = 40):
     configuration with the smallest largest distance seen is returned (rounds may go up
     as well as down, which lets anchors slide past each other).
     """
-    trees = {}
+    centres = trees.centres
+    of_part = {}
     for k in np.unique(part[chosen]):
         idx = np.flatnonzero((part == k) & allowed)
         if len(idx) == 0:
             idx = np.flatnonzero(part == k)
-        trees[int(k)] = (idx, cKDTree(centres[idx]))
+        of_part[int(k)] = (idx, trees.of(idx))
     d, lab = cKDTree(centres[chosen]).query(targets)
     best, best_chosen = float(d.max()), chosen.copy()
     # anchors may not crowd closer than half the closest pair farthest-point sampling left
@@ -276,7 +294,7 @@ def _minimax_rounds(centres, allowed, part, targets, chosen, rounds: int = 40):
         for a in range(len(chosen)):
             mine = targets[lab == a]
             if len(mine):
-                idx, tree = trees[int(part[chosen[a]])]
+                idx, tree = of_part[int(part[chosen[a]])]
                 moved[a] = idx[tree.query(_ball_centre(mine))[1]]
         for a in range(len(moved)):  # a move that crowds another anchor is undone
             others = np.delete(moved, a)
@@ -293,14 +311,14 @@ def _minimax_rounds(centres, allowed, part, targets, chosen, rounds: int = 40):
     return best_chosen, best
 
 
-def _relocated(centres, allowed, part, targets, chosen, cover, tries: int = 6):
+def _relocated(trees, allowed, part, targets, chosen, cover, tries: int = 6):
     """Move the least useful anchor next to the worst-covered point, while that helps.
 
     The anchor with the smallest covered ball (not the only one of its part) goes to the
     ``allowed`` candidate nearest to the target farthest from all anchors, then Lloyd
     rounds settle the rest; the move is kept when the coverage improves.
     """
-    tree = cKDTree(centres)
+    centres, tree = trees.centres, trees.of()
     for _ in range(tries):
         d, lab = cKDTree(centres[chosen]).query(targets)
         radius = np.zeros(len(chosen))
@@ -317,7 +335,7 @@ def _relocated(centres, allowed, part, targets, chosen, cover, tries: int = 6):
             break
         trial = chosen.copy()
         trial[a] = near[0]
-        trial, trial_cover = _minimax_rounds(centres, allowed, part, targets, trial, rounds=15)
+        trial, trial_cover = _minimax_rounds(trees, allowed, part, targets, trial, rounds=15)
         if trial_cover >= cover:
             break
         chosen, cover = trial, trial_cover
@@ -434,7 +452,8 @@ def auto_anchors(
     skeleton = _medial(depth, inside)[cand[:, 0], cand[:, 1], cand[:, 2]]
     # parts: connected pieces of the shape, split by cage shell
     comp = pieces[cand[:, 0], cand[:, 1], cand[:, 2]]
-    _, part = np.unique(np.stack([comp, shell], axis=1), axis=0, return_inverse=True)
+    # numbered as the (piece, shell) pairs sort: one integer key per pair, in that order
+    _, part = np.unique(comp * (int(shell.max()) + 1) + shell, return_inverse=True)
     part = part.ravel()
     sizes = np.bincount(part)
     # seeds: every cage shell holding candidates (a constrained shell needs an anchor),
@@ -457,13 +476,12 @@ def auto_anchors(
     # clearly better, or the skeleton alone misses the coverage goal (fat parts, whose
     # skeleton lies far from much of their surface)
     placed = []
+    trees = _Trees(centres)
     for on_skeleton in (True, False):
-        chosen = _farthest_point_anchors(
-            centres, skeleton, part, targets, seeds, count, on_skeleton
-        )
+        chosen = _farthest_point_anchors(trees, skeleton, part, targets, seeds, count, on_skeleton)
         allowed = skeleton if on_skeleton else np.ones(len(centres), dtype=bool)
-        chosen, cover = _minimax_rounds(centres, allowed, part, targets, chosen)
-        placed.append(_relocated(centres, allowed, part, targets, chosen, cover))
+        chosen, cover = _minimax_rounds(trees, allowed, part, targets, chosen)
+        placed.append(_relocated(trees, allowed, part, targets, chosen, cover))
     (medial, medial_cover), (mixed, mixed_cover) = placed
     diag = float(np.linalg.norm(hi - lo))
     goal = _COVERAGE_GOAL * diag
