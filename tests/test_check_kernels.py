@@ -96,3 +96,16 @@ def test_the_checks_load_no_kernel_after_the_warm_up():
     assert "_open_edges" in report["surface"]["warm-up"]
     assert {"_tet_kernel", "_tetrahedra_volume"} <= set(report["tets"]["warm-up"])
     assert "_reduce_cells" in report["hexahedra"]["warm-up"]
+
+
+def test_with_one_thread_the_checks_load_their_own():
+    # one CPU for the kernels: no core idles during the solve, so nothing is loaded early
+    proc = subprocess.run(
+        [sys.executable, "-c", RUNNER], capture_output=True, text=True, timeout=600,
+        env={**os.environ, "NUMBA_NUM_THREADS": "1"},
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert all(seen["warm-up"] == [] for seen in report.values()), report
+    assert "_hex_kernel" in report["image"]["checks"]
+    assert "_open_edges" in report["surface"]["checks"]

@@ -605,7 +605,8 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False):
     numba's cache before their first call: a fixed cost that a small map cannot amortise.
     Started before the solve, which leaves a core idle, the thread calls the same numeric
     functions on a tiny input of the same types, so it loads what they will load; it
-    touches no VTK object. Join it before the checks (a check that finds its kernel still
+    touches no VTK object. With one thread for the kernels (``--threads 1``, one CPU) it
+    does nothing. Join it before the checks (a check that finds its kernel still
     loading waits for it).
 
     Parameters
@@ -624,6 +625,7 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False):
     """
     import threading
 
+    import numba
     import pyvista as pv
 
     from vhm_viz.core.geometry import open_edge_count, tetrahedra_volume
@@ -648,6 +650,9 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False):
     elif isinstance(data, pv.PolyData):
         faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
         work.append(lambda: open_edge_count(faces, 4))  # E_volume of a closed surface
+
+    if numba.get_num_threads() < 2:  # one CPU: nothing idles; the checks load their own
+        work.clear()
 
     def run():
         for step in work:
