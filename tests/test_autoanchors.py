@@ -67,3 +67,32 @@ def test_bad_counts_and_inputs():
         auto_anchors(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, np.nan]]), cage, 3)
     with pytest.raises(ValueError, match="interior"):
         auto_anchors((v, f), cage, 10**6)
+
+
+def test_ball_centre_is_badoiu_clarksons_and_nears_the_smallest_ball():
+    from vhm_viz.autocage.anchors import _ball_centre
+
+    def reference(points, rounds=30):  # the iteration as written with numpy
+        c = points.mean(axis=0)
+        for i in range(1, rounds + 1):
+            far = points[np.argmax(((points - c) ** 2).sum(axis=1))]
+            c = c + (far - c) / (i + 1)
+        return c
+
+    rng = np.random.default_rng(12)
+    for n in (1, 2, 5, 300, 4000):
+        for scale, shift in ((1.0, 0.0), (50.0, 1e4)):
+            pts = scale * rng.normal(size=(n, 3)) + shift
+            np.testing.assert_array_equal(_ball_centre(pts), reference(pts))
+            ties = np.round(pts, 0)  # equal distances: the first farthest point is taken
+            np.testing.assert_array_equal(_ball_centre(ties), reference(ties))
+    # points on a sphere, crowded on one side: the centre is the sphere's, not the mean
+    d = rng.normal(size=(3000, 3))
+    d[:2500, 0] = np.abs(d[:2500, 0])
+    sphere = 2.0 * d / np.linalg.norm(d, axis=1, keepdims=True) + [1.0, -3.0, 0.5]
+    centre = _ball_centre(sphere, rounds=400)
+    assert (
+        np.linalg.norm(centre - [1.0, -3.0, 0.5])
+        < 0.1
+        < np.linalg.norm(sphere.mean(axis=0) - [1.0, -3.0, 0.5])
+    )

@@ -30,6 +30,7 @@ import os
 import time
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -176,11 +177,35 @@ def _targets(points: np.ndarray, h: float, limit: int = 50_000) -> np.ndarray:
 
 def _ball_centre(points: np.ndarray, rounds: int = 30) -> np.ndarray:
     """Approximate centre of the smallest ball around ``points`` (Badoiu-Clarkson)."""
-    c = points.mean(axis=0)
+    return np.array(_ball_centre_kernel(np.ascontiguousarray(points, dtype=np.float64), rounds))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _ball_centre_kernel(points, rounds):  # pragma: no cover - compiled
+    """:func:`_ball_centre`'s ``(x, y, z)``.
+
+    From the mean, a step ``1 / (i + 1)`` of the way to the point farthest from the centre
+    (the first of equals), ``rounds`` times: numpy's ``mean(axis=0)``, squared distances
+    and ``argmax``, operation for operation.
+    """
+    n = points.shape[0]
+    cx, cy, cz = 0.0, 0.0, 0.0
+    for k in range(n):  # numpy's axis-0 sum: row after row
+        cx += points[k, 0]
+        cy += points[k, 1]
+        cz += points[k, 2]
+    cx, cy, cz = cx / n, cy / n, cz / n
     for i in range(1, rounds + 1):
-        far = points[np.argmax(((points - c) ** 2).sum(axis=1))]
-        c = c + (far - c) / (i + 1)
-    return c
+        best, far = -np.inf, 0
+        for k in range(n):
+            dx, dy, dz = points[k, 0] - cx, points[k, 1] - cy, points[k, 2] - cz
+            d = dx * dx + dy * dy + dz * dz
+            if d > best:
+                best, far = d, k
+        cx = cx + (points[far, 0] - cx) / (i + 1)
+        cy = cy + (points[far, 1] - cy) / (i + 1)
+        cz = cz + (points[far, 2] - cz) / (i + 1)
+    return cx, cy, cz
 
 
 class _Trees:
