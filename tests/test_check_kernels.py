@@ -65,8 +65,31 @@ def mesh_checks(ds):
     return run
 
 
+def proof_checks():
+    # a warped image's proof and the cells it leaves, from an engine built before the
+    # warm-up (its build loads the lattice's kernels, not the checks')
+    boxes = engine.unproven_cells()
+    inverted_voxel_cells(warped, engine.geometry.dimensions, 1.0, unproven=boxes)
+
+
+from vhm_viz import Cage, HarmonicMap
+from vhm_viz.core.image import ImageGeometry
+from vhm_viz.core.volume import VolumeDeformation
+
+box = pv.Box(bounds=(-2, 25, -2, 21, -2, 21), level=2).triangulate()
+cage = Cage(np.asarray(box.points), np.asarray(box.faces).reshape(-1, 4)[:, 1:])
+z = np.array(HarmonicMap.identity(cage).coefficients)
+z[: len(cage.vertices)] += 0.3 * rng.normal(size=(len(cage.vertices), 3))
+engine = VolumeDeformation(
+    HarmonicMap(cage, z), ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (24, 20, 20)),
+    pre_images=False,
+)
+warped = engine.warp()
+assert len(engine.lattice.leaf_size)  # a lattice of leaves: the proof runs its kernel
+
 report = {}
 for name, data, checks, kw in (
+    ("proof", image, proof_checks, {"voxels": True, "proof": True}),
     ("image", image, image_checks, {"voxels": True}),
     ("surface", surface, mesh_checks(surface), {}),
     ("tets", grid, mesh_checks(grid), {}),
@@ -92,7 +115,7 @@ def test_the_checks_load_no_kernel_after_the_warm_up():
     for name, seen in report.items():
         assert seen["checks"] == [], (name, seen)
     # and the warm-up loaded each kind's own kernels
-    assert "_hex_kernel" in report["image"]["warm-up"]
+    assert {"unproven_boxes", "_hex_box_kernel", "_hex_kernel"} <= set(report["proof"]["warm-up"])
     assert "_open_edges" in report["surface"]["warm-up"]
     assert {"_tet_kernel", "_tetrahedra_volume"} <= set(report["tets"]["warm-up"])
     assert "_reduce_cells" in report["hexahedra"]["warm-up"]
@@ -107,5 +130,5 @@ def test_with_one_thread_the_checks_load_their_own():
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert all(seen["warm-up"] == [] for seen in report.values()), report
-    assert "_hex_kernel" in report["image"]["checks"]
+    assert "unproven_boxes" in report["proof"]["checks"]
     assert "_open_edges" in report["surface"]["checks"]

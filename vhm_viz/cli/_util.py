@@ -596,7 +596,7 @@ def fold_warning(
     )
 
 
-def load_check_kernels(data, *, cells: bool = True, voxels: bool = False):
+def load_check_kernels(data, *, cells: bool = True, voxels: bool = False, proof: bool = False):
     """Start loading the compiled kernels of ``data``'s checks, on a second thread.
 
     The checks after the map -- the summary's ``E_volume`` (:func:`surface_metrics`) and
@@ -618,6 +618,9 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False):
         measured them itself: ``--arrays cells``).
     voxels : bool
         The fold check measures a warped image's voxel cells (a forward warp).
+    proof : bool
+        Those of them that the volume engine's lattice does not prove unfolded (a large
+        image: :data:`~vhm_viz.cli.deform.PROOF_MIN_CELLS`).
 
     Returns
     -------
@@ -637,7 +640,14 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False):
     work = []
     if isinstance(data, pv.ImageData) and voxels:
         cube = np.stack(np.meshgrid([0.0, 1], [0.0, 1], [0.0, 1], indexing="ij"), -1)
-        work.append(lambda: inverted_voxel_cells(cube.reshape(-1, 3), (2, 2, 2), 1.0))
+        cube = cube.reshape(-1, 3)
+        if proof:  # the proof, then the cells it leaves (boxes of them, or every cell)
+            from vhm_viz.core.cell_kernels import inverted_hexahedra
+            from vhm_viz.core.lattice import HermiteLattice
+
+            work.append(HermiteLattice.load_proof_kernel)
+            work.append(lambda: inverted_hexahedra(cube, (2, 2, 2), 1.0, [[0] * 6]))
+        work.append(lambda: inverted_voxel_cells(cube, (2, 2, 2), 1.0))
     elif isinstance(data, pv.UnstructuredGrid):
         found = tetra_cells(data)
         if found is None:  # other 3D cells: split into tets, reduced per cell

@@ -234,8 +234,10 @@ def deform(args: argparse.Namespace) -> str:
     t0 = time.perf_counter()
     # the checks' kernels load on a second thread while the solve leaves a core idle (a
     # daemon: should the solve fail, it ends on its own)
+    voxels = volume and not resample
+    proof = voxels and int(np.prod(np.asarray(mesh.dimensions) - 1)) >= PROOF_MIN_CELLS
     check_kernels = load_check_kernels(
-        mesh, cells="cells" not in arrays, voxels=volume and not resample
+        mesh, cells="cells" not in arrays, voxels=voxels, proof=proof
     )
     with timer.stage("solve"):
         solved = build_and_solve(

@@ -178,6 +178,22 @@ class HermiteLattice:
         parts.sort(key=lambda part: part[0])
         return np.concatenate([np.zeros((0, 6), np.int64)] + [b for _, b in parts])
 
+    @staticmethod
+    def load_proof_kernel() -> None:
+        """Load :meth:`unproven_cells`' compiled kernel now, for the arrays a lattice holds.
+
+        Over an empty range of root cells, so that nothing is computed: a check's warm-up
+        (:func:`vhm_viz.cli._util.load_check_kernels`) before a lattice exists.
+        """
+        none = np.zeros(0, dtype=np.int64)
+        axes = np.ones(3, dtype=np.int64)
+        box = np.zeros(6, dtype=np.int64)
+        unproven_boxes(
+            0, 0, np.zeros((0, 8, 3)), np.zeros((0, 8), np.int64), np.zeros((0, 3), np.int64),
+            none, np.zeros(0, dtype=bool), 1.0, none, none, axes, 1, axes, box[0::2],
+            box[1::2] - 1,
+        )  # fmt: skip
+
     def evaluate(self, u, *, gradient: bool = False):
         """The interpolated map at continuous voxel indices.
 
