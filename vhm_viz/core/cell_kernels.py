@@ -258,7 +258,10 @@ def tetrahedron_measures(
     )
     n = n_tets if n_cells is None else int(n_cells)
     if owner is None and n < n_tets:
-        raise ValueError(f"{n_tets} tets, each its own cell, need n_cells >= {n_tets}; got {n}")
+        raise ValueError(
+            f"cell ids must lie in [0, {n}): {n_tets} tets, each its own cell, need "
+            f"n_cells >= {n_tets}"
+        )
     det = np.empty(n_tets)
     cond = np.empty(n_tets)
     rest_det = np.empty(n_tets)

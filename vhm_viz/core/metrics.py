@@ -391,8 +391,6 @@ def cell_measures(
     index = _simplices(tets, len(x), 4, "tets")
     t = len(index)
     if cells is None:  # a cell per tet, in order (and cells after them without one)
-        if n_cells is not None and n_cells < t:
-            raise ValueError(f"cell ids must lie in [0, {n_cells})")
         return tetrahedron_measures(x, y, index, None, n_cells, condition=condition)
     owner = np.asarray(cells, dtype=np.int64).reshape(-1)
     if owner.shape != (t,):
