@@ -235,9 +235,8 @@ def deform(args: argparse.Namespace) -> str:
     # the checks' kernels load on a second thread while the solve leaves a core idle (a
     # daemon: should the solve fail, it ends on its own)
     voxels = volume and not resample
-    proof = voxels and int(np.prod(np.asarray(mesh.dimensions) - 1)) >= PROOF_MIN_CELLS
     check_kernels = load_check_kernels(
-        mesh, cells="cells" not in arrays, voxels=voxels, proof=proof
+        mesh, cells="cells" not in arrays, voxels=voxels, proof=voxels and _proof_sized(mesh)
     )
     with timer.stage("solve"):
         solved = build_and_solve(
@@ -294,6 +293,11 @@ def deform(args: argparse.Namespace) -> str:
 #: the volume engine's lattice does not prove unfolded: below it, measuring every cell
 #: takes less time than loading the proof's compiled kernels.
 PROOF_MIN_CELLS = 1 << 23
+
+
+def _proof_sized(image) -> bool:
+    """Whether a warped image's fold check asks the lattice's proof (its cells' count)."""
+    return int(np.prod(np.asarray(image.dimensions) - 1)) >= PROOF_MIN_CELLS
 
 
 def _summary(mesh, result, reports, flt, resample: bool, volume: bool, tolerance) -> list[str]:
@@ -354,9 +358,8 @@ def _check_folds(
         if isinstance(mesh, pv.ImageData):
             engine = flt.volume_engine  # its lattice proves most voxel cells unfolded
             unproven = None
-            n_cells = int(np.prod(np.asarray(mesh.dimensions) - 1))
             grid = ImageGeometry(mesh.origin, mesh.spacing, mesh.dimensions, mesh.direction_matrix)
-            if n_cells >= PROOF_MIN_CELLS and engine is not None and engine.geometry.same_as(grid):
+            if _proof_sized(mesh) and engine is not None and engine.geometry.same_as(grid):
                 unproven = engine.unproven_cells()
             cells = _voxel_folds(mesh, result, bar, memory_budget, unproven)
         elif "cell_jacobian_determinant" in result.cell_data:
