@@ -96,3 +96,29 @@ def test_ball_centre_is_badoiu_clarksons_and_nears_the_smallest_ball():
         < 0.1
         < np.linalg.norm(sphere.mean(axis=0) - [1.0, -3.0, 0.5])
     )
+
+
+def test_medial_voxels_are_the_ridge_of_the_distance():
+    from scipy import ndimage
+
+    from vhm_viz.autocage.anchors import _medial
+
+    def reference(depth, interior):  # the ridge test written with numpy, every voxel
+        pad = np.pad(depth, 1)
+        rise = np.full(depth.shape, -np.inf)
+        for off in np.argwhere(np.ones((3, 3, 3), bool)) - 1:
+            if not off.any():
+                continue
+            window = tuple(slice(1 + o, 1 + o + s) for o, s in zip(off, depth.shape, strict=True))
+            rise = np.maximum(rise, (pad[window] - depth) / np.linalg.norm(off))
+        return interior & (rise < 0.5)
+
+    rng = np.random.default_rng(3)
+    for shape in ((1, 1, 1), (7, 5, 9), (30, 24, 18)):
+        blob = ndimage.gaussian_filter(rng.random(shape), 2.0) > 0.5
+        blob[0, 0, 0] = True  # never empty
+        depth = ndimage.distance_transform_edt(blob)
+        every = np.argwhere(np.ones(shape, bool))
+        np.testing.assert_array_equal(
+            _medial(depth, blob, every), reference(depth, blob)[tuple(every.T)]
+        )

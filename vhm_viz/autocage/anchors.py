@@ -108,15 +108,58 @@ _OFFSETS = np.array(
 )
 
 
-def _medial(depth: np.ndarray, interior: np.ndarray) -> np.ndarray:
-    """Interior voxels where no neighbour is deeper by half the step or more."""
-    pad = np.pad(depth, 1)
-    n = np.array(depth.shape)
-    rise = np.full(depth.shape, -np.inf)
-    for off in _OFFSETS:
-        sl = tuple(slice(1 + o, 1 + o + s) for o, s in zip(off, n, strict=True))
-        rise = np.maximum(rise, (pad[sl] - depth) / np.linalg.norm(off))
-    return interior & (rise < 0.5)
+#: the length of each of ``_OFFSETS``: the step to that neighbour, in voxels
+_STEPS = np.linalg.norm(_OFFSETS, axis=1)
+
+
+def _medial(depth: np.ndarray, interior: np.ndarray, voxels: np.ndarray) -> np.ndarray:
+    """Whether each voxel is on the skeleton (interior, no neighbour much deeper).
+
+    A neighbour deeper by half the step to it or more takes a voxel off the skeleton;
+    outside the grid counts as depth 0.
+
+    Parameters
+    ----------
+    depth : (nx, ny, nz) float array
+        Distance of each voxel to the outside, in voxels.
+    interior : (nx, ny, nz) bool array
+    voxels : (k, 3) int array
+        The voxels asked about (indices into the grid).
+
+    Returns
+    -------
+    (k,) bool
+    """
+    return _medial_kernel(
+        np.ascontiguousarray(depth, dtype=np.float64),
+        np.ascontiguousarray(interior, dtype=np.bool_),
+        np.ascontiguousarray(voxels, dtype=np.int64),
+        _OFFSETS.astype(np.int64),
+        _STEPS,
+    )
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _medial_kernel(depth, interior, voxels, offsets, steps):  # pragma: no cover - compiled
+    """:func:`_medial` at each voxel: the largest rise ``(neighbour - depth) / step``."""
+    nx, ny, nz = depth.shape
+    out = np.zeros(voxels.shape[0], dtype=np.bool_)
+    for k in range(voxels.shape[0]):
+        i, j, m = voxels[k, 0], voxels[k, 1], voxels[k, 2]
+        if not interior[i, j, m]:
+            continue
+        here = depth[i, j, m]
+        rise = -np.inf
+        for o in range(offsets.shape[0]):
+            a, b, c = i + offsets[o, 0], j + offsets[o, 1], m + offsets[o, 2]
+            there = 0.0
+            if 0 <= a < nx and 0 <= b < ny and 0 <= c < nz:
+                there = depth[a, b, c]
+            r = (there - here) / steps[o]
+            if r > rise:
+                rise = r
+        out[k] = rise < 0.5
+    return out
 
 
 def _as_cage(cage):
@@ -225,7 +268,11 @@ class _Trees:
         every = index is None or len(index) == len(self.centres)  # ascending: all of them
         key = "all" if every else np.asarray(index, dtype=np.int64).tobytes()
         if key not in self._built:
-            self._built[key] = cKDTree(self.centres if every else self.centres[index])
+            self._built[key] = cKDTree(
+                self.centres if every else self.centres[index],
+                balanced_tree=False,
+                compact_nodes=False,
+            )
         return self._built[key]
 
 
@@ -474,7 +521,7 @@ def auto_anchors(
             "anchors; raise resolution or lower count"
         )
     dep = depth[cand[:, 0], cand[:, 1], cand[:, 2]]
-    skeleton = _medial(depth, inside)[cand[:, 0], cand[:, 1], cand[:, 2]]
+    skeleton = _medial(depth, inside, cand)
     # parts: connected pieces of the shape, split by cage shell
     comp = pieces[cand[:, 0], cand[:, 1], cand[:, 2]]
     # numbered as the (piece, shell) pairs sort: one integer key per pair, in that order
