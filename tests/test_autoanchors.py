@@ -122,3 +122,26 @@ def test_medial_voxels_are_the_ridge_of_the_distance():
         np.testing.assert_array_equal(
             _medial(depth, blob, every), reference(depth, blob)[tuple(every.T)]
         )
+
+
+@pytest.mark.parametrize("count", [4, 8, 12])
+def test_anchors_of_a_whole_volume_cover_its_box(count):
+    # no threshold: the shape is the image's whole box, so the anchors spread through it
+    # and the report measures the box's inside, not its corners
+    from scipy.spatial import cKDTree
+
+    vol = pv.ImageData(dimensions=(40, 30, 20), spacing=(1.0, 1.5, 2.0), origin=(5, -3, 2))
+    vol["v"] = np.arange(vol.n_points, dtype=float)
+    cage = auto_cage(vol)
+    anchors, report = auto_anchors(vol, cage, count, return_report=True)
+    assert anchors.shape == (count, 3) and cage.contains(anchors).all()
+    b = np.asarray(vol.bounds).reshape(3, 2)
+    diag = float(np.linalg.norm(b[:, 1] - b[:, 0]))
+    # brute force: the farthest point of a fine lattice of the box from every anchor
+    lattice = np.stack(np.meshgrid(*[np.linspace(*s, 61) for s in b], indexing="ij"), -1)
+    coverage = float(cKDTree(anchors).query(lattice.reshape(-1, 3))[0].max())
+    # the report's lattice is coarser (32 points along the longest side)
+    assert abs(report.coverage - coverage) <= 0.5 * np.sqrt(3) * np.ptp(b, axis=1).max() / 31
+    # about the best that `count` balls do in a box: 8 balls each around an eighth
+    assert coverage < {4: 0.4, 8: 0.3, 12: 0.27}[count] * diag
+    assert report.min_pairwise_distance > 0.1 * diag

@@ -50,6 +50,13 @@ __all__ = ["auto_anchors", "AnchorReport"]
 _COVERAGE_GOAL = 0.15
 _MEDIAL_SLACK = 1.2
 
+#: A volume's whole box as the shape (no threshold): the anchor grid's voxels along its
+#: longest side (a box's skeleton needs no finer grid), the lattice points the placement
+#: covers and the lattice points the report measures, along that side.
+_BOX_RESOLUTION = 48
+_BOX_TARGETS_PER_SIDE = 16
+_BOX_REPORT_PER_SIDE = 32
+
 
 @dataclass
 class AnchorReport:
@@ -63,7 +70,8 @@ class AnchorReport:
     min_depth : float
         Smallest estimated distance from an anchor to the shape's surface.
     coverage : float
-        Largest distance from an input point to its nearest anchor (world units).
+        Largest distance from an input point to its nearest anchor (world units); for a
+        volume without a threshold, from a point of a lattice filling its box.
     coverage_relative : float
         ``coverage`` over the input's bounding-box diagonal.
     n_parts : int
@@ -189,6 +197,20 @@ def _shape_voxels(samples, grid):
         return surface, surface & ~ndimage.binary_erosion(surface)
     inside = vx.fill_inside(surface)
     return inside, surface
+
+
+def _box_points(lo: np.ndarray, hi: np.ndarray, per_side: int) -> np.ndarray:
+    """A lattice filling the box ``lo``-``hi``, its faces and corners included.
+
+    ``per_side`` points along the box's longest side; along the others as many as keep
+    the step at most that one's (at least 2). Returns (N, 3) float64.
+    """
+    step = float(np.max(hi - lo)) / (per_side - 1)
+    axes = [
+        np.linspace(a, b, max(2, int(np.ceil((b - a) / step * (1 - 1e-9))) + 1))
+        for a, b in zip(lo, hi, strict=True)
+    ]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
 def _shell_of(cage, points: np.ndarray) -> np.ndarray:
@@ -444,7 +466,8 @@ def auto_anchors(
         Number of anchors ``d`` (>= 1); exactly this many are returned.
     resolution : int, optional
         Voxels along the longest side of the shape (default 96; volumes: one per image
-        sample, at most 96).
+        sample, at most 96; a volume without a threshold, whose shape is its whole box:
+        48).
     threshold, scalars
         Volumes: as for :func:`vhm_viz.auto_cage`.
     return_report : bool
@@ -471,11 +494,16 @@ def auto_anchors(
     samples = collect_samples(data, threshold=threshold, scalars=scalars, what="auto_anchors")
     cage = _as_cage(cage)
     pts = samples.points
+    if samples.kind == "volume-box":
+        # the whole box is the shape: the anchors cover its inside, not only its corners
+        pts = _box_points(pts.min(axis=0), pts.max(axis=0), _BOX_REPORT_PER_SIDE)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     ext = float(np.max(hi - lo))
     if resolution is None and samples.kind == "volume" and samples.spacing:
         # one voxel per image sample: the region needs no closing
         resolution = int(np.clip(np.ceil(ext / samples.spacing), 4, 96))
+    if resolution is None and samples.kind == "volume-box":
+        resolution = _BOX_RESOLUTION  # a box's skeleton needs no fine grid
     r = int(resolution or 96)
     if r < 4:
         raise ValueError(f"auto_anchors: resolution must be >= 4, got {r}")
@@ -543,7 +571,10 @@ def auto_anchors(
         members = np.flatnonzero(part == k)
         pref = members[skeleton[members]] if skeleton[members].any() else members
         seeds.append(int(pref[np.argmax(dep[pref])]))
-    targets = _targets(pts, grid.h)
+    if samples.kind == "volume-box":  # a coarser lattice spans a box as well
+        targets = _box_points(lo, hi, _BOX_TARGETS_PER_SIDE)
+    else:
+        targets = _targets(pts, grid.h)
     # on the skeleton (the paper's medial anchors) unless leaving it covers the shape
     # clearly better, or the skeleton alone misses the coverage goal (fat parts, whose
     # skeleton lies far from much of their surface)
