@@ -179,10 +179,12 @@ def test_cells_without_volume_get_nan():
     assert cell_quality(pv.Sphere(), pv.Sphere().points) is None
 
 
-def test_tets_beside_surface_cells_are_measured_as_stored(bar_tets):
+@pytest.mark.parametrize("arrangement", ["interleaved", "tets first", "tets last"])
+def test_tets_beside_surface_cells_are_measured_as_stored(bar_tets, arrangement):
     # a tet mesh with its boundary triangles and a vertex cell (as medit and Gmsh files
-    # come): the tets are taken as stored, the others get NaN; with a hexahedron too,
-    # every cell goes through VTK's triangulation, and the tets' numbers are the same
+    # come, the tets in one run, or the kinds interleaved): the tets are taken as stored,
+    # the others get NaN; with a hexahedron too, every cell goes through VTK's
+    # triangulation, and the tets' numbers are the same
     points, tets = bar_tets
     rng = np.random.default_rng(4)
     moved = points + 0.08 * rng.normal(size=points.shape)
@@ -192,7 +194,11 @@ def test_tets_beside_surface_cells_are_measured_as_stored(bar_tets):
     cells.append(np.array([1, 7]))
     types = [pv.CellType.TETRA] * len(tets) + [pv.CellType.TRIANGLE] * len(tris)
     types += [pv.CellType.VERTEX]
-    order = rng.permutation(len(types))  # the kinds interleaved
+    order = {
+        "interleaved": rng.permutation(len(types)),
+        "tets first": np.arange(len(types)),
+        "tets last": np.roll(np.arange(len(types)), -len(tets)),
+    }[arrangement]
     starts = np.cumsum([0] + [5] * len(tets) + [4] * len(tris) + [2])[:-1]
     flat = np.concatenate(cells)
     lengths = np.array([5] * len(tets) + [4] * len(tris) + [2])

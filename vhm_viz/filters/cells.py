@@ -148,6 +148,11 @@ def tetra_cells(ds):
         return conn.reshape(-1, 4), np.arange(len(types), dtype=np.int64)
     cells = np.flatnonzero(is_tetra)
     offsets = ns.vtk_to_numpy(ds.GetCells().GetOffsetsArray())
+    if len(cells) and cells[-1] - cells[0] == len(cells) - 1:
+        # one run of consecutive tets (a mesh stored with its boundary faces before or
+        # after them): their points are one block of the connectivity
+        start = int(offsets[cells[0]])
+        return conn[start : start + 4 * len(cells)].reshape(-1, 4), cells
     return conn[offsets[cells][:, None] + np.arange(4)], cells
 
 
