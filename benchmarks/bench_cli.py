@@ -516,11 +516,9 @@ def print_goals(results: list, anchors: dict, cold: bool) -> None:
         met = " / ".join(yes(wall <= g) for g in scaled)
         goal, measured = f"<= {seconds:g} s", f"{wall:.2f} s"
         if mb:
-            goal, measured, met = (
-                goal + f", <= {mb} MB",
-                measured + f", {rss:.0f} MB",
-                (met + f"; RSS {yes(rss <= mb)}"),
-            )
+            goal += f", <= {mb} MB"
+            measured += f", {rss:.0f} MB"
+            met += f"; RSS {yes(rss <= mb)}"
         rows.append([name, goal, " / ".join(f"{g:.2f} s" for g in scaled), measured, met])
     vti, itk = median_of(results, EMBRYO_VTI), anchors.get("simpleitk")
     if vti is not None and itk is not None:
