@@ -173,8 +173,17 @@ def test_analyze_never_overwrites_its_input(files, tmp_path, capsys):
     assert data.read_bytes() == before
 
 
-def test_deform_warns_when_the_output_folds(files, tmp_path, capsys):
+def test_deform_refuses_a_folded_output_unless_allowed(files, tmp_path, capsys):
     d, points, tets = files
+    # by default a folded result is an error: one line saying how much, exit status 4,
+    # nothing written
+    refused = _run(capsys, "deform", d / "bar_tets.vtu", "--scene", d / "push.json",
+                   "-o", tmp_path / "f.vtu", "-q")  # fmt: skip
+    assert refused[0] == 4 and refused[1].strip() == "" and not (tmp_path / "f.vtu").exists()
+    error = [ln for ln in refused[2].splitlines() if ln.strip()]
+    assert len(error) == 1 and error[0].startswith("vhm-viz deform: error: the deformation folds")
+    assert error[0].endswith("pass --allow-folds to write it anyway)")
+    # --allow-folds writes it, with the same counts as a warning
     rc, out, err = _run(
         capsys,
         "deform",
@@ -184,6 +193,7 @@ def test_deform_warns_when_the_output_folds(files, tmp_path, capsys):
         "-o",
         tmp_path / "f.vtu",
         "-q",
+        "--allow-folds",
     )
     assert rc == 0, err
     assert len(out.strip().splitlines()) == 1
@@ -192,6 +202,7 @@ def test_deform_warns_when_the_output_folds(files, tmp_path, capsys):
     bent = pv.read(tmp_path / "f.vtu")
     brute = int(np.count_nonzero(_signed_volumes(bent.points, tets) <= 0))
     assert f"{brute} of {len(tets)} cells inverted" in lines[0]
+    assert lines[0].removeprefix("warning: ") in error[0]
     # beside the check of every cell, a spot check of the exact map at evenly spread points
     spot = re.search(r"det J <= 0 at (\d+) of (\d+) sampled points \(worst \S+ at \(", lines[0])
     assert spot, lines[0]
@@ -211,8 +222,9 @@ def test_surface_fold_warning_samples_the_exact_det(files, tmp_path, capsys):
 
     d, _, _ = files
     rc, out, err = _run(
-        capsys, "deform", d / "bar.vtp", "--scene", d / "push.json", "-o", tmp_path / "s.vtp", "-q"
-    )
+        capsys, "deform", d / "bar.vtp", "--scene", d / "push.json", "-o", tmp_path / "s.vtp", "-q",
+        "--allow-folds",
+    )  # fmt: skip
     assert rc == 0, err
     found = re.search(
         r"det J <= 0 at (\d+) of (\d+) sampled points \(worst (\S+) at \((\S+), (\S+), (\S+)\)",

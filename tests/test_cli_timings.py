@@ -48,7 +48,7 @@ def test_warped_volume_fold_count_matches_brute_force(folding_volume):
     out = folding_volume / "warped.vts"
     proc = _cli(
         "deform", str(folding_volume / "image.vti"), "--scene", str(folding_volume / "scene.json"),
-        "-o", str(out), "-q", "--timings",
+        "-o", str(out), "-q", "--timings", "--allow-folds",
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     warped = pv.read(out)
@@ -72,7 +72,7 @@ def test_fold_count_is_the_same_in_small_slabs(folding_volume):
     out = folding_volume / "small.vts"
     proc = _cli(
         "deform", str(folding_volume / "image.vti"), "--scene", str(folding_volume / "scene.json"),
-        "-o", str(out), "-q", "--memory-budget", "1K",
+        "-o", str(out), "-q", "--memory-budget", "1K", "--allow-folds",
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     grid = np.asarray(pv.read(out).points).reshape(*DIMS[::-1], 3)
@@ -104,7 +104,7 @@ def test_fold_count_is_the_same_in_small_slabs(folding_volume):
 def test_threads_option_and_variable(folding_volume):
     d = folding_volume
     args = ["deform", str(d / "image.vti"), "--scene", str(d / "scene.json"),
-            "-o", str(d / "t.vti"), "-q"]  # fmt: skip
+            "-o", str(d / "t.vti"), "-q", "--allow-folds"]  # fmt: skip
     ok = _cli(*args, "--threads", "1")
     assert ok.returncode == 0, ok.stderr
     bad = _cli(*args, "--threads", "0")
@@ -123,7 +123,7 @@ def test_first_run_says_it_compiles_once(folding_volume, tmp_path, monkeypatch, 
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
     d = folding_volume
     args = ["deform", str(d / "image.vti"), "--scene", str(d / "scene.json"),
-            "-o", str(tmp_path / "out.vti")]  # fmt: skip
+            "-o", str(tmp_path / "out.vti"), "--allow-folds"]  # fmt: skip
     assert main([*args[:1], str(d / "missing.vti"), *args[2:]]) == 1
     first = capsys.readouterr().err
     assert "compiling numeric kernels once" in first  # said before it starts
@@ -142,6 +142,7 @@ def test_the_lattices_proof_leaves_the_fold_warning_as_it_was(folding_volume, tm
 
     d = folding_volume
     args = ["deform", str(d / "image.vti"), "--scene", str(d / "scene.json"), "-q"]
+    args.append("--allow-folds")
     assert main([*args, "-o", str(tmp_path / "all.vts")]) == 0
     every = capsys.readouterr().err
     monkeypatch.setattr(deform, "PROOF_MIN_CELLS", 0)

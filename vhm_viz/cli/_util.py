@@ -27,6 +27,13 @@ class CLIError(ValueError):
     """An error reported as one line (the message) with a non-zero exit status."""
 
 
+class FoldedOutput(CLIError):
+    """The output folds the data and folds were not allowed: nothing was written."""
+
+    #: The exit status (see :mod:`vhm_viz.cli`).
+    exit_status = 4
+
+
 class Progress:
     """Progress on stderr: a bar on a terminal, plain lines elsewhere.
 
@@ -288,6 +295,17 @@ def add_convergence_argument(parser) -> None:
         action="store_true",
         help="write the result even when the solver stops at solver.max_iterations "
         "before converging (otherwise: exit status 3, nothing written)",
+    )
+
+
+def add_fold_argument(parser) -> None:
+    """``--allow-folds`` (see :class:`FoldedOutput`)."""
+    parser.add_argument(
+        "--allow-folds",
+        action="store_true",
+        help="write the result even when it folds the data (inverted cells, or det J <= 0 "
+        "at sampled points: the warning says how many and where); otherwise exit status 4, "
+        "nothing written",
     )
 
 

@@ -22,8 +22,10 @@ from vhm_viz.cli._field_output import (
 from vhm_viz.cli._util import (
     FOLD_SPOT_SAMPLES,
     CLIError,
+    FoldedOutput,
     Progress,
     add_convergence_argument,
+    add_fold_argument,
     add_memory_argument,
     add_quiet_argument,
     add_scene_arguments,
@@ -156,6 +158,7 @@ def add_arguments(p) -> None:
     )
     add_field_arguments(p)
     add_convergence_argument(p)
+    add_fold_argument(p)
     add_memory_argument(p)
     add_quiet_argument(p)
 
@@ -277,6 +280,11 @@ def deform(args: argparse.Namespace) -> str:
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
         warning = _check_folds(
             mesh, result, dfm, flt, resample, quiet=args.quiet, memory_budget=args.memory_budget
+        )
+    if warning and not args.allow_folds:
+        raise FoldedOutput(
+            warning.removeprefix("warning: ")
+            + "; nothing written (change the scene, or pass --allow-folds to write it anyway)"
         )
     # the output, the arrays beside it and a field in the same folder appear as one set
     with timer.stage("write"), atomic_outputs(out.parent):
