@@ -493,17 +493,19 @@ def auto_anchors(
         raise ValueError(f"auto_anchors: count must be >= 1, got {count}")
     samples = collect_samples(data, threshold=threshold, scalars=scalars, what="auto_anchors")
     cage = _as_cage(cage)
-    pts = samples.points
+    pts, box_targets = samples.points, None
     if samples.kind == "volume-box":
         # the whole box is the shape: the anchors cover its inside, not only its corners
-        pts = _box_points(pts.min(axis=0), pts.max(axis=0), _BOX_REPORT_PER_SIDE)
+        # (a coarser lattice of it for the placement); its skeleton needs no fine grid
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        pts = _box_points(lo, hi, _BOX_REPORT_PER_SIDE)
+        box_targets = _box_points(lo, hi, _BOX_TARGETS_PER_SIDE)
+        resolution = _BOX_RESOLUTION if resolution is None else resolution
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     ext = float(np.max(hi - lo))
     if resolution is None and samples.kind == "volume" and samples.spacing:
         # one voxel per image sample: the region needs no closing
         resolution = int(np.clip(np.ceil(ext / samples.spacing), 4, 96))
-    if resolution is None and samples.kind == "volume-box":
-        resolution = _BOX_RESOLUTION  # a box's skeleton needs no fine grid
     r = int(resolution or 96)
     if r < 4:
         raise ValueError(f"auto_anchors: resolution must be >= 4, got {r}")
@@ -571,10 +573,7 @@ def auto_anchors(
         members = np.flatnonzero(part == k)
         pref = members[skeleton[members]] if skeleton[members].any() else members
         seeds.append(int(pref[np.argmax(dep[pref])]))
-    if samples.kind == "volume-box":  # a coarser lattice spans a box as well
-        targets = _box_points(lo, hi, _BOX_TARGETS_PER_SIDE)
-    else:
-        targets = _targets(pts, grid.h)
+    targets = _targets(pts, grid.h) if box_targets is None else box_targets
     # on the skeleton (the paper's medial anchors) unless leaving it covers the shape
     # clearly better, or the skeleton alone misses the coverage goal (fat parts, whose
     # skeleton lies far from much of their surface)
