@@ -13,6 +13,7 @@ import pyvista as pv
 from conftest import trilinear_corner_dets
 
 from vhm_viz import examples
+from vhm_viz.cli.timings import StageTimer
 
 
 def _cli(*args, env=None):
@@ -65,6 +66,39 @@ def test_warped_volume_fold_count_matches_brute_force(folding_volume):
     parts = sum(float(v) for k, v in stages.items() if k != "total")
     # each printed value is rounded to 0.01 s: the sum is within half of that per value
     assert parts == pytest.approx(float(stages["total"]), abs=0.005 * len(stages) + 1e-9)
+
+
+class _Clock:
+    """A clock that moves only when told: stage times are then exact."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+def test_work_set_aside_inside_a_stage_counts_as_other():
+    clock = _Clock()
+    timer = StageTimer(clock=clock)
+    clock.now += 1.0  # start-up before the first stage
+
+    def load():
+        clock.now += 6.0
+        return "loaded"
+
+    with timer.stage("read"):
+        clock.now += 0.5
+        assert timer.aside(load)() == "loaded"
+        clock.now += 1.5  # the wait beyond the work set aside
+    with timer.stage("solve"):
+        clock.now += 3.0
+        # a process ended inside a stage reports the stage so far, without work set aside
+        timer.aside(lambda: setattr(clock, "now", clock.now + 4.0))()
+        clock.now += 1.0
+        assert timer.line() == "timings: read 2.00 s, solve 4.00 s, other 11.00 s, total 17.00 s"
+    assert timer.seconds == {"read": 2.0, "solve": 4.0}
+    assert timer.aside(None) is None
 
 
 def test_fold_count_is_the_same_in_small_slabs(folding_volume):

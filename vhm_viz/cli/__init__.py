@@ -87,7 +87,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         p.add_argument(
             "--timings",
             action="store_true",
-            help="print where the time went (read, solve, map, checks, write) on stderr",
+            help="print where the time went on stderr: read, solve, map, checks, write, and "
+            "other (start-up, imports, loading compiled code)",
         )
         p.add_argument(
             "--threads",

@@ -214,8 +214,8 @@ def deform(args: argparse.Namespace) -> str:
     out = Path(args.output)
     timer = args.timer
     with timer.stage("read"):
-        # numba's runtime loads while a child reads the input
-        mesh = read_dataset(src, meanwhile=load_compiled_runtime)
+        # numba's runtime loads while a child reads the input (start-up: counted as other)
+        mesh = read_dataset(src, meanwhile=timer.aside(load_compiled_runtime))
     volume = isinstance(mesh, pv.ImageData)
     resample = volume and is_image_format(out)
     out_type = "ImageData" if resample else _output_type(mesh)

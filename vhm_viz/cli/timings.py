@@ -18,14 +18,51 @@ class StageTimer:
     """Wall-clock seconds per stage of one command, from its start.
 
     Use :meth:`stage` around each stage's work; :meth:`line` gives the breakdown, with
-    the time outside every stage (start-up, imports, argument checks) as ``other``.
+    the time outside every stage (start-up, imports, argument checks) as ``other``. Work
+    of that kind done inside a stage, while the stage waits (loading compiled code while
+    a child process reads the input), is wrapped with :meth:`aside` and counts as
+    ``other`` too, so that a stage's time is its own work.
+
+    Parameters
+    ----------
+    clock : callable() -> float, optional
+        Seconds from an arbitrary start (default :func:`time.perf_counter`).
     """
 
-    def __init__(self) -> None:
-        self.start = time.perf_counter()
+    def __init__(self, clock=time.perf_counter) -> None:
+        self.clock = clock
+        self.start = clock()
         self.seconds: dict[str, float] = {}
-        #: The stage under way and its start (a process ended inside one reports it too).
-        self.running: tuple[str, float] | None = None
+        #: The stage under way, its start and :attr:`set_aside` then (a process ended inside
+        #: one reports it too).
+        self.running: tuple[str, float, float] | None = None
+        #: Seconds of :meth:`aside` work so far (taken off the stages it ran in).
+        self.set_aside = 0.0
+
+    def aside(self, work):
+        """``work`` wrapped so that its time counts as ``other``, also inside a stage.
+
+        Parameters
+        ----------
+        work : callable() or None
+            None gives None.
+
+        Returns
+        -------
+        callable() or None
+            Runs ``work`` and returns what it returns.
+        """
+        if work is None:
+            return None
+
+        def timed():
+            t0 = self.clock()
+            try:
+                return work()
+            finally:
+                self.set_aside += self.clock() - t0
+
+        return timed
 
     @contextmanager
     def stage(self, name: str):
@@ -36,27 +73,29 @@ class StageTimer:
         there (:func:`vhm_viz.interrupts.check`).
         """
         interrupts.check()
-        t0 = time.perf_counter()
-        self.running = (name, t0)
+        t0, aside0 = self.clock(), self.set_aside
+        self.running = (name, t0, aside0)
         try:
             yield
         finally:
             self.running = None
-            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+            spent = self.clock() - t0 - (self.set_aside - aside0)
+            self.seconds[name] = self.seconds.get(name, 0.0) + spent
         interrupts.check()
 
     @property
     def total(self) -> float:
         """Seconds since the timer was made."""
-        return time.perf_counter() - self.start
+        return self.clock() - self.start
 
     def line(self) -> str:
         """``timings: read 0.12 s, solve 0.30 s, ..., other 0.05 s, total 1.79 s``."""
         total = self.total
         seconds = dict(self.seconds)
         if self.running is not None:
-            name, t0 = self.running
-            seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
+            name, t0, aside0 = self.running
+            spent = self.clock() - t0 - (self.set_aside - aside0)
+            seconds[name] = seconds.get(name, 0.0) + spent
         names = [s for s in STAGES if s in seconds]
         names += sorted(set(seconds) - set(STAGES))
         parts = [f"{n} {seconds[n]:.2f} s" for n in names]
