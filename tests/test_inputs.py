@@ -408,6 +408,72 @@ def test_every_volume_format_is_deformed_by_the_command_line(volume, kind, tmp_p
     assert "deformed" in capsys.readouterr().out
 
 
+# ------------------------------------------------------------------ files an input reads
+def _metaimage_naming(path: Path, vol, spacing, spec: str, after: str = "") -> None:
+    """A MetaImage header at ``path`` whose ``ElementDataFile`` is ``spec``, then ``after``."""
+    _write_mhd(path, vol, spacing)
+    path.with_suffix(".raw").unlink()
+    text = path.read_text().split("ElementDataFile")[0]
+    path.write_text(f"{text}ElementDataFile = {spec}\n{after}")
+
+
+def _slices(folder: Path, vol) -> None:
+    for z, plane in enumerate(vol):
+        (folder / f"s{z}.raw").write_bytes(plane.astype(np.uint8).tobytes())
+
+
+@pytest.mark.parametrize("case", ["one file", "list", "pattern", "nrrd detached", "dicom"])
+def test_no_output_writes_a_file_an_input_reads(volume, case, tmp_path, capsys):
+    """``-o`` whose file, or the data file written beside it, is a data file of the input."""
+    vol, spacing = volume
+    hi = (np.array(vol.shape[::-1]) - 1) * np.array(spacing)
+    scene = box_scene(tmp_path, np.zeros(3), hi)
+    folder = tmp_path / "data"
+    folder.mkdir()
+    if case == "one file":  # in.mhd's voxels are in voxels.raw; -o voxels.mhd writes that
+        src, out = folder / "in.mhd", folder / "voxels.mhd"
+        _metaimage_naming(src, vol, spacing, "voxels.raw")
+        (folder / "voxels.raw").write_bytes(vol.astype(np.uint8).tobytes())
+    elif case == "list":  # one file per slice, listed after the header
+        src, out = folder / "in.mhd", folder / "s4.mhd"
+        _metaimage_naming(src, vol, spacing, "LIST 2D", "".join(f"s{z}.raw\n" for z in range(9)))
+        _slices(folder, vol)
+    elif case == "pattern":  # one file per slice, named by a printf pattern
+        src, out = folder / "in.mhd", folder / "s4.mhd"
+        _metaimage_naming(src, vol, spacing, "s%d.raw 0 8 1")
+        _slices(folder, vol)
+    elif case == "nrrd detached":
+        src, out = folder / "in.nhdr", folder / "voxels.mhd"
+        _write_nrrd(tmp_path / "whole.nrrd", vol, spacing)
+        header = (tmp_path / "whole.nrrd").read_bytes().split(b"\n\n")[0].decode()
+        src.write_text(header + "\ndata file: voxels.raw\n")
+        (folder / "voxels.raw").write_bytes(vol.astype(np.uint8).tobytes())
+    else:  # a DICOM series reads every file of its folder, whatever its name
+        folder.rmdir()
+        _write_dicom(folder, vol, spacing)
+        (folder / "slice004.dcm").rename(folder / "slice004.mha")
+        src, out = folder, folder / "slice004.mha"
+    before = _bytes(folder)
+    assert main(["deform", str(src), "-s", str(scene), "-o", str(out), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "refusing to overwrite" in err and err.count("\n") == 1, err
+    assert _bytes(folder) == before
+    if case in ("one file", "nrrd detached", "dicom"):  # another output is written
+        assert (
+            main(["deform", str(src), "-s", str(scene), "-o", str(tmp_path / "o.mhd"), "-q"]) == 0
+        )
+        assert _bytes(folder) == before
+        assert pv.read(tmp_path / "o.mhd").n_points > 0
+
+
+def test_the_files_each_format_writes_beside_its_own():
+    from vhm_viz.io.registry import files_of
+
+    assert files_of("a/out.mhd", written=True) == [Path("a/out.raw")]
+    for name in ("out.mha", "out.nii.gz", "out.nrrd", "out.vti", "out.vts"):
+        assert files_of(name, written=True) == []
+
+
 @pytest.mark.parametrize("kind", [".slc", "dicom", ".nii.gz"])
 def test_cage_and_anchors_commands_read_volumes_too(volume, kind, tmp_path):
     vol, spacing = volume

@@ -1,7 +1,7 @@
 """Output guards: never write over an input; outputs appear whole or not at all.
 
 Every writer of user-named outputs (the command line, the explorer's export) first asks
-:func:`refuse_inputs`; the writers in :mod:`vhm_viz.io` then use
+:func:`vhm_viz.io.refuse_inputs`; the writers in :mod:`vhm_viz.io` then use
 :func:`atomic_output_set` (several files that belong together: a MetaImage header and its
 voxels), :func:`atomic_path` (one file) or :func:`atomic_directory` (the files of a
 report folder, such as that of ``vhm-viz analyze``).
@@ -33,7 +33,6 @@ from vhm_viz import interrupts
 __all__ = [
     "OverwriteError",
     "same_file",
-    "refuse_inputs",
     "atomic_output_set",
     "atomic_path",
     "atomic_directory",
@@ -44,7 +43,7 @@ __all__ = [
 
 
 class OverwriteError(ValueError):
-    """An output that would overwrite one of the inputs (:func:`refuse_inputs`)."""
+    """An output that would overwrite one of the inputs (:func:`vhm_viz.io.refuse_inputs`)."""
 
 
 def same_file(a, b) -> bool:
@@ -56,27 +55,6 @@ def same_file(a, b) -> bool:
     except OSError:
         pass
     return os.path.realpath(a) == os.path.realpath(b)
-
-
-def refuse_inputs(output, inputs) -> None:
-    """Raise :class:`OverwriteError` if ``output`` is any of ``inputs``.
-
-    The one guard every writer of user-named outputs uses (the command line, the
-    explorer's export): whatever path, symbolic link or hard link names an input, it is
-    never written.
-
-    Parameters
-    ----------
-    output : path-like
-    inputs : iterable of path-like or None
-        Every file the operation reads: the data, the scene, every file the scene
-        references (:meth:`vhm_viz.scene.Scene.referenced_files`).
-    """
-    for src in inputs:
-        if src is not None and same_file(Path(src), Path(output)):
-            raise OverwriteError(
-                f"refusing to overwrite the input file {src} (as {output}); choose another output"
-            )
 
 
 def _umask() -> int:

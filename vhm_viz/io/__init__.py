@@ -16,8 +16,8 @@ means:
   writes);
 * :func:`write_text`, :func:`json_text` -- atomic text, compact JSON (one point per line);
   :func:`atomic_outputs` -- several files that appear together or not at all;
-  :func:`refuse_inputs` -- the one guard against writing over an input
-  (:mod:`vhm_viz.atomic`).
+  :func:`refuse_inputs` -- the one guard against writing over an input, the data files
+  its header names included (:mod:`~vhm_viz.io.guard`).
 
 Which suffix is which format, and what each reads and writes, is one table
 (:mod:`~vhm_viz.io.registry`): :data:`DATASET_SUFFIXES`, :data:`CAGE_SUFFIXES`,
@@ -34,12 +34,13 @@ Writers take the destination first: ``write_*(path, what)``.
 
 from __future__ import annotations
 
-from vhm_viz.atomic import OverwriteError, refuse_inputs, same_file
+from vhm_viz.atomic import OverwriteError, same_file
 from vhm_viz.atomic import atomic_directory as atomic_outputs
 from vhm_viz.io.anchors import read_anchors, write_anchors
 from vhm_viz.io.cages import cage_from_dataset, cage_to_polydata, cell_types, read_cage, write_cage
 from vhm_viz.io.datasets import read_dataset, write_dataset
 from vhm_viz.io.errors import ReadError
+from vhm_viz.io.guard import refuse_inputs
 from vhm_viz.io.registry import (
     DICOM_FOLDER,
     FORMATS,

@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.atomic import atomic_directory, atomic_path, refuse_inputs
+from vhm_viz.atomic import atomic_directory, atomic_path
 from vhm_viz.io.errors import ReadError, first_line
+from vhm_viz.io.guard import refuse_inputs
 from vhm_viz.io.isolated import meanwhile as read_meanwhile
 from vhm_viz.io.registry import (
     array_file,

@@ -19,7 +19,7 @@ from pathlib import Path
 from vhm_viz.io.errors import ReadError
 from vhm_viz.io.itk_images import read_with_sitk
 
-__all__ = ["is_dicom_file", "read_dicom", "read_series"]
+__all__ = ["dicom_files", "is_dicom_file", "read_dicom", "read_series"]
 
 _SERIES_UID = "0020|000e"
 _DESCRIPTION = "0008|103e"
@@ -38,6 +38,30 @@ def is_dicom_file(path) -> bool:
             return fh.read(4) == b"DICM"
     except OSError:
         return False
+
+
+def dicom_files(path, written: bool = False) -> list[Path]:
+    """The files a DICOM series given as ``path`` may read: its folder's (:func:`files_of`).
+
+    Parameters
+    ----------
+    path : path-like
+        A folder, or one file of the series.
+    written : bool
+        Nothing is written as DICOM: True gives none.
+
+    Returns
+    -------
+    list of Path
+    """
+    if written:
+        return []
+    p = Path(path)
+    folder = p if p.is_dir() else p.parent
+    try:
+        return [f for f in folder.iterdir() if f.is_file()]
+    except OSError:
+        return []
 
 
 def read_dicom(path):

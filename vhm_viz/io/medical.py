@@ -30,6 +30,8 @@ from vhm_viz.resources import require_memory
 __all__ = [
     "check_metaimage",
     "check_nifti",
+    "data_files_named",
+    "metaimage_files",
     "read_metaimage",
     "read_nifti",
     "volume_array",
@@ -99,6 +101,80 @@ def check_metaimage(p: Path) -> None:
         raise ReadError(f"{p}: its data file {raw.name} is missing")
     skip = int(fields.get("HeaderSize", "0") or 0)
     need(raw, "the voxels of " + p.name, needed, raw.stat().st_size - max(skip, 0))
+
+
+#: The most of a header read to find its data files (a detached header with a long list).
+HEADER_SCAN_LIMIT = 1 << 24
+
+
+def data_files_named(folder: Path, spec: str, following: list[str]) -> list[Path]:
+    """The data files a MetaImage ``ElementDataFile`` or a NRRD ``data file`` names.
+
+    Parameters
+    ----------
+    folder : Path
+        The header's folder: relative names are relative to it.
+    spec : str
+        The field's value: one file name; ``LIST`` (then ``following`` holds one name a
+        line); or a pattern ``name%03d.raw first last step`` (NRRD may add a
+        sub-dimension); ``LOCAL`` (MetaImage: in the header file) names none.
+    following : list of str
+        The header's lines after the field.
+
+    Returns
+    -------
+    list of Path
+    """
+    words = spec.split()
+    if not words or words[0].upper() == "LOCAL":
+        return []
+    if words[0].upper() == "LIST":
+        names = [line.strip() for line in following if line.strip()]
+    elif len(words) >= 4 and "%" in words[0]:
+        try:
+            first, last, step = (int(w) for w in words[1:4])
+            stop = last + (1 if step > 0 else -1)
+            names = [words[0] % i for i in range(first, stop, step)] if step else []
+        except (TypeError, ValueError):
+            names = []
+    else:
+        names = [spec.strip()]
+    return [Path(n) if Path(n).is_absolute() else folder / n for n in names]
+
+
+def metaimage_files(path, written: bool = False) -> list[Path]:
+    """The files that hold a MetaImage's voxels, besides the header (:func:`files_of`).
+
+    Parameters
+    ----------
+    path : path-like
+        ``.mhd`` or ``.mha``.
+    written : bool
+        True: what :func:`write_metaimage` puts beside ``path`` (a ``.mhd``'s ``.raw``).
+        False: what an existing header's ``ElementDataFile`` names (none for ``LOCAL``,
+        or for a header that cannot be read).
+
+    Returns
+    -------
+    list of Path
+    """
+    p = Path(path)
+    if written:
+        return [] if suffix_of(p) == ".mha" else [p.with_suffix(".raw")]
+    try:
+        with open(p, "rb") as fh:
+            while fh.tell() < HEADER_SCAN_LIMIT:
+                line = fh.readline(1 << 16)
+                if not line:
+                    return []
+                key, _, value = line.decode("latin-1").partition("=")
+                if key.strip() == "ElementDataFile":  # the header's last field
+                    value = value.strip()
+                    rest = fh.read(HEADER_SCAN_LIMIT) if value.upper().startswith("LIST") else b""
+                    return data_files_named(p.parent, value, rest.decode("latin-1").splitlines())
+    except OSError:
+        pass
+    return []
 
 
 def check_nifti(p: Path) -> None:
@@ -250,7 +326,8 @@ def write_metaimage(path, image) -> None:
     direction = np.asarray(image.direction_matrix, dtype=np.float64)
     comps = 1 if values.ndim == 1 else values.shape[1]
     fmt = lambda v: " ".join(f"{x:.17g}" for x in v)  # noqa: E731
-    data_file = "LOCAL" if path.suffix.lower() == ".mha" else path.with_suffix(".raw").name
+    beside = metaimage_files(path, written=True)
+    data_file = beside[0].name if beside else "LOCAL"
     header = [
         "ObjectType = Image",
         "NDims = 3",
@@ -273,7 +350,7 @@ def write_metaimage(path, image) -> None:
             tmp.write_bytes(text + raw)
         return
     # one set: the voxels appear with their header, never beside another header
-    with atomic_output_set([path.with_suffix(".raw"), path]) as (raw_tmp, header_tmp):
+    with atomic_output_set([*beside, path]) as (raw_tmp, header_tmp):
         raw_tmp.write_bytes(raw)
         header_tmp.write_bytes(text)
 

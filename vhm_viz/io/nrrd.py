@@ -15,9 +15,9 @@ import numpy as np
 
 from vhm_viz.io.errors import ReadError, TruncatedError, need
 from vhm_viz.io.itk_images import read_with_sitk, write_with_sitk
-from vhm_viz.io.medical import volume_array
+from vhm_viz.io.medical import HEADER_SCAN_LIMIT, data_files_named, volume_array
 
-__all__ = ["check_nrrd", "read_nrrd", "write_nrrd"]
+__all__ = ["check_nrrd", "nrrd_files", "read_nrrd", "write_nrrd"]
 
 
 _NRRD_TYPES = {
@@ -85,6 +85,43 @@ def check_nrrd(p: Path) -> None:
     if not raw.is_file():
         raise ReadError(f"{p}: its data file {raw.name} is missing")
     need(raw, f"{needed // item} voxels of {p.name}", needed, raw.stat().st_size)
+
+
+def nrrd_files(path, written: bool = False) -> list[Path]:
+    """The data files a NRRD header names, besides itself (:func:`files_of`).
+
+    Parameters
+    ----------
+    path : path-like
+        ``.nrrd`` or ``.nhdr``.
+    written : bool
+        True: what :func:`write_nrrd` writes beside ``path``: nothing (the data are in the
+        file). False: what an existing header's ``data file`` names (one file, a ``LIST``
+        or a pattern; none for attached data or a header that cannot be read).
+
+    Returns
+    -------
+    list of Path
+    """
+    p = Path(path)
+    if written:
+        return []
+    lines = []
+    try:
+        with open(p, "rb") as fh:
+            while fh.tell() < HEADER_SCAN_LIMIT:
+                line = fh.readline(1 << 16).decode("latin-1")
+                if not line.strip():  # the end of the header (or of a detached one)
+                    break
+                lines.append(line.rstrip("\r\n"))
+    except OSError:
+        return []
+    for k, line in enumerate(lines):
+        key, colon, value = line.partition(":")
+        if colon and key.strip().lower() in ("data file", "datafile"):
+            spec = value.strip().lstrip("=").strip()
+            return data_files_named(p.parent, spec, lines[k + 1 :])
+    return []
 
 
 def read_nrrd(path):

@@ -32,6 +32,7 @@ __all__ = [
     "image_suffixes",
     "is_image_format",
     "array_file",
+    "files_of",
 ]
 
 #: The PyVista dataset types the table speaks of.
@@ -79,6 +80,9 @@ class Format:
         A file holds one point array: :func:`~vhm_viz.io.write_dataset` writes the
         active one to the path and every other one beside it
         (:func:`array_file`).
+    files : str or None
+        ``"module:function"``, ``function(path, written) -> list of Path``: the other
+        files a file of this format is made of (:func:`files_of`); None: the file alone.
     """
 
     name: str
@@ -93,6 +97,7 @@ class Format:
     lines: str | None = None
     folder: bool = False
     one_array: bool = False
+    files: str | None = None
 
     def function(self, role: str):
         """The function a row names for ``role`` (``"read"``, ``"check"``, ...), or None."""
@@ -136,21 +141,22 @@ FORMATS: tuple[Format, ...] = (
            cage="cages:read_off_cage", lines="rigidity:read_polylines"),
     Format("MetaImage", (".mhd", ".mha"), ("ImageData",), ("ImageData",), image=True,
            read="medical:read_metaimage", check="medical:check_metaimage",
-           write="medical:write_metaimage", one_array=True),
+           write="medical:write_metaimage", one_array=True, files="medical:metaimage_files"),
     Format("NIfTI", (".nii", ".nii.gz"), ("ImageData",), ("ImageData",), image=True,
            read="medical:read_nifti", check="medical:check_nifti",
            write="medical:write_nifti", one_array=True),
     Format("NRRD", (".nrrd",), ("ImageData",), ("ImageData",), image=True,
            read="nrrd:read_nrrd", check="nrrd:check_nrrd", write="nrrd:write_nrrd",
-           one_array=True),
+           one_array=True, files="nrrd:nrrd_files"),
     Format("NRRD detached header", (".nhdr",), ("ImageData",), read="nrrd:read_nrrd",
-           check="nrrd:check_nrrd"),
+           check="nrrd:check_nrrd", files="nrrd:nrrd_files"),
     Format("SLC", (".slc",), ("ImageData",), read="legacy_volumes:read_slc",
            check="legacy_volumes:check_slc"),
     Format("point list", (".npy", ".xyz", ".txt", ".csv"), ("PolyData",),
            read="mesh_files:read_point_list"),
     Format("TGF skeleton", (".tgf",), lines="rigidity:read_tgf"),
-    Format(DICOM_FOLDER, (".dcm",), ("ImageData",), read="dicom:read_dicom", folder=True),
+    Format(DICOM_FOLDER, (".dcm",), ("ImageData",), read="dicom:read_dicom", folder=True,
+           files="dicom:dicom_files"),
 )  # fmt: skip
 
 
@@ -262,3 +268,27 @@ def array_file(path, name: str) -> Path:
     stem = p.name[: len(p.name) - len(suffix)] if suffix else p.name
     safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or "array"
     return p.with_name(f"{stem}_{safe}{p.name[len(stem) :]}")
+
+
+def files_of(path, written: bool = False) -> list[Path]:
+    """The other files that make up ``path`` in its format (:attr:`Format.files`).
+
+    Parameters
+    ----------
+    path : path-like
+    written : bool
+        False: the files an existing ``path`` reads besides itself (a MetaImage or NRRD
+        header's data files, the other files of a DICOM series' folder). True: the files
+        :func:`~vhm_viz.io.write_dataset` writes beside ``path`` (a ``.mhd``'s ``.raw``);
+        only the suffix counts.
+
+    Returns
+    -------
+    list of Path
+        Empty for a format whose files are one file, or a header that cannot be read
+        (its reader says why).
+    """
+    p = Path(path)
+    fmt = _format_with_suffix(suffix_of(p)) if written else format_of(p)
+    files = fmt.function("files") if fmt is not None else None
+    return list(files(p, written)) if files is not None else []
