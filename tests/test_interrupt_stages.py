@@ -100,3 +100,34 @@ def test_a_signal_in_each_stage_stops_it_and_keeps_the_old_output(tmp_path, stag
     assert ran[-1] == stage, timings  # stopped in the stage that got the signal
     assert out.read_bytes() == OLD
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, work.name])
+
+
+#: Runs the command line with a real SIGINT sent to itself the moment the deform
+#: command's module starts importing (the start-up, before any stage).
+_INTERRUPTED_START_UP = """
+import importlib.abc, os, signal, sys
+
+class SignalOnImport(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name == "vhm_viz.cli.deform":
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+
+sys.meta_path.insert(0, SignalOnImport())
+from vhm_viz.cli import main
+sys.argv = ["vhm-viz", *sys.argv[1:]]
+main()
+"""
+
+
+def test_a_signal_during_start_up_is_one_line(tmp_path):
+    out = tmp_path / "out.vts"
+    proc = subprocess.run(
+        [sys.executable, "-c", _INTERRUPTED_START_UP, "deform", str(data_path("volumes",
+         "headsq_64x64x93.vti")), "--scene", str(SCENE), "-o", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr == "vhm-viz deform: interrupted by SIGINT\n"
+    assert not out.exists()

@@ -177,8 +177,13 @@ def _run_command(argv: list[str] | None) -> int:
     words = sys.argv[1:] if argv is None else list(argv)
     if argv is None:
         gc.disable()  # through the start-up: see _finish_start_up
-    parser = build_parser(named_command(words))
-    args = parser.parse_args(words)
+    command = named_command(words)
+    try:  # the command's libraries are imported here: a Ctrl-C may land in them
+        parser = build_parser(command)
+        args = parser.parse_args(words)
+    except KeyboardInterrupt:
+        print(f"vhm-viz{f' {command}' if command else ''}: interrupted by SIGINT", file=sys.stderr)
+        return 130
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
