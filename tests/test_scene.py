@@ -244,6 +244,26 @@ def test_missing_fields_and_bad_json(tmp_path):
         Scene.load(p)
 
 
+def test_an_unknown_field_is_named_with_those_that_are_known():
+    import inspect
+
+    from vhm_viz import auto_cage
+
+    with pytest.raises(SceneError, match=r"'mdoe': unknown field; use one of alpha, anchors, "):
+        Scene.from_dict(_minimal(mdoe="ARAP"))
+    # an automatic cage's options are auto_cage's keywords, checked as the scene is read
+    with pytest.raises(SceneError) as err:
+        Scene.from_dict(_minimal(cage={"auto": {"max_face": 100}}))
+    message = str(err.value)
+    assert message.startswith("scene field 'cage.auto.max_face': unknown field; use one of ")
+    named = message.split("use one of ")[1].split(", ")
+    keywords = inspect.signature(auto_cage).parameters
+    assert "max_faces" in named and "return_report" not in named
+    assert all(keywords[name].kind is inspect.Parameter.KEYWORD_ONLY for name in named)
+    scene = Scene.from_dict(_minimal(cage={"auto": {"max_faces": 100, "method": "voxel"}}))
+    assert scene.cage == {"auto": {"max_faces": 100, "method": "voxel"}}
+
+
 def _small_bar():
     """A real, small closed surface: the bundled bar (1 x 1 x 5) at a coarse resolution."""
     pv = pytest.importorskip("pyvista")

@@ -110,6 +110,7 @@ from vhm_viz.scene_fields import (
     parse_solver,
     parse_space,
     to_lists,
+    unknown_field,
 )
 
 __all__ = [
@@ -222,7 +223,7 @@ class Scene:
             )
         unknown = sorted(set(data) - SCENE_FIELDS)
         if unknown:
-            raise SceneError(unknown[0], "unknown field")
+            raise unknown_field(unknown[0], SCENE_FIELDS)
         for required in ("cage", "anchors", "constraints"):
             if required not in data:
                 raise SceneError(required, "missing")

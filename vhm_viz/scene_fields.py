@@ -222,11 +222,26 @@ def _path_text(value, name: str) -> str:
 # ----------------------------------------------------------------------------------------
 
 
+def unknown_field(name: str, allowed) -> SceneError:
+    """The error for field ``name`` (a dotted path) where only ``allowed`` are known."""
+    return SceneError(name, f"unknown field; use one of {', '.join(sorted(allowed))}")
+
+
 def _check_fields(value, field: str, allowed) -> None:
     """Refuse keys of ``value`` (the scene's ``field``) that are not in ``allowed``."""
     extra = sorted(set(value) - set(allowed))
     if extra:
-        raise SceneError(f"{field}.{extra[0]}", "unknown field")
+        raise unknown_field(f"{field}.{extra[0]}", allowed)
+
+
+def auto_cage_options() -> list[str]:
+    """The options of ``{"cage": {"auto": {...}}}``: :func:`vhm_viz.auto_cage`'s keywords."""
+    import inspect
+
+    from vhm_viz.autocage import auto_cage  # only a scene with an automatic cage needs it
+
+    params = inspect.signature(auto_cage).parameters.values()
+    return [p.name for p in params if p.kind is p.KEYWORD_ONLY and p.name != "return_report"]
 
 
 def _object_of(value, field: str, allowed) -> dict:
@@ -260,6 +275,8 @@ def parse_cage(value) -> dict:
         opts = value["auto"]
         if not isinstance(opts, dict):
             raise SceneError("cage.auto", "expected an object of auto_cage options")
+        if opts:
+            _check_fields(opts, "cage.auto", auto_cage_options())
         return {"auto": copy.deepcopy(opts)}
     if keys == {"vertices", "faces"}:
         v = _points(value["vertices"], "cage.vertices")
