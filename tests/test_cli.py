@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -251,12 +252,19 @@ def test_bad_inputs(demo_dir, tmp_path, capsys):
     assert not (tmp_path / "o.vtp").exists()
 
 
-def test_cage_not_enclosing_the_data(demo_dir, tmp_path, capsys):
+@pytest.fixture()
+def poking_out(demo_dir, tmp_path):
+    """The demo's bar stretched out of the top of its cage (a file), and the demo's scene."""
     mesh = pv.read(demo_dir / "bar_rest.vtp")
-    mesh.points = mesh.points * np.array([1.0, 1.0, 1.2])  # pokes out of the top of the cage
+    mesh.points = mesh.points * np.array([1.0, 1.0, 1.2])
     big = tmp_path / "long.vtp"
     mesh.save(big)
-    scene = demo_dir / "scene.json"
+    return big, demo_dir / "scene.json"
+
+
+def test_cage_not_enclosing_the_data(poking_out, tmp_path, capsys):
+    big, scene = poking_out
+    mesh = pv.read(big)
     line = _one_line_error(*_with_scene(capsys, "deform", big, scene, tmp_path / "o.vtp")[::2])
     assert "outside the cage" in line and "--outside passthrough" in line
     assert not (tmp_path / "o.vtp").exists()
@@ -277,6 +285,18 @@ def test_cage_not_enclosing_the_data(demo_dir, tmp_path, capsys):
     assert n_out > 0 and f"{n_out} points outside the cage" in out
     res = pv.read(tmp_path / "o.vtp")
     assert int(np.asarray(res.point_data["vhm_outside"]).sum()) == n_out
+
+
+def test_the_outside_options_a_refusal_suggests_are_the_commands_own(poking_out, tmp_path, capsys):
+    big, scene = poking_out
+    for command, target in (("deform", tmp_path / "o.vtp"), ("analyze", tmp_path / "report")):
+        line = _one_line_error(*_with_scene(capsys, command, big, scene, target)[::2])
+        suggested = re.findall(r"--outside (\w+)", line)
+        assert "passthrough" in suggested and ("nan" in suggested) == (command == "deform")
+        for policy in suggested:  # each one the command takes
+            rc, _, err = _run(capsys, command, big, "--scene", scene, "-o", target, "-q",
+                              "--outside", policy)  # fmt: skip
+            assert rc == 0, err
 
 
 def test_help_is_useful(capsys):

@@ -144,7 +144,9 @@ def observe_progress(algorithm, progress: Progress) -> None:
     algorithm.AddObserver("ProgressEvent", forward)
 
 
-def run_filter(algorithm, data, deformer, label: str, *, quiet: bool, source=None):
+def run_filter(
+    algorithm, data, deformer, label: str, *, quiet: bool, source=None, drops: bool = True
+):
     """Run one of the VTK filters on ``data`` with ``deformer``, its progress on stderr.
 
     Parameters
@@ -160,6 +162,8 @@ def run_filter(algorithm, data, deformer, label: str, *, quiet: bool, source=Non
     source : path-like, optional
         The file ``data`` came from: with it, points outside the cage are one
         :class:`CLIError` naming the file (else the filter's error is raised).
+    drops : bool
+        The command has ``--outside nan`` (the message suggests it).
 
     Returns
     -------
@@ -179,7 +183,7 @@ def run_filter(algorithm, data, deformer, label: str, *, quiet: bool, source=Non
     except OutsideCageError as exc:
         if source is None:
             raise
-        raise CLIError(outside_message(exc, data.n_points, source)) from exc
+        raise CLIError(outside_message(exc, data.n_points, source, drops=drops)) from exc
     bar.finish()
     return result
 
@@ -250,15 +254,19 @@ def _refuse_inputs(path: Path, inputs) -> None:
         raise CLIError(f"{exc} (-o)") from None
 
 
-def outside_message(exc, n_points: int, source) -> str:
-    """One line for an :class:`OutsideCageError` raised on the input's points."""
+def outside_message(exc, n_points: int, source, *, drops: bool = True) -> str:
+    """One line for an :class:`OutsideCageError` raised on the input's points.
+
+    ``drops``: the command has ``--outside nan``, which the line then suggests too.
+    """
     idx = getattr(exc, "indices", None)
     if idx is None or len(idx) == 0:
         return one_line(exc)
     return (
         f"{len(idx)} of {n_points} points of {source} are outside the cage (indices "
         f"{describe_indices(np.asarray(idx))}): the cage must enclose the data, or pass "
-        "--outside passthrough to leave them in place (or --outside nan to drop them)"
+        "--outside passthrough to leave them in place"
+        + (" (or --outside nan to drop them)" if drops else "")
     )
 
 

@@ -174,7 +174,9 @@ def analyze(args: argparse.Namespace) -> str:
     ana = JacobianAnalysisFilter()
     ana.SetOutsidePolicy(args.outside)
     with timer.stage("map"):
-        analysed = run_filter(ana, mesh, dfm, "analyzing", quiet=args.quiet, source=src)
+        analysed = run_filter(
+            ana, mesh, dfm, "analyzing", quiet=args.quiet, source=src, drops=False
+        )
     inside = np.ones(mesh.n_points, bool)
     if "vhm_outside" in analysed.point_data:
         inside = np.asarray(analysed.point_data["vhm_outside"]) == 0
