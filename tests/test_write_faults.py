@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import resource
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -43,3 +45,68 @@ def test_a_write_past_the_file_size_limit_fails_and_keeps_the_old_file(tmp_path,
     assert "write" in lines[0] or "large" in lines[0], lines[0]
     assert out.read_bytes() == old
     assert sorted(p.name for p in out.parent.iterdir()) == before
+
+
+def _unprivileged(command: list) -> list:
+    """``command`` run without the superuser's right to write in any folder."""
+    if os.geteuid() != 0:
+        return command
+    setpriv = shutil.which("setpriv")
+    if setpriv is None:
+        pytest.skip("running as root without setpriv: folder permissions do not apply")
+    return [setpriv, "--bounding-set=-dac_override,-dac_read_search", "--inh-caps=-all", *command]
+
+
+@pytest.fixture()
+def read_only_folder(tmp_path):
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o555)
+    yield folder
+    folder.chmod(0o755)
+
+
+def test_a_folder_without_write_permission_is_named_before_any_work(read_only_folder):
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    for command, output in (("deform", "out.vts"), ("analyze", "report")):
+        proc = subprocess.run(
+            _unprivileged([sys.executable, "-m", "vhm_viz.cli", command, str(head), "--scene",
+                           str(SCENE), "-o", str(read_only_folder / output), "-q", "--timings"]),
+            capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        assert proc.returncode == 1, proc.stderr
+        lines = proc.stderr.splitlines()
+        assert lines[0] == (
+            f"vhm-viz {command}: error: cannot write in {read_only_folder}/ (permission denied); "
+            "choose another output folder"
+        )
+        assert " read " not in lines[-1]  # refused before the input was read
+    assert list(read_only_folder.iterdir()) == []
+
+
+_WRITE_IN = """
+import sys
+from vhm_viz.atomic import atomic_directory, atomic_path
+folder = sys.argv[1]
+for block in (lambda: atomic_path(folder + "/one.txt"), lambda: atomic_directory(folder)):
+    try:
+        with block() as where:
+            print("wrote", where)
+    except OSError as exc:
+        print(type(exc).__name__, exc)
+"""
+
+
+def test_a_write_in_a_folder_it_cannot_write_names_the_folder_not_its_temporary(
+    read_only_folder,
+):
+    proc = subprocess.run(
+        _unprivileged([sys.executable, "-c", _WRITE_IN, str(read_only_folder)]),
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    expected = (
+        f"UnwritableFolderError cannot write in {read_only_folder}/ (Permission denied); "
+        "choose another output folder"
+    )
+    assert proc.stdout.splitlines() == [expected, expected], proc.stderr
+    assert list(read_only_folder.iterdir()) == []

@@ -20,6 +20,7 @@ less the process umask), not the private ``0o600`` of a temporary file.
 from __future__ import annotations
 
 import contextlib
+import errno
 import itertools
 import json
 import os
@@ -32,6 +33,8 @@ from vhm_viz import interrupts
 
 __all__ = [
     "OverwriteError",
+    "UnwritableFolderError",
+    "require_writable",
     "same_file",
     "atomic_output_set",
     "atomic_path",
@@ -44,6 +47,47 @@ __all__ = [
 
 class OverwriteError(ValueError):
     """An output that would overwrite one of the inputs (:func:`vhm_viz.io.refuse_inputs`)."""
+
+
+class UnwritableFolderError(OSError):
+    """A folder an output cannot be written in (permissions, a read-only or full disk).
+
+    Its text names the folder, not the hidden temporary the write began with.
+    """
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+def _unwritable(folder: Path, code: int | None, reason: str) -> UnwritableFolderError:
+    return UnwritableFolderError(
+        code, f"cannot write in {folder}/ ({reason}); choose another output folder"
+    )
+
+
+@contextlib.contextmanager
+def _writing_in(folder: Path) -> Iterator[None]:
+    """Turn a failure to create a file or folder in ``folder`` into its one line."""
+    try:
+        yield
+    except FileExistsError:
+        raise
+    except OSError as exc:
+        raise _unwritable(folder, exc.errno, exc.strerror or type(exc).__name__) from exc
+
+
+def require_writable(folder) -> None:
+    """Raise :class:`UnwritableFolderError` if this process may not create files in ``folder``.
+
+    A folder that does not exist yet is asked of the nearest one above it that does (where
+    it would be created). Checked before the work that the output waits for; the write
+    itself reports what the permissions cannot tell (a read-only or full disk).
+    """
+    here = Path(os.path.abspath(folder))
+    while not here.exists() and here.parent != here:
+        here = here.parent
+    if here.is_dir() and not os.access(here, os.W_OK | os.X_OK):
+        raise _unwritable(here, errno.EACCES, "permission denied")
 
 
 def same_file(a, b) -> bool:
@@ -88,7 +132,8 @@ def _sync_directory(directory: Path) -> None:
 
 def _directory_of(path: Path) -> Path:
     directory = path.parent if str(path.parent) else Path(".")
-    directory.mkdir(parents=True, exist_ok=True)
+    with _writing_in(directory.parent):
+        directory.mkdir(parents=True, exist_ok=True)
     return directory
 
 
@@ -207,11 +252,12 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
     if _key(directory) in _enclosing:  # inside a block staging this folder: part of its set
         yield _enclosing[_key(directory)]
         return
-    directory.mkdir(parents=True, exist_ok=True)
+    with _writing_in(directory.parent):
+        directory.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(directory)
     stage = None
     try:
-        with interrupts.deferred():
+        with interrupts.deferred(), _writing_in(directory):
             stage = directory / f".vhm-staging.{_token()}"
             stage.mkdir()
             _in_progress.add(stage)
@@ -275,7 +321,8 @@ def _create_temporary(final: Path) -> Path:
     while True:
         tmp = final.with_name(f".{head}.vhm-tmp-{_token()}{dot}{tail}")
         try:
-            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+            with _writing_in(final.parent):
+                os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
             return tmp
         except FileExistsError:
             continue

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz import interrupts
+from vhm_viz.atomic import require_writable
 from vhm_viz.cli import one_line
 from vhm_viz.core.errors import OutsideCageError, describe_indices
 from vhm_viz.core.metrics import rigidity_distortion, volume_change
@@ -230,6 +231,7 @@ def check_output(output: str, suffixes, inputs=()) -> Path:
         raise CLIError(f"output {out} must end with one of {', '.join(suffixes)}")
     if not out.resolve().parent.is_dir():
         raise CLIError(f"output directory does not exist: {out.parent}")
+    require_writable(out.resolve().parent)
     return out
 
 
@@ -244,6 +246,7 @@ def check_output_directory(output: str, names, inputs=()) -> Path:
         raise CLIError(f"output {out} must be a directory (it is a file)")
     for path in (out, *(out / name for name in names)):
         _refuse_inputs(path, inputs)
+    require_writable(out)
     return out
 
 
