@@ -99,6 +99,32 @@ def test_work_set_aside_inside_a_stage_counts_as_other():
         assert timer.line() == "timings: read 2.00 s, solve 4.00 s, other 11.00 s, total 17.00 s"
     assert timer.seconds == {"read": 2.0, "solve": 4.0}
     assert timer.aside(None) is None
+    # a command that is its process counts from the command line's start (its imports)
+    begun = StageTimer(clock=clock, start=clock.now - 0.25)
+    with begun.stage("read"):
+        clock.now += 1.0
+    assert begun.line() == "timings: read 1.00 s, other 0.25 s, total 1.25 s"
+
+
+def _stages(stderr: str) -> list[tuple[str, float]]:
+    line = [ln for ln in stderr.splitlines() if "timings:" in ln]
+    assert len(line) == 1, stderr
+    return [(name, float(v)) for name, v in re.findall(r"(\w+) ([0-9.]+) s", line[0])]
+
+
+def test_cage_and_anchors_time_their_stages(folding_volume, tmp_path):
+    image, cage = folding_volume / "image.vti", tmp_path / "cage.obj"
+    runs = {
+        "cage": _cli("cage", str(image), "-o", str(cage), "-q", "--timings"),
+        "anchors": _cli("anchors", str(image), "--cage", str(cage), "-n", "4",
+                        "-o", str(tmp_path / "a.json"), "-q", "--timings"),
+    }  # fmt: skip
+    for command, proc in runs.items():
+        assert proc.returncode == 0, proc.stderr
+        stages = _stages(proc.stderr)
+        assert [n for n, _ in stages] == ["read", command, "write", "other", "total"]
+        parts = sum(v for n, v in stages if n != "total")
+        assert parts == pytest.approx(dict(stages)["total"], abs=0.005 * len(stages) + 1e-9)
 
 
 def test_fold_count_is_the_same_in_small_slabs(folding_volume):

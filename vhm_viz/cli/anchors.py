@@ -43,19 +43,20 @@ def run(args: argparse.Namespace) -> int:
     src = check_input(args.input)
     cage_path = check_input(args.cage, CAGE_SUFFIXES)
     dst = check_output(args.output, (".json",), inputs=[src, cage_path])
-    anchors, report = auto_anchors(
-        read_dataset(src),
-        read_cage(cage_path),
-        args.count,
-        return_report=True,
-        **grid_options(args),
-    )
-    write_anchors(
-        dst,
-        anchors,
-        min_pairwise_distance=report.min_pairwise_distance,
-        min_depth=report.min_depth,
-        input=str(src),
-        cage=str(cage_path),
-    )
+    timer = args.timer
+    with timer.stage("read"):
+        data, cage = read_dataset(src), read_cage(cage_path)
+    with timer.stage("anchors"):
+        anchors, report = auto_anchors(
+            data, cage, args.count, return_report=True, **grid_options(args)
+        )
+    with timer.stage("write"):
+        write_anchors(
+            dst,
+            anchors,
+            min_pairwise_distance=report.min_pairwise_distance,
+            min_depth=report.min_depth,
+            input=str(src),
+            cage=str(cage_path),
+        )
     return report_written(args, dst, report)

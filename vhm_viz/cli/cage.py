@@ -59,13 +59,18 @@ def run(args: argparse.Namespace) -> int:
 
     src = check_input(args.input)
     dst = check_output(args.output, (".obj",), inputs=[src])
-    cage, report = auto_cage(
-        read_dataset(src),
-        offset=args.offset,
-        max_faces=args.max_faces,
-        method=args.method,
-        return_report=True,
-        **grid_options(args),
-    )
-    write_cage(dst, cage, comment=f"vhm-viz cage of {src.name}\n{report}")
+    timer = args.timer
+    with timer.stage("read"):
+        data = read_dataset(src)
+    with timer.stage("cage"):
+        cage, report = auto_cage(
+            data,
+            offset=args.offset,
+            max_faces=args.max_faces,
+            method=args.method,
+            return_report=True,
+            **grid_options(args),
+        )
+    with timer.stage("write"):
+        write_cage(dst, cage, comment=f"vhm-viz cage of {src.name}\n{report}")
     return report_written(args, dst, report)

@@ -10,7 +10,8 @@ from vhm_viz import interrupts
 
 __all__ = ["STAGES", "StageTimer"]
 
-#: The stages of a command, in the order they run.
+#: The stages of a command that maps data, in the order they run (``cage`` and ``anchors``
+#: have ``read``, then their own work as a stage of that name, then ``write``).
 STAGES = ("read", "solve", "map", "checks", "write")
 
 
@@ -27,11 +28,13 @@ class StageTimer:
     ----------
     clock : callable() -> float, optional
         Seconds from an arbitrary start (default :func:`time.perf_counter`).
+    start : float, optional
+        When the command began, on ``clock`` (default: now); what ran since is ``other``.
     """
 
-    def __init__(self, clock=time.perf_counter) -> None:
+    def __init__(self, clock=time.perf_counter, start: float | None = None) -> None:
         self.clock = clock
-        self.start = clock()
+        self.start = clock() if start is None else start
         self.seconds: dict[str, float] = {}
         #: The stage under way, its start and :attr:`set_aside` then (a process ended inside
         #: one reports it too).
@@ -96,9 +99,7 @@ class StageTimer:
             name, t0, aside0 = self.running
             spent = self.clock() - t0 - (self.set_aside - aside0)
             seconds[name] = seconds.get(name, 0.0) + spent
-        names = [s for s in STAGES if s in seconds]
-        names += sorted(set(seconds) - set(STAGES))
-        parts = [f"{n} {seconds[n]:.2f} s" for n in names]
+        parts = [f"{n} {t:.2f} s" for n, t in seconds.items()]  # in the order they began
         other = max(0.0, total - sum(seconds.values()))
         parts += [f"other {other:.2f} s", f"total {total:.2f} s"]
         return "timings: " + ", ".join(parts)
