@@ -623,6 +623,37 @@ def test_cli_resampling_options(cli_volume, tmp_path, capsys):
     assert not (tmp_path / "c.vti").exists()
 
 
+def test_cli_resample_grid_is_the_deformed_volumes_whatever_the_tolerance(
+    cli_volume, tmp_path, capsys
+):
+    """The output grid holds the deformed volume and no more: a larger tolerance (a
+    coarser lattice) gives the default's grid, and the identity gives the input grid with
+    the input's values."""
+    folder, img, files, scene = cli_volume
+    grids = []
+    for extra in ([], ["--tolerance", "1"]):
+        path = tmp_path / f"t{len(grids)}.vti"
+        rc, out, err = _cli(capsys, "deform", files[".vti"], "-s", scene, "-o", path, "-q", *extra)
+        assert rc == 0, err
+        grids.append(read_dataset(path))
+    assert grids[1].dimensions == grids[0].dimensions
+    np.testing.assert_allclose(grids[1].origin, grids[0].origin, rtol=0, atol=1e-9)
+    # the scene with its far end left in place: the identity
+    data = json.loads(scene.read_text())
+    data["constraints"]["targets"] = data["constraints"]["positions"]
+    data["constraints"]["jacobians"] = [np.eye(3).tolist()] * 2
+    still = tmp_path / "still.json"
+    still.write_text(json.dumps(data))
+    path = tmp_path / "still.vti"
+    rc, out, err = _cli(capsys, "deform", files[".vti"], "-s", still, "-o", path, "-q")
+    assert rc == 0, err
+    same = read_dataset(path)
+    assert same.dimensions == img.dimensions
+    np.testing.assert_allclose(same.origin, img.origin, rtol=0, atol=1e-9)
+    assert np.asarray(same.point_data["vtkValidPointMask"]).all()
+    np.testing.assert_array_equal(same.point_data["v"], img.point_data["v"])
+
+
 def test_cli_volume_outside_the_cage(cli_volume, tmp_path, capsys):
 
     folder, img, files, scene = cli_volume
@@ -1396,9 +1427,9 @@ def test_pieces_resampled_with_leaves_joined_from_windows_equal_the_whole_lattic
     hi = np.max([b[1] for b in bounds], axis=0)
     any_outside = any(b[2] for b in bounds)
     assert any_outside == (not whole.lattice.inside([0, 43, 0, 39, 0, 69]).all())
-    joined_geo = output_grid(geo, lo, hi, tolerance=whole.tolerance, keep_input=any_outside)
+    joined_geo = output_grid(geo, lo, hi, keep_input=any_outside)
     assert joined_geo.key() == out_geo.key()
-    # (an engine's own grid over the bounds: with its tolerance)
+    # (an engine's own grid over the bounds)
     assert windows[0].grid_over(lo, hi, keep_input=any_outside).key() == out_geo.key()
     table = np.concatenate([w.reach_table(out_geo) for w in windows])
     n = out_geo.dimensions

@@ -20,6 +20,10 @@ from vhm_viz.core.volume_kernels import box_of
 
 __all__ = ["VolumePieces", "output_grid"]
 
+#: Image bounds this close to a voxel (in voxels) are taken to lie on it: the rounding of
+#: the control points must not add a plane of voxels.
+_ON_VOXEL = 1e-6
+
 
 class VolumePieces:
     """What :class:`~vhm_viz.core.volume.VolumeDeformation` answers about pieces of its work.
@@ -54,7 +58,7 @@ class VolumePieces:
     def _output_geometry(self, spacing) -> ImageGeometry:
         self._whole("output_geometry")
         lo, hi, outside = self.image_bounds()
-        return output_grid(self.geometry, lo, hi, tolerance=self.tolerance, spacing=spacing,
+        return output_grid(self.geometry, lo, hi, spacing=spacing,
                            keep_input=self.outside == "passthrough" and outside)  # fmt: skip
 
     @classmethod
@@ -102,13 +106,12 @@ class VolumePieces:
                           root=self.root, stats=stats)  # fmt: skip
 
     def grid_over(self, lo, hi, *, spacing=None, keep_input: bool = False) -> ImageGeometry:
-        """:func:`output_grid` over image bounds, with this engine's tolerance.
+        """:func:`output_grid` over image bounds, on this engine's input grid.
 
         For MPI ranks, whose combined :meth:`image_bounds` (the smallest ``lo``, the
         largest ``hi``) bound the whole volume's image.
         """
-        return output_grid(self.geometry, lo, hi, tolerance=self.tolerance, spacing=spacing,
-                           keep_input=keep_input)  # fmt: skip
+        return output_grid(self.geometry, lo, hi, spacing=spacing, keep_input=keep_input)
 
     def image_bounds(self):
         """Where this engine's leaves map to, and whether its voxels all lie inside the cage.
@@ -264,9 +267,14 @@ class VolumePieces:
         return not self.lattice.inside(box_of(self.geometry, None)).all()
 
 
-def output_grid(geometry: ImageGeometry, lo, hi, *, tolerance: float, spacing=None,
+def output_grid(geometry: ImageGeometry, lo, hi, *, spacing=None,
                 keep_input: bool = False) -> ImageGeometry:  # fmt: skip
     """The output grid over deformed voxels whose images lie within ``lo..hi``.
+
+    Its extent is the bounds', rounded out to whole voxels. The tolerance does not widen
+    it: pre-images are found on the lattice's polynomials, whose images the bounds
+    contain, so voxels beyond them would hold the fill value (or, within half a voxel,
+    the input's border).
 
     Parameters
     ----------
@@ -274,8 +282,6 @@ def output_grid(geometry: ImageGeometry, lo, hi, *, tolerance: float, spacing=No
         The input grid.
     lo, hi : (3,) array_like
         Bounds of the images in continuous input indices (:meth:`VolumeDeformation.image_bounds`).
-    tolerance : float
-        Added on every side (voxels).
     spacing : (3,) array_like, optional
         Output voxel size; default the input spacing (voxels aligned with the input's).
     keep_input : bool
@@ -285,13 +291,12 @@ def output_grid(geometry: ImageGeometry, lo, hi, *, tolerance: float, spacing=No
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
         raise ValueError("no voxel of the volume is inside the cage")
-    lo = lo - tolerance
-    hi = hi + tolerance
     if keep_input:
         lo = np.minimum(lo, 0.0)
         hi = np.maximum(hi, np.asarray(geo.dimensions) - 1.0)
     if spacing is None:
-        lo, hi = np.floor(lo), np.ceil(hi)
+        # bounds within rounding of a voxel are on it: the identity's grid is the input's
+        lo, hi = np.floor(lo + _ON_VOXEL), np.ceil(hi - _ON_VOXEL)
         dims = (hi - lo).astype(np.int64) + 1
         return ImageGeometry(geo.points(lo[None])[0], geo.spacing, dims, geo.direction)
     sp = np.asarray(spacing, dtype=np.float64).reshape(3)

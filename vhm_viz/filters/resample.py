@@ -359,8 +359,7 @@ class HarmonicResampleFilter(DeformationSource):
             geo = geo_in
         else:
             keep = self._outside == "passthrough" and any_outside
-            geo = output_grid(geo_in, lo, hi, tolerance=self._tolerance, spacing=self._spacing,
-                              keep_input=keep)  # fmt: skip
+            geo = output_grid(geo_in, lo, hi, spacing=self._spacing, keep_input=keep)
         table = mpi.gather_rows_of(lambda: vol.reach_table(geo, own(vol.lattice)), 12)
         table = table.astype(np.int64)
         # which output planes each rank pulls back: shares of the work and of the leaves,
