@@ -99,6 +99,28 @@ def test_a_header_claiming_a_trillion_voxels_is_refused_before_reading(tmp_path)
     assert "DimSize" in lines[0] and "needs about 931 GiB" in lines[0], lines[0]
 
 
+def test_a_tolerance_wider_than_a_root_cell_is_refused_in_one_line_before_reading(tmp_path):
+    """A tolerance of 1000 voxels, far wider than any cell of the lattice, is a mistake:
+    refused in one line before the data is read, nothing written."""
+    from vhm_viz.io import read_dataset
+
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    scene = tmp_path / "bend.json"
+    scene.write_text(json.dumps(_bend_scene(read_dataset(head).bounds)))
+    out = tmp_path / "t.vti"
+    proc = _cli("deform", head, "--scene", scene, "-o", out, "--tolerance", "1000",
+                "--timings", timeout=120)  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("vhm-viz deform")]
+    assert len(errors) == 1 and errors[0].startswith("vhm-viz deform: error:"), proc.stderr
+    assert "--tolerance" in errors[0] and "at most 16" in errors[0], errors[0]
+    assert "got 1000" in errors[0], errors[0]
+    timings = next(ln for ln in proc.stderr.splitlines() if "timings:" in ln)
+    assert " read " not in timings and " solve " not in timings, timings  # before any stage
+    assert list(tmp_path.iterdir()) == [scene]
+
+
 @pytest.mark.parametrize("text", ["0", "2P"])
 def test_a_memory_budget_that_is_no_size_is_refused_in_one_line(tmp_path, text):
     head = data_path("volumes", "headsq_64x64x93.vti")

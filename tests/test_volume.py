@@ -160,15 +160,17 @@ def _near_cage_voxels(geo, cage, count, rng):
     return ijk[rng.choice(len(ijk), min(count, len(ijk)), replace=False)]
 
 
-def test_tolerance_has_one_default_and_is_refused_unless_positive():
+def test_tolerance_has_one_default_and_is_refused_unless_positive_and_at_most_a_root_cell():
     """The volume tolerance's one default; the engine and the lattice builder refuse a
-    tolerance that is not a positive number of voxels, before any work."""
+    tolerance that is not a positive number of voxels up to a root cell, before any work."""
     assert lattice_package.DEFAULT_TOLERANCE is DEFAULT_TOLERANCE
+    assert lattice_package.MAX_TOLERANCE == lattice_package.DEFAULT_ROOT == 16
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (6, 6, 6))
     hm = HarmonicMap.identity(_cage_around((0, 0, 0), (5, 5, 5), 0.1, divisions=1))
     assert VolumeDeformation(hm, geo).tolerance == DEFAULT_TOLERANCE
     assert VolumeDeformation(hm, geo, tolerance=1).tolerance == 1.0
-    for bad in (0.0, -0.05, float("nan"), float("inf")):
+    assert VolumeDeformation(hm, geo, tolerance=16).tolerance == 16.0
+    for bad in (0.0, -0.05, float("nan"), float("inf"), 16.001, 1000):
         with pytest.raises(ValueError, match="positive number of voxels"):
             VolumeDeformation(hm, geo, tolerance=bad)
         with pytest.raises(ValueError, match="positive number of voxels"):

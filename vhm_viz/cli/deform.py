@@ -45,7 +45,7 @@ from vhm_viz.cli._util import (
 from vhm_viz.core.devices import DEVICES, require_device
 from vhm_viz.core.image import INTERPOLATIONS
 from vhm_viz.core.threads import load_compiled_runtime
-from vhm_viz.core.volume import DEFAULT_TOLERANCE
+from vhm_viz.core.volume import DEFAULT_TOLERANCE, MAX_TOLERANCE
 from vhm_viz.io import (
     DATASET_SUFFIXES,
     atomic_outputs,
@@ -124,7 +124,7 @@ def add_arguments(p) -> None:
         default=DEFAULT_TOLERANCE,
         metavar="VOXELS",
         help="volumes: largest position error of a mapped voxel, in voxels of the input "
-        f"spacing (default: {DEFAULT_TOLERANCE} voxels)",
+        f"spacing, at most {MAX_TOLERANCE:g} (default: {DEFAULT_TOLERANCE} voxels)",
     )
     p.add_argument(
         "--interpolation",

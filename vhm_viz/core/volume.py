@@ -55,6 +55,7 @@ from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry, check_interpolatio
 from vhm_viz.core.lattice import (
     DEFAULT_ROOT,
     DEFAULT_TOLERANCE,
+    MAX_TOLERANCE,
     HermiteLattice,
     build_lattice,
     check_tolerance,
@@ -100,6 +101,7 @@ __all__ = [
     "exact_preimages",
     "fast_jacobian_measures",
     "DEFAULT_TOLERANCE",
+    "MAX_TOLERANCE",
     "check_tolerance",
     "EXACT_VOXELS",
     "INTERPOLATIONS",

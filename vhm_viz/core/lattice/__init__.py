@@ -57,6 +57,7 @@ bound its image): a point whose linear pre-image estimate misses the cell by mor
 from vhm_viz.core.lattice.build import (
     DEFAULT_ROOT,
     DEFAULT_TOLERANCE,
+    MAX_TOLERANCE,
     build_lattice,
     check_tolerance,
     exchange_rounds,
@@ -73,4 +74,5 @@ __all__ = [
     "PART_FIELDS",
     "DEFAULT_ROOT",
     "DEFAULT_TOLERANCE",
+    "MAX_TOLERANCE",
 ]

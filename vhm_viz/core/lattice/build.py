@@ -36,6 +36,10 @@ from vhm_viz.core.memory import grow_in_place, release_free_memory
 DEFAULT_TOLERANCE = 0.05
 #: Root cell size in voxels (a power of two).
 DEFAULT_ROOT = 16
+#: Largest tolerance, in voxels: the width of a root cell, the lattice's largest cell. An
+#: error bound wider than the cells that carry the map bounds nothing of use (a voxel could
+#: land a whole cell away), so a larger value is refused as a mistake.
+MAX_TOLERANCE = float(DEFAULT_ROOT)
 #: A cell passes when its largest test error is below this fraction of the tolerance.
 _SAFETY = 0.15
 # Cells within this many voxels (box distance) of a cage edge split down to single voxels,
@@ -48,7 +52,7 @@ _CORNERS = np.array([[a, b, c] for c in (0, 1) for b in (0, 1) for a in (0, 1)])
 
 
 def check_tolerance(tolerance) -> float:
-    """The volume tolerance as a float, refused unless a positive finite number of voxels.
+    """The volume tolerance as a float, refused unless in (0, :data:`MAX_TOLERANCE`] voxels.
 
     The one check of the setting: the volume engine's constructors, the filters'
     ``SetTolerance`` and the command line's ``--tolerance`` all call it.
@@ -66,14 +70,18 @@ def check_tolerance(tolerance) -> float:
     Raises
     ------
     ValueError
-        When it is not a positive finite number.
+        When it is not a number of voxels in (0, :data:`MAX_TOLERANCE`].
     """
     try:
         value = float(tolerance)
     except (TypeError, ValueError):
         value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(f"tolerance must be a positive number of voxels; got {tolerance}")
+    if not (value > 0 and value <= MAX_TOLERANCE):
+        shown = f"{value:g}" if value == value else repr(tolerance)
+        raise ValueError(
+            f"tolerance must be a positive number of voxels, at most {MAX_TOLERANCE:g} (the "
+            f"lattice's root cell); got {shown}"
+        )
     return value
 
 
