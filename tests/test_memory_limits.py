@@ -121,6 +121,43 @@ def test_a_tolerance_wider_than_a_root_cell_is_refused_in_one_line_before_readin
     assert list(tmp_path.iterdir()) == [scene]
 
 
+def test_a_resample_too_large_is_refused_for_the_grid_the_engine_would_make(tmp_path):
+    """The size check before mapping sees the output grid the engine makes, whatever
+    shapes it (the tolerance, the spacing): a fine --spacing is refused naming a grid that
+    spans the engine's own grid of the volume, and a spacing no image can hold is refused
+    in one line too."""
+    from vhm_viz.io import read_dataset
+
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    scene = tmp_path / "bend.json"
+    scene.write_text(json.dumps(_bend_scene(read_dataset(head).bounds)))
+    made = tmp_path / "made.vti"
+    proc = _cli("deform", head, "--scene", scene, "-o", made, "-q", "--tolerance", "16")
+    assert proc.returncode == 0, proc.stderr
+    grid = read_dataset(made)
+    made.unlink()
+    dims, spacing = np.asarray(grid.dimensions), np.asarray(grid.spacing)
+    step = 0.01
+    refused = {}
+    for fine, words in ((str(step), "needs about"), ("1e-9", "along an axis")):
+        out = tmp_path / "fine.vti"
+        proc = _cli("deform", head, "--scene", scene, "-o", out, "-q", "--tolerance", "16",
+                    "--spacing", fine, "--timings")  # fmt: skip
+        assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+        errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("vhm-viz deform")]
+        assert len(errors) == 1 and words in errors[0], proc.stderr
+        timings = next(ln for ln in proc.stderr.splitlines() if "timings:" in ln)
+        assert " map " not in timings, timings  # refused before the voxels were mapped
+        refused[fine] = errors[0]
+    assert list(tmp_path.iterdir()) == [scene]
+    # in the engine's voxels the refused grid spans its grid, give or take the estimate's
+    # margin (a voxel on each side) and what its sampled points miss
+    words = refused[str(step)].split(" onto a ")[1].split(" grid")[0]
+    named = np.array([int(n) for n in words.split("x")])
+    span = (named - 1) * step / spacing
+    assert np.all(span >= dims - 2) and np.all(span <= dims + 1 + step / spacing), (named, dims)
+
+
 @pytest.mark.parametrize("text", ["0", "2P"])
 def test_a_memory_budget_that_is_no_size_is_refused_in_one_line(tmp_path, text):
     head = data_path("volumes", "headsq_64x64x93.vti")

@@ -6,6 +6,7 @@ subcommand's module and stays quick.
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -789,12 +790,15 @@ def check_volume_memory(image, harmonic_map, *, resample: bool, output, memory_b
     value_bytes = sum(image.point_data[name].nbytes // max(n_in, 1)
                       for name in image.point_data.keys())  # fmt: skip
     if resample:
-        out_dims = _resampled_dimensions(image, harmonic_map, spacing, reference, outside)
+        try:
+            out_dims = _resampled_dimensions(image, harmonic_map, spacing, reference, outside)
+        except ValueError as exc:  # a grid no image can hold
+            raise CLIError(f"resampling {'x'.join(map(str, dims))} voxels: {exc}") from None
     else:
         out_dims = dims
     budget = DEFAULT_MEMORY_BUDGET if memory_budget is None else int(memory_budget)
     parts = volume_job_bytes(
-        n_in, int(np.prod(out_dims, dtype=np.int64)), value_bytes,
+        n_in, math.prod(out_dims), value_bytes,
         kind="resample" if resample else "warp", memory_budget=budget,
         writer_copies=_WRITER_COPIES.get(suffix_of(output), 0),
     )  # fmt: skip
@@ -814,21 +818,26 @@ def check_volume_memory(image, harmonic_map, *, resample: bool, output, memory_b
 
 
 def _resampled_dimensions(image, harmonic_map, spacing, reference, outside) -> tuple:
-    """The dimensions of a resample's output grid, from the images of a few input points."""
+    """The dimensions of a resample's output grid, from the images of a few input points.
+
+    The engine's own rule (:func:`~vhm_viz.core.volume.output_grid`) over the points'
+    images, widened by a voxel on each side for the images between them, so that every
+    option that shapes the grid shapes the estimate the same way.
+    """
     if reference is not None:
         return tuple(int(d) for d in reference.dimensions)
-    dims = np.asarray(image.dimensions, dtype=np.int64)
+    from vhm_viz.core.volume import output_grid
+    from vhm_viz.filters._vtk import image_geometry
+
+    geo = image_geometry(image)
+    dims = np.asarray(geo.dimensions, dtype=np.int64)
     axes = [np.linspace(0, d - 1, min(int(d), _EXTENT_SAMPLES)) for d in dims]
     ijk = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    mapped = harmonic_map.evaluate(image_positions(image, ijk), outside="nan")[0]
+    mapped = harmonic_map.evaluate(geo.points(ijk), outside="nan")[0]
     mapped = mapped[np.isfinite(mapped).all(axis=1)]
     if len(mapped) == 0:
         return tuple(int(d) for d in dims)
-    frame = np.asarray(image.direction_matrix, dtype=np.float64) * np.asarray(image.spacing)
-    index = np.linalg.solve(frame, (mapped - np.asarray(image.origin)).T).T
-    lo, hi = index.min(axis=0) - 1.0, index.max(axis=0) + 1.0
-    if outside == "passthrough":
-        lo, hi = np.minimum(lo, 0.0), np.maximum(hi, dims - 1.0)
-    extent = (hi - lo) * np.abs(np.asarray(image.spacing, dtype=np.float64))
-    step = np.abs(np.asarray(image.spacing, dtype=np.float64)) if spacing is None else spacing
-    return tuple(int(np.floor(e / s)) + 1 for e, s in zip(extent, step, strict=True))
+    index = geo.continuous_index(mapped)
+    grid = output_grid(geo, index.min(axis=0) - 1.0, index.max(axis=0) + 1.0, spacing=spacing,
+                       keep_input=outside == "passthrough")  # fmt: skip
+    return tuple(int(d) for d in grid.dimensions)

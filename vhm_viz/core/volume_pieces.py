@@ -23,6 +23,9 @@ __all__ = ["VolumePieces", "output_grid"]
 #: Image bounds this close to a voxel (in voxels) are taken to lie on it: the rounding of
 #: the control points must not add a plane of voxels.
 _ON_VOXEL = 1e-6
+#: The most voxels along one axis of an output grid: image extents (VTK's) are 32-bit
+#: integers, and a longer axis would overflow the grid's voxel count.
+_MAX_AXIS = 2**31 - 1
 
 
 class VolumePieces:
@@ -297,13 +300,24 @@ def output_grid(geometry: ImageGeometry, lo, hi, *, spacing=None,
     if spacing is None:
         # bounds within rounding of a voxel are on it: the identity's grid is the input's
         lo, hi = np.floor(lo + _ON_VOXEL), np.ceil(hi - _ON_VOXEL)
-        dims = (hi - lo).astype(np.int64) + 1
+        dims = _axis_voxels(hi - lo + 1)
         return ImageGeometry(geo.points(lo[None])[0], geo.spacing, dims, geo.direction)
     sp = np.asarray(spacing, dtype=np.float64).reshape(3)
     if not (np.isfinite(sp).all() and (sp > 0).all()):
         raise ValueError(f"spacing must be three positive numbers; got {spacing}")
     extent = (hi - lo) * geo.spacing
-    dims = np.floor(extent / sp + 1e-9).astype(np.int64) + 1
+    dims = _axis_voxels(np.floor(extent / sp + 1e-9) + 1)
     # centre the output voxels on the deformed volume's box
     start = lo * geo.spacing + 0.5 * (extent - (dims - 1) * sp)
     return ImageGeometry(geo.origin + geo.direction @ start, sp, dims, geo.direction)
+
+
+def _axis_voxels(counts) -> np.ndarray:
+    """Voxels along each axis of an output grid (int64), refused past :data:`_MAX_AXIS`."""
+    if (counts > _MAX_AXIS).any():
+        shown = "x".join(f"{c:.3g}" for c in counts)
+        raise ValueError(
+            f"an output grid of {shown} voxels is longer than {_MAX_AXIS} voxels along an "
+            "axis; give a coarser spacing"
+        )
+    return counts.astype(np.int64)
