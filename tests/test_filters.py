@@ -494,7 +494,10 @@ def test_resample_affine_matches_affine_resampling():
     flt.SetInputData(img)
     flt.SetHarmonicMap(hm)
     flt.SetOutputMode("input")
-    flt.SetFillValue(-7.0)
+    flt.SetFillValue(-7.0)  # not a value of the uint8 labels: refused, never clipped
+    with pytest.raises(ValueError, match="fill_value -7 is not a uint8 value of the array 'label'"):
+        update(flt)
+    flt.SetFillValue(7.0)
     out = pv.wrap(update(flt))
     assert isinstance(out, pv.ImageData)
     assert out.dimensions == img.dimensions
@@ -508,8 +511,9 @@ def test_resample_affine_matches_affine_resampling():
     assert mask[clearly_in].all() and not mask[clearly_out].any()
     got = np.asarray(out.point_data["density"])
     np.testing.assert_allclose(got[clearly_in], ref[clearly_in], atol=1e-6)
-    np.testing.assert_array_equal(got[clearly_out], -7.0)
+    np.testing.assert_array_equal(got[clearly_out], 7.0)
     assert out.point_data["label"].dtype == np.uint8
+    np.testing.assert_array_equal(np.asarray(out.point_data["label"])[clearly_out], 7)
 
 
 def test_resample_pieces_and_deformed_grid():

@@ -12,6 +12,7 @@ import itertools
 import json
 import threading
 import tracemalloc
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -357,9 +358,13 @@ def test_resampled_voxels_hold_the_input_at_their_preimage(bend):
     assert res.arrays["label"].dtype == np.uint16 and res.arrays["v"].dtype == np.float32
     assert set(np.unique(res.arrays["label"][res.valid == 1])) <= set(np.unique(labels))
     assert (res.arrays["label"][res.valid == 0] == 0).all()
-    lin = vol.resample({"label": labels}, interpolation="linear", fill_value=-5)
+    lin = vol.resample({"label": labels}, interpolation="linear", fill_value=65535)
     assert lin.arrays["label"].dtype == np.uint16  # rounded and clipped back
-    assert (lin.arrays["label"][lin.valid == 0] == 0).all()  # -5 clipped to the type
+    assert (lin.arrays["label"][lin.valid == 0] == 65535).all()
+    # a fill value the type cannot hold is refused, not clipped or rounded
+    for bad in (-5, 65536, 2.5, float("nan")):
+        with pytest.raises(ValueError, match=r"not a uint16 value .*'label' \(integers 0 to"):
+            vol.resample({"v": values, "label": labels}, fill_value=bad)
     # integer arrays hold the float result rounded and clipped (cubic overshoots 0..250)
     steps = (rng.integers(0, 2, geo.n_points) * 250).astype(np.uint8)
     cub = vol.resample({"b": steps, "f": steps.astype(np.float64)}, interpolation="cubic")
@@ -654,6 +659,51 @@ def test_cli_resample_grid_is_the_deformed_volumes_whatever_the_tolerance(
     np.testing.assert_allclose(same.origin, img.origin, rtol=0, atol=1e-9)
     assert np.asarray(same.point_data["vtkValidPointMask"]).all()
     np.testing.assert_array_equal(same.point_data["v"], img.point_data["v"])
+
+
+def test_cli_fill_value_is_refused_unless_the_data_type_holds_it(tmp_path, capsys):
+    """--fill-value: on an integer image a value outside its type's integers is refused in
+    one line before the solve; a floating-point image takes any number, nan included. The
+    outside voxels then hold the value exactly, and no Python warning is printed."""
+    z, y, x = np.mgrid[0:16, 0:18, 0:20]
+    img = pv.ImageData(dimensions=(20, 18, 16), spacing=(1.0, 1.1, 0.9))
+    scene = _bend_scene(tmp_path, img.bounds[0::2], img.bounds[1::2])
+    base = (50 + 10 * x + 3 * y + z).ravel()
+    uint16 = "is not a uint16 value (integers 0 to 65535)"
+    float32 = "is not a float32 value (numbers up to 3.4e+38 in magnitude, infinities and nan)"
+    cases = {
+        np.uint16: ({"-1": uint16, "70000": uint16, "1.5": uint16, "nan": uint16,
+                     "inf": uint16}, ["0", "65535", "7"]),
+        np.float32: ({"1e39": float32, "-1e39": float32}, ["-1.5", "nan", "-inf", "1e30"]),
+    }  # fmt: skip
+    out = tmp_path / "out.vti"
+    for dtype, (refused, accepted) in cases.items():
+        img.point_data.clear()
+        img.point_data["v"] = base.astype(dtype)
+        src = tmp_path / f"in_{np.dtype(dtype).name}.vti"
+        write_dataset(src, img)
+        for text in [*refused, *accepted]:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                rc, _, err = _cli(capsys, "deform", src, "-s", scene, "-o", out, "-q",
+                                  f"--fill-value={text}", "--timings")  # fmt: skip
+            assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], text
+            assert "Warning" not in err, err
+            if text in refused:
+                assert rc == 1 and not out.exists(), err
+                errors = [ln for ln in err.splitlines() if ln.startswith("vhm-viz deform")]
+                shown = f"{float(text):g}" if "e" in text else text
+                assert errors == [f"vhm-viz deform: error: --fill-value {shown} {refused[text]}"]
+                assert " solve " not in next(ln for ln in err.splitlines() if "timings:" in ln)
+                continue
+            assert rc == 0, err
+            got = read_dataset(out)
+            values = np.asarray(got.point_data["v"])
+            outside = np.asarray(got.point_data["vtkValidPointMask"]) == 0
+            assert values.dtype == dtype and outside.any() and (~outside).any()
+            want = np.asarray(float(text)).astype(dtype)
+            np.testing.assert_array_equal(values[outside], np.full(outside.sum(), want))
+            out.unlink()
 
 
 def test_cli_volume_outside_the_cage(cli_volume, tmp_path, capsys):

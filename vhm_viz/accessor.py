@@ -157,7 +157,8 @@ class VHMAccessor:
         ----------
         deformation : Deformer, HarmonicMap, Scene or path
         fill_value : float
-            Value of the voxels without a pre-image (``vtkValidPointMask`` 0 there).
+            Value of the voxels without a pre-image (``vtkValidPointMask`` 0 there), held
+            exactly by every array's type (an integer in its range for integer arrays).
         output : {"deformed", "input"}
             The grid holding the whole deformed volume (default) or the input grid.
         cage : pyvista.PolyData or Cage, optional

@@ -116,7 +116,9 @@ def add_arguments(p) -> None:
         default=0.0,
         metavar="VALUE",
         help="volume resampling: value of voxels without a pre-image, in the units of the "
-        "data (default: 0; they also get 0 in the array vtkValidPointMask)",
+        "data and held exactly by its type: an integer in the type's range for integer "
+        "data, any number (nan, inf) for floating-point data (default: 0; they also get 0 "
+        "in the array vtkValidPointMask)",
     )
     p.add_argument(
         "--tolerance",
@@ -196,8 +198,10 @@ def deform(args: argparse.Namespace) -> str:
     """Do the work; returns the summary line."""
     import pyvista as pv
 
+    from vhm_viz.core.image import check_fill_value
     from vhm_viz.core.volume import check_tolerance
     from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter
+    from vhm_viz.filters.resample import resampled_arrays
 
     require_device(args.device)  # no GPU: one line, before any work
     src = check_input(args.input)
@@ -233,6 +237,12 @@ def deform(args: argparse.Namespace) -> str:
     if not resample and (args.spacing or reference):
         raise CLIError("--spacing and --reference apply to a volume resampled to an image")
     field_paths = check_field_output(args, volume, inputs)
+    if resample:  # a fill value the output's types cannot hold: before the solve
+        dtypes = {name: mesh.point_data[name].dtype for name in resampled_arrays(mesh)}
+        try:
+            check_fill_value(args.fill_value, dtypes, name="--fill-value")
+        except ValueError as exc:
+            raise CLIError(str(exc)) from None
 
     t0 = time.perf_counter()
     # the checks' kernels load on a second thread while the solve leaves a core idle (a

@@ -28,6 +28,7 @@ __all__ = [
     "INTERPOLATIONS",
     "BORDER",
     "check_interpolation",
+    "check_fill_value",
     "inside_mask",
     "surface_mask",
     "sample_cubic",
@@ -44,6 +45,56 @@ def check_interpolation(kind: str) -> str:
     if kind not in INTERPOLATIONS:
         raise ValueError(f"interpolation must be one of {INTERPOLATIONS}; got {kind!r}")
     return kind
+
+
+def check_fill_value(value, dtypes: dict, name: str = "fill_value") -> float:
+    """The fill value as a float, refused unless every array's type holds it exactly.
+
+    The one check of the value given to voxels without a pre-image: the volume engine's
+    resampling, its filter and the command line's ``--fill-value`` call it. An integer
+    type holds the integers of its range; a floating-point type holds every number up to
+    its largest finite one (rounded to its precision), infinities and NaN. Anything else
+    would be changed silently by the cast (clipped, rounded, or NaN made 0).
+
+    Parameters
+    ----------
+    value : float
+    dtypes : dict of str -> numpy dtype
+        The arrays that take it, by name.
+    name : str
+        The setting's name, for the message (``--fill-value`` on the command line).
+
+    Raises
+    ------
+    ValueError
+        One line: the value, the type, the values it holds (and the array, where the
+        arrays' types differ).
+    """
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number; got {value!r}") from None
+    shown = str(int(number)) if number.is_integer() and abs(number) < 1e16 else repr(number)
+    several = len({np.dtype(d) for d in dtypes.values()}) > 1
+    for array, dtype in dtypes.items():
+        dtype = np.dtype(dtype)
+        if dtype.kind == "f":
+            top = float(np.finfo(dtype).max)
+            if not math.isfinite(number) or abs(number) <= top:
+                continue
+            held = f"numbers up to {top:.3g} in magnitude, infinities and nan"
+        elif dtype.kind in "iub":
+            low, high = (0, 1) if dtype.kind == "b" else (np.iinfo(dtype).min, np.iinfo(dtype).max)
+            if number.is_integer() and low <= number <= high:
+                continue
+            held = f"integers {low} to {high}"
+        else:
+            continue  # (VTK arrays hold integers or floating-point numbers)
+        where = f" of the array {array!r}" if several else ""
+        raise ValueError(f"{name} {shown} is not a {dtype} value{where} ({held})")
+    return number
+
+
 #: The input volume extends this many voxels beyond its outer grid points, where the
 #: nearest boundary values are used (``vtkImageReslice``'s default border): each voxel
 #: then stands for a full cube.

@@ -51,7 +51,12 @@ from vhm_viz.core.displacement import (
     subtract_grid_points,
 )
 from vhm_viz.core.errors import AbortedError, OutsideCageError, describe_indices
-from vhm_viz.core.image import INTERPOLATIONS, ImageGeometry, check_interpolation
+from vhm_viz.core.image import (
+    INTERPOLATIONS,
+    ImageGeometry,
+    check_fill_value,
+    check_interpolation,
+)
 from vhm_viz.core.lattice import (
     DEFAULT_ROOT,
     DEFAULT_TOLERANCE,
@@ -545,7 +550,8 @@ class VolumeDeformation(VolumePieces):
             Sampling of the input at the pre-images: trilinear; nearest voxel (values
             copied exactly, for label maps); Catmull-Rom cubic convolution.
         fill_value : float
-            Value of voxels without a pre-image (cast to each array's dtype).
+            Value of voxels without a pre-image; every array's dtype must hold it exactly
+            (:func:`~vhm_viz.core.image.check_fill_value`: a ValueError before any work).
         input_box : (i0, i1, j0, j1, k0, k1), optional
             ``arrays`` hold only this box of the input grid (default: all of it); it must
             contain :meth:`input_window` of the output box, the voxels the pre-images
@@ -569,6 +575,9 @@ class VolumeDeformation(VolumePieces):
             filled and its counts set.
         """
         check_interpolation(interpolation)
+        fill_value = check_fill_value(
+            fill_value, {name: np.asarray(v).dtype for name, v in arrays.items()}
+        )
         src = self.geometry
         ib = box_of(src, input_box)
         nx, ny, nz = (int(n) for n in ib[1::2] - ib[0::2] + 1)

@@ -134,7 +134,8 @@ def finish_slab(state, fold, u, valid, foldover, samples, kind: str, fill_value:
         ``out`` (P,) or (P, c) of the volume's dtype, written; ``volume`` (nz, ny, nx, c).
     kind : {"linear", "nearest", "cubic"}
     fill_value : float
-        Value where there is no pre-image (rounded and clipped for integer arrays).
+        Value where there is no pre-image, held exactly by every array's dtype
+        (:func:`~vhm_viz.core.image.check_fill_value`).
     row_width : int
         Voxels per output row (``P`` is a multiple): the unit of the threads' chunks.
     counts : (R, 3) int64 scratch, ``R >= P / row_width``
@@ -150,19 +151,20 @@ def finish_slab(state, fold, u, valid, foldover, samples, kind: str, fill_value:
     code = INTERPOLATIONS.index(kind)
     shift = np.zeros(3) if shift is None else np.asarray(shift, dtype=np.float64).reshape(3)
     n_rows = len(state) // row_width
-    if not samples:  # the masks alone: a volume without components
+    if not samples:  # the masks alone: a volume without components (no voxel takes a fill)
         samples = [(np.empty((len(state), 0), dtype=np.uint8), np.empty((1, 1, 1, 0), np.uint8))]
+        fill_value = 0
     for a, (out, volume) in enumerate(samples):
         dtype = volume.dtype
         integer = np.issubdtype(dtype, np.integer)
-        fill, lo, hi = fill_value, 0.0, 0.0
+        lo, hi = 0.0, 0.0
         if integer:
             info = np.iinfo(dtype)
-            fill = np.clip(np.rint(fill_value), info.min, info.max)
             lo, hi = float(info.min), float(info.max)
+        fill = np.asarray(fill_value, dtype=dtype).reshape(1)
         run_rows(_finisher(code), n_rows, row_width, state, fold, u, shift, volume,
-                 integer and kind != "nearest", lo, hi, np.asarray(fill).astype(dtype).reshape(1),
-                 a == 0, valid, foldover, counts, out.reshape(len(out), -1), grain=64)  # fmt: skip
+                 integer and kind != "nearest", lo, hi, fill, a == 0, valid, foldover, counts,
+                 out.reshape(len(out), -1), grain=64)  # fmt: skip
     total = counts[:n_rows].sum(axis=0)
     return int(total[0]), int(total[1]), int(total[2])
 

@@ -29,7 +29,13 @@ from vhm_viz.filters._vtk import (
     requested_extent,
 )
 
-__all__ = ["HarmonicResampleFilter", "image_geometry", "FIELD_ARRAY", "displacement_field_of"]
+__all__ = [
+    "HarmonicResampleFilter",
+    "image_geometry",
+    "FIELD_ARRAY",
+    "displacement_field_of",
+    "resampled_arrays",
+]
 
 _SDDP = vtkStreamingDemandDrivenPipeline
 _MODES = ("deformed", "input")
@@ -59,7 +65,9 @@ class HarmonicResampleFilter(DeformationSource):
     **Fill value.** Voxels without a pre-image -- outside the deformed volume, whose
     input extends half a voxel beyond its outer grid points as with ``vtkImageReslice``'s
     border -- get :meth:`SetFillValue` (default 0) in every array and 0 in the ``uint8``
-    array ``vtkValidPointMask`` (1 elsewhere), as ``vtkProbeFilter`` does. Where several
+    array ``vtkValidPointMask`` (1 elsewhere), as ``vtkProbeFilter`` does. Every array's
+    type must hold the fill value exactly (:func:`~vhm_viz.core.image.check_fill_value`):
+    an update with one it cannot hold fails, naming the type's values. Where several
     pre-images exist (a fold) the ``uint8`` array ``vhm_foldover`` is 1; the field arrays
     ``vhm_foldover_count`` and ``vhm_valid_count`` count them. Cell data is not resampled.
 
@@ -127,7 +135,11 @@ class HarmonicResampleFilter(DeformationSource):
 
     # ------------------------------------------------------------------ options
     def SetFillValue(self, value: float) -> None:
-        """Value of the voxels without a pre-image (default 0)."""
+        """Value of the voxels without a pre-image (default 0).
+
+        Every array's type must hold it exactly (an integer in its range for integer
+        arrays); an update with one it cannot hold fails.
+        """
         self._set_option("_fill", float(value))
 
     def GetFillValue(self) -> float:
@@ -285,12 +297,9 @@ class HarmonicResampleFilter(DeformationSource):
         pd_in, pd_out = img.GetPointData(), out.GetPointData()
         scalars = pd_in.GetScalars().GetName() if pd_in.GetScalars() is not None else None
         arrays, types = {}, {}
-        for a in range(pd_in.GetNumberOfArrays()):
-            arr = pd_in.GetArray(a)
-            if arr is None or arr.GetName() in _OWN_ARRAYS:
-                continue
-            arrays[arr.GetName()] = ns.vtk_to_numpy(arr)
-            types[arr.GetName()] = arr.GetDataType()
+        for name, arr in resampled_arrays(img).items():
+            arrays[name] = ns.vtk_to_numpy(arr)
+            types[name] = arr.GetDataType()
         options = dict(interpolation=self._interpolation, fill_value=self._fill,
                        input_box=input_box, displacement=self._field,
                        abort=self._aborted)  # fmt: skip
@@ -582,6 +591,21 @@ class HarmonicResampleFilter(DeformationSource):
             counts += part["counts"][0]
         piece.counts = {k: int(c) for k, c in zip(keys, counts, strict=True)}
         return vol, piece, done
+
+
+def resampled_arrays(image) -> dict:
+    """The point arrays of an image that :class:`HarmonicResampleFilter` resamples.
+
+    Every point array but the filter's own (:data:`_OWN_ARRAYS`: an earlier output's
+    masks are made again, not resampled), by name (``vtkDataArray``).
+    """
+    pd = image.GetPointData()
+    arrays = {}
+    for a in range(pd.GetNumberOfArrays()):
+        arr = pd.GetArray(a)
+        if arr is not None and arr.GetName() not in _OWN_ARRAYS:
+            arrays[arr.GetName()] = arr
+    return arrays
 
 
 def displacement_field_of(image, kind: str = "pullback") -> DisplacementField:

@@ -243,7 +243,8 @@ class VHMResampleToImage(_ParaViewReporting, HarmonicResampleFilter):
     @smproperty.doublevector(name="FillValue", default_values=0.0)
     @smdomain.xml(
         "<Documentation>Value of output voxels without a pre-image (they also get 0 in "
-        "vtkValidPointMask).</Documentation>"
+        "vtkValidPointMask); every array's type must hold it exactly (an integer in its "
+        "range for integer data).</Documentation>"
     )
     def SetFillValueProperty(self, value):
         self.SetFillValue(float(value))
