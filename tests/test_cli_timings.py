@@ -1,7 +1,9 @@
-"""--timings, --threads and the fold check of a warped volume, through the command line."""
+"""--timings, --threads and the fold check of a warped or resampled volume, through the
+command line."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -10,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 import pyvista as pv
-from conftest import trilinear_corner_dets
+from conftest import box_cage, data_path, trilinear_corner_dets
 
 from vhm_viz import examples
 from vhm_viz.cli.timings import StageTimer
@@ -66,6 +68,75 @@ def test_warped_volume_fold_count_matches_brute_force(folding_volume):
     parts = sum(float(v) for k, v in stages.items() if k != "total")
     # each printed value is rounded to 0.01 s: the sum is within half of that per value
     assert parts == pytest.approx(float(stages["total"]), abs=0.005 * len(stages) + 1e-9)
+
+
+def _box(text):
+    """The two corners of ``(x, y, z)-(x, y, z)``."""
+    return [[float(v) for v in corner.split(",")] for corner in re.findall(r"\(([^)]*)\)", text)]
+
+
+def test_resampled_volume_in_folds_is_refused_unless_allowed(folding_volume, tmp_path):
+    args = ["deform", str(folding_volume / "image.vti"), "--scene",
+            str(folding_volume / "scene.json"), "-q"]  # fmt: skip
+    # an earlier output stays as it was: the refusal writes nothing, not even beside it
+    out = tmp_path / "out.vti"
+    out.write_bytes((folding_volume / "image.vti").read_bytes())
+    before = out.read_bytes()
+    refused = _cli(*args, "-o", str(out))
+    assert refused.returncode == 4 and refused.stdout.strip() == ""
+    assert out.read_bytes() == before
+    nifti = _cli(*args, "-o", str(tmp_path / "out.nii.gz"))
+    assert nifti.returncode == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.vti"]
+    error = refused.stderr.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith("vhm-viz deform: error: the deformation folds")
+    assert error[0].endswith("pass --allow-folds to write it anyway)")
+    # --allow-folds writes it; the line, now a warning, counts the voxels it marks in folds
+    # and gives the box of their positions
+    allowed = _cli(*args, "-o", str(out), "--allow-folds")
+    assert allowed.returncode == 0, allowed.stderr
+    (line,) = allowed.stderr.strip().splitlines()
+    assert line.startswith("warning: ") and line.removeprefix("warning: ") in error[0]
+    m = re.search(
+        r"(\d+) of (\d+) output voxels in folds \(several pre-images; output positions "
+        r"within (\([^)]*\)-\([^)]*\))\)",
+        line,
+    )
+    assert m, line
+    image = pv.read(out)
+    marked = np.flatnonzero(np.asarray(image.point_data["vhm_foldover"]))
+    assert int(m.group(1)) == marked.size > 0 and int(m.group(2)) == image.n_points
+    at = np.asarray(image.points)[marked]
+    np.testing.assert_allclose(_box(m.group(3)), [at.min(axis=0), at.max(axis=0)], atol=1e-3)
+
+
+def test_a_resample_refuses_voxels_in_folds_that_the_spot_check_misses(tmp_path):
+    # the CT head twisted by 45 degrees in a box cage: the 256 points of the spot check
+    # have det J > 0, yet output voxels lie in folds (the warp's cells are inverted there)
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    held = [[100.8, 100.8, 0], [0, 0, 0], [201.6, 0, 0], [201.6, 201.6, 0], [0, 201.6, 0],
+            [100.8, 100.8, 138]]  # fmt: skip
+    v, f = box_cage((-10, -10, -10), (211.6, 211.6, 148))
+    scene = {
+        "format": "vhm_viz.scene", "version": 1,
+        "cage": {"vertices": v.tolist(), "faces": f.tolist()},
+        "anchors": {"auto": 24},
+        "constraints": {
+            "positions": held, "targets": held,
+            "jacobian_points": [[100.8, 100.8, 0], [100.8, 100.8, 138]],
+            "jacobians": [np.eye(3).tolist(), [[c, -s, 0], [s, c, 0], [0, 0, 1]]],
+        },
+        "solver": {"steps": 3},
+    }  # fmt: skip
+    (tmp_path / "twist.json").write_text(json.dumps(scene))
+    out = tmp_path / "twist.vti"
+    proc = _cli("deform", str(head), "--scene", str(tmp_path / "twist.json"), "-o", str(out),
+                "-q")  # fmt: skip
+    assert proc.returncode == 4 and not out.exists()
+    (line,) = proc.stderr.strip().splitlines()
+    assert re.search(r": \d+ of \d+ output voxels in folds \(several pre-images; output ", line)
+    assert "sampled points" not in line, line
 
 
 class _Clock:

@@ -19,9 +19,10 @@ Exit statuses:
 2    bad command-line arguments (argparse's usage message)
 3    the solver did not converge within ``solver.max_iterations``; no output was
      written (``--allow-unconverged`` writes it anyway and exits 0)
-4    ``deform``: the result folds the data (inverted cells, or ``det J <= 0`` at
-     sampled points; the line says how many and where); no output was written
-     (``--allow-folds`` writes it anyway, with the warning, and exits 0)
+4    ``deform``: the result folds the data (inverted cells, resampled voxels in
+     folds, or ``det J <= 0`` at sampled points; the line says how many and where);
+     no output was written (``--allow-folds`` writes it anyway, with the warning,
+     and exits 0)
 130  interrupted by SIGINT (Ctrl-C); 143: by SIGTERM. Previous outputs are left
      byte-identical and no temporary file remains
 ===  ===========================================================================

@@ -315,9 +315,9 @@ def add_fold_argument(parser) -> None:
     parser.add_argument(
         "--allow-folds",
         action="store_true",
-        help="write the result even when it folds the data (inverted cells, or det J <= 0 "
-        "at sampled points: the warning says how many and where); otherwise exit status 4, "
-        "nothing written",
+        help="write the result even when it folds the data (inverted cells, resampled "
+        "voxels in folds, or det J <= 0 at sampled points: the warning says how many and "
+        "where); otherwise exit status 4, nothing written",
     )
 
 
@@ -415,15 +415,19 @@ def fold_samples(n_points: int) -> int:
     return min(FOLD_SAMPLES, max(FOLD_SPOT_SAMPLES, int(n_points) // FOLD_SAMPLE_SPREAD))
 
 
+def _position(p) -> str:
+    """``(x, y, z)`` to 4 digits."""
+    return "(" + ", ".join(f"{c:.4g}" for c in p) + ")"
+
+
 def _where(points: np.ndarray, values: np.ndarray) -> str:
     """``worst -0.12 at (x, y, z), within [lo]-[hi]`` for the bad points (rest positions)."""
     k = int(np.argmin(values))
-    fmt = lambda p: "(" + ", ".join(f"{c:.4g}" for c in p) + ")"  # noqa: E731
-    text = f"worst {values[k]:.3g} at {fmt(points[k])}"
+    text = f"worst {values[k]:.3g} at {_position(points[k])}"
     if len(points) > 1:  # column by column: numpy's axis-0 reduction of (K, 3) is slow
         lo = [points[:, c].min() for c in range(points.shape[1])]
         hi = [points[:, c].max() for c in range(points.shape[1])]
-        text += f", within {fmt(lo)}-{fmt(hi)}"
+        text += f", within {_position(lo)}-{_position(hi)}"
     return text
 
 
@@ -556,7 +560,7 @@ def _spot_jacobian_determinants(harmonic_map, points) -> tuple[np.ndarray, np.nd
 
 
 def fold_warning(
-    rest, harmonic_map, cells=None, point_det=None, samples: int = FOLD_SAMPLES
+    rest, harmonic_map, cells=None, point_det=None, samples: int = FOLD_SAMPLES, voxels=None
 ) -> str | None:
     """One warning line when a deformation folds the data, naming how many and where.
 
@@ -576,13 +580,27 @@ def fold_warning(
     samples : int
         :func:`fold_samples`, or :data:`FOLD_SPOT_SAMPLES` beside a check of the whole
         output.
+    voxels : dict, optional
+        A resampled output's voxels in folds (several pre-images): ``count`` of them,
+        of ``voxels`` in all, and ``lo``, ``hi``, the box of their output positions.
 
     Returns
     -------
     str or None
-        None when no cell is inverted and no sampled ``det J`` is ``<= 0``.
+        None when no cell is inverted, no output voxel lies in a fold and no sampled
+        ``det J`` is ``<= 0``.
     """
-    parts = []
+    voxel_part = []
+    if voxels is not None and voxels["count"]:
+        lo, hi = voxels["lo"], voxels["hi"]
+        where = f"output position {_position(lo)}"
+        if not np.array_equal(lo, hi):
+            where = f"output positions within {_position(lo)}-{_position(hi)}"
+        voxel_part.append(
+            f"{voxels['count']} of {voxels['voxels']} output voxels in folds "
+            f"(several pre-images; {where})"
+        )
+    parts = list(voxel_part)
     if cells is not None and cells["summary"]["inverted"]:
         if "inverted" in cells:
             bad, worst = np.asarray(cells["inverted"]), np.asarray(cells["inverted_determinant"])
@@ -619,10 +637,12 @@ def fold_warning(
         )
     if not parts:
         return None
+    # the cells' and the sampled points' positions are rest positions; the voxels' say theirs
+    rest = "rest positions; " if len(parts) > len(voxel_part) else ""
     return (
         "warning: the deformation folds the data: "
         + "; ".join(parts)
-        + " (rest positions; vhm-viz analyze --certify checks every point)"
+        + f" ({rest}vhm-viz analyze --certify checks every point)"
     )
 
 

@@ -35,6 +35,7 @@ from vhm_viz.cli._util import (
     check_volume_memory,
     fold_samples,
     fold_warning,
+    image_positions,
     inverted_voxel_cells,
     load_check_kernels,
     load_scene,
@@ -73,8 +74,9 @@ DESCRIPTION = (
     "onto a regular grid that holds the whole deformed volume (each output voxel pulled "
     "back through the inverse map), keeping origin, spacing and direction. Volumes go "
     "through an adaptive lattice of exact map values (--tolerance). Prints one summary "
-    "line, and a warning line (stderr) when the output has inverted cells or det J <= 0 "
-    "at sampled points."
+    "line. A result that folds the data (inverted cells, resampled voxels in folds, or "
+    "det J <= 0 at sampled points) is one line on stderr and exit status 4, nothing "
+    "written (--allow-folds)."
 )
 
 EPILOG = (
@@ -392,11 +394,37 @@ def _check_folds(
             point_det = np.asarray(result.point_data["jacobian_determinant"])
             if "vhm_outside" in result.point_data:  # passthrough points are not the map's
                 point_det = np.where(result.point_data["vhm_outside"] == 0, point_det, np.nan)
-    # a resample counts its voxels in folds itself; cells were checked one by one
+    # a resample marks its voxels in folds itself; cells were checked one by one
+    voxels = _fold_voxels(result) if resample else None
     whole = resample or cells is not None
     n_points = mesh.GetNumberOfPoints()
     samples = FOLD_SPOT_SAMPLES if whole else fold_samples(n_points)
-    return fold_warning(mesh, dfm.harmonic_map, cells=cells, point_det=point_det, samples=samples)
+    return fold_warning(
+        mesh, dfm.harmonic_map, cells=cells, point_det=point_det, samples=samples, voxels=voxels
+    )
+
+
+#: Voxels of a resample's fold mask scanned at a time for the positions of those in folds.
+FOLD_SCAN_VOXELS = 1 << 22
+
+
+def _fold_voxels(image) -> dict:
+    """:func:`fold_warning`'s voxels of a resampled image: those ``vhm_foldover`` marks.
+
+    Their count, and the box of their output positions, found a chunk of the mask at a
+    time so that a large fold needs no array of all its positions.
+    """
+    mask = np.asarray(image.point_data["vhm_foldover"]).reshape(-1)
+    dims = tuple(int(d) for d in image.dimensions)
+    count, lo, hi = 0, np.full(3, np.inf), np.full(3, -np.inf)
+    for start in range(0, mask.size, FOLD_SCAN_VOXELS):
+        index = np.flatnonzero(mask[start : start + FOLD_SCAN_VOXELS]) + start
+        if index.size:
+            count += index.size
+            at = image_positions(image, np.column_stack(np.unravel_index(index, dims, order="F")))
+            lo = np.minimum(lo, [at[:, c].min() for c in range(3)])
+            hi = np.maximum(hi, [at[:, c].max() for c in range(3)])
+    return {"count": count, "voxels": mask.size, "lo": lo, "hi": hi}
 
 
 def _voxel_folds(image, warped, progress, memory_budget=None, unproven=None) -> dict | None:
