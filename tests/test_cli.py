@@ -146,6 +146,34 @@ def test_deform_matches_the_scene(demo_dir, tmp_path, capsys):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
+def test_deform_refuses_arrays_the_output_format_drops(demo_dir, tmp_path, capsys):
+    # PLY, OBJ and STL keep only the geometry: asked-for arrays are refused before any
+    # work, in one line naming them, the format and the suffixes that keep them
+    args = ["deform", demo_dir / "bar_rest.vtp", "--scene", demo_dir / "scene.json", "-q",
+            "--arrays", "det,displacement"]  # fmt: skip
+    named = set()
+    for suffix in (".ply", ".obj", ".stl"):
+        out_path = tmp_path / f"bent{suffix}"
+        rc, out, err = _run(capsys, *args, "-o", out_path)
+        assert rc == 1 and out == "" and not out_path.exists()
+        (line,) = err.strip().splitlines()
+        m = re.fullmatch(
+            rf"vhm-viz deform: error: --arrays det,displacement: .+ \({re.escape(suffix)}\) "
+            r"keeps no point or cell arrays, only the geometry; write to (.+) to keep them",
+            line,
+        )
+        assert m, line
+        named.add(m.group(1))
+    assert named == {".vtp or .vtk"}
+    assert list(tmp_path.iterdir()) == []
+    # the suffixes named keep them
+    for suffix in (".vtp", ".vtk"):
+        rc, _, err = _run(capsys, *args, "-o", tmp_path / f"bent{suffix}")
+        assert rc == 0, err
+        kept = pv.read(tmp_path / f"bent{suffix}").point_data
+        assert {"jacobian_determinant", "displacement"} <= set(kept.keys()), suffix
+
+
 def test_deform_volume_resampled_and_warped(demo_dir, tmp_path, capsys):
     scene = demo_dir / "scene.json"
     rc, out, err = _with_scene(

@@ -16,6 +16,7 @@ from vhm_viz.io import (  # noqa: E402
     ReadError,
     format_of,
     is_image_format,
+    keeps_arrays,
     output_suffixes,
     read_cage,
     read_dataset,
@@ -92,6 +93,8 @@ def test_output_suffixes_are_what_the_writers_accept(kind, tmp_path):
             np.testing.assert_array_equal(values, data.point_data["v"])
         else:  # the same points (some formats renumber them, or store float32)
             assert back.n_points == data.n_points, suffix
+            # the point array is kept where the table says so, and only there
+            assert ("v" in back.point_data) == keeps_arrays(path), suffix
             key = lambda p: np.unique(np.round(np.asarray(p, float), 4), axis=0)  # noqa: E731
             np.testing.assert_allclose(key(back.points), key(data.points), atol=1e-4)
 

@@ -50,7 +50,9 @@ from vhm_viz.core.volume import DEFAULT_TOLERANCE, MAX_TOLERANCE
 from vhm_viz.io import (
     DATASET_SUFFIXES,
     atomic_outputs,
+    format_of,
     is_image_format,
+    keeps_arrays,
     output_suffixes,
     read_dataset,
     suffix_of,
@@ -62,6 +64,8 @@ RUN_IMPORTS = ("pyvista", "vhm_viz.filters")
 #: What ``deform`` writes: the input's type, or an image a volume is resampled onto.
 OUTPUT_TYPES = ("PolyData", "UnstructuredGrid", "StructuredGrid", "ImageData")
 ALL_OUTPUT_SUFFIXES = tuple(sorted({s for t in OUTPUT_TYPES for s in output_suffixes(t)}))
+#: Output suffixes that keep no named arrays (``--arrays`` is refused there).
+GEOMETRY_ONLY_SUFFIXES = tuple(s for s in output_suffixes() if not keeps_arrays(f"x{s}"))
 
 
 HELP = "deform a dataset with a scene (cage, anchors, constraints)"
@@ -109,7 +113,8 @@ def add_arguments(p) -> None:
         default="",
         metavar="LIST",
         help="comma-separated extra arrays: displacement, det, cond (point arrays), cells "
-        "(cell_jacobian_determinant, cell_condition_number, cell_inverted of 3D cells) "
+        "(cell_jacobian_determinant, cell_condition_number, cell_inverted of 3D cells); "
+        f"refused for {', '.join(GEOMETRY_ONLY_SUFFIXES)}, which keep only the geometry "
         "(default: none)",
     )
     p.add_argument(
@@ -187,13 +192,26 @@ def _spacing(text: str) -> tuple[float, float, float]:
     return tuple(values)
 
 
-def _parse_arrays(text: str) -> set[str]:
-    names = {t.strip() for t in text.split(",") if t.strip()}
-    known = {"displacement", "det", "cond", "cells"}
-    bad = sorted(names - known)
+def _parse_arrays(text: str) -> tuple[str, ...]:
+    """``--arrays``: its entries, each once, in the order given."""
+    names = tuple(dict.fromkeys(t.strip() for t in text.split(",") if t.strip()))
+    known = ("displacement", "det", "cond", "cells")
+    bad = [n for n in names if n not in known]
     if bad:
         raise CLIError(f"unknown --arrays entry {bad[0]!r}; use displacement, det, cond, cells")
     return names
+
+
+def _check_arrays_kept(arrays: tuple[str, ...], output) -> None:
+    """Refuse ``--arrays`` for an output format that would drop them, before any work."""
+    if not arrays or keeps_arrays(output):
+        return
+    fmt = format_of(output)
+    keep = dict.fromkeys(s for t in fmt.writes for s in output_suffixes(t, arrays=True))
+    raise CLIError(
+        f"--arrays {','.join(arrays)}: {fmt.name} ({suffix_of(output)}) keeps no point or "
+        f"cell arrays, only the geometry; write to {' or '.join(keep)} to keep them"
+    )
 
 
 def deform(args: argparse.Namespace) -> str:
@@ -208,6 +226,7 @@ def deform(args: argparse.Namespace) -> str:
     require_device(args.device)  # no GPU: one line, before any work
     src = check_input(args.input)
     arrays = _parse_arrays(args.arrays)
+    _check_arrays_kept(arrays, args.output)
     try:
         tolerance = check_tolerance(args.tolerance)
     except ValueError as exc:

@@ -21,9 +21,9 @@ means:
 
 Which suffix is which format, and what each reads and writes, is one table
 (:mod:`~vhm_viz.io.registry`): :data:`DATASET_SUFFIXES`, :data:`CAGE_SUFFIXES`,
-:func:`output_suffixes` and :func:`is_image_format` are queries of it. One module per
-format family does the work: :mod:`~vhm_viz.io.vtk_files` (VTK's formats),
-:mod:`~vhm_viz.io.mesh_files` (PLY, STL, OFF, MEDIT, point lists),
+:func:`output_suffixes`, :func:`is_image_format` and :func:`keeps_arrays` are queries of
+it. One module per format family does the work: :mod:`~vhm_viz.io.vtk_files` (VTK's
+formats), :mod:`~vhm_viz.io.mesh_files` (PLY, STL, OFF, MEDIT, point lists),
 :mod:`~vhm_viz.io.medical` (MetaImage, NIfTI), :mod:`~vhm_viz.io.nrrd` and
 :mod:`~vhm_viz.io.dicom` (through SimpleITK, :mod:`~vhm_viz.io.itk_images`),
 :mod:`~vhm_viz.io.legacy_volumes` (SLC); :mod:`~vhm_viz.io.isolated` runs library readers
@@ -50,6 +50,7 @@ from vhm_viz.io.registry import (
     format_of,
     image_suffixes,
     is_image_format,
+    keeps_arrays,
     output_suffixes,
     suffix_of,
 )
@@ -72,6 +73,7 @@ __all__ = [
     "output_suffixes",
     "image_suffixes",
     "is_image_format",
+    "keeps_arrays",
     "ReadError",
     "read_dataset",
     "write_dataset",

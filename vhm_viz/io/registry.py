@@ -1,8 +1,9 @@
 """The one table of file formats: suffixes, what each reads and writes, and who does it.
 
 Every question about a suffix -- can :func:`~vhm_viz.io.read_dataset` read it, what may be
-written to it, is a volume written there resampled onto a regular image or warped as a
-grid, which module checks its header -- is a query of :data:`FORMATS`. The readers and
+written to it, does it keep a dataset's named arrays, is a volume written there resampled
+onto a regular image or warped as a grid, which module checks its header -- is a query of
+:data:`FORMATS`. The readers and
 writers (:mod:`vhm_viz.io.datasets`, :mod:`vhm_viz.io.cages`,
 :mod:`vhm_viz.io.rigidity`) dispatch through it and never list suffixes themselves.
 
@@ -31,6 +32,7 @@ __all__ = [
     "output_suffixes",
     "image_suffixes",
     "is_image_format",
+    "keeps_arrays",
     "array_file",
     "files_of",
 ]
@@ -83,6 +85,10 @@ class Format:
     files : str or None
         ``"module:function"``, ``function(path, written) -> list of Path``: the other
         files a file of this format is made of (:func:`files_of`); None: the file alone.
+    arrays : bool
+        What is written keeps the dataset's named point and cell arrays (a one-array
+        format in the files beside it); False: the geometry alone, every named array
+        dropped (PLY, OBJ and STL as VTK's writers write them).
     """
 
     name: str
@@ -98,6 +104,7 @@ class Format:
     folder: bool = False
     one_array: bool = False
     files: str | None = None
+    arrays: bool = True
 
     def function(self, role: str):
         """The function a row names for ``role`` (``"read"``, ``"check"``, ...), or None."""
@@ -130,11 +137,12 @@ FORMATS: tuple[Format, ...] = (
     Format("legacy VTK", (".vtk",), _ALL, _ALL, read=_VTK_READ,
            write=_VTK_WRITE, check="vtk_files:check_legacy_vtk", cage=_VTK_CAGE),
     Format("PLY", (".ply",), ("PolyData",), ("PolyData",), read=_VTK_READ,
-           write=_VTK_WRITE, check="mesh_files:check_ply", cage=_VTK_CAGE),
+           write=_VTK_WRITE, check="mesh_files:check_ply", cage=_VTK_CAGE, arrays=False),
     Format("Wavefront OBJ", (".obj",), ("PolyData",), ("PolyData",), read=_VTK_READ,
-           write=_VTK_WRITE, cage="cages:read_obj_cage"),
+           write=_VTK_WRITE, cage="cages:read_obj_cage", arrays=False),
     Format("STL", (".stl",), ("PolyData",), ("PolyData",), read=_VTK_READ,
-           write=_VTK_WRITE, check="mesh_files:check_stl", cage="cages:read_stl_cage"),
+           write=_VTK_WRITE, check="mesh_files:check_stl", cage="cages:read_stl_cage",
+           arrays=False),
     Format("MEDIT", (".mesh",), ("UnstructuredGrid", "PolyData"),
            read="mesh_files:read_medit"),
     Format("OFF", (".off",), ("PolyData",), read="mesh_files:read_off_dataset",
@@ -214,19 +222,24 @@ def cage_suffixes() -> tuple[str, ...]:
     return _suffixes(lambda f: f.cage is not None)
 
 
-def output_suffixes(dataset_type: str | None = None) -> tuple[str, ...]:
+def output_suffixes(dataset_type: str | None = None, *, arrays: bool = False) -> tuple[str, ...]:
     """Suffixes :func:`~vhm_viz.io.write_dataset` writes a ``dataset_type`` to.
 
     Parameters
     ----------
     dataset_type : str, optional
         One of :data:`DATASET_TYPES`; None: every suffix anything is written to.
+    arrays : bool
+        Only the suffixes that keep the dataset's named arrays (:attr:`Format.arrays`).
     """
-    if dataset_type is None:
-        return _suffixes(lambda f: bool(f.writes))
-    if dataset_type not in DATASET_TYPES:
+    if dataset_type is not None and dataset_type not in DATASET_TYPES:
         raise ValueError(f"unknown dataset type {dataset_type!r}; use one of {DATASET_TYPES}")
-    return _suffixes(lambda f: dataset_type in f.writes)
+
+    def keep(f: Format) -> bool:
+        written = dataset_type in f.writes if dataset_type else bool(f.writes)
+        return written and (f.arrays or not arrays)
+
+    return _suffixes(keep)
 
 
 def image_suffixes() -> tuple[str, ...]:
@@ -247,6 +260,21 @@ def is_image_format(path) -> bool:
         Only its suffix counts; the file need not exist.
     """
     return suffix_of(path) in image_suffixes()
+
+
+def keeps_arrays(path) -> bool:
+    """Whether a dataset written to ``path`` keeps its named point and cell arrays.
+
+    False for ``.ply``, ``.obj`` and ``.stl`` (the geometry alone); True for the other
+    suffixes written to (:attr:`Format.arrays`) and for those no format lists.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Only its suffix counts; the file need not exist.
+    """
+    fmt = _format_with_suffix(suffix_of(path))
+    return fmt is None or fmt.arrays
 
 
 def array_file(path, name: str) -> Path:
