@@ -193,6 +193,27 @@ def test_deform_volume_resampled_and_warped(demo_dir, tmp_path, capsys):
     assert rc == 1 and "cannot write a UnstructuredGrid" in err
 
 
+def test_deform_refuses_arrays_for_a_resampled_volume(demo_dir, tmp_path, capsys):
+    # a resample pulls voxels back: it has none of the map's arrays to give, and says
+    # where they are written instead
+    args = ["deform", demo_dir / "bar_volume_rest.vti", "--scene", demo_dir / "scene.json",
+            "-q", "--arrays", "det,displacement"]  # fmt: skip
+    for suffix in (".vti", ".nii.gz"):
+        rc, out, err = _run(capsys, *args, "-o", tmp_path / f"v{suffix}")
+        (line,) = err.strip().splitlines()
+        assert rc == 1 and out == "", err
+        assert line == (
+            f"vhm-viz deform: error: --arrays det,displacement: a volume resampled to {suffix} "
+            "gets no arrays of the map (its voxels are pulled back, not moved); write the "
+            "warped grid to .vts or .vtk to have them, or --write-field for a displacement field"
+        )
+    assert list(tmp_path.iterdir()) == []
+    rc, _, err = _run(capsys, *args, "-o", tmp_path / "v.vts")
+    assert rc == 0, err
+    kept = pv.read(tmp_path / "v.vts").point_data
+    assert {"jacobian_determinant", "displacement"} <= set(kept.keys())
+
+
 def test_analyze_writes_figures_and_metrics(demo_dir, tmp_path, capsys):
     scene = demo_dir / "scene.json"
     out_dir = tmp_path / "analysis"

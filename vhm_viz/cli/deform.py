@@ -114,8 +114,8 @@ def add_arguments(p) -> None:
         metavar="LIST",
         help="comma-separated extra arrays: displacement, det, cond (point arrays), cells "
         "(cell_jacobian_determinant, cell_condition_number, cell_inverted of 3D cells); "
-        f"refused for {', '.join(GEOMETRY_ONLY_SUFFIXES)}, which keep only the geometry "
-        "(default: none)",
+        f"refused for {', '.join(GEOMETRY_ONLY_SUFFIXES)}, which keep only the geometry, "
+        "and for a resampled volume (default: none)",
     )
     p.add_argument(
         "--fill-value",
@@ -257,6 +257,14 @@ def deform(args: argparse.Namespace) -> str:
             raise CLIError(f"--reference {reference} is not an image")
     if not resample and (args.spacing or reference):
         raise CLIError("--spacing and --reference apply to a volume resampled to an image")
+    if resample and arrays:  # the resample filter computes none of them
+        field = ", or --write-field for a displacement field" if "displacement" in arrays else ""
+        raise CLIError(
+            f"--arrays {','.join(arrays)}: a volume resampled to {suffix_of(out)} gets no "
+            "arrays of the map (its voxels are pulled back, not moved); write the warped "
+            f"grid to {' or '.join(output_suffixes('StructuredGrid', arrays=True))} to have "
+            f"them{field}"
+        )
     field_paths = check_field_output(args, volume, inputs)
     if resample:  # a fill value the output's types cannot hold: before the solve
         dtypes = {name: mesh.point_data[name].dtype for name in resampled_arrays(mesh)}
