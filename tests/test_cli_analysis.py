@@ -198,11 +198,11 @@ def test_deform_refuses_a_folded_output_unless_allowed(files, tmp_path, capsys):
     assert rc == 0, err
     assert len(out.strip().splitlines()) == 1
     lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("warning: the deformation folds")
+    assert len(lines) == 1 and lines[0].startswith("vhm-viz deform: warning: the deformation folds")
     bent = pv.read(tmp_path / "f.vtu")
     brute = int(np.count_nonzero(_signed_volumes(bent.points, tets) <= 0))
     assert f"{brute} of {len(tets)} cells inverted" in lines[0]
-    assert lines[0].removeprefix("warning: ") in error[0]
+    assert lines[0].removeprefix("vhm-viz deform: warning: ") in error[0]
     # beside the check of every cell, a spot check of the exact map at evenly spread points
     spot = re.search(r"det J <= 0 at (\d+) of (\d+) sampled points \(worst \S+ at \(", lines[0])
     assert spot, lines[0]

@@ -96,7 +96,8 @@ def test_resampled_volume_in_folds_is_refused_unless_allowed(folding_volume, tmp
     allowed = _cli(*args, "-o", str(out), "--allow-folds")
     assert allowed.returncode == 0, allowed.stderr
     (line,) = allowed.stderr.strip().splitlines()
-    assert line.startswith("warning: ") and line.removeprefix("warning: ") in error[0]
+    warned = "vhm-viz deform: warning: "
+    assert line.startswith(warned) and line.removeprefix(warned) in error[0]
     m = re.search(
         r"(\d+) of (\d+) output voxels in folds \(several pre-images; output positions "
         r"within (\([^)]*\)-\([^)]*\))\)",

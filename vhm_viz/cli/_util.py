@@ -640,7 +640,7 @@ def fold_warning(
     # the cells' and the sampled points' positions are rest positions; the voxels' say theirs
     rest = "rest positions; " if len(parts) > len(voxel_part) else ""
     return (
-        "warning: the deformation folds the data: "
+        "the deformation folds the data: "
         + "; ".join(parts)
         + f" ({rest}vhm-viz analyze --certify checks every point)"
     )

@@ -322,7 +322,7 @@ def deform(args: argparse.Namespace) -> str:
         )
     if warning and not args.allow_folds:
         raise FoldedOutput(
-            warning.removeprefix("warning: ")
+            warning
             + "; nothing written (change the scene, or pass --allow-folds to write it anyway)"
         )
     # the output, the arrays beside it and a field in the same folder appear as one set
@@ -331,7 +331,7 @@ def deform(args: argparse.Namespace) -> str:
         field_written = "" if field is None else "; " + write_field(field, field_paths)
     seconds = time.perf_counter() - t0
     if warning:
-        print(warning, file=sys.stderr)
+        print(f"vhm-viz deform: warning: {warning}", file=sys.stderr)
     outputs = ", ".join(map(str, written))
     return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {outputs}" + field_written
 
