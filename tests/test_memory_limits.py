@@ -84,6 +84,29 @@ def test_the_embryo_resampled_under_1_2_gb_completes_or_is_refused_before_mappin
     assert not out.exists() and list(tmp_path.iterdir()) == [scene]
 
 
+@pytest.mark.parametrize("kind", ["pullback", "forward"])
+def test_a_displacement_field_that_cannot_fit_is_refused_before_mapping(tmp_path, kind):
+    """The embryo's field (three float64 a voxel, and the writer's copies) is part of the
+    estimate: under 1.6 GB the job is refused in one line before any voxel is mapped,
+    where it used to fail in the map, out of memory."""
+    from vhm_viz.io import read_dataset
+
+    embryo = data_path("volumes", "embryo.slc")
+    scene = tmp_path / "bend.json"
+    scene.write_text(json.dumps(_bend_scene(read_dataset(embryo).bounds)))
+    out, field = tmp_path / "bent.vti", tmp_path / "field.nii.gz"
+    proc = _cli("deform", embryo, "--scene", scene, "-o", out, "-q", "--timings",
+                "--write-field", field, "--field-kind", kind, limit=1_600_000_000)  # fmt: skip
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("vhm-viz deform")]
+    assert len(errors) == 1, proc.stderr
+    assert f"with its {kind} displacement field" in errors[0], errors[0]
+    assert "needs about" in errors[0] and "leave out --write-field" in errors[0], errors[0]
+    timings = next(ln for ln in proc.stderr.splitlines() if "timings:" in ln)
+    assert " map " not in timings, timings
+    assert list(tmp_path.iterdir()) == [scene]
+
+
 def test_a_header_claiming_a_trillion_voxels_is_refused_before_reading(tmp_path):
     header = tmp_path / "huge.mhd"
     header.write_text("ObjectType = Image\nNDims = 3\nBinaryData = True\n"

@@ -770,7 +770,8 @@ _EXTENT_SAMPLES = 9
 
 
 def check_volume_memory(image, harmonic_map, *, resample: bool, output, memory_budget=None,
-                        spacing=None, reference=None, outside: str = "error") -> None:  # fmt: skip
+                        spacing=None, reference=None, outside: str = "error",
+                        field: str | None = None) -> None:  # fmt: skip
     """Refuse a volume job that cannot fit in this process's memory, before it allocates.
 
     The estimate is :func:`vhm_viz.core.memory.volume_job_bytes`; the limit is
@@ -794,6 +795,8 @@ def check_volume_memory(image, harmonic_map, *, resample: bool, output, memory_b
         ``--reference`` grid of a resample.
     outside : str
         ``--outside`` (passthrough keeps the input's own box in a resample's grid).
+    field : {"pullback", "forward"} or None
+        ``--field-kind`` of a ``--write-field``; None without one.
 
     Raises
     ------
@@ -820,7 +823,7 @@ def check_volume_memory(image, harmonic_map, *, resample: bool, output, memory_b
     parts = volume_job_bytes(
         n_in, math.prod(out_dims), value_bytes,
         kind="resample" if resample else "warp", memory_budget=budget,
-        writer_copies=_WRITER_COPIES.get(suffix_of(output), 0),
+        writer_copies=_WRITER_COPIES.get(suffix_of(output), 0), field=field,
     )  # fmt: skip
     grid = "x".join(str(d) for d in out_dims)
     what = (f"resampling {'x'.join(map(str, dims))} voxels onto a {grid} grid" if resample
@@ -831,6 +834,9 @@ def check_volume_memory(image, harmonic_map, *, resample: bool, output, memory_b
         remedy = "resample to an image (.vti, .mhd, .nii) with a coarser --spacing"
     if parts["slab"] > 2 * 2**20:
         remedy += f", or a smaller --memory-budget (now {format_bytes(budget)})"
+    if field is not None:
+        what += f" with its {field} displacement field ({format_bytes(parts['field'])})"
+        remedy += ", or leave out --write-field"
     try:
         require_memory(parts["total"], what, remedy)
     except MemoryError as exc:

@@ -309,7 +309,8 @@ def deform(args: argparse.Namespace) -> str:
     if volume:  # a job that cannot fit is refused before it allocates
         check_volume_memory(mesh, dfm.harmonic_map, resample=resample, output=out,
                             memory_budget=args.memory_budget, spacing=args.spacing,
-                            reference=ref_image, outside=args.outside)  # fmt: skip
+                            reference=ref_image, outside=args.outside,
+                            field=None if field_paths is None else args.field_kind)  # fmt: skip
     with timer.stage("map"):
         result = run_filter(flt, mesh, dfm, label, quiet=args.quiet, source=src)
         field = None if field_paths is None else field_of(args, mesh, result, dfm, tolerance)

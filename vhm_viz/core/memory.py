@@ -159,6 +159,12 @@ _EXTRA_VOXEL_BYTES = {"warp": 3 * 8 + 8, "resample": 2}
 #: each process (each MPI rank) holds them; fewer slabs mean fewer of the serial steps
 #: and thread hand-overs between a slab's kernels.
 PULL_BACK_SLAB_BYTES = 64 * 2**20
+#: A displacement field's bytes per grid point: 3 float64 components and its masks.
+FIELD_VOXEL_BYTES = 3 * 8 + 2
+#: Whole copies of a field's vectors its writer makes: SimpleITK's image of the array,
+#: and ITK's own copy as it writes (a NIfTI vector field is stored component by
+#: component).
+FIELD_WRITER_COPIES = 2
 
 
 def volume_job_bytes(
@@ -169,6 +175,7 @@ def volume_job_bytes(
     kind: str,
     memory_budget: int,
     writer_copies: int = 0,
+    field: str | None = None,
 ) -> dict:
     """The memory a volume job will still allocate once its input is read (an estimate).
 
@@ -185,12 +192,17 @@ def volume_job_bytes(
         Working bytes per slab and per evaluation chunk (the engine's memory budget).
     writer_copies : int
         Whole copies of the output data the writer makes (a MetaImage writer: one).
+    field : {"pullback", "forward"} or None
+        A displacement field written beside the output: the pull-back one on the output
+        grid (the resample computes it with the data), the forward one on the input grid
+        (its own warp of the input: positions and vectors).
 
     Returns
     -------
     dict
         Bytes of ``output`` (data, positions and masks), ``lattice``, ``slab`` (working
-        arrays of one slab and one evaluation chunk), ``write`` and their ``total``.
+        arrays of one slab and one evaluation chunk), ``write``, ``field`` (its vectors,
+        masks and the writer's copies; 0 without one) and their ``total``.
     """
     if kind not in SLAB_VOXEL_BYTES:
         raise ValueError(f"kind must be 'warp' or 'resample'; got {kind!r}")
@@ -203,6 +215,14 @@ def volume_job_bytes(
         # a slab's working arrays, and a chunk of exact evaluations building the lattice
         "slab": int(slab) + int(memory_budget),
         "write": data * int(writer_copies),
+        "field": 0,
     }
+    if field is not None:
+        if field not in ("pullback", "forward"):
+            raise ValueError(f"field must be 'pullback' or 'forward'; got {field!r}")
+        points = output_voxels if field == "pullback" else input_voxels
+        vectors = points * 3 * 8
+        warp = points * _EXTRA_VOXEL_BYTES["warp"] if field == "forward" else 0
+        parts["field"] = points * FIELD_VOXEL_BYTES + warp + vectors * FIELD_WRITER_COPIES
     parts["total"] = sum(parts.values())
     return parts
