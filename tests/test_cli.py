@@ -348,6 +348,21 @@ def test_the_outside_options_a_refusal_suggests_are_the_commands_own(poking_out,
             assert rc == 0, err
 
 
+def test_a_warning_during_a_command_is_one_note_line(demo_dir, tmp_path, capsys):
+    scene = json.loads((demo_dir / "scene.json").read_text())
+    scene["cage"]["faces"] = [face[::-1] for face in scene["cage"]["faces"]]  # turned inward
+    (tmp_path / "inward.json").write_text(json.dumps(scene))
+    rc, out, err = _with_scene(
+        capsys, "deform", demo_dir / "bar_rest.vtp", tmp_path / "inward.json", tmp_path / "o.vtp"
+    )
+    assert rc == 0, err
+    assert err.splitlines() == [
+        "vhm-viz: note: cage faces are oriented inward (negative signed volume); flipped them "
+        "to point outward"
+    ]
+    assert (tmp_path / "o.vtp").exists()
+
+
 def test_help_is_useful(capsys):
     for cmd in ("deform", "analyze", "demo"):
         with pytest.raises(SystemExit) as ex:

@@ -37,6 +37,7 @@ import importlib
 import os
 import sys
 import time
+import warnings
 
 from vhm_viz import __version__, interrupts
 from vhm_viz.cli.first_run import NOTICE, compiled_before, record_compiled
@@ -199,7 +200,12 @@ def _run_command(argv: list[str] | None) -> int:
         print(NOTICE, file=sys.stderr, flush=True)
     # a process that is wholly this command ends at once when work cannot stop part-way
     ending = interrupts.ending_now(lambda signum: _end_now(signum, args))
-    with interrupts.handled(), ending if argv is None else contextlib.nullcontext():
+    with (
+        interrupts.handled(),
+        ending if argv is None else contextlib.nullcontext(),
+        warnings.catch_warnings(),
+    ):
+        warnings.showwarning = _warning_as_note
         try:
             if argv is None:
                 _finish_start_up(args.command)
@@ -228,6 +234,12 @@ def _run_command(argv: list[str] | None) -> int:
             return getattr(exc, "exit_status", 1)
         finally:
             args.timer.report(args.timings)
+
+
+def _warning_as_note(message, category, filename, lineno, file=None, line=None) -> None:
+    """A Python warning during a command: one ``vhm-viz: note:`` line, not its source line."""
+    text = str(message).strip().splitlines()
+    print(f"vhm-viz: note: {text[0] if text else category.__name__}", file=sys.stderr)
 
 
 def _finish_start_up(command: str) -> None:
