@@ -16,7 +16,9 @@ Exit statuses:
 ===  ===========================================================================
 0    success
 1    an error (one line on stderr naming the problem); no output was written
-2    bad command-line arguments (argparse's usage message)
+2    command-line arguments that do not parse: an unknown option, a missing value, a
+     value of the wrong type or not among an option's choices (argparse's usage
+     message); a value that parses but is out of its range is status 1
 3    the solver did not converge within ``solver.max_iterations``; no output was
      written (``--allow-unconverged`` writes it anyway and exits 0)
 4    ``deform``: the result folds the data (inverted cells, resampled voxels in
