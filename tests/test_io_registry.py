@@ -144,3 +144,24 @@ def test_cage_formats_round_trip(suffix, tmp_path):
 def _saved(data, path):
     data.save(path)
     return path
+
+
+@pytest.mark.parametrize(
+    "name, text",
+    [
+        ("names.csv", "x,y,z\n0,1,2\n3,4,5.5\n"),
+        ("names.xyz", "# scanned\nx y z\n0 1 2\n3 4 5.5\n"),
+        ("plain.txt", "0 1 2\n3 4 5.5\n"),
+    ],
+)
+def test_a_point_list_with_a_row_of_column_names_reads_its_numbers(name, text, tmp_path):
+    (tmp_path / name).write_text(text)
+    np.testing.assert_array_equal(read_dataset(tmp_path / name).points, [[0, 1, 2], [3, 4, 5.5]])
+
+
+def test_a_point_list_with_a_word_among_its_numbers_is_one_line(tmp_path):
+    (tmp_path / "bad.csv").write_text("0,0,0\n1,a,0\n")
+    with pytest.raises(ReadError) as err:
+        read_dataset(tmp_path / "bad.csv")
+    assert str(err.value).count("\n") == 0 and "'a'" in str(err.value) and "row 1" in str(err.value)
+    assert str(err.value).endswith("expected numbers, one point (x y z ...) per row")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.io.errors import ReadError, TruncatedError, need
+from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
 from vhm_viz.io.registry import suffix_of
 
 __all__ = [
@@ -263,7 +263,9 @@ def read_medit(path):
 def read_point_list(path):
     """A file of one point per row (the first three columns are x, y, z) as PolyData.
 
-    ``.npy`` (a NumPy array), ``.csv`` (comma-separated) or whitespace-separated text.
+    ``.npy`` (a NumPy array), ``.csv`` (comma-separated) or whitespace-separated text; a
+    first row of column names (``x,y,z``, as spreadsheets and pandas write them) is
+    skipped, and ``#`` starts a comment.
     """
     import pyvista as pv
 
@@ -271,8 +273,30 @@ def read_point_list(path):
     if suffix == ".npy":
         pts = np.load(p, allow_pickle=False)
     else:
-        pts = np.loadtxt(p, delimiter="," if suffix == ".csv" else None, ndmin=2)
+        delimiter = "," if suffix == ".csv" else None
+        try:
+            pts = np.loadtxt(p, delimiter=delimiter, ndmin=2, skiprows=_names_row(p, delimiter))
+        except ValueError as exc:
+            raise ReadError(
+                f"{p}: {first_line(exc).rstrip('.')}; expected numbers, one point (x y z ...) "
+                "per row"
+            ) from None
     pts = np.asarray(pts, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise ReadError(f"{p}: expected one point per row (x y z ...), got shape {pts.shape}")
     return pv.PolyData(np.ascontiguousarray(pts[:, :3]))
+
+
+def _names_row(path: Path, delimiter) -> int:
+    """1 when the first row that is not a comment holds column names, not numbers; else 0."""
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for k, line in enumerate(fh):
+            text = line.split("#", 1)[0].strip()
+            if not text:
+                continue
+            try:
+                [float(word) for word in text.split(delimiter)]
+            except ValueError:
+                return k + 1  # the names and any comments before them
+            return 0
+    return 0
