@@ -124,6 +124,32 @@ def test_analyze_certifies_the_bend(files, tmp_path, capsys):
     assert "certified injective" in out
 
 
+def test_a_point_clouds_certificate_says_which_points_it_leaves_out(files, tmp_path, capsys):
+    """A point cloud bounds no solid: the certificate covers the cage's interior less a
+    margin, and the line and metrics.json say how many points lie nearer the cage."""
+    from vhm_viz.core.certify import default_margin
+    from vhm_viz.scene import Scene
+
+    d, points, _ = files
+    cage = Scene.load(d / "bend.json").build_cage()
+    faces = np.hstack([np.full((len(cage.faces), 1), 3), cage.faces]).ravel()
+    surface = pv.PolyData(cage.vertices, faces).compute_normals(cell_normals=True)
+    # the bar's points, and points a third of the margin inside the cage's faces
+    near = surface.cell_centers().points - surface.cell_data["Normals"] * default_margin(cage) / 3
+    points = np.vstack([points, near])
+    cloud = tmp_path / "bar.xyz"
+    np.savetxt(cloud, points)
+    out, m, _ = _analyze(capsys, cloud, d / "bend.json", tmp_path / "cloud", "--certify")
+    inj = m["injectivity"]
+    assert inj["region"]["kind"] == "cage"
+    # the independent count: VTK's signed distance to the cage (negative inside)
+    distance = pv.PolyData(points).compute_implicit_distance(surface)
+    deep = np.asarray(distance["implicit_distance"]) <= -inj["region"]["margin"]
+    left_out = int(np.count_nonzero(~deep))
+    assert inj["points_not_covered"] == left_out > 0
+    assert f"({left_out} of {len(points)} points nearer the cage, not covered)" in out
+
+
 def test_analyze_finds_the_fold_and_counts_its_cells(files, tmp_path, capsys):
     d, points, tets = files
     out, m, analysed = _analyze(

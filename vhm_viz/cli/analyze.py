@@ -196,7 +196,7 @@ def analyze(args: argparse.Namespace) -> str:
     surf = deformed if isinstance(deformed, pv.PolyData) else None
     with timer.stage("checks"):
         slice_ = plotting.jacobian_slice(mesh, hm, normal=normal)
-        certificate = _certify(dfm, mesh, args) if args.certify else None
+        certificate, cage_region = _certify(dfm, mesh, args) if args.certify else (None, None)
 
     metrics = {
         "input": str(src),
@@ -225,6 +225,8 @@ def analyze(args: argparse.Namespace) -> str:
         }
     if certificate is not None:
         metrics["injectivity"] = certificate.to_json()
+        if cage_region is not None:
+            metrics["injectivity"]["points_not_covered"] = cage_region[1]
     # the report is one unit: its files appear together, or the old ones stay untouched
     with timer.stage("write"), atomic_outputs(out_dir, last=FILES["metrics"]) as stage:
         write_dataset(stage / analysis_name, analysed)
@@ -260,16 +262,30 @@ def analyze(args: argparse.Namespace) -> str:
             summary.append(f"{c['rest_inverted']} cells inverted at rest (not counted)")
     if certificate is not None:
         summary.append(certificate.summary())
+        if cage_region is not None:
+            summary[-1] += " " + cage_region[0]
     summary.append(f"{seconds:.1f} s")
     return ", ".join(summary) + f" -> {out_dir}/"
 
 
 def _certify(dfm, mesh, args):
-    """Certify the map over the shape's region, with a progress bar."""
+    """Certify the map over the shape's region, with a progress bar.
+
+    Returns the certificate, and where the region is the cage's interior less a margin (a
+    point cloud or an open surface bounds no solid) the words saying so and how many of
+    the input's points it leaves out; else None.
+    """
     from vhm_viz.filters import region_of
 
     region = region_of(mesh, dfm.cage)
     bar = Progress("certify", enabled=not args.quiet)
     cert = certify_injectivity(dfm, region, max_cubes=args.max_cubes, progress=bar)
     bar.finish()
-    return cert
+    if region.kind != "cage":
+        return cert, None
+    left_out = int(np.count_nonzero(~region.contains(np.asarray(mesh.points, dtype=np.float64))))
+    cert_region = (
+        f"over the cage's interior at least {region.description['margin']:.4g} from the cage "
+        f"({left_out} of {mesh.n_points} points nearer the cage, not covered)"
+    )
+    return cert, (cert_region, left_out)
