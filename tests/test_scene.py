@@ -134,6 +134,25 @@ def test_solve_map_solves_then_reuses_the_stored_map():
     assert not Scene.loads(scene.dumps()).solve_map(max_iterations=5000).reused
 
 
+def test_ramped_solve_with_a_jacobian_constraint_records_its_map():
+    """The last step of a ramp solves the scene's exact targets (positions and Jacobians),
+    so a converged ramped solve is recorded and the recorded map is the solved one."""
+    scene = Scene.from_deformer(
+        _deformer(), solver={"steps": 4, "tolerance": 1e-9, "max_iterations": 5000}
+    )
+    assert len(scene.constraints["jacobians"]) == 1
+    solved = scene.solve_map()
+    assert len(solved.reports) == 4 and solved.converged
+    c = solved.deformer.constraints
+    for name in ("targets", "jacobians"):
+        np.testing.assert_array_equal(c[name], scene.constraints[name])
+    assert scene.record_map(solved.deformer)
+    probe = np.random.default_rng(1).uniform(-0.4, 0.4, (20, 3))
+    again = Scene.loads(scene.dumps()).solve_map()
+    assert again.reused
+    np.testing.assert_array_equal(again.harmonic_map.map(probe), solved.harmonic_map.map(probe))
+
+
 def test_solve_map_reports_an_unconverged_solve_and_callers_decide():
     scene = Scene.from_deformer(_deformer(), solver={"tolerance": 1e-14, "max_iterations": 2})
     solved = scene.solve_map()

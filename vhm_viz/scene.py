@@ -685,7 +685,13 @@ class Scene:
         reports = []
         for k in range(1, steps + 1):
             s = k / steps
-            if steps > 1:
+            if steps > 1 and k == steps:
+                # the last step solves the scene's own targets, bit for bit (the ramp at
+                # s = 1 is only close to them), so that the result is a solve of this
+                # scene's constraints and record_map stores it
+                jac = c["jacobians"]
+                deformer.update_targets(targets=c["targets"], jacobians=jac if len(jac) else None)
+            elif steps > 1:
                 targets = c["positions"] + s * (c["targets"] - c["positions"])
                 jac = np.array([_interpolate_jacobian(j, s) for j in c["jacobians"]])
                 deformer.update_targets(targets=targets, jacobians=jac if len(jac) else None)

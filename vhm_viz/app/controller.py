@@ -836,7 +836,6 @@ class ExplorerController:
             self._resume_contraction = float(rho)
         self.notes.extend(n for n in solved.notes if n not in self.notes)
         self._deformer_stale = self._layout_stale = False
-        self._targets_stale = True  # a ramp over steps ends at the targets up to rounding
 
     def adopt(self, other: ExplorerController) -> None:
         """Take over another controller's whole state (built in a worker thread)."""
