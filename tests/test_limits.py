@@ -171,3 +171,45 @@ def test_bad_arguments_exit_2(capsys):
     assert info.value.code == 2
     assert main([]) == 2  # no command
     capsys.readouterr()
+
+
+def test_an_allowed_unconverged_ramp_says_so_in_both_commands(tmp_path, capsys):
+    """analyze, like deform, says "(not converged)" on its line and warns on stderr; the
+    cap holds for each step of a ramp, and the count adds up the steps."""
+    from conftest import box_cage, data_path
+
+    from vhm_viz.cli import main
+    from vhm_viz.io import read_dataset
+
+    src = data_path("hand_tet", "hand.mesh")
+    mesh = read_dataset(src)
+    p = np.asarray(mesh.points)
+    lo, hi = p.min(0), p.max(0)
+    verts, faces = box_cage(lo - 0.05 * (hi - lo), hi + 0.05 * (hi - lo), 2)
+    axis = int(np.argmax(hi - lo))
+    positions = np.vstack([p[np.argmin(p[:, axis])], p[np.argmax(p[:, axis])]])
+    targets = positions.copy()
+    targets[1, (axis + 1) % 3] += 0.3 * (hi - lo)[axis]
+    scene = Scene.from_dict({
+        "format": "vhm_viz.scene", "version": 1,
+        "cage": {"vertices": verts.tolist(), "faces": faces.tolist()},
+        "anchors": {"auto": 8},
+        "constraints": {"positions": positions.tolist(), "targets": targets.tolist()},
+        "solver": {"max_iterations": 5, "tolerance": 1e-9, "steps": 2},
+    })  # fmt: skip
+    scene.save(tmp_path / "scene.json")
+    reports = Scene.load(tmp_path / "scene.json").solve_map(mesh).reports
+    assert [r.iterations for r in reports] == [5, 5] and not reports[-1].converged
+
+    args = [str(src), "-s", str(tmp_path / "scene.json"), "-q", "--allow-unconverged"]
+    for command, out in (("analyze", tmp_path / "report"), ("deform", tmp_path / "out.vtu")):
+        assert main([command, *args, "-o", str(out)]) == 0
+        line, err = capsys.readouterr()
+        assert "10 iterations in 2 steps (not converged)" in line
+        assert err.count("\n") == 1 and err.startswith(
+            f"vhm-viz {command}: warning: not converged: the solver stopped at "
+            "solver.max_iterations = 5 in the last of its 2 solver.steps with the estimated "
+            "distance to the solution "
+        ), err
+    metrics = json.loads((tmp_path / "report" / "metrics.json").read_text())
+    assert metrics["iterations"] == 10 and metrics["converged"] is False

@@ -758,15 +758,19 @@ class SolvedMap:
         """Why the solve stopped short, in the scene's terms (empty when it converged).
 
         Names the scene's settings (``solver.max_iterations``, ``solver.tolerance``) with
-        the values the solve ran with, so the user knows which field to raise.
+        the values the solve ran with, so the user knows which field to raise, and, for a
+        ramp, that its last step stopped there (the cap holds for each step).
         """
         report = self.last_report
         if report is None or report.converged:
             return ""
+        steps = len(self.reports)
+        # the cap holds for each solve of a ramp: the last one stopped at it
+        where = f" in the last of its {steps} solver.steps" if steps > 1 else ""
         return (
-            f"the solver stopped at solver.max_iterations = {report.max_iterations} with the "
-            f"estimated distance to the solution {report.distance_estimate:.3g} above "
-            f"solver.tolerance = {report.tolerance:g}"
+            f"the solver stopped at solver.max_iterations = {report.max_iterations}{where} "
+            f"with the estimated distance to the solution {report.distance_estimate:.3g} "
+            f"above solver.tolerance = {report.tolerance:g}"
         )
 
     def require_converged(self, allow: bool = False, remedy: str = "") -> None:

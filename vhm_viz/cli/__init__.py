@@ -19,8 +19,9 @@ Exit statuses:
 2    command-line arguments that do not parse: an unknown option, a missing value, a
      value of the wrong type or not among an option's choices (argparse's usage
      message); a value that parses but is out of its range is status 1
-3    the solver did not converge within ``solver.max_iterations``; no output was
-     written (``--allow-unconverged`` writes it anyway and exits 0)
+3    the solver did not converge within ``solver.max_iterations`` (the last step's,
+     for a ramp); no output was written (``--allow-unconverged`` writes it anyway,
+     with a ``not converged`` warning, and exits 0)
 4    ``deform``: the result folds the data (inverted cells, resampled voxels in
      folds, or ``det J <= 0`` at sampled points; the line says how many and where);
      no output was written (``--allow-folds`` writes it anyway, with the warning,

@@ -349,6 +349,28 @@ def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False
     return solved
 
 
+def solve_summary(reports) -> str:
+    """The summary line's part on the solve, ``N iterations`` (all steps together).
+
+    ``in S steps`` follows for a ramp (each step has its own ``solver.max_iterations``, so
+    ``N`` may exceed it), and ``(not converged)`` when the last step stopped short.
+    """
+    text = f"{sum(r.iterations for r in reports)} iterations"
+    if len(reports) > 1:
+        text += f" in {len(reports)} steps"
+    return text + ("" if reports[-1].converged else " (not converged)")
+
+
+def print_warning(command: str, warning: str) -> None:
+    """A result written although it is not what was asked for: one line on stderr."""
+    print(f"vhm-viz {command}: warning: {warning}", file=sys.stderr)
+
+
+def convergence_warning(solved: SolvedMap) -> str:
+    """The warning of a result written from an unconverged solve (empty if it converged)."""
+    return "" if solved.converged else f"not converged: {solved.shortfall()}"
+
+
 def _print_note(note: str) -> None:
     print(f"vhm-viz: note: {note}", file=sys.stderr)
 

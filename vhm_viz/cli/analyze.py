@@ -28,9 +28,12 @@ from vhm_viz.cli._util import (
     build_and_solve,
     check_input,
     check_output_directory,
+    convergence_warning,
     load_scene,
+    print_warning,
     quiet_vtk,
     run_filter,
+    solve_summary,
     surface_metrics,
 )
 from vhm_viz.core.certify import certify_injectivity
@@ -245,7 +248,7 @@ def analyze(args: argparse.Namespace) -> str:
             pl.close()
         write_text(stage / FILES["metrics"], json_text(metrics))
     seconds = time.perf_counter() - t0
-    summary = [f"analyzed {mesh.n_points} points"]
+    summary = [f"analyzed {mesh.n_points} points", solve_summary(reports)]
     if "E_rigid" in metrics:
         summary.append(f"E_rigid {metrics['E_rigid']:.4f}")
     if "E_volume" in metrics:
@@ -265,6 +268,9 @@ def analyze(args: argparse.Namespace) -> str:
         if cage_region is not None:
             summary[-1] += " " + cage_region[0]
     summary.append(f"{seconds:.1f} s")
+    warning = convergence_warning(solved)
+    if warning:
+        print_warning("analyze", warning)
     return ", ".join(summary) + f" -> {out_dir}/"
 
 

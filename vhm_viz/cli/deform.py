@@ -7,7 +7,6 @@ stays quick.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
@@ -33,14 +32,17 @@ from vhm_viz.cli._util import (
     check_input,
     check_output,
     check_volume_memory,
+    convergence_warning,
     fold_samples,
     fold_warning,
     image_positions,
     inverted_voxel_cells,
     load_check_kernels,
     load_scene,
+    print_warning,
     quiet_vtk,
     run_filter,
+    solve_summary,
     surface_metrics,
 )
 from vhm_viz.core.devices import DEVICES, require_device
@@ -331,8 +333,9 @@ def deform(args: argparse.Namespace) -> str:
         written = write_dataset(out, result, inputs=inputs)
         field_written = "" if field is None else "; " + write_field(field, field_paths)
     seconds = time.perf_counter() - t0
-    if warning:
-        print(f"vhm-viz deform: warning: {warning}", file=sys.stderr)
+    for text in (convergence_warning(solved), warning):
+        if text:
+            print_warning("deform", text)
     outputs = ", ".join(map(str, written))
     return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {outputs}" + field_written
 
@@ -349,10 +352,9 @@ def _proof_sized(image) -> bool:
 
 
 def _summary(mesh, result, reports, flt, resample: bool, volume: bool, tolerance) -> list[str]:
-    iterations = sum(r.iterations for r in reports)
     kind = "voxels" if volume else "points"
     parts = [f"deformed {mesh.n_points} {kind} ({type(mesh).__name__})"]
-    parts.append(f"{iterations} iterations" + ("" if reports[-1].converged else " (not converged)"))
+    parts.append(solve_summary(reports))
     if resample:
         stats = flt.stats
         kept = f" ({stats['identity']} left in place outside the cage)" if stats["identity"] else ""
