@@ -174,6 +174,51 @@ def test_deform_refuses_arrays_the_output_format_drops(demo_dir, tmp_path, capsy
         assert {"jacobian_determinant", "displacement"} <= set(kept.keys()), suffix
 
 
+def test_deform_refuses_options_the_input_leaves_without_effect(demo_dir, tmp_path, capsys):
+    # cell arrays of data without 3D cells, and volume options given for other data or
+    # resampling options for a warped volume, would be dropped: refused in one line
+    # naming the option and why, before any work
+    scene = demo_dir / "scene.json"
+    surface, tets = demo_dir / "bar_rest.vtp", demo_dir / "bar_tets_rest.vtu"
+    volume = demo_dir / "bar_volume_rest.vti"
+    cloud = tmp_path / "cloud.vtp"
+    pv.PolyData(pv.read(surface).points).save(cloud)
+    resampled = "a volume resampled to an image (.vti, .mhd, .mha, .nii, .nii.gz, .nrrd)"
+    cases = [
+        (surface, "out.vtp", ["--arrays", "cells"],
+         "--arrays cells: bar_rest.vtp has no 3D cells (a surface)"),
+        (surface, "out.vtp", ["--arrays", "det,cells"],
+         "--arrays cells: bar_rest.vtp has no 3D cells (a surface)"),
+        (cloud, "out.vtp", ["--arrays", "cells"],
+         "--arrays cells: cloud.vtp has no 3D cells (a point cloud)"),
+        (surface, "out.vtp", ["--fill-value", "3"],
+         f"--fill-value: applies to {resampled}; bar_rest.vtp is a surface"),
+        (surface, "out.vtp", ["--fill-value", "0"],  # given, even at the default value
+         f"--fill-value: applies to {resampled}; bar_rest.vtp is a surface"),
+        (tets, "out.vtu", ["--interpolation", "nearest"],
+         f"--interpolation: applies to {resampled}; bar_tets_rest.vtu is an UnstructuredGrid"),
+        (surface, "out.vtp", ["--tolerance", "0.5"],
+         "--tolerance: applies to volumes; bar_rest.vtp is a surface"),
+        (volume, "out.vts", ["--fill-value", "3"],
+         f"--fill-value: applies to {resampled}; written to .vts, the volume is warped "
+         "(every voxel moved)"),
+    ]  # fmt: skip
+    for data, output, extra, message in cases:
+        rc, out, err = _run(
+            capsys, "deform", data, "--scene", scene, "-o", tmp_path / output, "-q", *extra
+        )
+        assert (rc, out, err) == (1, "", f"vhm-viz deform: error: {message}\n"), extra
+    assert list(tmp_path.iterdir()) == [cloud]
+    # where they apply, the same options are taken
+    rc, _, err = _run(capsys, "deform", tets, "--scene", scene, "-o", tmp_path / "t.vtu", "-q",
+                      "--arrays", "cells")  # fmt: skip
+    assert rc == 0, err
+    assert "cell_jacobian_determinant" in pv.read(tmp_path / "t.vtu").cell_data
+    rc, _, err = _run(capsys, "deform", volume, "--scene", scene, "-o", tmp_path / "v.vti", "-q",
+                      "--fill-value", "3", "--tolerance", "0.5")  # fmt: skip
+    assert rc == 0, err
+
+
 def test_deform_volume_resampled_and_warped(demo_dir, tmp_path, capsys):
     scene = demo_dir / "scene.json"
     rc, out, err = _with_scene(

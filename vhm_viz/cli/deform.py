@@ -53,6 +53,7 @@ from vhm_viz.io import (
     DATASET_SUFFIXES,
     atomic_outputs,
     format_of,
+    image_suffixes,
     is_image_format,
     keeps_arrays,
     output_suffixes,
@@ -82,7 +83,8 @@ DESCRIPTION = (
     "through an adaptive lattice of exact map values (--tolerance). Prints one summary "
     "line. A result that folds the data (inverted cells, resampled voxels in folds, or "
     "det J <= 0 at sampled points) is one line on stderr and exit status 4, nothing "
-    "written (--allow-folds)."
+    "written (--allow-folds). Options for volumes, or for resampling, given for other "
+    "data are refused."
 )
 
 EPILOG = (
@@ -115,14 +117,15 @@ def add_arguments(p) -> None:
         default="",
         metavar="LIST",
         help="comma-separated extra arrays: displacement, det, cond (point arrays), cells "
-        "(cell_jacobian_determinant, cell_condition_number, cell_inverted of 3D cells); "
+        "(cell_jacobian_determinant, cell_condition_number, cell_inverted of 3D cells; "
+        "refused for data without them); "
         f"refused for {', '.join(GEOMETRY_ONLY_SUFFIXES)}, which keep only the geometry, "
         "and for a resampled volume (default: none)",
     )
     p.add_argument(
         "--fill-value",
         type=float,
-        default=0.0,
+        default=None,
         metavar="VALUE",
         help="volume resampling: value of voxels without a pre-image, in the units of the "
         "data and held exactly by its type: an integer in the type's range for integer "
@@ -132,7 +135,7 @@ def add_arguments(p) -> None:
     p.add_argument(
         "--tolerance",
         type=float,
-        default=DEFAULT_TOLERANCE,
+        default=None,
         metavar="VOXELS",
         help="volumes: largest position error of a mapped voxel, in voxels of the input "
         f"spacing, at most {MAX_TOLERANCE:g} (default: {DEFAULT_TOLERANCE} voxels)",
@@ -140,7 +143,7 @@ def add_arguments(p) -> None:
     p.add_argument(
         "--interpolation",
         choices=INTERPOLATIONS,
-        default="linear",
+        default=None,
         help="volume resampling: sampling of the input at the pre-images: linear "
         "(trilinear), nearest (label maps: values copied, integer type kept) or cubic "
         "(Catmull-Rom) (default: linear)",
@@ -163,7 +166,7 @@ def add_arguments(p) -> None:
     p.add_argument(
         "--device",
         choices=DEVICES,
-        default="cpu",
+        default=None,
         help="volumes: where the lattice's exact map evaluations run: cpu, or cuda (an "
         "NVIDIA GPU, with numba-cuda; the same result to rounding) (default: cpu)",
     )
@@ -172,6 +175,62 @@ def add_arguments(p) -> None:
     add_fold_argument(p)
     add_memory_argument(p)
     add_quiet_argument(p)
+
+
+#: The options of volumes (``VOLUME_OPTIONS``) and of a volume resampled to an image
+#: (``RESAMPLE_OPTIONS``), with the values they take when left out: their argparse default
+#: is None, so that an option given, which another input leaves without effect, is refused.
+VOLUME_OPTIONS = {"--tolerance": DEFAULT_TOLERANCE, "--device": "cpu"}
+RESAMPLE_OPTIONS = {"--fill-value": 0.0, "--interpolation": "linear", "--spacing": None,
+                    "--reference": None}  # fmt: skip
+
+
+def _given_options(args: argparse.Namespace) -> list[str]:
+    """The volume options given on the command line; the others get their values."""
+    given = []
+    for option, default in {**VOLUME_OPTIONS, **RESAMPLE_OPTIONS}.items():
+        name = option[2:].replace("-", "_")
+        if getattr(args, name) is None:
+            setattr(args, name, default)
+        else:
+            given.append(option)
+    return given
+
+
+def _check_options_apply(given, arrays, mesh, src, out, volume: bool, resample: bool) -> None:
+    """Refuse, before the solve, options this input (or output) would leave without effect.
+
+    Volume options for other data, resampling options for a volume written as a warped
+    grid, and ``--arrays cells`` for data without 3D cells: one line, the option and why.
+    """
+    from vhm_viz.filters.cells import has_3d_cells
+
+    resampled = f"a volume resampled to an image ({', '.join(image_suffixes())})"
+    for option in given:
+        if not volume:
+            scope = "volumes" if option in VOLUME_OPTIONS else resampled
+            raise CLIError(f"{option}: applies to {scope}; {src.name} is {_kind(mesh)}")
+        if option in RESAMPLE_OPTIONS and not resample:
+            raise CLIError(
+                f"{option}: applies to {resampled}; written to {suffix_of(out)}, the volume "
+                "is warped (every voxel moved)"
+            )
+    if "cells" in arrays and not has_3d_cells(mesh):
+        raise CLIError(f"--arrays cells: {src.name} has no 3D cells ({_kind(mesh)})")
+
+
+def _kind(mesh) -> str:
+    """What ``mesh`` is, in words, for the messages of options that do not apply to it."""
+    import pyvista as pv
+
+    if isinstance(mesh, pv.PolyData):
+        if mesh.GetNumberOfPolys() or mesh.GetNumberOfStrips():
+            return "a surface"
+        return "lines" if mesh.GetNumberOfLines() else "a point cloud"
+    if isinstance(mesh, pv.ImageData):
+        return "a volume" if min(mesh.dimensions) > 1 else "a flat image"
+    name = type(mesh).__name__
+    return f"{'an' if name[0] in 'AEIOU' else 'a'} {name}"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -225,6 +284,7 @@ def deform(args: argparse.Namespace) -> str:
     from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter
     from vhm_viz.filters.resample import resampled_arrays
 
+    given = _given_options(args)
     require_device(args.device)  # no GPU: one line, before any work
     src = check_input(args.input)
     arrays = _parse_arrays(args.arrays)
@@ -257,8 +317,7 @@ def deform(args: argparse.Namespace) -> str:
             ref_image = read_dataset(reference)
         if not isinstance(ref_image, pv.ImageData):
             raise CLIError(f"--reference {reference} is not an image")
-    if not resample and (args.spacing or reference):
-        raise CLIError("--spacing and --reference apply to a volume resampled to an image")
+    _check_options_apply(given, arrays, mesh, src, out, volume, resample)
     if resample and arrays:  # the resample filter computes none of them
         field = ", or --write-field for a displacement field" if "displacement" in arrays else ""
         raise CLIError(

@@ -29,6 +29,7 @@ from vhm_viz.io import cell_types
 
 __all__ = [
     "CELL_ARRAYS",
+    "has_3d_cells",
     "cell_tetrahedra",
     "tetra_cells",
     "cell_centres",
@@ -66,7 +67,12 @@ def _cell_dimension(cell_type: int) -> int:
     return int(utilities.GetDimension(int(cell_type)))
 
 
-def _has_3d_cells(ds) -> bool:
+def has_3d_cells(ds) -> bool:
+    """Whether ``ds`` has the 3D cells that the cell arrays measure.
+
+    A grid none of whose dimensions is flat has them, and so has an unstructured grid
+    with at least one 3D cell; surfaces and point clouds have none.
+    """
     dims = _dimensions(ds)
     if dims is not None:
         return all(d >= 2 for d in dims)
@@ -119,7 +125,7 @@ def cell_tetrahedra(ds, chunk_tets: int = _CHUNK_TETS):
         for k0 in range(0, dims[2] - 1, step):
             yield _kuhn_tets(dims, k0, min(dims[2] - 1, k0 + step))
         return
-    if not _has_3d_cells(ds):
+    if not has_3d_cells(ds):
         return
     tets = tetra_cells(ds)
     yield _triangulated(ds) if tets is None else tets
@@ -235,7 +241,7 @@ def cell_quality(ds, deformed_points, *, condition: bool = True) -> dict | None:
         (one entry per cell of ``ds``) and ``"summary"``
         (:func:`~vhm_viz.core.metrics.cell_summary`).
     """
-    if not _has_3d_cells(ds):
+    if not has_3d_cells(ds):
         return None
     rest = numpy_points(ds)
     moved = np.asarray(deformed_points, dtype=np.float64).reshape(-1, 3)
@@ -322,7 +328,7 @@ def region_of(ds, cage=None):
     if _dimensions(ds) is not None:
         b = np.asarray(ds.bounds, dtype=np.float64)
         return Region.box(b[0::2], b[1::2])
-    if _has_3d_cells(ds):
+    if has_3d_cells(ds):
         tets = [t for t, _ in cell_tetrahedra(ds)]
         return Region.tetrahedra(numpy_points(ds), np.concatenate(tets))
     if isinstance(ds, pv.PolyData) and ds.n_cells and ds.GetNumberOfPolys():
