@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import box_cage, data_path
+from conftest import box_cage, data_path, read_triangles
 
 pv = pytest.importorskip("pyvista")
 
@@ -145,3 +145,55 @@ def test_anchors_of_a_whole_volume_cover_its_box(count):
     # about the best that `count` balls do in a box: 8 balls each around an eighth
     assert coverage < {4: 0.4, 8: 0.3, 12: 0.27}[count] * diag
     assert report.min_pairwise_distance > 0.1 * diag
+
+
+@pytest.mark.data
+def test_a_cage_that_leaves_points_out_is_refused_with_their_count():
+    # 12 of the 252 armadillo points lie outside this cage (an independent count below):
+    # anchors of the part it holds are not anchors of the data, as deform refuses it
+    from vhm_viz import OutsideCageError
+
+    mesh = pv.read(data_path("bad_cages", "armadillo_252v_for_partial_cage.obj"))
+    cage = read_cage(data_path("bad_cages", "partial_armadillo_cage.obj"))
+    v, f = read_triangles(data_path("bad_cages", "partial_armadillo_cage.obj"))
+    pts = np.asarray(mesh.points)
+    outside = np.flatnonzero(winding_number(pts, v, f) < 0.5)
+    assert len(outside) == 12
+    with pytest.raises(OutsideCageError, match="12 of 252 points") as info:
+        auto_anchors(mesh, cage, 24)
+    np.testing.assert_array_equal(np.sort(info.value.indices), outside)
+
+
+@pytest.mark.data
+def test_a_cage_around_other_data_is_refused():
+    # the bar's cage holds a corner of the hand: all anchors landed on one voxel there
+    with pytest.raises(ValueError, match="outside the cage"):
+        auto_anchors(
+            data_path("hand", "hand.obj"), read_cage(data_path("bar", "bar_cage_3d.obj")), 24
+        )
+
+
+def test_a_volume_must_lie_in_the_cage_as_its_shape_is_chosen():
+    # without a threshold the shape is the whole box; with one, the voxels above it
+    vol = pv.ImageData(dimensions=(21, 21, 21), spacing=(0.1, 0.1, 0.1))
+    vol["v"] = (np.linalg.norm(vol.points - 1.0, axis=1) < 0.5).astype(float)
+    ball_cage = Cage(*box_cage((0.4, 0.4, 0.4), (1.6, 1.6, 1.6), 2))
+    with pytest.raises(ValueError, match="volume's box"):
+        auto_anchors(vol, ball_cage, 4)
+    anchors = auto_anchors(vol, ball_cage, 4, threshold=0.5)
+    assert np.linalg.norm(anchors - 1.0, axis=1).max() < 0.5
+    small = Cage(*box_cage((0.75, 0.75, 0.75), (1.25, 1.25, 1.25), 2))
+    above = int((np.abs(vol.points - 1.0).max(axis=1) > 0.25)[vol["v"] > 0.5].sum())
+    with pytest.raises(ValueError, match=f"{above} of {int((vol['v'] > 0.5).sum())} voxels"):
+        auto_anchors(vol, small, 4, threshold=0.5)
+
+
+@pytest.mark.parametrize("resolution", [6, 12])
+def test_anchors_never_coincide_where_the_skeleton_has_fewer_voxels(resolution):
+    # a cube's skeleton at a coarse grid is its centre voxel: the four anchors still get
+    # four distinct places inside the cube
+    cube = pv.Cube().triangulate()
+    cage = Cage(*box_cage((-2, -2, -2), (2, 2, 2)))
+    anchors, report = auto_anchors(cube, cage, 4, resolution=resolution, return_report=True)
+    assert len(np.unique(anchors, axis=0)) == 4 and report.min_pairwise_distance > 0
+    assert np.abs(anchors).max() < 0.5

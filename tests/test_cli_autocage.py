@@ -56,3 +56,47 @@ def test_bad_input_is_one_line_and_nonzero(argv, message, capsule, tmp_path, cap
     assert rc != 0
     assert message in err and len(err.splitlines()) == 1
     assert (capsule.read_bytes(), capsule_obj.read_bytes()) == before  # inputs untouched
+
+
+@pytest.mark.data
+@pytest.mark.parametrize(
+    "data,cage,count",
+    [
+        # 12 of the 252 armadillo points stick out of this cage
+        (("bad_cages", "armadillo_252v_for_partial_cage.obj"), "partial_armadillo_cage", 12),
+        # the bar's cage holds a corner of the hand only (24 points)
+        (("hand", "hand.obj"), "bar_cage_3d", 3320),
+    ],
+)
+def test_anchors_refuse_a_cage_that_does_not_enclose_the_data(data, cage, count, tmp_path, capsys):
+    from conftest import data_path
+
+    cages = {
+        "partial_armadillo_cage": data_path("bad_cages", "partial_armadillo_cage.obj"),
+        "bar_cage_3d": data_path("bar", "bar_cage_3d.obj"),
+    }
+    src, out = data_path(*data), tmp_path / "a.json"
+    n = pv.read(src).n_points
+    outside = ~read_cage(cages[cage]).contains(np.asarray(pv.read(src).points))
+    assert outside.sum() == count  # the cage's own inside test, independently
+    rc = main(["anchors", str(src), "--cage", str(cages[cage]), "-o", str(out), "-q"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and not out.exists()
+    assert len(err) == 1 and f"{count} of {n} points" in err[0] and "outside the cage" in err[0]
+
+
+def test_anchors_are_distinct_where_the_skeleton_is_one_voxel(tmp_path, capsys):
+    # a cube at a 6-voxel grid: its skeleton is the centre voxel, the anchors 4 places
+    from conftest import box_cage
+
+    src, cage_path, out = tmp_path / "cube.vtp", tmp_path / "box.obj", tmp_path / "a.json"
+    pv.Cube().triangulate().save(src)
+    v, f = box_cage((-2, -2, -2), (2, 2, 2))
+    cage_path.write_text(
+        "".join(f"v {x} {y} {z}\n" for x, y, z in v)
+        + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f)
+    )
+    argv = ["anchors", str(src), "--cage", str(cage_path), "-o", str(out), "-n", "4"]
+    assert main([*argv, "--resolution", "6"]) == 0, capsys.readouterr().err
+    anchors = np.asarray(json.loads(out.read_text())["anchors"])
+    assert len(np.unique(anchors, axis=0)) == 4 and np.abs(anchors).max() < 0.5

@@ -40,6 +40,7 @@ from vhm_viz.autocage import voxel as vx
 from vhm_viz.autocage.samples import collect_samples, point_spacing
 from vhm_viz.core.basis import domain_columns, inside_cage, winding_number
 from vhm_viz.core.cage import Cage
+from vhm_viz.core.errors import OutsideCageError, describe_indices
 
 __all__ = ["auto_anchors", "AnchorReport"]
 
@@ -350,8 +351,14 @@ def _farthest_point_anchors(trees, skeleton, part, targets, seeds, count, on_ske
             else:  # a fat part: halfway from the point towards its skeleton
                 q = p + min(0.5 * r, ds) * (centres[sk[js]] - p) / max(ds, 1e-300)
                 c = int(members[tree.query(q)[1]])
-        if c in chosen:  # taken: the candidate of the pool farthest from the anchors
-            c = int(pool[np.argmax(cKDTree(centres[chosen]).query(centres[pool])[0])])
+        if c in chosen:  # taken: the free candidate of the pool farthest from the anchors
+            # (a pool all taken -- a skeleton of a voxel or two -- widens to the part,
+            # then to every candidate: anchors never coincide)
+            for wider in (pool, members, np.arange(len(centres))):
+                free = np.setdiff1d(wider, chosen)
+                if len(free):
+                    break
+            c = int(free[np.argmax(cKDTree(centres[chosen]).query(centres[free])[0])])
         chosen.append(c)
         dist = np.minimum(dist, np.linalg.norm(targets - centres[c], axis=1))
     return np.array(chosen[:count], dtype=np.int64)
@@ -436,6 +443,48 @@ def _relocated(trees, allowed, part, targets, chosen, cover, tries: int = 6):
     return chosen, cover
 
 
+def _check_enclosed(samples, cage, points: np.ndarray) -> None:
+    """Refuse a cage that does not enclose the shape, as deforming the data would.
+
+    The shape's points (``points``): a surface's vertices, a cloud's or tet mesh's
+    points, a volume's voxels above its threshold, or without a threshold a lattice
+    filling the volume's box (the shape is then the whole box). Inside is
+    :meth:`vhm_viz.Cage.contains`, the test ``deform`` and ``analyze`` use. Anchors
+    placed in the part of the shape a cage holds would not be the anchors of the shape,
+    and a cage holding almost none of it leaves only the same few voxels to hold them.
+
+    Raises
+    ------
+    OutsideCageError
+        Points outside the cage, counted (and for surfaces, clouds and tet meshes, listed
+        by their index in the input).
+    """
+    outside = np.flatnonzero(~cage.contains(points))
+    if not len(outside):
+        return
+    n, total = len(outside), len(points)
+    if samples.kind == "volume-box":
+        what = (
+            f"{n} of {total} points of a lattice filling the volume's box are outside the "
+            "cage (without a threshold the shape is the whole box): give a cage that "
+            "encloses the box, or a threshold whose region the cage encloses"
+        )
+    elif samples.kind == "volume":
+        what = (
+            f"{n} of {total} voxels above the threshold {samples.threshold:.6g} are "
+            "outside the cage: give a cage that encloses them, or a higher threshold"
+        )
+    else:
+        used = np.unique(samples.tri_faces) if samples.kind == "surface" else ()
+        if len(used) == total:  # a surface's points are the vertices its faces use
+            outside = used[outside]
+        what = (
+            f"{n} of {total} points of the data are outside the cage (indices "
+            f"{describe_indices(outside)}): give a cage that encloses the data"
+        )
+    raise OutsideCageError(f"auto_anchors: {what}", outside)
+
+
 def _inside_shape(samples, points: np.ndarray) -> np.ndarray:
     """Exact check that points lie inside the input's surface (surfaces, tet meshes)."""
     if samples.tri_faces is None or not len(samples.tri_faces) or not len(points):
@@ -461,7 +510,9 @@ def auto_anchors(
     data : PolyData, UnstructuredGrid, ImageData, (N, 3) array, (vertices, faces) or path
         The shape (as for :func:`vhm_viz.auto_cage`).
     cage : Cage, (vertices, faces), PolyData or path
-        Anchors must lie inside it.
+        Anchors must lie inside it. It must enclose the shape: every point of a surface,
+        cloud or tet mesh, every voxel above a volume's threshold, or without a threshold
+        the volume's whole box.
     count : int
         Number of anchors ``d`` (>= 1); exactly this many are returned.
     resolution : int, optional
@@ -476,13 +527,16 @@ def auto_anchors(
     Returns
     -------
     anchors : (count, 3) float64
-        Inside the shape and the cage. Every cage shell holding part of the shape gets
-        one, and every connected part when there are at most ``count // 2`` of them
-        (else the largest, up to half the anchors; the report counts the others).
+        Inside the shape and the cage, no two the same. Every cage shell holding part of
+        the shape gets one, and every connected part when there are at most
+        ``count // 2`` of them (else the largest, up to half the anchors; the report
+        counts the others).
     report : AnchorReport, only with ``return_report``
 
     Raises
     ------
+    OutsideCageError
+        Points of the shape outside the cage, counted.
     ValueError
         Degenerate input, ``count < 1``, a shape too thin for the voxel grid (raise
         ``resolution``), or fewer interior voxels than ``count``.
@@ -501,6 +555,7 @@ def auto_anchors(
         pts = _box_points(lo, hi, _BOX_REPORT_PER_SIDE)
         box_targets = _box_points(lo, hi, _BOX_TARGETS_PER_SIDE)
         resolution = _BOX_RESOLUTION if resolution is None else resolution
+    _check_enclosed(samples, cage, pts)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     ext = float(np.max(hi - lo))
     if resolution is None and samples.kind == "volume" and samples.spacing:
@@ -587,11 +642,18 @@ def auto_anchors(
     (medial, medial_cover), (mixed, mixed_cover) = placed
     diag = float(np.linalg.norm(hi - lo))
     goal = _COVERAGE_GOAL * diag
-    if medial_cover <= goal or mixed_cover > goal:
+    if len(np.unique(medial)) < count:
+        on_medial = False  # a skeleton of fewer voxels than anchors: some would coincide
+    elif medial_cover <= goal or mixed_cover > goal:
         on_medial = medial_cover <= max(goal, _MEDIAL_SLACK * mixed_cover)
     else:
         on_medial = False
     chosen = medial if on_medial else mixed
+    if len(np.unique(chosen)) < count:  # pragma: no cover - guarded by construction
+        raise RuntimeError(
+            f"auto_anchors: internal error, {len(np.unique(chosen))} distinct positions for "
+            f"{count} anchors"
+        )
     anchors = centres[chosen]
     dist, _ = cKDTree(anchors).query(pts)
     min_pair = _closest_pair(anchors)

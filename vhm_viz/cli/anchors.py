@@ -20,7 +20,8 @@ HELP = "place anchors on the medial axis/surface of a dataset, inside its cage"
 
 DESCRIPTION = (
     "Place --count anchors on an approximation of the medial axis/surface "
-    "of INPUT, strictly inside INPUT and CAGE, and write them as JSON: "
+    "of INPUT, strictly inside INPUT and CAGE (which must enclose INPUT), and write them "
+    "as JSON: "
     '{"anchors": [[x, y, z], ...], "count": d, "min_pairwise_distance": ...}, '
     "or, to an OUTPUT ending in .mrk.json, a 3D Slicer point list (LPS)."
 )
