@@ -353,3 +353,43 @@ def test_voxel_method_is_valid_and_respects_the_budget():
     assert report.method == "voxel" and cage.n_faces <= 100
     assert report.clearance >= report.offset * 0.999  # the voxel cage keeps the full offset
     assert cage.contains(v).all()
+
+
+def _cube_cloud():
+    """Points on a unit cube's faces: a shape whose diagonal is sqrt(3) times its side."""
+    g = np.linspace(0.0, 1.0, 9)
+    grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    return grid[(np.isclose(grid, 0) | np.isclose(grid, 1)).any(axis=1)]
+
+
+@pytest.mark.parametrize("offset", [0.0, -1.0, 1.8, 1e5, 1e9, np.inf])
+def test_an_offset_past_the_diagonal_is_refused_before_any_grid(offset):
+    # the cube's diagonal is sqrt(3): farther out the cage follows nothing of the shape
+    # (and its grid, which spans the clearance, grew to petabytes)
+    from vhm_viz.core.errors import SettingError
+
+    with pytest.raises(SettingError, match=r"at most the data's bounding-box diagonal, 1\.732"):
+        auto_cage(_cube_cloud(), offset=offset)
+
+
+def test_a_large_offset_keeps_the_grid_within_its_cap():
+    # at the largest offset, the diagonal, the grid across the cage stays within the
+    # default extraction grid's 115 voxels (it grew with the offset)
+    pts = _cube_cloud()
+    diag = float(np.sqrt(3.0))
+    cage, report = auto_cage(pts, offset=diag, method="offset", return_report=True)
+    assert cage.contains(pts).all() and report.clearance >= 0.5 * diag
+    assert np.ptp(cage.vertices, axis=0).max() / report.voxel_size <= 116
+
+
+def test_volume_options_are_refused_for_other_inputs():
+    from vhm_viz.core.errors import SettingError
+
+    cube = pv.Cube().triangulate()
+    for data, kind in ((_cube_cloud(), "point cloud"), (cube, "surface")):
+        with pytest.raises(SettingError, match=f"threshold applies to volumes.*a {kind}"):
+            auto_cage(data, threshold=5)
+        with pytest.raises(SettingError, match=f"threshold applies to volumes.*a {kind}"):
+            auto_anchors(data, Cage(*box_cage((-2, -2, -2), (2, 2, 2))), 4, threshold=5)
+    with pytest.raises(SettingError, match="scalars applies to volumes"):
+        auto_cage(cube, scalars="v")

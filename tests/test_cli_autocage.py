@@ -43,6 +43,11 @@ def test_cage_then_anchors(capsule, tmp_path, capsys):
         (["cage", "{capsule_obj}", "-o", "{capsule_obj}"], "refusing to overwrite"),
         (["cage", "{capsule}", "-o", "{tmp}/c.txt"], "must end with"),
         (["anchors", "{capsule}", "--cage", "{missing}", "-o", "{tmp}/a.json"], "not found"),
+        # the capsule's diagonal is about 3: a clearance past it is refused, not gridded
+        (["cage", "{capsule}", "-o", "{tmp}/c.obj", "--offset", "1e9"], "--offset must be"),
+        (["cage", "{capsule}", "-o", "{tmp}/c.obj", "--offset", "4"], "diagonal, 3.02"),
+        (["cage", "{capsule}", "-o", "{tmp}/c.obj", "--threshold", "5"], "--threshold applies"),
+        (["cage", "{cloud}", "-o", "{tmp}/c.obj", "--threshold", "5"], "is a point cloud"),
     ],
 )
 def test_bad_input_is_one_line_and_nonzero(argv, message, capsule, tmp_path, capsys):
@@ -50,6 +55,8 @@ def test_bad_input_is_one_line_and_nonzero(argv, message, capsule, tmp_path, cap
     pv.read(capsule).save(capsule_obj)
     fill = {"missing": tmp_path / "nope.obj", "tmp": tmp_path, "capsule": capsule}
     fill["capsule_obj"] = capsule_obj
+    fill["cloud"] = tmp_path / "cloud.npy"
+    np.save(fill["cloud"], np.asarray(pv.read(capsule).points))
     before = capsule.read_bytes(), capsule_obj.read_bytes()
     rc = main([a.format(**fill) for a in argv])
     err = capsys.readouterr().err.strip()

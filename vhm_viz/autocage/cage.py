@@ -44,12 +44,16 @@ import numpy as np
 from vhm_viz.autocage import voxel as vx
 from vhm_viz.autocage.clearance import push_out, reaching_signed_distances
 from vhm_viz.autocage.mesh import BOX_TRIANGLES, box_corners, make_cage, orient_outward
-from vhm_viz.autocage.offset_cage import default_resolution, offset_cage
+from vhm_viz.autocage.offset_cage import default_voxel_size, offset_cage
 from vhm_viz.autocage.parts import shape_samples
 from vhm_viz.autocage.samples import InputSamples, collect_samples, point_spacing
 from vhm_viz.autocage.threshold import resolve_threshold, volume_values
 from vhm_viz.autocage.voxel_cage import voxel_cage
 from vhm_viz.core.basis import winding_number
+from vhm_viz.core.errors import SettingError
+
+#: the largest clearance, in bounding-box diagonals of the input
+_MAX_OFFSET = 1.0
 
 __all__ = [
     "auto_cage",
@@ -166,17 +170,18 @@ def auto_cage(
         A surface, a point cloud, a tet mesh or a volume (see :func:`collect_samples`).
     offset : float, optional
         Target clearance between the input and the cage, in world units (default 1% of
-        the input's bounding-box diagonal). The ``"offset"`` method keeps at least half
-        of it (where simplification cut in, the cage is pushed back out to that), and
-        between separate parts at most a third of their gap; the ``"voxel"`` method all
-        of it. Separate parts farther apart than the offset used (``offset_used`` in the
-        report) get separate shells and the space between them stays outside; closer
-        ones may share a shell.
+        the input's bounding-box diagonal, at most the diagonal). The ``"offset"`` method
+        keeps at least half of it (where simplification cut in, the cage is pushed back
+        out to that), and between separate parts at most a third of their gap; the
+        ``"voxel"`` method all of it. Separate parts farther apart than the offset used
+        (``offset_used`` in the report) get separate shells and the space between them
+        stays outside; closer ones may share a shell.
     max_faces : int
         Largest number of triangles (default 500, the paper's range is 200-500).
     resolution : int, optional
         Voxels along the longest bounding-box side. ``"offset"``: the grid the offset
-        surface is extracted on (default ``1.5 * side / offset`` within 32-112).
+        surface is extracted on (default ``1.5 * side / offset`` within 32-112, and
+        coarser where the clearance on either side would take the grid past 115 voxels).
         ``"voxel"``: the cube size (default: the finest that fits ``max_faces``).
     method : {"auto", "offset", "voxel"}
         See the module documentation. ``"auto"`` uses ``"offset"``, retries it at two
@@ -198,9 +203,12 @@ def auto_cage(
 
     Raises
     ------
+    SettingError
+        An offset that is not positive or is larger than the input's bounding-box
+        diagonal; ``threshold`` or ``scalars`` for an input that is not a volume.
     ValueError
         Degenerate input (empty, NaN/inf, a single point, coplanar or collinear points),
-        ``max_faces`` below 12, a bad offset/resolution or an unknown method.
+        ``max_faces`` below 12, a bad resolution or an unknown method.
     """
     t0 = time.perf_counter()
     if method not in ("auto", "offset", "voxel"):
@@ -220,8 +228,14 @@ def auto_cage(
     if offset is None:
         offset = 0.01 * diag
     offset = float(offset)
-    if not (np.isfinite(offset) and offset > 0):
-        raise ValueError(f"auto_cage: offset must be a positive number, got {offset!r}")
+    if not (np.isfinite(offset) and 0 < offset <= _MAX_OFFSET * diag):
+        # farther out the cage follows nothing of the shape, and its grid (which spans
+        # the clearance) only grows
+        raise SettingError(
+            "offset",
+            f"must be positive and at most the data's bounding-box diagonal, {diag:.4g} "
+            f"(world units); got {offset:.4g}",
+        )
     notes: list[str] = []
     used = "voxel" if samples.kind == "volume-box" else method
     cage = None
@@ -307,8 +321,8 @@ def _offset_with_retries(samples, lo, hi, offset, max_faces, resolution, method,
     """
     tries = (offset, 2.0 * offset, 4.0 * offset) if method == "auto" else (offset,)
     ext = float((hi - lo).max())
-    res0 = resolution or default_resolution(ext, offset)
-    shape = shape_samples(samples, 0.5 * ext / res0)
+    h0 = ext / resolution if resolution else default_voxel_size(ext, offset)
+    shape = shape_samples(samples, 0.5 * h0)
     for k, off in enumerate(tries):
         try:
             built = offset_cage(

@@ -29,7 +29,7 @@ from vhm_viz.core.basis import winding_number
 from vhm_viz.core.cage import self_intersections
 from vhm_viz.core.errors import CageError
 
-__all__ = ["offset_cage", "default_resolution"]
+__all__ = ["offset_cage", "default_resolution", "default_voxel_size"]
 
 
 #: more self-intersecting face pairs than this in the simplified offset surface (before
@@ -57,6 +57,22 @@ def default_resolution(extent: float, offset: float) -> int:
         Within 32-112.
     """
     return int(np.clip(np.ceil(1.5 * extent / offset), 32, 112))
+
+
+#: the default extraction grid's voxels across the input and its clearance on both
+#: sides: the largest :func:`default_resolution` plus 1.5 voxels of clearance each side
+_MAX_SPAN = 115
+
+
+def default_voxel_size(extent: float, offset: float) -> float:
+    """Voxel size of the default extraction grid (world units).
+
+    ``extent / default_resolution(extent, offset)``, coarser where the grid across the
+    input and the clearance on both sides (which the offset surface's grid spans) would
+    exceed :data:`_MAX_SPAN` voxels: offsets larger than about the input's extent,
+    whose grid would otherwise grow with the offset.
+    """
+    return max(extent / default_resolution(extent, offset), (extent + 2.0 * offset) / _MAX_SPAN)
 
 
 def _decimated(V, F, target: int, notes: list):
@@ -124,7 +140,7 @@ def offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes, re
     max_faces : int
         Face budget.
     resolution : int or None
-        Voxels along the longest side (default :func:`default_resolution`).
+        Voxels along the longest side (default: :func:`default_voxel_size`'s voxels).
     notes : list of str
         Variants retried and why are appended.
     reach : float, optional
@@ -152,8 +168,10 @@ def offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes, re
     """
     ext = float((hi - lo).max())
     if resolution is None:
-        resolution = default_resolution(ext, offset)
-    h = ext / int(resolution)
+        h = default_voxel_size(ext, offset)
+        resolution = max(1, round(ext / h))  # the voxels along the side, for the report
+    else:
+        h = ext / int(resolution)
     max_groups = max(1, max_faces // _FACES_PER_SHELL)
     groups = make_groups(shape, offset, h, samples.spacing, max_groups, reach=reach)
     # point sets: a voxel centre is in the shape when within a sample's voxel (volumes)

@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from vhm_viz.autocage import voxel as vx
 from vhm_viz.autocage.mesh import box_corners
 from vhm_viz.autocage.threshold import resolve_threshold, volume_values
+from vhm_viz.core.errors import SettingError
 from vhm_viz.io import read_dataset
 
 __all__ = ["InputSamples", "collect_samples", "check_points", "point_spacing"]
@@ -185,9 +186,9 @@ def collect_samples(data, *, threshold=None, scalars=None, what="auto_cage") -> 
         grids) a volume: its bounding box when ``threshold`` is None, else the points whose
         scalar is above ``threshold`` (``"otsu"`` picks Otsu's threshold).
     threshold : float, "otsu" or None
-        Volumes only.
+        Volumes only (refused for other inputs).
     scalars : str, optional
-        Name of the volume's scalar array (default: the active one).
+        Name of the volume's scalar array (default: the active one); volumes only.
     what : str
         Prefix for error messages.
 
@@ -197,12 +198,34 @@ def collect_samples(data, *, threshold=None, scalars=None, what="auto_cage") -> 
 
     Raises
     ------
+    SettingError
+        ``threshold`` or ``scalars`` for an input that is not a volume.
     ValueError
         Empty input, non-finite coordinates, a single point, coplanar or collinear points,
         an unsupported type or a threshold that selects nothing.
     """
     if isinstance(data, (str, os.PathLike)):
         data = read_dataset(data)
+    samples = _collect(data, threshold, scalars, what)
+    if not samples.kind.startswith("volume"):
+        # a surface, cloud or tet mesh has no values to select a region by: an option
+        # for volumes would silently do nothing
+        for name, value in (("threshold", threshold), ("scalars", scalars)):
+            if value is not None:
+                raise SettingError(
+                    name,
+                    f"applies to volumes (images) only, and this input is a "
+                    f"{_KIND_NAMES[samples.kind]}: leave it out",
+                )
+    return samples
+
+
+#: what each kind of input is called in messages
+_KIND_NAMES = {"surface": "surface", "points": "point cloud", "tetmesh": "tet mesh"}
+
+
+def _collect(data, threshold, scalars, what) -> InputSamples:
+    """:func:`collect_samples` of a dataset, array or tuple (not a path)."""
     if isinstance(data, tuple) and len(data) == 2:
         verts = check_points(data[0], what)
         faces = np.asarray(data[1])

@@ -8,15 +8,18 @@ reports the result.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 
-from vhm_viz.cli._util import add_quiet_argument
+from vhm_viz.cli._util import CLIError, add_quiet_argument
+from vhm_viz.core.errors import SettingError
 
 __all__ = [
     "add_dataset_arguments",
     "add_output_argument",
     "add_threshold_argument",
     "grid_options",
+    "options_named",
     "report_written",
     "threshold_of",
 ]
@@ -26,7 +29,8 @@ __all__ = [
 #: default.
 _GRIDS = {
     "cage": "the extraction grid's bounding box (default: 1.5 x that side / the offset, "
-    "within 32-112; --method voxel: the finest that fits --max-faces)",
+    "within 32-112, coarser where the clearance would take the grid past 115; --method "
+    "voxel: the finest that fits --max-faces)",
     "anchors": "the grid the medial axis is computed on (default: 96; volumes: one per "
     "image sample, at most 96)",
 }
@@ -82,7 +86,7 @@ def add_threshold_argument(p: argparse.ArgumentParser, purpose: str, default: st
         default=None,
         metavar="VALUE",
         help=f"volumes: {purpose} above this value, in the units of the data "
-        f"('otsu' picks one) (default: {default})",
+        f"('otsu' picks one; refused for other inputs) (default: {default})",
     )
 
 
@@ -118,6 +122,19 @@ def grid_options(args: argparse.Namespace) -> dict:
         :func:`vhm_viz.auto_cage` and :func:`vhm_viz.auto_anchors`.
     """
     return {"resolution": args.resolution, "threshold": threshold_of(args)}
+
+
+@contextlib.contextmanager
+def options_named():
+    """A setting the automatic set-up refuses, as one line naming its option.
+
+    :func:`vhm_viz.auto_cage` and :func:`vhm_viz.auto_anchors` name their keyword
+    (``offset``, ``threshold``, ``resolution``); the line names ``--offset``, ...
+    """
+    try:
+        yield
+    except SettingError as exc:
+        raise CLIError(f"--{exc.field.replace('_', '-')} {exc.detail}") from exc
 
 
 def report_written(args: argparse.Namespace, output, report) -> int:

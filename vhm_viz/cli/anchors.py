@@ -8,6 +8,7 @@ from vhm_viz.cli._dataset_input import (
     add_dataset_arguments,
     add_output_argument,
     grid_options,
+    options_named,
     report_written,
 )
 from vhm_viz.cli._util import check_input, check_output
@@ -47,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     timer = args.timer
     with timer.stage("read"):
         data, cage = read_dataset(src), read_cage(cage_path)
-    with timer.stage("anchors"):
+    with timer.stage("anchors"), options_named():
         anchors, report = auto_anchors(
             data, cage, args.count, return_report=True, **grid_options(args)
         )

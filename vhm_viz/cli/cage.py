@@ -8,6 +8,7 @@ from vhm_viz.cli._dataset_input import (
     add_dataset_arguments,
     add_output_argument,
     grid_options,
+    options_named,
     report_written,
 )
 from vhm_viz.cli._util import check_input, check_output
@@ -41,7 +42,7 @@ def add_arguments(p) -> None:
         default=None,
         metavar="DISTANCE",
         help="clearance between the data and the cage, in world units (the data's units) "
-        "(default: 1%% of the bounding-box diagonal)",
+        "(default: 1%% of the bounding-box diagonal; at most the diagonal)",
     )
     p.add_argument(
         "--method",
@@ -62,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     timer = args.timer
     with timer.stage("read"):
         data = read_dataset(src)
-    with timer.stage("cage"):
+    with timer.stage("cage"), options_named():
         cage, report = auto_cage(
             data,
             offset=args.offset,
