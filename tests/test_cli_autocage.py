@@ -107,3 +107,29 @@ def test_anchors_are_distinct_where_the_skeleton_is_one_voxel(tmp_path, capsys):
     assert main([*argv, "--resolution", "6"]) == 0, capsys.readouterr().err
     anchors = np.asarray(json.loads(out.read_text())["anchors"])
     assert len(np.unique(anchors, axis=0)) == 4 and np.abs(anchors).max() < 0.5
+
+
+def test_a_scenes_automatic_anchors_cover_the_part_its_cage_holds(capsule, tmp_path, capsys):
+    """``deform --outside passthrough`` moves the part of the data a cage holds: a scene's
+    automatic anchors go there (the map, not the anchors, checks the data against the
+    cage), and without passthrough the map refuses the points outside."""
+    from conftest import box_cage
+
+    surface = pv.read(capsule)  # z from -1.4 to 1.4
+    v, f = box_cage((-1, -1, -1.6), (1, 1, 0.5))  # holds the lower part only
+    held = np.asarray(surface.points)[:, 2] < 0.5
+    scene = {"format": "vhm_viz.scene", "version": 1,
+             "cage": {"vertices": v.tolist(), "faces": f.tolist()}, "anchors": {"auto": 6},
+             "constraints": {"positions": [[0, 0, -1.2], [0, 0, 0.2]],
+                             "targets": [[0, 0, -1.2], [0.1, 0, 0.2]]}}  # fmt: skip
+    (tmp_path / "part.json").write_text(json.dumps(scene))
+    argv = ["deform", str(capsule), "-s", str(tmp_path / "part.json"), "-q", "-o"]
+    assert main([*argv, str(tmp_path / "o.vtp"), "--outside", "passthrough"]) == 0
+    out = capsys.readouterr().out
+    assert f"{int((~held).sum())} points outside the cage" in out
+    moved = pv.read(tmp_path / "o.vtp")
+    np.testing.assert_array_equal(moved.points[~held], surface.points[~held])
+    assert main([*argv, str(tmp_path / "e.vtp")]) == 1
+    err = capsys.readouterr().err
+    assert "outside the cage" in err and "--outside passthrough" in err
+    assert not (tmp_path / "e.vtp").exists()

@@ -461,12 +461,15 @@ class Scene:
             # imported here: only automatic anchors need vhm_viz.autocage
             from vhm_viz.autocage import auto_anchors
 
+            # the map checks the data against the cage itself (deform's --outside): the
+            # anchors cover the part of the shape the cage holds
             return auto_anchors(
                 data,
                 cage,
                 int(a["auto"]),
                 threshold=options.get("threshold"),
                 scalars=options.get("scalars"),
+                outside="ignore",
             )
         if "polylines" in a:
             pts, edges = read_polylines(self._resolve_path(a["polylines"]))

@@ -501,6 +501,7 @@ def auto_anchors(
     resolution: int | None = None,
     threshold=None,
     scalars: str | None = None,
+    outside: str = "error",
     return_report: bool = False,
 ):
     """Place ``count`` anchors that cover ``data``, on its skeleton where it is thin.
@@ -521,6 +522,11 @@ def auto_anchors(
         48).
     threshold, scalars
         Volumes: as for :func:`vhm_viz.auto_cage`.
+    outside : {"error", "ignore"}
+        Points of the shape outside the cage: refused (:class:`OutsideCageError`), or
+        left to the caller, the anchors covering the part of the shape the cage holds
+        (a scene's solve: its map checks the data against the cage, as ``deform
+        --outside`` says).
     return_report : bool
         Also return an :class:`AnchorReport` (coverage, parts, depth).
 
@@ -555,7 +561,10 @@ def auto_anchors(
         pts = _box_points(lo, hi, _BOX_REPORT_PER_SIDE)
         box_targets = _box_points(lo, hi, _BOX_TARGETS_PER_SIDE)
         resolution = _BOX_RESOLUTION if resolution is None else resolution
-    _check_enclosed(samples, cage, pts)
+    if outside == "error":
+        _check_enclosed(samples, cage, pts)
+    elif outside != "ignore":
+        raise ValueError(f"auto_anchors: outside must be 'error' or 'ignore'; got {outside!r}")
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     ext = float(np.max(hi - lo))
     if resolution is None and samples.kind == "volume" and samples.spacing:
