@@ -18,8 +18,15 @@ from vhm_viz.cli._field_output import (
     field_of,
     write_field,
 )
-from vhm_viz.cli._util import (
+from vhm_viz.cli._folds import (
     FOLD_SPOT_SAMPLES,
+    fold_samples,
+    fold_warning,
+    image_positions,
+    inverted_voxel_cells,
+    load_check_kernels,
+)
+from vhm_viz.cli._util import (
     CLIError,
     FoldedOutput,
     Progress,
@@ -33,11 +40,6 @@ from vhm_viz.cli._util import (
     check_output,
     check_volume_memory,
     convergence_warning,
-    fold_samples,
-    fold_warning,
-    image_positions,
-    inverted_voxel_cells,
-    load_check_kernels,
     load_scene,
     print_warning,
     quiet_vtk,
