@@ -465,9 +465,10 @@ def test_volume_warp_with_more_ranks_than_planes_finishes(paraview_env, head_sce
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "vhm-points 2" in done.stdout
-    # the resample too, of 3 x 3 x 3 output voxels: 3 pieces (sharing their boundary
-    # planes: 45 points) and 3 shares of the work, which need not match them
-    assert "vhm-resampled 45" in done.stdout, done.stdout + done.stderr
+    # the resample too, of the 2 x 2 x 3 output voxels that hold the deformed volume (the
+    # serial filter's grid): 3 pieces along z sharing their boundary planes (20 points)
+    # and 3 shares of the work, which need not match them
+    assert "vhm-resampled 20" in done.stdout, done.stdout + done.stderr
     assert "Traceback" not in done.stdout + done.stderr
 
 
