@@ -98,6 +98,7 @@ def make_field(volume: Path, scene: Path, field: Path, env: dict) -> None:
     resampled = field.with_name("anchor_resampled.vti")
     cmd = [sys.executable, "-m", "vhm_viz.cli", "deform", str(volume), "--scene", str(scene)]
     cmd += ["-o", str(resampled), "--reference", str(volume), "--write-field", str(field), "-q"]
+    cmd += ["--allow-folds"]  # the anchor times a resample through the field, folds or not
     done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"making the anchor's displacement field failed: {done.stderr[-400:]}")
