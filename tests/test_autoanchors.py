@@ -67,6 +67,10 @@ def test_bad_counts_and_inputs():
         auto_anchors(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, np.nan]]), cage, 3)
     with pytest.raises(ValueError, match="interior"):
         auto_anchors((v, f), cage, 10**6)
+    # a grid that cannot fit is refused before any of it exists, naming its size
+    grid = r"a \d+x\d+x100005 voxel grid needs about .* use a lower resolution"
+    with pytest.raises(ValueError, match=grid):
+        auto_anchors((v, f), cage, 4, resolution=100_000)
 
 
 def test_ball_centre_is_badoiu_clarksons_and_nears_the_smallest_ball():

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from vhm_viz.resources import require_memory
+
 __all__ = [
     "Grid",
     "make_grid",
@@ -70,6 +72,11 @@ class Grid:
         return self.origin + np.asarray(vertex_index, dtype=np.float64) * self.h
 
 
+#: Working bytes per voxel of a grid the automatic cage and anchors use, at most: two
+#: float64 distance transforms with their int32 feature indices, a label image and masks.
+GRID_VOXEL_BYTES = 48
+
+
 def make_grid(
     lo: np.ndarray, hi: np.ndarray, resolution: int | None, pad: int, h: float | None = None
 ) -> Grid:
@@ -101,6 +108,15 @@ def make_grid(
     # a hair more than the extent so points on the upper face fall inside the last voxel
     n = np.ceil(ext / h * (1 + 1e-9) + 1e-9).astype(np.int64)
     n = np.maximum(n, 1) + 2 * int(pad)
+    # the working arrays of a grid (distance transforms and their feature indices, labels,
+    # masks), refused before any exists when they cannot fit
+    shape = "x".join(str(int(k)) for k in n)
+    require_memory(
+        int(np.prod(n.astype(np.float64))) * GRID_VOXEL_BYTES,
+        f"a {shape} voxel grid",
+        "use a lower resolution (voxels along its longest side)",
+        ValueError,
+    )
     origin = 0.5 * (lo + hi) - 0.5 * n * h
     return Grid(origin=origin, h=h, shape=(int(n[0]), int(n[1]), int(n[2])))
 
