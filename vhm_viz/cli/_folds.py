@@ -1,8 +1,9 @@
 """The checks after the map that tell whether a deformation folds the data.
 
 :func:`fold_warning` is the one line ``deform`` prints (or refuses with) when it does:
-inverted cells of a warped volume (:func:`inverted_voxel_cells`) or tet mesh, resampled
-voxels in folds, and ``det J <= 0`` at evenly spread points of the continuous map.
+inverted cells of a warped volume (:func:`warped_voxel_folds`) or tet mesh, resampled
+voxels in folds (:func:`resampled_fold_voxels`), and ``det J <= 0`` at evenly spread
+points of the continuous map.
 :func:`load_check_kernels` loads these checks' compiled kernels while the solve runs.
 """
 
@@ -345,3 +346,55 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False, proof:
     thread = threading.Thread(target=run, name="vhm-check-kernels", daemon=True)
     thread.start()
     return thread
+
+
+#: Voxels of a resample's fold mask scanned at a time for the positions of those in folds.
+FOLD_SCAN_VOXELS = 1 << 22
+
+
+def resampled_fold_voxels(image) -> dict:
+    """:func:`fold_warning`'s voxels of a resampled image: those ``vhm_foldover`` marks.
+
+    Their count, and the box of their output positions, found a chunk of the mask at a
+    time so that a large fold needs no array of all its positions.
+    """
+    mask = np.asarray(image.point_data["vhm_foldover"]).reshape(-1)
+    dims = tuple(int(d) for d in image.dimensions)
+    count, lo, hi = 0, np.full(3, np.inf), np.full(3, -np.inf)
+    for start in range(0, mask.size, FOLD_SCAN_VOXELS):
+        index = np.flatnonzero(mask[start : start + FOLD_SCAN_VOXELS]) + start
+        if index.size:
+            count += index.size
+            at = image_positions(image, np.column_stack(np.unravel_index(index, dims, order="F")))
+            lo = np.minimum(lo, [at[:, c].min() for c in range(3)])
+            hi = np.maximum(hi, [at[:, c].max() for c in range(3)])
+    return {"count": count, "voxels": mask.size, "lo": lo, "hi": hi}
+
+
+def warped_voxel_folds(image, warped, progress, memory_budget=None, unproven=None) -> dict | None:
+    """:func:`fold_warning`'s cells of a warped image: its voxels' corner Jacobians.
+
+    ``unproven``: the only cells to measure (the volume engine's
+    :meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`; default: all).
+    """
+    dims = tuple(int(d) for d in image.dimensions)
+    if min(dims) < 2:
+        return None
+    rest_det = float(np.prod(image.spacing) * np.linalg.det(np.asarray(image.direction_matrix)))
+    cells = inverted_voxel_cells(warped.points, dims, rest_det, progress, memory_budget, unproven)
+
+    def centres(index):
+        """Rest centres of voxel cells given by index, without extracting the cells."""
+        index = np.asarray(index, dtype=np.int64)
+        row, i = np.divmod(index, dims[0] - 1)
+        k, j = np.divmod(row, dims[1] - 1)
+        frame = np.asarray(image.direction_matrix, dtype=np.float64) * np.asarray(image.spacing)
+        out = np.empty((index.size, 3))
+        for c in range(3):  # column by column: no (K, 3) index array
+            out[:, c] = image.origin[c] + frame[c, 0] * (i + 0.5)
+            out[:, c] += frame[c, 1] * (j + 0.5)
+            out[:, c] += frame[c, 2] * (k + 0.5)
+        return out
+
+    cells["centres"] = centres
+    return cells

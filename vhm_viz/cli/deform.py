@@ -22,9 +22,9 @@ from vhm_viz.cli._folds import (
     FOLD_SPOT_SAMPLES,
     fold_samples,
     fold_warning,
-    image_positions,
-    inverted_voxel_cells,
     load_check_kernels,
+    resampled_fold_voxels,
+    warped_voxel_folds,
 )
 from vhm_viz.cli._util import (
     CLIError,
@@ -472,7 +472,7 @@ def _check_folds(
             grid = ImageGeometry(mesh.origin, mesh.spacing, mesh.dimensions, mesh.direction_matrix)
             if _proof_sized(mesh) and engine is not None and engine.geometry.same_as(grid):
                 unproven = engine.unproven_cells()
-            cells = _voxel_folds(mesh, result, bar, memory_budget, unproven)
+            cells = warped_voxel_folds(mesh, result, bar, memory_budget, unproven)
         elif "cell_jacobian_determinant" in result.cell_data:
             det = np.asarray(result.cell_data["cell_jacobian_determinant"])
             finite = np.isfinite(det)
@@ -486,62 +486,10 @@ def _check_folds(
             if "vhm_outside" in result.point_data:  # passthrough points are not the map's
                 point_det = np.where(result.point_data["vhm_outside"] == 0, point_det, np.nan)
     # a resample marks its voxels in folds itself; cells were checked one by one
-    voxels = _fold_voxels(result) if resample else None
+    voxels = resampled_fold_voxels(result) if resample else None
     whole = resample or cells is not None
     n_points = mesh.GetNumberOfPoints()
     samples = FOLD_SPOT_SAMPLES if whole else fold_samples(n_points)
     return fold_warning(
         mesh, dfm.harmonic_map, cells=cells, point_det=point_det, samples=samples, voxels=voxels
     )
-
-
-#: Voxels of a resample's fold mask scanned at a time for the positions of those in folds.
-FOLD_SCAN_VOXELS = 1 << 22
-
-
-def _fold_voxels(image) -> dict:
-    """:func:`fold_warning`'s voxels of a resampled image: those ``vhm_foldover`` marks.
-
-    Their count, and the box of their output positions, found a chunk of the mask at a
-    time so that a large fold needs no array of all its positions.
-    """
-    mask = np.asarray(image.point_data["vhm_foldover"]).reshape(-1)
-    dims = tuple(int(d) for d in image.dimensions)
-    count, lo, hi = 0, np.full(3, np.inf), np.full(3, -np.inf)
-    for start in range(0, mask.size, FOLD_SCAN_VOXELS):
-        index = np.flatnonzero(mask[start : start + FOLD_SCAN_VOXELS]) + start
-        if index.size:
-            count += index.size
-            at = image_positions(image, np.column_stack(np.unravel_index(index, dims, order="F")))
-            lo = np.minimum(lo, [at[:, c].min() for c in range(3)])
-            hi = np.maximum(hi, [at[:, c].max() for c in range(3)])
-    return {"count": count, "voxels": mask.size, "lo": lo, "hi": hi}
-
-
-def _voxel_folds(image, warped, progress, memory_budget=None, unproven=None) -> dict | None:
-    """:func:`fold_warning`'s cells of a warped image: its voxels' corner Jacobians.
-
-    ``unproven``: the only cells to measure (the volume engine's
-    :meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`; default: all).
-    """
-    dims = tuple(int(d) for d in image.dimensions)
-    if min(dims) < 2:
-        return None
-    rest_det = float(np.prod(image.spacing) * np.linalg.det(np.asarray(image.direction_matrix)))
-    cells = inverted_voxel_cells(warped.points, dims, rest_det, progress, memory_budget, unproven)
-
-    def centres(index):
-        """Rest centres of voxel cells given by index, without extracting the cells."""
-        index = np.asarray(index, dtype=np.int64)
-        row, i = np.divmod(index, dims[0] - 1)
-        k, j = np.divmod(row, dims[1] - 1)
-        frame = np.asarray(image.direction_matrix, dtype=np.float64) * np.asarray(image.spacing)
-        out = np.empty((index.size, 3))
-        for c in range(3):  # column by column: no (K, 3) index array
-            out[:, c] = image.origin[c] + frame[c, 0] * (i + 0.5)
-            out[:, c] += frame[c, 1] * (j + 0.5)
-            out[:, c] += frame[c, 2] * (k + 0.5)
-        return out
-
-    cells["centres"] = centres
-    return cells

@@ -1,4 +1,9 @@
-"""Where a command's time goes: the stage breakdown that ``--timings`` prints."""
+"""Where a command's time goes: the stage breakdown that ``--timings`` prints.
+
+A command that maps data has the stages read, solve, map, checks and write, in that order;
+``cage`` and ``anchors`` have read, their own work (a stage of the command's name) and
+write.
+"""
 
 from __future__ import annotations
 
@@ -8,11 +13,7 @@ from contextlib import contextmanager
 
 from vhm_viz import interrupts
 
-__all__ = ["STAGES", "StageTimer"]
-
-#: The stages of a command that maps data, in the order they run (``cage`` and ``anchors``
-#: have ``read``, then their own work as a stage of that name, then ``write``).
-STAGES = ("read", "solve", "map", "checks", "write")
+__all__ = ["StageTimer"]
 
 
 class StageTimer:
