@@ -168,16 +168,24 @@ def test_surface_two_ranks_equal_serial_equal_python(paraview_env, armadillo_sce
     assert np.abs(serial - expected).max() <= 1e-9 * diag
 
 
-def test_no_scene_file_one_message_no_output(paraview_env, tmp_path):
-    sphere = tmp_path / "sphere.vtp"
-    pv.Sphere().save(sphere)
-    config = {"input": str(sphere), "filter": "VHMHarmonicDeformation", "scene": None,
-              "ids": False}  # fmt: skip
+@pytest.mark.parametrize("flt", ["VHMHarmonicDeformation", "VHMResampleToImage"])
+def test_no_scene_file_one_message_no_output(paraview_env, tmp_path, flt):
+    """Without a scene, or with a malformed one, each filter says why in one line: the
+    resample's output grid needs the map in the information pass, whose failure is that
+    line too (not VTK's executive error, nor an error about the missing grid)."""
+    data = tmp_path / "data.vti"
+    pv.ImageData(dimensions=(4, 4, 4)).save(data)
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "vhm_viz.scene", "version": 1}')
+    config = {"input": str(data), "filter": flt, "scene": None, "ids": False}
     for ranks in (1, 2):
-        log = _run(paraview_env, config, tmp_path, ranks=ranks, name="noscene")
-        assert log.count("set SceneFile (a vhm_viz scene JSON)") == 1, log
-        assert "Traceback" not in log
-        assert "vhm-paraview-points: 0" in log
+        for scene, line in ((None, "set SceneFile (a vhm_viz scene JSON)"),
+                            (str(bad), "scene field 'cage': missing")):  # fmt: skip
+            log = _run(paraview_env, {**config, "scene": scene}, tmp_path, ranks=ranks,
+                       name="noscene")  # fmt: skip
+            assert log.count(line) == 1, log
+            assert "Traceback" not in log and "returned failure" not in log, log
+            assert "vhm-paraview-points: 0" in log
 
 
 @pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")

@@ -125,6 +125,7 @@ class HarmonicResampleFilter(DeformationSource):
         self._interpolation = "linear"
         self._field = False
         self._geometry: ImageGeometry | None = None
+        self._information_error: BaseException | None = None
         # MPI ranks: what the ranks agreed on in the information pass, and the engine of
         # this rank's output piece
         self._shared = None
@@ -191,8 +192,17 @@ class HarmonicResampleFilter(DeformationSource):
 
     # ------------------------------------------------------------------ pipeline
     def RequestInformation(self, request, in_info, out_info):
-        """Compute the output grid (needs the map: built or solved here if necessary)."""
-        return self._guard(self._information, in_info, out_info)
+        """Compute the output grid (needs the map: built or solved here if necessary).
+
+        With :meth:`SetParallelReporting` (ParaView) a failure here is reported by the
+        update's ``RequestData``, once and agreed by the ranks: this pass then succeeds
+        without an output grid, rather than adding VTK's executive error (and running
+        ``RequestData`` without a grid) to the one line.
+        """
+        self._geometry = None
+        ok = self._guard(self._information, in_info, out_info)
+        self._information_error = self.last_error
+        return 1 if self._parallel_reporting else ok
 
     def _engine(self, in_info, img):
         geo = information_geometry(in_info[0].GetInformationObject(0))
@@ -280,6 +290,8 @@ class HarmonicResampleFilter(DeformationSource):
         return 1
 
     def _execute(self, in_info, out_info):
+        if self._geometry is None:  # the information pass failed: its error is the reason
+            raise self._information_error or RuntimeError("no output grid: the input changed")
         img = vtkImageData.GetData(in_info[0], 0)
         out = vtkImageData.GetData(out_info, 0)
         info = out_info.GetInformationObject(0)
