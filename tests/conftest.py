@@ -199,3 +199,32 @@ def trilinear_corner_dets(p):
                     d = np.linalg.det(np.stack([ex, ey, ez], axis=-1))
                 out = np.minimum(out, d)
     return out.reshape(-1)
+
+
+#: Grid of :func:`write_folding_volume`'s image.
+FOLDING_DIMS = (9, 9, 24)
+
+
+def write_folding_volume(folder: Path, record_map: bool = False) -> None:
+    """``image.vti`` filling the bar and ``scene.json``, the bar's push, which folds it.
+
+    ``record_map``: the scene holds its solved map (every ParaView rank uses it as it is).
+    """
+    import pyvista as pv
+
+    from vhm_viz import examples
+
+    scenario = examples.bar("push", resolution=12, top_height=2.5)
+    scene = scenario.scene
+    scene.solver["steps"] = 8  # the continuation of BarScenario.solve
+    if record_map:
+        dfm = scene.build()
+        assert scene.solve(dfm)[-1].converged and scene.record_map(dfm)
+    scene.save(folder / "scene.json")
+    lo = np.array(scenario.surface.bounds[0::2])
+    hi = np.array(scenario.surface.bounds[1::2])
+    size = 0.98 * (hi - lo)
+    dims = np.array(FOLDING_DIMS)
+    image = pv.ImageData(dimensions=dims, spacing=size / (dims - 1), origin=lo + 0.01 * (hi - lo))
+    image["value"] = np.arange(image.n_points, dtype=np.float32)
+    image.save(folder / "image.vti")

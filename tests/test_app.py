@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import data_path
+from tests.conftest import data_path, write_folding_volume
 
 pytest.importorskip("PySide6")
 pytest.importorskip("pyvistaqt")
@@ -207,6 +207,28 @@ def test_save_and_reload_scene(window, tmp_path):
     np.testing.assert_allclose(pv.read(out).points, exact, rtol=0, atol=1e-12)
     diag = np.linalg.norm(np.ptp(exact, axis=0))
     assert np.abs(exact - expected).max() <= 1e-6 * diag
+
+
+def test_export_of_a_resampled_volume_in_folds_says_so(window, tmp_path):
+    """The export writes the resampled volume as it is, and the window says how many of
+    its voxels lie in folds (the file's vhm_foldover mask), in the status bar."""
+    import pyvista as pv
+
+    write_folding_volume(tmp_path)
+    win = window
+    with win.waiting_for_jobs():
+        assert win.open_file(str(tmp_path / "image.vti"))
+    with win.waiting_for_jobs():
+        assert win.load_scene(str(tmp_path / "scene.json"))
+    assert win.last_error is None, win.last_error
+    out = tmp_path / "bent.vti"
+    win.export(str(out))
+    assert win.last_error is None, win.last_error
+    folds = int(np.count_nonzero(pv.read(out).point_data["vhm_foldover"]))
+    assert folds > 0
+    said = f"exported {out}, but the deformation folds the data: {folds} of "
+    assert win.last_warning.startswith(said), win.last_warning
+    assert win.statusBar().currentMessage() == win.last_warning
 
 
 def test_screenshot_shows_shape_and_slice(window, tmp_path):

@@ -12,9 +12,14 @@ import sys
 import numpy as np
 import pytest
 import pyvista as pv
-from conftest import box_cage, data_path, trilinear_corner_dets
+from conftest import (
+    FOLDING_DIMS,
+    box_cage,
+    data_path,
+    trilinear_corner_dets,
+    write_folding_volume,
+)
 
-from vhm_viz import examples
 from vhm_viz.cli.timings import StageTimer
 
 
@@ -25,25 +30,14 @@ def _cli(*args, env=None):
     )  # fmt: skip
 
 
-DIMS = (9, 9, 24)
+DIMS = FOLDING_DIMS
 
 
 @pytest.fixture(scope="module")
 def folding_volume(tmp_path_factory):
     """An image filling the bar, and the bar's push scene, which folds it."""
     folder = tmp_path_factory.mktemp("fold")
-    scenario = examples.bar("push", resolution=12, top_height=2.5)
-    scene = scenario.scene
-    scene.solver["steps"] = 8  # the continuation of BarScenario.solve
-    scene.save(folder / "scene.json")
-    lo = np.array(scenario.surface.bounds[0::2])
-    hi = np.array(scenario.surface.bounds[1::2])
-    size = 0.98 * (hi - lo)
-    image = pv.ImageData(
-        dimensions=DIMS, spacing=size / (np.array(DIMS) - 1), origin=lo + 0.01 * (hi - lo)
-    )
-    image["value"] = np.arange(image.n_points, dtype=np.float32)
-    image.save(folder / "image.vti")
+    write_folding_volume(folder)
     return folder
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -14,6 +16,7 @@ from conftest import (  # noqa: E402
     data_path,
     extent_box,
     fd_jacobian,
+    write_folding_volume,
 )
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase  # noqa: E402
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline  # noqa: E402
@@ -38,6 +41,7 @@ from vhm_viz.filters.mpi import (  # noqa: E402
     unpack_part,
 )
 from vhm_viz.io import cage_to_polydata  # noqa: E402
+from vhm_viz.scene import Scene  # noqa: E402
 
 SDDP = vtkStreamingDemandDrivenPipeline
 
@@ -575,6 +579,51 @@ def test_resample_ct_rigid_rotation_preserves_voxel_sum():
     s1 = float(np.asarray(out.point_data[name], dtype=np.float64).sum())
     np.testing.assert_allclose(out.spacing, img.spacing)
     assert abs(s1 / s0 - 1.0) < 0.01
+
+
+def _corners(text: str) -> np.ndarray:
+    """The two corners of ``(x, y, z)-(x, y, z)`` in a line."""
+    return np.array([[float(v) for v in c.split(",")] for c in re.findall(r"\(([^)]*)\)", text)])
+
+
+def test_resample_with_voxels_in_folds_says_how_many_and_where(tmp_path):
+    """A resample whose output voxels lie in folds is made, and said: a FoldWarning (once
+    per update) with their count and the box of their positions, as the output's own
+    ``vhm_foldover`` mask and VTK's positions of its voxels give them."""
+    import warnings
+
+    from vhm_viz.core.errors import FoldWarning
+
+    write_folding_volume(tmp_path)
+    image = pv.read(tmp_path / "image.vti")
+    flt = HarmonicResampleFilter()
+    flt.SetInputData(image)
+    flt.SetScene(str(tmp_path / "scene.json"))
+    with pytest.warns(FoldWarning) as seen:
+        out = pv.wrap(update(flt))
+    assert len(seen) == 1 and flt.warnings == [str(seen[0].message)]
+    marked = np.flatnonzero(np.asarray(out.point_data["vhm_foldover"]))
+    at = np.asarray(out.points)[marked]
+    assert marked.size > 0
+    m = re.fullmatch(
+        r"the deformation folds the data: (\d+) of (\d+) output voxels in folds "
+        r"\(several pre-images; output positions within (\([^)]*\)-\([^)]*\))\)",
+        flt.warnings[0],
+    )
+    assert m, flt.warnings[0]
+    assert int(m.group(1)) == marked.size == flt.fold_voxels["count"]
+    assert int(m.group(2)) == out.n_points
+    box = np.array([at.min(axis=0), at.max(axis=0)])
+    np.testing.assert_allclose(_corners(m.group(3)), box, rtol=1e-3, atol=1e-3)
+    np.testing.assert_allclose([flt.fold_voxels["lo"], flt.fold_voxels["hi"]], box, atol=1e-12)
+    # an update that folds nothing leaves no warning behind
+    scene = Scene.load(tmp_path / "scene.json")
+    flt.SetHarmonicMap(HarmonicMap.identity(scene.build_cage()))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = pv.wrap(update(flt))
+    assert not np.asarray(out.point_data["vhm_foldover"]).any()
+    assert flt.warnings == [] and flt.fold_voxels["count"] == 0
 
 
 # ------------------------------------------------------------------ analysis

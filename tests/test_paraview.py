@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DATA, data_path
+from conftest import DATA, data_path, write_folding_volume
 
 pv = pytest.importorskip("pyvista")
 
@@ -422,6 +423,35 @@ def test_volume_resample_in_pieces_equals_serial_equals_python(
     sizes = [p.n_points for p in pieces]
     assert sum(pulled) == sum(sizes) and pulled != sizes
     assert serial.field_data["vhm_pulled_back_voxels"][0] == serial.n_points
+
+
+def test_resample_with_voxels_in_folds_says_so_once_for_the_whole_output(paraview_env, tmp_path):
+    """A resample whose voxels lie in folds is made, with one warning in the output
+    messages: the count and box of the whole output's voxels in folds, the same from two
+    ranks (whose pieces share a plane) as serially."""
+    write_folding_volume(tmp_path, record_map=True)
+    config = {"input": str(tmp_path / "image.vti"), "ids": False,
+              "filter": "VHMResampleToImage", "scene": str(tmp_path / "scene.json")}  # fmt: skip
+    logs = [_run(paraview_env, {**config, "output": str(tmp_path / f"out{n}.pvti")}, tmp_path,
+                 ranks=n) for n in (1, 2)]  # fmt: skip
+    serial, mpi = pv.read(tmp_path / "out1.vti"), pv.read(tmp_path / "out2.pvti")
+    np.testing.assert_array_equal(mpi.point_data["vhm_foldover"], serial.point_data["vhm_foldover"])
+    marked = np.flatnonzero(np.asarray(serial.point_data["vhm_foldover"]))
+    assert marked.size > 0
+    at = np.asarray(serial.points)[marked]
+    lines = []
+    for log in logs:
+        (line,) = [ln for ln in log.splitlines() if "folds" in ln]
+        assert line.startswith("VHM Resample To Image: the deformation folds the data: "), line
+        assert "Traceback" not in log
+        lines.append(line)
+    assert lines[0] == lines[1]
+    m = re.search(r": (\d+) of (\d+) output voxels in folds \(several pre-images; output "
+                  r"positions within \(([^)]*)\)-\(([^)]*)\)\)$", lines[0])  # fmt: skip
+    assert m, lines[0]
+    assert (int(m.group(1)), int(m.group(2))) == (marked.size, serial.n_points)
+    box = [[float(v) for v in m.group(g).split(",")] for g in (3, 4)]
+    np.testing.assert_allclose(box, [at.min(axis=0), at.max(axis=0)], rtol=1e-3, atol=1e-3)
 
 
 def test_measure_colours_follow_the_one_convention(paraview_env, tmp_path):

@@ -744,11 +744,12 @@ class ExplorerController:
         return certificate_geometry(self.certificate, self._certified_map)
 
     # ------------------------------------------------------------------ export / scenes
-    def export(self, path) -> None:
+    def export(self, path) -> list:
         """Write the deformed dataset (format from the suffix, default the input's).
 
         The map is evaluated in float64 (:mod:`vhm_viz.app.export`), so the file equals
-        ``vhm-viz deform`` of the saved scene to rounding.
+        ``vhm-viz deform`` of the saved scene to rounding. Returns the lines that say what
+        the file holds that was not asked for (a resampled volume's voxels in folds).
         """
         if self.display is None:
             raise ValueError("nothing loaded")
@@ -758,10 +759,10 @@ class ExplorerController:
         hm = self.deformer.harmonic_map if solved else None
         if self.volume is None:
             write_deformed(path, self.display, self._rest_points, hm, self.input_files)
-        elif hm is None:
+            return []
+        if hm is None:
             raise ValueError("nothing to export yet: solve first")
-        else:
-            write_deformed_volume(path, self.rest, hm, self.input_files)
+        return write_deformed_volume(path, self.rest, hm, self.input_files)
 
     def scene_to_save(self, relative_to=None) -> Scene:
         """The edited scene as it is saved: data path, solved state and map.

@@ -8,10 +8,12 @@ the others, the command line's choice (:func:`vhm_viz.io.is_image_format`).
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 
+from vhm_viz.core.errors import FoldWarning
 from vhm_viz.io import is_image_format, refuse_inputs, write_dataset
 
 __all__ = [
@@ -67,13 +69,24 @@ def write_deformed(
         raise ValueError(f"cannot write {path.name}: {exc}") from exc
 
 
-def write_deformed_volume(path: Path, volume, harmonic_map, inputs=()) -> None:
+def write_deformed_volume(path: Path, volume, harmonic_map, inputs=()) -> list:
     """Write a deformed volume: resampled or warped as :func:`~vhm_viz.io.is_image_format` says.
 
-    ``inputs``: as for :func:`write_deformed`.
+    ``inputs``: as for :func:`write_deformed`. Returns the filter's
+    :attr:`~vhm_viz.filters.HarmonicResampleFilter.warnings`: a line naming how many
+    resampled voxels lie in folds, and where, when any do (the file is written all the
+    same, as ``vhm-viz deform --allow-folds`` writes it).
     """
-    if is_image_format(path):
-        data = volume.vhm.resample(harmonic_map, outside="passthrough")
-    else:
-        data = volume.vhm.deform(harmonic_map, outside="passthrough")
+    import pyvista as pv
+
+    from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
+
+    flt = HarmonicResampleFilter() if is_image_format(path) else HarmonicDeformationFilter()
+    flt.SetInputData(volume)
+    flt.SetHarmonicMap(harmonic_map)
+    flt.SetOutsidePolicy("passthrough")
+    with warnings.catch_warnings():  # the caller says them, from flt.warnings
+        warnings.simplefilter("ignore", FoldWarning)
+        data = pv.wrap(update(flt))
     write_dataset(path, data, inputs=inputs)
+    return flt.warnings

@@ -111,6 +111,7 @@ class ExplorerWindow(QMainWindow):
         self.dialogs = dialogs
         self.last_error: str | None = None
         self.errors: list[str] = []
+        self.last_warning: str | None = None
         #: ("position" | "jacobian", index) of the constraint Delete removes.
         self.selected = None
         self._open_dialogs: list = []
@@ -295,6 +296,14 @@ class ExplorerWindow(QMainWindow):
         """Show an error (status bar and, unless disabled, a non-modal dialog)."""
         self.last_error = message
         self.errors.append(message)
+        self._show_message(message, details)
+
+    def report_warning(self, message: str) -> None:
+        """Show what a finished action made that was not asked for (as an error is shown)."""
+        self.last_warning = message
+        self._show_message(message)
+
+    def _show_message(self, message: str, details: str = "") -> None:
         self.statusBar().showMessage(message, 15000)
         if self.dialogs:
             box = QMessageBox(QMessageBox.Icon.Warning, "vhm_viz", message, parent=self)
@@ -469,8 +478,11 @@ class ExplorerWindow(QMainWindow):
         default = Path(src).stem + "_deformed" + Path(src).suffix if src else "deformed.vtp"
         path = self.ask_path(path, "Export deformed data", "", save_as=default)
         if path is not None:
-            self.ctrl.export(path)
-            self.status(f"exported {path}")
+            warnings = self.ctrl.export(path)
+            if warnings:  # written as it is, and said where the user looks
+                self.report_warning(f"exported {path}, but " + "; ".join(warnings))
+            else:
+                self.status(f"exported {path}")
 
     @guarded
     def screenshot(self, path: str | None = None):

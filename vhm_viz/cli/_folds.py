@@ -2,8 +2,9 @@
 
 :func:`fold_warning` is the one line ``deform`` prints (or refuses with) when it does:
 inverted cells of a warped volume (:func:`warped_voxel_folds`) or tet mesh, resampled
-voxels in folds (:func:`resampled_fold_voxels`), and ``det J <= 0`` at evenly spread
-points of the continuous map.
+voxels in folds (the resample filter's ``fold_voxels``,
+:mod:`vhm_viz.core.fold_voxels`), and ``det J <= 0`` at evenly spread points of the
+continuous map.
 :func:`load_check_kernels` loads these checks' compiled kernels while the solve runs.
 """
 
@@ -12,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from vhm_viz import interrupts
+from vhm_viz.core.fold_voxels import FOLDS, fold_voxels_text
+from vhm_viz.core.fold_voxels import position_text as _position
 
 #: Points at which ``vhm-viz deform`` samples ``det J`` for its fold warning (evenly spread)
 #: when nothing else checks the whole output (a surface, a point cloud): at most this many,
@@ -34,11 +37,6 @@ FOLD_SPOT_SAMPLES = 256
 def fold_samples(n_points: int) -> int:
     """Points of the fold warning's ``det J`` samples of an output of ``n_points`` points."""
     return min(FOLD_SAMPLES, max(FOLD_SPOT_SAMPLES, int(n_points) // FOLD_SAMPLE_SPREAD))
-
-
-def _position(p) -> str:
-    """``(x, y, z)`` to 4 digits."""
-    return "(" + ", ".join(f"{c:.4g}" for c in p) + ")"
 
 
 def _where(points: np.ndarray, values: np.ndarray) -> str:
@@ -202,8 +200,9 @@ def fold_warning(
         :func:`fold_samples`, or :data:`FOLD_SPOT_SAMPLES` beside a check of the whole
         output.
     voxels : dict, optional
-        A resampled output's voxels in folds (several pre-images): ``count`` of them,
-        of ``voxels`` in all, and ``lo``, ``hi``, the box of their output positions.
+        A resampled output's voxels in folds (several pre-images):
+        :func:`~vhm_viz.core.fold_voxels.fold_voxels`, the resample filter's
+        ``fold_voxels``.
 
     Returns
     -------
@@ -211,16 +210,8 @@ def fold_warning(
         None when no cell is inverted, no output voxel lies in a fold and no sampled
         ``det J`` is ``<= 0``.
     """
-    voxel_part = []
-    if voxels is not None and voxels["count"]:
-        lo, hi = voxels["lo"], voxels["hi"]
-        where = f"output position {_position(lo)}"
-        if not np.array_equal(lo, hi):
-            where = f"output positions within {_position(lo)}-{_position(hi)}"
-        voxel_part.append(
-            f"{voxels['count']} of {voxels['voxels']} output voxels in folds "
-            f"(several pre-images; {where})"
-        )
+    voxel_text = None if voxels is None else fold_voxels_text(voxels)
+    voxel_part = [] if voxel_text is None else [voxel_text]
     parts = list(voxel_part)
     if cells is not None and cells["summary"]["inverted"]:
         if "inverted" in cells:
@@ -260,11 +251,7 @@ def fold_warning(
         return None
     # the cells' and the sampled points' positions are rest positions; the voxels' say theirs
     rest = "rest positions; " if len(parts) > len(voxel_part) else ""
-    return (
-        "the deformation folds the data: "
-        + "; ".join(parts)
-        + f" ({rest}vhm-viz analyze --certify checks every point)"
-    )
+    return FOLDS + "; ".join(parts) + f" ({rest}vhm-viz analyze --certify checks every point)"
 
 
 def load_check_kernels(data, *, cells: bool = True, voxels: bool = False, proof: bool = False):
@@ -346,29 +333,6 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False, proof:
     thread = threading.Thread(target=run, name="vhm-check-kernels", daemon=True)
     thread.start()
     return thread
-
-
-#: Voxels of a resample's fold mask scanned at a time for the positions of those in folds.
-FOLD_SCAN_VOXELS = 1 << 22
-
-
-def resampled_fold_voxels(image) -> dict:
-    """:func:`fold_warning`'s voxels of a resampled image: those ``vhm_foldover`` marks.
-
-    Their count, and the box of their output positions, found a chunk of the mask at a
-    time so that a large fold needs no array of all its positions.
-    """
-    mask = np.asarray(image.point_data["vhm_foldover"]).reshape(-1)
-    dims = tuple(int(d) for d in image.dimensions)
-    count, lo, hi = 0, np.full(3, np.inf), np.full(3, -np.inf)
-    for start in range(0, mask.size, FOLD_SCAN_VOXELS):
-        index = np.flatnonzero(mask[start : start + FOLD_SCAN_VOXELS]) + start
-        if index.size:
-            count += index.size
-            at = image_positions(image, np.column_stack(np.unravel_index(index, dims, order="F")))
-            lo = np.minimum(lo, [at[:, c].min() for c in range(3)])
-            hi = np.maximum(hi, [at[:, c].max() for c in range(3)])
-    return {"count": count, "voxels": mask.size, "lo": lo, "hi": hi}
 
 
 def warped_voxel_folds(image, warped, progress, memory_budget=None, unproven=None) -> dict | None:

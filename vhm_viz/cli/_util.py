@@ -18,7 +18,7 @@ import numpy as np
 from vhm_viz import interrupts
 from vhm_viz.atomic import require_writable
 from vhm_viz.cli import one_line
-from vhm_viz.core.errors import OutsideCageError, describe_indices
+from vhm_viz.core.errors import FoldWarning, OutsideCageError, describe_indices
 from vhm_viz.core.metrics import rigidity_distortion, volume_change
 from vhm_viz.io import DATASET_SUFFIXES, OverwriteError, refuse_inputs, suffix_of
 from vhm_viz.io.dicom import is_dicom_file
@@ -114,6 +114,8 @@ def quiet_vtk() -> None:
     warnings.filterwarnings("ignore", module="pyvista")
     warnings.filterwarnings("ignore", module="pytetwild")
     warnings.filterwarnings("ignore", category=DeprecationWarning)
+    # the resample filter's: the command's own fold line says it, or refuses the output
+    warnings.filterwarnings("ignore", category=FoldWarning)
 
 
 def use_vtk_threads(threads: int) -> None:

@@ -23,7 +23,6 @@ from vhm_viz.cli._folds import (
     fold_samples,
     fold_warning,
     load_check_kernels,
-    resampled_fold_voxels,
     warped_voxel_folds,
 )
 from vhm_viz.cli._util import (
@@ -485,8 +484,8 @@ def _check_folds(
             point_det = np.asarray(result.point_data["jacobian_determinant"])
             if "vhm_outside" in result.point_data:  # passthrough points are not the map's
                 point_det = np.where(result.point_data["vhm_outside"] == 0, point_det, np.nan)
-    # a resample marks its voxels in folds itself; cells were checked one by one
-    voxels = resampled_fold_voxels(result) if resample else None
+    # a resample marks and counts its voxels in folds itself; cells were checked one by one
+    voxels = flt.fold_voxels if resample else None
     whole = resample or cells is not None
     n_points = mesh.GetNumberOfPoints()
     samples = FOLD_SPOT_SAMPLES if whole else fold_samples(n_points)

@@ -96,3 +96,11 @@ class DeviceUnavailableError(SettingError):
 
     def __init__(self, detail: str):
         super().__init__("device", detail)
+
+
+class FoldWarning(UserWarning):
+    """An output made as asked that holds folds: resampled voxels with several pre-images.
+
+    The resample filter warns with it in Python (in ParaView: its output window); the
+    command line, which says so in its own fold line, ignores it.
+    """

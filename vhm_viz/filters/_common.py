@@ -74,9 +74,18 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self.last_error: Exception | None = None
         #: Points outside the cage in the last update (with a policy that lets them through).
         self.outside_count = 0
-        #: What the last update produced that is not what was asked for (an unconverged
-        #: solve let through): one line each, also shown in VTK's output window.
-        self.warnings: list = []
+        self._solve_warnings: list = []  # an unconverged solve let through
+        self._output_warnings: list = []  # what the last update's output holds (folds)
+
+    @property
+    def warnings(self) -> list:
+        """What the last update produced that is not what was asked for: one line each.
+
+        An unconverged solve let through (:meth:`SetAllowUnconverged`), a resampled
+        volume with voxels in folds. Each is also said once as a Python warning or, in
+        ParaView, in VTK's output window.
+        """
+        return [*self._solve_warnings, *self._output_warnings]
 
     @property
     def bind_count(self) -> int:
@@ -315,7 +324,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
     def _check_converged(self, report) -> None:
         """Refuse (or, if allowed, warn about) a map from an unconverged solve."""
         if report is None or report.converged:
-            self.warnings, self._warned_report = [], None
+            self._solve_warnings, self._warned_report = [], None
             return
         if not self._allow_unconverged:
             raise RuntimeError(
@@ -325,11 +334,18 @@ class DeformationSource(VTKPythonAlgorithmBase):
         if report is not self._warned_report:  # said once per solve, not per pass
             self._warned_report = report
             text = f"deforming with an unconverged solve: {report.shortfall()}"
-            self.warnings = [text]
-            if not self._parallel_reporting:
-                warnings.warn(text, UserWarning, stacklevel=2)
-            elif mpi.rank() == 0:  # the same solve on every rank: said once
-                vtkOutputWindow.GetInstance().DisplayWarningText(f"{self._label()}: {text}\n")
+            self._solve_warnings = [text]
+            self._say_warning(text, UserWarning)
+
+    def _say_warning(self, text: str, category) -> None:
+        """Say a warning once: a Python warning, or in ParaView VTK's output window.
+
+        Under MPI, on rank 0 only: the ranks call it with the same (agreed) text.
+        """
+        if not self._parallel_reporting:
+            warnings.warn(text, category, stacklevel=3)
+        elif mpi.rank() == 0:
+            vtkOutputWindow.GetInstance().DisplayWarningText(f"{self._label()}: {text}\n")
 
     def SetDevice(self, device: str) -> None:
         """Where a volume's exact map evaluations run: ``"cpu"`` (default) or ``"cuda"``.

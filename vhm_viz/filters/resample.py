@@ -8,6 +8,8 @@ from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm, vtkStreamingDemandDrivenPipeline
 
 from vhm_viz.core.displacement import DisplacementField
+from vhm_viz.core.errors import FoldWarning
+from vhm_viz.core.fold_voxels import FOLDS, fold_voxels, fold_voxels_text, merge_fold_voxels
 from vhm_viz.core.image import ImageGeometry, check_interpolation
 from vhm_viz.core.lattice import PART_FIELDS, join_parts
 from vhm_viz.core.memory import release_free_memory
@@ -69,7 +71,11 @@ class HarmonicResampleFilter(DeformationSource):
     type must hold the fill value exactly (:func:`~vhm_viz.core.image.check_fill_value`):
     an update with one it cannot hold fails, naming the type's values. Where several
     pre-images exist (a fold) the ``uint8`` array ``vhm_foldover`` is 1; the field arrays
-    ``vhm_foldover_count`` and ``vhm_valid_count`` count them. Cell data is not resampled.
+    ``vhm_foldover_count`` and ``vhm_valid_count`` count them. An output with voxels in
+    folds is made as asked, and said: how many and the box of their positions
+    (:attr:`fold_voxels`), one line in :attr:`warnings`, given as a
+    :class:`~vhm_viz.core.errors.FoldWarning` (in ParaView, in its output window).
+    Cell data is not resampled.
 
     **Displacement field** (opt-in, :meth:`SetComputeDisplacementField`): the point array
     ``vhm_displacement_field``, 3 float64 components, the pull-back ``f^-1(y) - y`` of
@@ -133,6 +139,9 @@ class HarmonicResampleFilter(DeformationSource):
         self._piece_key = None
         #: Counts of the last execution: voxels, valid, identity, foldover.
         self.stats: dict = {}
+        #: The output's voxels in folds of the last execution (under MPI, of the whole
+        #: output): :func:`~vhm_viz.core.fold_voxels.fold_voxels`, or None.
+        self.fold_voxels: dict | None = None
 
     # ------------------------------------------------------------------ options
     def SetFillValue(self, value: float) -> None:
@@ -290,6 +299,7 @@ class HarmonicResampleFilter(DeformationSource):
         return 1
 
     def _execute(self, in_info, out_info):
+        self._output_warnings, self.fold_voxels = [], None
         if self._geometry is None:  # the information pass failed: its error is the reason
             raise self._information_error or RuntimeError("no output grid: the input changed")
         img = vtkImageData.GetData(in_info[0], 0)
@@ -323,6 +333,7 @@ class HarmonicResampleFilter(DeformationSource):
                                **options)  # fmt: skip
             pulled = res.counts["voxels"]
         self.stats = {**res.counts, "pulled_back": int(pulled)}
+        self._report_folds(res, ext)
         add_lattice_counts(out, vol)
         for name, values in res.arrays.items():
             new = ns.numpy_to_vtk(values, deep=0, array_type=types[name])
@@ -346,6 +357,31 @@ class HarmonicResampleFilter(DeformationSource):
             fd.AddArray(count)
         self.UpdateProgress(1.0)
         return 1
+
+    def _report_folds(self, res: Resampled, ext) -> None:
+        """Count and place the output's voxels in folds; say so if there are any.
+
+        Under MPI, of the whole output (collective), agreed by every rank: each voxel is
+        counted by the first rank whose piece holds it (neighbouring pieces share a plane).
+        """
+        if not self._mpi():
+            folds = fold_voxels(res.foldover, res.geometry)
+        else:
+            ext = np.asarray(ext, dtype=np.int64)
+            pieces = mpi.gather_rows_of(lambda: ext[None, :].astype(np.float64), 6)
+            mask = _unshared(res.foldover, ext, pieces[: mpi.rank()].astype(np.int64))
+            mine = fold_voxels(mask, res.geometry)
+            row = np.concatenate([[mine["count"]], mine["lo"], mine["hi"]])
+            rows = mpi.gather_rows_of(lambda: row[None, :], 7)
+            folds = merge_fold_voxels(
+                {"count": r[0], "voxels": 0, "lo": r[1:4], "hi": r[4:7]} for r in rows
+            )
+            folds["voxels"] = self._geometry.n_points
+        self.fold_voxels = folds
+        text = fold_voxels_text(folds)
+        if text is not None:
+            self._output_warnings = [FOLDS + text]
+            self._say_warning(FOLDS + text, FoldWarning)
 
     # ------------------------------------------------------------------ MPI ranks
     def _share_lattice(self, in_info, img) -> ImageGeometry:
@@ -670,6 +706,20 @@ def _meet(a, b):
     out[0::2] = np.maximum(a[0::2], b[0::2])
     out[1::2] = np.minimum(a[1::2], b[1::2])
     return None if (out[1::2] < out[0::2]).any() else out
+
+
+def _unshared(mask: np.ndarray, ext, others) -> np.ndarray:
+    """``mask`` of the piece ``ext`` without the voxels that the pieces ``others`` hold too."""
+    shared = [m for m in (_meet(ext, o) for o in others) if m is not None]
+    if not shared:
+        return mask
+    ext = np.asarray(ext)
+    nx, ny, nz = (int(ext[2 * a + 1] - ext[2 * a] + 1) for a in range(3))
+    kept = np.array(mask, dtype=np.uint8).reshape(nz, ny, nx)
+    for m in shared:
+        lo, hi = m[0::2] - ext[0::2], m[1::2] - ext[0::2] + 1
+        kept[lo[2] : hi[2], lo[1] : hi[1], lo[0] : hi[0]] = 0
+    return kept.reshape(-1)
 
 
 def _voxels(box) -> int:
