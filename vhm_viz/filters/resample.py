@@ -369,10 +369,13 @@ class HarmonicResampleFilter(DeformationSource):
         else:
             ext = np.asarray(ext, dtype=np.int64)
             pieces = mpi.gather_rows_of(lambda: ext[None, :].astype(np.float64), 6)
-            mask = _unshared(res.foldover, ext, pieces[: mpi.rank()].astype(np.int64))
-            mine = fold_voxels(mask, res.geometry)
-            row = np.concatenate([[mine["count"]], mine["lo"], mine["hi"]])
-            rows = mpi.gather_rows_of(lambda: row[None, :], 7)
+
+            def mine():  # (an error here stops every rank at the gather, not a hang)
+                mask = _unshared(res.foldover, ext, pieces[: mpi.rank()].astype(np.int64))
+                part = fold_voxels(mask, res.geometry)
+                return np.concatenate([[part["count"]], part["lo"], part["hi"]])[None, :]
+
+            rows = mpi.gather_rows_of(mine, 7)
             folds = merge_fold_voxels(
                 {"count": r[0], "voxels": 0, "lo": r[1:4], "hi": r[4:7]} for r in rows
             )
