@@ -428,7 +428,7 @@ def test_volume_resample_in_pieces_equals_serial_equals_python(
 def test_resample_with_voxels_in_folds_says_so_once_for_the_whole_output(paraview_env, tmp_path):
     """A resample whose voxels lie in folds is made, with one warning in the output
     messages: the count and box of the whole output's voxels in folds, the same from two
-    ranks (whose pieces share a plane) as serially."""
+    ranks (whose pieces share a plane) as serially; so are the field arrays' counts."""
     write_folding_volume(tmp_path, record_map=True)
     config = {"input": str(tmp_path / "image.vti"), "ids": False,
               "filter": "VHMResampleToImage", "scene": str(tmp_path / "scene.json")}  # fmt: skip
@@ -452,6 +452,13 @@ def test_resample_with_voxels_in_folds_says_so_once_for_the_whole_output(paravie
     assert (int(m.group(1)), int(m.group(2))) == (marked.size, serial.n_points)
     box = [[float(v) for v in m.group(g).split(",")] for g in (3, 4)]
     np.testing.assert_allclose(box, [at.min(axis=0), at.max(axis=0)], rtol=1e-3, atol=1e-3)
+    # the field arrays count the whole output's voxels, in each rank's piece as serially
+    valid = int(np.count_nonzero(serial.point_data["vtkValidPointMask"]))
+    pieces = [pv.read(f) for f in sorted((tmp_path / "out2").glob("*.vti"))]
+    assert len(pieces) == 2
+    for piece in (serial, *pieces):
+        assert piece.field_data["vhm_foldover_count"][0] == marked.size
+        assert piece.field_data["vhm_valid_count"][0] == valid
 
 
 def test_measure_colours_follow_the_one_convention(paraview_env, tmp_path):

@@ -71,7 +71,8 @@ class HarmonicResampleFilter(DeformationSource):
     type must hold the fill value exactly (:func:`~vhm_viz.core.image.check_fill_value`):
     an update with one it cannot hold fails, naming the type's values. Where several
     pre-images exist (a fold) the ``uint8`` array ``vhm_foldover`` is 1; the field arrays
-    ``vhm_foldover_count`` and ``vhm_valid_count`` count them. An output with voxels in
+    ``vhm_foldover_count`` and ``vhm_valid_count`` count them (under MPI, in the whole
+    output: the same on every rank). An output with voxels in
     folds is made as asked, and said: how many and the box of their positions
     (:attr:`fold_voxels`), one line in :attr:`warnings`, given as a
     :class:`~vhm_viz.core.errors.FoldWarning` (in ParaView, in its output window).
@@ -333,7 +334,7 @@ class HarmonicResampleFilter(DeformationSource):
                                **options)  # fmt: skip
             pulled = res.counts["voxels"]
         self.stats = {**res.counts, "pulled_back": int(pulled)}
-        self._report_folds(res, ext)
+        counts = {**self._report_folds(res, ext), "pulled_back": int(pulled)}
         add_lattice_counts(out, vol)
         for name, values in res.arrays.items():
             new = ns.numpy_to_vtk(values, deep=0, array_type=types[name])
@@ -351,40 +352,46 @@ class HarmonicResampleFilter(DeformationSource):
         fd = out.GetFieldData()
         for name, key in (("valid_count", "valid"), ("foldover_count", "foldover"),
                           ("pulled_back_voxels", "pulled_back")):  # fmt: skip
-            count = ns.numpy_to_vtk(np.array([self.stats[key]], dtype=np.int64), deep=1)
+            count = ns.numpy_to_vtk(np.array([counts[key]], dtype=np.int64), deep=1)
             count.SetName(f"vhm_{name}")
             fd.RemoveArray(count.GetName())
             fd.AddArray(count)
         self.UpdateProgress(1.0)
         return 1
 
-    def _report_folds(self, res: Resampled, ext) -> None:
+    def _report_folds(self, res: Resampled, ext) -> dict:
         """Count and place the output's voxels in folds; say so if there are any.
 
         Under MPI, of the whole output (collective), agreed by every rank: each voxel is
         counted by the first rank whose piece holds it (neighbouring pieces share a plane).
+        Returns the counts of the field arrays: ``valid`` and ``foldover`` voxels of the
+        output (under MPI the whole output's; else this update's piece's).
         """
         if not self._mpi():
             folds = fold_voxels(res.foldover, res.geometry)
+            valid = res.counts["valid"]
         else:
             ext = np.asarray(ext, dtype=np.int64)
             pieces = mpi.gather_rows_of(lambda: ext[None, :].astype(np.float64), 6)
 
             def mine():  # (an error here stops every rank at the gather, not a hang)
-                mask = _unshared(res.foldover, ext, pieces[: mpi.rank()].astype(np.int64))
-                part = fold_voxels(mask, res.geometry)
-                return np.concatenate([[part["count"]], part["lo"], part["hi"]])[None, :]
+                before = pieces[: mpi.rank()].astype(np.int64)
+                part = fold_voxels(_unshared(res.foldover, ext, before), res.geometry)
+                valid = np.count_nonzero(_unshared(res.valid, ext, before))
+                return np.concatenate([[part["count"], valid], part["lo"], part["hi"]])[None, :]
 
-            rows = mpi.gather_rows_of(mine, 7)
+            rows = mpi.gather_rows_of(mine, 8)
             folds = merge_fold_voxels(
-                {"count": r[0], "voxels": 0, "lo": r[1:4], "hi": r[4:7]} for r in rows
+                {"count": r[0], "voxels": 0, "lo": r[2:5], "hi": r[5:8]} for r in rows
             )
             folds["voxels"] = self._geometry.n_points
+            valid = int(rows[:, 1].sum())
         self.fold_voxels = folds
         text = fold_voxels_text(folds)
         if text is not None:
             self._output_warnings = [FOLDS + text]
             self._say_warning(FOLDS + text, FoldWarning)
+        return {"valid": int(valid), "foldover": folds["count"]}
 
     # ------------------------------------------------------------------ MPI ranks
     def _share_lattice(self, in_info, img) -> ImageGeometry:
