@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DATA, data_path, write_folding_volume
+from conftest import DATA, box_cage, data_path, write_folding_volume
 
 pv = pytest.importorskip("pyvista")
 
@@ -459,6 +459,40 @@ def test_resample_with_voxels_in_folds_says_so_once_for_the_whole_output(paravie
     for piece in (serial, *pieces):
         assert piece.field_data["vhm_foldover_count"][0] == marked.size
         assert piece.field_data["vhm_valid_count"][0] == valid
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
+def test_analysis_cell_counts_are_the_whole_outputs_on_every_rank(paraview_env, tmp_path):
+    """VHM Jacobian Analysis' field arrays vhm_cells_inverted and vhm_cells_rest_inverted
+    count the whole output's cells in every rank's piece, as serially: the folding image
+    (cells inverted by the map) and a tet mesh stored half inverted, redistributed."""
+    write_folding_volume(tmp_path, record_map=True)
+    v, f = box_cage((-11, -11, -11), (11, 11, 11))
+    tet_scene = {"format": "vhm_viz.scene", "version": 1,
+                 "cage": {"vertices": v.tolist(), "faces": f.tolist()},
+                 "anchors": [[0, 0, 0], [4, 0, 0], [0, 4, 0], [0, 0, 4], [-4, -4, -4]],
+                 "constraints": {"positions": [[0, 0, 0]], "targets": [[0.5, 0, 0]]}}  # fmt: skip
+    (tmp_path / "tet_scene.json").write_text(json.dumps(tet_scene))
+    runs = {
+        "image": ({"input": str(tmp_path / "image.vti"), "ids": False,
+                   "scene": str(tmp_path / "scene.json")}, "vti", "cell_inverted"),
+        "tets": ({"input": str(data_path("tets", "tetraMesh_inverted.vtk")),
+                  "redistribute": True, "scene": str(tmp_path / "tet_scene.json")},
+                 "vtu", "cell_rest_inverted"),
+    }  # fmt: skip
+    for name, (config, ext, array) in runs.items():
+        config = {**config, "filter": "VHMJacobianAnalysis"}
+        for n in (1, 2):
+            out = str(tmp_path / f"{name}{n}.p{ext}")
+            _run(paraview_env, {**config, "output": out}, tmp_path, ranks=n, name=name)
+        serial = pv.read(tmp_path / f"{name}1.{ext}")
+        expected = int(np.count_nonzero(serial.cell_data[array]))
+        assert expected > 0, name
+        pieces = [pv.read(p) for p in sorted((tmp_path / f"{name}2").glob(f"*.{ext}"))]
+        assert len(pieces) == 2 and min(p.n_cells for p in pieces) > 0
+        assert sum(int(np.count_nonzero(p.cell_data[array])) for p in pieces) == expected
+        for piece in (serial, *pieces):
+            assert piece.field_data[f"vhm_cells_{array[5:]}"][0] == expected, name
 
 
 def test_measure_colours_follow_the_one_convention(paraview_env, tmp_path):

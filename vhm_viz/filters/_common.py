@@ -165,7 +165,16 @@ class DeformationSource(VTKPythonAlgorithmBase):
             out = out_info.GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
             if out is not None:
                 out.Initialize()
+        elif mpi.process_count() > 1:
+            self._guard(self._agree_on_output, out_info)
         return 1
+
+    def _agree_on_output(self, out_info) -> None:
+        """Under MPI, once every rank succeeded: what describes the whole output, agreed.
+
+        Collective (every rank calls it). Filters whose field arrays count the whole
+        output (not a rank's piece) gather the ranks' counts here.
+        """
 
     def _agree_on_error(self, failed_here: bool) -> None:
         """Give every rank the same error: the first failing rank's, said once (collective).

@@ -8,9 +8,10 @@ from vtkmodules.vtkCommonDataModel import vtkDataObject, vtkDataSet
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from vhm_viz.core.metrics import jacobian_measures
+from vhm_viz.filters import mpi
 from vhm_viz.filters._common import DeformationSource
 from vhm_viz.filters._vtk import image_geometry, numpy_points
-from vhm_viz.filters.cells import add_cell_arrays, cell_quality
+from vhm_viz.filters.cells import add_cell_arrays, cell_quality, own_cell_counts, set_cell_counts
 
 __all__ = ["JacobianAnalysisFilter", "ANALYSIS_ARRAYS"]
 
@@ -71,6 +72,17 @@ class JacobianAnalysisFilter(DeformationSource):
         if out is None or out.GetClassName() != inp.GetClassName():
             out_info.GetInformationObject(0).Set(vtkDataObject.DATA_OBJECT(), inp.NewInstance())
         return 1
+
+    def _agree_on_output(self, out_info) -> None:
+        """Under MPI, the cell counts' field arrays of the whole output.
+
+        ``vhm_cells_inverted`` and ``vhm_cells_rest_inverted``: every rank's own cells
+        (not its ghost cells, another rank's) summed.
+        """
+        out = vtkDataObject.GetData(out_info, 0)
+        rows = mpi.gather_rows_of(lambda: own_cell_counts(out)[None, :], 3)
+        if rows[:, 2].any():  # some rank has 3D cells: each says the whole output's counts
+            set_cell_counts(out, int(rows[:, 0].sum()), int(rows[:, 1].sum()))
 
     def _execute(self, in_info, out_info):
         inp = vtkDataSet.GetData(in_info[0], 0)

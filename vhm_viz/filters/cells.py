@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 from vtkmodules.util import numpy_support as ns
+from vtkmodules.vtkCommonDataModel import vtkDataSetAttributes
 
 from vhm_viz.core.basis import inside_cage, winding_number
 from vhm_viz.core.certify import INSIDE, MEETS, OUTSIDE, Region, default_margin
@@ -279,15 +280,8 @@ def add_cell_arrays(data, quality: dict) -> None:
     The counts go to the field arrays ``vhm_cells_inverted`` and ``vhm_cells_rest_inverted``
     (one value each), so they travel down a pipeline with the data.
     """
-    fd = data.GetFieldData()
-    for name, key in (
-        ("vhm_cells_inverted", "inverted"),
-        ("vhm_cells_rest_inverted", "rest_inverted"),
-    ):
-        count = ns.numpy_to_vtk(np.array([quality["summary"][key]], dtype=np.int64), deep=1)
-        count.SetName(name)
-        fd.RemoveArray(name)
-        fd.AddArray(count)
+    summary = quality["summary"]
+    set_cell_counts(data, summary["inverted"], summary["rest_inverted"])
     cd = data.GetCellData()
     det = quality["determinant"]
     arrays = {
@@ -301,6 +295,37 @@ def add_cell_arrays(data, quality: dict) -> None:
         arr.SetName(name)
         cd.RemoveArray(name)
         cd.AddArray(arr)
+
+
+def set_cell_counts(data, inverted: int, rest_inverted: int) -> None:
+    """The field arrays ``vhm_cells_inverted`` and ``vhm_cells_rest_inverted`` of ``data``."""
+    fd = data.GetFieldData()
+    for name, value in (
+        ("vhm_cells_inverted", inverted),
+        ("vhm_cells_rest_inverted", rest_inverted),
+    ):
+        count = ns.numpy_to_vtk(np.array([value], dtype=np.int64), deep=1)
+        count.SetName(name)
+        fd.RemoveArray(name)
+        fd.AddArray(count)
+
+
+def own_cell_counts(data) -> np.ndarray:
+    """``[inverted, rest_inverted, has the arrays]`` of ``data``'s own cells (float64).
+
+    From the cell arrays ``cell_inverted`` and ``cell_rest_inverted``; cells that
+    ``vtkGhostType`` marks as duplicates (ghost cells, another piece's own) are left out.
+    """
+    cd = data.GetCellData()
+    inverted, rest = cd.GetArray("cell_inverted"), cd.GetArray("cell_rest_inverted")
+    if inverted is None or rest is None:
+        return np.zeros(3)
+    own = np.ones(inverted.GetNumberOfTuples(), dtype=bool)
+    ghosts = cd.GetArray(vtkDataSetAttributes.GhostArrayName())
+    if ghosts is not None:
+        own = (ns.vtk_to_numpy(ghosts) & vtkDataSetAttributes.DUPLICATECELL) == 0
+    return np.array([np.count_nonzero(ns.vtk_to_numpy(inverted)[own]),
+                     np.count_nonzero(ns.vtk_to_numpy(rest)[own]), 1.0])  # fmt: skip
 
 
 def region_of(ds, cage=None):
