@@ -158,3 +158,34 @@ def test_paraview_reader_and_resample_match_read_dataset_and_the_cli(paraview_en
     assert np.abs(a - c).max() <= 1e-6 * np.ptp(a)
     # a real bend: the deformed scan needs a wider grid than the scan
     assert np.ptp(cli.bounds[:2]) > np.ptp(read_dataset(small).bounds[:2]) + 1.0
+
+
+def test_paraview_reader_of_an_unreadable_scan_says_why_in_one_line(paraview_env, tmp_path):  # noqa: F811
+    """A missing or unreadable scan: the reader's one line names the file and the cause
+    (not SimpleITK's source file), once from two ranks, and leaves an empty image: no
+    traceback, no executive error."""
+    from vhm_viz.filters.mpi import mpi_command
+
+    garbage = tmp_path / "garbage.nii.gz"
+    garbage.write_bytes(b"not a scan")
+    script = tmp_path / "read.py"
+    script.write_text(
+        "import sys\n"
+        "import paraview.simple as s\n"
+        "r = s.VHMMedicalImageReader(FileName=sys.argv[1])\n"
+        "s.UpdatePipeline(proxy=r)\n"
+        "print('vhm-reader-points:', r.GetDataInformation().GetNumberOfPoints())\n"
+    )
+    cases = {tmp_path / "missing.nii.gz": "missing.nii.gz: no such file or folder",
+             garbage: "garbage.nii.gz: Unable to determine ImageIO reader for"}  # fmt: skip
+    for path, cause in cases.items():
+        for ranks in (1, 2):
+            cmd, env = mpi_command(["pvbatch", str(script), str(path)], ranks, paraview_env)
+            done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+            log = done.stdout + done.stderr
+            assert done.returncode == 0, log
+            lines = [ln for ln in log.splitlines() if "VHM Medical Image Reader" in ln]
+            assert len(lines) == 1 and f"VHM Medical Image Reader: {path.parent}" in lines[0]
+            assert cause in lines[0], log
+            assert "Traceback" not in log and "ERR|" not in log, log
+            assert "vhm-reader-points: 0" in log

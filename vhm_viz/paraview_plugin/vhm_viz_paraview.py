@@ -27,14 +27,18 @@ from paraview.util.vtkAlgorithm import (
     smproperty,
     smproxy,
 )
+from vtkmodules.vtkCommonCore import vtkOutputWindow
 
 from vhm_viz.filters import (
     HarmonicDeformationFilter,
     HarmonicResampleFilter,
     JacobianAnalysisFilter,
+    mpi,
 )
 from vhm_viz.filters._common import DeformationSource
 from vhm_viz.io.dicom import read_series
+from vhm_viz.io.errors import first_line
+from vhm_viz.io.itk_images import sitk_message
 
 _SCENE_HELP = (
     "A vhm_viz scene (JSON): cage, anchors, constraints, mode, solver settings. Write one "
@@ -284,12 +288,17 @@ def read_scan(path):
     from vtkmodules.util.numpy_support import numpy_to_vtk
     from vtkmodules.vtkCommonDataModel import vtkImageData
 
-    if os.path.isdir(path) or _scan_suffix(path) == ".dcm":
-        image = read_series(path)  # the series vhm_viz.read_dataset chooses
-        name = "DICOMImage"
-    else:
-        image = sitk.ReadImage(path)
-        name = _SCAN_ARRAYS.get(_scan_suffix(path), "ImageFile")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path}: no such file or folder")
+    try:
+        if os.path.isdir(path) or _scan_suffix(path) == ".dcm":
+            image = read_series(path)  # the series vhm_viz.read_dataset chooses
+            name = "DICOMImage"
+        else:
+            image = sitk.ReadImage(path)
+            name = _SCAN_ARRAYS.get(_scan_suffix(path), "ImageFile")
+    except RuntimeError as exc:  # SimpleITK's: its first line names its own source file
+        raise ValueError(f"{path}: {sitk_message(exc)}") from None
     if image.GetDimension() != 3:
         raise ValueError(f"{path}: a {image.GetDimension()}D image; this reader reads 3D scans")
     values = sitk.GetArrayFromImage(image)  # (z, y, x[, c]): x varies fastest
@@ -344,13 +353,19 @@ class VHMMedicalImageReader(VTKPythonAlgorithmBase):
         from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm
         from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
 
+        info = out_info.GetInformationObject(0)
         try:
             image = self._scan()
         except Exception as exc:  # noqa: BLE001 - SimpleITK raises RuntimeError and more
+            # one line in the output messages (once under MPI: every rank fails alike) and
+            # an empty image: no traceback, no executive errors after it
             self._image = None
-            print(f"VHM Medical Image Reader: {str(exc).strip().splitlines()[0]}")
-            return 0
-        info = out_info.GetInformationObject(0)
+            if mpi.rank() == 0:
+                vtkOutputWindow.GetInstance().DisplayErrorText(
+                    f"VHM Medical Image Reader: {first_line(exc)}\n"
+                )
+            info.Set(sddp.WHOLE_EXTENT(), 0, -1, 0, -1, 0, -1)
+            return 1
         info.Set(sddp.WHOLE_EXTENT(), *image.GetExtent())
         info.Set(vtkDataObject.ORIGIN(), *image.GetOrigin())
         info.Set(vtkDataObject.SPACING(), *image.GetSpacing())
@@ -369,7 +384,10 @@ class VHMMedicalImageReader(VTKPythonAlgorithmBase):
         from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
 
         out = vtkImageData.GetData(out_info, 0)
-        out.ShallowCopy(self._scan())
+        if self._image is None:  # the information pass said why
+            out.Initialize()
+            return 1
+        out.ShallowCopy(self._image)
         extent = out_info.GetInformationObject(0).Get(sddp.UPDATE_EXTENT())
         if extent is not None:
             out.Crop(extent)
