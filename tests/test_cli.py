@@ -202,6 +202,9 @@ def test_deform_refuses_options_the_input_leaves_without_effect(demo_dir, tmp_pa
         (volume, "out.vts", ["--fill-value", "3"],
          f"--fill-value: applies to {resampled}; written to .vts, the volume is warped "
          "(every voxel moved)"),
+        (volume, "out.vti", ["--spacing", "0.1", "--reference", volume],
+         "--spacing: applies to the grid that holds the deformed volume; --reference gives "
+         "the grid, its spacing included"),
     ]  # fmt: skip
     for data, output, extra, message in cases:
         rc, out, err = _run(

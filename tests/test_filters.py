@@ -581,6 +581,21 @@ def test_resample_ct_rigid_rotation_preserves_voxel_sum():
     assert abs(s1 / s0 - 1.0) < 0.01
 
 
+def test_resample_spacing_with_another_output_grid_is_refused(tmp_path):
+    """An output spacing sizes the grid that holds the deformed volume; with the input's
+    grid or a reference image's it would be dropped, so the update fails saying so."""
+    image = pv.ImageData(dimensions=(5, 5, 5), spacing=(0.2, 0.2, 0.2), origin=(-0.4,) * 3)
+    image["s"] = np.arange(image.n_points, dtype=np.float32)
+    v, f = box_cage((-1, -1, -1), (1, 1, 1))
+    hm = HarmonicMap.identity(Cage(v, f))
+    for kw, grid in ((dict(output="input"), "input"), (dict(reference=image), "reference")):
+        with pytest.raises(ValueError, match=f"output spacing .*; the {grid} grid has its own"):
+            image.vhm.resample(hm, spacing=(0.1, 0.1, 0.1), **kw)
+    out = image.vhm.resample(hm, spacing=(0.1, 0.1, 0.1))
+    np.testing.assert_allclose(out.spacing, (0.1, 0.1, 0.1))
+    assert out.dimensions == (9, 9, 9)
+
+
 def _corners(text: str) -> np.ndarray:
     """The two corners of ``(x, y, z)-(x, y, z)`` in a line."""
     return np.array([[float(v) for v in c.split(",")] for c in re.findall(r"\(([^)]*)\)", text)])

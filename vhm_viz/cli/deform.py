@@ -216,6 +216,11 @@ def _check_options_apply(given, arrays, mesh, src, out, volume: bool, resample: 
                 f"{option}: applies to {resampled}; written to {suffix_of(out)}, the volume "
                 "is warped (every voxel moved)"
             )
+    if "--spacing" in given and "--reference" in given:
+        raise CLIError(
+            "--spacing: applies to the grid that holds the deformed volume; --reference gives "
+            "the grid, its spacing included"
+        )
     if "cells" in arrays and not has_3d_cells(mesh):
         raise CLIError(f"--arrays cells: {src.name} has no 3D cells ({_kind(mesh)})")
 

@@ -182,7 +182,11 @@ class HarmonicResampleFilter(DeformationSource):
         self.Modified()
 
     def SetOutputSpacing(self, spacing) -> None:
-        """Voxel size of the ``"deformed"`` output grid (default: the input spacing)."""
+        """Voxel size of the ``"deformed"`` output grid (default: the input spacing).
+
+        With another output grid (:meth:`SetReferenceImage`, :meth:`SetOutputGeometry`,
+        output mode ``"input"``) an update fails: that grid has its own spacing.
+        """
         if spacing is not None:
             spacing = tuple(float(v) for v in np.asarray(spacing, dtype=np.float64).reshape(3))
             if not all(np.isfinite(v) and v > 0 for v in spacing):
@@ -237,6 +241,12 @@ class HarmonicResampleFilter(DeformationSource):
         return self._parallel_reporting and mpi.process_count() > 1
 
     def _information(self, in_info, out_info):
+        if self._spacing is not None and (self._explicit is not None or self._mode == "input"):
+            given = "the reference grid" if self._explicit is not None else "the input grid"
+            raise ValueError(
+                "an output spacing applies to the grid that holds the deformed volume "
+                f"(output mode 'deformed'); {given} has its own spacing"
+            )
         img = vtkImageData.GetData(in_info[0], 0)
         if self._mpi():
             geo = self._share_lattice(in_info, img)
