@@ -217,6 +217,11 @@ def test_deform_refuses_options_the_input_leaves_without_effect(demo_dir, tmp_pa
                       "--arrays", "cells")  # fmt: skip
     assert rc == 0, err
     assert "cell_jacobian_determinant" in pv.read(tmp_path / "t.vtu").cell_data
+    rc, _, err = _run(capsys, "deform", volume, "--scene", scene, "-o", tmp_path / "w.vts", "-q",
+                      "--arrays", "cells", "--allow-folds")  # fmt: skip
+    assert rc == 0, err
+    warped = pv.read(tmp_path / "w.vts")  # a volume's cells are 3D cells too
+    assert warped.cell_data["cell_jacobian_determinant"].size == warped.n_cells > 0
     rc, _, err = _run(capsys, "deform", volume, "--scene", scene, "-o", tmp_path / "v.vti", "-q",
                       "--fill-value", "3", "--tolerance", "0.5")  # fmt: skip
     assert rc == 0, err

@@ -169,6 +169,28 @@ def test_filter_reproduces_an_affine_map_exactly(kind):
         np.testing.assert_allclose(out.point_data["Normals"], m, atol=1e-10)
 
 
+@pytest.mark.parametrize("kind", ["image", "rectilinear", "structured", "tets"])
+def test_cell_quality_of_every_dataset_with_3d_cells(kind):
+    """SetComputeCellQuality adds the deformed cells' arrays for every input with 3D cells,
+    images (warped through the volume engine) included: under an affine map each cell's
+    determinant and condition number are A's, and a reflection inverts every cell."""
+    mesh, _ = _datasets()[kind]
+    cage = _cage_around(mesh.bounds)
+    for A in (np.diag([1.3, 0.8, 1.1]), np.diag([1.0, 1.0, -1.0])):
+        flt = _filter(mesh, HarmonicMap.affine(cage, A, np.zeros(3)))
+        flt.SetComputeCellQuality(True)
+        out = pv.wrap(update(flt))
+        assert out.n_cells == mesh.n_cells > 0
+        det = np.linalg.det(A)
+        np.testing.assert_allclose(out.cell_data["cell_jacobian_determinant"], det, rtol=1e-9)
+        np.testing.assert_allclose(out.cell_data["cell_condition_number"], 1.3 / 0.8 if det > 0
+                                   else 1.0, rtol=1e-9)  # fmt: skip
+        inverted = mesh.n_cells if det < 0 else 0
+        assert np.count_nonzero(out.cell_data["cell_inverted"]) == inverted
+        assert out.field_data["vhm_cells_inverted"][0] == inverted
+        assert flt.cell_summary["inverted"] == inverted
+
+
 def test_filter_on_hand_tets():
     path = data_path("hand_tet", "hand.mesh")
     mesh = pv.read(path)

@@ -280,6 +280,7 @@ class HarmonicDeformationFilter(DeformationSource):
         rounding): two ranks each build about half of it.
         """
         hm, _ = self._resolve(in_info, inp)
+        self.cell_summary = None
         whole = in_info[0].GetInformationObject(0).Get(_SDDP.WHOLE_EXTENT())
         whole = inp.GetExtent() if whole is None else whole
         ext = inp.GetExtent()
@@ -328,6 +329,11 @@ class HarmonicDeformationFilter(DeformationSource):
                 _set_array(pd, pnormals.GetName() or "Normals", normals, normals=True)
         if self._displacement:
             _set_array(pd, "displacement", points - vol.geometry.sub(box).points())
+        if self._cell_quality:  # the voxels as warped (six tets each)
+            quality = cell_quality(inp, points)
+            if quality is not None:
+                add_cell_arrays(out, quality)
+                self.cell_summary = quality["summary"]
         add_lattice_counts(out, vol)
         # one array for the flags, not three (each a byte per voxel)
         self._finish(out, np.logical_not(inside, out=np.empty(inside.size, np.uint8)))
