@@ -216,9 +216,19 @@ def singular_values(jacobians) -> np.ndarray:
     return _svd(_jacobians(jacobians), compute_uv=False)
 
 
+def _det(m: np.ndarray) -> np.ndarray:
+    """``numpy.linalg.det`` of a stack of matrices; NaN for a non-finite one, quietly.
+
+    NaN Jacobians are the documented result outside the cage (``outside="nan"``), not a
+    numerical accident to warn about.
+    """
+    with np.errstate(invalid="ignore"):
+        return np.linalg.det(m)
+
+
 def jacobian_determinant(jacobians) -> np.ndarray:
     """``det J`` per point (local volume ratio): shape (N,)."""
-    return np.linalg.det(_jacobians(jacobians))
+    return _det(_jacobians(jacobians))
 
 
 def condition_number(jacobians) -> np.ndarray:
@@ -243,7 +253,7 @@ def stretch(jacobians) -> np.ndarray:
 def _polar_rotation(j: np.ndarray) -> np.ndarray:
     """Closest proper rotation ``U diag(1, 1, det(U V^T)) V^T`` of each matrix."""
     u, _, vt = _svd(j)
-    sign = np.sign(np.linalg.det(u @ vt))
+    sign = np.sign(_det(u @ vt))
     sign[sign == 0] = 1.0
     u = u.copy()
     u[:, :, 2] *= sign[:, None]
@@ -290,8 +300,8 @@ def jacobian_measures(jacobians) -> dict:
     """
     j = _jacobians(jacobians)
     u, s, vt = _svd(j)
-    det = np.linalg.det(j)
-    sign = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
+    det = _det(j)
+    sign = np.where(_det(u @ vt) < 0, -1.0, 1.0)
     u = u.copy()
     u[:, :, 2] *= sign[:, None]
     r = u @ vt
