@@ -766,6 +766,24 @@ def test_screenshot_command_head_volume_and_errors(tmp_path):
     assert "(default: 1200 900)" in help_text and "(default: none" in help_text
 
 
+def test_screenshot_colour_without_a_solved_map_is_refused(tmp_path):
+    """--colour asks for a section coloured by the map's det J or cond J: for data
+    without a solved map (no scene) the command says so in one line and writes nothing,
+    rather than a plain grey picture."""
+    import pyvista as pv
+
+    tets = tmp_path / "tets.vtu"
+    pv.ImageData(dimensions=(4, 4, 4)).cast_to_unstructured_grid().triangulate().save(tets)
+    out = tmp_path / "tets.png"
+    r = _run_cli("explore", str(tets), "--colour", "determinant", "--screenshot", str(out),
+                 "--size", "320", "240")  # fmt: skip
+    assert r.returncode == 1 and not out.exists()
+    assert r.stderr.strip().splitlines()[-1] == (
+        "vhm-viz explore: error: --colour determinant: no solved map to colour by (give a "
+        "--scene, or --bar)"
+    )
+
+
 def _constrain(ctrl, sc) -> None:
     """A bar scenario's cage, anchors and position constraints on loaded data."""
     ctrl.set_cage(sc.cage)

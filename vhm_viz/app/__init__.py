@@ -78,7 +78,8 @@ def add_arguments(parser) -> None:
         choices=("none", *MEASURES),
         default="none",
         help="with --screenshot: colour the slices (a volume's orthogonal slices, or a "
-        "section of other data) by det J or cond J (default: none, the data's values)",
+        "section of other data, which needs a solved map: a --scene or --bar) by det J or "
+        "cond J (default: none, the data's values)",
     )
 
 
@@ -190,6 +191,11 @@ def screenshot(args) -> int:
         if args.scene:
             step(lambda: win.load_scene(args.scene), Path(args.scene).name)
         if args.colour != "none":
+            if win.ctrl.volume is None and not win.ctrl.ready:  # a section needs a map
+                raise ValueError(
+                    f"--colour {args.colour}: no solved map to colour by (give a --scene, "
+                    "or --bar)"
+                )
             step(lambda: win.colour_by(args.colour), "colour", False)
         win.frame_all()
         img = win.screenshot(False)
