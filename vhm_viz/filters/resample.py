@@ -312,7 +312,7 @@ class HarmonicResampleFilter(DeformationSource):
     def _execute(self, in_info, out_info):
         self._output_warnings, self.fold_voxels = [], None
         if self._geometry is None:  # the information pass failed: its error is the reason
-            raise self._information_error or RuntimeError("no output grid: the input changed")
+            raise self._information_error or RuntimeError("no output grid: no information pass")
         img = vtkImageData.GetData(in_info[0], 0)
         out = vtkImageData.GetData(out_info, 0)
         info = out_info.GetInformationObject(0)
