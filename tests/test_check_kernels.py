@@ -118,7 +118,7 @@ def test_the_checks_load_no_kernel_after_the_warm_up():
     # and the warm-up loaded each kind's own kernels
     assert {"unproven_boxes", "_hex_box_kernel", "_hex_kernel"} <= set(report["proof"]["warm-up"])
     assert "_open_edges" in report["surface"]["warm-up"]
-    assert {"_tet_kernel", "_tetrahedra_volume"} <= set(report["tets"]["warm-up"])
+    assert {"_tet_kernel", "_tetrahedra_volumes"} <= set(report["tets"]["warm-up"])
     assert "_reduce_cells" in report["hexahedra"]["warm-up"]
 
 

@@ -101,6 +101,31 @@ def test_analyze_writes_the_analysed_dataset(files, tmp_path, capsys, data, writ
     assert not [p for p in out_dir.iterdir() if p.name.startswith(".")]  # atomic writes
 
 
+def test_e_volume_of_a_solid_mesh_is_the_volume_it_fills(files, tmp_path, capsys):
+    """E_volume of a tet mesh counts each tet with its rest orientation (a mesh stored with
+    the other corner order fills the same volume), and of voxel cells their deformed
+    volume, not the axis-aligned box a voxel cell stands for: both against numpy's volumes
+    of the deformed Kuhn tets."""
+    d, points, tets = files
+    analysed = _analyze(capsys, d / "bar_tets.vtu", d / "bend.json", tmp_path / "a")[2]
+    moved = _moved(analysed)
+    v0, v1 = _signed_volumes(points, tets).sum(), _signed_volumes(moved, tets).sum()
+    expected = abs(v1 - v0) / v0
+    assert expected > 0.01
+    flipped = tets[:, [1, 0, 2, 3]]
+    cells = np.hstack([np.full((len(tets), 1), 4), flipped]).ravel()
+    grid = pv.UnstructuredGrid(cells, np.full(len(tets), pv.CellType.TETRA), points)
+    grid.save(tmp_path / "flipped.vtu")
+    img = pv.ImageData(dimensions=(6, 6, 26), spacing=(0.2, 0.2, 0.2), origin=(-0.5, -0.5, 0))
+    voxels = img.cast_to_unstructured_grid()
+    assert set(voxels.celltypes) == {pv.CellType.VOXEL}
+    voxels.save(tmp_path / "voxels.vtu")
+    for name, rel in (("flipped.vtu", 1e-9), ("voxels.vtu", 0.02)):
+        out, m, _ = _analyze(capsys, tmp_path / name, d / "bend.json", tmp_path / name[:-4])
+        assert m["E_volume"] == pytest.approx(expected, rel=rel), name
+        assert "E_volume" in out
+
+
 def test_analyze_certifies_the_bend(files, tmp_path, capsys):
     d, _, _ = files
     out_dir = tmp_path / "cert"

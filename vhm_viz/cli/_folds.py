@@ -290,7 +290,7 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False, proof:
     import numba
     import pyvista as pv
 
-    from vhm_viz.core.geometry import open_edge_count, tetrahedra_volume
+    from vhm_viz.core.geometry import moved_tetrahedra_volume, open_edge_count
     from vhm_viz.core.metrics import cell_measures
     from vhm_viz.filters.cells import tetra_cells
 
@@ -309,11 +309,12 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False, proof:
         work.append(lambda: inverted_voxel_cells(cube, (2, 2, 2), 1.0))
     elif isinstance(data, pv.UnstructuredGrid):
         found = tetra_cells(data)
+        if found is None or len(found[0]):  # 3D cells: their volumes as tets (E_volume)
+            work.append(lambda: moved_tetrahedra_volume(corners, corners, tet))
         if found is None:  # other 3D cells: split into tets, reduced per cell
             if cells:
                 work.append(lambda: cell_measures(corners, corners, tet, [0], 1, condition=False))
-        elif len(found[0]):  # a tet mesh: its volumes (E_volume) and a cell per tet
-            work.append(lambda: tetrahedra_volume(corners, tet))
+        elif len(found[0]):  # a tet mesh: a cell per tet
             if cells:
                 work.append(lambda: cell_measures(corners, corners, tet, condition=False))
     elif isinstance(data, pv.PolyData):

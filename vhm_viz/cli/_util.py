@@ -393,8 +393,8 @@ def surface_metrics(rest, deformed, rigid: bool = True) -> dict:
 def _surface_metrics(rest, deformed, rigid: bool) -> dict:
     import pyvista as pv
 
-    from vhm_viz.core.geometry import open_edge_count, tetrahedra_volume
-    from vhm_viz.filters.cells import tetra_cells
+    from vhm_viz.core.geometry import moved_tetrahedra_volume, open_edge_count
+    from vhm_viz.filters.cells import cell_tetrahedra
 
     out: dict = {}
     if isinstance(rest, pv.PolyData) and rest.n_cells and rest.GetNumberOfPolys():
@@ -406,11 +406,12 @@ def _surface_metrics(rest, deformed, rigid: bool) -> dict:
         if open_edge_count(tris, surf.n_points) == 0:
             out["E_volume"] = float(volume_change(surf.points, dsurf.points, tris))
     elif isinstance(rest, pv.UnstructuredGrid) and rest.n_cells:
-        tets = tetra_cells(rest)  # a tet mesh: its volumes without VTK's cell sizes
-        if tets is None:
-            v0, v1 = float(rest.volume), float(deformed.volume)
-        else:
-            v0, v1 = (tetrahedra_volume(d.points, tets[0]) for d in (rest, deformed))
+        # the 3D cells as tets, each counted with its rest orientation: VTK's cell sizes
+        # take a voxel for the axis-aligned box it no longer is once its points move
+        v0 = v1 = 0.0
+        for tets, _ in cell_tetrahedra(rest):
+            a, b = moved_tetrahedra_volume(rest.points, deformed.points, tets)
+            v0, v1 = v0 + a, v1 + b
         if v0 > 0:
             out["E_volume"] = abs(v1 - v0) / v0
     return out

@@ -84,24 +84,70 @@ def tetrahedra_volume(vertices: np.ndarray, tets: np.ndarray) -> float:
     float
         Volume in length units cubed; inverted tetrahedra count negative.
     """
+    v, t = _tet_arrays(vertices, tets)
+    return float(_tetrahedra_volumes(v, v, t)[2] / 6.0)
+
+
+def moved_tetrahedra_volume(rest: np.ndarray, moved: np.ndarray, tets: np.ndarray) -> tuple:
+    """The volume a tet mesh fills at rest and after its points moved.
+
+    Each tetrahedron counts with the orientation it has at rest, so the answer does not
+    depend on the order its corners are stored in (mesh generators differ: a mesh stored
+    all inverted, or a mix, fills the same volume): at rest ``|V_t|``, moved
+    ``sign(V_t) V'_t`` (negative where the motion inverts it).
+
+    Parameters
+    ----------
+    rest, moved : (n, 3) float arrays
+        The points before and after.
+    tets : (m, 4) int array
+
+    Returns
+    -------
+    (float, float)
+        Rest and moved volumes, in length units cubed.
+    """
+    v, t = _tet_arrays(rest, tets)
+    w = np.ascontiguousarray(moved, dtype=np.float64).reshape(-1, 3)
+    if len(w) != len(v):
+        raise ValueError(f"moved has {len(w)} points; rest has {len(v)}")
+    at_rest, now, _ = _tetrahedra_volumes(v, w, t)
+    return float(at_rest / 6.0), float(now / 6.0)
+
+
+def _tet_arrays(vertices, tets):
     v = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
     t = np.ascontiguousarray(tets, dtype=np.int64).reshape(-1, 4)
     if t.size and (t.min() < 0 or t.max() >= len(v)):
         raise ValueError(f"tets must index the {len(v)} vertices")
-    return float(_tetrahedra_volume(v, t) / 6.0)
+    return v, t
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _tet_det(v, p0, p1, p2, p3):  # pragma: no cover - compiled
+    ax, ay, az = v[p1, 0] - v[p0, 0], v[p1, 1] - v[p0, 1], v[p1, 2] - v[p0, 2]
+    bx, by, bz = v[p2, 0] - v[p0, 0], v[p2, 1] - v[p0, 1], v[p2, 2] - v[p0, 2]
+    cx, cy, cz = v[p3, 0] - v[p0, 0], v[p3, 1] - v[p0, 1], v[p3, 2] - v[p0, 2]
+    return ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
 
 
 @numba.njit(cache=True, nogil=True)
-def _tetrahedra_volume(v, t):  # pragma: no cover - compiled
-    """Sum of ``det(p1 - p0, p2 - p0, p3 - p0)`` over the tetrahedra ``t``."""
-    total = 0.0
+def _tetrahedra_volumes(v, w, t):  # pragma: no cover - compiled
+    """Sums over ``t`` of ``|d_v|``, ``sign(d_v) d_w`` and ``d_v``, ``d = det(p1 - p0, ...)``."""
+    at_rest = 0.0
+    moved = 0.0
+    signed = 0.0
     for i in range(t.shape[0]):
         p0, p1, p2, p3 = t[i, 0], t[i, 1], t[i, 2], t[i, 3]
-        ax, ay, az = v[p1, 0] - v[p0, 0], v[p1, 1] - v[p0, 1], v[p1, 2] - v[p0, 2]
-        bx, by, bz = v[p2, 0] - v[p0, 0], v[p2, 1] - v[p0, 1], v[p2, 2] - v[p0, 2]
-        cx, cy, cz = v[p3, 0] - v[p0, 0], v[p3, 1] - v[p0, 1], v[p3, 2] - v[p0, 2]
-        total += ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-    return total
+        d = _tet_det(v, p0, p1, p2, p3)
+        signed += d
+        if d > 0.0:
+            at_rest += d
+            moved += _tet_det(w, p0, p1, p2, p3)
+        elif d < 0.0:
+            at_rest -= d
+            moved -= _tet_det(w, p0, p1, p2, p3)
+    return at_rest, moved, signed
 
 
 def _triple_products(x, y, z, a, b, c) -> np.ndarray:
