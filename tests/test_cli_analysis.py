@@ -126,6 +126,44 @@ def test_e_volume_of_a_solid_mesh_is_the_volume_it_fills(files, tmp_path, capsys
         assert "E_volume" in out
 
 
+def test_deformed_voxel_cells_become_hexahedra(files, tmp_path, capsys):
+    """A voxel (pixel) cell stands for an axis-aligned box (rectangle); moved, it is written
+    as the hexahedron (quad) with the same corners, which VTK measures as what it is:
+    the deformed grid's volume against numpy's volumes of the deformed Kuhn tets, and a
+    slab of pixels' area against numpy's areas of its triangles."""
+    d, points, tets = files
+    img = pv.ImageData(dimensions=(6, 6, 26), spacing=(0.2, 0.2, 0.2), origin=(-0.5, -0.5, 0))
+    voxels = img.cast_to_unstructured_grid()
+    sheet = pv.ImageData(dimensions=(6, 1, 26), spacing=(0.2, 0.2, 0.2), origin=(-0.5, 0, 0))
+    pixels = sheet.cast_to_unstructured_grid()
+    assert set(pixels.celltypes) == {pv.CellType.PIXEL}
+    for name, grid in (("voxels", voxels), ("pixels", pixels)):
+        grid.save(tmp_path / f"{name}.vtu")
+        rc, _, err = _run(
+            capsys, "deform", tmp_path / f"{name}.vtu", "--scene", d / "bend.json",
+            "-o", tmp_path / f"{name}_bent.vtu", "-q", "--arrays", "displacement",
+        )  # fmt: skip
+        assert rc == 0, err
+    bent = pv.read(tmp_path / "voxels_bent.vtu")
+    assert set(bent.celltypes) == {pv.CellType.HEXAHEDRON}
+    assert set(pv.read(tmp_path / "voxels.vtu").celltypes) == {pv.CellType.VOXEL}  # input kept
+    # the same lattice's points as the bar's tets: map them through the written points
+    key = {tuple(np.round(p, 9)): i for i, p in enumerate(np.asarray(voxels.points))}
+    moved = np.asarray(bent.points)[[key[tuple(np.round(p, 9))] for p in points]]
+    expected = _signed_volumes(moved, tets).sum() / 6.0
+    assert bent.volume == pytest.approx(expected, rel=0.01)
+    flat = pv.read(tmp_path / "pixels_bent.vtu")
+    assert set(flat.celltypes) == {pv.CellType.QUAD}
+    q = flat.cells_dict[pv.CellType.QUAD]
+    x = np.asarray(flat.points)
+    # a quad's corners run around it: its two triangles (0, 1, 2), (0, 2, 3) cover it
+    tri = np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
+    e = x[tri]
+    area = 0.5 * np.linalg.norm(np.cross(e[:, 1] - e[:, 0], e[:, 2] - e[:, 0]), axis=1).sum()
+    assert flat.area == pytest.approx(area, rel=0.01)
+    assert area == pytest.approx(1.0 * 5.0, rel=0.1)
+
+
 def test_analyze_certifies_the_bend(files, tmp_path, capsys):
     d, _, _ = files
     out_dir = tmp_path / "cert"

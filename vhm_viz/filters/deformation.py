@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 from vtkmodules.util import numpy_support as ns
-from vtkmodules.vtkCommonCore import vtkPoints
+from vtkmodules.vtkCommonCore import VTK_UNSIGNED_CHAR, vtkPoints
 from vtkmodules.vtkCommonDataModel import (
+    vtkCellArray,
     vtkDataObject,
     vtkDataSet,
     vtkPolyData,
@@ -24,6 +25,7 @@ from vhm_viz.filters._vtk import (
     requested_extent,
 )
 from vhm_viz.filters.cells import add_cell_arrays, cell_quality
+from vhm_viz.io import cell_types
 
 __all__ = ["HarmonicDeformationFilter", "output_type_for"]
 
@@ -227,6 +229,7 @@ class HarmonicDeformationFilter(DeformationSource):
         pts = vtkPoints()
         pts.SetData(ns.numpy_to_vtk(np.ascontiguousarray(deformed), deep=1))
         out.SetPoints(pts)
+        _boxes_as_hexahedra(out)
         pd, cd = out.GetPointData(), out.GetCellData()
         pnormals = _normals_array(src.GetPointData()) if self._deform_normals else None
         cnormals = _normals_array(src.GetCellData()) if self._deform_normals else None
@@ -338,6 +341,41 @@ class HarmonicDeformationFilter(DeformationSource):
         # one array for the flags, not three (each a byte per voxel)
         self._finish(out, np.logical_not(inside, out=np.empty(inside.size, np.uint8)))
         return 1
+
+
+#: VTK's axis-aligned cells and the general cells that take them over once moved, with
+#: the corner order of the general cell (a voxel's and pixel's corners run in lattice
+#: order, a hexahedron's and quad's around each face).
+_BOX_CELLS = {11: (12, np.array([0, 1, 3, 2, 4, 5, 7, 6])), 8: (9, np.array([0, 1, 3, 2]))}
+
+
+def _boxes_as_hexahedra(out) -> None:
+    """Voxel and pixel cells of an unstructured grid become hexahedra and quads.
+
+    A voxel (pixel) cell stands for an axis-aligned box (rectangle): VTK takes its
+    volume, contains-tests and interpolation from that box, which its deformed points no
+    longer are. The cell arrays are shared with the input: new ones replace them.
+    """
+    if not out.IsA("vtkUnstructuredGrid") or not out.GetNumberOfCells():
+        return
+    types = cell_types(out)
+    if not np.isin(types, list(_BOX_CELLS)).any():
+        return
+    cells = out.GetCells()
+    conn = ns.vtk_to_numpy(cells.GetConnectivityArray()).astype(np.int64)  # a copy
+    offsets = ns.vtk_to_numpy(cells.GetOffsetsArray()).astype(np.int64)
+    types = types.astype(np.uint8)  # a copy
+    for box, (general, order) in _BOX_CELLS.items():
+        which = np.flatnonzero(types == box)
+        if which.size:
+            ids = offsets[which][:, None] + np.arange(len(order))
+            conn[ids] = conn[ids[:, order]]
+            types[which] = general
+    new = vtkCellArray()
+    new.SetData(
+        ns.numpy_to_vtkIdTypeArray(offsets, deep=1), ns.numpy_to_vtkIdTypeArray(conn, deep=1)
+    )
+    out.SetCells(ns.numpy_to_vtk(types, deep=1, array_type=VTK_UNSIGNED_CHAR), new)
 
 
 def _cell_centres(ds) -> np.ndarray:
