@@ -244,3 +244,45 @@ def test_region_partly_outside_the_cage_is_undecided(unit_cage):
     hm = HarmonicMap.identity(unit_cage)
     cert = certify_injectivity(hm, Region.box([0.5] * 3, [1.5] * 3), max_cubes=3000)
     assert cert.status == "undecided" and cert.outside > 0
+
+
+def _harmonic_cubic_map(k=6.0):
+    """``x -> x + k (u^3 - 3 u v^2) e_x`` (``u, v = x - 1/2, y - 1/2``: a harmonic cubic)
+    on a box cage around the unit cube, from its values and normal derivatives: it folds
+    near ``x = 1/2`` away from ``y = 1/2`` and nowhere near ``x = 0`` or ``x = 1``."""
+    from vhm_viz.core.geometry import face_normals_and_areas
+
+    def value(x):
+        u, v = x[:, 0] - 0.5, x[:, 1] - 0.5
+        return x + np.outer(k * (u**3 - 3 * u * v * v), [1.0, 0.0, 0.0])
+
+    cage = Cage(*box_cage((-0.5, -0.5, -0.5), (1.5, 1.5, 1.5), 6))
+    v, f = np.asarray(cage.vertices), np.asarray(cage.faces)
+    normals, _ = face_normals_and_areas(v, f)
+    c = v[f].mean(axis=1)
+    u, w = c[:, 0] - 0.5, c[:, 1] - 0.5
+    jac = np.repeat(np.eye(3)[None], len(c), axis=0)
+    jac[:, 0, 0] += 3 * k * (u * u - w * w)
+    jac[:, 0, 1] -= 6 * k * u * w
+    return HarmonicMap(cage, np.vstack([value(v), np.einsum("tij,tj->ti", jac, normals)]))
+
+
+def test_min_det_counts_only_points_of_the_region():
+    """Two slabs of tets with a fold in the gap between them: the octree's cubes span the
+    gap, but the smallest det J reported is of points in the slabs."""
+    pv = pytest.importorskip("pyvista")
+    hm = _harmonic_cubic_map()
+    points, tets = [], []
+    for x0 in (0.0, 0.7):
+        g = pv.ImageData(dimensions=(4, 7, 7), spacing=(0.1, 0.1, 0.1), origin=(x0, 0.2, 0.2))
+        g = g.to_tetrahedra()
+        tets.append(g.cells_dict[pv.CellType.TETRA] + sum(len(p) for p in points))
+        points.append(np.asarray(g.points))
+    region = Region.tetrahedra(np.vstack(points), np.vstack(tets))
+    x = _grid(region.lo, region.hi, 25)
+    det = _det(hm, x)
+    inside = region.contains(x)
+    assert det[~inside].min() < -0.5 and det[inside].min() > 0.0  # the fold is in the gap
+    cert = certify_injectivity(hm, region, max_cubes=20_000)
+    assert cert.status != "not injective"
+    assert cert.min_det > 0.0

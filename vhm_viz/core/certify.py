@@ -110,7 +110,9 @@ class InjectivityCertificate:
         Undecided boxes lying entirely outside the cage (the map is not the deformation
         there; make the cage enclose the region).
     min_det : float
-        Smallest ``det J`` seen at any examined centre or probe.
+        Smallest ``det J`` seen at any examined centre or probe in the region (centres of
+        cubes that only meet the region may lie outside it, where the map may fold
+        without folding the region).
     region : dict
         What was certified (:attr:`Region.description`).
     max_cubes : int
@@ -283,8 +285,7 @@ def certify_injectivity(
             finite = np.isfinite(jac).all(axis=(1, 2)) & np.isfinite(hess).all(axis=(1, 2, 3))
             det = np.full(len(batch), np.nan)
             det[finite] = np.linalg.det(jac[finite])
-            if finite.any():
-                min_det = min(min_det, float(np.nanmin(det)))
+            min_det = _lowest_in_region(region, batch, batch_state, det, finite, min_det)
             negative = finite & (det <= 0.0)
             if negative.any():
                 # a witness must lie in the region (a cube's centre may not, near its edge)
@@ -376,6 +377,21 @@ def certify_injectivity(
         seconds=seconds,
         smallest_cube=smallest,
     )
+
+
+def _lowest_in_region(region, centres, state, det, finite, lowest: float) -> float:
+    """``lowest``, or the lowest ``det`` below it at a centre that lies in the region."""
+    low = finite & (det < lowest)
+    inside = low & (state == INSIDE)
+    if inside.any():
+        lowest = float(det[inside].min())
+    # centres of cubes that meet the region: tested only where they would lower it
+    edge = np.flatnonzero(low & (state != INSIDE) & (det < lowest))
+    if edge.size:
+        edge = edge[region.contains(centres[edge])]
+        if edge.size:
+            lowest = float(det[edge].min())
+    return lowest
 
 
 def _boxes(centres: np.ndarray, half: np.ndarray) -> np.ndarray:
