@@ -389,6 +389,32 @@ def test_cage_not_enclosing_the_data(poking_out, tmp_path, capsys):
     assert int(np.asarray(res.point_data["vhm_outside"]).sum()) == n_out
 
 
+def test_dropped_points_of_a_tet_mesh_say_nothing_false(demo_dir, tmp_path, capsys):
+    """--outside nan on a tet mesh poking out of its cage: the dropped points' det J is NaN
+    and the others' the map's, with no numpy warning as a note, and the line gives no
+    E_volume (the dropped points' tets have no volume) rather than 'E_volume nan'."""
+    from vhm_viz.io import read_dataset
+
+    tets = read_dataset(demo_dir / "bar_tets_rest.vtu")
+    tets.points = tets.points * np.array([1.0, 1.0, 1.2])
+    tets.save(tmp_path / "long.vtu")
+    rc, out, err = _run(
+        capsys, "deform", tmp_path / "long.vtu", "--scene", demo_dir / "scene.json",
+        "-o", tmp_path / "o.vtu", "-q", "--outside", "nan", "--arrays", "det",
+    )  # fmt: skip
+    assert rc == 0, err
+    assert err.strip() == "" and "nan" not in out.lower()
+    res = pv.read(tmp_path / "o.vtu")
+    dropped = np.asarray(res.point_data["vhm_outside"]) == 1
+    assert dropped.any() and np.isnan(res.points[dropped]).all()
+    det = np.asarray(res.point_data["jacobian_determinant"])
+    assert np.isnan(det[dropped]).all()
+    scene = Scene.load(demo_dir / "scene.json")
+    hm = scene.solve_map(tets).harmonic_map
+    kept = np.asarray(tets.points)[~dropped]
+    assert det[~dropped] == pytest.approx(np.linalg.det(hm.jacobian(kept)), rel=1e-9)
+
+
 def test_the_outside_options_a_refusal_suggests_are_the_commands_own(poking_out, tmp_path, capsys):
     big, scene = poking_out
     for command, target in (("deform", tmp_path / "o.vtp"), ("analyze", tmp_path / "report")):

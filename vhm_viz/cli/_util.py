@@ -412,7 +412,7 @@ def _surface_metrics(rest, deformed, rigid: bool) -> dict:
         for tets, _ in cell_tetrahedra(rest):
             a, b = moved_tetrahedra_volume(rest.points, deformed.points, tets)
             v0, v1 = v0 + a, v1 + b
-        if v0 > 0:
+        if v0 > 0 and np.isfinite(v1):  # not with points dropped (--outside nan)
             out["E_volume"] = abs(v1 - v0) / v0
     return out
 
