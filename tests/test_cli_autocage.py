@@ -36,6 +36,34 @@ def test_cage_then_anchors(capsule, tmp_path, capsys):
     assert "faces" in capsys.readouterr().out
 
 
+def test_cage_line_counts_the_thin_faces_it_kept(tmp_path, capsys):
+    """A cage with faces thinner than MIN_FACE_ANGLE (the bar's long flat sides) says how
+    many, counted from the written cage's angles; one without (a sphere's) says nothing."""
+    from vhm_viz import examples
+    from vhm_viz.core.cage import MIN_FACE_ANGLE
+
+    bar = tmp_path / "bar.vtp"
+    examples.bar("bend-u", resolution=12).surface.save(bar)
+    sphere = tmp_path / "sphere.vtp"
+    pv.Sphere().save(sphere)
+    for data, thin in ((bar, True), (sphere, False)):
+        cage_path = tmp_path / f"{data.stem}.obj"
+        assert main(["cage", str(data), "-o", str(cage_path), "--max-faces", "300"]) == 0
+        line = capsys.readouterr().out
+        cage = read_cage(cage_path)
+        x = np.asarray(cage.vertices)[np.asarray(cage.faces)]
+        cosines = []
+        for i in range(3):
+            a, b = x[:, (i + 1) % 3] - x[:, i], x[:, (i + 2) % 3] - x[:, i]
+            cosines.append(np.einsum("ij,ij->i", a, b) / np.linalg.norm(a, axis=1)
+                           / np.linalg.norm(b, axis=1))  # fmt: skip
+        angles = np.degrees(np.arccos(np.clip(np.max(cosines, axis=0), -1, 1)))
+        count = int((angles < MIN_FACE_ANGLE).sum())
+        assert (count > 0) == thin
+        assert (f"{count} faces thinner than" in line) == thin, line
+        assert ("thinner" in line) == thin
+
+
 @pytest.mark.parametrize(
     "argv,message",
     [

@@ -50,6 +50,7 @@ from vhm_viz.autocage.samples import InputSamples, collect_samples, point_spacin
 from vhm_viz.autocage.threshold import resolve_threshold, volume_values
 from vhm_viz.autocage.voxel_cage import voxel_cage
 from vhm_viz.core.basis import winding_number
+from vhm_viz.core.cage import MIN_FACE_ANGLE
 from vhm_viz.core.errors import SettingError
 
 #: the largest clearance, in bounding-box diagonals of the input
@@ -113,6 +114,10 @@ class AutoCageReport:
         Wall time of the whole call.
     notes : list of str
         Fallbacks taken and why.
+    thin_faces : int
+        Faces whose smallest angle is below :data:`~vhm_viz.core.cage.MIN_FACE_ANGLE`
+        (``Cage.thin_faces``): kept, since no repair removes them without moving the cage
+        into the shape, but a solve on them may stop converging or go wrong.
     """
 
     method: str
@@ -134,6 +139,7 @@ class AutoCageReport:
     min_gap_kept: float = float("nan")
     seconds: float = 0.0
     notes: list = field(default_factory=list)
+    thin_faces: int = 0
 
     def __str__(self) -> str:
         return (
@@ -145,6 +151,12 @@ class AutoCageReport:
             + (
                 f"; smallest gap kept between parts {self.min_gap_kept:.4g}"
                 if np.isfinite(self.min_gap_kept)
+                else ""
+            )
+            + (
+                f"; {self.thin_faces} faces thinner than {MIN_FACE_ANGLE:g} degrees (a solve "
+                "on them may stop converging or go wrong)"
+                if self.thin_faces
                 else ""
             )
             + f"; {self.seconds:.2f} s"
@@ -301,6 +313,7 @@ def auto_cage(
         min_gap_kept=kept,
         seconds=time.perf_counter() - t0,
         notes=notes,
+        thin_faces=len(cage.thin_faces),
     )
     return (cage, report) if return_report else cage
 
