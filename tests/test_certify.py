@@ -286,3 +286,22 @@ def test_min_det_counts_only_points_of_the_region():
     cert = certify_injectivity(hm, region, max_cubes=20_000)
     assert cert.status != "not injective"
     assert cert.min_det > 0.0
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_the_certificate_does_not_depend_on_the_units(bend_u, scale):
+    """The bend in metres or in millimetres: ``x -> s f(x / s)`` has the same det J at
+    corresponding points, so the octree examines the same cubes (the bound's terms are
+    each invariant; the affine map subtracted in it must be too)."""
+    cage = bend_u.cage
+    n = len(cage.vertices)
+    z = np.array(bend_u.coefficients)
+    z[:n] *= scale  # values scale with the length; the face coefficients are ratios
+    scaled = HarmonicMap(Cage(np.asarray(cage.vertices) * scale, cage.faces), z)
+    p = np.array([[0.1, -0.2, 2.5], [0.3, 0.3, 4.5]])
+    assert _det(scaled, p * scale) == pytest.approx(_det(bend_u, p), rel=1e-9)
+    region = Region.box(BAR_SOLID.lo * scale, BAR_SOLID.hi * scale)
+    got = certify_injectivity(scaled, region)
+    ref = certify_injectivity(bend_u, BAR_SOLID)
+    assert got.certified and ref.certified
+    assert got.cubes == pytest.approx(ref.cubes, rel=0.01)

@@ -218,9 +218,12 @@ def _fit_affine(px, py, pz, V, F, N, areas, a, b, dist, wv, M, R, A, T):  # prag
     """The affine map subtracted in (3) for a ball at ``p``: a weighted least-squares fit.
 
     Minimises ``sum_v w_v |a_v - A x_v - T|^2 + sum_t w_t |b_t - A N_t|^2`` with the weights
-    of the kernels in (3): ``w ~ area / (d^2 + area/pi)^3`` for the double layer (spread to
-    the face's corners) and a quarter of ``area / (d^2 + area/pi)^2.5`` for the single
-    layer (``d`` the face's distance to ``p``). Any affine map gives a valid bound; this
+    of the kernels in (3) over the size of the residual each multiplies (a double-layer
+    residual is a length, about ``d`` times a single-layer one, which is a ratio):
+    ``w ~ area / (d^2 + area/pi)^3.5`` for the double layer (spread to the face's corners)
+    and a quarter of ``area / (d^2 + area/pi)^2.5`` for the single layer (``d`` the face's
+    distance to ``p``). Both scale alike with the unit of length, so the fit, and with it
+    the certificate's cubes, do not depend on it. Any affine map gives a valid bound; this
     one makes the residual densities small on the faces that dominate it, where the
     tangent map at ``p`` would keep the whole curvature of the map. ``wv`` is scratch.
     """
@@ -229,7 +232,7 @@ def _fit_affine(px, py, pz, V, F, N, areas, a, b, dist, wv, M, R, A, T):  # prag
     wv[:] = 0.0
     for t in range(F.shape[0]):
         s = dist[t] * dist[t] + areas[t] / math.pi
-        w = areas[t] / (s * s * s) / 3.0
+        w = areas[t] / (s * s * s * math.sqrt(s)) / 3.0
         for i in range(3):
             wv[F[t, i]] += w
         # the single layer's rows (N_t, 0)
