@@ -229,6 +229,33 @@ def test_meshio_sys_exit_and_prints_become_one_error(tmp_path, capsys):
     assert out == "" and err == ""
 
 
+def test_gmsh_tet_mesh_deforms_like_its_vtu(tmp_path):
+    """A Gmsh ``.msh`` tet mesh (meshio writes it) deforms to the same points and cell
+    arrays as the same mesh in ``.vtu``; a malformed one is one line."""
+    meshio = pytest.importorskip("meshio")
+    grid = pv.ImageData(dimensions=(4, 4, 7), spacing=(0.3, 0.3, 0.3)).to_tetrahedra()
+    tets = grid.cells_dict[pv.CellType.TETRA]
+    meshio.Mesh(np.asarray(grid.points), [("tetra", tets)]).write(
+        tmp_path / "m.msh", file_format="gmsh22", binary=False
+    )
+    pv.UnstructuredGrid({pv.CellType.TETRA: tets}, np.asarray(grid.points)).save(tmp_path / "m.vtu")
+    box_scene(tmp_path, grid.bounds[0::2], grid.bounds[1::2])
+    out = {}
+    for name in ("m.msh", "m.vtu"):
+        res = run_cli("deform", tmp_path / name, "-s", tmp_path / "scene.json",
+                      "-o", tmp_path / f"{name}.out.vtu", "-q", "--arrays", "cells")  # fmt: skip
+        assert res.returncode == 0, res.stderr
+        out[name] = pv.read(tmp_path / f"{name}.out.vtu")
+    assert np.allclose(out["m.msh"].points, out["m.vtu"].points, rtol=0, atol=1e-12)
+    got, want = (out[n].cell_data["cell_jacobian_determinant"] for n in ("m.msh", "m.vtu"))
+    assert np.allclose(got, want, rtol=1e-12)
+    (tmp_path / "bad.msh").write_text("$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n3\n1 0 0\n")
+    res = run_cli("deform", tmp_path / "bad.msh", "-s", tmp_path / "scene.json",
+                  "-o", tmp_path / "o.vtu", "-q")  # fmt: skip
+    assert res.returncode == 1 and res.stderr.count("\n") == 1 and "bad.msh" in res.stderr
+    assert not (tmp_path / "o.vtu").exists()
+
+
 def test_a_reader_that_crashes_takes_only_its_child_process(models):
     """If VTK crashes on a file the checks could not vet, that is an error message."""
     import ctypes

@@ -23,7 +23,7 @@ Which suffix is which format, and what each reads and writes, is one table
 (:mod:`~vhm_viz.io.registry`): :data:`DATASET_SUFFIXES`, :data:`CAGE_SUFFIXES`,
 :func:`output_suffixes`, :func:`is_image_format` and :func:`keeps_arrays` are queries of
 it. One module per format family does the work: :mod:`~vhm_viz.io.vtk_files` (VTK's
-formats), :mod:`~vhm_viz.io.mesh_files` (PLY, STL, OFF, MEDIT, point lists),
+formats), :mod:`~vhm_viz.io.mesh_files` (PLY, STL, OFF, MEDIT, Gmsh, point lists),
 :mod:`~vhm_viz.io.medical` (MetaImage, NIfTI), :mod:`~vhm_viz.io.nrrd` and
 :mod:`~vhm_viz.io.dicom` (through SimpleITK, :mod:`~vhm_viz.io.itk_images`),
 :mod:`~vhm_viz.io.legacy_volumes` (SLC); :mod:`~vhm_viz.io.isolated` runs library readers
@@ -57,7 +57,7 @@ from vhm_viz.io.registry import (
 from vhm_viz.io.rigidity import read_polylines, read_rigidity_lines, read_tgf
 from vhm_viz.io.text import json_text, write_text
 
-#: Dataset formats :func:`read_dataset` reads (VTK's readers, meshio for MEDIT, OFF and
+#: Dataset formats :func:`read_dataset` reads (VTK's readers, meshio for MEDIT and Gmsh, OFF and
 #: plain point lists parsed here). ``.nii.gz`` counts as one suffix.
 DATASET_SUFFIXES = dataset_suffixes()
 #: Cage formats :func:`read_cage` reads.

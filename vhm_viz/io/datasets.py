@@ -48,8 +48,8 @@ def read_dataset(path, *, meanwhile=None):
       not the end of the process; an error the library reports while reading refuses the
       file too;
     * the result must have finite points and cells whose point ids exist;
-    * meshio (MEDIT ``.mesh``) runs with its printed output captured and its ``sys.exit``
-      turned into a :class:`ReadError`.
+    * meshio (MEDIT ``.mesh``, Gmsh ``.msh``) runs with its printed output captured and its
+      ``sys.exit`` turned into a :class:`ReadError`.
 
     Parameters
     ----------

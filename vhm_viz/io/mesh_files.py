@@ -1,8 +1,8 @@
-"""Surface and mesh formats parsed or checked here: PLY, STL, OFF, MEDIT, point lists.
+"""Surface and mesh formats parsed or checked here: PLY, STL, OFF, MEDIT, Gmsh, point lists.
 
 PLY and STL headers are checked against the file (:func:`check_ply`, :func:`check_stl`)
 before VTK reads them; OFF is parsed here (:func:`parse_off`, the one OFF parser, also
-for cages and rigidity lines); MEDIT goes through meshio; point lists through NumPy.
+for cages and rigidity lines); MEDIT and Gmsh go through meshio; point lists through NumPy.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ __all__ = [
     "check_stl",
     "parse_off",
     "read_off_dataset",
-    "read_medit",
+    "read_meshio",
     "read_point_list",
 ]
 
@@ -242,8 +242,8 @@ def read_off_dataset(path):
     return pv.PolyData(points, **cells)
 
 
-def read_medit(path):
-    """A MEDIT ``.mesh`` file through meshio, its printed complaints and ``sys.exit`` caught."""
+def read_meshio(path):
+    """A MEDIT ``.mesh`` or Gmsh ``.msh`` file through meshio (complaints, sys.exit caught)."""
     import meshio
     import pyvista as pv
 
