@@ -415,6 +415,41 @@ def test_dropped_points_of_a_tet_mesh_say_nothing_false(demo_dir, tmp_path, caps
     assert det[~dropped] == pytest.approx(np.linalg.det(hm.jacobian(kept)), rel=1e-9)
 
 
+def test_points_on_the_cage_edges_and_vertices_deform(tmp_path, capsys):
+    """A point cloud that touches its cage at vertices and edges (the cage made from the
+    data's own box): every point deforms, with the Jacobian the map takes just inside,
+    whichever side of the surface rounding put it."""
+    from conftest import box_cage
+
+    v, f = box_cage((0, 0, 0), (1, 1, 2), 2)
+    points = np.vstack([v, (v[f] + v[np.roll(f, 1, axis=1)]).reshape(-1, 3) / 2])
+    pv.PolyData(points).save(tmp_path / "touching.vtp")
+    scene = {
+        "format": "vhm_viz.scene", "version": 1,
+        "cage": {"vertices": v.tolist(), "faces": f.tolist()},
+        "anchors": [[0.5, 0.5, z] for z in (0.4, 0.8, 1.2, 1.6)],
+        "constraints": {
+            "positions": [[0.5, 0.5, 0.4], [0.5, 0.5, 1.6]],
+            "targets": [[0.5, 0.5, 0.4], [0.6, 0.5, 1.6]],
+            "jacobian_points": [[0.5, 0.5, 1.6]],
+            "jacobians": [[[0.98, 0, 0.2], [0, 1, 0], [-0.2, 0, 0.98]]],
+        },
+    }  # fmt: skip
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    rc, out, err = _run(
+        capsys, "deform", tmp_path / "touching.vtp", "--scene", tmp_path / "scene.json",
+        "-o", tmp_path / "o.vtp", "-q", "--arrays", "det", "--allow-folds",
+    )  # fmt: skip
+    assert rc == 0, err
+    res = pv.read(tmp_path / "o.vtp")
+    hm = Scene.load(tmp_path / "scene.json").solve_map(None).harmonic_map
+    value, jac = hm.evaluate(points, order=1)[:2]
+    det = np.asarray(res.point_data["jacobian_determinant"])
+    assert np.isfinite(det).all() and np.isfinite(jac).all()
+    assert np.allclose(res.points, value, rtol=0, atol=1e-8)
+    assert np.allclose(det, np.linalg.det(jac), rtol=1e-6)
+
+
 def test_the_outside_options_a_refusal_suggests_are_the_commands_own(poking_out, tmp_path, capsys):
     big, scene = poking_out
     for command, target in (("deform", tmp_path / "o.vtp"), ("analyze", tmp_path / "report")):

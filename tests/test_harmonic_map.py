@@ -102,3 +102,24 @@ def test_bad_coefficients(hand_cage):
     hm = HarmonicMap.identity(hand_cage)
     with pytest.raises(ValueError, match="read-only"):
         hm.coefficients[0, 0] = 1.0
+
+
+@pytest.mark.parametrize("cage_kind", ["box", "hand"])
+def test_points_on_cage_edges_and_vertices_take_the_interior_limit(cage_kind, hand_cage):
+    """At a cage vertex or on an edge the closed forms' derivatives are undefined: such a
+    point is evaluated just inside, like one that rounding put outside. An affine map
+    must come out as itself there, on the flat (subdivided box) and concave (hand) edges
+    and vertices as on the convex ones."""
+    from vhm_viz.core.cage import Cage
+
+    cage = Cage(*box_cage((0, 0, 0), (1, 1, 2), 2)) if cage_kind == "box" else hand_cage
+    v, f = np.asarray(cage.vertices), np.asarray(cage.faces)
+    a = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix() * 1.7
+    t = np.array([0.3, -1.0, 2.0])
+    hm = HarmonicMap.affine(cage, a, t)
+    points = np.vstack([v, (v[f] + v[np.roll(f, 1, axis=1)]).reshape(-1, 3) / 2])
+    value, jac, hess = hm.evaluate(points, order=2)
+    size = np.linalg.norm(v.max(axis=0) - v.min(axis=0))
+    assert np.abs(value - (points @ a.T + t)).max() < 1e-9 * size
+    assert np.isfinite(jac).all() and np.isfinite(hess).all()
+    assert np.abs(jac - a).max() < 1e-6 * np.abs(a).max()

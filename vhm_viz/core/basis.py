@@ -360,7 +360,8 @@ def _fix_edge_and_vertex_points(p, cd: CageTables, rows, values, gradients, hess
 def evaluate_inside(points, vertices, faces, *, order: int = 0):
     """:func:`evaluate_basis` together with the one inside test.
 
-    Points on the cage surface that rounding put outside are evaluated just inside
+    Points on the cage surface that rounding put outside, and those on an edge or at a
+    vertex, where the derivatives are undefined, are evaluated just inside
     (:func:`surface_points_inside`), so the surface belongs to the inside consistently.
 
     Returns
@@ -371,7 +372,10 @@ def evaluate_inside(points, vertices, faces, *, order: int = 0):
     """
     b = evaluate_basis(points, vertices, faces, order=order)
     n = len(vertices)
-    inside, hosts = classify_inside(points, vertices, faces, b.values[:, :n].sum(axis=1))
+    undefined = None if b.gradients is None else ~np.isfinite(b.gradients).all(axis=(1, 2))
+    inside, hosts = classify_inside(
+        points, vertices, faces, b.values[:, :n].sum(axis=1), undefined
+    )
     on = np.nonzero(hosts >= 0)[0]
     if on.size:
         p = surface_points_inside(points, hosts, vertices, faces)[on]

@@ -35,6 +35,7 @@ from vhm_viz.core.basis import (
     chunk_rows,
     classify_inside,
     evaluate_basis,
+    surface_hosts,
     surface_points_inside,
 )
 from vhm_viz.core.errors import AbortedError, OutsideCageError, describe_indices
@@ -185,6 +186,7 @@ class _BoundPoints:
         self._idx = np.nonzero(~self.outside)[0]
         # points on the cage surface that rounding put outside are evaluated just inside
         self._eval = surface_points_inside(self.points, hosts, vertices, faces)[self._idx]
+        self._cage = (vertices, faces)
 
     @property
     def n_outside(self) -> int:
@@ -206,6 +208,22 @@ class _BoundPoints:
             out[self.outside] = self.points[self.outside]
         else:
             out[self.outside] = np.eye(3)
+
+    def _move_undefined(self, undefined: np.ndarray) -> np.ndarray:
+        """Evaluate the points whose derivatives came out undefined just inside.
+
+        ``undefined`` (bool, one per inside point): rows with non-finite derivatives. Those
+        on a cage edge or at a vertex (within rounding of the surface) are moved as
+        :func:`~vhm_viz.core.basis.surface_points_inside` moves points that rounding put
+        outside. Returns the moved rows, for the caller to evaluate again.
+        """
+        rows = np.nonzero(undefined)[0]
+        if rows.size:
+            vertices, faces = self._cage
+            hosts = surface_hosts(self._eval[rows], vertices, faces)
+            rows, hosts = rows[hosts >= 0], hosts[hosts >= 0]
+            self._eval[rows] = surface_points_inside(self._eval[rows], hosts, vertices, faces)
+        return rows
 
     def _chunks(self, order: int, n_columns: int):
         rows = chunk_rows(n_columns, order, self.memory_budget)
@@ -315,6 +333,13 @@ class Binding(_BoundPoints):
     def _compute_FG(self, progress, abort) -> None:
         FG = self._basis_times_B(1, progress, abort, "jacobians")
         bad = ~np.isfinite(FG).all(axis=(1, 2))
+        moved = self._move_undefined(bad)
+        if moved.size:  # on a cage edge or at a vertex: values and Jacobians just inside
+            dfm = self.deformer
+            b = evaluate_basis(self._eval[moved], dfm._V, dfm._Fc, order=1)
+            self._F[moved] = b.values @ dfm._B
+            FG[moved] = b.gradients @ dfm._B
+            bad = ~np.isfinite(FG).all(axis=(1, 2))
         if bad.any():
             raise ValueError(
                 f"bound points {describe_indices(self._idx[bad])} lie on a cage edge or vertex: "
@@ -421,6 +446,11 @@ class MapBinding(_BoundPoints):
                 out[rows] = self.map._offset + b.values @ z
             if progress is not None:
                 progress(e / total, "jacobians" if order else "mapping")
+        if order:
+            moved = self._move_undefined(~np.isfinite(out[self._idx]).all(axis=(1, 2)))
+            if moved.size:  # on a cage edge or at a vertex: the Jacobians just inside
+                b = evaluate_basis(self._eval[moved], cage.vertices, cage.faces, order=1)
+                out[self._idx[moved]] = np.swapaxes(b.gradients @ z, 1, 2)
         self._fill_outside(out)
         return out
 

@@ -228,7 +228,8 @@ class HarmonicMap:
         V, F = self.cage.vertices, self.cage.faces
         z = self._z_local  # relative to the offset (see __init__)
         f, jac, winding = evaluate_map(p, V, F, z, order=order, device=device)
-        inside, hosts = classify_inside(p, V, F, winding)
+        undefined = None if jac is None else ~np.isfinite(jac).all(axis=(1, 2))
+        inside, hosts = classify_inside(p, V, F, winding, undefined)
         if not inside.all() and outside == "error":
             self._raise_outside(p, 0, inside)
         on = np.nonzero(hosts >= 0)[0]

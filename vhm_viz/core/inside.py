@@ -195,14 +195,17 @@ def _reach_normals(points, V, F, normals, reach, out):  # pragma: no cover - com
                 out[k, 2] += normals[t, 2]
 
 
-def classify_inside(points, vertices, faces, winding=None) -> tuple[np.ndarray, np.ndarray]:
+def classify_inside(
+    points, vertices, faces, winding=None, undefined=None
+) -> tuple[np.ndarray, np.ndarray]:
     """The one inside test: inside the cage, or on its surface.
 
     A point is inside when its winding number is at least 1/2 (:func:`inside_cage`), or
     when it lies within :func:`on_surface_tolerance` of a face: points computed on the
-    cage surface land a few ulps to either side of it, and those the winding number puts
-    outside get a host face; they are evaluated just inside
-    (:func:`surface_points_inside`).
+    cage surface land a few ulps to either side of it. Points on the surface get a host
+    face and are evaluated just inside (:func:`surface_points_inside`): those the winding
+    number puts outside, and those where an evaluation's derivatives are undefined (on a
+    cage edge or at a vertex, whatever side the winding number gives them).
 
     Parameters
     ----------
@@ -210,22 +213,25 @@ def classify_inside(points, vertices, faces, winding=None) -> tuple[np.ndarray, 
     vertices, faces : cage arrays
     winding : (N,) array_like, optional
         Winding numbers already computed (the sum of the ``phi`` columns).
+    undefined : (N,) array_like of bool, optional
+        Rows whose derivatives an evaluation found non-finite.
 
     Returns
     -------
     inside : (N,) bool
     hosts : (N,) int64
-        The host face of points on the surface that the winding number put outside; -1
-        for every other point.
+        The host face of points on the surface that the winding number put outside or
+        whose derivatives are undefined; -1 for every other point.
     """
     p = as_points(points)
     w = winding_number(p, vertices, faces) if winding is None else np.asarray(winding)
     inside = inside_cage(w)
     hosts = np.full(len(p), -1, dtype=np.int64)
-    out = np.nonzero(~inside)[0]
-    if out.size:
-        hosts[out] = surface_hosts(p[out], vertices, faces)
-        inside[out] = hosts[out] >= 0
+    test = ~inside if undefined is None else ~inside | np.asarray(undefined, dtype=bool)
+    rows = np.nonzero(test)[0]
+    if rows.size:
+        hosts[rows] = surface_hosts(p[rows], vertices, faces)
+        inside[rows] |= hosts[rows] >= 0
     return inside, hosts
 
 
