@@ -191,6 +191,26 @@ def test_cage_and_anchors_time_their_stages(folding_volume, tmp_path):
         assert [n for n, _ in stages] == ["read", command, "write", "other", "total"]
         parts = sum(v for n, v in stages if n != "total")
         assert parts == pytest.approx(dict(stages)["total"], abs=0.005 * len(stages) + 1e-9)
+        assert _help_stages(command) == ["read", command, "write"]
+
+
+def _help_stages(command: str) -> list[str]:
+    """The stages ``COMMAND --help`` says ``--timings`` prints (before "and other")."""
+    text = " ".join(_cli(command, "--help").stdout.split())
+    listed = re.search(r"--timings print where the time went on stderr: (.*?),? and other", text)
+    assert listed, text
+    return [part.split()[0] for part in listed.group(1).split(", ")]
+
+
+def test_the_demos_timings_name_its_work(tmp_path):
+    """The demo's work is its own stage, as its --help says, not start-up ("other")."""
+    proc = _cli("demo", "-o", str(tmp_path), "-q", "--resolution", "6", "--voxel", "0.25",
+                "--timings")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    stages = dict(_stages(proc.stderr))
+    assert list(stages) == ["demo", "other", "total"]
+    assert _help_stages("demo") == ["demo"]
+    assert _help_stages("deform") == ["read", "solve", "map", "checks", "write"]
 
 
 def test_fold_count_is_the_same_in_small_slabs(folding_volume):

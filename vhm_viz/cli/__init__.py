@@ -97,7 +97,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         p.add_argument(
             "--timings",
             action="store_true",
-            help="print where the time went on stderr: read, solve, map, checks, write, and "
+            help="print where the time went on stderr: "
+            f"{getattr(module, 'TIMING_STAGES', 'read, solve, map, checks, write')}, and "
             "other (start-up, imports, loading compiled code)",
         )
         p.add_argument(

@@ -17,6 +17,9 @@ from vhm_viz.io import CAGE_SUFFIXES, read_cage, read_dataset, write_anchors
 #: The libraries ``anchors`` imports when it runs (not for its help).
 RUN_IMPORTS = ("vhm_viz.autocage",)
 
+#: What ``--timings`` reports, besides "other".
+TIMING_STAGES = "read, anchors, write"
+
 HELP = "place anchors on the medial axis/surface of a dataset, inside its cage"
 
 DESCRIPTION = (

@@ -17,6 +17,9 @@ from vhm_viz.io import read_dataset, write_cage
 #: The libraries ``cage`` imports when it runs (not for its help).
 RUN_IMPORTS = ("vhm_viz.autocage",)
 
+#: What ``--timings`` reports, besides "other".
+TIMING_STAGES = "read, cage, write"
+
 HELP = "build an automatic cage (closed, manifold, enclosing) for a dataset"
 
 DESCRIPTION = (

@@ -41,6 +41,9 @@ from vhm_viz.tetra import tetrahedralize
 #: The libraries ``demo`` imports when it runs (not for its help).
 RUN_IMPORTS = ("pyvista", "vhm_viz.filters")
 
+#: What ``--timings`` reports, besides "other".
+TIMING_STAGES = "demo"
+
 HELP = "run the bundled bar demo end to end (surface, tets, volume, figures)"
 
 DESCRIPTION = (
@@ -81,8 +84,9 @@ def add_arguments(p) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the demo; returns the exit status."""
     quiet_vtk()
-    for line in demo(args):
-        print(line)
+    with args.timer.stage("demo"):
+        for line in demo(args):
+            print(line)
     return 0
 
 

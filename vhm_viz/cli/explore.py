@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+#: What ``--timings`` reports, besides "other".
+TIMING_STAGES = "explorer (the window open)"
+
 HELP = "open the interactive Qt explorer"
 
 DESCRIPTION = (
@@ -37,4 +40,5 @@ def run(args) -> int:
         import vhm_viz.app.window  # noqa: F401
         from vhm_viz.app import run as run_app
 
-    return run_app(args)  # an error becomes one line and exit status 1 (vhm_viz.cli.main)
+    with args.timer.stage("explorer"):
+        return run_app(args)  # an error becomes one line and exit status 1 (vhm_viz.cli.main)

@@ -25,6 +25,9 @@ from pathlib import Path
 PLUGIN_FILE = "vhm_viz_paraview.py"
 
 
+#: What ``--timings`` reports, besides "other".
+TIMING_STAGES = "program (the ParaView program run, if any)"
+
 HELP = "print the ParaView plugin's path and set-up lines, or run ParaView with it"
 
 DESCRIPTION = (
@@ -114,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
         env = dict(os.environ)
         for name, value in settings.items():
             env[name] = value + (os.pathsep + env[name] if env.get(name) else "")
-        return subprocess.call(program, env=env)
+        with args.timer.stage("program"):
+            return subprocess.call(program, env=env)
     lines = [_prepend(name, value) for name, value in settings.items()]
     if not args.shell:
         print(f"ParaView plugin: {plugin_path()}")
