@@ -265,6 +265,56 @@ def test_nrrd_promising_more_voxels_than_it_holds_is_refused_before_simpleitk(tm
             read_dataset(path)
 
 
+@pytest.mark.parametrize("name", ["plane.mha", "plane.mhd", "plane.nii", "plane.nrrd"])
+def test_oblique_2d_image_lands_where_simpleitk_reads_it(tmp_path, name):
+    """A rotated 2-D image: every voxel at SimpleITK's physical point, with its value."""
+    values = np.arange(9 * 7, dtype=np.int16).reshape(9, 7)
+    image = sitk.GetImageFromArray(values)
+    image.SetDirection([0.6, -0.8, 0.8, 0.6])  # row by row: the x axis is (0.6, 0.8)
+    image.SetOrigin([5.0, -3.0])
+    image.SetSpacing([0.5, 2.0])
+    sitk.WriteImage(image, str(tmp_path / name))
+    reference = sitk.ReadImage(str(tmp_path / name))
+    ours = read_dataset(tmp_path / name)
+    assert tuple(ours.dimensions) == (7, 9, 1)
+    want = [
+        [*reference.TransformIndexToPhysicalPoint((i, j)), 0.0] for j in range(9) for i in range(7)
+    ]
+    np.testing.assert_allclose(ours.points, want, atol=1e-5)
+    np.testing.assert_array_equal(ours.active_scalars, values.ravel())
+
+
+def test_images_of_more_than_three_dimensions_are_refused_not_cut(tmp_path, capsys):
+    """A time series (4-D) would lose all but one of its volumes: refused in one line."""
+    series = np.arange(3 * 9 * 8 * 7, dtype=np.int16).reshape(3, 9, 8, 7)
+    series_4d = sitk.GetImageFromArray(series, isVector=False)
+    sitk.WriteImage(series_4d, str(tmp_path / "series.mha"))
+    affine = np.diag([1.5, 0.7, 2.2, 1.0])
+    nib.save(nib.Nifti1Image(series.T, affine), str(tmp_path / "series.nii.gz"))
+    for name in ("series.mha", "series.nii.gz"):
+        with pytest.raises(ReadError, match=r"a 4-D image.*give a 2-D or 3-D one"):
+            read_dataset(tmp_path / name)
+        scene = translation_scene(tmp_path, sitk_image("oblique", np.int16), [1.0, 0.0, 0.0])
+        out = tmp_path / "out.nii"
+        status = main(["deform", str(tmp_path / name), "-s", str(scene), "-o", str(out), "-q"])
+        err = capsys.readouterr().err.strip()
+        assert status != 0 and "4-D image" in err and len(err.splitlines()) == 1
+    # one time point, or a vector per voxel (NIfTI's fifth axis), is a 3-D image
+    nib.save(nib.Nifti1Image(series[0].T[..., None], affine), str(tmp_path / "one.nii"))
+    vectors = np.moveaxis(series, 0, -1).transpose(2, 1, 0, 3)[:, :, :, None, :]
+    vector_image = nib.Nifti1Image(vectors.astype(np.float32), affine)
+    vector_image.header.set_intent("vector")
+    nib.save(vector_image, str(tmp_path / "vec.nii"))
+    for name in ("one.nii", "vec.nii"):
+        reference = sitk.ReadImage(str(tmp_path / name))
+        ours = read_dataset(tmp_path / name)
+        np.testing.assert_allclose(ours.spacing, [1.5, 0.7, 2.2], rtol=1e-6)
+        np.testing.assert_array_equal(
+            np.asarray(ours.active_scalars).ravel(),
+            sitk.GetArrayFromImage(reference).ravel(),
+        )
+
+
 def test_arrays_beside_an_output_never_overwrite_an_input(tmp_path):
     image = pv.ImageData(dimensions=(3, 4, 5))
     image.point_data["v"] = np.arange(image.n_points, dtype=np.float32)

@@ -86,6 +86,8 @@ def check_metaimage(p: Path) -> None:
         ) from None
     if min(dims, default=0) <= 0 or channels <= 0:
         raise ReadError(f"{p}: corrupt MetaImage header: DimSize {dims}")
+    if len(dims) > 3:  # VTK's reader keeps one voxel of a 4-D image, or aborts
+        raise ReadError(f"{p}: cannot read (a {len(dims)}-D image; give a 2-D or 3-D one)")
     # refused before a reader allocates it (a header claiming 10**12 voxels)
     what = f"{p}: reading its DimSize {fields['DimSize']}"
     remedy = "check its DimSize, or read it where more memory is allowed"
@@ -210,6 +212,10 @@ def check_nifti(p: Path) -> None:
         raise ReadError(f"{p}: corrupt NIfTI header (dim {list(dim)}, bitpix {bitpix})")
     if not (np.isfinite(offset) and offset >= 0):
         raise ReadError(f"{p}: corrupt NIfTI header (vox_offset {offset})")
+    # dim[4] counts time points (VTK's reader keeps the first), dim[5] a voxel's components
+    if any(dim[i] > 1 for i in (4, 6, 7) if i <= ndim):
+        sizes = " x ".join(str(d) for d in dim[1 : ndim + 1])
+        raise ReadError(f"{p}: cannot read (a {ndim}-D image, {sizes}; give a 2-D or 3-D one)")
     voxels = int(np.prod(dim[1 : ndim + 1], dtype=np.int64))
     need(p, f"{voxels} voxels of {bitpix} bits", int(offset) + voxels * bitpix // 8, len(blob))
 
@@ -233,6 +239,11 @@ def read_metaimage(path):
         m = np.array([float(v) for v in text.split()], dtype=np.float64)
         if m.size == 9:
             image.direction_matrix = m.reshape(3, 3).T
+        elif m.size == 4:  # a 2-D image: its plane's axes, the third the normal to them
+            direction = np.eye(3)
+            direction[:2, :2] = m.reshape(2, 2).T
+            direction[:, 2] = np.cross(direction[:, 0], direction[:, 1])
+            image.direction_matrix = direction
     return image
 
 
