@@ -184,6 +184,43 @@ def test_nifti_scaling_and_units_are_applied_as_simpleitk_and_nibabel_read_them(
     assert_same_image(ours, reference, others=[nibabel_values(path, probe_points(reference))])
 
 
+@pytest.mark.parametrize(
+    ("qform_code", "sform_code", "sform"),
+    [
+        (1, 2, "other"),  # FSL's registered images: scanner qform, aligned sform
+        (2, 4, "other"),  # an MNI sform beside an aligned qform
+        (1, 1, "other"),  # a scanner sform wins
+        (0, 2, "other"),  # the sform alone
+        (1, 0, "other"),  # the qform alone
+        (1, 2, "same"),
+        (1, 1, "sheared"),  # ITK cannot hold a shear: the qform
+    ],
+)
+def test_nifti_placed_by_the_sform_or_qform_simpleitk_chooses(
+    tmp_path, qform_code, sform_code, sform
+):
+    """Differing qform and sform: the voxels land where SimpleITK (ITK, ANTs, Slicer) puts them."""
+    values = sitk.GetArrayFromImage(sitk_image("oblique", np.int16)).T
+    qform = np.eye(4)
+    qform[:3, :3] = LPS_RAS @ DIRECTIONS["oblique"] * SPACING
+    qform[:3, 3] = LPS_RAS @ ORIGIN
+    other = np.eye(4)
+    other[:3, :3] = LPS_RAS @ DIRECTIONS["oblique reflected"] * SPACING
+    other[:3, 3] = [7.0, -9.0, 11.0]
+    sheared = qform.copy()
+    sheared[:3, 1] += 0.4 * qform[:3, 0]
+    img = nib.Nifti1Image(values, None)
+    img.set_qform(qform, code=qform_code)
+    img.set_sform({"other": other, "same": qform, "sheared": sheared}[sform], code=sform_code)
+    img.header.set_zooms(SPACING)
+    path = tmp_path / "forms.nii"
+    nib.save(img, str(path))
+    header = nib.load(str(path)).header
+    assert (int(header["qform_code"]), int(header["sform_code"])) == (qform_code, sform_code)
+    reference = sitk.ReadImage(str(path))
+    assert_same_image(read_dataset(path), reference)
+
+
 def test_ras_space_nrrd_is_converted_to_lps(tmp_path):
     """A hand-written RAS NRRD: the exact affine of its header, negated in x and y."""
     values = sitk.GetArrayFromImage(sitk_image("oblique", np.int16, seed=3))

@@ -250,10 +250,11 @@ def read_metaimage(path):
 def read_nifti(path):
     """A NIfTI image (``.nii``, ``.nii.gz``) in LPS millimetres, its intensities scaled.
 
-    Placed by its sform (else qform), negated in x and y (NIfTI's world is RAS); metres
-    and micrometres (``xyzt_units``) are converted to millimetres; a ``scl_slope`` other
-    than 0 or 1, or a ``scl_inter`` other than 0, is applied (``slope * value + inter``,
-    as float32, or float64 for float64 data), as ITK and nibabel read the file.
+    Placed by its sform or qform as ITK chooses (:func:`_nifti_placement`), negated in x
+    and y (NIfTI's world is RAS); metres and micrometres (``xyzt_units``) are converted to
+    millimetres; a ``scl_slope`` other than 0 or 1, or a ``scl_inter`` other than 0, is
+    applied (``slope * value + inter``, as float32, or float64 for float64 data), as ITK
+    and nibabel read the file.
     """
     from vtkmodules.vtkIOImage import vtkNIFTIImageReader
 
@@ -266,15 +267,57 @@ def read_nifti(path):
     reader.UpdateInformation()
     unit = _NIFTI_UNIT_MM.get(reader.GetNIFTIHeader().GetXYZTUnits() & 7, 1.0)
     _scale_intensities(image, reader.GetRescaleSlope(), reader.GetRescaleIntercept())
-    matrix = reader.GetSFormMatrix() or reader.GetQFormMatrix()
-    if matrix is not None:
-        m = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+    header = reader.GetNIFTIHeader()
+    m = _nifti_placement(
+        _matrix(reader.GetQFormMatrix()) if header.GetQFormCode() > 0 else None,
+        _matrix(reader.GetSFormMatrix()) if header.GetSFormCode() > 0 else None,
+        header.GetSFormCode(),
+    )
+    if m is not None:
         image.origin = tuple(_RAS_LPS @ m[:3, 3])
         image.direction_matrix = _RAS_LPS @ m[:3, :3]
     if unit != 1.0:
         image.origin = tuple(unit * np.asarray(image.origin, dtype=np.float64))
         image.spacing = tuple(unit * np.asarray(image.spacing, dtype=np.float64))
     return image
+
+
+def _matrix(matrix) -> np.ndarray | None:
+    """A ``vtkMatrix4x4`` (or None) as a (4, 4) array."""
+    if matrix is None:
+        return None
+    return np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+
+
+def _nifti_placement(qform, sform, sform_code: int) -> np.ndarray | None:
+    """The voxel-to-RAS matrix ITK places a NIfTI image by: its sform or its qform.
+
+    ITK's choice is that of SimpleITK, ANTs and 3D Slicer.
+
+    Parameters
+    ----------
+    qform, sform : numpy.ndarray or None
+        VTK's (4, 4) matrices, the voxel spacing divided out; None where the header's code
+        is 0 (unknown).
+    sform_code : int
+        1 (scanner) makes an sform without shear win over a differing qform.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        The sform where ITK takes it: free of shear, and either the only one, labelled
+        scanner, or the qform's twin (an sform labelled aligned, Talairach or MNI that
+        differs from the qform is another space than the scanner's, and ITK reads the
+        qform). Else the qform, else an sform with shear (ITK refuses that file; nibabel
+        reads it so), else None (neither: the image lies on its index grid).
+    """
+    if sform is not None:
+        columns = sform[:3, :3] / np.linalg.norm(sform[:3, :3], axis=0)
+        unsheared = np.allclose(columns.T @ columns, np.eye(3), rtol=0, atol=1e-4)
+        twins = qform is not None and np.allclose(sform[:3], qform[:3], rtol=0, atol=1e-4)
+        if unsheared and (qform is None or sform_code == 1 or twins):
+            return sform
+    return qform if qform is not None else sform
 
 
 def _scale_intensities(image, slope: float, inter: float) -> None:
