@@ -321,6 +321,20 @@ def test_oblique_2d_image_lands_where_simpleitk_reads_it(tmp_path, name):
     np.testing.assert_array_equal(ours.active_scalars, values.ravel())
 
 
+@pytest.mark.parametrize("name", ["flipped.mha", "flipped.mhd"])
+def test_metaimage_negative_spacing_turns_its_axis_over_as_in_simpleitk(tmp_path, name):
+    """``ElementSpacing = -0.8 1.3 -2``: ITK reads +0.8 and +2 along reversed axes."""
+    path = tmp_path / name
+    sitk.WriteImage(sitk_image("oblique", np.int16), str(path))
+    header = path.read_bytes()
+    spacing = " ".join(f"{v:.17g}" for v in SPACING).encode()
+    assert header.count(b"ElementSpacing = " + spacing) == 1
+    path.write_bytes(header.replace(spacing, b"-0.8 1.3 -2", 1))
+    reference = sitk.ReadImage(str(path))
+    assert np.linalg.det(np.reshape(reference.GetDirection(), (3, 3))) > 0  # two axes over
+    assert_same_image(read_dataset(path), reference)
+
+
 def test_images_of_more_than_three_dimensions_are_refused_not_cut(tmp_path, capsys):
     """A time series (4-D) would lose all but one of its volumes: refused in one line."""
     series = np.arange(3 * 9 * 8 * 7, dtype=np.int16).reshape(3, 9, 8, 7)

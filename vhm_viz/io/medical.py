@@ -234,16 +234,20 @@ def read_metaimage(path):
             fields[key.strip()] = value.strip()
             if key.strip() == "ElementDataFile":
                 break
+    direction = np.array(image.direction_matrix, dtype=np.float64)
     text = fields.get("TransformMatrix") or fields.get("Rotation") or fields.get("Orientation")
-    if text:
-        m = np.array([float(v) for v in text.split()], dtype=np.float64)
-        if m.size == 9:
-            image.direction_matrix = m.reshape(3, 3).T
-        elif m.size == 4:  # a 2-D image: its plane's axes, the third the normal to them
-            direction = np.eye(3)
-            direction[:2, :2] = m.reshape(2, 2).T
-            direction[:, 2] = np.cross(direction[:, 0], direction[:, 1])
-            image.direction_matrix = direction
+    m = np.array(text.split() if text else [], dtype=np.float64)
+    if m.size == 9:
+        direction = m.reshape(3, 3).T
+    elif m.size == 4:
+        direction[:2, :2] = m.reshape(2, 2).T
+    # VTK keeps a negative spacing's size; ITK turns the axis over, as here
+    spacing = np.array(fields.get("ElementSpacing", "").split()[:3], dtype=np.float64)
+    direction[:, : spacing.size] *= np.where(spacing < 0, -1.0, 1.0)
+    if m.size == 4 or spacing.size == 2:
+        # a 2-D image: its plane's axes, the third the normal to them
+        direction[:, 2] = np.cross(direction[:, 0], direction[:, 1])
+    image.direction_matrix = direction
     return image
 
 
