@@ -393,6 +393,54 @@ def translation_scene(folder: Path, reference, shift) -> Path:
     return box_scene(folder, lo, hi, constraints=moved)
 
 
+@pytest.mark.parametrize("sform", ["sheared", "scaled"])
+def test_nifti_sform_beyond_a_rotation_survives_a_deformation(tmp_path, sform, capsys):
+    """An sform-only NIfTI with a shear, or with a voxel size other than pixdim, moved 2 mm:
+    the output's voxels hold the input's (nibabel's placement) 2 mm on, read back by
+    vhm_viz, nibabel and SimpleITK, or refused by SimpleITK (which holds no shear)."""
+    rng = np.random.default_rng(4)
+    values = (100 * rng.normal(size=(14, 16, 12))).astype(np.float32)
+    affine = np.diag([1.5, 0.9, 2.0, 1.0])
+    affine[:3, 3] = [5.0, 6.0, 7.0]
+    if sform == "sheared":
+        affine[0, 1] = 0.4
+    img = nib.Nifti1Image(values, None)
+    img.set_sform(affine, code=2)
+    img.set_qform(None, code=0)
+    img.header.set_zooms((1.5, 0.9, 2.0) if sform == "sheared" else (1.0, 1.0, 1.0))
+    path, out = tmp_path / "in.nii", tmp_path / "out.nii.gz"
+    nib.save(img, str(path))
+    lo, hi = np.reshape(read_dataset(path).bounds, (3, 2)).T
+    points = 0.5 * (lo + hi) + 0.2 * (hi - lo) * np.vstack([np.zeros(3), np.eye(3)])
+    moved = {"positions": points.tolist(), "targets": (points + [2.0, 0.0, 0.0]).tolist()}
+    scene = box_scene(tmp_path, lo, hi, constraints=moved)
+    assert main(["deform", str(path), "-s", str(scene), "-o", str(out), "-q"]) == 0, capsys
+
+    def expected(lps):  # the input at lps - 2 mm in x, through nibabel's affine
+        ras = LPS_RAS @ (lps - [2.0, 0.0, 0.0]).T
+        index = (np.linalg.inv(affine) @ np.vstack([ras, np.ones(ras.shape[1])]))[:3]
+        inside = np.all((index > 1) & (index < np.array(values.shape)[:, None] - 2), axis=0)
+        return map_coordinates(values, index, order=1), inside
+
+    ours = read_dataset(out)
+    want, inside = expected(np.asarray(ours.points))
+    assert inside.sum() > 500
+    got = np.asarray(ours.active_scalars)
+    np.testing.assert_allclose(got[inside], want[inside], atol=1e-3)
+    theirs = nib.load(str(out))
+    ijk = np.indices(theirs.shape).reshape(3, -1)
+    lps = LPS_RAS @ (theirs.affine @ np.vstack([ijk, np.ones(ijk.shape[1])]))[:3]
+    want, inside = expected(lps.T)
+    got = np.asarray(theirs.get_fdata()).reshape(-1)
+    np.testing.assert_allclose(got[inside], want[inside], atol=1e-3)
+    if sform == "sheared":
+        with pytest.raises(RuntimeError, match="orthonormal"):
+            sitk.ReadImage(str(out))
+    else:
+        reference = sitk.ReadImage(str(out))
+        assert_same_image(ours, reference)
+
+
 @pytest.mark.parametrize("kind", ["nrrd", "dicom", "dicom file without suffix"])
 def test_cli_deforms_oblique_scans_in_simpleitks_frame(tmp_path, kind, capsys):
     """A translation by t: the .nrrd output is SimpleITK's resampling of the input at y - t."""

@@ -255,10 +255,11 @@ def read_nifti(path):
     """A NIfTI image (``.nii``, ``.nii.gz``) in LPS millimetres, its intensities scaled.
 
     Placed by its sform or qform as ITK chooses (:func:`_nifti_placement`), negated in x
-    and y (NIfTI's world is RAS); metres and micrometres (``xyzt_units``) are converted to
-    millimetres; a ``scl_slope`` other than 0 or 1, or a ``scl_inter`` other than 0, is
-    applied (``slope * value + inter``, as float32, or float64 for float64 data), as ITK
-    and nibabel read the file.
+    and y (NIfTI's world is RAS); an sform whose voxel size differs from ``pixdim`` places
+    the voxels by its own (as nibabel does; ITK keeps ``pixdim`` and warns); metres and
+    micrometres (``xyzt_units``) are converted to millimetres; a ``scl_slope`` other than
+    0 or 1, or a ``scl_inter`` other than 0, is applied (``slope * value + inter``, as
+    float32, or float64 for float64 data), as ITK and nibabel read the file.
     """
     from vtkmodules.vtkIOImage import vtkNIFTIImageReader
 
@@ -278,8 +279,13 @@ def read_nifti(path):
         header.GetSFormCode(),
     )
     if m is not None:
+        # VTK divides the sform by pixdim: a voxel size of the sform's own stays in its
+        # columns, and goes to the spacing here (the direction's columns are unit vectors)
+        scale = np.linalg.norm(m[:3, :3], axis=0)
+        scale[~(scale > 0)] = 1.0
         image.origin = tuple(_RAS_LPS @ m[:3, 3])
-        image.direction_matrix = _RAS_LPS @ m[:3, :3]
+        image.direction_matrix = _RAS_LPS @ m[:3, :3] / scale
+        image.spacing = tuple(np.asarray(image.spacing, dtype=np.float64) * scale)
     if unit != 1.0:
         image.origin = tuple(unit * np.asarray(image.origin, dtype=np.float64))
         image.spacing = tuple(unit * np.asarray(image.spacing, dtype=np.float64))
@@ -416,9 +422,10 @@ def write_metaimage(path, image) -> None:
 def write_nifti(path, image) -> None:
     """Write an image as NIfTI-1 (atomically), keeping origin, spacing and direction.
 
-    One file, a 352-byte header with matching qform and sform; the active scalars (or the
-    first point array), a multi-component array as a vector. NIfTI's world is RAS, so x
-    and y are negated from vhm_viz's (LPS) world, as ITK does.
+    One file, a 352-byte header with matching qform and sform (a sheared grid, which no
+    qform holds, has the sform alone); the active scalars (or the first point array), a
+    multi-component array as a vector. NIfTI's world is RAS, so x and y are negated from
+    vhm_viz's (LPS) world, as ITK does.
 
     Parameters
     ----------
@@ -434,15 +441,18 @@ def write_nifti(path, image) -> None:
         values = values.astype(np.float64)
     code, bits = _NIFTI_TYPES[values.dtype.name]
     comps = 1 if values.ndim == 1 else values.shape[1]
-    spacing = np.asarray(image.spacing, dtype=np.float64)
-    rot = _RAS_LPS @ np.asarray(image.direction_matrix, dtype=np.float64)
+    # the voxel axes in the RAS world, one a column, as long as a voxel
+    affine = _RAS_LPS @ np.asarray(image.direction_matrix, dtype=np.float64) * image.spacing
+    spacing = np.linalg.norm(affine, axis=0)
+    rot = affine / np.where(spacing > 0, spacing, 1.0)
     offset = _RAS_LPS @ np.asarray(image.origin, dtype=np.float64)
     # the quaternion holds a proper rotation; a reflection flips the third axis (qfac = -1)
     qfac = 1.0 if np.linalg.det(rot) > 0 else -1.0
     quat = Rotation.from_matrix(rot * [1.0, 1.0, qfac]).as_quat()  # x, y, z, w
     if quat[3] < 0:
         quat = -quat
-    affine = rot * spacing
+    # a sheared grid is the sform's alone: a qform would hold a rotation near it
+    qform_code = 1 if np.allclose(rot.T @ rot, np.eye(3), rtol=0, atol=1e-6) else 0
     dims = [5 if comps > 1 else 3, *image.dimensions, 1, comps, 1, 1]
     header = bytearray(352)
     struct.pack_into("<i", header, 0, 348)
@@ -454,7 +464,7 @@ def write_nifti(path, image) -> None:
     struct.pack_into("<f", header, 108, 352.0)  # vox_offset
     struct.pack_into("<f", header, 112, 1.0)  # scl_slope
     header[123] = _NIFTI_MM  # xyzt_units: vhm_viz's world is in mm; no time axis
-    struct.pack_into("<2h", header, 252, 1, 1)  # qform_code, sform_code: scanner
+    struct.pack_into("<2h", header, 252, qform_code, 1)  # qform_code, sform_code: scanner
     struct.pack_into("<6f", header, 256, *quat[:3], *offset)
     for r in range(3):
         struct.pack_into("<4f", header, 280 + 16 * r, *affine[r], offset[r])
