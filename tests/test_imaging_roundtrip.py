@@ -393,11 +393,9 @@ def translation_scene(folder: Path, reference, shift) -> Path:
     return box_scene(folder, lo, hi, constraints=moved)
 
 
-@pytest.mark.parametrize("sform", ["sheared", "scaled"])
-def test_nifti_sform_beyond_a_rotation_survives_a_deformation(tmp_path, sform, capsys):
-    """An sform-only NIfTI with a shear, or with a voxel size other than pixdim, moved 2 mm:
-    the output's voxels hold the input's (nibabel's placement) 2 mm on, read back by
-    vhm_viz, nibabel and SimpleITK, or refused by SimpleITK (which holds no shear)."""
+def sform_only_nifti(folder: Path, sform: str):
+    """An sform-only NIfTI, sheared or with a voxel size other than pixdim, and a scene
+    moving it 2 mm along x: (path, values, affine, scene)."""
     rng = np.random.default_rng(4)
     values = (100 * rng.normal(size=(14, 16, 12))).astype(np.float32)
     affine = np.diag([1.5, 0.9, 2.0, 1.0])
@@ -408,12 +406,21 @@ def test_nifti_sform_beyond_a_rotation_survives_a_deformation(tmp_path, sform, c
     img.set_sform(affine, code=2)
     img.set_qform(None, code=0)
     img.header.set_zooms((1.5, 0.9, 2.0) if sform == "sheared" else (1.0, 1.0, 1.0))
-    path, out = tmp_path / "in.nii", tmp_path / "out.nii.gz"
+    path = folder / "in.nii"
     nib.save(img, str(path))
     lo, hi = np.reshape(read_dataset(path).bounds, (3, 2)).T
     points = 0.5 * (lo + hi) + 0.2 * (hi - lo) * np.vstack([np.zeros(3), np.eye(3)])
     moved = {"positions": points.tolist(), "targets": (points + [2.0, 0.0, 0.0]).tolist()}
-    scene = box_scene(tmp_path, lo, hi, constraints=moved)
+    return path, values, affine, box_scene(folder, lo, hi, constraints=moved)
+
+
+@pytest.mark.parametrize("sform", ["sheared", "scaled"])
+def test_nifti_sform_beyond_a_rotation_survives_a_deformation(tmp_path, sform, capsys):
+    """An sform-only NIfTI with a shear, or with a voxel size other than pixdim, moved 2 mm:
+    the output's voxels hold the input's (nibabel's placement) 2 mm on, read back by
+    vhm_viz, nibabel and SimpleITK, or refused by SimpleITK (which holds no shear)."""
+    path, values, affine, scene = sform_only_nifti(tmp_path, sform)
+    out = tmp_path / "out.nii.gz"
     assert main(["deform", str(path), "-s", str(scene), "-o", str(out), "-q"]) == 0, capsys
 
     def expected(lps):  # the input at lps - 2 mm in x, through nibabel's affine
@@ -439,6 +446,34 @@ def test_nifti_sform_beyond_a_rotation_survives_a_deformation(tmp_path, sform, c
     else:
         reference = sitk.ReadImage(str(out))
         assert_same_image(ours, reference)
+
+
+def test_field_on_a_sheared_grid_is_refused_as_nifti_and_applied_by_simpleitk_as_mha(
+    tmp_path, capsys
+):
+    """ITK's NIfTI writer turns a sheared grid into a rotation: such a field is refused in
+    one line (nothing written); as .mha, SimpleITK applies it and gets vhm-viz's output."""
+    path, _, _, scene = sform_only_nifti(tmp_path, "sheared")
+    out, field = tmp_path / "out.mha", tmp_path / "field.nii.gz"
+    args = ["deform", str(path), "-s", str(scene), "-o", str(out), "-q", "--write-field"]
+    assert main([*args, str(field)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "sheared" in err and ".mha" in err and len(err.splitlines()) == 1
+    assert not out.exists() and not field.exists()
+    assert main([*args, str(tmp_path / "field.mha")]) == 0
+    bent, displacement = sitk.ReadImage(str(out)), sitk.ReadImage(str(tmp_path / "field.mha"))
+    assert np.allclose(displacement.GetDirection(), bent.GetDirection())
+    mask = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "field_mask.mha"))) == 1
+    transform = sitk.DisplacementFieldTransform(sitk.Image(displacement))
+    ours = read_dataset(path)
+    source = sitk.GetImageFromArray(
+        np.asarray(ours.active_scalars).reshape(tuple(ours.dimensions)[::-1])
+    )
+    source.SetOrigin(ours.origin)
+    source.SetSpacing(ours.spacing)
+    source.SetDirection(np.ravel(ours.direction_matrix).tolist())
+    again = sitk.GetArrayFromImage(sitk.Resample(source, bent, transform, sitk.sitkLinear))
+    np.testing.assert_allclose(again[mask], sitk.GetArrayFromImage(bent)[mask], atol=1e-2)
 
 
 @pytest.mark.parametrize("kind", ["nrrd", "dicom", "dicom file without suffix"])

@@ -88,7 +88,7 @@ def write_displacement_field(path, field: DisplacementField) -> tuple[Path, Path
     Raises
     ------
     ValueError
-        Another suffix.
+        Another suffix, or a NIfTI file for a sheared grid.
     OSError
         SimpleITK could not write a file (the message is its first line).
     """
@@ -100,6 +100,14 @@ def write_displacement_field(path, field: DisplacementField) -> tuple[Path, Path
     if vectors.shape != (field.geometry.n_points, 3):
         raise ValueError(
             f"the field has {vectors.shape[0]} vectors for {field.geometry.n_points} grid points"
+        )
+    direction = field.geometry.direction
+    if suffix_of(path) in (".nii", ".nii.gz") and not np.allclose(
+        direction.T @ direction, np.eye(3), rtol=0, atol=1e-6
+    ):  # ITK's NIfTI writer would turn the grid into the nearest rotation of it
+        raise ValueError(
+            f"{path}: the field's grid is sheared (its direction is no rotation), which a "
+            "NIfTI field cannot hold; write it as .mha or .nrrd"
         )
     images = {path.name: _itk_image(vectors, field.geometry, True),
               mask.name: _itk_image(field.mask, field.geometry, False)}  # fmt: skip
