@@ -335,6 +335,25 @@ def test_metaimage_negative_spacing_turns_its_axis_over_as_in_simpleitk(tmp_path
     assert_same_image(read_dataset(path), reference)
 
 
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (b"DimSize = 20 24 16", b"DimSize = 20 24", "NDims 3 but DimSize 20 24"),
+        (b"NDims = 3", b"NDims = 2", "NDims 2 but DimSize 20 24 16"),
+        (b"TransformMatrix = ", b"TransformMatrix = 1 0 ", "TransformMatrix has 11 values"),
+    ],
+)
+def test_metaimage_header_contradicting_itself_is_refused(tmp_path, old, new, message):
+    """VTK read such a header as a 1-voxel image, or without its direction."""
+    path = tmp_path / "scan.mha"
+    sitk.WriteImage(sitk_image("oblique", np.int16), str(path))
+    header = path.read_bytes()
+    assert header.count(old) == 1
+    path.write_bytes(header.replace(old, new))
+    with pytest.raises(ReadError, match=f"corrupt MetaImage header: {message}"):
+        read_dataset(path)
+
+
 def test_images_of_more_than_three_dimensions_are_refused_not_cut(tmp_path, capsys):
     """A time series (4-D) would lose all but one of its volumes: refused in one line."""
     series = np.arange(3 * 9 * 8 * 7, dtype=np.int16).reshape(3, 9, 8, 7)

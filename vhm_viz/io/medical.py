@@ -88,6 +88,18 @@ def check_metaimage(p: Path) -> None:
         raise ReadError(f"{p}: corrupt MetaImage header: DimSize {dims}")
     if len(dims) > 3:  # VTK's reader keeps one voxel of a 4-D image, or aborts
         raise ReadError(f"{p}: cannot read (a {len(dims)}-D image; give a 2-D or 3-D one)")
+    # VTK reads what it can of a header that contradicts itself (a 1-voxel image, no turn)
+    if fields.get("NDims", str(len(dims))) != str(len(dims)):
+        raise ReadError(
+            f"{p}: corrupt MetaImage header: NDims {fields['NDims']} but DimSize "
+            f"{fields['DimSize']}"
+        )
+    for key in ("TransformMatrix", "Rotation", "Orientation"):
+        if key in fields and len(fields[key].split()) != len(dims) ** 2:
+            raise ReadError(
+                f"{p}: corrupt MetaImage header: {key} has {len(fields[key].split())} "
+                f"values, not {len(dims) ** 2} (DimSize {fields['DimSize']})"
+            )
     # refused before a reader allocates it (a header claiming 10**12 voxels)
     what = f"{p}: reading its DimSize {fields['DimSize']}"
     remedy = "check its DimSize, or read it where more memory is allowed"
