@@ -298,10 +298,32 @@ def read_nifti(path):
         image.origin = tuple(_RAS_LPS @ m[:3, 3])
         image.direction_matrix = _RAS_LPS @ m[:3, :3] / scale
         image.spacing = tuple(np.asarray(image.spacing, dtype=np.float64) * scale)
+        if reader.GetQFac() < 0:
+            _unflip_slices(image)
     if unit != 1.0:
         image.origin = tuple(unit * np.asarray(image.origin, dtype=np.float64))
         image.spacing = tuple(unit * np.asarray(image.spacing, dtype=np.float64))
     return image
+
+
+def _unflip_slices(image) -> None:
+    """Put back the slice order of the file, which VTK's NIfTI reader reverses for qfac -1.
+
+    VTK makes a left-handed voxel grid right-handed by reading the slices last to first;
+    ITK and nibabel keep the file's order. Same voxels at the same points either way, but
+    only the file's order keeps an output written on this grid (or on it as a
+    ``--reference``) voxel for voxel on the file's grid, as other tools index it.
+    """
+    nx, ny, nz = (int(d) for d in image.dimensions)
+    direction = np.array(image.direction_matrix, dtype=np.float64)
+    origin = np.asarray(image.origin, dtype=np.float64)
+    image.origin = tuple(origin + direction[:, 2] * image.spacing[2] * (nz - 1))
+    direction[:, 2] *= -1.0
+    image.direction_matrix = direction
+    for name in list(image.point_data.keys()):
+        values = np.asarray(image.point_data[name])
+        layers = values.reshape(nz, ny * nx, *values.shape[1:])
+        image.point_data[name] = np.ascontiguousarray(layers[::-1]).reshape(values.shape)
 
 
 def _matrix(matrix) -> np.ndarray | None:
