@@ -241,6 +241,12 @@ def test_bad_field_arguments_are_one_line(head, tmp_path, capsys):
         rc, out, err = _cli(capsys, "deform", path, "-s", SCENE, "-o", tmp_path / "o.nii.gz",
                             "--write-field", field, "-q")  # fmt: skip
         assert rc != 0 and len(err.strip().splitlines()) == 1 and why in err
+    # a file the output writes beside itself (its valid-voxel mask): not overwritten
+    rc, _, err = _cli(capsys, "deform", path, "-s", SCENE, "-o", tmp_path / "o.nii.gz",
+                      "--write-field", tmp_path / "o_vtkValidPointMask.nii.gz", "-q")  # fmt: skip
+    assert rc != 0 and len(err.strip().splitlines()) == 1, err
+    assert "o_vtkValidPointMask.nii.gz is also a file of the output" in err
+    assert list(tmp_path.iterdir()) == []
     pts = tmp_path / "p.npy"
     np.save(pts, np.asarray(img.center)[None])
     rc, out, err = _cli(capsys, "deform", pts, "-s", SCENE, "-o", tmp_path / "o.vtp",

@@ -13,7 +13,13 @@ from pathlib import Path
 
 from vhm_viz.core.displacement import FIELD_KINDS
 
-__all__ = ["add_field_arguments", "check_field_output", "field_of", "write_field"]
+__all__ = [
+    "add_field_arguments",
+    "check_field_output",
+    "check_field_apart",
+    "field_of",
+    "write_field",
+]
 
 
 def add_field_arguments(p: argparse.ArgumentParser) -> None:
@@ -69,6 +75,27 @@ def check_field_output(args: argparse.Namespace, volume: bool, inputs) -> tuple 
             "give another name"
         )
     return field, mask
+
+
+def check_field_apart(paths, written) -> None:
+    """Refuse a field (or its mask) named as a file the output puts beside itself.
+
+    ``paths``: the field and mask (:func:`check_field_output`), or None; ``written``: the
+    output's files (:func:`vhm_viz.io.dataset_files`: ``out_vtkValidPointMask.nii`` ...),
+    known once the result's arrays are.
+    """
+    if paths is None:
+        return
+    from vhm_viz.cli._util import CLIError
+
+    taken = {p.resolve() for p in written}
+    for path in paths:
+        if path.resolve() in taken:
+            raise CLIError(
+                f"--write-field {paths[0]} (or its mask {paths[1].name}): {path.name} is "
+                f"also a file of the output {written[0]}, which writes "
+                f"{', '.join(p.name for p in written)}; give another name"
+            )
 
 
 def field_of(args: argparse.Namespace, mesh, result, deformer, tolerance: float):

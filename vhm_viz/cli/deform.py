@@ -14,6 +14,7 @@ import numpy as np
 
 from vhm_viz.cli._field_output import (
     add_field_arguments,
+    check_field_apart,
     check_field_output,
     field_of,
     write_field,
@@ -53,6 +54,7 @@ from vhm_viz.core.volume import DEFAULT_TOLERANCE, MAX_TOLERANCE
 from vhm_viz.io import (
     DATASET_SUFFIXES,
     atomic_outputs,
+    dataset_files,
     format_of,
     image_suffixes,
     is_image_format,
@@ -393,6 +395,7 @@ def deform(args: argparse.Namespace) -> str:
             warning
             + "; nothing written (change the scene, or pass --allow-folds to write it anyway)"
         )
+    check_field_apart(field_paths, dataset_files(out, result))
     # the output, the arrays beside it and a field in the same folder appear as one set
     with timer.stage("write"), atomic_outputs(out.parent):
         written = write_dataset(out, result, inputs=inputs)

@@ -38,7 +38,7 @@ from vhm_viz.atomic import OverwriteError, same_file
 from vhm_viz.atomic import atomic_directory as atomic_outputs
 from vhm_viz.io.anchors import read_anchors, write_anchors
 from vhm_viz.io.cages import cage_from_dataset, cage_to_polydata, cell_types, read_cage, write_cage
-from vhm_viz.io.datasets import read_dataset, write_dataset
+from vhm_viz.io.datasets import dataset_files, read_dataset, write_dataset
 from vhm_viz.io.errors import ReadError
 from vhm_viz.io.guard import refuse_inputs
 from vhm_viz.io.registry import (
@@ -77,6 +77,7 @@ __all__ = [
     "ReadError",
     "read_dataset",
     "write_dataset",
+    "dataset_files",
     "read_cage",
     "cage_from_dataset",
     "cage_to_polydata",

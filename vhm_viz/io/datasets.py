@@ -177,7 +177,7 @@ def write_dataset(path, data, inputs=()) -> list[Path]:
     if len(parts) <= 1:
         write(path, data)
         return [path]
-    paths = [path, *(array_file(path, name) for name, _ in parts[1:])]
+    paths = dataset_files(path, data)
     for other in paths[1:]:
         refuse_inputs(other, inputs)
     if len(set(paths)) < len(paths):
@@ -191,11 +191,31 @@ def write_dataset(path, data, inputs=()) -> list[Path]:
     return paths
 
 
-def _one_array_images(data) -> list[tuple[str, object]]:
-    """``(name, image)`` for each point array of an image, the main one first.
+def dataset_files(path, data) -> list[Path]:
+    """The files :func:`write_dataset` writes ``data`` to, ``path`` first.
 
-    The main array is the active scalars (else the first); each image has ``data``'s
-    grid and that one array, active. Empty for a dataset that is not an image.
+    An image in a one-array format (MetaImage, NIfTI, NRRD) has a file beside ``path``
+    for each further point array, as :func:`~vhm_viz.io.registry.array_file` names it.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    data : pyvista.DataSet
+
+    Returns
+    -------
+    list of Path
+    """
+    path = Path(path)
+    fmt = format_of(path) if suffix_of(path) else None
+    names = _point_arrays_main_first(data) if fmt is not None and fmt.one_array else []
+    return [path, *(array_file(path, name) for name in names[1:])]
+
+
+def _point_arrays_main_first(data) -> list[str]:
+    """An image's point array names, the main one (active scalars, else first) first.
+
+    Empty for a dataset that is not an image.
     """
     import pyvista as pv
 
@@ -206,8 +226,20 @@ def _one_array_images(data) -> list[tuple[str, object]]:
     if not names:
         return []
     main = data.active_scalars_name if data.active_scalars_name in names else names[0]
+    return [main, *(n for n in names if n != main)]
+
+
+def _one_array_images(data) -> list[tuple[str, object]]:
+    """``(name, image)`` for each point array of an image, the main one first.
+
+    The main array is the active scalars (else the first); each image has ``data``'s
+    grid and that one array, active. Empty for a dataset that is not an image.
+    """
+    import pyvista as pv
+
+    data = pv.wrap(data)
     parts = []
-    for name in [main, *(n for n in names if n != main)]:
+    for name in _point_arrays_main_first(data):
         image = pv.ImageData(dimensions=data.dimensions, spacing=data.spacing, origin=data.origin)
         image.direction_matrix = data.direction_matrix
         image.point_data[name] = data.point_data[name]
