@@ -44,8 +44,9 @@ def sitk_image(direction: str, dtype, components: int = 1, seed: int = 0):
     """A SIZE image with random voxels, SPACING, ORIGIN and one of DIRECTIONS."""
     rng = np.random.default_rng(seed)
     shape = (*SIZE[::-1], components) if components > 1 else SIZE[::-1]
-    if np.dtype(dtype).kind == "i":
-        values = rng.integers(-1000, 3000, size=shape).astype(dtype)
+    if np.dtype(dtype).kind in "iu":
+        low = 0 if np.dtype(dtype).kind == "u" else -1000
+        values = rng.integers(low, 3000, size=shape).astype(dtype)
     else:
         values = (100 * rng.normal(size=shape)).astype(dtype)
     image = sitk.GetImageFromArray(values, isVector=components > 1)
@@ -150,6 +151,9 @@ def assert_same_image(ours, reference, points=None, others=()) -> None:
         ("e.mhd", "oblique", np.float32, 3),
         ("f.nrrd", "oblique reflected", np.int16, 1),
         ("g.nhdr", "oblique", np.float32, 3),
+        ("h.mha", "oblique reflected", np.int64, 1),  # VTK's reader took these for int16
+        ("i.mhd", "oblique", np.uint64, 1),
+        ("j.nrrd", "oblique", np.int64, 1),  # "long long int"
     ],
 )
 def test_files_written_by_simpleitk_are_read_where_it_reads_them(
@@ -249,8 +253,11 @@ def test_ras_space_nrrd_is_converted_to_lps(tmp_path):
         assert flat[found] == values[k, j, i]
 
 
-@pytest.mark.parametrize(("dtype", "components"), [(np.float32, 1), (np.int16, 3)])
+@pytest.mark.parametrize(
+    ("dtype", "components"), [(np.float32, 1), (np.int16, 3), (np.int64, 1), (np.uint64, 1)]
+)
 def test_nrrd_written_here_is_read_by_simpleitk_where_it_was(tmp_path, dtype, components):
+    """Also 64-bit integers, which SimpleITK writes as ``long long int`` and the like."""
     source = tmp_path / "source.mha"
     sitk.WriteImage(sitk_image("oblique reflected", dtype, components, seed=4), str(source))
     image = read_dataset(source)

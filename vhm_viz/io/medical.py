@@ -23,6 +23,7 @@ import numpy as np
 
 from vhm_viz.atomic import atomic_output_set, atomic_path
 from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
+from vhm_viz.io.itk_images import read_with_sitk
 from vhm_viz.io.registry import suffix_of
 from vhm_viz.io.vtk_files import read_vtk_file
 from vhm_viz.resources import require_memory
@@ -233,11 +234,12 @@ def check_nifti(p: Path) -> None:
 
 
 def read_metaimage(path):
-    """A MetaImage (``.mhd`` + data file, or ``.mha``), its direction as ITK reads it."""
+    """A MetaImage (``.mhd`` + data file, or ``.mha``), its direction as ITK reads it.
+
+    64-bit integer voxels (``MET_LONG_LONG``, ``MET_ULONG_LONG``), which VTK's reader
+    takes for 16-bit ones (or aborts on), are read by SimpleITK.
+    """
     p = Path(path)
-    image = read_vtk_file(p)
-    if not hasattr(image, "direction_matrix"):
-        return image
     fields = {}
     with open(p, "rb") as fh:
         for raw in fh:
@@ -246,6 +248,17 @@ def read_metaimage(path):
             fields[key.strip()] = value.strip()
             if key.strip() == "ElementDataFile":
                 break
+    if fields.get("ElementType", "").upper() in ("MET_LONG_LONG", "MET_ULONG_LONG"):
+
+        def read(q):
+            import SimpleITK as sitk
+
+            return sitk.ReadImage(str(q)), "MetaImage"
+
+        return read_with_sitk(p, read, "SimpleITK's MetaImage reader")
+    image = read_vtk_file(p)
+    if not hasattr(image, "direction_matrix"):
+        return image
     direction = np.array(image.direction_matrix, dtype=np.float64)
     text = fields.get("TransformMatrix") or fields.get("Rotation") or fields.get("Orientation")
     m = np.array(text.split() if text else [], dtype=np.float64)
