@@ -4,8 +4,11 @@ vhm_viz's world follows ITK and DICOM (LPS, millimetres). Both MetaImage and NIf
 read through VTK (:mod:`vhm_viz.io.vtk_files`) after a check of the header's voxel count
 against the data, and their orientation is then taken from the header as ITK reads it:
 VTK's MetaImage reader takes ``TransformMatrix`` row by row (the transpose of what ITK
-writes), and its NIfTI reader keeps the qform/sform, the spatial unit and the intensity
-scaling (``scl_slope``, ``scl_inter``) apart from the image. The writers keep origin,
+writes) and drops a negative spacing's sign, and its NIfTI reader keeps the qform/sform,
+the spatial unit and the intensity scaling (``scl_slope``, ``scl_inter``) apart from the
+image and reverses the slices of a left-handed grid (qfac -1), which are put back in the
+file's order. 64-bit integer MetaImages, which VTK misreads, go through SimpleITK; 4-D
+images are refused (VTK keeps a part of them). The writers keep origin,
 spacing and direction, so SimpleITK and ITK-based tools read the same geometry. DICOM
 series and NRRD, which VTK reads without their frame, go through SimpleITK
 (:mod:`vhm_viz.io.dicom`, :mod:`vhm_viz.io.nrrd`).
