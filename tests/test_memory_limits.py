@@ -122,6 +122,26 @@ def test_a_header_claiming_a_trillion_voxels_is_refused_before_reading(tmp_path)
     assert "DimSize" in lines[0] and "needs about 931 GiB" in lines[0], lines[0]
 
 
+def test_a_nifti_header_claiming_a_trillion_voxels_is_refused_before_reading(tmp_path):
+    """As the MetaImage above: the header's size against the memory, before its data."""
+    header = bytearray(352)
+    header[0:4] = (348).to_bytes(4, "little")
+    header[40:56] = np.array([3, 10000, 10000, 10000, 1, 1, 1, 1], "<i2").tobytes()
+    header[70:74] = np.array([2, 8], "<i2").tobytes()  # uint8
+    header[76:108] = np.array([1, 1, 1, 1, 1, 1, 1, 1], "<f4").tobytes()
+    header[108:112] = np.array([352], "<f4").tobytes()
+    header[344:348] = b"n+1\0"
+    path = tmp_path / "huge.nii"
+    with open(path, "wb") as fh:  # as many bytes as it claims (sparse)
+        fh.write(header)
+        fh.truncate(352 + 10**12)
+    proc = _cli("deform", path, "--scene", SCENE, "-o", tmp_path / "out.vti", "-q", limit=LIMIT)
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("vhm-viz deform: error:"), proc.stderr
+    assert "10000000000" in lines[0] and "needs about 931 GiB" in lines[0], lines[0]
+
+
 def test_a_tolerance_wider_than_a_root_cell_is_refused_in_one_line_before_reading(tmp_path):
     """A tolerance of 1000 voxels, far wider than any cell of the lattice, is a mistake:
     refused in one line before the data is read, nothing written."""

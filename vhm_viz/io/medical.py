@@ -196,33 +196,49 @@ def metaimage_files(path, written: bool = False) -> list[Path]:
 
 
 def check_nifti(p: Path) -> None:
-    """NIfTI-1/2: the voxel count of the header against the (decompressed) data."""
-    if suffix_of(p) == ".nii.gz":
-        try:
-            with gzip.open(p, "rb") as fh:
-                blob = fh.read()
-        except (OSError, EOFError) as exc:
-            raise TruncatedError(
-                f"{p}: truncated or corrupt gzip data ({first_line(exc)})"
-            ) from None
-    else:
-        blob = p.read_bytes()
-    need(p, "a NIfTI header", 348, len(blob))
+    """NIfTI-1/2: the voxel count of the header against the (decompressed) data.
+
+    A header asking for more memory than there is is refused before anything more is
+    read; the data are counted, not kept.
+    """
+    gz = suffix_of(p) == ".nii.gz"
+    try:
+        with gzip.open(p, "rb") if gz else open(p, "rb") as fh:
+            head = fh.read(540)
+            voxels, bits, offset = _nifti_sizes(p, head)
+            needed = offset + voxels * bits // 8
+            what = f"{p}: reading its {voxels} voxels"
+            remedy = "check its dim, or read it where more memory is allowed"
+            require_memory(voxels * bits // 8, what, remedy, ReadError)
+            if gz:
+                available = len(head)
+                while available < needed and (chunk := fh.read(min(needed - available, 1 << 24))):
+                    available += len(chunk)
+            else:
+                available = p.stat().st_size
+    except (OSError, EOFError) as exc:
+        raise TruncatedError(f"{p}: truncated or corrupt gzip data ({first_line(exc)})") from None
+    need(p, f"{voxels} voxels of {bits} bits", needed, available)
+
+
+def _nifti_sizes(p: Path, head: bytes) -> tuple[int, int, int]:
+    """A NIfTI-1/2 header's voxel count, bits per voxel and data offset, checked."""
+    need(p, "a NIfTI header", 348, len(head))
     for order in "<>":
-        size = struct.unpack_from(order + "i", blob, 0)[0]
+        size = struct.unpack_from(order + "i", head, 0)[0]
         if size in (348, 540):
             break
     else:
         raise ReadError(f"{p}: not a NIfTI file (header size field is not 348 or 540)")
     if size == 348:
-        dim = struct.unpack_from(order + "8h", blob, 40)
-        bitpix = struct.unpack_from(order + "h", blob, 72)[0]
-        offset = struct.unpack_from(order + "f", blob, 108)[0]
+        dim = struct.unpack_from(order + "8h", head, 40)
+        bitpix = struct.unpack_from(order + "h", head, 72)[0]
+        offset = struct.unpack_from(order + "f", head, 108)[0]
     else:
-        need(p, "a NIfTI-2 header", 540, len(blob))
-        bitpix = struct.unpack_from(order + "h", blob, 14)[0]
-        dim = struct.unpack_from(order + "8q", blob, 16)
-        offset = struct.unpack_from(order + "q", blob, 168)[0]
+        need(p, "a NIfTI-2 header", 540, len(head))
+        bitpix = struct.unpack_from(order + "h", head, 14)[0]
+        dim = struct.unpack_from(order + "8q", head, 16)
+        offset = struct.unpack_from(order + "q", head, 168)[0]
     ndim = dim[0]
     if not 1 <= ndim <= 7 or any(d <= 0 for d in dim[1 : ndim + 1]) or bitpix <= 0:
         raise ReadError(f"{p}: corrupt NIfTI header (dim {list(dim)}, bitpix {bitpix})")
@@ -232,8 +248,7 @@ def check_nifti(p: Path) -> None:
     if any(dim[i] > 1 for i in (4, 6, 7) if i <= ndim):
         sizes = " x ".join(str(d) for d in dim[1 : ndim + 1])
         raise ReadError(f"{p}: cannot read (a {ndim}-D image, {sizes}; give a 2-D or 3-D one)")
-    voxels = int(np.prod(dim[1 : ndim + 1], dtype=np.int64))
-    need(p, f"{voxels} voxels of {bitpix} bits", int(offset) + voxels * bitpix // 8, len(blob))
+    return int(np.prod(dim[1 : ndim + 1], dtype=np.int64)), int(bitpix), int(offset)
 
 
 def read_metaimage(path):
