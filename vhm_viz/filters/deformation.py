@@ -330,12 +330,6 @@ class HarmonicDeformationFilter(DeformationSource):
                 _set_array(pd, "condition_number", cond)
             if normals is not None:
                 _set_array(pd, pnormals.GetName() or "Normals", normals, normals=True)
-        self.cell_summary = None
-        if self._cell_quality:  # the piece's voxels, each split into tets as elsewhere
-            quality = cell_quality(inp, points)
-            if quality is not None:
-                add_cell_arrays(out, quality)
-                self.cell_summary = quality["summary"]
         if self._displacement:
             _set_array(pd, "displacement", points - vol.geometry.sub(box).points())
         if self._cell_quality:  # the voxels as warped (six tets each)
