@@ -328,6 +328,20 @@ def test_oblique_2d_image_lands_where_simpleitk_reads_it(tmp_path, name):
     np.testing.assert_array_equal(ours.active_scalars, values.ravel())
 
 
+@pytest.mark.parametrize(("dtype", "met", "long"), [(np.int32, b"MET_INT", b"MET_LONG"),
+                                                    (np.uint32, b"MET_UINT", b"MET_ULONG")])
+def test_metaimage_of_met_long_voxels_is_read_as_simpleitk_reads_it(tmp_path, dtype, met, long):
+    """MET_LONG is 32 bits in MetaIO: VTK read it as 64 (and the size check refused it)."""
+    path = tmp_path / "long.mha"
+    sitk.WriteImage(sitk_image("oblique", dtype), str(path))
+    header = path.read_bytes()
+    assert header.count(b"ElementType = " + met + b"\n") == 1
+    path.write_bytes(header.replace(b"ElementType = " + met, b"ElementType = " + long, 1))
+    reference = sitk.ReadImage(str(path))
+    assert reference.GetPixelID() in (sitk.sitkInt32, sitk.sitkUInt32)
+    assert_same_image(read_dataset(path), reference)
+
+
 @pytest.mark.parametrize("name", ["flipped.mha", "flipped.mhd"])
 def test_metaimage_negative_spacing_turns_its_axis_over_as_in_simpleitk(tmp_path, name):
     """``ElementSpacing = -0.8 1.3 -2``: ITK reads +0.8 and +2 along reversed axes."""

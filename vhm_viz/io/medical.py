@@ -7,7 +7,7 @@ VTK's MetaImage reader takes ``TransformMatrix`` row by row (the transpose of wh
 writes) and drops a negative spacing's sign, and its NIfTI reader keeps the qform/sform,
 the spatial unit and the intensity scaling (``scl_slope``, ``scl_inter``) apart from the
 image and reverses the slices of a left-handed grid (qfac -1), which are put back in the
-file's order. 64-bit integer MetaImages, which VTK misreads, go through SimpleITK; 4-D
+file's order. MetaImages of long integers, which VTK misreads, go through SimpleITK; 4-D
 images are refused (VTK keeps a part of them). The writers keep origin,
 spacing and direction, so SimpleITK and ITK-based tools read the same geometry. DICOM
 series and NRRD, which VTK reads without their frame, go through SimpleITK
@@ -62,9 +62,13 @@ _NIFTI_TYPES = {  # NIfTI-1 datatype code, bits per voxel
 
 _MET_TYPES = {
     "MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4,
-    "MET_UINT": 4, "MET_LONG": 8, "MET_ULONG": 8, "MET_LONG_LONG": 8,
+    "MET_UINT": 4, "MET_LONG": 4, "MET_ULONG": 4, "MET_LONG_LONG": 8,
     "MET_ULONG_LONG": 8, "MET_FLOAT": 4, "MET_DOUBLE": 8,
 }  # fmt: skip
+
+
+#: Element types VTK's MetaImage reader misreads: they go through SimpleITK.
+_SITK_MET_TYPES = ("MET_LONG", "MET_ULONG", "MET_LONG_LONG", "MET_ULONG_LONG")
 
 
 def check_metaimage(p: Path) -> None:
@@ -254,8 +258,9 @@ def _nifti_sizes(p: Path, head: bytes) -> tuple[int, int, int]:
 def read_metaimage(path):
     """A MetaImage (``.mhd`` + data file, or ``.mha``), its direction as ITK reads it.
 
-    64-bit integer voxels (``MET_LONG_LONG``, ``MET_ULONG_LONG``), which VTK's reader
-    takes for 16-bit ones (or aborts on), are read by SimpleITK.
+    ``MET_LONG_LONG``/``MET_ULONG_LONG`` voxels (64 bits), which VTK's reader takes for
+    16-bit ones (or aborts on), and ``MET_LONG``/``MET_ULONG`` voxels (32 bits in
+    MetaIO), which it takes for 64-bit ones, are read by SimpleITK.
     """
     p = Path(path)
     fields = {}
@@ -266,7 +271,7 @@ def read_metaimage(path):
             fields[key.strip()] = value.strip()
             if key.strip() == "ElementDataFile":
                 break
-    if fields.get("ElementType", "").upper() in ("MET_LONG_LONG", "MET_ULONG_LONG"):
+    if fields.get("ElementType", "").upper() in _SITK_MET_TYPES:
 
         def read(q):
             import SimpleITK as sitk
