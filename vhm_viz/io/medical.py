@@ -358,8 +358,12 @@ def _unflip_slices(image) -> None:
     image.direction_matrix = direction
     for name in list(image.point_data.keys()):
         values = np.asarray(image.point_data[name])
-        layers = values.reshape(nz, ny * nx, *values.shape[1:])
-        image.point_data[name] = np.ascontiguousarray(layers[::-1]).reshape(values.shape)
+        if not (values.flags.c_contiguous and values.flags.writeable):
+            values = np.ascontiguousarray(values).copy()
+            image.point_data[name] = values
+        layers = values.reshape(nz, -1)  # a view: the slices swap in place, two at a time
+        for k in range(nz // 2):
+            layers[[k, nz - 1 - k]] = layers[[nz - 1 - k, k]]
 
 
 def _matrix(matrix) -> np.ndarray | None:
