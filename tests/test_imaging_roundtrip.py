@@ -299,6 +299,16 @@ def test_oblique_dicom_series_lands_where_simpleitk_reads_it(tmp_path):
     assert_same_image(read_dataset(bare), read_series(folder, "1.2.826.0.1.3680043.9.7.3"))
 
 
+def test_nrrd_whose_dimension_and_sizes_disagree_is_refused_naming_them(tmp_path):
+    path = tmp_path / "two.nrrd"
+    sitk.WriteImage(sitk_image("oblique", np.int16), str(path), False)
+    header = path.read_bytes()
+    assert header.count(b"sizes: 20 24 16") == 1
+    path.write_bytes(header.replace(b"sizes: 20 24 16", b"sizes: 20 24", 1))
+    with pytest.raises(ReadError, match="corrupt NRRD header: dimension 3 but sizes 20 24$"):
+        read_dataset(path)
+
+
 def test_nrrd_promising_more_voxels_than_it_holds_is_refused_before_simpleitk(tmp_path):
     for name in ("a.nrrd", "b.nhdr"):
         path = tmp_path / name

@@ -74,6 +74,11 @@ def check_nrrd(p: Path) -> None:
         raise ReadError(f"{p}: malformed NRRD header (sizes, type)") from None
     if not sizes or min(sizes) <= 0:
         raise ReadError(f"{p}: corrupt NRRD header: sizes {sizes}")
+    if fields.get("dimension", str(len(sizes))) != str(len(sizes)):
+        raise ReadError(
+            f"{p}: corrupt NRRD header: dimension {fields['dimension']} but sizes "
+            f"{fields['sizes']}"
+        )
     if fields.get("encoding", "raw").lower() != "raw" or "byte skip" in fields:
         return
     needed = int(np.prod(sizes, dtype=np.int64)) * item
