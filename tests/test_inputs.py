@@ -229,6 +229,30 @@ def test_meshio_sys_exit_and_prints_become_one_error(tmp_path, capsys):
     assert out == "" and err == ""
 
 
+def test_a_vtu_of_triangles_keeps_its_cell_and_field_arrays(tmp_path):
+    """A .vtu holding only triangles is read as the surface it is: its cell and field
+    arrays come along with the point arrays, into the deformed output."""
+    surf = pv.Box(bounds=(0, 1, 0, 1, 0, 2), level=2).triangulate()
+    grid = surf.cast_to_unstructured_grid()
+    grid.clear_data()
+    grid.point_data["temperature"] = np.linspace(0.0, 1.0, grid.n_points)
+    grid.cell_data["label"] = np.arange(grid.n_cells, dtype=np.int32) % 7
+    grid.field_data["units"] = ["mm"]
+    grid.save(tmp_path / "tris.vtu")
+    read = read_dataset(tmp_path / "tris.vtu")
+    assert isinstance(read, pv.PolyData) and read.n_cells == grid.n_cells
+    assert np.array_equal(read.cell_data["label"], grid.cell_data["label"])
+    assert np.array_equal(read.point_data["temperature"], grid.point_data["temperature"])
+    assert list(read.field_data["units"]) == ["mm"]
+    box_scene(tmp_path, grid.bounds[0::2], grid.bounds[1::2])
+    res = run_cli("deform", tmp_path / "tris.vtu", "-s", tmp_path / "scene.json",
+                  "-o", tmp_path / "bent.vtp", "-q")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    bent = pv.read(tmp_path / "bent.vtp")
+    assert np.array_equal(bent.cell_data["label"], grid.cell_data["label"])
+    assert list(bent.field_data["units"]) == ["mm"]
+
+
 def test_gmsh_tet_mesh_deforms_like_its_vtu(tmp_path):
     """A Gmsh ``.msh`` tet mesh (meshio writes it) deforms to the same points and cell
     arrays as the same mesh in ``.vtu``; a malformed one is one line."""

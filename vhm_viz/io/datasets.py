@@ -293,7 +293,10 @@ def check_dataset(data, path) -> None:
 
 
 def _surface_if_polygonal(data):
-    """An UnstructuredGrid of triangles/quads/polygons only (OBJ/OFF via meshio) -> PolyData."""
+    """An UnstructuredGrid of triangles/quads/polygons only (OBJ/OFF via meshio) -> PolyData.
+
+    The cells keep their order, so the point, cell and field arrays all come along.
+    """
     import pyvista as pv
 
     if isinstance(data, pv.UnstructuredGrid) and data.n_cells:
@@ -301,7 +304,8 @@ def _surface_if_polygonal(data):
         polygonal = {int(pv.CellType.TRIANGLE), int(pv.CellType.QUAD), int(pv.CellType.POLYGON)}
         if types <= polygonal:
             surf = pv.PolyData(np.asarray(data.points), faces=np.asarray(data.cells))
-            for name, values in data.point_data.items():
-                surf.point_data[name] = values
+            surf.GetPointData().ShallowCopy(data.GetPointData())
+            surf.GetCellData().ShallowCopy(data.GetCellData())
+            surf.GetFieldData().ShallowCopy(data.GetFieldData())
             return surf
     return data
