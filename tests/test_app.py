@@ -14,7 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import data_path, write_folding_volume
+from tests.conftest import (
+    FOLDING_DIMS,
+    data_path,
+    trilinear_corner_dets,
+    write_folding_volume,
+)
 
 pytest.importorskip("PySide6")
 pytest.importorskip("pyvistaqt")
@@ -210,8 +215,9 @@ def test_save_and_reload_scene(window, tmp_path):
 
 
 def test_export_of_a_resampled_volume_in_folds_says_so(window, tmp_path):
-    """The export writes the resampled volume as it is, and the window says how many of
-    its voxels lie in folds (the file's vhm_foldover mask), in the status bar."""
+    """The export writes the resampled or warped volume as it is, and the window says how
+    it folds, in the status bar: the resampled voxels in folds (the file's vhm_foldover
+    mask), the warped voxel cells inverted."""
     import pyvista as pv
 
     write_folding_volume(tmp_path)
@@ -229,6 +235,15 @@ def test_export_of_a_resampled_volume_in_folds_says_so(window, tmp_path):
     said = f"exported {out}, but the deformation folds the data: {folds} of "
     assert win.last_warning.startswith(said), win.last_warning
     assert win.statusBar().currentMessage() == win.last_warning
+    # warped, the same volume's voxel cells are inverted: counted as a brute force counts
+    # the cells whose trilinear corner Jacobians are not all positive
+    warped = tmp_path / "bent.vts"
+    win.export(str(warped))
+    grid = np.asarray(pv.read(warped).points).reshape(*FOLDING_DIMS[::-1], 3)
+    inverted = int((trilinear_corner_dets(grid) <= 0).sum())
+    assert inverted > 0
+    said = f"exported {warped}, but the deformation folds the data: {inverted} of "
+    assert win.last_warning.startswith(said) and "cells inverted" in win.last_warning
 
 
 def test_screenshot_shows_shape_and_slice(window, tmp_path):

@@ -20,7 +20,7 @@ import numba.core.dispatcher as dispatcher
 import pyvista as pv
 
 from vhm_viz import examples
-from vhm_viz.cli._folds import inverted_voxel_cells, load_check_kernels
+from vhm_viz.folds import inverted_voxel_cells, load_check_kernels
 from vhm_viz.cli._util import surface_metrics
 from vhm_viz.filters import cell_quality
 

@@ -16,7 +16,7 @@ pv = pytest.importorskip("pyvista")
 
 from vhm_viz import examples  # noqa: E402
 from vhm_viz.cli import main  # noqa: E402
-from vhm_viz.cli._folds import FOLD_SPOT_SAMPLES  # noqa: E402
+from vhm_viz.folds import FOLD_SPOT_SAMPLES  # noqa: E402
 from vhm_viz.scene import Scene  # noqa: E402
 
 
@@ -307,7 +307,7 @@ def test_deform_refuses_a_folded_output_unless_allowed(files, tmp_path, capsys):
 def test_surface_fold_warning_samples_the_exact_det(files, tmp_path, capsys):
     # a surface has no cells to measure: det J is sampled at points; the worst sample
     # named is det J there, as central differences of the solved map give it
-    from vhm_viz.cli._folds import fold_samples
+    from vhm_viz.folds import fold_samples
 
     d, _, _ = files
     rc, out, err = _run(

@@ -284,14 +284,15 @@ def test_first_run_says_it_compiles_once(folding_volume, tmp_path, monkeypatch, 
 def test_the_lattices_proof_leaves_the_fold_warning_as_it_was(folding_volume, tmp_path,
                                                                monkeypatch, capsys):  # fmt: skip
     # the cells proven unfolded are not measured: the same warning as measuring them all
-    from vhm_viz.cli import deform, main
+    from vhm_viz import folds
+    from vhm_viz.cli import main
 
     d = folding_volume
     args = ["deform", str(d / "image.vti"), "--scene", str(d / "scene.json"), "-q"]
     args.append("--allow-folds")
     assert main([*args, "-o", str(tmp_path / "all.vts")]) == 0
     every = capsys.readouterr().err
-    monkeypatch.setattr(deform, "PROOF_MIN_CELLS", 0)
+    monkeypatch.setattr(folds, "PROOF_MIN_CELLS", 0)
     assert main([*args, "-o", str(tmp_path / "proven.vts")]) == 0
     proven = capsys.readouterr().err
     assert "cells inverted" in every

@@ -69,7 +69,8 @@ def bar_tet_file(path, resolution: int = 4) -> np.ndarray:
     return tets
 
 
-def test_metrics_count_inverted_cells_of_tet_meshes(tmp_path):
+def _pushed_tets(tmp_path):
+    """The bar as a tet mesh, pushed: some of its tets inverted. ``(controller, tets)``."""
     tets = bar_tet_file(tmp_path / "bar.vtu")
     sc = examples.bar("push", resolution=8)
     ctrl = ExplorerController()
@@ -83,9 +84,36 @@ def test_metrics_count_inverted_cells_of_tet_meshes(tmp_path):
     ctrl.prepare()
     ctrl.settle(init="identity")
     ctrl.deform()
+    return ctrl, tets
+
+
+def _inverted(points, tets) -> int:
+    """Tets of ``points`` with a signed volume <= 0 (brute force)."""
+    p = np.asarray(points)[tets]
+    vol = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+    return int(np.count_nonzero(vol <= 0))
+
+
+def test_metrics_count_inverted_cells_of_tet_meshes(tmp_path):
+    ctrl, tets = _pushed_tets(tmp_path)
     m = ctrl.metrics()
-    moved = ctrl.deformed_points[tets]
-    vol = np.einsum("ij,ij->i", moved[:, 1] - moved[:, 0],
-                    np.cross(moved[:, 2] - moved[:, 0], moved[:, 3] - moved[:, 0]))  # fmt: skip
-    assert m["cells"] == len(tets) and m["inverted_cells"] == int(np.count_nonzero(vol <= 0)) > 0
+    assert m["cells"] == len(tets) and m["inverted_cells"] == _inverted(ctrl.deformed_points, tets)
+    assert m["inverted_cells"] > 0
     assert "inverted_cells" not in _bar("bend-90").metrics()  # a surface has no cells to count
+
+
+def test_export_of_a_folded_tet_mesh_says_how_many_cells_are_inverted(tmp_path):
+    """The export writes the deformed tets as they are, and returns the line that says how
+    many are inverted (what vhm-viz deform refuses without --allow-folds), counted as a
+    brute force counts the written file's tets."""
+    ctrl, tets = _pushed_tets(tmp_path)
+    lines = ctrl.export(tmp_path / "bent.vtu")
+    written = pv.read(tmp_path / "bent.vtu")
+    inverted = _inverted(written.points, tets)
+    assert inverted > 0 and len(lines) == 1
+    assert lines[0].startswith(
+        f"the deformation folds the data: {inverted} of {len(tets)} cells inverted (cell det <= 0"
+    ), lines[0]
+    # a bend that folds nothing: written without a line
+    ctrl = _bar("bend-90")
+    assert ctrl.export(tmp_path / "bend.vtp") == []

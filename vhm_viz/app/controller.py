@@ -748,8 +748,8 @@ class ExplorerController:
         """Write the deformed dataset (format from the suffix, default the input's).
 
         The map is evaluated in float64 (:mod:`vhm_viz.app.export`), so the file equals
-        ``vhm-viz deform`` of the saved scene to rounding. Returns the lines that say what
-        the file holds that was not asked for (a resampled volume's voxels in folds).
+        ``vhm-viz deform`` of the saved scene to rounding. Returns the lines that say how
+        the written deformation folds the data, if it does (:mod:`vhm_viz.folds`).
         """
         if self.display is None:
             raise ValueError("nothing loaded")
@@ -758,8 +758,7 @@ class ExplorerController:
         solved = self.ready and self.last_report is not None
         hm = self.deformer.harmonic_map if solved else None
         if self.volume is None:
-            write_deformed(path, self.display, self._rest_points, hm, self.input_files)
-            return []
+            return write_deformed(path, self.display, self._rest_points, hm, self.input_files)
         if hm is None:
             raise ValueError("nothing to export yet: solve first")
         return write_deformed_volume(path, self.rest, hm, self.input_files)

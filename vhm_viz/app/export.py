@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz.core.errors import FoldWarning
+from vhm_viz.folds import output_folds
 from vhm_viz.io import is_image_format, refuse_inputs, write_dataset
 
 __all__ = [
@@ -41,8 +42,12 @@ def export_path(path, source: dict, input_files) -> Path:
 
 def write_deformed(
     path: Path, display, rest_points: np.ndarray, harmonic_map=None, inputs=()
-) -> None:
+) -> list:
     """Write the display dataset, its points mapped by ``harmonic_map`` in float64.
+
+    Returns the line that says how the deformation folds the data, when it does
+    (:func:`vhm_viz.folds.output_folds`, what ``vhm-viz deform`` refuses without
+    ``--allow-folds``), in a list; the file is written all the same.
 
     Parameters
     ----------
@@ -59,34 +64,40 @@ def write_deformed(
         included) may be one of them.
     """
     data = display.copy(deep=True)
+    folds = None
     if harmonic_map is not None:
         data.points = harmonic_map.map(rest_points, outside="passthrough")
+        rest = display.copy(deep=True)
+        rest.points = rest_points
+        folds = output_folds(rest, data, harmonic_map)
     for name in [n for n in data.point_data.keys() if n.startswith("_")]:
         del data.point_data[name]
     try:
         write_dataset(path, data, inputs=inputs)
     except (ValueError, TypeError) as exc:  # a suffix VTK cannot write this type to
         raise ValueError(f"cannot write {path.name}: {exc}") from exc
+    return [] if folds is None else [folds]
 
 
 def write_deformed_volume(path: Path, volume, harmonic_map, inputs=()) -> list:
     """Write a deformed volume: resampled or warped as :func:`~vhm_viz.io.is_image_format` says.
 
-    ``inputs``: as for :func:`write_deformed`. Returns the filter's
-    :attr:`~vhm_viz.filters.HarmonicResampleFilter.warnings`: a line naming how many
-    resampled voxels lie in folds, and where, when any do (the file is written all the
-    same, as ``vhm-viz deform --allow-folds`` writes it).
+    ``inputs`` and what it returns: as for :func:`write_deformed` (a resample's voxels in
+    folds, a warp's inverted voxel cells).
     """
     import pyvista as pv
 
     from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
 
-    flt = HarmonicResampleFilter() if is_image_format(path) else HarmonicDeformationFilter()
+    resample = is_image_format(path)
+    flt = HarmonicResampleFilter() if resample else HarmonicDeformationFilter()
     flt.SetInputData(volume)
     flt.SetHarmonicMap(harmonic_map)
     flt.SetOutsidePolicy("passthrough")
-    with warnings.catch_warnings():  # the caller says them, from flt.warnings
+    with warnings.catch_warnings():  # the fold line below says it
         warnings.simplefilter("ignore", FoldWarning)
         data = pv.wrap(update(flt))
+    folds = output_folds(volume, data, harmonic_map, engine=flt.volume_engine,
+                         resampled=flt.fold_voxels if resample else None)  # fmt: skip
     write_dataset(path, data, inputs=inputs)
-    return flt.warnings
+    return [] if folds is None else [folds]

@@ -10,21 +10,12 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
-
 from vhm_viz.cli._field_output import (
     add_field_arguments,
     check_field_apart,
     check_field_output,
     field_of,
     write_field,
-)
-from vhm_viz.cli._folds import (
-    FOLD_SPOT_SAMPLES,
-    fold_samples,
-    fold_warning,
-    load_check_kernels,
-    warped_voxel_folds,
 )
 from vhm_viz.cli._util import (
     CLIError,
@@ -51,6 +42,7 @@ from vhm_viz.core.devices import DEVICES, require_device
 from vhm_viz.core.image import INTERPOLATIONS
 from vhm_viz.core.threads import load_compiled_runtime
 from vhm_viz.core.volume import DEFAULT_TOLERANCE, MAX_TOLERANCE
+from vhm_viz.folds import load_check_kernels, output_folds, proof_sized
 from vhm_viz.io import (
     DATASET_SUFFIXES,
     atomic_outputs,
@@ -347,7 +339,7 @@ def deform(args: argparse.Namespace) -> str:
     # daemon: should the solve fail, it ends on its own)
     voxels = volume and not resample
     check_kernels = load_check_kernels(
-        mesh, cells="cells" not in arrays, voxels=voxels, proof=voxels and _proof_sized(mesh)
+        mesh, cells="cells" not in arrays, voxels=voxels, proof=voxels and proof_sized(mesh)
     )
     with timer.stage("solve"):
         solved = build_and_solve(
@@ -387,9 +379,13 @@ def deform(args: argparse.Namespace) -> str:
     with timer.stage("checks"):
         check_kernels.join()
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
-        warning = _check_folds(
-            mesh, result, dfm, flt, resample, quiet=args.quiet, memory_budget=args.memory_budget
-        )
+        bar = Progress("checking", enabled=not (args.quiet or resample))
+        bar(0.0)
+        warning = output_folds(
+            mesh, result, dfm.harmonic_map, resampled=flt.fold_voxels if resample else None,
+            engine=flt.volume_engine, progress=bar, memory_budget=args.memory_budget,
+        )  # fmt: skip
+        bar.finish()
     if warning and not args.allow_folds:
         raise FoldedOutput(
             warning
@@ -406,17 +402,6 @@ def deform(args: argparse.Namespace) -> str:
             print_warning("deform", text)
     outputs = ", ".join(map(str, written))
     return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {outputs}" + field_written
-
-
-#: Voxel cells of a warped image from which its fold check measures only the cells that
-#: the volume engine's lattice does not prove unfolded: below it, measuring every cell
-#: takes less time than loading the proof's compiled kernels.
-PROOF_MIN_CELLS = 1 << 23
-
-
-def _proof_sized(image) -> bool:
-    """Whether a warped image's fold check asks the lattice's proof (its cells' count)."""
-    return int(np.prod(np.asarray(image.dimensions) - 1)) >= PROOF_MIN_CELLS
 
 
 def _summary(mesh, result, reports, flt, resample: bool, volume: bool, tolerance) -> list[str]:
@@ -447,56 +432,3 @@ def _output_type(mesh) -> str:
     if isinstance(mesh, pv.UnstructuredGrid):
         return "UnstructuredGrid"
     return "StructuredGrid"
-
-
-def _check_folds(
-    mesh, result, dfm, flt, resample: bool, quiet: bool, memory_budget=None
-) -> str | None:
-    """The fold warning of the output: inverted cells and sampled det J <= 0.
-
-    A warped image's cells are judged by the corner Jacobians of its trilinear voxels
-    (:func:`~vhm_viz.core.cell_kernels.inverted_hexahedra`), measured where the volume
-    engine's lattice does not prove them unfolded
-    (:meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`); other 3D cells
-    by the tetrahedra they split into, taken from the output's cell arrays when the
-    filter computed them (``--arrays cells``). The cells' check has a progress bar
-    (``checking``); a warped image's is done in slabs of at most ``memory_budget`` bytes
-    (``--memory-budget``).
-    """
-    import pyvista as pv
-
-    from vhm_viz.core.image import ImageGeometry
-    from vhm_viz.filters import cell_quality
-
-    cells = None
-    point_det = None
-    if not resample:
-        bar = Progress("checking", enabled=not quiet)
-        bar(0.0)
-        if isinstance(mesh, pv.ImageData):
-            engine = flt.volume_engine  # its lattice proves most voxel cells unfolded
-            unproven = None
-            grid = ImageGeometry(mesh.origin, mesh.spacing, mesh.dimensions, mesh.direction_matrix)
-            if _proof_sized(mesh) and engine is not None and engine.geometry.same_as(grid):
-                unproven = engine.unproven_cells()
-            cells = warped_voxel_folds(mesh, result, bar, memory_budget, unproven)
-        elif "cell_jacobian_determinant" in result.cell_data:
-            det = np.asarray(result.cell_data["cell_jacobian_determinant"])
-            finite = np.isfinite(det)
-            summary = {"cells": int(finite.sum()), "inverted": int((det[finite] <= 0).sum())}
-            cells = {"determinant": det, "summary": summary}
-        else:
-            cells = cell_quality(mesh, result.points, condition=False)
-        bar.finish()
-        if "jacobian_determinant" in result.point_data:
-            point_det = np.asarray(result.point_data["jacobian_determinant"])
-            if "vhm_outside" in result.point_data:  # passthrough points are not the map's
-                point_det = np.where(result.point_data["vhm_outside"] == 0, point_det, np.nan)
-    # a resample marks and counts its voxels in folds itself; cells were checked one by one
-    voxels = flt.fold_voxels if resample else None
-    whole = resample or cells is not None
-    n_points = mesh.GetNumberOfPoints()
-    samples = FOLD_SPOT_SAMPLES if whole else fold_samples(n_points)
-    return fold_warning(
-        mesh, dfm.harmonic_map, cells=cells, point_det=point_det, samples=samples, voxels=voxels
-    )

@@ -4,7 +4,7 @@ A resample marks the output voxels that have several pre-images (``vhm_foldover`
 :class:`~vhm_viz.core.volume.Resampled`). :func:`fold_voxels` summarises such a mask
 (their count and the box of their output positions), :func:`merge_fold_voxels` joins the
 summaries of pieces, and :func:`fold_voxels_text` is the one wording of them: in the
-command line's fold check (:func:`vhm_viz.cli._folds.fold_warning`), the resample
+command line's fold check (:func:`vhm_viz.folds.fold_warning`), the resample
 filter's warning (ParaView's output window) and the explorer's export.
 """
 

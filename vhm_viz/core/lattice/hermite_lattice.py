@@ -183,7 +183,7 @@ class HermiteLattice:
         """Load :meth:`unproven_cells`' compiled kernel now, for the arrays a lattice holds.
 
         Over an empty range of root cells, so that nothing is computed: a check's warm-up
-        (:func:`vhm_viz.cli._folds.load_check_kernels`) before a lattice exists.
+        (:func:`vhm_viz.folds.load_check_kernels`) before a lattice exists.
         """
         none = np.zeros(0, dtype=np.int64)
         axes = np.ones(3, dtype=np.int64)

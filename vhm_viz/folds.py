@@ -254,6 +254,77 @@ def fold_warning(
     return FOLDS + "; ".join(parts) + f" ({rest}vhm-viz analyze --certify checks every point)"
 
 
+#: Voxel cells of a warped image from which its fold check measures only the cells that
+#: the volume engine's lattice does not prove unfolded: below it, measuring every cell
+#: takes less time than loading the proof's compiled kernels.
+PROOF_MIN_CELLS = 1 << 23
+
+
+def proof_sized(image) -> bool:
+    """Whether a warped image's fold check asks the lattice's proof (its cells' count)."""
+    return int(np.prod(np.asarray(image.dimensions) - 1)) >= PROOF_MIN_CELLS
+
+
+def output_folds(
+    rest, result, harmonic_map, *, resampled=None, engine=None, progress=None, memory_budget=None
+) -> str | None:
+    """:func:`fold_warning` of a deformation's output: how many folds, and where, or None.
+
+    What ``vhm-viz deform`` refuses without ``--allow-folds`` and the explorer's export
+    says. A warped image's cells are judged by the corner Jacobians of its trilinear
+    voxels (:func:`~vhm_viz.core.cell_kernels.inverted_hexahedra`), measured where the
+    volume engine's lattice does not prove them unfolded
+    (:meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`); other 3D cells by
+    the tetrahedra they split into, taken from the output's cell arrays when the filter
+    computed them; a resample's voxels in folds are the filter's count. Beside a check of
+    the whole output ``det J`` is spot-checked, else sampled (:func:`fold_samples`).
+
+    Parameters
+    ----------
+    rest : pyvista.DataSet
+        The input (positions in the line are rest positions).
+    result : pyvista.DataSet
+        The deformed output (a warp: its points; a resample: unused beside ``resampled``).
+    harmonic_map : HarmonicMap
+    resampled : dict, optional
+        A resample's voxels in folds (the resample filter's ``fold_voxels``).
+    engine : VolumeDeformation, optional
+        The volume engine that warped ``rest`` (its lattice's proof spares cells).
+    progress : callable, optional
+        ``progress(fraction)`` while a warped image's cells are measured.
+    memory_budget : int, optional
+        Bytes of a warped image's slabs of cells at most.
+    """
+    import pyvista as pv
+
+    from vhm_viz.core.image import ImageGeometry
+    from vhm_viz.filters import cell_quality
+
+    cells = point_det = None
+    if resampled is None:
+        if isinstance(rest, pv.ImageData):
+            unproven = None  # the engine's lattice proves most voxel cells unfolded
+            grid = ImageGeometry(rest.origin, rest.spacing, rest.dimensions, rest.direction_matrix)
+            if proof_sized(rest) and engine is not None and engine.geometry.same_as(grid):
+                unproven = engine.unproven_cells()
+            cells = warped_voxel_folds(rest, result, progress, memory_budget, unproven)
+        elif "cell_jacobian_determinant" in result.cell_data:
+            det = np.asarray(result.cell_data["cell_jacobian_determinant"])
+            finite = np.isfinite(det)
+            summary = {"cells": int(finite.sum()), "inverted": int((det[finite] <= 0).sum())}
+            cells = {"determinant": det, "summary": summary}
+        else:
+            cells = cell_quality(rest, result.points, condition=False)
+        if "jacobian_determinant" in result.point_data:
+            point_det = np.asarray(result.point_data["jacobian_determinant"])
+            if "vhm_outside" in result.point_data:  # passthrough points are not the map's
+                point_det = np.where(result.point_data["vhm_outside"] == 0, point_det, np.nan)
+    whole = resampled is not None or cells is not None
+    samples = FOLD_SPOT_SAMPLES if whole else fold_samples(rest.GetNumberOfPoints())
+    return fold_warning(rest, harmonic_map, cells=cells, point_det=point_det, samples=samples,
+                        voxels=resampled)  # fmt: skip
+
+
 def load_check_kernels(data, *, cells: bool = True, voxels: bool = False, proof: bool = False):
     """Start loading the compiled kernels of ``data``'s checks, on a second thread.
 
@@ -279,7 +350,7 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False, proof:
         The fold check measures a warped image's voxel cells (a forward warp).
     proof : bool
         Those of them that the volume engine's lattice does not prove unfolded (a large
-        image: :data:`~vhm_viz.cli.deform.PROOF_MIN_CELLS`).
+        image: :data:`PROOF_MIN_CELLS`).
 
     Returns
     -------
