@@ -131,3 +131,40 @@ def test_a_signal_during_start_up_is_one_line(tmp_path):
     assert proc.returncode == 130, proc.stderr
     assert proc.stderr == "vhm-viz deform: interrupted by SIGINT\n"
     assert not out.exists()
+
+
+#: Runs the command line with a real SIGTERM sent to itself as VTK's Python dispatch of a
+#: filter's update-extent request begins: between the filter's own methods, which keep
+#: their errors (the signal's exception arrives at any instruction).
+_SIGNAL_IN_DISPATCH = """
+import os, signal, sys
+from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
+from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
+
+dispatch = VTKPythonAlgorithmBase.ProcessRequest.__code__
+
+def hook(frame, event, arg):
+    if event == "call" and frame.f_code is dispatch:
+        if frame.f_locals["request"].Has(sddp.REQUEST_UPDATE_EXTENT()):
+            sys.setprofile(None)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+sys.setprofile(hook)
+from vhm_viz.cli import main
+sys.argv = ["vhm-viz", *sys.argv[1:]]
+main()
+"""
+
+
+def test_a_signal_between_a_filters_methods_is_one_line(tmp_path):
+    out = tmp_path / "bent.vts"
+    out.write_bytes(OLD)
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    done = subprocess.run(
+        [sys.executable, "-c", _SIGNAL_IN_DISPATCH, "deform", str(head), "--scene", str(SCENE),
+         "-o", str(out), "-q"], capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 128 + signal.SIGTERM, done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.strip().splitlines() == ["vhm-viz deform: interrupted by SIGTERM"]
+    assert out.read_bytes() == OLD

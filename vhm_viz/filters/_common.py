@@ -106,6 +106,19 @@ class DeformationSource(VTKPythonAlgorithmBase):
         return self._volumes.engine
 
     # ------------------------------------------------------------------ pipeline ports
+    def ProcessRequest(self, request, in_info, out_info):
+        """VTK's dispatch of a request to the ``Request*`` methods, which keep their errors.
+
+        An exception raised between them -- a signal's :class:`~vhm_viz.interrupts.
+        Interrupted` arrives at any instruction -- is kept in :attr:`last_error` as theirs
+        are (``update`` raises it), not printed by VTK as a traceback.
+        """
+        try:
+            return VTKPythonAlgorithmBase.ProcessRequest(self, request, in_info, out_info)
+        except BaseException as exc:  # noqa: BLE001 -- handed back by update()
+            self.last_error = exc
+            return 0
+
     def FillInputPortInformation(self, port, info):
         """Port 0: ``input_type``; port 1: an optional ``vtkPolyData`` cage."""
         if port == 0:
