@@ -66,7 +66,10 @@ def test_bad_counts_and_inputs():
     with pytest.raises(ValueError, match="NaN"):
         auto_anchors(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, np.nan]]), cage, 3)
     with pytest.raises(ValueError, match="interior"):
-        auto_anchors((v, f), cage, 10**6)
+        auto_anchors((v, f), cage, 10_000, resolution=8)
+    # the solver's matrices grow with the square of the count: its range ends at 10,000
+    with pytest.raises(ValueError, match=r"count must be an integer in \[1, 10000\]"):
+        auto_anchors((v, f), cage, 10_001)
     # a grid that cannot fit is refused before any of it exists, naming its size
     grid = r"a \d+x\d+x100005 voxel grid needs about .* use a lower resolution"
     with pytest.raises(ValueError, match=grid):
@@ -201,3 +204,43 @@ def test_anchors_never_coincide_where_the_skeleton_has_fewer_voxels(resolution):
     anchors, report = auto_anchors(cube, cage, 4, resolution=resolution, return_report=True)
     assert len(np.unique(anchors, axis=0)) == 4 and report.min_pairwise_distance > 0
     assert np.abs(anchors).max() < 0.5
+
+
+def test_many_anchors_in_a_fat_shape_are_distinct_and_spread():
+    # a cube's skeleton is its centre voxel: every anchor after the first is the free
+    # candidate farthest from the anchors placed
+    cube = pv.Cube().triangulate()
+    cage = Cage(*box_cage((-2, -2, -2), (2, 2, 2)))
+    anchors, report = auto_anchors(cube, cage, 300, resolution=24, return_report=True)
+    assert len(np.unique(anchors, axis=0)) == 300
+    assert np.abs(anchors).max() < 0.5 and cage.contains(anchors).all()
+    # farthest-point sampling of 300 points in the unit cube leaves no gap near its side
+    assert report.coverage < 0.25 and report.min_pairwise_distance > 0.05
+
+
+def test_crowding_moves_are_undone_one_anchor_after_another():
+    # the Lloyd rounds' rule, checked against its plain statement: anchor after anchor,
+    # a move that lands nearer than the spread to another anchor (where that one is now)
+    # goes back
+    from vhm_viz.autocage.anchors import _undo_crowding
+
+    rng = np.random.default_rng(3)
+    centres = rng.random((400, 3))
+    undone = kept = 0
+    for _ in range(30):
+        chosen = rng.choice(400, 60, replace=False)
+        moved = chosen.copy()
+        hop = rng.random(60) < 0.5
+        moved[hop] = rng.integers(0, 400, hop.sum())
+        spread = 0.05 + 0.1 * rng.random()
+        want = moved.copy()
+        for a in range(len(want)):
+            others = np.delete(want, a)
+            if np.linalg.norm(centres[others] - centres[want[a]], axis=1).min() < spread:
+                want[a] = chosen[a]
+        got = moved.copy()
+        _undo_crowding(centres, chosen, got, spread)
+        assert np.array_equal(got, want)
+        undone += int(np.sum((want != moved) & hop))
+        kept += int(np.sum((want == moved) & (moved != chosen)))
+    assert undone > 20 and kept > 20  # both outcomes occur

@@ -208,3 +208,21 @@ def test_a_memory_budget_that_is_no_size_is_refused_in_one_line(tmp_path, text):
                 f"--memory-budget={text}")  # fmt: skip
     assert proc.returncode == 2 and "--memory-budget" in proc.stderr
     assert "expected a size" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_a_solver_of_too_many_anchors_is_refused_before_it_allocates(tmp_path):
+    # the solver's dense factorisation holds (3d, 3d) matrices: 4,000 anchors need about
+    # 2.3 GB, refused under 1.2 GB at once, in one line naming the anchors
+    scene = _bend_scene((0.0, 1.0, 0.0, 1.0, 0.0, 4.0))
+    rng = np.random.default_rng(0)
+    scene["anchors"] = (rng.random((4000, 3)) * [1.0, 1.0, 4.0]).tolist()
+    (tmp_path / "many.json").write_text(json.dumps(scene))
+    (tmp_path / "points.csv").write_text("0.5,0.5,1\n0.5,0.5,2\n0.5,0.5,3\n")
+    out = tmp_path / "bent.vtp"
+    done = _cli("deform", tmp_path / "points.csv", "--scene", tmp_path / "many.json", "-o", out,
+                limit=LIMIT)  # fmt: skip
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1, done.stderr
+    assert "the solver for 4000 anchors needs about 2" in lines[-1], lines
+    assert "use fewer anchors" in lines[-1] and not out.exists()
+    assert "Traceback" not in done.stderr

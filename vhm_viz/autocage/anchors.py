@@ -41,6 +41,7 @@ from vhm_viz.autocage.samples import collect_samples, point_spacing
 from vhm_viz.core.basis import domain_columns, inside_cage, winding_number
 from vhm_viz.core.cage import Cage
 from vhm_viz.core.errors import OutsideCageError, describe_indices
+from vhm_viz.core.limits import check_setting
 
 __all__ = ["auto_anchors", "AnchorReport"]
 
@@ -338,6 +339,11 @@ def _farthest_point_anchors(trees, skeleton, part, targets, seeds, count, on_ske
     dist = np.full(len(targets), np.inf)
     for c in chosen:
         dist = np.minimum(dist, np.linalg.norm(targets - centres[c], axis=1))
+    taken = np.zeros(len(centres), dtype=bool)
+    taken[chosen] = True
+    # every candidate's distance to the nearest anchor, kept from the first taken pick
+    # on (fat shapes take nearly every pick): one pass per anchor, not a tree per pick
+    gap = None
     while len(chosen) < count:
         i = int(np.argmax(dist))
         p, r = targets[i], float(dist[i])
@@ -351,17 +357,33 @@ def _farthest_point_anchors(trees, skeleton, part, targets, seeds, count, on_ske
             else:  # a fat part: halfway from the point towards its skeleton
                 q = p + min(0.5 * r, ds) * (centres[sk[js]] - p) / max(ds, 1e-300)
                 c = int(members[tree.query(q)[1]])
-        if c in chosen:  # taken: the free candidate of the pool farthest from the anchors
+        if taken[c]:  # taken: the free candidate of the pool farthest from the anchors
             # (a pool all taken -- a skeleton of a voxel or two -- widens to the part,
             # then to every candidate: anchors never coincide)
-            for wider in (pool, members, np.arange(len(centres))):
-                free = np.setdiff1d(wider, chosen)
+            if gap is None:
+                gap = cKDTree(centres[chosen]).query(centres)[0]
+            for wider in (pool, members, None):
+                free = np.flatnonzero(~taken) if wider is None else wider[~taken[wider]]
                 if len(free):
                     break
-            c = int(free[np.argmax(cKDTree(centres[chosen]).query(centres[free])[0])])
+            c = int(free[np.argmax(gap[free])])
         chosen.append(c)
+        taken[c] = True
+        if gap is not None:
+            _nearer(gap, centres, c)
         dist = np.minimum(dist, np.linalg.norm(targets - centres[c], axis=1))
     return np.array(chosen[:count], dtype=np.int64)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _nearer(gap, centres, c):  # pragma: no cover - compiled
+    """``gap = min(gap, |centres - centres[c]|)`` in place, in one pass."""
+    x, y, z = centres[c, 0], centres[c, 1], centres[c, 2]
+    for k in range(centres.shape[0]):
+        dx, dy, dz = centres[k, 0] - x, centres[k, 1] - y, centres[k, 2] - z
+        d = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if d < gap[k]:
+            gap[k] = d
 
 
 def _closest_pair(points: np.ndarray) -> float:
@@ -392,15 +414,15 @@ def _minimax_rounds(trees, allowed, part, targets, chosen, rounds: int = 40):
     spread = 0.5 * _closest_pair(centres[chosen])
     for _ in range(rounds):
         moved = chosen.copy()
+        # the targets each anchor covers, in their order: one stable sort, not a scan each
+        by_anchor = np.argsort(lab, kind="stable")
+        ends = np.searchsorted(lab[by_anchor], np.arange(len(chosen) + 1))
         for a in range(len(chosen)):
-            mine = targets[lab == a]
-            if len(mine):
+            if ends[a + 1] > ends[a]:
+                mine = targets[by_anchor[ends[a] : ends[a + 1]]]
                 idx, tree = of_part[int(part[chosen[a]])]
                 moved[a] = idx[tree.query(_ball_centre(mine))[1]]
-        for a in range(len(moved)):  # a move that crowds another anchor is undone
-            others = np.delete(moved, a)
-            if np.linalg.norm(centres[others] - centres[moved[a]], axis=1).min() < spread:
-                moved[a] = chosen[a]
+        _undo_crowding(centres, chosen, moved, spread)
         if _closest_pair(centres[moved]) < spread:
             break
         if np.array_equal(moved, chosen):
@@ -410,6 +432,33 @@ def _minimax_rounds(trees, allowed, part, targets, chosen, rounds: int = 40):
         if d.max() < best:
             best, best_chosen = float(d.max()), chosen.copy()
     return best_chosen, best
+
+
+def _undo_crowding(centres, chosen, moved, spread: float) -> None:
+    """Undo, anchor after anchor, each move that crowds another anchor, in place.
+
+    Anchor ``a`` goes back to ``chosen[a]`` when ``moved[a]`` lies nearer than ``spread``
+    to another anchor where that one is now: moved, or already sent back. The neighbours
+    within ``spread`` come from one tree of both positions of every anchor.
+    """
+    n = len(moved)
+    if n < 2 or not spread > 0:  # no distance is below zero
+        return
+    tree = cKDTree(np.concatenate([centres[moved], centres[chosen]]))
+    near = tree.query_ball_point(centres[moved], r=spread * (1 + 1e-9))  # then exactly
+    back = np.zeros(n, dtype=bool)
+    for a in range(n):
+        here = centres[moved[a]]
+        for j in near[a]:
+            b, at_rest = (j, False) if j < n else (j - n, True)
+            # b is where it is now: moved unless sent back (only anchors before a are)
+            if b == a or at_rest != (b < a and back[b]):
+                continue
+            d = centres[chosen[b] if at_rest else moved[b]] - here
+            if np.sqrt(d @ d) < spread:
+                back[a] = True
+                moved[a] = chosen[a]
+                break
 
 
 def _relocated(trees, allowed, part, targets, chosen, cover, tries: int = 6):
@@ -424,14 +473,15 @@ def _relocated(trees, allowed, part, targets, chosen, cover, tries: int = 6):
         d, lab = cKDTree(centres[chosen]).query(targets)
         radius = np.zeros(len(chosen))
         np.maximum.at(radius, lab, d)
-        alone = np.array([np.sum(part[chosen] == part[c]) == 1 for c in chosen])
+        alone = np.bincount(part[chosen])[part[chosen]] == 1  # its part's only anchor
         radius[alone] = np.inf
         a = int(np.argmin(radius))
         if not np.isfinite(radius[a]):
             break
         k = min(16, len(centres))
         near = np.atleast_1d(tree.query(targets[int(np.argmax(d))], k=k)[1])
-        near = [c for c in near if allowed[c] and c not in set(chosen.tolist())]
+        taken = set(chosen.tolist())
+        near = [c for c in near if allowed[c] and c not in taken]
         if not near:
             break
         trial = chosen.copy()
@@ -515,7 +565,8 @@ def auto_anchors(
         cloud or tet mesh, every voxel above a volume's threshold, or without a threshold
         the volume's whole box.
     count : int
-        Number of anchors ``d`` (>= 1); exactly this many are returned.
+        Number of anchors ``d``, in ``anchor_count``'s range (1 to 10,000:
+        :mod:`vhm_viz.core.limits`); exactly this many are returned.
     resolution : int, optional
         Voxels along the longest side of the shape (default 96; volumes: one per image
         sample, at most 96; a volume without a threshold, whose shape is its whole box:
@@ -544,13 +595,11 @@ def auto_anchors(
     OutsideCageError
         Points of the shape outside the cage, counted.
     ValueError
-        Degenerate input, ``count < 1``, a shape too thin for the voxel grid (raise
+        Degenerate input, ``count`` out of its range, a shape too thin for the voxel grid (raise
         ``resolution``), or fewer interior voxels than ``count``.
     """
     t0 = time.perf_counter()
-    count = int(count)
-    if count < 1:
-        raise ValueError(f"auto_anchors: count must be >= 1, got {count}")
+    count = check_setting("anchor_count", count, "count")
     samples = collect_samples(data, threshold=threshold, scalars=scalars, what="auto_anchors")
     cage = _as_cage(cage)
     pts, box_targets = samples.points, None

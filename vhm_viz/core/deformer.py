@@ -84,6 +84,7 @@ from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indi
 from vhm_viz.core.geometry import face_normals_and_areas
 from vhm_viz.core.harmonic_map import HarmonicMap
 from vhm_viz.core.limits import check_setting
+from vhm_viz.core.memory import solver_bytes
 from vhm_viz.core.points import as_points
 from vhm_viz.core.smoothness import (
     default_smoothness_samples,
@@ -97,6 +98,7 @@ from vhm_viz.core.solver import (
     project_blocks,
     run_local_global,
 )
+from vhm_viz.resources import require_memory
 
 # SolveReport and default_smoothness_samples are re-exported from their own modules
 __all__ = ["Deformer", "SolveReport", "default_smoothness_samples"]
@@ -178,6 +180,11 @@ class Deformer:
         a = as_points(anchors, "anchors", allow_empty=False)
         self._anchors = a
         d = len(a)
+        require_memory(
+            solver_bytes(d, self._N),
+            f"the solver for {d} anchors",
+            "use fewer anchors (its matrices grow with the square of their number)",
+        )
         ev = self._evaluate_inside(a, 1, "anchors")
         if not np.isfinite(ev.gradients).all():
             bad = np.nonzero(~np.isfinite(ev.gradients).all(axis=(1, 2)))[0]

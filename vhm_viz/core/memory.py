@@ -226,3 +226,36 @@ def volume_job_bytes(
         parts["field"] = points * FIELD_VOXEL_BYTES + warp + vectors * FIELD_WRITER_COPIES
     parts["total"] = sum(parts.values())
     return parts
+
+
+#: Whole (3d, 3d) float64 matrices a solver of d anchors holds at once: ``C_R`` (see
+#: :func:`vhm_viz.core.constraints.factor_constraints`) and, while a new constraint layout
+#: is factorised, its successor.
+SOLVER_SQUARE_COPIES = 2
+#: (3d, N) float64 matrices beside them, N the cage's coefficients: the anchors' basis
+#: Jacobians, the least-squares factor's anchor block, and B's anchor columns with the
+#: working copies the factorisation makes of them.
+SOLVER_TALL_COPIES = 6
+
+
+def solver_bytes(anchors: int, coefficients: int) -> int:
+    """The memory a :class:`~vhm_viz.core.deformer.Deformer` of ``anchors`` will allocate.
+
+    The local/global solver's factorisation is dense in the anchors' local matrices: its
+    largest arrays are (3d, 3d) and (3d, N) float64, so it grows with the square of the
+    anchor count ``d`` (an estimate, for refusing before allocating).
+
+    Parameters
+    ----------
+    anchors : int
+        Anchor count ``d``.
+    coefficients : int
+        The cage's basis functions ``N`` (vertices plus faces).
+
+    Returns
+    -------
+    int
+        Bytes.
+    """
+    rows = 3 * int(anchors)
+    return 8 * rows * (SOLVER_SQUARE_COPIES * rows + SOLVER_TALL_COPIES * int(coefficients))
