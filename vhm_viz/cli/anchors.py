@@ -36,7 +36,12 @@ def add_arguments(p) -> None:
     p.add_argument("--cage", "-c", required=True, metavar="CAGE", help="cage file (OBJ, ...)")
     add_output_argument(p, "ANCHORS.json", "output JSON, or a 3D Slicer point list (*.mrk.json)")
     p.add_argument(
-        "--count", "-n", type=int, default=24, metavar="N", help="number of anchors (default: 24)"
+        "--count",
+        "-n",
+        type=int,
+        default=24,
+        metavar="N",
+        help="number of anchors, 1 to 10000 (default: 24)",
     )
     add_dataset_arguments(p, "anchors")
 
