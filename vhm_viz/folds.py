@@ -54,17 +54,13 @@ def _points_of(data, index) -> np.ndarray:
     """Positions of the points ``index`` of ``data``; an image's without making them all."""
     import pyvista as pv
 
+    from vhm_viz.filters._vtk import image_geometry
+
     index = np.asarray(index, dtype=np.int64)
     if isinstance(data, pv.ImageData):
         ijk = np.column_stack(np.unravel_index(index, tuple(data.dimensions), order="F"))
-        return image_positions(data, ijk)
+        return image_geometry(data).points(ijk)
     return np.asarray(data.points, dtype=np.float64)[index]
-
-
-def image_positions(image, ijk) -> np.ndarray:
-    """World positions of (fractional) index coordinates ``ijk`` (K, 3) of an image."""
-    frame = np.asarray(image.direction_matrix, dtype=np.float64) * np.asarray(image.spacing)
-    return np.asarray(image.origin, dtype=np.float64) + np.asarray(ijk, dtype=np.float64) @ frame.T
 
 
 #: Cells per slab of :func:`inverted_voxel_cells` at most: a slab takes a small fraction
@@ -297,14 +293,14 @@ def output_folds(
     """
     import pyvista as pv
 
-    from vhm_viz.core.image import ImageGeometry
     from vhm_viz.filters import cell_quality
+    from vhm_viz.filters._vtk import image_geometry
 
     cells = point_det = None
     if resampled is None:
         if isinstance(rest, pv.ImageData):
             unproven = None  # the engine's lattice proves most voxel cells unfolded
-            grid = ImageGeometry(rest.origin, rest.spacing, rest.dimensions, rest.direction_matrix)
+            grid = image_geometry(rest)
             if proof_sized(rest) and engine is not None and engine.geometry.same_as(grid):
                 unproven = engine.unproven_cells()
             cells = warped_voxel_folds(rest, result, progress, memory_budget, unproven)
