@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import warnings
 
 import numpy as np
 
@@ -26,7 +27,9 @@ def tetrahedralize(
 
     A thin wrapper of :func:`pytetwild.tetrahedralize_pv` (fTetWild: robust to small
     defects; the boundary follows the input within ``epsilon`` of the bounding-box
-    diagonal, it is not the input triangulation).
+    diagonal, it is not the input triangulation). fTetWild is not deterministic: the same
+    surface and options give a different mesh from run to run, with a different number of
+    tetrahedra (fTetWild issue #72), so save the mesh to deform the same one twice.
 
     Parameters
     ----------
@@ -78,7 +81,13 @@ def tetrahedralize(
 
     # fTetWild writes a debug file (__tracked_surface.stl) into the working directory;
     # run it in a scratch directory so no stray files appear where the user works.
-    with tempfile.TemporaryDirectory(prefix="vhm_tetwild_") as scratch, _working_directory(scratch):
+    # pytetwild calls a PyVista method that PyVista deprecates: nothing for the user to change
+    with (
+        tempfile.TemporaryDirectory(prefix="vhm_tetwild_") as scratch,
+        _working_directory(scratch),
+        warnings.catch_warnings(),
+    ):
+        warnings.simplefilter("ignore", pv.PyVistaDeprecationWarning)
         grid = tetrahedralize_pv(
             pv.PolyData(mesh.points, mesh.faces),
             edge_length_fac=edge_length_fac,
