@@ -16,6 +16,7 @@ from conftest import (  # noqa: E402
     data_path,
     extent_box,
     fd_jacobian,
+    trilinear_corner_dets,
     write_folding_volume,
 )
 from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase  # noqa: E402
@@ -662,6 +663,85 @@ def test_resample_with_voxels_in_folds_says_how_many_and_where(tmp_path):
         out = pv.wrap(update(flt))
     assert not np.asarray(out.point_data["vhm_foldover"]).any()
     assert flt.warnings == [] and flt.fold_voxels["count"] == 0
+
+
+def test_warp_with_inverted_cells_says_how_many_and_worst_where(tmp_path, monkeypatch):
+    """SetCheckFolds: the warped folding volume's inverted voxel cells, counted as a
+    brute-force trilinear corner Jacobian of the output's points counts them, the worst
+    ratio and its cell's rest centre, in one FoldWarning; off (the default), none. The
+    same when the lattice's proof spares the cells it proves (as it does for large
+    images)."""
+    import warnings
+
+    import vhm_viz.folds
+    from vhm_viz.core.errors import FoldWarning
+
+    write_folding_volume(tmp_path)
+    image = pv.read(tmp_path / "image.vti")
+    flt = HarmonicDeformationFilter()
+    flt.SetInputData(image)
+    flt.SetScene(str(tmp_path / "scene.json"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        plain = pv.wrap(update(flt))
+    assert flt.warnings == [] and flt.fold_cells is None
+    flt.SetCheckFolds(True)
+    with pytest.warns(FoldWarning) as seen:
+        out = pv.wrap(update(flt))
+    np.testing.assert_array_equal(out.points, plain.points)
+    assert len(seen) == 1 and flt.warnings == [str(seen[0].message)]
+    dims = tuple(image.dimensions)
+    spacing = float(np.prod(image.spacing))
+    ratio = trilinear_corner_dets(np.asarray(out.points).reshape(dims[::-1] + (3,))) / spacing
+    bad = np.flatnonzero(ratio <= 0)
+    assert bad.size > 0
+    m = re.fullmatch(
+        r"the deformation folds the data: (\d+) of (\d+) cells inverted \(cell det <= 0; "
+        r"worst (\S+) at (\([^)]*\)), within (\([^)]*\)-\([^)]*\))\) \(rest positions\)",
+        flt.warnings[0],
+    )
+    assert m, flt.warnings[0]
+    assert int(m.group(1)) == bad.size == flt.fold_cells["count"]
+    assert int(m.group(2)) == image.n_cells
+    worst = int(bad[np.argmin(ratio[bad])])
+    assert float(m.group(3)) == pytest.approx(ratio[worst], rel=1e-2)
+    centres = np.asarray(image.cell_centers().points)
+    np.testing.assert_allclose(_corners(m.group(4))[0], centres[worst], rtol=1e-3, atol=1e-3)
+    box = [centres[bad].min(axis=0), centres[bad].max(axis=0)]
+    np.testing.assert_allclose(_corners(m.group(5)), box, rtol=1e-3, atol=1e-3)
+    monkeypatch.setattr(vhm_viz.folds, "PROOF_MIN_CELLS", 1)
+    flt.SetTolerance(0.04)  # a new update (the same filter, the same map)
+    with pytest.warns(FoldWarning):
+        out = pv.wrap(update(flt))
+    ratio = trilinear_corner_dets(np.asarray(out.points).reshape(dims[::-1] + (3,))) / spacing
+    assert flt.fold_cells["count"] == np.count_nonzero(ratio <= 0)
+    assert flt.fold_cells["worst"] == pytest.approx(ratio.min(), rel=1e-9)
+
+
+def test_warp_of_a_tet_mesh_with_inverted_cells_counts_them(tmp_path):
+    """SetCheckFolds on a tet mesh: its tetrahedra whose signed volume the warp turns
+    (numpy, from the output's points) are the warning's count."""
+    from vhm_viz.core.errors import FoldWarning
+
+    write_folding_volume(tmp_path)
+    tets = pv.read(tmp_path / "image.vti").to_tetrahedra()
+    flt = HarmonicDeformationFilter()
+    flt.SetInputData(tets)
+    flt.SetScene(str(tmp_path / "scene.json"))
+    flt.SetCheckFolds(True)
+    with pytest.warns(FoldWarning):
+        out = pv.wrap(update(flt))
+
+    def volumes(points):
+        x = np.asarray(points)[tets.cells_dict[pv.CellType.TETRA]]
+        a, b, c = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]
+        return np.einsum("ij,ij->i", a, np.cross(b, c))
+
+    ratio = volumes(out.points) / volumes(tets.points)
+    assert (ratio <= 0).sum() > 0
+    assert flt.fold_cells["count"] == (ratio <= 0).sum()
+    assert flt.fold_cells["cells"] == tets.n_cells
+    assert f"{(ratio <= 0).sum()} of {tets.n_cells} cells inverted" in flt.warnings[0]
 
 
 # ------------------------------------------------------------------ analysis

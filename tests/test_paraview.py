@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DATA, box_cage, data_path, write_folding_volume
+from conftest import DATA, box_cage, data_path, trilinear_corner_dets, write_folding_volume
 
 pv = pytest.importorskip("pyvista")
 
@@ -459,6 +459,35 @@ def test_resample_with_voxels_in_folds_says_so_once_for_the_whole_output(paravie
     for piece in (serial, *pieces):
         assert piece.field_data["vhm_foldover_count"][0] == marked.size
         assert piece.field_data["vhm_valid_count"][0] == valid
+
+
+def test_warp_with_inverted_cells_says_so_once_for_the_whole_output(paraview_env, tmp_path):
+    """VHM Harmonic Deformation checks the warped cells by default: one line in the output
+    messages with the whole output's inverted voxel cells, the same from two ranks (each
+    warping its piece) as serially, counted as a brute-force trilinear corner Jacobian of
+    the serial output counts them."""
+    write_folding_volume(tmp_path, record_map=True)
+    config = {"input": str(tmp_path / "image.vti"), "ids": False,
+              "scene": str(tmp_path / "scene.json"),
+              "filter": "VHMHarmonicDeformation"}  # fmt: skip
+    logs = [_run(paraview_env, {**config, "output": str(tmp_path / f"out{n}.pvts")}, tmp_path,
+                 ranks=n) for n in (1, 2)]  # fmt: skip
+    image, serial = pv.read(tmp_path / "image.vti"), pv.read(tmp_path / "out1.vts")
+    points = np.asarray(serial.points).reshape(tuple(image.dimensions)[::-1] + (3,))
+    ratio = trilinear_corner_dets(points) / float(np.prod(image.spacing))
+    inverted = int(np.count_nonzero(ratio <= 0))
+    assert inverted > 0
+    lines = []
+    for log in logs:
+        assert "Traceback" not in log
+        (line,) = [ln for ln in log.splitlines() if "folds" in ln]
+        lines.append(line)
+    assert lines[0] == lines[1]
+    assert lines[0].startswith(
+        f"VHM Harmonic Deformation: the deformation folds the data: {inverted} of "
+        f"{image.n_cells} cells inverted (cell det <= 0; worst "
+    ), lines[0]
+    assert lines[0].endswith(" (rest positions)")
 
 
 @pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from vhm_viz import interrupts
-from vhm_viz.core.fold_voxels import FOLDS, fold_voxels_text
+from vhm_viz.core.fold_voxels import FOLDS, fold_voxels_text, inverted_cells, inverted_cells_text
 from vhm_viz.core.fold_voxels import position_text as _position
 
 #: Points at which ``vhm-viz deform`` samples ``det J`` for its fold warning (evenly spread)
@@ -222,10 +222,7 @@ def fold_warning(
             from vhm_viz.filters.cells import cell_centres
 
             centres = cell_centres(rest, bad)
-        parts.append(
-            f"{bad.size} of {cells['summary']['cells']} cells inverted "
-            f"(cell det <= 0; {_where(centres, worst)})"
-        )
+        parts.append(inverted_cells_text(inverted_cells(worst, centres, cells["summary"]["cells"])))
     n_points = rest.GetNumberOfPoints()
     if point_det is None:
         idx = np.unique(np.linspace(0, n_points - 1, min(n_points, samples)).astype(int))

@@ -1,4 +1,4 @@
-"""A resampled volume's voxels in folds: how many, where, and the line that says so.
+"""Folds in a deformed output: how many, where, and the line that says so.
 
 A resample marks the output voxels that have several pre-images (``vhm_foldover``,
 :class:`~vhm_viz.core.volume.Resampled`). :func:`fold_voxels` summarises such a mask
@@ -6,6 +6,11 @@ A resample marks the output voxels that have several pre-images (``vhm_foldover`
 summaries of pieces, and :func:`fold_voxels_text` is the one wording of them: in the
 command line's fold check (:func:`vhm_viz.folds.fold_warning`), the resample
 filter's warning (ParaView's output window) and the explorer's export.
+
+A warp's inverted cells are summarised alike: :func:`inverted_cells` (their count, the
+worst determinant and where, the box of their rest centres), :func:`merge_inverted_cells`
+and :func:`inverted_cells_text`, in the command line's check and the deformation
+filter's warning.
 """
 
 from __future__ import annotations
@@ -19,7 +24,10 @@ __all__ = [
     "FOLDS",
     "fold_voxels",
     "fold_voxels_text",
+    "inverted_cells",
+    "inverted_cells_text",
     "merge_fold_voxels",
+    "merge_inverted_cells",
     "position_text",
 ]
 
@@ -93,3 +101,62 @@ def fold_voxels_text(voxels: dict) -> str | None:
         f"{voxels['count']} of {voxels['voxels']} output voxels in folds "
         f"(several pre-images; {where})"
     )
+
+
+def inverted_cells(determinants, centres, cells: int) -> dict:
+    """The inverted cells of a deformed mesh or image: their count, worst and box.
+
+    Parameters
+    ----------
+    determinants : (K,) array_like
+        The inverted cells' determinants (``<= 0``, relative to the rest cell's).
+    centres : (K, 3) array_like
+        Their rest centres (world units).
+    cells : int
+        The cells measured (with finite corners), inverted or not.
+
+    Returns
+    -------
+    dict
+        ``count`` (K), ``cells``, ``worst`` (the smallest determinant; ``inf`` when K is
+        0), ``at`` (3,) its cell's centre, and ``lo``, ``hi`` (3,) the box of the
+        centres (``inf`` and ``-inf`` when K is 0).
+    """
+    det = np.asarray(determinants, dtype=np.float64).reshape(-1)
+    at = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    out = {"count": int(det.size), "cells": int(cells), "worst": np.inf, "at": np.full(3, np.nan),
+           "lo": np.full(3, np.inf), "hi": np.full(3, -np.inf)}  # fmt: skip
+    if det.size:
+        k = int(np.argmin(det))
+        out["worst"], out["at"] = float(det[k]), at[k].copy()
+        # column by column: numpy's axis-0 reduction of (K, 3) is slow
+        out["lo"] = np.array([at[:, c].min() for c in range(3)])
+        out["hi"] = np.array([at[:, c].max() for c in range(3)])
+    return out
+
+
+def merge_inverted_cells(parts) -> dict:
+    """One :func:`inverted_cells` summary of several disjoint pieces' summaries."""
+    parts = list(parts)
+    out = inverted_cells([], np.zeros((0, 3)), sum(int(p["cells"]) for p in parts))
+    out["count"] = sum(int(p["count"]) for p in parts)
+    for p in parts:
+        if p["count"] and p["worst"] < out["worst"]:
+            out["worst"], out["at"] = float(p["worst"]), np.asarray(p["at"], dtype=np.float64)
+        out["lo"] = np.minimum(out["lo"], p["lo"])
+        out["hi"] = np.maximum(out["hi"], p["hi"])
+    return out
+
+
+def inverted_cells_text(cells: dict) -> str | None:
+    """The line of an :func:`inverted_cells` summary; None when no cell is inverted.
+
+    ``K of N cells inverted (cell det <= 0; worst D at (x, y, z), within
+    (x, y, z)-(x, y, z))``, positions being rest positions.
+    """
+    if not cells["count"]:
+        return None
+    where = f"worst {cells['worst']:.3g} at {position_text(cells['at'])}"
+    if cells["count"] > 1:
+        where += f", within {position_text(cells['lo'])}-{position_text(cells['hi'])}"
+    return f"{cells['count']} of {cells['cells']} cells inverted (cell det <= 0; {where})"

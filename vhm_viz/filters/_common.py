@@ -490,6 +490,10 @@ class DeformationSource(VTKPythonAlgorithmBase):
             device=self._device,
         )
 
+    def _mpi(self) -> bool:
+        """Whether this update runs on several MPI ranks that agree (ParaView)."""
+        return self._parallel_reporting and mpi.process_count() > 1
+
     def _lattice_exchange(self):
         """A :class:`~vhm_viz.filters.mpi.LatticeExchange` under MPI, else None.
 

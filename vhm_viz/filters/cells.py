@@ -200,17 +200,22 @@ def cell_centres(ds, cells) -> np.ndarray:
     """Centres of the cells ``cells`` (indices) of a dataset: VTK's cell centres.
 
     Linear simplices' centres in an unstructured grid are their points' mean, taken from
-    the connectivity; other cells' go through VTK (``cell_centers`` of the extracted cells).
+    the connectivity; other cells' go through VTK's ``vtkCellCenters`` (plain VTK: it runs
+    in ParaView's Python, which has no PyVista).
 
     Returns
     -------
     (K, 3) float64
     """
-    import pyvista as pv  # only here: ParaView's Python may lack PyVista
-
     cells = np.asarray(cells, dtype=np.int64).reshape(-1)
     if not ds.IsA("vtkUnstructuredGrid") or not np.isin(cell_types(ds)[cells], _SIMPLICES).all():
-        return np.asarray(pv.wrap(ds).extract_cells(cells).cell_centers().points, np.float64)
+        from vtkmodules.vtkFiltersCore import vtkCellCenters
+
+        centres = vtkCellCenters()
+        centres.SetInputData(ds)
+        centres.CopyArraysOff()
+        centres.Update()
+        return numpy_points(centres.GetOutput())[cells].astype(np.float64, copy=False)
     conn = ns.vtk_to_numpy(ds.GetCells().GetConnectivityArray())
     offsets = ns.vtk_to_numpy(ds.GetCells().GetOffsetsArray())
     points = numpy_points(ds)
@@ -310,6 +315,18 @@ def set_cell_counts(data, inverted: int, rest_inverted: int) -> None:
         fd.AddArray(count)
 
 
+def own_cells(data) -> np.ndarray:
+    """Which of ``data``'s cells are its own: (C,) bool.
+
+    Cells that ``vtkGhostType`` marks as duplicates (ghost cells, another piece's own) are
+    not.
+    """
+    ghosts = data.GetCellData().GetArray(vtkDataSetAttributes.GhostArrayName())
+    if ghosts is None:
+        return np.ones(data.GetNumberOfCells(), dtype=bool)
+    return (ns.vtk_to_numpy(ghosts) & vtkDataSetAttributes.DUPLICATECELL) == 0
+
+
 def own_cell_counts(data) -> np.ndarray:
     """``[inverted, rest_inverted, has the arrays]`` of ``data``'s own cells (float64).
 
@@ -320,10 +337,7 @@ def own_cell_counts(data) -> np.ndarray:
     inverted, rest = cd.GetArray("cell_inverted"), cd.GetArray("cell_rest_inverted")
     if inverted is None or rest is None:
         return np.zeros(3)
-    own = np.ones(inverted.GetNumberOfTuples(), dtype=bool)
-    ghosts = cd.GetArray(vtkDataSetAttributes.GhostArrayName())
-    if ghosts is not None:
-        own = (ns.vtk_to_numpy(ghosts) & vtkDataSetAttributes.DUPLICATECELL) == 0
+    own = own_cells(data)
     return np.array([np.count_nonzero(ns.vtk_to_numpy(inverted)[own]),
                      np.count_nonzero(ns.vtk_to_numpy(rest)[own]), 1.0])  # fmt: skip
 

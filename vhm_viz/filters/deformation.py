@@ -16,7 +16,15 @@ from vtkmodules.vtkCommonDataModel import (
 from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
 
 from vhm_viz.core.binding import cofactor_normals
+from vhm_viz.core.errors import FoldWarning
+from vhm_viz.core.fold_voxels import (
+    FOLDS,
+    inverted_cells,
+    inverted_cells_text,
+    merge_inverted_cells,
+)
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
+from vhm_viz.filters import mpi
 from vhm_viz.filters._common import DeformationSource
 from vhm_viz.filters._vtk import (
     add_lattice_counts,
@@ -24,7 +32,7 @@ from vhm_viz.filters._vtk import (
     numpy_points,
     requested_extent,
 )
-from vhm_viz.filters.cells import add_cell_arrays, cell_quality
+from vhm_viz.filters.cells import add_cell_arrays, cell_centres, cell_quality, own_cells
 from vhm_viz.io import cell_types
 
 __all__ = ["HarmonicDeformationFilter", "output_type_for"]
@@ -122,7 +130,9 @@ class HarmonicDeformationFilter(DeformationSource):
     deformed cells, as :class:`~vhm_viz.filters.JacobianAnalysisFilter` writes it. With the
     ``"passthrough"`` outside policy, the ``uint8`` point array ``vhm_outside`` flags the
     points left in place; :attr:`outside_count` counts them (also stored as the field
-    array ``vhm_outside_count``).
+    array ``vhm_outside_count``). With :meth:`SetCheckFolds` the deformed cells are
+    measured and inverted ones said in a :class:`~vhm_viz.core.errors.FoldWarning` (in
+    ParaView, in its output window), counted in :attr:`fold_cells`.
 
     The binding (``F = D_points B``, the expensive part) is cached: it is rebuilt only when
     the input geometry, the cage, the deformer (anchors) or the constraint layout change,
@@ -144,9 +154,14 @@ class HarmonicDeformationFilter(DeformationSource):
         self._condition = False
         self._cell_quality = False
         self._deform_normals = True
+        self._check_folds = False
         #: :func:`vhm_viz.core.metrics.cell_summary` of the last update (with
         #: :meth:`SetComputeCellQuality` and 3D cells), else None.
         self.cell_summary: dict | None = None
+        #: :func:`vhm_viz.core.fold_voxels.inverted_cells` of the last update's output
+        #: (with :meth:`SetCheckFolds`; under MPI the whole output's), else None.
+        self.fold_cells: dict | None = None
+        self._piece_folds: dict | None = None  # this rank's piece's, before they agree
 
     # ------------------------------------------------------------------ options
     def SetComputeDisplacement(self, value: bool) -> None:
@@ -168,6 +183,18 @@ class HarmonicDeformationFilter(DeformationSource):
     def SetDeformNormals(self, value: bool) -> None:
         """Deform point/cell normals through the Jacobian (default True)."""
         self._set_option("_deform_normals", bool(value))
+
+    def SetCheckFolds(self, value: bool) -> None:
+        """Measure the deformed cells and say how many are inverted, and where (default off).
+
+        A warped image's voxels by their hexahedra's corner Jacobians, where the volume
+        engine's lattice does not prove them unfolded
+        (:func:`vhm_viz.folds.inverted_voxel_cells`); other 3D cells by the tetrahedra
+        they split into (:func:`~vhm_viz.filters.cell_quality`). Surfaces and point clouds
+        have no cells to measure. ``vhm-viz deform`` makes its own check (with the
+        continuous map's ``det J`` besides); the ParaView plugin turns this one on.
+        """
+        self._set_option("_check_folds", bool(value))
 
     # ------------------------------------------------------------------ pipeline
     def RequestDataObject(self, request, in_info, out_info):
@@ -215,6 +242,8 @@ class HarmonicDeformationFilter(DeformationSource):
         inp = vtkDataSet.GetData(in_info[0], 0)
         out = vtkDataObject.GetData(out_info, 0)
         inp = self._piece_input(inp, in_info, out_info)
+        self._output_warnings, self.fold_cells = [], None
+        self._piece_folds = inverted_cells([], np.zeros((0, 3)), 0)
         if inp.IsA("vtkImageData"):
             return self._execute_image(inp, in_info, out)
         hm, dfm = self._resolve(in_info, inp)
@@ -250,19 +279,29 @@ class HarmonicDeformationFilter(DeformationSource):
             jc = hm.evaluate(centres, order=1, outside="passthrough")[1]
             n = ns.vtk_to_numpy(cnormals).reshape(-1, 3)
             _set_array(cd, cnormals.GetName() or "Normals", cofactor_normals(jc, n), normals=True)
-        self.cell_summary = None
+        self.cell_summary = quality = None
         if self._cell_quality and len(points):
             quality = cell_quality(src, deformed)
             if quality is not None:
                 add_cell_arrays(out, quality)
                 self.cell_summary = quality["summary"]
+        if self._check_folds and len(points):
+            if quality is None:
+                quality = cell_quality(src, deformed, condition=False)
+            if quality is not None:
+                self._piece_folds = _mesh_folds(src, quality["determinant"])
         if self._displacement:
             _set_array(pd, "displacement", deformed - points)
         self._finish(out, ev.outside)
         return 1
 
     def _finish(self, out, outside: np.ndarray) -> None:
-        """The outside flags (``vhm_outside``) and count (field ``vhm_outside_count``)."""
+        """The outside flags (``vhm_outside``) and count (field ``vhm_outside_count``).
+
+        Serially, also the fold warning of this output (under MPI, once the ranks agree).
+        """
+        if self._check_folds and not self._mpi():
+            self._say_folds(self._piece_folds)
         if self._outside != "error":
             # uint8 flags are handed over (the image path makes them for this); others
             # are converted into a new array, which is handed over
@@ -274,6 +313,20 @@ class HarmonicDeformationFilter(DeformationSource):
         out.GetFieldData().AddArray(count)
         self.UpdateProgress(1.0)
 
+    def _agree_on_output(self, out_info) -> None:
+        """Under MPI: the fold warning of the whole output, said once (collective)."""
+        if self._check_folds:
+            rows = mpi.gather_rows_of(lambda: _folds_row(self._piece_folds)[None, :], 12)
+            self._say_folds(merge_inverted_cells(_folds_of_row(row) for row in rows))
+
+    def _say_folds(self, folds: dict) -> None:
+        """Keep the output's inverted cells; say them if there are any."""
+        self.fold_cells = folds
+        text = inverted_cells_text(folds)
+        if text is not None:
+            line = f"{FOLDS}{text} (rest positions)"
+            self._output_warnings = [line]
+            self._say_warning(line, FoldWarning)
 
     def _execute_image(self, inp, in_info, out):
         """Images: the volume engine's lattice, streamed in slabs, instead of a binding.
@@ -295,6 +348,8 @@ class HarmonicDeformationFilter(DeformationSource):
             if self._lattice_exchange() is not None:
                 self._volume(hm, geo, self._outside, window=box, pre_images=False).build()
             out.SetExtent(ext)
+            if self._check_folds and not self._mpi():
+                self._say_folds(self._piece_folds)
             return 1
         # the voxels only are warped: a lattice without pre-images (faster, smaller)
         vol = self._volume(hm, geo, self._outside, window=box, pre_images=False)
@@ -337,10 +392,56 @@ class HarmonicDeformationFilter(DeformationSource):
             if quality is not None:
                 add_cell_arrays(out, quality)
                 self.cell_summary = quality["summary"]
+        if self._check_folds:
+            self._piece_folds = _image_folds(points, vol, box, self._progress(0.95, 1.0))
         add_lattice_counts(out, vol)
         # one array for the flags, not three (each a byte per voxel)
         self._finish(out, np.logical_not(inside, out=np.empty(inside.size, np.uint8)))
         return 1
+
+
+def _image_folds(points, vol, box, progress) -> dict:
+    """:func:`inverted_cells` of a warped piece ``box`` of an image (``vol``'s geometry).
+
+    Its voxel hexahedra by their corner Jacobians, measured where the lattice does not
+    prove them unfolded (for images of at least
+    :data:`~vhm_viz.folds.PROOF_MIN_CELLS` cells, as the command line's check).
+    """
+    from vhm_viz.folds import PROOF_MIN_CELLS, inverted_voxel_cells
+
+    dims = [box[2 * a + 1] - box[2 * a] + 1 for a in range(3)]
+    if min(dims) < 2:
+        return inverted_cells([], np.zeros((0, 3)), 0)
+    unproven = None
+    if int(np.prod(np.asarray(dims) - 1)) >= PROOF_MIN_CELLS:
+        unproven = vol.unproven_cells(box)
+    rest_det = float(np.linalg.det(vol.geometry.index_to_world))
+    cells = inverted_voxel_cells(points, dims, rest_det, progress, None, unproven)
+    row, i = np.divmod(cells["inverted"], dims[0] - 1)
+    k, j = np.divmod(row, dims[1] - 1)
+    centres = vol.geometry.sub(box).points(np.column_stack([i, j, k]) + 0.5)
+    return inverted_cells(cells["inverted_determinant"], centres, cells["summary"]["cells"])
+
+
+def _mesh_folds(rest, determinant) -> dict:
+    """:func:`inverted_cells` of a deformed mesh's own cells (not its ghost cells)."""
+    det = np.asarray(determinant)
+    own = own_cells(rest)
+    bad = np.flatnonzero((det <= 0) & own)
+    measured = int(np.count_nonzero(np.isfinite(det) & own))
+    return inverted_cells(det[bad], cell_centres(rest, bad), measured)
+
+
+def _folds_row(folds) -> np.ndarray:
+    """An :func:`inverted_cells` summary as 12 numbers, to gather over MPI ranks."""
+    return np.concatenate([[folds["count"], folds["cells"], folds["worst"]], folds["at"],
+                           folds["lo"], folds["hi"]]).astype(np.float64)  # fmt: skip
+
+
+def _folds_of_row(row) -> dict:
+    """The summary of a :func:`_folds_row`."""
+    return {"count": int(row[0]), "cells": int(row[1]), "worst": float(row[2]),
+            "at": row[3:6], "lo": row[6:9], "hi": row[9:12]}  # fmt: skip
 
 
 #: VTK's axis-aligned cells and the general cells that take them over once moved, with

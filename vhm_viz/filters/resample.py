@@ -237,9 +237,6 @@ class HarmonicResampleFilter(DeformationSource):
             if pd is None or pd.GetNumberOfPoints() == 0:
                 self.GetInputAlgorithm(1, 0).UpdatePiece(0, 1, 0)
 
-    def _mpi(self) -> bool:
-        return self._parallel_reporting and mpi.process_count() > 1
-
     def _information(self, in_info, out_info):
         if self._spacing is not None and (self._explicit is not None or self._mode == "input"):
             given = "the reference grid" if self._explicit is not None else "the input grid"

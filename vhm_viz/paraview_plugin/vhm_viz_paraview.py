@@ -70,6 +70,10 @@ _OUTSIDE_XML = (
     "vhm_outside.</Documentation></IntVectorProperty>"
 )
 _OUTSIDE = ("error", "passthrough", "nan")
+_FOLDS_HELP = (
+    "Measure the deformed cells (a volume's voxels, a mesh's 3D cells) and say in the output "
+    "messages how many are inverted and where (rest positions)."
+)
 _OPTIONAL_ARRAYS = ("displacement", "jacobian_determinant", "condition_number")
 
 
@@ -94,14 +98,14 @@ def _filter(name, label, data_type):
     return declare
 
 
-def _checkbox(name, documentation):
-    """A ParaView checkbox property (off by default) with its tooltip, for a setter."""
+def _checkbox(name, documentation, default=0):
+    """A ParaView checkbox property (off unless ``default``) with its tooltip, for a setter."""
 
     def declare(setter):
         setter = smdomain.xml(
             f'<BooleanDomain name="bool"/><Documentation>{documentation}</Documentation>'
         )(setter)
-        return smproperty.intvector(name=name, default_values=0, number_of_elements=1)(setter)
+        return smproperty.intvector(name=name, default_values=default, number_of_elements=1)(setter)
 
     return declare
 
@@ -194,6 +198,7 @@ class VHMHarmonicDeformation(_ParaViewReporting, HarmonicDeformationFilter):
         for name in _OPTIONAL_ARRAYS:
             self._arrays.AddArray(name, False)
         self._arrays.AddObserver("ModifiedEvent", lambda *_: self._apply_array_selection())
+        self.SetCheckFolds(True)  # the CheckFolds checkbox's default
 
     def _apply_array_selection(self):
         on = self._arrays.ArrayIsEnabled
@@ -218,6 +223,10 @@ class VHMHarmonicDeformation(_ParaViewReporting, HarmonicDeformationFilter):
     )
     def SetVolumeTolerance(self, value):
         self.SetTolerance(float(value))
+
+    @_checkbox("CheckFolds", _FOLDS_HELP, default=1)
+    def SetCheckFoldsFlag(self, value):
+        self.SetCheckFolds(bool(int(value)))
 
 
 @_filter("VHMJacobianAnalysis", "VHM Jacobian Analysis", "vtkDataSet")
