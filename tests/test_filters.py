@@ -744,6 +744,54 @@ def test_warp_of_a_tet_mesh_with_inverted_cells_counts_them(tmp_path):
     assert f"{(ratio <= 0).sum()} of {tets.n_cells} cells inverted" in flt.warnings[0]
 
 
+@pytest.mark.parametrize("source", ["reader", "data set"])
+def test_warp_fold_check_of_pieces_with_ghost_levels_counts_each_cell_once(tmp_path, source):
+    """Pieces asked for with a ghost level (as ParaView's ranks are when a filter downstream
+    needs ghost cells) hold a layer of their neighbours' cells: each piece's fold summary
+    counts its own cells only, so that the pieces' summaries add up to the whole warped
+    image's, as a brute-force trilinear corner Jacobian of the whole output counts them,
+    whether a reader crops the pieces or the filter crops the data set it was given."""
+    import warnings
+
+    from vtkmodules.vtkIOXML import vtkXMLImageDataReader
+
+    from vhm_viz.core.fold_voxels import merge_inverted_cells
+
+    write_folding_volume(tmp_path)
+    image = pv.read(tmp_path / "image.vti")
+    flt = HarmonicDeformationFilter()
+    if source == "reader":
+        reader = vtkXMLImageDataReader()
+        reader.SetFileName(str(tmp_path / "image.vti"))
+        flt.SetInputConnection(reader.GetOutputPort())
+    else:
+        flt.SetInputData(image)
+    flt.SetScene(str(tmp_path / "scene.json"))
+    flt.SetCheckFolds(True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        whole = pv.wrap(update(flt))
+        dims = tuple(image.dimensions)
+        points = np.asarray(whole.points).reshape(dims[::-1] + (3,))
+        ratio = trilinear_corner_dets(points) / float(np.prod(image.spacing))
+        bad = np.flatnonzero(ratio <= 0)
+        assert bad.size > 0 and flt.fold_cells["count"] == bad.size
+        centres = np.asarray(image.cell_centers().points)[bad]
+        for n in (2, 3):
+            parts = []
+            for piece in range(n):
+                flt.UpdatePiece(piece, n, 1)
+                assert flt.last_error is None
+                out = flt.GetOutputDataObject(0)
+                assert out.GetCellData().GetArray("vtkGhostType") is not None  # ghosts held
+                parts.append(flt.fold_cells)
+            merged = merge_inverted_cells(parts)
+            assert (merged["count"], merged["cells"]) == (bad.size, image.n_cells), n
+            assert merged["worst"] == pytest.approx(ratio[bad].min(), rel=1e-9)
+            np.testing.assert_allclose(merged["lo"], centres.min(axis=0), atol=1e-9)
+            np.testing.assert_allclose(merged["hi"], centres.max(axis=0), atol=1e-9)
+
+
 # ------------------------------------------------------------------ analysis
 
 

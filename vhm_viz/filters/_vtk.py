@@ -101,6 +101,26 @@ def requested_extent(info, whole=None):
     return None if ext is None else tuple(int(v) for v in ext)
 
 
+def own_extent(info, whole=None):
+    """A piece's own extent, without the ghost levels it is requested with; else None.
+
+    None when the request has no ghost levels (the requested extent is the piece's own)
+    or no pieces. The extent of the piece that ``vtkExtentTranslator`` assigns in block
+    mode, as :func:`requested_extent`: the cells between it and the requested extent are
+    the neighbours' (ghost cells).
+    """
+    whole = info.Get(_SDDP.WHOLE_EXTENT()) if whole is None else whole
+    ghosts = info.Get(_SDDP.UPDATE_NUMBER_OF_GHOST_LEVELS()) or 0
+    n = info.Get(_SDDP.UPDATE_NUMBER_OF_PIECES()) or 1
+    if ghosts <= 0 or n <= 1 or whole is None:
+        return None
+    piece = info.Get(_SDDP.UPDATE_PIECE_NUMBER()) or 0
+    tr = vtkExtentTranslator()
+    ext = [0] * 6
+    tr.PieceToExtentThreadSafe(piece, n, 0, whole, ext, tr.BLOCK_MODE, 0)
+    return tuple(int(v) for v in ext)
+
+
 def geometry_key(ds) -> tuple:
     """A hashable key that changes when the geometry (point positions) of ``ds`` changes.
 

@@ -30,6 +30,7 @@ from vhm_viz.filters._vtk import (
     add_lattice_counts,
     image_geometry,
     numpy_points,
+    own_extent,
     requested_extent,
 )
 from vhm_viz.filters.cells import add_cell_arrays, cell_centres, cell_quality, own_cells
@@ -220,7 +221,8 @@ class HarmonicDeformationFilter(DeformationSource):
         Sources that stream (readers, ``vtkRTAnalyticSource``) deliver the requested
         extent; a ``vtkTrivialProducer`` delivers the whole data set, which is cropped here
         to the output's update extent (or, without one, to the piece that
-        ``vtkExtentTranslator`` assigns in block mode).
+        ``vtkExtentTranslator`` assigns in block mode), its ghost layers marked
+        (``vtkGhostType``) as a streaming source's executive marks them.
         """
         if inp.GetExtentType() != 1:
             return inp
@@ -236,6 +238,9 @@ class HarmonicDeformationFilter(DeformationSource):
         sub = inp.NewInstance()
         sub.ShallowCopy(inp)
         sub.Crop(want)
+        own = own_extent(out_info.GetInformationObject(0), whole)
+        if own is not None:
+            sub.GenerateGhostArray(list(own))
         return sub
 
     def _execute(self, in_info, out_info):
@@ -393,19 +398,22 @@ class HarmonicDeformationFilter(DeformationSource):
                 add_cell_arrays(out, quality)
                 self.cell_summary = quality["summary"]
         if self._check_folds:
-            self._piece_folds = _image_folds(points, vol, box, self._progress(0.95, 1.0))
+            progress = self._progress(0.95, 1.0)
+            self._piece_folds = _image_folds(points, vol, box, own_cells(inp), progress)
         add_lattice_counts(out, vol)
         # one array for the flags, not three (each a byte per voxel)
         self._finish(out, np.logical_not(inside, out=np.empty(inside.size, np.uint8)))
         return 1
 
 
-def _image_folds(points, vol, box, progress) -> dict:
+def _image_folds(points, vol, box, own, progress) -> dict:
     """:func:`inverted_cells` of a warped piece ``box`` of an image (``vol``'s geometry).
 
     Its voxel hexahedra by their corner Jacobians, measured where the lattice does not
     prove them unfolded (for images of at least
-    :data:`~vhm_viz.folds.PROOF_MIN_CELLS` cells, as the command line's check).
+    :data:`~vhm_viz.folds.PROOF_MIN_CELLS` cells, as the command line's check). Only its
+    own cells (``own``, (C,) bool) count: a piece requested with ghost levels has layers
+    of its neighbours' cells, which they count.
     """
     from vhm_viz.folds import PROOF_MIN_CELLS, inverted_voxel_cells
 
@@ -417,10 +425,24 @@ def _image_folds(points, vol, box, progress) -> dict:
         unproven = vol.unproven_cells(box)
     rest_det = float(np.linalg.det(vol.geometry.index_to_world))
     cells = inverted_voxel_cells(points, dims, rest_det, progress, None, unproven)
-    row, i = np.divmod(cells["inverted"], dims[0] - 1)
+    bad, det = cells["inverted"], cells["inverted_determinant"]
+    measured = cells["summary"]["cells"]
+    if not own.all():
+        bad, det = bad[own[bad]], det[own[bad]]
+        measured -= int(np.count_nonzero(_finite_cells(points, dims) & ~own))
+    row, i = np.divmod(bad, dims[0] - 1)
     k, j = np.divmod(row, dims[1] - 1)
     centres = vol.geometry.sub(box).points(np.column_stack([i, j, k]) + 0.5)
-    return inverted_cells(cells["inverted_determinant"], centres, cells["summary"]["cells"])
+    return inverted_cells(det, centres, measured)
+
+
+def _finite_cells(points, dims) -> np.ndarray:
+    """Which voxel cells of a (``dims``) grid of ``points`` have finite corners: (C,) bool."""
+    finite = np.isfinite(points).all(axis=1).reshape(dims[::-1])
+    out = finite[:-1, :-1, :-1].copy()
+    for c, b, a in np.ndindex(2, 2, 2):
+        out &= finite[c : c + dims[2] - 1, b : b + dims[1] - 1, a : a + dims[0] - 1]
+    return out.reshape(-1)
 
 
 def _mesh_folds(rest, determinant) -> dict:
