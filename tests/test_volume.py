@@ -433,6 +433,27 @@ def test_pull_back_slabs_stay_small_whatever_the_budget():
         assert vol.largest_slab * 56 <= 64 * 2**20 < (vol.largest_slab + plane) * 56
 
 
+def test_outside_voxels_of_a_piece_are_counted_of_the_piece():
+    """A piece's warp (an MPI rank's window) refusing voxels outside the cage counts
+    them of the piece's voxels, not of the whole volume's: the count is the piece's, as
+    the cage's box counts them; the whole volume's warp says the whole count."""
+    geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (20, 20, 20))
+    cage = _cage_around((2.5, 2.5, 2.5), (16.5, 16.5, 16.5), 0.0)  # no voxel on the cage
+    hm = _random_bend(cage, 0.01, seed=3)
+    p = geo.points().reshape(20, 20, 20, 3)
+    outside = ((p < 2.5) | (p > 16.5)).any(axis=-1)
+    with pytest.raises(OutsideCageError) as whole:
+        VolumeDeformation(hm, geo).warp()
+    assert str(whole.value).startswith(f"{outside.sum()} of 8000 voxels are outside the cage")
+    box = [0, 19, 0, 19, 10, 19]
+    with pytest.raises(OutsideCageError) as piece:
+        VolumeDeformation(hm, geo, window=box, pre_images=False).warp(box)
+    assert str(piece.value).startswith(
+        f"{outside[10:].sum()} of the 4000 voxels of the piece {box} (8000 in all) are "
+        "outside the cage"
+    ), str(piece.value)
+
+
 def test_outside_policies_and_abort(bend):
     geo = ImageGeometry((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (40, 40, 40))
     cage = _cage_around((8, 8, 8), (30, 30, 30), 0.0)  # the volume sticks out

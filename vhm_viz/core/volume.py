@@ -374,10 +374,16 @@ class VolumeDeformation(VolumePieces):
             return
         bad = self.outside_voxels(box)
         if bad.size:
+            # a piece's count is of the piece's voxels: an MPI rank says its own piece's
+            b = self._in_window(self.window if box is None else box)
+            n = int(np.prod(b[1::2] - b[0::2] + 1))
+            of = f"{n} voxels"
+            if n != self.geometry.n_points:
+                of = f"the {n} voxels of the piece {b.tolist()} ({self.geometry.n_points} in all)"
             raise OutsideCageError(
-                f"{bad.size} of {self.geometry.n_points} voxels are outside the cage (indices "
-                f"{describe_indices(bad)}); use the 'passthrough' outside policy to leave them "
-                "in place or 'nan' to drop them",
+                f"{bad.size} of {of} are outside the cage (indices {describe_indices(bad)}); "
+                "use the 'passthrough' outside policy to leave them in place or 'nan' to drop "
+                "them",
                 bad,
             )
 
