@@ -242,6 +242,49 @@ def test_cell_centres_are_vtks(bar_tets):
         np.testing.assert_allclose(cell_centres(ds, index), expected, rtol=1e-6, atol=1e-6)
 
 
+def test_cell_centres_and_fold_positions_skip_empty_cells(tmp_path):
+    """Empty cells (which VTK's vtkCellCenters gives no centre) leave every other cell its
+    own centre: a voxel mesh with empty cells among its voxels has the centres that the
+    same voxels have without them, and the warp's fold check says the same cells, worst
+    cell and box with them as without."""
+    import warnings
+
+    from conftest import write_folding_volume
+    from vtkmodules.vtkCommonCore import vtkIdList
+    from vtkmodules.vtkCommonDataModel import vtkUnstructuredGrid
+
+    write_folding_volume(tmp_path)
+    voxels = pv.read(tmp_path / "image.vti").cast_to_unstructured_grid()
+    with_empty = vtkUnstructuredGrid()
+    with_empty.SetPoints(voxels.GetPoints())
+    with_empty.Allocate()
+    own = []  # with_empty's id of each voxel
+    for c in range(voxels.n_cells):
+        if c in (0, voxels.n_cells // 2):
+            with_empty.InsertNextCell(0, vtkIdList())  # VTK_EMPTY_CELL
+        ids = vtkIdList()
+        voxels.GetCellPoints(c, ids)
+        own.append(with_empty.InsertNextCell(voxels.GetCellType(c), ids))
+    own = np.asarray(own)
+    expected = np.asarray(voxels.cell_centers().points)
+    np.testing.assert_allclose(cell_centres(with_empty, own), expected, atol=1e-12)
+    assert np.isnan(cell_centres(with_empty, [0])).all()
+    folds = []
+    for mesh in (voxels, with_empty):
+        f = HarmonicDeformationFilter()
+        f.SetInputData(mesh)
+        f.SetScene(str(tmp_path / "scene.json"))
+        f.SetCheckFolds(True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            update(f)
+        folds.append(f.fold_cells)
+    assert folds[0]["count"] > 1
+    assert (folds[1]["count"], folds[1]["cells"]) == (folds[0]["count"], folds[0]["cells"])
+    for key in ("worst", "at", "lo", "hi"):
+        np.testing.assert_allclose(folds[1][key], folds[0][key], atol=1e-12)
+
+
 def test_deformation_filter_writes_the_same_cell_arrays(bar_tets):
     points, tets = bar_tets
     dfm = _solved("push", top_height=2.5)

@@ -201,21 +201,31 @@ def cell_centres(ds, cells) -> np.ndarray:
 
     Linear simplices' centres in an unstructured grid are their points' mean, taken from
     the connectivity; other cells' go through VTK's ``vtkCellCenters`` (plain VTK: it runs
-    in ParaView's Python, which has no PyVista).
+    in ParaView's Python, which has no PyVista), matched to their cells by id: it gives
+    empty cells no centre, so its output is not in cell order where there are any.
 
     Returns
     -------
     (K, 3) float64
+        NaN for an empty cell.
     """
     cells = np.asarray(cells, dtype=np.int64).reshape(-1)
     if not ds.IsA("vtkUnstructuredGrid") or not np.isin(cell_types(ds)[cells], _SIMPLICES).all():
         from vtkmodules.vtkFiltersCore import vtkCellCenters
 
+        tagged = ds.NewInstance()
+        tagged.CopyStructure(ds)
+        ids = ns.numpy_to_vtk(np.arange(ds.GetNumberOfCells(), dtype=np.int64), deep=1)
+        ids.SetName(_ID_ARRAY)
+        tagged.GetCellData().AddArray(ids)
         centres = vtkCellCenters()
-        centres.SetInputData(ds)
-        centres.CopyArraysOff()
+        centres.SetInputData(tagged)
+        centres.CopyArraysOn()
         centres.Update()
-        return numpy_points(centres.GetOutput())[cells].astype(np.float64, copy=False)
+        got = centres.GetOutput()
+        out = np.full((ds.GetNumberOfCells(), 3), np.nan)
+        out[ns.vtk_to_numpy(got.GetPointData().GetArray(_ID_ARRAY))] = numpy_points(got)
+        return out[cells]
     conn = ns.vtk_to_numpy(ds.GetCells().GetConnectivityArray())
     offsets = ns.vtk_to_numpy(ds.GetCells().GetOffsetsArray())
     points = numpy_points(ds)
