@@ -48,8 +48,11 @@ def short_scene(tmp_path_factory) -> tuple[Path, Path]:
     return tmp / "scene.json", cage
 
 
-def _ranks_end(env, config: dict, ranks: int, tmp_path: Path) -> list[str]:
-    """Each rank's ``last_error`` after the update (the run must end, exit 0)."""
+def _ranks_end(env, config: dict, ranks: int, tmp_path: Path, states=None) -> list[str]:
+    """Each rank's ``last_error`` after the update (the run must end, exit 0).
+
+    ``states``, a list: each rank's ``(warnings, has a fold summary)`` is added to it.
+    """
     path = tmp_path / f"{config['filter']}{ranks}.json"
     path.write_text(json.dumps(config))
     from vhm_viz.filters.mpi import mpi_command
@@ -63,6 +66,9 @@ def _ranks_end(env, config: dict, ranks: int, tmp_path: Path) -> list[str]:
     found = sorted(re.findall(r"vhm-rank (\d+): points (\d+) error (.*?) vhm-end", done.stdout))
     assert [int(r) for r, _, _ in found] == list(range(ranks)), log[-3000:]
     assert all(n == "0" for _, n, _ in found), found  # an empty output everywhere
+    if states is not None:
+        state = sorted(re.findall(r"vhm-state (\d+): warnings (\d+) folds (\w+) vhm-end", log))
+        states.extend((int(w), f == "True") for _, w, f in state)
     return [text for _, _, text in found]
 
 
@@ -100,3 +106,27 @@ def test_a_rank_with_an_empty_piece_ends_with_the_error_too(paraview_env, short_
     config = _config(scene, cage, "VHMHarmonicDeformation", voi=[30, 30, 30, 30, 73, 74])
     errors = _ranks_end(paraview_env, config, 3, tmp_path)
     assert len(set(errors)) == 1 and "outside the cage" in errors[0], errors
+
+
+def test_an_update_that_fails_before_its_work_leaves_no_warnings_of_the_last(
+    paraview_env, tmp_path
+):
+    """The warp of a folding volume says its folds; the next update, whose cage reaches
+    rank 0 only, fails on every rank before any work: every rank ends with an empty
+    output and no warning or fold summary left over from the output before."""
+    from conftest import write_folding_volume
+
+    from vhm_viz.scene import Scene
+
+    write_folding_volume(tmp_path, record_map=True)
+    cage = Scene.load(tmp_path / "scene.json").build_cage()
+    path = tmp_path / "cage.obj"
+    faces = "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in cage.faces)
+    path.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in cage.vertices) + faces)
+    config = {"input": str(tmp_path / "image.vti"), "filter": "VHMHarmonicDeformation",
+              "scene": str(tmp_path / "scene.json"), "cage": str(path),
+              "cage_on_rank_0_only": True}  # fmt: skip
+    states = []
+    errors = _ranks_end(paraview_env, config, 2, tmp_path, states)
+    assert len(set(errors)) == 1 and "every rank needs the whole cage" in errors[0], errors
+    assert states == [(0, False), (0, False)]

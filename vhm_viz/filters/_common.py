@@ -162,6 +162,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         shown once as one line in VTK's output window and leaves an empty output on every
         rank (no stale data, no traceback, no rank left waiting).
         """
+        self._forget_output()
         if not self._parallel_reporting:
             return self._guard(self._execute, in_info, out_info)
         self.last_error = None
@@ -181,6 +182,14 @@ class DeformationSource(VTKPythonAlgorithmBase):
         elif mpi.process_count() > 1:
             self._guard(self._agree_on_output, out_info)
         return 1
+
+    def _forget_output(self) -> None:
+        """Drop what described the last update's output (its warnings).
+
+        An update that fails, on any rank, before or during its work, leaves no output
+        to describe.
+        """
+        self._output_warnings = []
 
     def _agree_on_output(self, out_info) -> None:
         """Under MPI, once every rank succeeded: what describes the whole output, agreed.

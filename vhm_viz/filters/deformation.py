@@ -247,8 +247,6 @@ class HarmonicDeformationFilter(DeformationSource):
         inp = vtkDataSet.GetData(in_info[0], 0)
         out = vtkDataObject.GetData(out_info, 0)
         inp = self._piece_input(inp, in_info, out_info)
-        self._output_warnings, self.fold_cells = [], None
-        self._piece_folds = inverted_cells([], np.zeros((0, 3)), 0)
         if inp.IsA("vtkImageData"):
             return self._execute_image(inp, in_info, out)
         hm, dfm = self._resolve(in_info, inp)
@@ -317,6 +315,11 @@ class HarmonicDeformationFilter(DeformationSource):
         out.GetFieldData().RemoveArray("vhm_outside_count")
         out.GetFieldData().AddArray(count)
         self.UpdateProgress(1.0)
+
+    def _forget_output(self) -> None:
+        super()._forget_output()
+        self.fold_cells = None
+        self._piece_folds = inverted_cells([], np.zeros((0, 3)), 0)
 
     def _agree_on_output(self, out_info) -> None:
         """Under MPI: the fold warning of the whole output, said once (collective)."""

@@ -306,8 +306,11 @@ class HarmonicResampleFilter(DeformationSource):
         info0.Set(_SDDP.UPDATE_NUMBER_OF_PIECES(), 1)
         return 1
 
+    def _forget_output(self) -> None:
+        super()._forget_output()
+        self.fold_voxels = None
+
     def _execute(self, in_info, out_info):
-        self._output_warnings, self.fold_voxels = [], None
         if self._geometry is None:  # the information pass failed: its error is the reason
             raise self._information_error or RuntimeError("no output grid: no information pass")
         img = vtkImageData.GetData(in_info[0], 0)
