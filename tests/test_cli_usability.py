@@ -309,3 +309,37 @@ def test_the_readme_scene_is_the_example_file_and_it_works(tmp_path, capsys):
     # the top's centre went exactly to its target (a hard constraint)
     (top,) = np.nonzero(np.linalg.norm(surface.points - np.array([0, 0, 5.0]), axis=1) < 1e-9)
     np.testing.assert_allclose(pv.read(out).points[top], [[3.18, 0, 0]], atol=1e-6)
+
+
+def test_explore_refuses_what_it_cannot_open_before_a_window_opens(small_bar, tmp_path):
+    """`vhm-viz explore` with a missing FILE, --cage or --scene, or a scene with a typo'd
+    field, is one error line naming it and exit status 1, as `deform` says it; without
+    the check the window opens with a dialog and the command never returns."""
+    import json
+
+    from vhm_viz.cli.first_run import NOTICE
+
+    scene = json.loads((small_bar / "scene.json").read_text())
+    scene["alhpa"] = scene.pop("alpha")
+    (tmp_path / "typo.json").write_text(json.dumps(scene))
+    bar = str(small_bar / "bar.vtp")
+    cases = {
+        (str(tmp_path / "missing.obj"),): "input file not found: ",
+        (bar, "--cage", str(tmp_path / "nocage.obj")): "input file not found: ",
+        (bar, "--scene", str(tmp_path / "missing.json")): "scene file not found: ",
+        (bar, "--scene", str(tmp_path / "typo.json")): "scene field 'alhpa': unknown field",
+    }
+    env = subprocess_env()
+    env["QT_QPA_PLATFORM"] = "offscreen"  # the window, were one opened, shows nowhere
+    for args, message in cases.items():
+        try:
+            res = subprocess.run(
+                [sys.executable, "-m", "vhm_viz.cli", "explore", *args],
+                capture_output=True, text=True, env=env, timeout=300,
+            )  # fmt: skip
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"explore {' '.join(args)} opened a window instead of refusing")
+        lines = [ln for ln in res.stderr.splitlines() if ln.strip() and ln != NOTICE]
+        assert res.returncode == 1, res.stderr
+        assert len(lines) == 1 and lines[0].startswith("vhm-viz explore: error: "), lines
+        assert message in lines[0], lines

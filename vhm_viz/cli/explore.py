@@ -25,6 +25,17 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     """Run the explorer until its window closes."""
     from vhm_viz import interrupts
+    from vhm_viz.cli._util import check_input, load_scene
+    from vhm_viz.io import CAGE_SUFFIXES
+
+    # what the command line names is checked before a window opens: a missing or
+    # malformed file is one line and exit status 1, not a dialog in a window
+    if args.file:
+        check_input(args.file)
+    if args.cage:
+        check_input(args.cage, CAGE_SUFFIXES)
+    if args.scene:
+        load_scene(args.scene)
 
     # A signal raised as an exception inside the import of a compiled module can abort
     # the interpreter (shiboken's start-up turns it into "Fatal Python error"): the
