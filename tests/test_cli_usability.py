@@ -81,6 +81,21 @@ def test_options_with_units_name_them(command, option, unit):
     assert unit in " ".join(action.help.split())
 
 
+@pytest.mark.parametrize(
+    ("command", "argument", "kind"),
+    [("cage", "input", "dataset"), ("anchors", "input", "dataset"), ("anchors", "cage", "cage")],
+)
+def test_input_help_names_the_suffixes_the_command_reads(command, argument, kind):
+    """The help of an input lists exactly the suffixes the command accepts (the registry's),
+    rather than promising any format PyVista reads, which the command then refuses."""
+    from vhm_viz.io import CAGE_SUFFIXES, DATASET_SUFFIXES
+
+    accepted = {"dataset": DATASET_SUFFIXES, "cage": CAGE_SUFFIXES}[kind]
+    (action,) = [a for a in _subparsers()[command]._actions if a.dest == argument]
+    named = set(re.findall(r"(?<![\w.])(\.[a-z]+(?:\.gz)?)\b", action.help))
+    assert named == set(accepted), action.help
+
+
 @pytest.fixture(scope="module")
 def small_bar(tmp_path_factory):
     """A small bar and its bend-u scene, as files."""

@@ -13,6 +13,7 @@ import sys
 
 from vhm_viz.cli._util import CLIError, add_quiet_argument
 from vhm_viz.core.errors import SettingError
+from vhm_viz.io import DATASET_SUFFIXES
 
 __all__ = [
     "add_dataset_arguments",
@@ -53,7 +54,11 @@ def add_dataset_arguments(p: argparse.ArgumentParser, command: str) -> None:
     p : argparse.ArgumentParser
     command : {"cage", "anchors"}
     """
-    p.add_argument("input", metavar="INPUT", help="dataset (any PyVista format, .mesh, .npy)")
+    p.add_argument(
+        "input",
+        metavar="INPUT",
+        help=f"dataset: {' '.join(DATASET_SUFFIXES)}, or a DICOM folder",
+    )
     p.add_argument(
         "--resolution",
         type=int,

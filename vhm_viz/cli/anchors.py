@@ -33,7 +33,9 @@ DESCRIPTION = (
 
 def add_arguments(p) -> None:
     """The ``anchors`` subcommand's arguments."""
-    p.add_argument("--cage", "-c", required=True, metavar="CAGE", help="cage file (OBJ, ...)")
+    p.add_argument(
+        "--cage", "-c", required=True, metavar="CAGE", help=f"cage file: {' '.join(CAGE_SUFFIXES)}"
+    )
     add_output_argument(p, "ANCHORS.json", "output JSON, or a 3D Slicer point list (*.mrk.json)")
     p.add_argument(
         "--count",
