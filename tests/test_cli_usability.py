@@ -358,3 +358,30 @@ def test_explore_refuses_what_it_cannot_open_before_a_window_opens(small_bar, tm
         assert res.returncode == 1, res.stderr
         assert len(lines) == 1 and lines[0].startswith("vhm-viz explore: error: "), lines
         assert message in lines[0], lines
+
+
+def test_deform_help_names_the_resampled_suffixes_and_its_example_runs(tmp_path):
+    """The help's list of suffixes a volume is resampled to is the registry's, and its
+    example command runs as printed in the folder where `vhm-viz demo` was run."""
+    import shlex
+
+    from vhm_viz.io import image_suffixes
+
+    parser = _subparsers()["deform"]
+    text = " ".join(parser.description.split())
+    listed = text.split("written to ", 2)[2].split(" it is resampled")[0]
+    assert listed.split(", ") == list(image_suffixes()), listed
+
+    example = " ".join(parser.epilog.split()).split("Example: ", 1)[1]
+    example, after = example.split(" (after ")
+    env = subprocess_env()
+    demo = ["demo", "--resolution", "6", "--voxel", "0.25", "--no-tets", "-q"]
+    assert after.rstrip(")").split() == ["vhm-viz", "demo"]
+    cli = [sys.executable, "-m", "vhm_viz.cli"]
+    res = subprocess.run([*cli, *demo], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    words = shlex.split(example)
+    assert words[0] == "vhm-viz"
+    res = subprocess.run([*cli, *words[1:]], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / words[words.index("-o") + 1]).is_file()

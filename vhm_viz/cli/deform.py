@@ -72,7 +72,7 @@ DESCRIPTION = (
     "Deform INPUT with the variational harmonic map described by SCENE and "
     "write OUTPUT. Surfaces stay surfaces, tet meshes stay tet meshes. A volume (any "
     "image format read) written to .vts or .vtk becomes a warped structured grid "
-    "(every voxel moved); written to .vti, .mhd, .mha, .nii or .nii.gz it is resampled "
+    f"(every voxel moved); written to {', '.join(image_suffixes())} it is resampled "
     "onto a regular grid that holds the whole deformed volume (each output voxel pulled "
     "back through the inverse map), keeping origin, spacing and direction. Volumes go "
     "through an adaptive lattice of exact map values (--tolerance). Prints one summary "
@@ -84,8 +84,8 @@ DESCRIPTION = (
 
 EPILOG = (
     f"input types: {' '.join(DATASET_SUFFIXES)}, or a DICOM folder. Example: "
-    "vhm-viz deform bar.vtp "
-    "--scene bar.json -o bent.vtp"
+    "vhm-viz deform vhm_viz_demo/bar_rest.vtp "
+    "--scene vhm_viz_demo/scene.json -o bent.vtp (after vhm-viz demo)"
 )
 
 
