@@ -10,7 +10,7 @@ import pytest
 pv = pytest.importorskip("pyvista")
 
 from vhm_viz.cli import main  # noqa: E402
-from vhm_viz.io import read_cage  # noqa: E402
+from vhm_viz.io import cage_from_dataset, read_cage, write_cage  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +76,17 @@ def test_cage_line_counts_the_thin_faces_it_kept(tmp_path, capsys):
         (["cage", "{capsule}", "-o", "{tmp}/c.obj", "--offset", "4"], "diagonal, 3.02"),
         (["cage", "{capsule}", "-o", "{tmp}/c.obj", "--threshold", "5"], "--threshold applies"),
         (["cage", "{cloud}", "-o", "{tmp}/c.obj", "--threshold", "5"], "is a point cloud"),
+        # settings bounded below, named as the options the user typed
+        (["cage", "{capsule}", "-o", "{tmp}/c.obj", "--max-faces", "3"],
+         "--max-faces must be an integer of at least 12"),
+        (["cage", "{capsule}", "-o", "{tmp}/c.obj", "--resolution", "0"],
+         "--resolution must be an integer of at least 1; got 0"),
+        (["anchors", "{capsule}", "--cage", "{box}", "-o", "{tmp}/a.json", "--resolution", "0"],
+         "--resolution must be an integer of at least 4; got 0"),
+        (["anchors", "{capsule}", "--cage", "{box}", "-o", "{tmp}/a.json", "--resolution", "3"],
+         "--resolution must be an integer of at least 4; got 3"),
     ],
-)
+)  # fmt: skip
 def test_bad_input_is_one_line_and_nonzero(argv, message, capsule, tmp_path, capsys):
     capsule_obj = tmp_path / "capsule.obj"
     pv.read(capsule).save(capsule_obj)
@@ -85,6 +94,8 @@ def test_bad_input_is_one_line_and_nonzero(argv, message, capsule, tmp_path, cap
     fill["capsule_obj"] = capsule_obj
     fill["cloud"] = tmp_path / "cloud.npy"
     np.save(fill["cloud"], np.asarray(pv.read(capsule).points))
+    fill["box"] = tmp_path / "box.obj"  # encloses the capsule (x in [-1.4, 1.4], radius 0.4)
+    write_cage(fill["box"], cage_from_dataset(pv.Box((-2, 2, -1, 1, -1, 1), quads=False)))
     before = capsule.read_bytes(), capsule_obj.read_bytes()
     rc = main([a.format(**fill) for a in argv])
     err = capsys.readouterr().err.strip()

@@ -292,6 +292,19 @@ def _small_bar():
     return pv.PolyData.from_regular_faces(v, f)
 
 
+def test_an_automatic_cage_option_out_of_range_is_named_as_the_scene_field():
+    """A value auto_cage refuses (a face budget below a box's 12 triangles) is one error
+    naming the scene's field, cage.auto.max_faces, like the other fields' errors."""
+    scene = Scene.from_dict(_minimal(cage={"auto": {"max_faces": 3}}))
+    with pytest.raises(SceneError) as err:
+        scene.build_cage(_small_bar())
+    assert err.value.field == "cage.auto.max_faces"
+    assert str(err.value) == (
+        "scene field 'cage.auto.max_faces': must be an integer of at least 12 (a box needs "
+        "12 triangles); got 3"
+    )
+
+
 def test_auto_cage_and_auto_anchors_build_a_working_deformer():
     mesh = _small_bar()
     points = np.asarray(mesh.points)

@@ -82,6 +82,7 @@ import numpy as np
 from vhm_viz.core.anchors import anchors_from_polylines
 from vhm_viz.core.cage import MIN_FACE_ANGLE, Cage
 from vhm_viz.core.deformer import Deformer
+from vhm_viz.core.errors import SettingError
 from vhm_viz.core.harmonic_map import HarmonicMap
 from vhm_viz.io import json_text, read_anchors, read_cage, read_polylines, read_tgf, write_text
 from vhm_viz.io.markups import read_markups
@@ -440,7 +441,10 @@ class Scene:
             # imported here: only a scene with an automatic cage needs vhm_viz.autocage
             from vhm_viz.autocage import auto_cage
 
-            return auto_cage(data, **self.cage["auto"])
+            try:
+                return auto_cage(data, **self.cage["auto"])
+            except SettingError as exc:  # an option's value, named as the scene's field
+                raise SceneError(f"cage.auto.{exc.field}", exc.detail) from None
         return Cage(self.cage["vertices"], self.cage["faces"])
 
     def build_anchors(self, cage, data=None) -> np.ndarray:

@@ -41,7 +41,7 @@ from vhm_viz.autocage.samples import collect_samples, point_spacing
 from vhm_viz.core.basis import domain_columns, inside_cage, winding_number
 from vhm_viz.core.cage import Cage
 from vhm_viz.core.errors import OutsideCageError, describe_indices
-from vhm_viz.core.limits import check_setting
+from vhm_viz.core.limits import check_integer_at_least, check_setting
 
 __all__ = ["auto_anchors", "AnchorReport"]
 
@@ -594,12 +594,16 @@ def auto_anchors(
     ------
     OutsideCageError
         Points of the shape outside the cage, counted.
+    SettingError
+        ``count`` out of its range, or ``resolution`` not an integer of at least 4.
     ValueError
-        Degenerate input, ``count`` out of its range, a shape too thin for the voxel grid (raise
-        ``resolution``), or fewer interior voxels than ``count``.
+        Degenerate input, a shape too thin for the voxel grid (raise ``resolution``), or
+        fewer interior voxels than ``count``.
     """
     t0 = time.perf_counter()
     count = check_setting("anchor_count", count, "count")
+    if resolution is not None:
+        resolution = check_integer_at_least("resolution", resolution, 4)
     samples = collect_samples(data, threshold=threshold, scalars=scalars, what="auto_anchors")
     cage = _as_cage(cage)
     pts, box_targets = samples.points, None
@@ -619,9 +623,7 @@ def auto_anchors(
     if resolution is None and samples.kind == "volume" and samples.spacing:
         # one voxel per image sample: the region needs no closing
         resolution = int(np.clip(np.ceil(ext / samples.spacing), 4, 96))
-    r = int(resolution or 96)
-    if r < 4:
-        raise ValueError(f"auto_anchors: resolution must be >= 4, got {r}")
+    r = 96 if resolution is None else resolution
     if samples.kind == "points" and samples.spacing is None:
         samples.spacing = point_spacing(pts)
     grid = vx.make_grid(lo, hi, r, 2)

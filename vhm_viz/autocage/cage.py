@@ -52,6 +52,7 @@ from vhm_viz.autocage.voxel_cage import voxel_cage
 from vhm_viz.core.basis import winding_number
 from vhm_viz.core.cage import MIN_FACE_ANGLE
 from vhm_viz.core.errors import SettingError
+from vhm_viz.core.limits import check_integer_at_least
 
 #: the largest clearance, in bounding-box diagonals of the input
 _MAX_OFFSET = 1.0
@@ -217,19 +218,18 @@ def auto_cage(
     ------
     SettingError
         An offset that is not positive or is larger than the input's bounding-box
-        diagonal; ``threshold`` or ``scalars`` for an input that is not a volume.
+        diagonal; ``threshold`` or ``scalars`` for an input that is not a volume;
+        ``max_faces`` not an integer of at least 12, ``resolution`` not one of at least 1.
     ValueError
-        Degenerate input (empty, NaN/inf, a single point, coplanar or collinear points),
-        ``max_faces`` below 12, a bad resolution or an unknown method.
+        Degenerate input (empty, NaN/inf, a single point, coplanar or collinear points)
+        or an unknown method.
     """
     t0 = time.perf_counter()
     if method not in ("auto", "offset", "voxel"):
         raise ValueError(f"auto_cage: unknown method {method!r} (auto, offset, voxel)")
-    max_faces = int(max_faces)
-    if max_faces < 12:
-        raise ValueError(f"auto_cage: max_faces={max_faces} is below 12 (a box needs 12 triangles)")
-    if resolution is not None and int(resolution) < 1:
-        raise ValueError(f"auto_cage: resolution must be >= 1, got {resolution!r}")
+    max_faces = check_integer_at_least("max_faces", max_faces, 12, " (a box needs 12 triangles)")
+    if resolution is not None:
+        resolution = check_integer_at_least("resolution", resolution, 1)
     samples = collect_samples(data, threshold=threshold, scalars=scalars)
     if samples.kind == "points" and samples.spacing is None:
         samples.spacing = point_spacing(samples.points)

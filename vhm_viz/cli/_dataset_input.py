@@ -29,10 +29,10 @@ __all__ = [
 #: Per command: the grid whose longest side ``--resolution`` counts voxels along, and its
 #: default.
 _GRIDS = {
-    "cage": "the extraction grid's bounding box (default: 1.5 x that side / the offset, "
-    "within 32-112, coarser where the clearance would take the grid past 115; --method "
+    "cage": "the extraction grid's bounding box, at least 1 (default: 1.5 x that side / "
+    "the offset, within 32-112, coarser where the clearance would take the grid past 115; --method "
     "voxel: the finest that fits --max-faces)",
-    "anchors": "the grid the medial axis is computed on (default: 96; volumes: one per "
+    "anchors": "the grid the medial axis is computed on, at least 4 (default: 96; volumes: one per "
     "image sample, at most 96)",
 }
 #: Per command: what it does with a volume's region above ``--threshold``, and what it

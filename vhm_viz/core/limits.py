@@ -38,7 +38,7 @@ from typing import NamedTuple
 
 from vhm_viz.core.errors import SettingError
 
-__all__ = ["RANGES", "Range", "check_setting"]
+__all__ = ["RANGES", "Range", "check_integer_at_least", "check_setting"]
 
 
 class Range(NamedTuple):
@@ -117,3 +117,25 @@ def check_setting(kind: str, value, field: str | None = None):
         shown = repr(value) if not isinstance(value, float) else f"{value:g}"
         raise SettingError(name, f"must be {rng.describe()}; got {shown[:40]}")
     return int(value) if rng.integer else float(value)
+
+
+def check_integer_at_least(field: str, value, low: int, why: str = "") -> int:
+    """Return ``value`` as an ``int`` if it is an integer of at least ``low``.
+
+    For the settings bounded below only, such as a grid's resolution or a face budget,
+    whose upper limit is the memory at hand. As :func:`check_setting`: booleans and
+    strings are refused, an integral float is accepted.
+
+    Raises
+    ------
+    SettingError
+        Not an integer, or below ``low``; the message names ``field``, ``low`` and ``why``.
+    """
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    if ok:
+        number = float(value)
+        ok = math.isfinite(number) and number.is_integer() and number >= low
+    if not ok:
+        shown = repr(value) if not isinstance(value, float) else f"{value:g}"
+        raise SettingError(field, f"must be an integer of at least {low}{why}; got {shown[:40]}")
+    return int(value)
