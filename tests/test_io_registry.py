@@ -165,3 +165,15 @@ def test_a_point_list_with_a_word_among_its_numbers_is_one_line(tmp_path):
         read_dataset(tmp_path / "bad.csv")
     assert str(err.value).count("\n") == 0 and "'a'" in str(err.value) and "row 1" in str(err.value)
     assert str(err.value).endswith("expected numbers, one point (x y z ...) per row")
+
+
+def test_a_binary_file_under_a_point_list_suffix_says_it_is_not_text(tmp_path):
+    """Binary content under a point-list suffix (another format saved as .txt) is refused
+    as not a text file, rather than with the codec's byte position."""
+    path = tmp_path / "points.txt"
+    path.write_bytes(b"0 0 0\n" + bytes(range(128, 256)) + b"\n")
+    with pytest.raises(ReadError) as err:
+        read_dataset(path)
+    assert str(err.value) == (
+        f"{path}: not a text file; expected numbers, one point (x y z ...) per row"
+    )

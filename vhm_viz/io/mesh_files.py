@@ -277,9 +277,10 @@ def read_point_list(path):
         try:
             pts = np.loadtxt(p, delimiter=delimiter, ndmin=2, skiprows=_names_row(p, delimiter))
         except ValueError as exc:
+            # binary content (another format under a text suffix) says so, not the codec
+            what = "not a text file" if isinstance(exc, UnicodeDecodeError) else first_line(exc)
             raise ReadError(
-                f"{p}: {first_line(exc).rstrip('.')}; expected numbers, one point (x y z ...) "
-                "per row"
+                f"{p}: {what.rstrip('.')}; expected numbers, one point (x y z ...) per row"
             ) from None
     pts = np.asarray(pts, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] < 3:
