@@ -358,6 +358,19 @@ def test_explore_refuses_what_it_cannot_open_before_a_window_opens(small_bar, tm
         assert res.returncode == 1, res.stderr
         assert len(lines) == 1 and lines[0].startswith("vhm-viz explore: error: "), lines
         assert message in lines[0], lines
+    # a bar that does not exist is an argument error (exit 2), with the kinds there are
+    try:
+        res = subprocess.run(
+            [sys.executable, "-m", "vhm_viz.cli", "explore", "--bar", "bend"],
+            capture_output=True, text=True, env=env, timeout=300,
+        )  # fmt: skip
+    except subprocess.TimeoutExpired:
+        pytest.fail("explore --bar bend opened a window instead of refusing")
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.splitlines()[-1] == (
+        "vhm-viz explore: error: argument --bar: invalid choice: 'bend' (choose from "
+        "'bend-u', 'bend-90', 'twist', 'bulge', 'push')"
+    )
 
 
 def test_deform_help_names_the_resampled_suffixes_and_its_example_runs(tmp_path):

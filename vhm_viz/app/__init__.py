@@ -20,6 +20,7 @@ from vhm_viz import interrupts
 from vhm_viz.atomic import atomic_path
 from vhm_viz.colours import MEASURES
 from vhm_viz.core.threads import limit_blas_threads
+from vhm_viz.examples import BAR_KINDS, FOLD_KINDS
 
 __all__ = ["main", "ExplorerController", "start_xvfb"]
 
@@ -57,7 +58,8 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--bar",
         metavar="KIND",
-        help="open a bundled bar scenario (bend-u, bend-90, twist, bulge; default: none)",
+        choices=BAR_KINDS + FOLD_KINDS,
+        help=f"open a bundled bar scenario ({', '.join(BAR_KINDS + FOLD_KINDS)}; default: none)",
     )
     parser.add_argument(
         "--screenshot",
@@ -193,8 +195,7 @@ def screenshot(args) -> int:
         if args.colour != "none":
             if win.ctrl.volume is None and not win.ctrl.ready:  # a section needs a map
                 raise ValueError(
-                    f"--colour {args.colour}: no solved map to colour by (give a --scene, "
-                    "or --bar)"
+                    f"--colour {args.colour}: no solved map to colour by (give a --scene, or --bar)"
                 )
             step(lambda: win.colour_by(args.colour), "colour", False)
         win.frame_all()
