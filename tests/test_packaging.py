@@ -133,6 +133,7 @@ def test_paraview_python_path_leaves_a_pip_vtk_out(wheel, tmp_path):
     link_site = tmp_path / "pv-site"
     env = {**os.environ, "PYTHONPATH": str(site)}
     run = _vhm_viz("paraview", "--shell", "--site", str(link_site), cwd=tmp_path, env=env)
-    assert f'export PYTHONPATH="{link_site}$' in run.stdout
-    assert [p.name for p in link_site.iterdir()] == ["vhm_viz"]
+    assert f'export PYTHONPATH="{link_site / "startup"}:{link_site}$' in run.stdout
+    assert sorted(p.name for p in link_site.iterdir()) == ["startup", "vhm_viz"]
+    assert [p.name for p in (link_site / "startup").iterdir()] == ["sitecustomize.py"]
     assert (link_site / "vhm_viz").resolve() == (site / "vhm_viz").resolve()

@@ -136,6 +136,48 @@ def test_pvpython_loads_the_three_filters(paraview_env, tmp_path):
     assert "SceneFile default: ''" in out.stdout
 
 
+def test_vhm_viz_paraview_runs_pvpython_with_the_plugin_loaded(paraview_env, tmp_path):
+    """The installed package's route, ``vhm-viz paraview pvpython SCRIPT``, with numba for
+    ParaView's Python installed as a user would (its user site-packages) and nothing else
+    of the checkout's set-up: ParaView 5.11's plugin loader runs on Python 3.11 (it calls
+    inspect.getargspec) and the filters are there."""
+    import sys
+
+    (site,) = [Path(p) for p in paraview_env["PYTHONPATH"].split(os.pathsep)
+               if (Path(p) / "numba").is_dir()]  # fmt: skip
+    version = subprocess.run(
+        ["pvpython", "-c", "import sys; print('%d.%d' % sys.version_info[:2])"],
+        capture_output=True, text=True, env=paraview_env, timeout=120,
+    ).stdout.split()[-1]  # fmt: skip
+    user_site = tmp_path / "user" / "lib" / f"python{version}" / "site-packages"
+    user_site.mkdir(parents=True)
+    for entry in site.iterdir():
+        if entry.name.lower().startswith(("numba", "llvmlite")):
+            (user_site / entry.name).symlink_to(entry)
+    assert (user_site / "numba").exists() and (user_site / "llvmlite").exists()
+    script = tmp_path / "names.py"
+    script.write_text(
+        "import paraview.simple as s\nprint(sorted(n for n in dir(s) if n.startswith('VHM')))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PV_PLUGIN_PATH")}
+    env.update(
+        PYTHONUSERBASE=str(tmp_path / "user"), NUMBA_CACHE_DIR=paraview_env["NUMBA_CACHE_DIR"]
+    )
+    for name in ("OMPI_ALLOW_RUN_AS_ROOT", "OMPI_ALLOW_RUN_AS_ROOT_CONFIRM"):
+        env[name] = paraview_env.get(name, "1")
+    out = subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", "paraview", "--site", str(tmp_path / "pv-site"),
+         "pvpython", str(script)],
+        capture_output=True, text=True, env=env, cwd=ROOT, timeout=300,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "getargspec" not in out.stderr, out.stderr
+    assert (
+        "['VHMHarmonicDeformation', 'VHMJacobianAnalysis', 'VHMMedicalImageReader', "
+        "'VHMResampleToImage']" in out.stdout
+    ), out.stdout + out.stderr
+
+
 def test_set_up_compiles_the_kernels_and_filters_update_in_pvpython(paraview_env):
     """The set-up compiled the filters' kernels (its stamp), and the warm-up runs the
     three filter classes with ``vhm_viz.filters.update`` in pvpython, whose own SIGINT
@@ -383,9 +425,7 @@ def _assert_evaluations_shared(pieces, serial):
 
 
 @pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
-def test_volume_resample_in_pieces_equals_serial_equals_python(
-    paraview_env, head_scene, tmp_path
-):
+def test_volume_resample_in_pieces_equals_serial_equals_python(paraview_env, head_scene, tmp_path):
     """The head CT resampled (VHMResampleToImage), each rank a piece of the output (.pvti)."""
     scene, cage = head_scene
     img, vol = _volume_engine(scene)

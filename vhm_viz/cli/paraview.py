@@ -9,9 +9,10 @@ environment and returns its exit status.
 
 ParaView's Python must import ``vhm_viz`` but not this environment's own VTK (two VTKs in
 one process crash): when the package sits next to a pip-installed VTK, ``PYTHONPATH`` names
-a folder that holds only a link to the package (``--site``, made on demand). ParaView's
-Python also needs numba built for its own Python and numpy; from a checkout,
-``eval "$(bash plugins/paraview-env.sh)"`` installs it and does all of this.
+a folder that holds only a link to the package (``--site``, made on demand). A folder in
+it holds a ``sitecustomize.py`` with which ParaView 5.11's plugin loader runs on Python
+3.11. ParaView's Python also needs numba built for its own Python and numpy; from a
+checkout, ``eval "$(bash plugins/paraview-env.sh)"`` installs it and does all of this.
 """
 
 from __future__ import annotations
@@ -84,10 +85,7 @@ def python_path(site: str | None = None) -> Path:
     parent = package.parent
     if not (parent / "vtkmodules").exists() and not (parent / "vtk.py").exists():
         return parent
-    if site is None:
-        cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-        site = str(Path(cache) / "vhm_viz" / "paraview-site")
-    folder = Path(site)
+    folder = Path(site) if site is not None else _cache_site()
     folder.mkdir(parents=True, exist_ok=True)
     link = folder / "vhm_viz"
     if link.is_symlink() and link.resolve() != package.resolve():
@@ -97,11 +95,46 @@ def python_path(site: str | None = None) -> Path:
     return folder
 
 
+#: ``sitecustomize.py`` of :func:`shim_folder`: ParaView 5.11's Python plugin loader calls
+#: ``inspect.getargspec``, which Python 3.11 removed (``getfullargspec`` has its ``.args``).
+SHIM = """\
+# Written by vhm-viz paraview: ParaView 5.11's Python plugin loader calls
+# inspect.getargspec, removed in Python 3.11; getfullargspec has the same .args.
+import inspect
+
+if not hasattr(inspect, "getargspec"):
+    inspect.getargspec = inspect.getfullargspec
+"""
+
+
+def _cache_site() -> Path:
+    cache = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(cache) / "vhm_viz" / "paraview-site"
+
+
+def shim_folder(site: str | None = None) -> Path:
+    """A folder whose ``sitecustomize.py`` lets ParaView 5.11 load Python plugins on 3.11.
+
+    The folder ``startup`` in ``site`` (default: the user's cache), holding that file
+    alone (no package: it comes first on ``PYTHONPATH``); the file is written when
+    missing or different.
+    """
+    folder = (Path(site) if site is not None else _cache_site()) / "startup"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "sitecustomize.py"
+    if not path.is_file() or path.read_text() != SHIM:
+        tmp = folder / f".sitecustomize.{os.getpid()}.tmp"
+        tmp.write_text(SHIM)
+        os.replace(tmp, path)
+    return folder
+
+
 def environment(site: str | None = None) -> dict[str, str]:
     """The variables that make ParaView load the plugin and import ``vhm_viz``."""
+    folders = [str(shim_folder(site)), str(python_path(site))]
     return {
         "PV_PLUGIN_PATH": str(plugin_path().parent),
-        "PYTHONPATH": str(python_path(site)),
+        "PYTHONPATH": os.pathsep.join(dict.fromkeys(folders)),
     }
 
 
