@@ -43,7 +43,7 @@ import time
 import warnings
 
 from vhm_viz import __version__, interrupts
-from vhm_viz.cli.first_run import NOTICE, compiled_before, record_compiled
+from vhm_viz.cli.first_run import notice_when_compiling
 from vhm_viz.cli.timings import StageTimer
 
 #: When the command line's module was imported: a command that is its process counts its
@@ -199,15 +199,14 @@ def _run_command(argv: list[str] | None) -> int:
         parser.print_help()
         return 2
     args.timer = StageTimer(start=_STARTED if argv is None else None)
-    first_run = args.command in COMPILING and not compiled_before(args.command)
-    if first_run and not getattr(args, "quiet", False):
-        print(NOTICE, file=sys.stderr, flush=True)
     # a process that is wholly this command ends at once when work cannot stop part-way
     ending = interrupts.ending_now(lambda signum: _end_now(signum, args))
+    notice = args.command in COMPILING and not getattr(args, "quiet", False)
     with (
         interrupts.handled(),
         ending if argv is None else contextlib.nullcontext(),
         warnings.catch_warnings(),
+        notice_when_compiling() if notice else contextlib.nullcontext(),
     ):
         warnings.showwarning = _warning_as_note
         try:
@@ -220,10 +219,7 @@ def _run_command(argv: list[str] | None) -> int:
                 from vhm_viz.cli._util import use_vtk_threads
 
                 use_vtk_threads(threads)  # process-wide: only where the process is the command
-            status = int(args.func(args) or 0)
-            if first_run and status == 0:
-                record_compiled(args.command)
-            return status
+            return int(args.func(args) or 0)
         except (interrupts.Interrupted, KeyboardInterrupt) as exc:
             status = getattr(exc, "exit_status", 130)
             print(f"vhm-viz {args.command}: {exc or 'interrupted by SIGINT'}", file=sys.stderr)
