@@ -530,6 +530,37 @@ def test_warp_with_inverted_cells_says_so_once_for_the_whole_output(paraview_env
     assert lines[0].endswith(" (rest positions)")
 
 
+def test_composite_input_on_two_ranks_is_one_error_not_a_hang(paraview_env, tmp_path):
+    """A multiblock of three tet meshes: serially the warp runs block by block; on two
+    ranks, which hold different numbers of blocks, it is refused in one line naming what
+    to do, promptly (it waited forever in the ranks' agreement)."""
+    from vhm_viz.filters.mpi import mpi_command
+
+    write_folding_volume(tmp_path, record_map=True)
+    tets = pv.read(tmp_path / "image.vti").to_tetrahedra()
+    thirds = np.array_split(np.arange(tets.n_cells), 3)
+    pv.MultiBlock([tets.extract_cells(part) for part in thirds]).save(tmp_path / "blocks.vtm")
+    config = {"input": str(tmp_path / "blocks.vtm"), "ids": False,
+              "scene": str(tmp_path / "scene.json"), "filter": "VHMHarmonicDeformation"}  # fmt: skip
+    serial = _run(paraview_env, config, tmp_path, ranks=1)
+    assert serial.count("cells inverted") == 3 and "Traceback" not in serial, serial
+    path = tmp_path / "cfg2.json"
+    path.write_text(json.dumps(config))
+    cmd, env = mpi_command(["pvbatch", str(RUN), str(path)], 2, paraview_env)
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    except subprocess.TimeoutExpired:
+        pytest.fail("composite input on two ranks hung")
+    log = done.stdout + done.stderr
+    assert done.returncode == 0 and "Traceback" not in log, log
+    (line,) = [ln for ln in log.splitlines() if "MPI ranks" in ln]
+    assert line.endswith(
+        "VHM Harmonic Deformation: vtkMultiBlockDataSet input is not supported on several "
+        "MPI ranks (each rank runs the filter once per block it holds): apply Merge Blocks "
+        "first"
+    ), line
+
+
 @pytest.mark.skipif(not DATA.is_dir(), reason="needs ../shared/data")
 def test_analysis_cell_counts_are_the_whole_outputs_on_every_rank(paraview_env, tmp_path):
     """VHM Jacobian Analysis' field arrays vhm_cells_inverted and vhm_cells_rest_inverted

@@ -76,6 +76,8 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self.outside_count = 0
         self._solve_warnings: list = []  # an unconverged solve let through
         self._output_warnings: list = []  # what the last update's output holds (folds)
+        self._composite = None  # (class, block addresses, address, MTime) of a composite input
+        self._composite_said = None  # the composite input last refused (said once)
 
     @property
     def warnings(self) -> list:
@@ -114,6 +116,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         are (``update`` raises it), not printed by VTK as a traceback.
         """
         try:
+            self._note_composite(in_info)
             return VTKPythonAlgorithmBase.ProcessRequest(self, request, in_info, out_info)
         except BaseException as exc:  # noqa: BLE001 -- handed back by update()
             self.last_error = exc
@@ -165,6 +168,8 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self._forget_output()
         if not self._parallel_reporting:
             return self._guard(self._execute, in_info, out_info)
+        if mpi.process_count() > 1 and self._composite_input() is not None:
+            return self._refuse_composite(out_info)
         self.last_error = None
         try:
             self._check_cage_on_every_rank(in_info)
@@ -190,6 +195,62 @@ class DeformationSource(VTKPythonAlgorithmBase):
         to describe.
         """
         self._output_warnings = []
+
+    def _note_composite(self, in_info) -> None:
+        """Keep which composite data set (multiblock, AMR ...) feeds port 0, if one does.
+
+        VTK's pipeline passes a composite input's blocks to a filter of data sets one at a
+        time: every request then sees a block, and only the requests before them the
+        composite. Its blocks are kept (their addresses) until a request sees data that
+        is neither it nor one of them.
+        """
+        port = in_info[0] if in_info else None
+        if port is None or not port.GetNumberOfInformationObjects():
+            return
+        data = port.GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
+        if data is None:
+            return
+        if data.IsA("vtkCompositeDataSet"):
+            blocks, it = set(), data.NewIterator()
+            it.InitTraversal()
+            while not it.IsDoneWithTraversal():
+                if it.GetCurrentDataObject() is not None:
+                    blocks.add(it.GetCurrentDataObject().__this__)
+                it.GoToNextItem()
+            self._composite = (data.GetClassName(), blocks, data.__this__, data.GetMTime())
+        elif self._composite is not None and data.__this__ not in self._composite[1]:
+            self._composite = None
+
+    def _composite_input(self) -> str | None:
+        """The class of the composite data set whose blocks port 0 now gets, else None.
+
+        VTK's pipeline runs ``RequestData`` once per block, and MPI ranks hold different
+        numbers of blocks.
+        """
+        return None if self._composite is None else self._composite[0]
+
+    def _refuse_composite(self, out_info) -> int:
+        """Under MPI, composite input: an error, said once, with no collective operation.
+
+        Every rank runs one request per block it holds, and the numbers differ between
+        ranks: the ranks' agreement (collective) would pair different blocks or wait for a
+        rank that has none left. Every rank takes the same decision from the input's type
+        alone, so none waits for another.
+        """
+        self.last_error = ValueError(
+            f"{self._composite_input()} input is not supported on several MPI ranks (each "
+            "rank runs the filter once per block it holds): apply Merge Blocks first"
+        )
+        key = self._composite[2:]
+        if mpi.rank() == 0 and self._composite_said != key:
+            self._composite_said = key
+            vtkOutputWindow.GetInstance().DisplayErrorText(
+                f"{self._label()}: {_one_line(self.last_error)}\n"
+            )
+        out = out_info.GetInformationObject(0).Get(vtkDataObject.DATA_OBJECT())
+        if out is not None:
+            out.Initialize()
+        return 1
 
     def _agree_on_output(self, out_info) -> None:
         """Under MPI, once every rank succeeded: what describes the whole output, agreed.
