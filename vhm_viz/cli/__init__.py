@@ -206,10 +206,12 @@ def _run_command(argv: list[str] | None) -> int:
         interrupts.handled(),
         ending if argv is None else contextlib.nullcontext(),
         warnings.catch_warnings(),
-        notice_when_compiling() if notice else contextlib.nullcontext(),
+        contextlib.ExitStack() as stack,
     ):
         warnings.showwarning = _warning_as_note
         try:
+            if notice:  # (it imports numba: a signal may land in it, as in any import here)
+                stack.enter_context(notice_when_compiling())
             if argv is None:
                 _finish_start_up(args.command)
             from vhm_viz.core.threads import use_threads
