@@ -541,7 +541,8 @@ def test_composite_input_on_two_ranks_is_one_error_not_a_hang(paraview_env, tmp_
     thirds = np.array_split(np.arange(tets.n_cells), 3)
     pv.MultiBlock([tets.extract_cells(part) for part in thirds]).save(tmp_path / "blocks.vtm")
     config = {"input": str(tmp_path / "blocks.vtm"), "ids": False,
-              "scene": str(tmp_path / "scene.json"), "filter": "VHMHarmonicDeformation"}  # fmt: skip
+              "scene": str(tmp_path / "scene.json"),
+              "filter": "VHMHarmonicDeformation"}  # fmt: skip
     serial = _run(paraview_env, config, tmp_path, ranks=1)
     assert serial.count("cells inverted") == 3 and "Traceback" not in serial, serial
     path = tmp_path / "cfg2.json"
