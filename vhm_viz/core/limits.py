@@ -108,15 +108,7 @@ def check_setting(kind: str, value, field: str | None = None):
         Wrong type or out of range; the message names ``field`` and the range.
     """
     rng = RANGES[kind]
-    name = field or kind
-    ok_type = isinstance(value, numbers.Real) and not isinstance(value, bool)
-    if ok_type:
-        number = float(value)
-        ok_type = math.isfinite(number) and (not rng.integer or number.is_integer())
-    if not ok_type or not rng.contains(float(value)):
-        shown = repr(value) if not isinstance(value, float) else f"{value:g}"
-        raise SettingError(name, f"must be {rng.describe()}; got {shown[:40]}")
-    return int(value) if rng.integer else float(value)
+    return _checked(field or kind, value, rng, rng.describe())
 
 
 def check_integer_at_least(field: str, value, low: int, why: str = "") -> int:
@@ -131,11 +123,22 @@ def check_integer_at_least(field: str, value, low: int, why: str = "") -> int:
     SettingError
         Not an integer, or below ``low``; the message names ``field``, ``low`` and ``why``.
     """
+    return _checked(field, value, Range(low, math.inf, integer=True),
+                    f"an integer of at least {low}{why}")  # fmt: skip
+
+
+def _checked(name: str, value, rng: Range, must: str):
+    """``value`` as an ``int`` or ``float`` if it is a number in ``rng``, else the error.
+
+    Booleans and strings are refused; an integral float is accepted for an integer range
+    (JSON writes ``1e3`` as a float). ``must`` says what it must be, for the message.
+    """
     ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
     if ok:
         number = float(value)
-        ok = math.isfinite(number) and number.is_integer() and number >= low
+        ok = math.isfinite(number) and (not rng.integer or number.is_integer())
+        ok = ok and rng.contains(number)
     if not ok:
         shown = repr(value) if not isinstance(value, float) else f"{value:g}"
-        raise SettingError(field, f"must be an integer of at least {low}{why}; got {shown[:40]}")
-    return int(value)
+        raise SettingError(name, f"must be {must}; got {shown[:40]}")
+    return int(value) if rng.integer else float(value)

@@ -163,17 +163,25 @@ def tetra_cells(ds):
     return conn[offsets[cells][:, None] + np.arange(4)], cells
 
 
+def _with_cell_ids(ds):
+    """``ds``'s points and cells (no arrays) with each cell's index in ``_ID_ARRAY``.
+
+    What a VTK filter that drops or splits cells hands on, to match its output to them.
+    """
+    tagged = ds.NewInstance()
+    tagged.CopyStructure(ds)
+    ids = ns.numpy_to_vtk(np.arange(ds.GetNumberOfCells(), dtype=np.int64), deep=1)
+    ids.SetName(_ID_ARRAY)
+    tagged.GetCellData().AddArray(ids)
+    return tagged
+
+
 def _triangulated(ds):
     """Tets of any 3D cells through ``vtkDataSetTriangleFilter`` (points kept as they are)."""
     from vtkmodules.vtkFiltersGeneral import vtkDataSetTriangleFilter  # here: slow to import
 
-    tagged = ds.NewInstance()
-    tagged.ShallowCopy(ds)
-    ids = ns.numpy_to_vtk(np.arange(ds.GetNumberOfCells(), dtype=np.int64), deep=1)
-    ids.SetName(_ID_ARRAY)
-    tagged.GetCellData().AddArray(ids)
     tri = vtkDataSetTriangleFilter()
-    tri.SetInputData(tagged)
+    tri.SetInputData(_with_cell_ids(ds))
     tri.TetrahedraOnlyOn()
     tri.Update()
     out = tri.GetOutput()
@@ -213,13 +221,8 @@ def cell_centres(ds, cells) -> np.ndarray:
     if not ds.IsA("vtkUnstructuredGrid") or not np.isin(cell_types(ds)[cells], _SIMPLICES).all():
         from vtkmodules.vtkFiltersCore import vtkCellCenters
 
-        tagged = ds.NewInstance()
-        tagged.CopyStructure(ds)
-        ids = ns.numpy_to_vtk(np.arange(ds.GetNumberOfCells(), dtype=np.int64), deep=1)
-        ids.SetName(_ID_ARRAY)
-        tagged.GetCellData().AddArray(ids)
         centres = vtkCellCenters()
-        centres.SetInputData(tagged)
+        centres.SetInputData(_with_cell_ids(ds))
         centres.CopyArraysOn()
         centres.Update()
         got = centres.GetOutput()
