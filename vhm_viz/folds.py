@@ -253,9 +253,12 @@ def fold_warning(
 PROOF_MIN_CELLS = 1 << 23
 
 
-def proof_sized(image) -> bool:
-    """Whether a warped image's fold check asks the lattice's proof (its cells' count)."""
-    return int(np.prod(np.asarray(image.dimensions) - 1)) >= PROOF_MIN_CELLS
+def proof_sized(dimensions) -> bool:
+    """Whether the fold check of a warped image of ``dimensions`` asks the lattice's proof.
+
+    By its cells' count (:data:`PROOF_MIN_CELLS`).
+    """
+    return int(np.prod(np.asarray(dimensions) - 1)) >= PROOF_MIN_CELLS
 
 
 def output_folds(
@@ -298,9 +301,13 @@ def output_folds(
         if isinstance(rest, pv.ImageData):
             unproven = None  # the engine's lattice proves most voxel cells unfolded
             grid = image_geometry(rest)
-            if proof_sized(rest) and engine is not None and engine.geometry.same_as(grid):
+            if (
+                proof_sized(grid.dimensions)
+                and engine is not None
+                and engine.geometry.same_as(grid)
+            ):
                 unproven = engine.unproven_cells()
-            cells = warped_voxel_folds(rest, result, progress, memory_budget, unproven)
+            cells = warped_voxel_folds(grid, result.points, progress, memory_budget, unproven)
         elif "cell_jacobian_determinant" in result.cell_data:
             det = np.asarray(result.cell_data["cell_jacobian_determinant"])
             finite = np.isfinite(det)
@@ -400,27 +407,32 @@ def load_check_kernels(data, *, cells: bool = True, voxels: bool = False, proof:
     return thread
 
 
-def warped_voxel_folds(image, warped, progress, memory_budget=None, unproven=None) -> dict | None:
+def warped_voxel_folds(
+    geometry, points, progress=None, memory_budget=None, unproven=None
+) -> dict | None:
     """:func:`fold_warning`'s cells of a warped image: its voxels' corner Jacobians.
 
-    ``unproven``: the only cells to measure (the volume engine's
-    :meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`; default: all).
+    ``geometry``: the image's rest grid (:class:`~vhm_viz.core.image.ImageGeometry`);
+    ``points``: its warped positions in VTK's point order; ``unproven``: the only cells to
+    measure (the volume engine's
+    :meth:`~vhm_viz.core.volume.VolumeDeformation.unproven_cells`; default: all). None
+    for a grid without cells.
     """
-    dims = tuple(int(d) for d in image.dimensions)
+    dims = tuple(int(d) for d in geometry.dimensions)
     if min(dims) < 2:
         return None
-    rest_det = float(np.prod(image.spacing) * np.linalg.det(np.asarray(image.direction_matrix)))
-    cells = inverted_voxel_cells(warped.points, dims, rest_det, progress, memory_budget, unproven)
+    rest_det = float(np.linalg.det(geometry.index_to_world))
+    cells = inverted_voxel_cells(points, dims, rest_det, progress, memory_budget, unproven)
 
     def centres(index):
         """Rest centres of voxel cells given by index, without extracting the cells."""
         index = np.asarray(index, dtype=np.int64)
         row, i = np.divmod(index, dims[0] - 1)
         k, j = np.divmod(row, dims[1] - 1)
-        frame = np.asarray(image.direction_matrix, dtype=np.float64) * np.asarray(image.spacing)
+        frame = geometry.index_to_world
         out = np.empty((index.size, 3))
         for c in range(3):  # column by column: no (K, 3) index array
-            out[:, c] = image.origin[c] + frame[c, 0] * (i + 0.5)
+            out[:, c] = geometry.origin[c] + frame[c, 0] * (i + 0.5)
             out[:, c] += frame[c, 1] * (j + 0.5)
             out[:, c] += frame[c, 2] * (k + 0.5)
         return out

@@ -339,7 +339,10 @@ def deform(args: argparse.Namespace) -> str:
     # daemon: should the solve fail, it ends on its own)
     voxels = volume and not resample
     check_kernels = load_check_kernels(
-        mesh, cells="cells" not in arrays, voxels=voxels, proof=voxels and proof_sized(mesh)
+        mesh,
+        cells="cells" not in arrays,
+        voxels=voxels,
+        proof=voxels and proof_sized(mesh.dimensions),
     )
     with timer.stage("solve"):
         solved = build_and_solve(

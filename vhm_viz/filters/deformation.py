@@ -412,31 +412,24 @@ class HarmonicDeformationFilter(DeformationSource):
 def _image_folds(points, vol, box, own, progress) -> dict:
     """:func:`inverted_cells` of a warped piece ``box`` of an image (``vol``'s geometry).
 
-    Its voxel hexahedra by their corner Jacobians, measured where the lattice does not
-    prove them unfolded (for images of at least
-    :data:`~vhm_viz.folds.PROOF_MIN_CELLS` cells, as the command line's check). Only its
-    own cells (``own``, (C,) bool) count: a piece requested with ghost levels has layers
-    of its neighbours' cells, which they count.
+    :func:`vhm_viz.folds.warped_voxel_folds`, sparing the cells the lattice proves
+    unfolded as the command line's check does (:func:`vhm_viz.folds.proof_sized`). Only
+    its own cells (``own``, (C,) bool) count: a piece requested with ghost levels has
+    layers of its neighbours' cells, which they count.
     """
-    from vhm_viz.folds import PROOF_MIN_CELLS, inverted_voxel_cells
+    from vhm_viz.folds import proof_sized, warped_voxel_folds
 
-    dims = [box[2 * a + 1] - box[2 * a] + 1 for a in range(3)]
-    if min(dims) < 2:
+    geometry = vol.geometry.sub(box)
+    unproven = vol.unproven_cells(box) if proof_sized(geometry.dimensions) else None
+    cells = warped_voxel_folds(geometry, points, progress, None, unproven)
+    if cells is None:
         return inverted_cells([], np.zeros((0, 3)), 0)
-    unproven = None
-    if int(np.prod(np.asarray(dims) - 1)) >= PROOF_MIN_CELLS:
-        unproven = vol.unproven_cells(box)
-    rest_det = float(np.linalg.det(vol.geometry.index_to_world))
-    cells = inverted_voxel_cells(points, dims, rest_det, progress, None, unproven)
     bad, det = cells["inverted"], cells["inverted_determinant"]
     measured = cells["summary"]["cells"]
     if not own.all():
         bad, det = bad[own[bad]], det[own[bad]]
-        measured -= int(np.count_nonzero(_finite_cells(points, dims) & ~own))
-    row, i = np.divmod(bad, dims[0] - 1)
-    k, j = np.divmod(row, dims[1] - 1)
-    centres = vol.geometry.sub(box).points(np.column_stack([i, j, k]) + 0.5)
-    return inverted_cells(det, centres, measured)
+        measured -= int(np.count_nonzero(_finite_cells(points, geometry.dimensions) & ~own))
+    return inverted_cells(det, cells["centres"](bad), measured)
 
 
 def _finite_cells(points, dims) -> np.ndarray:
