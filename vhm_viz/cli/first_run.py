@@ -36,15 +36,13 @@ def notice_when_compiling(stream=None) -> Iterator[None]:
     from numba.core import event
 
     said = threading.Event()
-    lock = threading.Lock()
 
     class _Notice(event.Listener):
         def on_start(self, _event) -> None:
-            with lock:
-                if said.is_set():
-                    return
+            # numba compiles under its own global lock: one thread at a time comes here
+            if not said.is_set():
                 said.set()
-            print(NOTICE, file=stream or sys.stderr, flush=True)
+                print(NOTICE, file=stream or sys.stderr, flush=True)
 
         def on_end(self, _event) -> None:
             pass

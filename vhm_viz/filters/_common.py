@@ -168,7 +168,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         self._forget_output()
         if not self._parallel_reporting:
             return self._guard(self._execute, in_info, out_info)
-        if mpi.process_count() > 1 and self._composite_input() is not None:
+        if self._mpi() and self._composite_input() is not None:
             return self._refuse_composite(out_info)
         self.last_error = None
         try:
@@ -570,7 +570,7 @@ class DeformationSource(VTKPythonAlgorithmBase):
         Under MPI (ParaView) the ranks build their lattices together, each point evaluated
         once: the ranks update in step there.
         """
-        if self._parallel_reporting and mpi.process_count() > 1:
+        if self._mpi():
             return mpi.LatticeExchange()
         return None
 
