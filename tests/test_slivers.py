@@ -89,6 +89,49 @@ def test_a_cap_is_flipped():
     assert cage.volume == pytest.approx(1.0, rel=1e-9)  # a flat side stays flat
 
 
+def _surface_depths(v_new, f_new, v_old, f_old) -> np.ndarray:
+    """How far inside the old surface the new one goes, at points over its faces.
+
+    VTK's signed distance to the old surface (negative inside), at the new faces'
+    corners, edge midpoints and centroids: minus that, so positive is inward.
+    """
+    pv = pytest.importorskip("pyvista")
+    from vtkmodules.vtkFiltersCore import vtkImplicitPolyDataDistance
+
+    old = pv.PolyData(v_old, np.column_stack([np.full(len(f_old), 3), f_old]))
+    x = v_new[f_new]
+    pts = np.concatenate([x.reshape(-1, 3), 0.5 * (x + x[:, [1, 2, 0]]).reshape(-1, 3),
+                          x.mean(axis=1)])  # fmt: skip
+    dist = vtkImplicitPolyDataDistance()
+    dist.SetInput(old)
+    return -np.array([dist.EvaluateFunction(p) for p in pts])
+
+
+@pytest.mark.parametrize("inward", [0.0, 0.01, 0.05])
+def test_reducing_slivers_moves_the_surface_inward_no_farther_than_allowed(inward):
+    # a capped cylinder of 48 strips, 8 long and 1 round: its sides are needles (0.4
+    # degrees) that only collapses along the circle remove, and those cut the chords in
+    pv = pytest.importorskip("pyvista")
+    from vhm_viz.core.slivers import reduce_slivers
+
+    cyl = pv.Cylinder(radius=0.5, height=8.0, resolution=48, capping=True)
+    cyl = cyl.triangulate().clean()
+    v, f = np.asarray(cyl.points, float), cyl.regular_faces.astype(np.int64)
+    assert (face_angles(v, f).min(axis=1) < 1.0).sum() == 96
+    v1, f1, notes = reduce_slivers(v, f, MIN_FACE_ANGLE, inward=inward)
+    # a closed, consistently oriented manifold: every directed edge once, its twin once
+    edges = np.concatenate([f1[:, [0, 1]], f1[:, [1, 2]], f1[:, [2, 0]]])
+    assert len({tuple(e) for e in edges}) == len(edges)
+    assert {tuple(e) for e in edges} == {tuple(e) for e in edges[:, ::-1]}
+    depth = _surface_depths(v1, f1, v, f)
+    assert depth.max() <= inward + 1e-9
+    thin = (face_angles(v1, f1).min(axis=1) < MIN_FACE_ANGLE).sum()
+    if inward == 0.0:
+        assert not notes and thin == 96  # every step would cut a chord in
+    else:  # collapses along the circle, each cutting in by a chord's sagitta
+        assert notes and thin < 96
+
+
 def test_an_unrepairable_sliver_is_refused_with_its_face():
     # a tetrahedron with one edge 1e-4 long: no flip (every edge exists), no collapse
     v = np.array([[0, 0, 0], [1e-4, 0, 0], [0, 1, 0], [0, 0, 1]], float)

@@ -3,10 +3,12 @@
 Every group of parts gets an offset surface (:mod:`vhm_viz.autocage.offset_surface`).
 VTK's quadric decimation and the compiled simplifier (:mod:`vhm_viz.autocage.simplify`,
 which refuses collapses that make faces touch or swallow a shell) take the shells to
-``max_faces``; where that cut into the clearance, vertices are pushed outward
-(:mod:`vhm_viz.autocage.clearance`) until every boundary sample is half its local clearance
-inside. A cage that closes a gap between groups, or cannot be made valid, raises
-RuntimeError so that :func:`vhm_viz.auto_cage` can retry at a larger offset.
+``max_faces``; faces thinner than :data:`SLIVER_TARGET_ANGLE` are flipped or collapsed
+away (:func:`vhm_viz.core.slivers.reduce_slivers`); where that cut into the clearance,
+vertices are pushed outward (:mod:`vhm_viz.autocage.clearance`) until every boundary
+sample is half its local clearance inside. A cage that closes a gap between groups, or
+cannot be made valid, raises RuntimeError so that :func:`vhm_viz.auto_cage` can retry at
+a larger offset.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from vhm_viz.autocage.simplify import simplify
 from vhm_viz.core.basis import winding_number
 from vhm_viz.core.cage import self_intersections
 from vhm_viz.core.errors import CageError
+from vhm_viz.core.slivers import MIN_FACE_ANGLE, face_angles, reduce_slivers
 
 __all__ = ["offset_cage", "default_resolution", "default_voxel_size"]
 
@@ -35,6 +38,15 @@ __all__ = ["offset_cage", "default_resolution", "default_voxel_size"]
 #: more self-intersecting face pairs than this in the simplified offset surface (before
 #: the push-out) means the offset is too small for the shape's gaps: skip the retries
 _MAX_CROSSINGS = 12
+
+#: smallest angle (degrees) the simplified cage's faces are brought to where an edge flip
+#: or collapse can: twice the solve's minimum (:data:`vhm_viz.core.slivers.MIN_FACE_ANGLE`),
+#: so that the push-out's moves leave them above it. Quadric simplification spends faces
+#: on curved strips (the rounded edges of an offset box), whose triangles are needles
+SLIVER_TARGET_ANGLE = 2.0 * MIN_FACE_ANGLE
+#: how far (a fraction of the offset) removing them may move the surface inward: no
+#: closer to the data than the half offset the push-out then guarantees
+SLIVER_INWARD = 0.5
 
 #: a shell needs about this many faces: more separate groups than max_faces / this at the
 #: requested offset make the offset method retry with a larger one (fewer groups)
@@ -223,28 +235,55 @@ def offset_cage(samples, shape, lo, hi, offset, max_faces, resolution, notes, re
         if len(mids) and (winding_number(mids, V2, F2) > 0.5).any():
             # pushing out only grows the cage: the gap stays closed
             raise RuntimeError("the cage closes a gap between parts")
-        V3, sd = push_out(V2, F2, check_points, min_clear, radius)
-        short = np.isfinite(sd) & (sd > -min_clear * 0.999)
-        if short.any():
-            if (min_clear[short] < 0.5 * offset).any():
-                # near a gap the faces are too coarse to keep it open: another variant of
-                # the same face count will not do better, a larger offset (merging) does
-                raise RuntimeError("the faces cannot keep the gaps between parts open")
-            notes.append(
-                f"push-out did not restore the clearance ({len(F2)} faces, normal turn "
-                f"{turn}); retrying"
-            )
-            continue
         if ncomp < groups.count:
             notes.append(f"{ncomp} shells for {groups.count} part groups; retrying")
             continue
-        if len(mids) and (winding_number(mids, V3, F2) > 0.5).any():
-            raise RuntimeError("the cage closes a gap between parts")
-        try:
-            cage = make_cage(V3, F2)
-        except CageError as exc:
-            notes.append(f"offset cage rejected ({exc}); retrying")
-            continue
-        grid = vx.Grid(lo, h, (int(resolution),) * 3)
-        return grid, V3, F2, ncomp, cage, groups, sd[: shape.n_input]
+        # the thin faces flipped or collapsed away, when that still gives a valid cage;
+        # else the simplified surface as it is
+        for Vc, Fc in (*_without_slivers(V2, F2, ncomp, SLIVER_INWARD * offset), (V2, F2)):
+            last = Fc is F2
+            V3, sd = push_out(Vc, Fc, check_points, min_clear, radius)
+            short = np.isfinite(sd) & (sd > -min_clear * 0.999)
+            if short.any():
+                if not last:
+                    continue
+                if (min_clear[short] < 0.5 * offset).any():
+                    # near a gap the faces are too coarse to keep it open: another variant
+                    # of the same face count will not do better, a larger offset does
+                    raise RuntimeError("the faces cannot keep the gaps between parts open")
+                notes.append(
+                    f"push-out did not restore the clearance ({len(Fc)} faces, normal turn "
+                    f"{turn}); retrying"
+                )
+                continue
+            if len(mids) and (winding_number(mids, V3, Fc) > 0.5).any():
+                if not last:
+                    continue
+                raise RuntimeError("the cage closes a gap between parts")
+            try:
+                cage = make_cage(V3, Fc)
+            except CageError as exc:
+                if last:
+                    notes.append(f"offset cage rejected ({exc}); retrying")
+                continue
+            grid = vx.Grid(lo, h, (int(resolution),) * 3)
+            return grid, V3, Fc, ncomp, cage, groups, sd[: shape.n_input]
     raise RuntimeError("could not simplify the offset surface into a valid cage")
+
+
+def _without_slivers(V, F, ncomp: int, inward: float) -> list:
+    """``[(V', F')]``: the cage with its thin faces flipped or collapsed away; [] if none.
+
+    Faces with an angle below :data:`SLIVER_TARGET_ANGLE` are worked on, worst first
+    (:func:`vhm_viz.core.slivers.reduce_slivers`). Steps that move the surface inward are
+    allowed up to ``inward`` (world units): the push-out that follows restores the
+    clearance, and the caller validates the result as any other. Dropped when a shell
+    was lost.
+    """
+    if face_angles(V, F).min() >= SLIVER_TARGET_ANGLE:
+        return []
+    V1, F1, _ = reduce_slivers(V, F, SLIVER_TARGET_ANGLE, inward=inward)
+    F1, n1 = orient_outward(V1, F1)
+    if n1 != ncomp or len(F1) < 4:
+        return []
+    return [(V1, F1)]

@@ -3,7 +3,9 @@
 A sliver is a face whose smallest angle is below :data:`MIN_FACE_ANGLE` (a needle with one
 very short edge, or a cap with one angle near 180 degrees). :func:`repair_slivers`
 removes them by edge flips and collapses that keep the cage a closed manifold and move no
-part of its surface inward.
+part of its surface inward. :func:`reduce_slivers` takes the same steps as far as they go,
+and optionally also steps that move the surface inward, for the automatic cage, which
+pushes its surface back out to the clearance afterwards.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import numpy as np
 from vhm_viz.core.errors import CageError
 from vhm_viz.core.geometry import face_normals_and_areas
 
-__all__ = ["MIN_FACE_ANGLE", "SliverError", "face_angles", "repair_slivers"]
+__all__ = ["MIN_FACE_ANGLE", "SliverError", "face_angles", "reduce_slivers", "repair_slivers"]
 
 #: Smallest angle (degrees) a cage triangle may have. Thinner triangles ("slivers": a needle
 #: with one very short edge, or a cap with one angle near 180 degrees) ruin the solve: the
@@ -84,42 +86,15 @@ def repair_slivers(
 
     Returns
     -------
-    vertices : (n', 3) float64
-        Collapsed vertices removed; the others keep their order.
-    faces : (m', 3) int64
-    notes : list of str
-        One line per step, with the input's vertex numbers.
+    vertices, faces, notes
+        As :func:`reduce_slivers` gives them, with no face left thin.
 
     Raises
     ------
     SliverError
         A sliver that no flip or collapse can remove; the message names it.
     """
-    v = np.array(vertices, dtype=np.float64)
-    f = np.array(faces, dtype=np.int64)
-    alive = np.ones(len(v), dtype=bool)
-    notes: list[str] = []
-    stuck: set[tuple] = set()  # slivers no step removes (by their corners)
-    for _ in range(2 * len(f)):
-        ang = face_angles(v, f)
-        smallest = ang.min(axis=1)
-        open_ = [u for u in np.argsort(smallest) if tuple(sorted(f[u])) not in stuck]
-        if not open_ or smallest[open_[0]] >= min_angle:
-            break
-        t = int(open_[0])
-        # of the flip and the collapse that are allowed, the one leaving the larger angle
-        steps = [x for x in (_flip_cap(v, f, t, ang), _collapse_needle(v, f, t)) if x]
-        if not steps:
-            stuck.add(tuple(sorted(f[t])))
-            continue
-        f, note, _, collapse = max(steps, key=lambda x: x[2])
-        if collapse is not None:
-            a, b, point = collapse
-            v[a] = point
-            alive[b] = False
-        notes.append(f"{note} (face {t} had an angle of {smallest[t]:.3g} degrees)")
-    else:  # pragma: no cover - each step removes a face or improves one
-        raise SliverError("sliver repair did not finish", [])
+    v, f, notes = reduce_slivers(vertices, faces, min_angle)
     thin = np.flatnonzero(face_angles(v, f).min(axis=1) < min_angle)
     if len(thin):
         t = int(thin[0])
@@ -131,6 +106,66 @@ def repair_slivers(
             f"{', '.join(str(int(i)) for i in f[t])}"
         )
         raise SliverError(msg if error is None else f"{error} -- {msg}", thin)
+    return v, f, notes
+
+
+def reduce_slivers(
+    vertices,
+    faces,
+    min_angle: float = MIN_FACE_ANGLE,
+    *,
+    inward: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """The steps of :func:`repair_slivers`, as many as can be taken; thin faces may remain.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    faces : (m, 3) int
+        A closed, consistently oriented triangle mesh.
+    min_angle : float
+        Degrees: faces with a smaller angle are worked on, worst first.
+    inward : float
+        How far (world units) a step may move the surface inward: a flip whose new edge
+        passes at most this far inside the old one, a collapse that moves a vertex at
+        most this far through a face around it. 0 (the default) moves nothing inward,
+        as :func:`repair_slivers`; more is for callers that restore the clearance
+        afterwards, as the automatic cage's push-out does: the result may then no longer
+        hold all that the input held.
+
+    Returns
+    -------
+    vertices : (n', 3) float64
+        Collapsed vertices removed; the others keep their order.
+    faces : (m', 3) int64
+    notes : list of str
+        One line per step, with the input's vertex numbers.
+    """
+    v = np.array(vertices, dtype=np.float64)
+    f = np.array(faces, dtype=np.int64)
+    alive = np.ones(len(v), dtype=bool)
+    notes: list[str] = []
+    stuck: set[tuple] = set()  # slivers no step removes (by their corners)
+    for _ in range(2 * len(f)):  # each step removes a face or improves one: a bound
+        ang = face_angles(v, f)
+        smallest = ang.min(axis=1)
+        worst = (int(u) for u in np.argsort(smallest) if tuple(sorted(f[u])) not in stuck)
+        t = next(worst, None)
+        if t is None or smallest[t] >= min_angle:
+            break
+        # of the flip and the collapse that are allowed, the one leaving the larger angle
+        steps = [
+            x for x in (_flip_cap(v, f, t, ang, inward), _collapse_needle(v, f, t, inward)) if x
+        ]
+        if not steps:
+            stuck.add(tuple(sorted(f[t])))
+            continue
+        f, note, _, collapse = max(steps, key=lambda x: x[2])
+        if collapse is not None:
+            a, b, point = collapse
+            v[a] = point
+            alive[b] = False
+        notes.append(f"{note} (face {t} had an angle of {smallest[t]:.3g} degrees)")
     keep = np.flatnonzero(alive)
     renumber = np.full(len(v), -1, dtype=np.int64)
     renumber[keep] = np.arange(len(keep))
@@ -168,22 +203,38 @@ def _volume_change(v_old, old_faces, v_new, new_faces) -> float:
     return cones(v_new, new_faces) - cones(v_old, old_faces)
 
 
-def _moves_outward(v, f, moves: dict) -> bool:
+def _moves_outward(v, f, moves: dict, inward: float = 0.0) -> bool:
     """Whether moving vertices (``{vertex: new position}``) keeps the surface outside.
 
-    Every moved vertex must not go inward through any face around it (beyond rounding):
-    the repaired cage then still holds all it held, which a cage around data must.
+    Every moved vertex must not go inward through any face around it (beyond rounding,
+    or beyond ``inward``, a distance): the repaired cage then still holds all it held,
+    which a cage around data must.
     """
-    normals, _ = face_normals_and_areas(v, f)
     for vid, point in moves.items():
-        around = np.flatnonzero((f == vid).any(axis=1))
+        normals, _ = face_normals_and_areas(v, f[(f == vid).any(axis=1)])
         step = np.asarray(point) - v[vid]
-        if (normals[around] @ step < -1e-9 * np.linalg.norm(step) - 1e-300).any():
+        if (normals @ step < -max(inward, 1e-9 * np.linalg.norm(step)) - 1e-300).any():
             return False
     return True
 
 
-def _flip_cap(v, f, t, ang):
+def _segment_distance(p0, p1, q0, q1) -> float:
+    """Smallest distance between the segments ``p0-p1`` and ``q0-q1``.
+
+    The farthest an edge flip moves the surface: the two diagonals of the quad it
+    re-triangulates.
+    """
+    u, w, r = p1 - p0, q1 - q0, p0 - q0
+    a, b, c, d, e = u @ u, u @ w, w @ w, u @ r, w @ r
+    den = a * c - b * b
+    # the closest parameters of the lines, clamped to the segments (each in turn)
+    s = np.clip((b * e - c * d) / den, 0.0, 1.0) if den > 1e-300 * a * c else 0.0
+    t = np.clip((b * s + e) / c, 0.0, 1.0) if c > 0 else 0.0
+    s = np.clip((b * t - d) / a, 0.0, 1.0) if a > 0 else 0.0
+    return float(np.linalg.norm(p0 + s * u - (q0 + t * w)))
+
+
+def _flip_cap(v, f, t, ang, inward=0.0):
     """Flip the edge opposite face ``t``'s largest angle; None if that is not allowed.
 
     Returns the new faces, a note, the smallest angle of the changed faces and None (no
@@ -204,14 +255,16 @@ def _flip_cap(v, f, t, ang):
     worst = face_angles(v, new).min()
     if worst <= min(ang[t].min(), face_angles(v, f[[u]]).min()):
         return None
-    if _volume_change(v, f[[t, u]], v, new) < -_flat(v, f[[t, u]]):
+    if _volume_change(v, f[[t, u]], v, new) < -_flat(v, f[[t, u]]) and (
+        _segment_distance(v[a], v[b], v[c], v[d]) > inward
+    ):
         return None  # the new edge would cut into the cage: what it held could be lost
     g = f.copy()
     g[t], g[u] = new
     return g, f"flipped edge ({a}, {b}) to ({c}, {d})", worst, None
 
 
-def _collapse_needle(v, f, t):
+def _collapse_needle(v, f, t, inward=0.0):
     """Collapse face ``t``'s shortest edge; None if no position keeps the cage valid.
 
     Returns the new faces, a note, the smallest angle of the changed faces and the move
@@ -245,7 +298,7 @@ def _collapse_needle(v, f, t):
         worst = face_angles(w, new).min()
         if worst <= before or (best is not None and worst <= best[0]):
             continue
-        if not _moves_outward(v, f, {a: point, b: point}):
+        if not _moves_outward(v, f, {a: point, b: point}, inward):
             continue  # the surface would move inward: what it held could be lost
         best = (worst, where, point, g)
     if best is None:
