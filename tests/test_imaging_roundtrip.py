@@ -273,6 +273,32 @@ def test_nrrd_written_here_is_read_by_simpleitk_where_it_was(tmp_path, dtype, co
     assert mask.GetDirection() == pytest.approx(back.GetDirection(), abs=1e-12)
 
 
+@pytest.mark.parametrize("name", ["a.nii.gz", "b.mha", "c.mhd", "d.nrrd"])
+def test_image_whose_extent_starts_past_zero_is_written_where_its_voxels_are(tmp_path, name):
+    """A piece of a grid (``extract_subset``, a pipeline's piece) starts at a voxel other
+    than (0, 0, 0): every file written holds each voxel at that voxel's point, as SimpleITK
+    reads it, the array beside the main one too."""
+    piece = pv.ImageData()
+    piece.SetExtent(5, 16, -3, 10, 2, 9)
+    piece.spacing, piece.origin = SPACING, ORIGIN
+    piece.direction_matrix = DIRECTIONS["oblique reflected"]
+    rng = np.random.default_rng(9)
+    piece.point_data["v"] = rng.integers(-1000, 3000, piece.n_points).astype(np.int16)
+    piece.point_data["mask"] = (np.arange(piece.n_points) % 3 == 0).astype(np.uint8)
+    piece.set_active_scalars("v")
+    written = write_dataset(tmp_path / name, piece)
+    assert len(written) == 2
+    points = np.asarray(piece.points)  # PyVista's: origin + D @ ((extent start + ijk) * s)
+    for path, array in zip(written, ("v", "mask"), strict=True):
+        back = sitk.ReadImage(str(path))
+        assert back.GetSize() == tuple(piece.dimensions)
+        index = np.array([back.TransformPhysicalPointToContinuousIndex(p.tolist()) for p in points])
+        ijk = np.rint(index).astype(int)
+        np.testing.assert_allclose(index, ijk, atol=1e-4)  # on the file's voxels
+        values = sitk.GetArrayViewFromImage(back)[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+        np.testing.assert_array_equal(values, piece.point_data[array])
+
+
 def test_oblique_dicom_series_lands_where_simpleitk_reads_it(tmp_path):
     """Two series in one folder: the larger by default, the other through one of its files."""
     folder = tmp_path / "dicom"
@@ -338,8 +364,10 @@ def test_oblique_2d_image_lands_where_simpleitk_reads_it(tmp_path, name):
     np.testing.assert_array_equal(ours.active_scalars, values.ravel())
 
 
-@pytest.mark.parametrize(("dtype", "met", "long"), [(np.int32, b"MET_INT", b"MET_LONG"),
-                                                    (np.uint32, b"MET_UINT", b"MET_ULONG")])
+@pytest.mark.parametrize(
+    ("dtype", "met", "long"),
+    [(np.int32, b"MET_INT", b"MET_LONG"), (np.uint32, b"MET_UINT", b"MET_ULONG")],
+)
 def test_metaimage_of_met_long_voxels_is_read_as_simpleitk_reads_it(tmp_path, dtype, met, long):
     """MET_LONG is 32 bits in MetaIO: VTK read it as 64 (and the size check refused it)."""
     path = tmp_path / "long.mha"

@@ -240,8 +240,8 @@ def _one_array_images(data) -> list[tuple[str, object]]:
     data = pv.wrap(data)
     parts = []
     for name in _point_arrays_main_first(data):
-        image = pv.ImageData(dimensions=data.dimensions, spacing=data.spacing, origin=data.origin)
-        image.direction_matrix = data.direction_matrix
+        image = pv.ImageData()
+        image.CopyStructure(data)  # extent, origin, spacing and direction
         image.point_data[name] = data.point_data[name]
         image.set_active_scalars(name)
         parts.append((name, image))

@@ -22,6 +22,7 @@ from vhm_viz.atomic import atomic_path
 from vhm_viz.io.isolated import read_isolated
 
 __all__ = [
+    "grid_origin",
     "image_from_sitk",
     "sitk_from_image",
     "read_with_sitk",
@@ -74,13 +75,35 @@ def image_from_sitk(image, name: str = "ImageFile"):
     return out
 
 
+def grid_origin(image) -> np.ndarray:
+    """Where an image's first voxel lies: the origin a file holding its voxels is given.
+
+    A ``vtkImageData``'s origin is the point of index (0, 0, 0), which lies outside a grid
+    whose extent does not start at 0 (a piece, ``extract_subset``); a file's origin is
+    its first voxel's point, ``origin + direction @ (extent start * spacing)``.
+
+    Parameters
+    ----------
+    image : pyvista.ImageData
+
+    Returns
+    -------
+    numpy.ndarray
+        (3,) in the image's world.
+    """
+    start = np.asarray(image.extent, dtype=np.float64)[::2]
+    direction = np.asarray(image.direction_matrix, dtype=np.float64)
+    spacing = np.asarray(image.spacing, dtype=np.float64)
+    return np.asarray(image.origin, dtype=np.float64) + direction @ (start * spacing)
+
+
 def sitk_from_image(image, values: np.ndarray):
     """A 3-D SimpleITK image on a PyVista image's grid, holding ``values``.
 
     Parameters
     ----------
     image : pyvista.ImageData
-        Its dimensions, origin, spacing and direction place the voxels.
+        Its dimensions, origin, spacing, direction and extent place the voxels.
     values : numpy.ndarray
         ``(n_points,)`` or ``(n_points, components)``, x fastest.
 
@@ -94,7 +117,7 @@ def sitk_from_image(image, values: np.ndarray):
     comps = 1 if values.ndim == 1 else values.shape[1]
     shape = (nz, ny, nx, comps) if comps > 1 else (nz, ny, nx)
     out = sitk.GetImageFromArray(np.ascontiguousarray(values).reshape(shape), isVector=comps > 1)
-    out.SetOrigin([float(v) for v in image.origin])
+    out.SetOrigin([float(v) for v in grid_origin(image)])
     out.SetSpacing([float(v) for v in image.spacing])
     direction = np.asarray(image.direction_matrix, dtype=np.float64)
     out.SetDirection([float(v) for v in direction.ravel()])

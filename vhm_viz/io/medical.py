@@ -26,7 +26,7 @@ import numpy as np
 
 from vhm_viz.atomic import atomic_output_set, atomic_path
 from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
-from vhm_viz.io.itk_images import read_with_sitk
+from vhm_viz.io.itk_images import grid_origin, read_with_sitk
 from vhm_viz.io.registry import suffix_of
 from vhm_viz.io.vtk_files import read_vtk_file
 from vhm_viz.resources import require_memory
@@ -473,7 +473,7 @@ def write_metaimage(path, image) -> None:
         "BinaryDataByteOrderMSB = False",
         "CompressedData = False",
         f"TransformMatrix = {fmt(direction.T.ravel())}",  # ITK: one image axis after another
-        f"Offset = {fmt(image.origin)}",
+        f"Offset = {fmt(grid_origin(image))}",
         "CenterOfRotation = 0 0 0",
         f"ElementSpacing = {fmt(image.spacing)}",
         f"DimSize = {' '.join(str(int(d)) for d in image.dimensions)}",
@@ -519,7 +519,7 @@ def write_nifti(path, image) -> None:
     affine = _RAS_LPS @ np.asarray(image.direction_matrix, dtype=np.float64) * image.spacing
     spacing = np.linalg.norm(affine, axis=0)
     rot = affine / np.where(spacing > 0, spacing, 1.0)
-    offset = _RAS_LPS @ np.asarray(image.origin, dtype=np.float64)
+    offset = _RAS_LPS @ grid_origin(image)
     # the quaternion holds a proper rotation; a reflection flips the third axis (qfac = -1)
     qfac = 1.0 if np.linalg.det(rot) > 0 else -1.0
     quat = Rotation.from_matrix(rot * [1.0, 1.0, qfac]).as_quat()  # x, y, z, w
