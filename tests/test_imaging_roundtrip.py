@@ -56,8 +56,9 @@ def sitk_image(direction: str, dtype, components: int = 1, seed: int = 0):
     return image
 
 
-def write_dicom_series(folder: Path, image, uid: str) -> None:
-    """A DICOM series of ``image`` (one file a slice, position and orientation per slice)."""
+def write_dicom_series(folder: Path, image, uid: str, shifts=None) -> None:
+    """A DICOM series of ``image`` (one file a slice, position and orientation per slice),
+    each slice's position moved by its row of ``shifts`` (mm) if given."""
     folder.mkdir(exist_ok=True)
     writer = sitk.ImageFileWriter()
     writer.KeepOriginalImageUIDOn()
@@ -65,7 +66,9 @@ def write_dicom_series(folder: Path, image, uid: str) -> None:
     orientation = "\\".join(f"{v:.12f}" for v in (*d[:, 0], *d[:, 1]))
     for k in range(image.GetDepth()):
         plane = image[:, :, k]
-        position = image.TransformIndexToPhysicalPoint((0, 0, k))
+        position = np.add(image.TransformIndexToPhysicalPoint((0, 0, k)), 0.0)
+        if shifts is not None:
+            position += shifts[k]
         for tag, value in {
             "0008|0060": "CT",
             "0020|000e": uid,
@@ -323,6 +326,44 @@ def test_oblique_dicom_series_lands_where_simpleitk_reads_it(tmp_path):
     bare = folder / "slice"
     (folder / "1.2.826.0.1.3680043.9.7.3_001.dcm").rename(bare)
     assert_same_image(read_dataset(bare), read_series(folder, "1.2.826.0.1.3680043.9.7.3"))
+
+
+@pytest.mark.parametrize("fault", ["missing slice", "gantry tilt", "rounded positions"])
+def test_dicom_series_off_a_regular_grid_is_refused_not_misplaced(tmp_path, fault, capsys):
+    """SimpleITK puts a series' slices on one regular grid whatever their positions say: a
+    missing slice or a gantry tilt (slices shifted in-plane) would be bent and written a
+    slice or more from where the scanner saw it. Refused in one line naming a slice; a
+    series whose positions are merely rounded is read as SimpleITK reads it."""
+    folder = tmp_path / "series"
+    source = sitk_image("oblique", np.int16, seed=5)
+    depth = source.GetDepth()
+    shifts = np.zeros((depth, 3))
+    if fault == "gantry tilt":  # each slice 0.4 mm further along its rows
+        shifts = np.outer(np.arange(depth), 0.4 * DIRECTIONS["oblique"][:, 1])
+    elif fault == "rounded positions":
+        shifts = np.random.default_rng(3).uniform(-4e-4, 4e-4, (depth, 3))
+    write_dicom_series(folder, source, "1.2.826.0.1.3680043.9.7.5", shifts)
+    files = sorted(folder.glob("*.dcm"))
+    if fault == "missing slice":
+        files.pop(6).unlink()
+    theirs = read_series(folder)
+    placed = [theirs.TransformIndexToPhysicalPoint((0, 0, k)) for k in range(len(files))]
+    found = [sitk.ReadImage(str(f)).GetOrigin() for f in files]  # each file's position
+    worst = np.linalg.norm(np.subtract(found, placed), axis=1).max()
+    if fault == "rounded positions":
+        assert worst < 1e-3
+        assert_same_image(read_dataset(folder), theirs)
+        return
+    assert worst > 1.0  # SimpleITK's grid moves a slice by more than a millimetre
+    with pytest.raises(ReadError, match=r"not evenly spaced.*slice \d+ \(.*\.dcm\)"):
+        read_dataset(folder)
+    with pytest.raises(ReadError, match="not evenly spaced"):
+        read_dataset(files[2])  # one file of the series
+    scene = translation_scene(tmp_path, theirs, [0.0, 0.0, 0.0])
+    out = tmp_path / "out.nii.gz"
+    assert main(["deform", str(folder), "-s", str(scene), "-o", str(out), "-q"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "not evenly spaced" in err and len(err.splitlines()) == 1 and not out.exists()
 
 
 def test_nrrd_whose_dimension_and_sizes_disagree_is_refused_naming_them(tmp_path):

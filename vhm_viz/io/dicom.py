@@ -10,19 +10,31 @@ Which series: a folder holding several is read as its largest series (most slice
 read another, give one file of that series instead of the folder (the file's
 ``SeriesInstanceUID`` chooses). Two largest series of the same size are refused, the
 message listing them.
+
+SimpleITK puts the slices on one regular grid whatever their positions say: a missing
+slice, uneven steps or a gantry tilt (slices shifted in their plane) would move whole
+slices by up to a slice spacing or more, with only a warning. A series whose slices are
+not where that grid puts them is refused instead, naming the slice.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from vhm_viz.io.errors import ReadError
 from vhm_viz.io.itk_images import read_with_sitk
 
-__all__ = ["dicom_files", "is_dicom_file", "read_dicom", "read_series"]
+__all__ = ["check_slices_on_grid", "dicom_files", "is_dicom_file", "read_dicom", "read_series"]
 
 _SERIES_UID = "0020|000e"
 _DESCRIPTION = "0008|103e"
+_POSITION = "0020|0032"
+#: How far a slice may lie from its place on the series' grid: 0.01 mm, or 1 % of the
+#: slice spacing, whichever is larger (far below a voxel; above the rounding of positions
+#: written with a few decimals).
+SLICE_TOLERANCE_MM, SLICE_TOLERANCE_SPACING = 1e-2, 1e-2
 
 
 def is_dicom_file(path) -> bool:
@@ -117,7 +129,8 @@ def read_series(path):
     Raises
     ------
     ValueError
-        No series, a tie between the largest, or a file without a series UID.
+        No series, a tie between the largest, a file without a series UID, or slices
+        that do not lie on one regular grid (:func:`check_slices_on_grid`).
     """
     import SimpleITK as sitk
 
@@ -137,7 +150,52 @@ def read_series(path):
         raise ValueError(f"no readable slice of series {uid} in {folder}")
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(files)
-    return reader.Execute()
+    reader.MetaDataDictionaryArrayUpdateOn()  # each slice's header, for its position
+    image = reader.Execute()
+    positions = [reader.GetMetaData(k, _POSITION) if reader.HasMetaDataKey(k, _POSITION)
+                 else "" for k in range(len(files))]  # fmt: skip
+    check_slices_on_grid(image, positions, [Path(f).name for f in files])
+    return image
+
+
+def check_slices_on_grid(image, positions: list[str], names: list[str]) -> None:
+    """Refuse a series whose slices do not lie where its image's regular grid puts them.
+
+    Parameters
+    ----------
+    image : SimpleITK.Image
+        The series as read: slice ``k`` of it is file ``k``.
+    positions : list of str
+        Each file's ``ImagePositionPatient`` (three numbers, backslash-separated); a
+        series with one missing or unreadable is not checked (no grid to hold it to).
+    names : list of str
+        The files' names, for the message.
+
+    Raises
+    ------
+    ValueError
+        A slice farther from its grid point than :data:`SLICE_TOLERANCE_MM` or
+        :data:`SLICE_TOLERANCE_SPACING` of the slice spacing; one line naming it.
+    """
+    if image.GetDimension() != 3 or image.GetSize()[2] != len(positions) or len(positions) < 2:
+        return
+    try:
+        found = np.array([[float(v) for v in p.strip(" \0").split("\\")] for p in positions])
+    except ValueError:
+        return
+    if found.shape != (len(positions), 3) or not np.isfinite(found).all():
+        return
+    grid = np.array([image.TransformIndexToPhysicalPoint((0, 0, k)) for k in range(len(found))])
+    off = np.linalg.norm(found - grid, axis=1)
+    worst = int(np.argmax(off))
+    step = image.GetSpacing()[2]
+    if off[worst] > max(SLICE_TOLERANCE_MM, SLICE_TOLERANCE_SPACING * step):
+        raise ValueError(
+            f"its slices are not evenly spaced along one axis: slice {worst} ({names[worst]}) "
+            f"lies {off[worst]:.3g} mm from its place on a grid of {step:.4g} mm steps (a "
+            "missing slice, uneven spacing or a gantry tilt); resample the series onto a "
+            "regular grid first (dcm2niix, or 3D Slicer's acquisition geometry regularization)"
+        )
 
 
 def _largest_series(folder: Path) -> str:
