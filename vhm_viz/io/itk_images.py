@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz.atomic import atomic_path
+from vhm_viz.core.image import ImageGeometry
 from vhm_viz.io.isolated import read_isolated
 
 __all__ = [
@@ -91,10 +92,8 @@ def grid_origin(image) -> np.ndarray:
     numpy.ndarray
         (3,) in the image's world.
     """
-    start = np.asarray(image.extent, dtype=np.float64)[::2]
-    direction = np.asarray(image.direction_matrix, dtype=np.float64)
-    spacing = np.asarray(image.spacing, dtype=np.float64)
-    return np.asarray(image.origin, dtype=np.float64) + direction @ (start * spacing)
+    grid = ImageGeometry(image.origin, image.spacing, image.dimensions, image.direction_matrix)
+    return grid.points(np.asarray(image.extent, dtype=np.float64)[None, ::2])[0]
 
 
 def sitk_from_image(image, values: np.ndarray):
