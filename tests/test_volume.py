@@ -651,6 +651,23 @@ def test_cli_resampling_options(cli_volume, tmp_path, capsys):
     assert not (tmp_path / "c.vti").exists()
 
 
+def test_cli_reference_grid_the_deformed_volume_misses_is_refused(cli_volume, tmp_path, capsys):
+    # the cli_volume's voxels and its deformation stay within 50 units of the origin
+    folder, img, files, scene = cli_volume
+    ref = pv.ImageData(dimensions=(20, 21, 22), spacing=(1.5, 1.5, 1.5), origin=(500, 0, 0))
+    ref.point_data["r"] = np.zeros(ref.n_points, np.uint8)
+    write_dataset(tmp_path / "far.mhd", ref)
+    out = tmp_path / "far_out.vti"
+    rc, _, err = _cli(
+        capsys, "deform", files[".vti"], "-s", scene, "-o", out, "-q",
+        "--reference", tmp_path / "far.mhd",
+    )  # fmt: skip
+    assert rc == 1
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "none of its 9240 voxels lies in the deformed volume" in lines[0]
+    assert not out.exists()
+
+
 def test_cli_resample_grid_is_the_deformed_volumes_whatever_the_tolerance(
     cli_volume, tmp_path, capsys
 ):

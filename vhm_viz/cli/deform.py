@@ -380,6 +380,8 @@ def deform(args: argparse.Namespace) -> str:
         field = None if field_paths is None else field_of(args, mesh, result, dfm, tolerance)
     # everything that can fail happens before the write: an error never follows an output
     with timer.stage("checks"):
+        if ref_image is not None:
+            _require_overlap(flt.stats, reference)
         check_kernels.join()
         summary = _summary(mesh, result, reports, flt, resample, volume, tolerance)
         bar = Progress("checking", enabled=not (args.quiet or resample))
@@ -405,6 +407,19 @@ def deform(args: argparse.Namespace) -> str:
             print_warning("deform", text)
     outputs = ", ".join(map(str, written))
     return ", ".join([*summary, f"{seconds:.1f} s"]) + f" -> {outputs}" + field_written
+
+
+def _require_overlap(stats: dict, reference) -> None:
+    """Refuse a resample onto a ``--reference`` grid that the deformed volume misses.
+
+    Every voxel of such an output would be the fill value: not what anyone asked for.
+    """
+    if stats["valid"] == 0 and stats["identity"] == 0:
+        raise CLIError(
+            f"--reference {reference}: none of its {stats['voxels']} voxels lies in the "
+            "deformed volume, so every one would be the fill value; nothing written (give a "
+            "reference grid that overlaps the deformed volume, in the same world frame)"
+        )
 
 
 def _summary(mesh, result, reports, flt, resample: bool, volume: bool, tolerance) -> list[str]:
