@@ -110,3 +110,41 @@ def test_a_write_in_a_folder_it_cannot_write_names_the_folder_not_its_temporary(
     )
     assert proc.stdout.splitlines() == [expected, expected], proc.stderr
     assert list(read_only_folder.iterdir()) == []
+
+
+_WRITE_FIELD = """
+import sys
+from pathlib import Path
+import numpy as np
+from vhm_viz.core.displacement import DisplacementField
+from vhm_viz.core.image import ImageGeometry
+from vhm_viz.io.fields import write_displacement_field
+geo = ImageGeometry((0, 0, 0), (1, 1, 1), (48, 48, 48))
+vectors = np.random.default_rng(0).normal(size=(geo.n_points, 3))
+ones = np.ones(geo.n_points, np.uint8)
+field = DisplacementField(geo, vectors, ones, np.zeros_like(ones))
+try:
+    write_displacement_field(Path(sys.argv[1]), field)
+except OSError as exc:
+    sys.exit(f"OSError {exc}")
+"""
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz"])
+def test_a_nifti_field_cut_short_by_the_file_size_limit_fails_and_keeps_the_old_one(
+    tmp_path, suffix
+):
+    # ITK's NIfTI writer only prints a failed write; the field (2.6 MB of noise) must
+    # not replace the old one cut at the limit
+    out = tmp_path / f"field{suffix}"
+    old = b"the previous field, which must survive\n"
+    out.write_bytes(old)
+    proc = subprocess.run(
+        [sys.executable, "-c", _WRITE_FIELD, str(out)],
+        capture_output=True, text=True, preexec_fn=_limited(256 * 1024), timeout=300,
+    )  # fmt: skip
+    assert proc.returncode != 0, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"OSError cannot write {out}: the file ends early"), proc.stderr
+    assert out.read_bytes() == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]

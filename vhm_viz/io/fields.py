@@ -32,6 +32,8 @@ import numpy as np
 from vhm_viz.atomic import atomic_directory
 from vhm_viz.core.displacement import DisplacementField
 from vhm_viz.core.image import ImageGeometry
+from vhm_viz.io.errors import ReadError
+from vhm_viz.io.medical import check_nifti
 from vhm_viz.io.registry import suffix_of
 
 __all__ = ["FIELD_SUFFIXES", "check_field_path", "mask_path_of", "write_displacement_field"]
@@ -90,7 +92,8 @@ def write_displacement_field(path, field: DisplacementField) -> tuple[Path, Path
     ValueError
         Another suffix, or a NIfTI file for a sheared grid.
     OSError
-        SimpleITK could not write a file (the message is its first line).
+        SimpleITK could not write a file (the message is its first line), or a NIfTI
+        file it wrote ends early (a full disk, a file-size limit).
     """
     import SimpleITK as sitk
 
@@ -118,4 +121,23 @@ def write_displacement_field(path, field: DisplacementField) -> tuple[Path, Path
             except RuntimeError as exc:
                 lines = [line for line in str(exc).splitlines() if line.strip()]
                 raise OSError(f"cannot write {path.parent / name}: {lines[-1]}") from None
+            if suffix_of(path) in (".nii", ".nii.gz"):
+                _check_written_nifti(stage / name, path.parent / name)
     return path, mask
+
+
+def _check_written_nifti(written: Path, final: Path) -> None:
+    """Raise OSError naming ``final`` when the NIfTI file ``written`` holds fewer voxels.
+
+    ITK's NIfTI writer reports a failed write (a full disk or quota, a file-size limit)
+    only on stderr and leaves the file short; counted before the file is renamed into
+    place, so a short field never replaces the previous one.
+    """
+    try:
+        check_nifti(written)
+    except ReadError as exc:
+        reason = str(exc).removeprefix(f"{written}: ")
+        raise OSError(
+            f"cannot write {final}: the file ends early ({reason}); the disk is full or a "
+            "file-size limit was reached"
+        ) from None
