@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -248,6 +250,28 @@ def test_analyze_out_of_budget_is_undecided(files, tmp_path, capsys):
         "--certify", "--max-cubes", "0",
     )  # fmt: skip
     assert rc != 0 and "--max-cubes" in err
+
+
+@pytest.mark.parametrize("far", [1e20, 1e300])
+def test_analyze_slices_inside_the_cage_past_a_far_stray_point(files, tmp_path, far):
+    # a scan's stray point far outside the cage, left in place: the Figure 4 slice is
+    # taken inside the cage, not on a grid stretched to the stray point (an empty slice,
+    # or VTK's implicit distance crashing the process)
+    d = files[0]
+    surface = pv.read(d / "bar.vtp")
+    surface.points[0] = [far, 0.0, 0.0]
+    surface.save(tmp_path / "stray.vtp")
+    out_dir = tmp_path / "report"
+    proc = subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", "analyze", str(tmp_path / "stray.vtp"), "--scene",
+         str(d / "bend.json"), "-o", str(out_dir), "-q", "--outside", "passthrough"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    m = json.loads((out_dir / "metrics.json").read_text())
+    assert m["points_outside_cage"] == 1
+    det = m["slice"]["jacobian_determinant"]
+    assert 0 < det["min"] <= det["max"] < 10
 
 
 def test_analyze_never_overwrites_its_input(files, tmp_path, capsys):

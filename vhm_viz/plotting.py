@@ -142,7 +142,7 @@ def jacobian_slice(mesh, harmonic_map, *, normal=None, origin=None, resolution: 
     normal : (3,) array_like, optional
         Slice normal; default :func:`default_slice_normal` of the mesh points.
     origin : (3,) array_like, optional
-        A point of the plane; default the mesh's centre.
+        A point of the plane; default the centre of the mesh's bounds within the cage's box.
     resolution : int
         Grid points along the longer side (surface / point-cloud input).
 
@@ -156,8 +156,16 @@ def jacobian_slice(mesh, harmonic_map, *, normal=None, origin=None, resolution: 
 
     mesh = pv.wrap(mesh)
     pts = np.asarray(mesh.points, dtype=np.float64)
+    # the slice lies inside the cage: data left outside it (--outside passthrough), however
+    # far, neither stretches the plane's grid nor moves its centre
+    cage = np.asarray(harmonic_map.cage.vertices, dtype=np.float64)
+    lo = np.maximum(np.asarray(mesh.bounds[0::2], dtype=np.float64), cage.min(axis=0))
+    hi = np.minimum(np.asarray(mesh.bounds[1::2], dtype=np.float64), cage.max(axis=0))
+    if np.any(lo > hi):
+        raise ValueError("the data lies wholly outside the cage: no slice to show")
+    bounds = np.ravel(np.column_stack([lo, hi]))
     if origin is None:
-        origin = np.asarray(mesh.center, dtype=np.float64)
+        origin = (lo + hi) / 2
     origin = np.asarray(origin, dtype=np.float64)
     if normal is None:
         sample = pts[:: max(1, len(pts) // 4000)]
@@ -170,7 +178,7 @@ def jacobian_slice(mesh, harmonic_map, *, normal=None, origin=None, resolution: 
     if has_3d_cells:
         sl = mesh.slice(normal=normal, origin=origin)
     else:
-        grid = _plane_grid(mesh.bounds, normal, origin, resolution)
+        grid = _plane_grid(bounds, normal, origin, resolution)
         closed = (
             isinstance(mesh, pv.PolyData)
             and mesh.n_cells > 0
@@ -188,13 +196,13 @@ def jacobian_slice(mesh, harmonic_map, *, normal=None, origin=None, resolution: 
             grid.point_data["inside"] = inside.astype(np.float64)
             sl = grid.threshold((0.5, 1.5), scalars="inside", all_scalars=True)
         sl = _surface(sl)
-    if sl.n_points == 0:
-        raise ValueError("the slice plane does not cut the shape (empty slice)")
     rest = np.asarray(sl.points, dtype=np.float64)
     keep = harmonic_map.inside(rest)
     if not keep.all():
         sl = _surface(sl.extract_points(keep, adjacent_cells=False))
         rest = np.asarray(sl.points, dtype=np.float64)
+    if sl.n_points == 0:
+        raise ValueError("the slice plane does not cut the shape inside the cage (empty slice)")
     f, jac, _ = harmonic_map.evaluate(rest, order=1, outside="passthrough")
     out = sl.copy()
     out.points = f
