@@ -22,7 +22,7 @@ def _limited(limit_bytes: int):
     return set_limit
 
 
-@pytest.mark.parametrize("suffix", [".vti", ".mha", ".vts"])
+@pytest.mark.parametrize("suffix", [".vti", ".mha", ".vts", ".nii.gz", ".mhd", ".nrrd"])
 def test_a_write_past_the_file_size_limit_fails_and_keeps_the_old_file(tmp_path, suffix):
     head = data_path("volumes", "headsq_64x64x93.vti")
     out = tmp_path / "run" / f"out{suffix}"
@@ -42,9 +42,27 @@ def test_a_write_past_the_file_size_limit_fails_and_keeps_the_old_file(tmp_path,
     assert proc.returncode != 0, proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("vhm-viz deform")]
     assert len(lines) == 1 and "error:" in lines[0] and "Traceback" not in proc.stderr
-    assert "write" in lines[0] or "large" in lines[0], lines[0]
+    # the output named, not a temporary or staging folder it was written in
+    assert lines[0].startswith(f"vhm-viz deform: error: could not write {out}: "), lines[0]
     assert out.read_bytes() == old
     assert sorted(p.name for p in out.parent.iterdir()) == before
+
+
+def test_a_report_past_the_file_size_limit_names_its_file_not_the_staging_folder(tmp_path):
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    report = tmp_path / "report"
+    command = [sys.executable, "-m", "vhm_viz.cli", "analyze", str(head), "--scene", str(SCENE),
+               "-o", str(report), "-q"]  # fmt: skip
+    subprocess.run(command, capture_output=True, check=True, timeout=600)
+    before = {p.name: p.read_bytes() for p in report.iterdir()}
+    proc = subprocess.run(
+        command, capture_output=True, text=True, preexec_fn=_limited(64 * 1024), timeout=600
+    )
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.splitlines()[-1] == (
+        f"vhm-viz analyze: error: could not write {report}/analysis.vti: File too large"
+    )
+    assert {p.name: p.read_bytes() for p in report.iterdir()} == before
 
 
 def _unprivileged(command: list) -> list:

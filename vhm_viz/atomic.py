@@ -34,6 +34,7 @@ from vhm_viz import interrupts
 __all__ = [
     "OverwriteError",
     "UnwritableFolderError",
+    "WriteError",
     "require_writable",
     "same_file",
     "atomic_output_set",
@@ -53,6 +54,16 @@ class UnwritableFolderError(OSError):
     """A folder an output cannot be written in (permissions, a read-only or full disk).
 
     Its text names the folder, not the hidden temporary the write began with.
+    """
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+class WriteError(OSError):
+    """A write that failed part-way (a full disk or quota, a file-size limit).
+
+    Its text names the output, not the temporary it was written as.
     """
 
     def __str__(self) -> str:
@@ -183,7 +194,9 @@ def atomic_output_set(paths) -> Iterator[list[Path]]:
                 temps.append(_create_temporary(final))
                 _in_progress.add(temps[-1])
         mine = iter(temps)
-        yield [staged[k] if k in staged else next(mine) for k in range(len(finals))]
+        where = [staged[k] if k in staged else next(mine) for k in range(len(finals))]
+        with _naming_outputs(list(zip(where, finals, strict=True))):
+            yield where
         for tmp in temps:
             # the data reaches the disk before the names do: a power loss leaves the old
             # file or the whole new one, never an empty file under the final name
@@ -262,7 +275,8 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
             stage.mkdir()
             _in_progress.add(stage)
             _enclosing[_key(directory)] = stage
-        yield stage
+        with _naming_outputs([(stage, directory)]):
+            yield stage
         names = sorted(p.name for p in stage.iterdir() if p.is_file())
         if last in names:
             names.remove(last)
@@ -278,6 +292,48 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
                 _enclosing.pop(_key(directory), None)
                 shutil.rmtree(stage, ignore_errors=True)
                 _in_progress.discard(stage)
+
+
+@contextlib.contextmanager
+def _naming_outputs(pairs: list[tuple[Path, Path]]) -> Iterator[None]:
+    """Word a failed write (a full disk, a file-size limit) with the output, not its temporary.
+
+    ``pairs`` are (where it is written: a temporary or staging folder, the output). An
+    ``OSError`` of the system (an errno, as a full disk raises it) becomes a
+    :class:`WriteError` ``could not write OUTPUT: REASON``, the output that of the file it
+    names, else the last (the file a set is read by); a message a writer worded names the
+    outputs in place of their temporaries and staging folders.
+    """
+    try:
+        yield
+    except UnwritableFolderError:
+        raise
+    except OSError as exc:
+        if exc.strerror and not isinstance(exc, WriteError):
+            final = _output_of(exc.filename, pairs) if exc.filename is not None else None
+            final = pairs[-1][1] if final is None else final
+            raise WriteError(exc.errno, f"could not write {final}: {exc.strerror}") from exc
+        text = str(exc)
+        for written, final in pairs:
+            # a file staged for the current folder is named as given: "x.vti", not "./x.vti"
+            inside = "" if os.fspath(final) == "." else os.fspath(final) + os.sep
+            text = text.replace(os.fspath(written) + os.sep, inside)
+            text = text.replace(os.fspath(written), os.fspath(final))
+        if text == str(exc):
+            raise
+        raise WriteError(exc.errno, text) from exc
+
+
+def _output_of(name, pairs: list[tuple[Path, Path]]) -> Path | None:
+    """The output written as ``name`` (a temporary, or a file in a staging folder)."""
+    here = os.path.abspath(name)
+    for written, final in pairs:
+        there = os.path.abspath(written)
+        if here == there:
+            return final
+        if here.startswith(there + os.sep):
+            return final / os.path.relpath(here, there)
+    return None
 
 
 #: This process's temporaries and staging folders not yet renamed or removed.

@@ -197,4 +197,7 @@ def write_with_sitk(path, image, values: np.ndarray, compress: bool = True) -> N
 
     out = sitk_from_image(image, values)
     with atomic_path(Path(path)) as tmp:
-        sitk.WriteImage(out, os.fspath(tmp), useCompression=compress)
+        try:
+            sitk.WriteImage(out, os.fspath(tmp), useCompression=compress)
+        except RuntimeError as exc:  # a full disk, a file-size limit
+            raise OSError(f"could not write {path}: {sitk_message(exc)}") from None
