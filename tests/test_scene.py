@@ -350,6 +350,39 @@ def test_auto_cage_and_auto_anchors_build_a_working_deformer():
     assert Scene.from_dict(_minimal(cage="auto")).cage == {"auto": {}}
 
 
+def test_json_the_parser_refuses_is_one_line_naming_the_file(tmp_path):
+    # an integer past Python's digit limit, and nesting past its recursion limit, are
+    # refused by the parser with messages of their own (or a bare RecursionError)
+    from vhm_viz.io import ReadError, read_anchors
+    from vhm_viz.io.markups import read_markups
+
+    long_int = "1" + "0" * 5000
+    deep = "[" * 100_000 + "]" * 100_000
+    texts = {
+        "long.json": (
+            f'{{"format": "vhm_viz.scene", "version": {long_int}}}',
+            "an integer of more than 4300 digits",
+        ),
+        "deep.json": (deep, "nested too deeply"),
+    }
+    for name, (text, why) in texts.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(SceneError) as err:
+            Scene.load(tmp_path / name)
+        assert str(err.value) == f"{tmp_path / name}: scene (json): not valid JSON: {why}"
+        with pytest.raises(ReadError, match=f"^{re.escape(str(tmp_path / name))}: .*{why}"):
+            read_anchors(tmp_path / name)
+        with pytest.raises(ReadError, match=f"^{re.escape(str(tmp_path / name))}: .*{why}"):
+            read_markups(tmp_path / name)
+
+
+def test_a_scene_with_a_byte_order_mark_reads(tmp_path):
+    # Windows editors save UTF-8 with a byte-order mark
+    p = tmp_path / "bom.json"
+    p.write_bytes(b"\xef\xbb\xbf" + json.dumps(_minimal()).encode())
+    assert Scene.load(p).to_dict() == Scene.from_dict(_minimal()).to_dict()
+
+
 def test_anchors_from_a_json_file_and_cage_from_an_obj(tmp_path):
     from vhm_viz.io import write_anchors
 

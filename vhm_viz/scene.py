@@ -84,7 +84,16 @@ from vhm_viz.core.cage import MIN_FACE_ANGLE, Cage
 from vhm_viz.core.deformer import Deformer
 from vhm_viz.core.errors import SettingError
 from vhm_viz.core.harmonic_map import HarmonicMap
-from vhm_viz.io import json_text, read_anchors, read_cage, read_polylines, read_tgf, write_text
+from vhm_viz.io import (
+    JSONTextError,
+    json_text,
+    parse_json,
+    read_anchors,
+    read_cage,
+    read_polylines,
+    read_tgf,
+    write_text,
+)
 from vhm_viz.io.markups import read_markups
 from vhm_viz.scene_fields import (
     CONSTRAINT_FIELDS,
@@ -316,9 +325,9 @@ class Scene:
     def loads(cls, text: str, *, source: str | None = None, base_dir=None) -> Scene:
         """Parse a scene from JSON text."""
         try:
-            data = json.loads(text)
-        except (json.JSONDecodeError, RecursionError) as exc:
-            raise SceneError("(json)", f"not valid JSON: {exc}", source) from None
+            data = parse_json(text)
+        except JSONTextError as exc:
+            raise SceneError("(json)", str(exc), source) from None
         return cls.from_dict(data, source=source, base_dir=base_dir)
 
     def dumps(self) -> str:
@@ -351,8 +360,8 @@ class Scene:
 
     def _merge_sidecar(self, sidecar: Path) -> None:
         try:
-            side = json.loads(sidecar.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            side = parse_json(sidecar.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, JSONTextError) as exc:
             raise SceneError("(sidecar)", f"{sidecar.name} is unreadable ({exc})") from None
         if not isinstance(side, dict):
             return

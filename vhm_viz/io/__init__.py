@@ -55,7 +55,7 @@ from vhm_viz.io.registry import (
     suffix_of,
 )
 from vhm_viz.io.rigidity import read_polylines, read_rigidity_lines, read_tgf
-from vhm_viz.io.text import json_text, write_text
+from vhm_viz.io.text import JSONTextError, json_text, parse_json, write_text
 
 #: Dataset formats :func:`read_dataset` reads (VTK's readers, meshio for MEDIT and Gmsh, OFF and
 #: plain point lists parsed here). ``.nii.gz`` counts as one suffix.
@@ -93,6 +93,8 @@ __all__ = [
     "same_file",
     "OverwriteError",
     "json_text",
+    "parse_json",
+    "JSONTextError",
     "suffix_of",
     "cell_types",
 ]

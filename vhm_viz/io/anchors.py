@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from vhm_viz.io.errors import ReadError, check_file_size, first_line
 from vhm_viz.io.markups import is_markups_path, read_markups, write_markups
-from vhm_viz.io.text import json_text, write_text
+from vhm_viz.io.text import JSONTextError, json_text, parse_json, write_text
 
 __all__ = ["read_anchors", "write_anchors"]
 
@@ -38,8 +37,8 @@ def read_anchors(path) -> np.ndarray:
     if is_markups_path(p):
         return read_markups(p)
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        data = parse_json(p.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, JSONTextError) as exc:
         raise ReadError(f"{p}: not a JSON anchors file ({first_line(exc)})") from exc
     if isinstance(data, dict):
         data = data.get("anchors")

@@ -9,13 +9,12 @@ vhm_viz's world is ITK's (LPS, millimetres): RAS positions are converted on read
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from vhm_viz.io.errors import ReadError, first_line
-from vhm_viz.io.text import json_text, write_text
+from vhm_viz.io.text import JSONTextError, json_text, parse_json, write_text
 
 __all__ = [
     "MARKUPS_SCHEMA",
@@ -76,8 +75,8 @@ def read_markups(path) -> np.ndarray:
     if not p.is_file():
         raise FileNotFoundError(f"no such markups file: {p}")
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        data = parse_json(p.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, JSONTextError) as exc:
         raise ReadError(f"{p}: not a JSON markups file ({first_line(exc)})") from exc
     markups = data.get("markups") if isinstance(data, dict) else None
     if not isinstance(markups, list):

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 
 from vhm_viz.atomic import atomic_path
 
-__all__ = ["write_text", "json_text"]
+__all__ = ["write_text", "json_text", "parse_json", "JSONTextError"]
 
 
 def write_text(path, text: str) -> None:
@@ -27,3 +28,27 @@ def json_text(obj) -> str:
     number_list = re.compile(r"\[\s*(-?[0-9][^\[\]{}\"]*?)\s*\]")
     joined = number_list.sub(lambda m: "[" + ", ".join(re.split(r",\s*", m.group(1))) + "]", text)
     return joined + "\n"
+
+
+class JSONTextError(ValueError):
+    """Text that is not JSON a reader can take; the message says what is wrong, no file."""
+
+
+def parse_json(text: str):
+    """Parse JSON text; anything Python's parser refuses is one :class:`JSONTextError`.
+
+    Besides malformed text, the parser refuses arrays nested past the interpreter's
+    recursion limit (``RecursionError``) and integers of more digits than the
+    interpreter converts (a bare ``ValueError`` advising ``sys.set_int_max_str_digits``);
+    both are worded here for the file. A leading UTF-8 byte-order mark (Windows editors
+    write one) is skipped.
+    """
+    try:
+        return json.loads(text.removeprefix("\ufeff"))
+    except json.JSONDecodeError as exc:
+        raise JSONTextError(f"not valid JSON: {exc}") from None
+    except RecursionError:
+        raise JSONTextError("not valid JSON: nested too deeply") from None
+    except ValueError:  # the interpreter's limit on an integer's digits
+        limit = sys.get_int_max_str_digits()
+        raise JSONTextError(f"not valid JSON: an integer of more than {limit} digits") from None
