@@ -253,3 +253,17 @@ def test_bad_field_arguments_are_one_line(head, tmp_path, capsys):
                         "--write-field", tmp_path / "f.nii.gz", "-q")  # fmt: skip
     assert rc != 0 and len(err.strip().splitlines()) == 1 and "volume" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.npy"]
+
+
+def test_a_field_or_mask_that_is_an_input_says_to_change_write_field(head, tmp_path, capsys):
+    # the refusal names the option that chose the file, not -o
+    path, img, geo = head
+    (tmp_path / "in.mha").symlink_to(path.resolve())
+    rc, _, err = _cli(capsys, "deform", path, "-s", SCENE, "-o", tmp_path / "o.vti",
+                      "--write-field", tmp_path / "in.mha", "-q")  # fmt: skip
+    assert rc == 1 and err.strip().endswith("; choose another output (--write-field)"), err
+    (tmp_path / "f_mask.mha").symlink_to(path.resolve())
+    rc, _, err = _cli(capsys, "deform", path, "-s", SCENE, "-o", tmp_path / "o.vti",
+                      "--write-field", tmp_path / "f.mha", "-q")  # fmt: skip
+    assert rc == 1 and err.strip().endswith("; choose another output (--write-field)"), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f_mask.mha", "in.mha"]

@@ -65,9 +65,9 @@ def check_field_output(args: argparse.Namespace, volume: bool, inputs) -> tuple 
         )
     if not volume:
         raise CLIError("--write-field needs a volume INPUT (an image): a field lives on a grid")
-    check_output(field, FIELD_SUFFIXES, inputs)
+    check_output(field, FIELD_SUFFIXES, inputs, "--write-field")
     mask = mask_path_of(field)
-    check_output(mask, FIELD_SUFFIXES, inputs)
+    check_output(mask, FIELD_SUFFIXES, inputs, "--write-field")
     outputs = [Path(args.output), field, mask]
     if len({p.resolve() for p in outputs}) < 3:
         raise CLIError(

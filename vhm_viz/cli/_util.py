@@ -213,7 +213,7 @@ def check_input(path: str, suffixes=DATASET_SUFFIXES) -> Path:
     return p
 
 
-def check_output(output: str, suffixes, inputs=()) -> Path:
+def check_output(output: str, suffixes, inputs=(), option: str = "-o") -> Path:
     """The output path: a known suffix, an existing directory, and none of ``inputs``.
 
     Parameters
@@ -225,11 +225,13 @@ def check_output(output: str, suffixes, inputs=()) -> Path:
     inputs : iterable of path-like
         Every file the command reads (data, scene, cage, ...): the output must be none of
         them, whatever path or hard link names it.
+    option : str
+        The option that named ``output``, which a refusal says to change.
     """
     out = Path(output)
     if out.is_dir():
         raise CLIError(f"output {out} is a directory; give a file name")
-    _refuse_inputs(out, inputs)
+    _refuse_inputs(out, inputs, option)
     if suffix_of(out) not in suffixes:
         raise CLIError(f"output {out} must end with one of {', '.join(suffixes)}")
     if not out.resolve().parent.is_dir():
@@ -253,11 +255,11 @@ def check_output_directory(output: str, names, inputs=()) -> Path:
     return out
 
 
-def _refuse_inputs(path: Path, inputs) -> None:
+def _refuse_inputs(path: Path, inputs, option: str = "-o") -> None:
     try:
         refuse_inputs(path, inputs)
     except OverwriteError as exc:
-        raise CLIError(f"{exc} (-o)") from None
+        raise CLIError(f"{exc} ({option})") from None
 
 
 def outside_message(exc, n_points: int, source, *, drops: bool = True) -> str:
