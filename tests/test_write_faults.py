@@ -166,3 +166,15 @@ def test_a_nifti_field_cut_short_by_the_file_size_limit_fails_and_keeps_the_old_
     assert last.startswith(f"OSError cannot write {out}: the file ends early"), proc.stderr
     assert out.read_bytes() == old
     assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+
+
+def test_a_report_that_fails_leaves_no_folder_it_created(tmp_path):
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    report = tmp_path / "new" / "report"
+    proc = subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", "analyze", str(head), "--scene", str(SCENE),
+         "-o", str(report), "-q"],
+        capture_output=True, text=True, preexec_fn=_limited(64 * 1024), timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    assert list(tmp_path.iterdir()) == []

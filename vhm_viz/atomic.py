@@ -242,7 +242,8 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
     Everything written into the staging folder appears in ``directory`` as one set
     (:func:`atomic_output_set`: the previous files or the new ones, never a mix) when the
     block ends without an error or interrupt; otherwise ``directory`` keeps its previous
-    files, byte for byte, and the staging folder is removed. Atomic writes of this process
+    files, byte for byte, and the staging folder is removed (with ``directory`` itself when
+    the block created it and it is still empty). Atomic writes of this process
     into ``directory`` inside the block (:func:`atomic_path`, :func:`atomic_output_set`, a
     nested :func:`atomic_directory`) join the set: the command line writes an image, the
     arrays beside it and a displacement field as one set this way.
@@ -265,10 +266,12 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
     if _key(directory) in _enclosing:  # inside a block staging this folder: part of its set
         yield _enclosing[_key(directory)]
         return
+    created = _missing_folders(directory)
     with _writing_in(directory.parent):
         directory.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(directory)
     stage = None
+    committed = False
     try:
         with interrupts.deferred(), _writing_in(directory):
             stage = directory / f".vhm-staging.{_token()}"
@@ -286,12 +289,29 @@ def atomic_directory(directory: str | os.PathLike, last: str | None = None) -> I
         with interrupts.deferred():
             interrupts.check()
             _commit([(stage / n, directory / n) for n in names])
+            committed = True
     finally:
         if stage is not None:
             with interrupts.deferred():
                 _enclosing.pop(_key(directory), None)
                 shutil.rmtree(stage, ignore_errors=True)
                 _in_progress.discard(stage)
+        if not committed:  # no new set: the folders made for it go too (if still empty)
+            for folder in created:
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break
+
+
+def _missing_folders(directory: Path) -> list[Path]:
+    """The folders that creating ``directory`` makes, innermost first."""
+    missing = []
+    here = Path(os.path.abspath(directory))
+    while not here.exists() and here.parent != here:
+        missing.append(here)
+        here = here.parent
+    return missing
 
 
 @contextlib.contextmanager
