@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -331,3 +334,29 @@ def test_figure12_and_energy_png(tmp_path):
     assert img.shape[:2] == (240, 320) and img.std() > 0.05
     fig = plotting.energy_plot({"a": np.array([3.0, 1.0]), "b": np.array([2.0, 1.5])})
     assert len(fig.axes[0].lines) == 2
+
+
+_PLOT_UNDER_LIMIT = """
+import resource, sys
+import numpy as np
+from vhm_viz import plotting
+resource.setrlimit(resource.RLIMIT_FSIZE, (2048, 2048))
+try:
+    plotting.energy_plot(np.linspace(1.0, 0.1, 50), filename=sys.argv[1])
+except OSError as exc:
+    sys.exit(f"OSError {exc}")
+"""
+
+
+def test_a_figure_that_cannot_be_written_whole_keeps_the_old_image(tmp_path):
+    # a full disk or file-size limit part-way through the PNG: the old image stays
+    out = tmp_path / "energy.png"
+    out.write_bytes(b"the previous figure")
+    proc = subprocess.run(
+        [sys.executable, "-c", _PLOT_UNDER_LIMIT, str(out)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == f"OSError could not write {out}: File too large"
+    assert out.read_bytes() == b"the previous figure"
+    assert [p.name for p in tmp_path.iterdir()] == ["energy.png"]

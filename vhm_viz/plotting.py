@@ -22,6 +22,7 @@ import os
 
 import numpy as np
 
+from vhm_viz.atomic import atomic_path
 from vhm_viz.colours import cond_range, histogram, measure_style
 from vhm_viz.core.metrics import condition_number, jacobian_determinant
 
@@ -77,6 +78,12 @@ def measure_mesh_kwargs(measure: str, values, *, clim=None, scalar_bar_args=None
         kwargs["below_color"] = style["below_color"]
         kwargs["scalar_bar_args"].setdefault("below_label", "fold")
     return kwargs
+
+
+def _write_image(filename, write) -> None:
+    """Write a figure with ``write(name)`` atomically: the old image or the whole new one."""
+    with atomic_path(filename) as tmp:
+        write(os.fspath(tmp))
 
 
 def default_slice_normal(points, deformed) -> np.ndarray:
@@ -293,7 +300,7 @@ def figure4(
         pl.reset_camera()
         pl.camera.zoom(1.1)
     if filename is not None:
-        pl.screenshot(os.fspath(filename))
+        _write_image(filename, pl.screenshot)
     return pl
 
 
@@ -409,7 +416,7 @@ def figure12(
     fig.tight_layout()
     fig.histograms = hists
     if filename is not None:
-        fig.savefig(os.fspath(filename), dpi=dpi)
+        _write_image(filename, lambda name: fig.savefig(name, dpi=dpi))
     return fig
 
 
@@ -466,7 +473,7 @@ def energy_plot(
     ax.grid(alpha=0.3, which="both")
     fig.tight_layout()
     if filename is not None:
-        fig.savefig(os.fspath(filename), dpi=dpi)
+        _write_image(filename, lambda name: fig.savefig(name, dpi=dpi))
     return fig
 
 
@@ -547,7 +554,7 @@ def deformation_view(
     pl.reset_camera()
     pl.camera.zoom(0.9)  # room for the colour bar on the right
     if filename is not None:
-        pl.screenshot(os.fspath(filename))
+        _write_image(filename, pl.screenshot)
     return pl
 
 
@@ -667,5 +674,5 @@ def injectivity_figure(
     pl.camera_position = _view_along(deformed_slice, normal)
     pl.reset_camera()
     if filename is not None:
-        pl.screenshot(os.fspath(filename))
+        _write_image(filename, pl.screenshot)
     return pl
