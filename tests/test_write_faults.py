@@ -178,3 +178,15 @@ def test_a_report_that_fails_leaves_no_folder_it_created(tmp_path):
     )  # fmt: skip
     assert proc.returncode == 1, proc.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_demo_that_fails_part_way_writes_none_of_its_files(tmp_path):
+    # its scene and first surface fit under the limit, its later files do not
+    out = tmp_path / "demo"
+    proc = subprocess.run(
+        [sys.executable, "-m", "vhm_viz.cli", "demo", "-o", str(out), "-q", "--no-tets"],
+        capture_output=True, text=True, preexec_fn=_limited(64 * 1024), timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.splitlines()[-1].startswith(f"vhm-viz demo: error: could not write {out}/")
+    assert list(tmp_path.iterdir()) == []

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz import plotting
+from vhm_viz.atomic import atomic_directory
 from vhm_viz.cli._util import (
     CLIError,
     Progress,
@@ -121,17 +122,37 @@ def bar_volume(voxel: float = 0.08):
 
 def demo(args: argparse.Namespace):
     """Run the demo, yielding the lines to print."""
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"output {out} exists and is not a directory")
+    t_start = time.perf_counter()
+    written: list[tuple[str, Path]] = []
+    # every file appears at the end, as one set: an error or interrupt part-way leaves
+    # the folder's previous files as they were
+    with atomic_directory(out, last="metrics.json"):
+        metrics, lines = _make_files(args, out, written)
+
+    seconds = time.perf_counter() - t_start
+    yield from lines
+    yield f"wrote {len(written)} files to {out.resolve()} in {seconds:.1f} s:"
+    for what, path in written:
+        yield f"  {path.name:<34} {what}"
+    yield (
+        "open them in ParaView, or try: vhm-viz deform "
+        f"{out / 'bar_rest.vtp'} --scene {out / 'scene.json'} -o bent.vtp"
+    )
+
+
+def _make_files(args: argparse.Namespace, out: Path, written: list):
+    """Solve the demo's scene and write its files into ``out``; returns the metrics and lines.
+
+    ``written`` gets ``(what, path)`` for each file.
+    """
     import pyvista as pv
 
     from vhm_viz.filters import HarmonicDeformationFilter, HarmonicResampleFilter, update
 
-    out = Path(args.output)
-    if out.exists() and not out.is_dir():
-        raise CLIError(f"output {out} exists and is not a directory")
-    out.mkdir(parents=True, exist_ok=True)
     quiet = args.quiet
-    t_start = time.perf_counter()
-    written: list[tuple[str, Path]] = []
 
     def save(mesh, name, what):
         path = out / name
@@ -233,22 +254,14 @@ def demo(args: argparse.Namespace):
     }
     write_text(out / "metrics.json", json_text(metrics))
     written.append(("metrics", out / "metrics.json"))
-
-    seconds = time.perf_counter() - t_start
-    yield (
+    lines = [
         f"bar bend-u: {rest.n_points} surface points, {metrics['iterations']} iterations, "
         f"E_rigid {e_rigid:.3f}, E_volume {e_volume:.3f}, foldovers {metrics['foldovers']}"
-    )
+    ]
     if tet_line:
-        yield tet_line
-    yield (
+        lines.append(tet_line)
+    lines.append(
         f"volume: {vol.n_points} voxels resampled onto {resampled.n_points} "
         f"(voxel-sum ratio {metrics['volume_voxel_sum_ratio']:.3f})"
     )
-    yield f"wrote {len(written)} files to {out.resolve()} in {seconds:.1f} s:"
-    for what, path in written:
-        yield f"  {path.name:<34} {what}"
-    yield (
-        "open them in ParaView, or try: vhm-viz deform "
-        f"{out / 'bar_rest.vtp'} --scene {out / 'scene.json'} -o bent.vtp"
-    )
+    return metrics, lines
