@@ -274,6 +274,36 @@ def test_analyze_slices_inside_the_cage_past_a_far_stray_point(files, tmp_path, 
     assert 0 < det["min"] <= det["max"] < 10
 
 
+def test_rigidity_leaves_out_triangles_touching_a_point_left_outside_the_cage(files, tmp_path):
+    # the stray point's triangles are stretched by the distance to it, not by the map: the
+    # measure is that of the same surface without them
+    d = files[0]
+    surface = pv.read(d / "bar.vtp")
+    surface.points[0] = [1e20, 0.0, 0.0]
+    surface.save(tmp_path / "stray.vtp")
+    tris = surface.faces.reshape(-1, 4)[:, 1:]
+    touching = (tris == 0).any(axis=1)
+    surface.remove_cells(np.flatnonzero(touching)).save(tmp_path / "cut.vtp")
+    metrics, lines = {}, {}
+    for name in ("stray", "cut"):
+        proc = subprocess.run(
+            [sys.executable, "-m", "vhm_viz.cli", "analyze", str(tmp_path / f"{name}.vtp"),
+             "--scene", str(d / "bend.json"), "-o", str(tmp_path / name), "--outside",
+             "passthrough"],
+            capture_output=True, text=True, timeout=600,
+        )  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        assert "overflow" not in proc.stderr
+        metrics[name] = json.loads((tmp_path / name / "metrics.json").read_text())
+        lines[name] = proc.stdout
+    stray, cut = metrics["stray"], metrics["cut"]
+    assert stray["triangles_left_out"] == int(touching.sum()) and "triangles_left_out" not in cut
+    assert stray["E_rigid"] == pytest.approx(cut["E_rigid"], rel=1e-9)
+    assert "E_volume" not in stray  # the surface without them is not closed
+    said = f"{int(touching.sum())} triangles touching points outside the cage left out"
+    assert said in lines["stray"] and "left out" not in lines["cut"]
+
+
 def test_analyze_never_overwrites_its_input(files, tmp_path, capsys):
     d, _, _ = files
     out_dir = tmp_path / "same"

@@ -384,7 +384,10 @@ def surface_metrics(rest, deformed, rigid: bool = True) -> dict:
 
     ``E_rigid`` of triangle surfaces, ``E_volume`` of closed triangle surfaces and solid
     meshes. A measure the data does not allow (all triangles degenerate, zero volume) is
-    left out.
+    left out. They measure the map: triangles and cells with a point the map left in
+    place (outside the cage, flagged ``vhm_outside``) are left out, counted in
+    ``triangles_left_out`` or ``tetrahedra_left_out`` (a 3D cell's), and a surface's
+    ``E_volume`` with them (it is no longer closed).
     """
     try:
         return _surface_metrics(rest, deformed, rigid)
@@ -399,21 +402,34 @@ def _surface_metrics(rest, deformed, rigid: bool) -> dict:
     from vhm_viz.filters.cells import cell_tetrahedra
 
     out: dict = {}
+    flags = deformed.point_data.get("vhm_outside")
+    left = None if flags is None else np.asarray(flags).astype(bool)
+    touching = lambda cells: left[cells].any(axis=1)  # noqa: E731 - cells with a point left
     if isinstance(rest, pv.PolyData) and rest.n_cells and rest.GetNumberOfPolys():
         surf = rest if rest.is_all_triangles else rest.triangulate()
         dsurf = deformed if deformed.is_all_triangles else deformed.triangulate()
         tris = np.asarray(surf.faces).reshape(-1, 4)[:, 1:]
-        if rigid:
+        closed = open_edge_count(tris, surf.n_points) == 0
+        if left is not None and touching(tris).any():
+            out["triangles_left_out"] = int(touching(tris).sum())
+            tris, closed = tris[~touching(tris)], False
+        if rigid and len(tris):
             out["E_rigid"] = float(rigidity_distortion(surf.points, dsurf.points, tris))
-        if open_edge_count(tris, surf.n_points) == 0:
+        if closed:
             out["E_volume"] = float(volume_change(surf.points, dsurf.points, tris))
     elif isinstance(rest, pv.UnstructuredGrid) and rest.n_cells:
         # the 3D cells as tets, each counted with its rest orientation: VTK's cell sizes
         # take a voxel for the axis-aligned box it no longer is once its points move
         v0 = v1 = 0.0
+        dropped = 0
         for tets, _ in cell_tetrahedra(rest):
+            if left is not None and left.any():
+                dropped += int(touching(tets).sum())
+                tets = tets[~touching(tets)]
             a, b = moved_tetrahedra_volume(rest.points, deformed.points, tets)
             v0, v1 = v0 + a, v1 + b
+        if dropped:
+            out["tetrahedra_left_out"] = dropped
         if v0 > 0 and np.isfinite(v1):  # not with points dropped (--outside nan)
             out["E_volume"] = abs(v1 - v0) / v0
     return out

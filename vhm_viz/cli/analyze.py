@@ -253,6 +253,12 @@ def analyze(args: argparse.Namespace) -> str:
         summary.append(f"E_rigid {metrics['E_rigid']:.4f}")
     if "E_volume" in metrics:
         summary.append(f"E_volume {metrics['E_volume']:.4f}")
+    for cells in ("triangles", "tetrahedra"):
+        if metrics.get(f"{cells}_left_out"):
+            summary.append(
+                f"{metrics[f'{cells}_left_out']} {cells} touching points outside the cage "
+                "left out of E_rigid/E_volume"
+            )
     summary.append(
         f"det J [{metrics['jacobian_determinant'].get('min', float('nan')):.3f}, "
         f"{metrics['jacobian_determinant'].get('max', float('nan')):.3f}]"
