@@ -485,6 +485,21 @@ def test_images_of_more_than_three_dimensions_are_refused_not_cut(tmp_path, caps
         )
 
 
+@pytest.mark.parametrize("axis", [1, 3])
+def test_nifti_with_a_negative_voxel_size_is_refused_naming_it(tmp_path, axis):
+    # the standard wants pixdim[1:4] positive; SimpleITK flips such an axis, nibabel reads
+    # the sform: which way the voxels lie is not for the reader to guess
+    values = np.arange(4 * 5 * 6, dtype=np.int16).reshape(4, 5, 6)
+    img = nib.Nifti1Image(values, np.diag([2.0, 3.0, 4.0, 1.0]))
+    img.header["pixdim"][axis] *= -1.0
+    path = tmp_path / "negative.nii"
+    nib.save(img, str(path))
+    header = np.frombuffer(path.read_bytes()[76:108], dtype="<f4")
+    assert header[axis] < 0  # as written, whatever nibabel says when it reads it back
+    with pytest.raises(ReadError, match=rf"voxel size pixdim\[{axis}\] is -\d; NIfTI voxel"):
+        read_dataset(path)
+
+
 def test_arrays_beside_an_output_never_overwrite_an_input(tmp_path):
     image = pv.ImageData(dimensions=(3, 4, 5))
     image.point_data["v"] = np.arange(image.n_points, dtype=np.float32)

@@ -237,17 +237,29 @@ def _nifti_sizes(p: Path, head: bytes) -> tuple[int, int, int]:
     if size == 348:
         dim = struct.unpack_from(order + "8h", head, 40)
         bitpix = struct.unpack_from(order + "h", head, 72)[0]
+        pixdim = struct.unpack_from(order + "8f", head, 76)
         offset = struct.unpack_from(order + "f", head, 108)[0]
     else:
         need(p, "a NIfTI-2 header", 540, len(head))
         bitpix = struct.unpack_from(order + "h", head, 14)[0]
         dim = struct.unpack_from(order + "8q", head, 16)
+        pixdim = struct.unpack_from(order + "8d", head, 104)
         offset = struct.unpack_from(order + "q", head, 168)[0]
     ndim = dim[0]
     if not 1 <= ndim <= 7 or any(d <= 0 for d in dim[1 : ndim + 1]) or bitpix <= 0:
         raise ReadError(f"{p}: corrupt NIfTI header (dim {list(dim)}, bitpix {bitpix})")
     if not (np.isfinite(offset) and offset >= 0):
         raise ReadError(f"{p}: corrupt NIfTI header (vox_offset {offset})")
+    negative = [i for i in (1, 2, 3) if pixdim[i] < 0]
+    if negative:
+        # the standard wants voxel sizes positive; ITK flips such an axis, nibabel does not
+        i = negative[0]
+        raise ReadError(
+            f"{p}: its voxel size pixdim[{i}] is {pixdim[i]:g}; NIfTI voxel sizes are "
+            "positive, and tools place such a file differently (SimpleITK flips the axis, "
+            "nibabel does not): set pixdim[1:4] to their absolute values, with the qform "
+            "or sform saying which way each axis runs"
+        )
     # dim[4] counts time points (VTK's reader keeps the first), dim[5] a voxel's components
     if any(dim[i] > 1 for i in (4, 6, 7) if i <= ndim):
         sizes = " x ".join(str(d) for d in dim[1 : ndim + 1])
