@@ -713,6 +713,7 @@ def test_cli_fill_value_is_refused_unless_the_data_type_holds_it(tmp_path, capsy
         np.uint16: ({"-1": uint16, "70000": uint16, "1.5": uint16, "nan": uint16,
                      "inf": uint16}, ["0", "65535", "7"]),
         np.float32: ({"1e39": float32, "-1e39": float32}, ["-1.5", "nan", "-inf", "1e30"]),
+        np.int16: ({"40000": "is not an int16 value (integers -32768 to 32767)"}, ["-5"]),
     }  # fmt: skip
     out = tmp_path / "out.vti"
     for dtype, (refused, accepted) in cases.items():

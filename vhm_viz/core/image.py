@@ -91,7 +91,8 @@ def check_fill_value(value, dtypes: dict, name: str = "fill_value") -> float:
         else:
             continue  # (VTK arrays hold integers or floating-point numbers)
         where = f" of the array {array!r}" if several else ""
-        raise ValueError(f"{name} {shown} is not a {dtype} value{where} ({held})")
+        article = "an" if dtype.name.startswith("int") else "a"
+        raise ValueError(f"{name} {shown} is not {article} {dtype} value{where} ({held})")
     return number
 
 
