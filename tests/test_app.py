@@ -744,6 +744,43 @@ def test_volume_slices_follow_the_map_and_show_the_data(window):
     assert "iso" in win.actors and win.actors["iso"].mapper.dataset.n_points > 100
 
 
+def test_the_isosurface_follows_its_slider_moved_by_keys_and_by_dragging(window):
+    """The contour is redrawn at the slider's value however the slider moved."""
+    from PySide6.QtCore import Qt
+    from PySide6.QtTest import QTest
+
+    win = window
+    with win.waiting_for_jobs():
+        assert win.open_file(str(data_path("volumes", "headsq_64x64x93.vti")))
+    vp = win.view_panel
+    with win.waiting_for_jobs():
+        vp.iso.setChecked(True)
+    assert win.last_error is None, win.last_error
+    image = win.volume_display.image
+
+    def shown_matches_slider():
+        expected = image.contour([vp.value_of(vp.iso_value.value())], scalars="values")
+        shown = win.actors["iso"].mapper.dataset
+        return shown.n_points == expected.n_points and np.allclose(shown.points, expected.points)
+
+    assert shown_matches_slider()
+    before = win.actors["iso"].mapper.dataset.n_points
+    # keys (what the wheel and a click on the groove do too): one contour per step
+    vp.iso_value.setFocus()
+    QTest.keyClick(vp.iso_value, Qt.Key.Key_PageUp)
+    QTest.keyClick(vp.iso_value, Qt.Key.Key_PageUp)
+    assert win.actors["iso"].mapper.dataset.n_points != before
+    assert shown_matches_slider()
+    # a dragged handle: the contour waits for the release, then shows the new value
+    shown = win.actors["iso"]
+    vp.iso_value.setSliderDown(True)
+    vp.iso_value.setSliderPosition(vp.step_of(1000.0))
+    assert win.actors["iso"] is shown
+    vp.iso_value.setSliderDown(False)
+    assert vp.iso_value.value() == vp.step_of(1000.0)
+    assert shown_matches_slider()
+
+
 def _run_cli(*args, timeout=600):
     import sys
 

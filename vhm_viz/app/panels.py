@@ -482,8 +482,11 @@ class ViewPanel(QWidget):
         vform.addRow("Max opacity", self.opacity)
         self.iso = QCheckBox("Isosurface")
         self.iso_value = _slider(0, self.STEPS, self.STEPS // 2)
+        # the contour follows every settled value: keys, the wheel and clicks on the groove
+        # at once, a dragged handle on release (no contour per step of the drag)
+        self.iso_value.setTracking(False)
         self.iso.toggled.connect(self._iso)
-        self.iso_value.sliderReleased.connect(self._iso)
+        self.iso_value.valueChanged.connect(self._iso)
         vform.addRow(self.iso, self.iso_value)
         lay.addWidget(self.volume_box)
         lay.addStretch(1)
