@@ -285,6 +285,41 @@ def test_screenshot_shows_shape_and_slice(window, tmp_path):
     assert np.all(win.analysis_view.slice.mesh.point_data["measure"] >= 1 - 1e-9)
 
 
+def _section_shows_the_map(win):
+    """The section drawn is the current map of its samples, coloured by its det J."""
+    ctrl, section = win.ctrl, win.analysis_view.slice
+    assert section is not None and section.n_points > 50
+    assert win.actors["slice"].mapper.dataset is section.mesh
+    hm = ctrl.deformer.harmonic_map
+    np.testing.assert_allclose(section.mesh.points, hm.map(section.rest_points), atol=1e-6)
+    det = np.linalg.det(hm.jacobian(section.rest_points))
+    np.testing.assert_allclose(section.mesh.point_data["measure"], det, rtol=1e-6, atol=1e-8)
+    assert win.analysis_panel.histogram._bars.total == section.n_points
+
+
+def test_the_section_follows_the_map_after_an_edit_that_rebuilds_the_deformer(window):
+    """An anchor added while the section shows: the section is sampled on the new map."""
+    win = window
+    ctrl = _open_bar(win, "bend-90")
+    b = ctrl.cage.bounds
+    win.analysis_view.show_section(True, origin=0.5 * (b[0] + b[1]), normal=(0.0, -1.0, 0.0))
+    assert win.last_error is None, win.last_error
+    _section_shows_the_map(win)
+    before = ctrl.deformer
+    win.plotter.view_xz()
+    win.plotter.render()
+    k = int(np.argmin(np.linalg.norm(ctrl.rest_points - [0.0, -0.5, 2.5], axis=1)))
+    win.editing.set_interaction_mode("anchor+")
+    with win.waiting_for_jobs():
+        assert win.editing.click_at_display(
+            *win.picker.display_coordinates(ctrl.deformed_points[k])
+        )
+    assert win.last_error is None, win.last_error
+    assert ctrl.deformer is not before and ctrl.ready
+    assert win.analysis_panel.show_slice.isChecked()
+    _section_shows_the_map(win)
+
+
 def test_errors_are_messages_and_the_app_survives(window, tmp_path):
     win = window
     ctrl = _open_bar(win, "bend-90")

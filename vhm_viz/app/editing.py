@@ -382,9 +382,13 @@ class Editing:
             return None
 
         def done(_):
-            win.analysis_view.slice = None
+            av = win.analysis_view
+            av.slice = None  # bound to the deformer before the rebuild
             win.shape_view.forget()
             self.solve_and_show()
+            if av.plane is not None:  # a section is shown: sampled again, on the new map
+                av.make_section()
+                self.update_analysis()
             if ctrl.notes:  # e.g. cage shells without constraints stay put
                 win.status("; ".join(ctrl.notes), 15000)
                 ctrl.notes = []
