@@ -320,6 +320,19 @@ def test_the_section_follows_the_map_after_an_edit_that_rebuilds_the_deformer(wi
     _section_shows_the_map(win)
 
 
+def test_the_section_takes_the_samples_per_side_of_the_dock(window):
+    """The dock's samples per side resample the shown section at once."""
+    win = window
+    ctrl = _open_bar(win, "bend-90")
+    b = ctrl.cage.bounds
+    win.analysis_view.show_section(True, origin=0.5 * (b[0] + b[1]), normal=(0.0, -1.0, 0.0))
+    coarse = win.analysis_view.slice.n_points
+    win.analysis_panel.resolution.setValue(120)
+    assert win.last_error is None, win.last_error
+    assert win.analysis_view.slice.n_points > 3 * coarse
+    _section_shows_the_map(win)
+
+
 def test_errors_are_messages_and_the_app_survives(window, tmp_path):
     win = window
     ctrl = _open_bar(win, "bend-90")

@@ -136,6 +136,16 @@ class AnalysisView:
         self.measure = measure
         self.changed()
 
+    def set_resolution(self, samples: int) -> None:
+        """Sample the shown section again with the dock's samples per side."""
+        if self.plane is None:
+            return
+        try:
+            self.make_section()
+            self.changed()
+        except Exception as exc:  # noqa: BLE001 - the UI must survive everything
+            self.report_error(f"slice: {exc}", traceback.format_exc())
+
     def hide_section(self) -> None:
         """Remove the section and uncut the shape."""
         self.shape.clip(None)

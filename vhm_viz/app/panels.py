@@ -367,6 +367,7 @@ class AnalysisPanel(QWidget):
         self.resolution.setDecimals(0)
         self.resolution.setRange(10, 200)
         self.resolution.setValue(60)
+        self.resolution.setKeyboardTracking(False)  # typed digits: one resample, on Enter
         form = QFormLayout()
         form.addRow("Slice samples per side", self.resolution)
         lay.addLayout(form)

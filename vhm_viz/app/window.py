@@ -190,6 +190,7 @@ class ExplorerWindow(QMainWindow):
         av.changed, av.report_error = self.editing.update_analysis, self.report_error
         ap.slice_toggled.connect(av.show_section)
         ap.measure_changed.connect(av.set_measure)
+        ap.resolution.valueChanged.connect(av.set_resolution)
         ap.live_toggled.connect(lambda on: setattr(self.drag, "live_section", bool(on)))
         ap.clip_toggled.connect(av.set_clip)
         vp.shape_opacity_changed.connect(self.set_shape_opacity)
