@@ -829,6 +829,52 @@ def test_the_isosurface_follows_its_slider_moved_by_keys_and_by_dragging(window)
     assert shown_matches_slider()
 
 
+def test_a_drag_during_a_background_job_never_leaves_the_handle_off_its_target(window):
+    """A volume's resampling gives way to a drag; another job refuses it, handle unmoved."""
+    import threading
+
+    win = window
+    with win.waiting_for_jobs():
+        assert win.open_file(str(data_path("volumes", "headsq_64x64x93.vti")))
+    scene = Path(__file__).resolve().parents[1] / "vhm_viz" / "scenes" / "head_scene.json"
+    with win.waiting_for_jobs():
+        assert win.load_scene(str(scene))
+    with win.waiting_for_jobs():
+        win.view_panel.volume.setChecked(True)
+    assert win.last_error is None, win.last_error
+    ctrl, w = win.ctrl, win.shape_view.handles[-1]
+    # a drag released: the deformed volume is resampled in the background
+    first = ctrl.positions[-1].target + np.array([-10.0, 0.0, 5.0])
+    w.SetCenter(*first)
+    w.InvokeEvent("InteractionEvent")
+    w.InvokeEvent("EndInteractionEvent")
+    assert win.busy and win.runner.job.name == "volume rendering"
+    # the next drag at once: it moves the target, and its release resamples again
+    second = first + np.array([-10.0, 0.0, 5.0])
+    with win.waiting_for_jobs():
+        w.SetCenter(*second)
+        w.InvokeEvent("InteractionEvent")
+        w.InvokeEvent("EndInteractionEvent")
+    assert win.last_error is None, win.last_error
+    np.testing.assert_allclose(ctrl.positions[-1].target, second)
+    np.testing.assert_allclose(w.GetCenter(), second)
+    hm = ctrl.deformer.harmonic_map
+    np.testing.assert_allclose(ctrl.image_of(ctrl.positions[-1].point), second, atol=1e-6)
+    expected = ctrl.volume.deformed_image(hm)
+    np.testing.assert_allclose(win.volume_display.image["values"], expected["values"])
+    # another job runs: the drag is refused and the handle goes back onto its target
+    release = threading.Event()
+    assert win.run_job("slow", lambda progress, cancelled: release.wait(30), lambda r: None)
+    w.SetCenter(*(second + [5.0, 0.0, 0.0]))
+    w.InvokeEvent("InteractionEvent")
+    w.InvokeEvent("EndInteractionEvent")
+    np.testing.assert_allclose(ctrl.positions[-1].target, second)
+    np.testing.assert_allclose(w.GetCenter(), second)
+    assert "busy" in win.statusBar().currentMessage()
+    release.set()
+    win.runner.wait(30000)
+
+
 def _run_cli(*args, timeout=600):
     import sys
 

@@ -72,7 +72,11 @@ class DragFrames:
         """
         win = self.window
         self._pending = None
-        if win.busy or not win.ctrl.ready:
+        if not self._may_edit():
+            if win.busy and index < len(win.ctrl.positions):
+                # the widget moved by itself: back onto the target the drag did not change
+                win.shape_view.move_handle(index, win.ctrl.positions[index].target)
+                win.status(f"busy ({win.runner.job.name}): wait or cancel it first")
             return
         if not self.dragging:  # one undo step per drag
             win.ctrl.checkpoint()
@@ -83,13 +87,24 @@ class DragFrames:
     def rotated(self, index: int, rotation) -> None:
         """The gizmo turned: one live frame with the new target rotation."""
         win = self.window
-        if win.busy or not win.ctrl.ready:
+        if not self._may_edit():
             return
         if win.gizmo.turn_started:  # one undo step per rotation
             win.ctrl.checkpoint()
             win.selected = ("jacobian", index)
         self.dragging = True
         self._frame(lambda: win.ctrl.rotate(index, rotation), render=False)
+
+    def _may_edit(self) -> bool:
+        """Whether a drag frame may run now.
+
+        A running resampling of the volume is dropped: the drag makes its image stale and
+        the release resamples again. Any other background job refuses the frame.
+        """
+        win = self.window
+        if win.busy and win.runner.job is win.volume_job:
+            win.runner.cancel()
+        return not win.busy and win.ctrl.ready
 
     def _frame(self, step, render: bool) -> None:
         """One live frame: ``step()`` edits, solves and deforms (returns its FrameTiming)."""

@@ -127,6 +127,8 @@ class ExplorerWindow(QMainWindow):
         self.plotter.set_background("white")
         self.setCentralWidget(self.plotter.interactor)
         self.runner = JobRunner(self)
+        #: The latest resampling of the deformed volume (a drag cancels it while it runs).
+        self.volume_job = None
         self._build_docks()
         self._build_menus()
         self._build_status()
@@ -598,7 +600,10 @@ class ExplorerWindow(QMainWindow):
         job = self.volume_display.image_job()
         if job is None:
             return None
-        return self.run_job("volume rendering", job, self.volume_display.set_image, queue=True)
+        self.volume_job = self.run_job(
+            "volume rendering", job, self.volume_display.set_image, queue=True
+        )
+        return self.volume_job
 
     # ================================================================== autosave
     def start_autosave(self, folder=None, interval_s: float = AUTOSAVE_INTERVAL_S) -> None:
