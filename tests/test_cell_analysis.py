@@ -24,7 +24,7 @@ from vhm_viz.filters import (  # noqa: E402
     cell_quality,
     update,
 )
-from vhm_viz.filters.cells import cell_centres  # noqa: E402
+from vhm_viz.filters.cells import cell_centres, cell_tetrahedra  # noqa: E402
 
 
 def _signed_volumes(points, tets):
@@ -225,6 +225,38 @@ def test_tets_beside_surface_cells_are_measured_as_stored(bar_tets, arrangement)
     # VTK may store a tet from another corner: the same det F, to rounding of |F|^3
     np.testing.assert_allclose(q2["determinant"][: grid.n_cells], q["determinant"], atol=1e-12)
     assert q2["determinant"][-1] == pytest.approx(1.0)
+
+
+def _quadratic_tets(points, tets):
+    """The tets as quadratic tets (VTK's edge order), each mid-edge point at its midpoint."""
+    edges = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]
+    pairs = np.concatenate([np.sort(tets[:, e], axis=1) for e in edges])
+    unique, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    mid = len(points) + inverse.reshape(len(edges), -1).T
+    return pv.UnstructuredGrid(
+        {pv.CellType.QUADRATIC_TETRA: np.hstack([tets, mid])},
+        np.vstack([points, points[unique].mean(axis=1)]),
+    )
+
+
+def test_cells_split_into_tets_come_in_chunks_of_whole_cells(bar_tets):
+    # quadratic tets go through VTK's triangulation (8 tets each, filling the cell): run
+    # by run of cells, so that neither the triangulation nor the arrays made of it grow
+    # with the mesh; the chunks' tets still fill every cell, each cell in one chunk
+    points, tets = bar_tets
+    grid = _quadratic_tets(points, tets)
+    chunks = list(cell_tetrahedra(grid, chunk_tets=20_000))
+    assert len(chunks) > 1 and max(len(t) for t, _ in chunks) <= 20_000
+    owners = [cells for _, cells in chunks]
+    assert all(a.max() < b.min() for a, b in zip(owners, owners[1:], strict=False))
+    split, owner = np.concatenate([t for t, _ in chunks]), np.concatenate(owners)
+    filled = np.bincount(owner, np.abs(_signed_volumes(grid.points, split)), len(tets))
+    np.testing.assert_allclose(filled, np.abs(_signed_volumes(points, tets)), rtol=1e-9)
+    # and the per-cell measures over the chunks: an affine map gives every cell det A
+    a = np.array([[1.1, 0.2, 0.0], [0.0, 0.8, 0.3], [0.1, 0.0, -1.2]])
+    q = cell_quality(grid, np.asarray(grid.points) @ a.T)
+    np.testing.assert_allclose(q["determinant"], np.linalg.det(a), rtol=1e-9)
+    assert q["summary"]["inverted"] == len(tets)
 
 
 def test_cell_centres_are_vtks(bar_tets):

@@ -44,6 +44,7 @@ CELL_ARRAYS = ("cell_jacobian_determinant", "cell_condition_number", "cell_inver
 # Tetrahedra per chunk (bounds the work arrays at about 100 MB).
 _CHUNK_TETS = 2_000_000
 _VTK_TETRA = 10
+_VTK_POLYHEDRON = 42
 _ID_ARRAY = "vhm_cell_id"
 # Kuhn's split of a voxel: one tet per monotone path from corner (0,0,0) to (1,1,1).
 _KUHN_PATHS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
@@ -108,7 +109,9 @@ def cell_tetrahedra(ds, chunk_tets: int = _CHUNK_TETS):
     ----------
     ds : vtkDataSet
     chunk_tets : int
-        Tetrahedra per chunk (lattices are split by layers of voxels).
+        Tetrahedra per chunk, about: lattices are split by layers of voxels, other cells
+        than tets (quadratic tets, hexahedra, ...) by runs of cells, whose tets all come
+        in one chunk; a mesh whose 3D cells are all tets comes whole, as stored.
 
     Yields
     ------
@@ -129,7 +132,21 @@ def cell_tetrahedra(ds, chunk_tets: int = _CHUNK_TETS):
     if not has_3d_cells(ds):
         return
     tets = tetra_cells(ds)
-    yield _triangulated(ds) if tets is None else tets
+    if tets is not None:
+        yield tets
+    elif (cell_types(ds) == _VTK_POLYHEDRON).any():  # its faces are not sliced by cell
+        yield _triangulated(_with_cell_ids(ds), ds)
+    else:
+        # runs of cells holding about chunk_tets point ids each: a cell gives fewer tets
+        # than it has points (a quadratic tet 8 of 10, a hexahedron 5 or 6 of 8), so the
+        # triangulation and the arrays made of it stay about a chunk's size
+        offsets = ns.vtk_to_numpy(ds.GetCells().GetOffsetsArray())
+        n, c0 = ds.GetNumberOfCells(), 0
+        while c0 < n:
+            c1 = int(np.searchsorted(offsets, offsets[c0] + chunk_tets, side="right")) - 1
+            c1 = min(n, max(c1, c0 + 1))
+            yield _triangulated(_cell_run(ds, c0, c1), ds)
+            c0 = c1
 
 
 def tetra_cells(ds):
@@ -176,12 +193,43 @@ def _with_cell_ids(ds):
     return tagged
 
 
-def _triangulated(ds):
-    """Tets of any 3D cells through ``vtkDataSetTriangleFilter`` (points kept as they are)."""
+def _cell_run(ds, c0: int, c1: int):
+    """The cells ``c0 <= c < c1`` of an unstructured grid (no polyhedra) on all its points.
+
+    Each cell carries its index in ``ds`` in ``_ID_ARRAY``; the points are ``ds``'s own
+    (shared, not copied), and only the run's connectivity is copied.
+    """
+    from vtkmodules.util.vtkConstants import VTK_ID_TYPE
+    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkUnstructuredGrid
+
+    cells = ds.GetCells()
+    offsets = ns.vtk_to_numpy(cells.GetOffsetsArray())
+    lo, hi = int(offsets[c0]), int(offsets[c1])
+    conn = ns.vtk_to_numpy(cells.GetConnectivityArray())[lo:hi]
+    run = vtkCellArray()
+    run.SetData(
+        ns.numpy_to_vtk(offsets[c0 : c1 + 1].astype(np.int64) - lo, deep=1, array_type=VTK_ID_TYPE),
+        ns.numpy_to_vtk(conn.astype(np.int64), deep=1, array_type=VTK_ID_TYPE),
+    )
+    part = vtkUnstructuredGrid()
+    part.SetPoints(ds.GetPoints())
+    part.SetCells(ns.numpy_to_vtk(cell_types(ds)[c0:c1].astype(np.uint8), deep=1), run)
+    ids = ns.numpy_to_vtk(np.arange(c0, c1, dtype=np.int64), deep=1)
+    ids.SetName(_ID_ARRAY)
+    part.GetCellData().AddArray(ids)
+    return part
+
+
+def _triangulated(tagged, ds):
+    """Tets of the 3D cells of ``tagged`` through ``vtkDataSetTriangleFilter``.
+
+    ``tagged`` holds cells of ``ds`` on ``ds``'s points, each with its index in ``ds`` in
+    ``_ID_ARRAY`` (:func:`_with_cell_ids`, :func:`_cell_run`).
+    """
     from vtkmodules.vtkFiltersGeneral import vtkDataSetTriangleFilter  # here: slow to import
 
     tri = vtkDataSetTriangleFilter()
-    tri.SetInputData(_with_cell_ids(ds))
+    tri.SetInputData(tagged)
     tri.TetrahedraOnlyOn()
     tri.Update()
     out = tri.GetOutput()
