@@ -658,3 +658,25 @@ def test_bundled_volumes_are_read_in_the_frame_their_headers_state(name):
         found = img.FindPoint(x)
         np.testing.assert_allclose(img.points[found], x, atol=1e-9)
         assert values[found] == voxels[k, j, i], (i, j, k)
+
+
+def test_a_tet_mesh_written_to_legacy_vtk_reads_in_meshio(tmp_path, capsys):
+    """A deformed tet mesh written to legacy ``.vtk`` reads in meshio, an independent
+    reader: the tets exactly as given, the points as the same run's ``.vtu`` holds them.
+    The count of points outside the cage, a field array, is written as 64-bit integers
+    of a fixed width: a ``long`` one (as wide as the platform's C long) meshio refuses."""
+    meshio = pytest.importorskip("meshio")
+    points, tets = examples.bar_tets(12)
+    pv.UnstructuredGrid({pv.CellType.TETRA: tets}, points).save(tmp_path / "bar.vtu")
+    box_scene(tmp_path, points.min(axis=0), points.max(axis=0))
+    for name in ("bent.vtk", "bent.vtu"):
+        rc = main(["deform", str(tmp_path / "bar.vtu"), "-s", str(tmp_path / "scene.json"),
+                   "-o", str(tmp_path / name), "-q"])  # fmt: skip
+        assert rc == 0, capsys.readouterr().err
+    got, want = meshio.read(tmp_path / "bent.vtk"), pv.read(tmp_path / "bent.vtu")
+    assert [c.type for c in got.cells] == ["tetra"]
+    assert np.array_equal(got.cells[0].data, tets)
+    assert np.array_equal(got.points, want.points)
+    assert not np.array_equal(got.points, points)
+    back = pv.read(tmp_path / "bent.vtk").field_data["vhm_outside_count"]
+    assert back.dtype == np.int64 and back.tolist() == [0]

@@ -13,7 +13,7 @@ import signal
 
 import numpy as np
 from vtkmodules.util import numpy_support as ns
-from vtkmodules.vtkCommonCore import vtkObject
+from vtkmodules.vtkCommonCore import VTK_LONG_LONG, vtkObject
 from vtkmodules.vtkCommonDataModel import vtkImageData
 from vtkmodules.vtkCommonExecutionModel import vtkExtentTranslator, vtkStreamingDemandDrivenPipeline
 
@@ -29,6 +29,7 @@ __all__ = [
     "requested_extent",
     "cage_digest",
     "add_lattice_counts",
+    "set_field_counts",
 ]
 
 _SDDP = vtkStreamingDemandDrivenPipeline
@@ -202,6 +203,22 @@ def cage_digest(pd) -> str:
     return h.hexdigest()
 
 
+def set_field_counts(data, name: str, values) -> None:
+    """The field array ``name`` of ``data``: counts, as 64-bit integers of a fixed width.
+
+    A ``vtkTypeInt64Array``, which legacy ``.vtk`` files call ``vtktypeint64``: numpy's
+    int64 would become a ``vtkLongArray``, which they call ``long``, a type as wide as the
+    platform's C ``long`` (4 bytes on Windows, so the rest of the file is misread there)
+    and one that other readers of the format (meshio) refuse.
+    """
+    counts = ns.numpy_to_vtk(
+        np.asarray(values, dtype=np.int64).reshape(-1), deep=1, array_type=VTK_LONG_LONG
+    )
+    counts.SetName(name)
+    data.GetFieldData().RemoveArray(name)
+    data.GetFieldData().AddArray(counts)
+
+
 def add_lattice_counts(out, vol) -> None:
     """Field array ``vhm_lattice_evaluations`` of the volume's lattice build.
 
@@ -212,7 +229,4 @@ def add_lattice_counts(out, vol) -> None:
     exchange = vol.exchange
     n = int(vol.lattice.stats["evaluations"])
     here, among = (n, n) if exchange is None else (exchange.evaluated, exchange.distinct)
-    counts = ns.numpy_to_vtk(np.array([here, among], dtype=np.int64), deep=1)
-    counts.SetName("vhm_lattice_evaluations")
-    out.GetFieldData().RemoveArray(counts.GetName())
-    out.GetFieldData().AddArray(counts)
+    set_field_counts(out, "vhm_lattice_evaluations", [here, among])

@@ -25,7 +25,7 @@ from vhm_viz.core.basis import inside_cage, winding_number
 from vhm_viz.core.certify import INSIDE, MEETS, OUTSIDE, Region, default_margin
 from vhm_viz.core.geometry import open_edge_count, signed_volume
 from vhm_viz.core.metrics import cell_measures, cell_summary
-from vhm_viz.filters._vtk import numpy_points
+from vhm_viz.filters._vtk import numpy_points, set_field_counts
 from vhm_viz.io import cell_types
 
 __all__ = [
@@ -365,15 +365,8 @@ def add_cell_arrays(data, quality: dict) -> None:
 
 def set_cell_counts(data, inverted: int, rest_inverted: int) -> None:
     """The field arrays ``vhm_cells_inverted`` and ``vhm_cells_rest_inverted`` of ``data``."""
-    fd = data.GetFieldData()
-    for name, value in (
-        ("vhm_cells_inverted", inverted),
-        ("vhm_cells_rest_inverted", rest_inverted),
-    ):
-        count = ns.numpy_to_vtk(np.array([value], dtype=np.int64), deep=1)
-        count.SetName(name)
-        fd.RemoveArray(name)
-        fd.AddArray(count)
+    set_field_counts(data, "vhm_cells_inverted", [inverted])
+    set_field_counts(data, "vhm_cells_rest_inverted", [rest_inverted])
 
 
 def own_cells(data) -> np.ndarray:

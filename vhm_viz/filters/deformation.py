@@ -32,6 +32,7 @@ from vhm_viz.filters._vtk import (
     numpy_points,
     own_extent,
     requested_extent,
+    set_field_counts,
 )
 from vhm_viz.filters.cells import add_cell_arrays, cell_centres, cell_quality, own_cells
 from vhm_viz.io import cell_types
@@ -310,10 +311,7 @@ class HarmonicDeformationFilter(DeformationSource):
             # are converted into a new array, which is handed over
             flags = np.asarray(outside).astype(np.uint8, copy=False)
             _set_array(out.GetPointData(), "vhm_outside", flags, copy=False)
-        count = ns.numpy_to_vtk(np.array([self.outside_count], dtype=np.int64), deep=1)
-        count.SetName("vhm_outside_count")
-        out.GetFieldData().RemoveArray("vhm_outside_count")
-        out.GetFieldData().AddArray(count)
+        set_field_counts(out, "vhm_outside_count", [self.outside_count])
         self.UpdateProgress(1.0)
 
     def _forget_output(self) -> None:

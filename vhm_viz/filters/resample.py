@@ -29,6 +29,7 @@ from vhm_viz.filters._vtk import (
     image_geometry,
     information_geometry,
     requested_extent,
+    set_field_counts,
 )
 
 __all__ = [
@@ -359,13 +360,9 @@ class HarmonicResampleFilter(DeformationSource):
             new = ns.numpy_to_vtk(values, deep=0)
             new.SetName(name)
             pd_out.AddArray(new)
-        fd = out.GetFieldData()
         for name, key in (("valid_count", "valid"), ("foldover_count", "foldover"),
                           ("pulled_back_voxels", "pulled_back")):  # fmt: skip
-            count = ns.numpy_to_vtk(np.array([counts[key]], dtype=np.int64), deep=1)
-            count.SetName(f"vhm_{name}")
-            fd.RemoveArray(count.GetName())
-            fd.AddArray(count)
+            set_field_counts(out, f"vhm_{name}", [counts[key]])
         self.UpdateProgress(1.0)
         return 1
 
