@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -9,6 +10,13 @@ import numpy as np
 import pytest
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+# the suite sends SIGINT to the commands it starts, which keep an ignored SIGINT ignored
+# (as a shell script's background job must): a suite started in the background of a
+# script, which ignores SIGINT, gives them the default instead
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def data_path(*parts: str) -> Path:

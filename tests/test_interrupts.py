@@ -26,7 +26,7 @@ from vhm_viz import examples  # noqa: E402
 OLD = b"the previous output, which an interrupt must leave alone\n"
 
 
-def cli(*args) -> subprocess.Popen:
+def cli(*args, preexec_fn=None) -> subprocess.Popen:
     """``python -m vhm_viz.cli ARGS`` with this checkout first on the path."""
     env = subprocess_env()
     return subprocess.Popen(
@@ -34,6 +34,7 @@ def cli(*args) -> subprocess.Popen:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         env=env,
+        preexec_fn=preexec_fn,
     )
 
 
@@ -105,6 +106,29 @@ def test_signal_while_binding_exits_128_plus_signal_and_keeps_the_old_output(wor
     # promptly: the binding stops at its next chunk, not at its end (a loose bound, for
     # the record; the assertion that matters is the one above)
     assert stopped_after < 60
+
+
+def _ignoring_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a shell script's background job
+
+
+def test_a_command_started_ignoring_sigint_keeps_ignoring_it(work):
+    out = work / "out_ignored"
+    out.mkdir()
+    proc = cli("deform", work / "cloud.npy", "-s", work / "scene.json", "-o", out / "bent.vtp",
+               preexec_fn=_ignoring_sigint)  # fmt: skip
+    wait_for_stderr(proc, b"binding:  10%")
+    os.kill(proc.pid, signal.SIGINT)  # a Ctrl-C meant for the script that started it
+    status, err = finish(proc, timeout=300)
+    assert status == 0, err
+    assert "interrupted" not in err and (out / "bent.vtp").exists()
+    # SIGTERM still ends it, promptly and cleanly
+    again = cli("deform", work / "cloud.npy", "-s", work / "scene.json", "-o",
+                out / "again.vtp", preexec_fn=_ignoring_sigint)  # fmt: skip
+    wait_for_stderr(again, b"binding:  10%")
+    os.kill(again.pid, signal.SIGTERM)
+    status, err = finish(again)
+    assert status == 128 + signal.SIGTERM and not (out / "again.vtp").exists(), err
 
 
 def test_sigterm_while_writing_leaves_no_temporary(work):

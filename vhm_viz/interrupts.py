@@ -147,7 +147,9 @@ def handled(
     the main thread (where Python cannot install signal handlers) the block runs
     unchanged, and so do signals whose handler was installed outside Python (ParaView's
     ``pvpython`` installs its own for SIGINT): Python cannot put such a handler back, so
-    it is left in place.
+    it is left in place. A signal the process was started ignoring stays ignored, as
+    Python leaves it: a shell script's background job ignores SIGINT, so that a Ctrl-C
+    meant for the script does not end the job too.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -163,7 +165,7 @@ def handled(
         return
     # getsignal gives None for a handler installed outside Python: signal.signal cannot
     # restore it (TypeError), so that signal stays with its owner
-    previous = {s: h for s in signals if (h := signal.getsignal(s)) is not None}
+    previous = {s: h for s in signals if (h := signal.getsignal(s)) not in (None, signal.SIG_IGN)}
     _state.update(pending=None, raised=False, defer=0, on_signal=on_signal, retry=False)
     _state["depth"] = 1
     try:
