@@ -875,6 +875,39 @@ def test_a_drag_during_a_background_job_never_leaves_the_handle_off_its_target(w
     win.runner.wait(30000)
 
 
+def test_a_turn_refused_during_a_background_job_turns_the_gizmo_back(window):
+    import threading
+
+    import vtk
+    from scipy.spatial.transform import Rotation
+
+    win = window
+    ctrl = _open_bar(win, "bend-90", apply=False)
+    top = ctrl.rest_points[np.argmax(ctrl.rest_points[:, 2])] * [0, 0, 0.9]
+    with win.editing.recorded():
+        ctrl.add_jacobian_constraint(top)
+    win.gizmo.index = 0
+    with win.waiting_for_jobs():
+        win.editing.after_edit(structure=False)
+    before = ctrl.jacobians[0].matrix.copy()
+    release = threading.Event()
+    assert win.run_job("slow", lambda progress, cancelled: release.wait(30), lambda r: None)
+    centre = ctrl.image_of(top)
+    r = Rotation.from_euler("y", 30, degrees=True).as_matrix()
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = r, centre - r @ centre
+    t = vtk.vtkTransform()
+    t.SetMatrix(m.ravel())
+    win.gizmo.widget.SetTransform(t)
+    win.gizmo.widget.InvokeEvent("InteractionEvent")
+    assert "busy" in win.statusBar().currentMessage()
+    win.gizmo.widget.InvokeEvent("EndInteractionEvent")
+    np.testing.assert_allclose(ctrl.jacobians[0].matrix, before)  # the target is unchanged
+    np.testing.assert_allclose(win.gizmo.rotation(), before, atol=1e-9)  # and so is the box
+    release.set()
+    win.runner.wait(30000)
+
+
 def _run_cli(*args, timeout=600):
     import sys
 

@@ -88,6 +88,8 @@ class DragFrames:
         """The gizmo turned: one live frame with the new target rotation."""
         win = self.window
         if not self._may_edit():
+            if win.busy:  # the box turns by itself: back onto its target on release
+                win.status(f"busy ({win.runner.job.name}): wait or cancel it first")
             return
         if win.gizmo.turn_started:  # one undo step per rotation
             win.ctrl.checkpoint()
@@ -155,9 +157,11 @@ class DragFrames:
             win.editing.solve_and_show(rebuild=False)
 
     def gizmo_released(self) -> None:
-        """End of a gizmo turn (see :meth:`released`)."""
+        """End of a gizmo turn (see :meth:`released`); a refused turn turns the box back."""
         if self.dragging:
             self.released()
+        else:
+            self.window.gizmo.follow()
 
     def stop(self) -> None:
         """Forget a pending frame and the refinement (a full solve follows)."""
