@@ -666,11 +666,8 @@ def test_undo_redo_delete_of_constraints_and_anchors(window):
     assert len(ctrl.positions) == n0 + 1
 
 
-def test_rotation_gizmo_sets_the_jacobian_target(window):
-    import vtk
-    from scipy.spatial.transform import Rotation
-
-    win = window
+def _bar_with_a_gizmo(win):
+    """The bar bent 90 degrees, a Jacobian constraint near its top and its gizmo shown."""
     ctrl = _open_bar(win, "bend-90", apply=False)
     top = ctrl.rest_points[np.argmax(ctrl.rest_points[:, 2])] * [0, 0, 0.9]
     with win.editing.recorded():
@@ -678,6 +675,15 @@ def test_rotation_gizmo_sets_the_jacobian_target(window):
     win.gizmo.index = 0
     with win.waiting_for_jobs():
         win.editing.after_edit(structure=False)
+    return ctrl, top
+
+
+def test_rotation_gizmo_sets_the_jacobian_target(window):
+    import vtk
+    from scipy.spatial.transform import Rotation
+
+    win = window
+    ctrl, top = _bar_with_a_gizmo(win)
     assert win.gizmo.widget is not None and win.gizmo.widget.GetEnabled()
     np.testing.assert_allclose(win.gizmo.rotation(), np.eye(3), atol=1e-9)
     # the user turns the box 35 degrees about y (the widget's transform), frame by frame
@@ -882,13 +888,7 @@ def test_a_turn_refused_during_a_background_job_turns_the_gizmo_back(window):
     from scipy.spatial.transform import Rotation
 
     win = window
-    ctrl = _open_bar(win, "bend-90", apply=False)
-    top = ctrl.rest_points[np.argmax(ctrl.rest_points[:, 2])] * [0, 0, 0.9]
-    with win.editing.recorded():
-        ctrl.add_jacobian_constraint(top)
-    win.gizmo.index = 0
-    with win.waiting_for_jobs():
-        win.editing.after_edit(structure=False)
+    ctrl, top = _bar_with_a_gizmo(win)
     before = ctrl.jacobians[0].matrix.copy()
     release = threading.Event()
     assert win.run_job("slow", lambda progress, cancelled: release.wait(30), lambda r: None)
