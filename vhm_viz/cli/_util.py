@@ -403,16 +403,18 @@ def _surface_metrics(rest, deformed, rigid: bool) -> dict:
 
     out: dict = {}
     flags = deformed.point_data.get("vhm_outside")
+    # the points the map left in place, if any
     left = None if flags is None else np.asarray(flags).astype(bool)
-    touching = lambda cells: left[cells].any(axis=1)  # noqa: E731 - cells with a point left
+    left = left if left is not None and left.any() else None
     if isinstance(rest, pv.PolyData) and rest.n_cells and rest.GetNumberOfPolys():
         surf = rest if rest.is_all_triangles else rest.triangulate()
         dsurf = deformed if deformed.is_all_triangles else deformed.triangulate()
         tris = np.asarray(surf.faces).reshape(-1, 4)[:, 1:]
         closed = open_edge_count(tris, surf.n_points) == 0
-        if left is not None and touching(tris).any():
-            out["triangles_left_out"] = int(touching(tris).sum())
-            tris, closed = tris[~touching(tris)], False
+        touching = np.zeros(len(tris), bool) if left is None else left[tris].any(axis=1)
+        if touching.any():
+            out["triangles_left_out"] = int(touching.sum())
+            tris, closed = tris[~touching], False
         if rigid and len(tris):
             out["E_rigid"] = float(rigidity_distortion(surf.points, dsurf.points, tris))
         if closed:
@@ -423,9 +425,10 @@ def _surface_metrics(rest, deformed, rigid: bool) -> dict:
         v0 = v1 = 0.0
         dropped = 0
         for tets, _ in cell_tetrahedra(rest):
-            if left is not None and left.any():
-                dropped += int(touching(tets).sum())
-                tets = tets[~touching(tets)]
+            if left is not None:
+                touching = left[tets].any(axis=1)
+                dropped += int(touching.sum())
+                tets = tets[~touching]
             a, b = moved_tetrahedra_volume(rest.points, deformed.points, tets)
             v0, v1 = v0 + a, v1 + b
         if dropped:
