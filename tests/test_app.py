@@ -137,17 +137,26 @@ def test_mode_switch_and_alpha(window):
     np.testing.assert_allclose(ctrl.deformed_points, _direct_points(ctrl), atol=5e-4)
 
 
-def test_jacobian_constraint_numeric_edit_and_delete(window):
-    win = window
-    ctrl = _open_bar(win, "bend-90", apply=False)  # bottom held only
-    win.plotter.view_xz()
+def _click_on_the_y_face(win, ctrl, near, mode: str) -> int:
+    """Click, in ``mode``, the shape's vertex nearest ``near`` (rest), seen from -y.
+
+    Returns the vertex's index.
+    """
+    win.plotter.view_xz()  # camera on -y, looking at the y = -0.5 face
     win.plotter.render()
-    k = int(np.argmin(np.linalg.norm(ctrl.rest_points - [0.0, -0.5, 4.0], axis=1)))
-    win.editing.set_interaction_mode("jacobian")
+    k = int(np.argmin(np.linalg.norm(ctrl.rest_points - near, axis=1)))
+    win.editing.set_interaction_mode(mode)
     with win.waiting_for_jobs():
         assert win.editing.click_at_display(
             *win.picker.display_coordinates(ctrl.deformed_points[k])
         )
+    return k
+
+
+def test_jacobian_constraint_numeric_edit_and_delete(window):
+    win = window
+    ctrl = _open_bar(win, "bend-90", apply=False)  # bottom held only
+    _click_on_the_y_face(win, ctrl, [0.0, -0.5, 4.0], "jacobian")
     assert len(ctrl.jacobians) == 1 and win.last_error is None
     np.testing.assert_allclose(ctrl.jacobians[0].matrix, np.eye(3), atol=1e-6)
     # numeric editing in the side panel: rotate 40 degrees about y, scale 1.2
@@ -306,14 +315,7 @@ def test_the_section_follows_the_map_after_an_edit_that_rebuilds_the_deformer(wi
     assert win.last_error is None, win.last_error
     _section_shows_the_map(win)
     before = ctrl.deformer
-    win.plotter.view_xz()
-    win.plotter.render()
-    k = int(np.argmin(np.linalg.norm(ctrl.rest_points - [0.0, -0.5, 2.5], axis=1)))
-    win.editing.set_interaction_mode("anchor+")
-    with win.waiting_for_jobs():
-        assert win.editing.click_at_display(
-            *win.picker.display_coordinates(ctrl.deformed_points[k])
-        )
+    _click_on_the_y_face(win, ctrl, [0.0, -0.5, 2.5], "anchor+")
     assert win.last_error is None, win.last_error
     assert ctrl.deformer is not before and ctrl.ready
     assert win.analysis_panel.show_slice.isChecked()
@@ -610,14 +612,7 @@ def test_undo_redo_delete_of_constraints_and_anchors(window):
     assert "Ctrl+Shift+Z" in [s.toString() for s in win.redo_action.shortcuts()]
     assert win.delete_action.shortcut().toString() == "Del"
     # add a position constraint at the top (click path), drag it
-    win.plotter.view_xz()
-    win.plotter.render()
-    k = int(np.argmin(np.linalg.norm(rest - [0.0, -0.5, 4.5], axis=1)))
-    win.editing.set_interaction_mode("position")
-    with win.waiting_for_jobs():
-        assert win.editing.click_at_display(
-            *win.picker.display_coordinates(ctrl.deformed_points[k])
-        )
+    k = _click_on_the_y_face(win, ctrl, [0.0, -0.5, 4.5], "position")
     assert len(ctrl.positions) == n0 + 1
     start = ctrl.positions[-1].target.copy()
     w = win.shape_view.handles[-1]
