@@ -274,6 +274,34 @@ def test_cell_centres_are_vtks(bar_tets):
         np.testing.assert_allclose(cell_centres(ds, index), expected, rtol=1e-6, atol=1e-6)
 
 
+def test_cells_touching_flagged_points_are_vtks_cell_points(bar_tets):
+    """Which cells have a flagged point: as each cell's point ids from VTK's
+    ``GetCellPoints`` say, for tet and mixed meshes (a hexahedron, triangles, a vertex),
+    images and structured grids."""
+    from vtkmodules.vtkCommonCore import vtkIdList
+
+    from vhm_viz.filters.cells import cells_touching
+
+    points, tets = bar_tets
+    grid = _tet_grid(points, tets)
+    mixed = grid.merge(pv.PolyData(points[:40], np.array([3, 0, 1, 2, 3, 5, 6, 7, 1, 9])))
+    mixed = mixed.merge(pv.ImageData(dimensions=(2, 2, 2), origin=(4, 4, 4)))
+    image = pv.ImageData(dimensions=(5, 4, 6), origin=(1, 2, 3), spacing=(0.5, 1, 2))
+    rng = np.random.default_rng(3)
+    for ds in (grid, mixed, image, image.cast_to_structured_grid()):
+        flags = (rng.random(ds.n_points) < 0.05).astype(np.uint8)
+        cells = rng.permutation(ds.n_cells)[: ds.n_cells // 2]
+        expected = []
+        for c in cells:
+            ids = vtkIdList()
+            ds.GetCellPoints(int(c), ids)
+            expected.append(any(flags[ids.GetId(k)] for k in range(ids.GetNumberOfIds())))
+        got = cells_touching(ds, cells, flags)
+        assert got.dtype == bool and 0 < got.sum() < got.size
+        np.testing.assert_array_equal(got, expected)
+        assert not cells_touching(ds, cells, np.zeros(ds.n_points)).any()
+
+
 def test_cell_centres_and_fold_positions_skip_empty_cells(tmp_path):
     """Empty cells (which VTK's vtkCellCenters gives no centre) leave every other cell its
     own centre: a voxel mesh with empty cells among its voxels has the centres that the

@@ -358,6 +358,40 @@ def test_deform_refuses_a_folded_output_unless_allowed(files, tmp_path, capsys):
     assert "cell_jacobian_determinant" in pv.read(tmp_path / "b.vtu").cell_data
 
 
+@pytest.mark.parametrize(("scene", "which"), [("bend", "all"), ("push", "some")])
+def test_fold_line_counts_the_inverted_cells_that_straddle_the_cage(files, tmp_path, capsys,
+                                                                    scene, which):  # fmt: skip
+    # a tet mesh longer than the cage, its far end left in place (--outside passthrough):
+    # the tets across the cage's end span the map and the identity, and the line says how
+    # many of the inverted cells those are, as the output's signed volumes and outside
+    # flags count them
+    d, points, tets = files
+    longer = np.asarray(points, dtype=np.float64) * [1.0, 1.0, 1.3]
+    cells = np.hstack([np.full((len(tets), 1), 4), tets]).ravel()
+    grid = pv.UnstructuredGrid(cells, np.full(len(tets), pv.CellType.TETRA), longer)
+    grid.save(tmp_path / "longer.vtu")
+    argv = ["deform", tmp_path / "longer.vtu", "--scene", d / f"{scene}.json", "-o",
+            tmp_path / "o.vtu", "-q", "--outside", "passthrough"]  # fmt: skip
+    rc, _, refused = _run(capsys, *argv)
+    assert rc == 4
+    rc, _, err = _run(capsys, *argv, "--allow-folds")
+    assert rc == 0, err
+    out = pv.read(tmp_path / "o.vtu")
+    inverted = _signed_volumes(out.points, tets) <= 0
+    straddling = inverted & (np.asarray(out.point_data["vhm_outside"])[tets] != 0).any(axis=1)
+    every = straddling.sum() == inverted.sum()
+    assert straddling.any() and every == (which == "all")
+    count = "all" if every else int(straddling.sum())
+    said = f"{int(inverted.sum())} of {len(tets)} cells inverted ("
+    assert said in err and said in refused
+    said = f", {count} of them straddling the cage (their points outside it left in place"
+    assert said in err and said in refused
+    # without points left outside, the line says nothing of straddling
+    rc, _, err = _run(capsys, "deform", d / "bar_tets.vtu", "--scene", d / "push.json",
+                      "-o", tmp_path / "p.vtu", "-q", "--allow-folds")  # fmt: skip
+    assert rc == 0 and "cells inverted" in err and "straddling" not in err
+
+
 def test_surface_fold_warning_samples_the_exact_det(files, tmp_path, capsys):
     # a surface has no cells to measure: det J is sampled at points; the worst sample
     # named is det J there, as central differences of the solved map give it

@@ -744,6 +744,51 @@ def test_warp_of_a_tet_mesh_with_inverted_cells_counts_them(tmp_path):
     assert f"{(ratio <= 0).sum()} of {tets.n_cells} cells inverted" in flt.warnings[0]
 
 
+@pytest.mark.parametrize("kind", ["tets", "image"])
+def test_fold_check_counts_inverted_cells_straddling_the_cage(kind):
+    """SetCheckFolds with points left outside the cage (passthrough): of the inverted
+    cells, those with a point outside span the map and the identity; the summary and the
+    warning count them as the output's signed volumes (trilinear corner Jacobians) and
+    its outside flags do."""
+    from vhm_viz import examples
+    from vhm_viz.core.errors import FoldWarning
+
+    scene = examples.bar("bend-u", resolution=12).scene  # its cage ends at z = 5.2
+    if kind == "tets":
+        points, tets = examples.bar_tets(5)
+        cells = np.hstack([np.full((len(tets), 1), 4), tets]).ravel()
+        data = pv.UnstructuredGrid(cells, np.full(len(tets), pv.CellType.TETRA),
+                                   points * [1.0, 1.0, 1.3])  # fmt: skip
+    else:
+        data = pv.ImageData(dimensions=(6, 6, 34), spacing=(0.2, 0.2, 0.2), origin=(-0.5, -0.5, 0))
+    flt = HarmonicDeformationFilter()
+    flt.SetInputData(data)
+    flt.SetScene(scene)
+    flt.SetOutsidePolicy("passthrough")
+    flt.SetCheckFolds(True)
+    with pytest.warns(FoldWarning):
+        out = pv.wrap(update(flt))
+    flags = np.asarray(out.point_data["vhm_outside"]) != 0
+    if kind == "tets":
+        x = np.asarray(out.points)[tets]
+        inverted = np.einsum("ij,ij->i", x[:, 1] - x[:, 0],
+                             np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0])) <= 0  # fmt: skip
+        touching = flags[tets].any(axis=1)
+    else:
+        dims = tuple(data.dimensions)
+        inverted = trilinear_corner_dets(np.asarray(out.points).reshape(dims[::-1] + (3,))) <= 0
+        corners = flags.reshape(dims[::-1])
+        touching = np.zeros(inverted.size, bool).reshape(np.subtract(dims[::-1], 1))
+        for dk, dj, di in np.ndindex(2, 2, 2):
+            touching |= corners[dk : dk + dims[2] - 1, dj : dj + dims[1] - 1, di : di + dims[0] - 1]
+        touching = touching.reshape(-1)
+    straddling = int(np.count_nonzero(inverted & touching))
+    assert straddling > 0 and flt.fold_cells["count"] == int(inverted.sum())
+    assert flt.fold_cells["straddling"] == straddling
+    count = "all" if straddling == inverted.sum() else straddling
+    assert f", {count} of them straddling the cage" in flt.warnings[0]
+
+
 @pytest.mark.parametrize("source", ["reader", "data set"])
 def test_warp_fold_check_of_pieces_with_ghost_levels_counts_each_cell_once(tmp_path, source):
     """Pieces asked for with a ghost level (as ParaView's ranks are when a filter downstream

@@ -188,7 +188,9 @@ def fold_warning(
         The output's cells (3D cells only): :func:`vhm_viz.filters.cell_quality` of the
         output (``determinant`` per cell), or :func:`inverted_voxel_cells` (``inverted``
         cells and their ``inverted_determinant``); either with its ``summary``, and
-        optionally ``centres(cells)``, the rest centres of cells given by index.
+        optionally ``centres(cells)``, the rest centres of cells given by index, and
+        ``outside``, (N,) flags of the points left in place outside the cage (the line
+        counts the inverted cells that straddle the cage).
     point_det : (N,) array_like, optional
         ``det J`` at every point, when already computed; else it is sampled exactly at up
         to ``samples`` points.
@@ -222,7 +224,13 @@ def fold_warning(
             from vhm_viz.filters.cells import cell_centres
 
             centres = cell_centres(rest, bad)
-        parts.append(inverted_cells_text(inverted_cells(worst, centres, cells["summary"]["cells"])))
+        straddling = 0
+        if cells.get("outside") is not None:  # points left in place outside the cage
+            from vhm_viz.filters.cells import cells_touching
+
+            straddling = int(np.count_nonzero(cells_touching(rest, bad, cells["outside"])))
+        summary = inverted_cells(worst, centres, cells["summary"]["cells"], straddling)
+        parts.append(inverted_cells_text(summary))
     n_points = rest.GetNumberOfPoints()
     if point_det is None:
         idx = np.unique(np.linspace(0, n_points - 1, min(n_points, samples)).astype(int))
@@ -315,6 +323,8 @@ def output_folds(
             cells = {"determinant": det, "summary": summary}
         else:
             cells = cell_quality(rest, result.points, condition=False)
+        if cells is not None and "vhm_outside" in result.point_data:
+            cells["outside"] = np.asarray(result.point_data["vhm_outside"])
         if "jacobian_determinant" in result.point_data:
             point_det = np.asarray(result.point_data["jacobian_determinant"])
             if "vhm_outside" in result.point_data:  # passthrough points are not the map's

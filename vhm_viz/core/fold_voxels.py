@@ -103,7 +103,7 @@ def fold_voxels_text(voxels: dict) -> str | None:
     )
 
 
-def inverted_cells(determinants, centres, cells: int) -> dict:
+def inverted_cells(determinants, centres, cells: int, straddling: int = 0) -> dict:
     """The inverted cells of a deformed mesh or image: their count, worst and box.
 
     Parameters
@@ -114,18 +114,23 @@ def inverted_cells(determinants, centres, cells: int) -> dict:
         Their rest centres (world units).
     cells : int
         The cells measured (with finite corners), inverted or not.
+    straddling : int
+        Of the K, those with points outside the cage, left in place (the "passthrough"
+        outside policy): such a cell spans the map and the identity, and may be inverted
+        where the map itself does not fold.
 
     Returns
     -------
     dict
-        ``count`` (K), ``cells``, ``worst`` (the smallest determinant; ``inf`` when K is
-        0), ``at`` (3,) its cell's centre, and ``lo``, ``hi`` (3,) the box of the
-        centres (``inf`` and ``-inf`` when K is 0).
+        ``count`` (K), ``cells``, ``straddling``, ``worst`` (the smallest determinant;
+        ``inf`` when K is 0), ``at`` (3,) its cell's centre, and ``lo``, ``hi`` (3,) the
+        box of the centres (``inf`` and ``-inf`` when K is 0).
     """
     det = np.asarray(determinants, dtype=np.float64).reshape(-1)
     at = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
-    out = {"count": int(det.size), "cells": int(cells), "worst": np.inf, "at": np.full(3, np.nan),
-           "lo": np.full(3, np.inf), "hi": np.full(3, -np.inf)}  # fmt: skip
+    out = {"count": int(det.size), "cells": int(cells), "straddling": int(straddling),
+           "worst": np.inf, "at": np.full(3, np.nan), "lo": np.full(3, np.inf),
+           "hi": np.full(3, -np.inf)}  # fmt: skip
     if det.size:
         k = int(np.argmin(det))
         out["worst"], out["at"] = float(det[k]), at[k].copy()
@@ -140,6 +145,7 @@ def merge_inverted_cells(parts) -> dict:
     parts = list(parts)
     out = inverted_cells([], np.zeros((0, 3)), sum(int(p["cells"]) for p in parts))
     out["count"] = sum(int(p["count"]) for p in parts)
+    out["straddling"] = sum(int(p.get("straddling", 0)) for p in parts)
     for p in parts:
         if p["count"] and p["worst"] < out["worst"]:
             out["worst"], out["at"] = float(p["worst"]), np.asarray(p["at"], dtype=np.float64)
@@ -152,11 +158,20 @@ def inverted_cells_text(cells: dict) -> str | None:
     """The line of an :func:`inverted_cells` summary; None when no cell is inverted.
 
     ``K of N cells inverted (cell det <= 0; worst D at (x, y, z), within
-    (x, y, z)-(x, y, z))``, positions being rest positions.
+    (x, y, z)-(x, y, z))``, positions being rest positions; then how many of them straddle
+    the cage, if any.
     """
     if not cells["count"]:
         return None
     where = f"worst {cells['worst']:.3g} at {position_text(cells['at'])}"
     if cells["count"] > 1:
         where += f", within {position_text(cells['lo'])}-{position_text(cells['hi'])}"
-    return f"{cells['count']} of {cells['cells']} cells inverted (cell det <= 0; {where})"
+    text = f"{cells['count']} of {cells['cells']} cells inverted (cell det <= 0; {where})"
+    straddling = int(cells.get("straddling", 0))
+    if straddling:
+        which = "all" if straddling == cells["count"] else straddling
+        text += (
+            f", {which} of them straddling the cage (their points outside it left in place, "
+            "not mapped)"
+        )
+    return text

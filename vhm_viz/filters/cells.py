@@ -17,8 +17,11 @@ those arrays:
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from vtkmodules.util import numpy_support as ns
+from vtkmodules.vtkCommonCore import vtkIdList
 from vtkmodules.vtkCommonDataModel import vtkDataSetAttributes
 
 from vhm_viz.core.basis import inside_cage, winding_number
@@ -34,6 +37,7 @@ __all__ = [
     "cell_tetrahedra",
     "tetra_cells",
     "cell_centres",
+    "cells_touching",
     "cell_quality",
     "add_cell_arrays",
     "region_of",
@@ -286,6 +290,52 @@ def cell_centres(ds, cells) -> np.ndarray:
         take = np.flatnonzero(sizes == size)
         ids = conn[offsets[cells[take]][:, None] + np.arange(size)]
         out[take] = points[ids].mean(axis=1)
+    return out
+
+
+def cells_touching(ds, cells, flags) -> np.ndarray:
+    """Which of the cells ``cells`` (indices) of a dataset have a flagged point.
+
+    Image and structured cells by their corners' indices, other cells by VTK's
+    connectivity (a polyhedron's point ids, not its faces).
+
+    Parameters
+    ----------
+    ds : vtkDataSet
+    cells : (K,) int array_like
+    flags : (N,) array_like
+        Per point of ``ds``; nonzero flags a point.
+
+    Returns
+    -------
+    (K,) bool
+    """
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1)
+    flagged = np.asarray(flags).reshape(-1) != 0
+    out = np.zeros(cells.size, dtype=bool)
+    if not cells.size or not flagged.any():
+        return out
+    dims = _dimensions(ds)
+    if dims is not None and min(dims) >= 2:  # a 3D grid: a cell's corners by its index
+        nx, ny, _ = dims
+        row, i = np.divmod(cells, nx - 1)
+        k, j = np.divmod(row, ny - 1)
+        base = i + nx * (j + ny * k)
+        for di, dj, dk in itertools.product((0, 1), repeat=3):
+            out |= flagged[base + di + nx * (dj + ny * dk)]
+        return out
+    if ds.IsA("vtkUnstructuredGrid"):
+        conn = ns.vtk_to_numpy(ds.GetCells().GetConnectivityArray())
+        offsets = ns.vtk_to_numpy(ds.GetCells().GetOffsetsArray())
+        sizes = offsets[cells + 1] - offsets[cells]
+        for size in np.unique(sizes[sizes > 0]):
+            take = np.flatnonzero(sizes == size)
+            out[take] = flagged[conn[offsets[cells[take]][:, None] + np.arange(size)]].any(axis=1)
+        return out
+    ids = vtkIdList()
+    for n, c in enumerate(cells):
+        ds.GetCellPoints(int(c), ids)
+        out[n] = any(flagged[ids.GetId(m)] for m in range(ids.GetNumberOfIds()))
     return out
 
 

@@ -34,7 +34,13 @@ from vhm_viz.filters._vtk import (
     requested_extent,
     set_field_counts,
 )
-from vhm_viz.filters.cells import add_cell_arrays, cell_centres, cell_quality, own_cells
+from vhm_viz.filters.cells import (
+    add_cell_arrays,
+    cell_centres,
+    cell_quality,
+    cells_touching,
+    own_cells,
+)
 from vhm_viz.io import cell_types
 
 __all__ = ["HarmonicDeformationFilter", "output_type_for"]
@@ -293,7 +299,7 @@ class HarmonicDeformationFilter(DeformationSource):
             if quality is None:
                 quality = cell_quality(src, deformed, condition=False)
             if quality is not None:
-                self._piece_folds = _mesh_folds(src, quality["determinant"])
+                self._piece_folds = _mesh_folds(src, quality["determinant"], self._left(ev.outside))
         if self._displacement:
             _set_array(pd, "displacement", deformed - points)
         self._finish(out, ev.outside)
@@ -314,6 +320,12 @@ class HarmonicDeformationFilter(DeformationSource):
         set_field_counts(out, "vhm_outside_count", [self.outside_count])
         self.UpdateProgress(1.0)
 
+    def _left(self, outside) -> np.ndarray | None:
+        """The flags of points left in place outside the cage (passthrough), else None."""
+        if self._outside != "passthrough" or not np.any(outside):
+            return None
+        return np.asarray(outside)
+
     def _forget_output(self) -> None:
         super()._forget_output()
         self.fold_cells = None
@@ -322,7 +334,7 @@ class HarmonicDeformationFilter(DeformationSource):
     def _agree_on_output(self, out_info) -> None:
         """Under MPI: the fold warning of the whole output, said once (collective)."""
         if self._check_folds:
-            rows = mpi.gather_rows_of(lambda: _folds_row(self._piece_folds)[None, :], 12)
+            rows = mpi.gather_rows_of(lambda: _folds_row(self._piece_folds)[None, :], 13)
             self._say_folds(merge_inverted_cells(_folds_of_row(row) for row in rows))
 
     def _say_folds(self, folds: dict) -> None:
@@ -400,21 +412,24 @@ class HarmonicDeformationFilter(DeformationSource):
                 self.cell_summary = quality["summary"]
         if self._check_folds:
             progress = self._progress(0.95, 1.0)
-            self._piece_folds = _image_folds(points, vol, box, own_cells(inp), progress)
+            left = self._left(np.logical_not(inside))
+            self._piece_folds = _image_folds(inp, points, vol, box, progress, left)
         add_lattice_counts(out, vol)
         # one array for the flags, not three (each a byte per voxel)
         self._finish(out, np.logical_not(inside, out=np.empty(inside.size, np.uint8)))
         return 1
 
 
-def _image_folds(points, vol, box, own, progress) -> dict:
+def _image_folds(piece, points, vol, box, progress, outside=None) -> dict:
     """:func:`inverted_cells` of a warped piece ``box`` of an image (``vol``'s geometry).
 
     :func:`vhm_viz.folds.warped_voxel_folds`, sparing the cells the lattice proves
     unfolded as the command line's check does (:func:`vhm_viz.folds.proof_sized`). Only
-    its own cells (``own``, (C,) bool) count: a piece requested with ghost levels has
-    layers of its neighbours' cells, which they count.
+    the ``piece``'s own cells count: a piece requested with ghost levels has layers of
+    its neighbours' cells, which they count. ``outside``: (N,) flags of the points left in
+    place outside the cage, whose inverted cells straddle it.
     """
+    own = own_cells(piece)
     from vhm_viz.folds import proof_sized, warped_voxel_folds
 
     geometry = vol.geometry.sub(box)
@@ -427,7 +442,7 @@ def _image_folds(points, vol, box, own, progress) -> dict:
     if not own.all():
         bad, det = bad[own[bad]], det[own[bad]]
         measured -= int(np.count_nonzero(_finite_cells(points, geometry.dimensions) & ~own))
-    return inverted_cells(det, cells["centres"](bad), measured)
+    return inverted_cells(det, cells["centres"](bad), measured, _straddling(piece, bad, outside))
 
 
 def _finite_cells(points, dims) -> np.ndarray:
@@ -439,25 +454,38 @@ def _finite_cells(points, dims) -> np.ndarray:
     return out.reshape(-1)
 
 
-def _mesh_folds(rest, determinant) -> dict:
-    """:func:`inverted_cells` of a deformed mesh's own cells (not its ghost cells)."""
+def _mesh_folds(rest, determinant, outside=None) -> dict:
+    """:func:`inverted_cells` of a deformed mesh's own cells (not its ghost cells).
+
+    ``outside``: (N,) flags of the points left in place outside the cage, if any.
+    """
     det = np.asarray(determinant)
     own = own_cells(rest)
     bad = np.flatnonzero((det <= 0) & own)
     measured = int(np.count_nonzero(np.isfinite(det) & own))
-    return inverted_cells(det[bad], cell_centres(rest, bad), measured)
+    straddling = _straddling(rest, bad, outside)
+    return inverted_cells(det[bad], cell_centres(rest, bad), measured, straddling)
+
+
+def _straddling(data, cells, outside) -> int:
+    """How many of ``data``'s ``cells`` have a point flagged in ``outside`` (or None)."""
+    if outside is None:
+        return 0
+    return int(np.count_nonzero(cells_touching(data, cells, outside)))
 
 
 def _folds_row(folds) -> np.ndarray:
-    """An :func:`inverted_cells` summary as 12 numbers, to gather over MPI ranks."""
-    return np.concatenate([[folds["count"], folds["cells"], folds["worst"]], folds["at"],
-                           folds["lo"], folds["hi"]]).astype(np.float64)  # fmt: skip
+    """An :func:`inverted_cells` summary as 13 numbers, to gather over MPI ranks."""
+    head = [folds["count"], folds["cells"], folds["worst"]]
+    tail = [folds["straddling"]]
+    return np.concatenate([head, folds["at"], folds["lo"], folds["hi"], tail]).astype(np.float64)
 
 
 def _folds_of_row(row) -> dict:
     """The summary of a :func:`_folds_row`."""
     return {"count": int(row[0]), "cells": int(row[1]), "worst": float(row[2]),
-            "at": row[3:6], "lo": row[6:9], "hi": row[9:12]}  # fmt: skip
+            "at": row[3:6], "lo": row[6:9], "hi": row[9:12],
+            "straddling": int(row[12])}  # fmt: skip
 
 
 #: VTK's axis-aligned cells and the general cells that take them over once moved, with
