@@ -485,6 +485,40 @@ def test_images_of_more_than_three_dimensions_are_refused_not_cut(tmp_path, caps
         )
 
 
+def test_complex_images_are_refused_in_one_line_naming_the_voxel_type(tmp_path, capsys):
+    """Complex voxels are no 2-vector: deforming their real and imaginary parts apart would
+    be silent nonsense, so NIfTI (nibabel's) and NRRD (SimpleITK's) complex images are
+    refused, naming the voxel type as SimpleITK does and what to convert them to."""
+    values = (np.arange(4 * 5 * 6) * (1 + 2j)).reshape(4, 5, 6)
+    affine = np.diag([1.5, 0.7, 2.2, 1.0])
+    paths = {}  # path: the voxel type, as SimpleITK reads it from the NIfTI-1 file
+    for dtype in (np.complex64, np.complex128):
+        names = [tmp_path / f"{np.dtype(dtype).name}_{name}"
+                 for name in ("a.nii", "b.nii.gz", "c.nrrd", "d.nhdr")]  # fmt: skip
+        nib.save(nib.Nifti1Image(values.astype(dtype), affine), str(names[0]))
+        nib.save(nib.Nifti2Image(values.astype(dtype), affine), str(names[1]))  # not SimpleITK's
+        for path in names[2:]:
+            sitk.WriteImage(sitk.GetImageFromArray(values.T.astype(dtype)), str(path))
+        paths.update(dict.fromkeys(names, sitk.ReadImage(str(names[0])).GetPixelIDTypeAsString()))
+    scene = translation_scene(tmp_path, sitk.ReadImage(str(names[0])), [1.0, 0.0, 0.0])
+    for path, kind in paths.items():
+        assert kind.startswith("complex of "), kind
+        if path.suffix in (".nrrd", ".nhdr"):  # the same voxel type in either format
+            assert sitk.ReadImage(str(path)).GetPixelIDTypeAsString() == kind
+        expected = (
+            f"{path}: cannot read (its voxel type is {kind}, which vhm_viz does not deform; "
+            "convert it to its magnitude or real part first, e.g. with SimpleITK's "
+            "ComplexToModulus or ComplexToReal)"
+        )
+        with pytest.raises(ReadError) as caught:
+            read_dataset(path)
+        assert str(caught.value) == expected
+        out = tmp_path / "out.nii"
+        status = main(["deform", str(path), "-s", str(scene), "-o", str(out), "-q"])
+        assert status == 1 and capsys.readouterr().err == f"vhm-viz deform: error: {expected}\n"
+        assert not out.exists()
+
+
 @pytest.mark.parametrize("axis", [1, 3])
 def test_nifti_with_a_negative_voxel_size_is_refused_naming_it(tmp_path, axis):
     # the standard wants pixdim[1:4] positive; SimpleITK flips such an axis, nibabel reads

@@ -53,6 +53,19 @@ def need(path, what: str, needed: int, available: int) -> None:
         )
 
 
+def complex_voxels(kind: str) -> str:
+    """Why an image of complex voxels is not read, and what to do, for ``cannot read (...)``.
+
+    Read as two components, a complex voxel's real and imaginary parts would be deformed
+    as a vector's, which they are not. ``kind`` is the voxel type as SimpleITK names it
+    (``"complex of 32-bit float"``).
+    """
+    return (
+        f"its voxel type is {kind}, which vhm_viz does not deform; convert it to its "
+        "magnitude or real part first, e.g. with SimpleITK's ComplexToModulus or ComplexToReal"
+    )
+
+
 def first_line(exc) -> str:
     """The first line of an exception's message (its type's name when it has none)."""
     text = str(exc).strip() or type(exc).__name__

@@ -20,6 +20,7 @@ import numpy as np
 
 from vhm_viz.atomic import atomic_path
 from vhm_viz.core.image import ImageGeometry
+from vhm_viz.io.errors import complex_voxels
 from vhm_viz.io.isolated import read_isolated
 
 __all__ = [
@@ -53,7 +54,8 @@ def image_from_sitk(image, name: str = "ImageFile"):
     Raises
     ------
     ValueError
-        A 4-D (or higher) image.
+        A 4-D (or higher) image, or one of complex voxels
+        (:func:`~vhm_viz.io.errors.complex_voxels`).
     """
     import pyvista as pv
     import SimpleITK as sitk
@@ -61,6 +63,8 @@ def image_from_sitk(image, name: str = "ImageFile"):
     dim = image.GetDimension()
     if dim not in (2, 3):
         raise ValueError(f"a {dim}-D image; give a 2-D or 3-D one")
+    if image.GetPixelID() in (sitk.sitkComplexFloat32, sitk.sitkComplexFloat64):
+        raise ValueError(complex_voxels(image.GetPixelIDTypeAsString()))
     size = [*image.GetSize(), 1][:3]
     spacing = [*image.GetSpacing(), 1.0][:3]
     origin = [*image.GetOrigin(), 0.0][:3]

@@ -8,7 +8,8 @@ writes) and drops a negative spacing's sign, and its NIfTI reader keeps the qfor
 the spatial unit and the intensity scaling (``scl_slope``, ``scl_inter``) apart from the
 image and reverses the slices of a left-handed grid (qfac -1), which are put back in the
 file's order. MetaImages of long integers, which VTK misreads, go through SimpleITK; 4-D
-images are refused (VTK keeps a part of them). The writers keep origin,
+images are refused (VTK keeps a part of them), and so are complex NIfTI images (VTK
+takes their voxels for 2-component vectors). The writers keep origin,
 spacing and direction, so SimpleITK and ITK-based tools read the same geometry. DICOM
 series and NRRD, which VTK reads without their frame, go through SimpleITK
 (:mod:`vhm_viz.io.dicom`, :mod:`vhm_viz.io.nrrd`).
@@ -25,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz.atomic import atomic_output_set, atomic_path
-from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
+from vhm_viz.io.errors import ReadError, TruncatedError, complex_voxels, first_line, need
 from vhm_viz.io.itk_images import grid_origin, read_with_sitk
 from vhm_viz.io.registry import suffix_of
 from vhm_viz.io.vtk_files import read_vtk_file
@@ -57,6 +58,11 @@ _NIFTI_TYPES = {  # NIfTI-1 datatype code, bits per voxel
     "uint8": (2, 8), "int16": (4, 16), "int32": (8, 32), "float32": (16, 32),
     "float64": (64, 64), "int8": (256, 8), "uint16": (512, 16), "uint32": (768, 32),
     "int64": (1024, 64), "uint64": (1280, 64),
+}  # fmt: skip
+#: NIfTI's complex datatype codes, the voxel type as SimpleITK names it: refused on reading
+_NIFTI_COMPLEX = {
+    32: "complex of 32-bit float", 1792: "complex of 64-bit float",
+    2048: "complex of 128-bit float",
 }  # fmt: skip
 
 
@@ -236,11 +242,13 @@ def _nifti_sizes(p: Path, head: bytes) -> tuple[int, int, int]:
         raise ReadError(f"{p}: not a NIfTI file (header size field is not 348 or 540)")
     if size == 348:
         dim = struct.unpack_from(order + "8h", head, 40)
+        datatype = struct.unpack_from(order + "h", head, 70)[0]
         bitpix = struct.unpack_from(order + "h", head, 72)[0]
         pixdim = struct.unpack_from(order + "8f", head, 76)
         offset = struct.unpack_from(order + "f", head, 108)[0]
     else:
         need(p, "a NIfTI-2 header", 540, len(head))
+        datatype = struct.unpack_from(order + "h", head, 12)[0]
         bitpix = struct.unpack_from(order + "h", head, 14)[0]
         dim = struct.unpack_from(order + "8q", head, 16)
         pixdim = struct.unpack_from(order + "8d", head, 104)
@@ -264,6 +272,8 @@ def _nifti_sizes(p: Path, head: bytes) -> tuple[int, int, int]:
     if any(dim[i] > 1 for i in (4, 6, 7) if i <= ndim):
         sizes = " x ".join(str(d) for d in dim[1 : ndim + 1])
         raise ReadError(f"{p}: cannot read (a {ndim}-D image, {sizes}; give a 2-D or 3-D one)")
+    if datatype in _NIFTI_COMPLEX:  # VTK's reader takes them for 2-component vectors
+        raise ReadError(f"{p}: cannot read ({complex_voxels(_NIFTI_COMPLEX[datatype])})")
     return int(np.prod(dim[1 : ndim + 1], dtype=np.int64)), int(bitpix), int(offset)
 
 
