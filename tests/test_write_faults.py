@@ -162,10 +162,42 @@ def test_a_nifti_field_cut_short_by_the_file_size_limit_fails_and_keeps_the_old_
         capture_output=True, text=True, preexec_fn=_limited(256 * 1024), timeout=300,
     )  # fmt: skip
     assert proc.returncode != 0, proc.stderr
-    last = proc.stderr.strip().splitlines()[-1]
-    assert last.startswith(f"OSError cannot write {out}: the file ends early"), proc.stderr
+    [line] = proc.stderr.strip().splitlines()  # without ITK's own "** ERROR: NWAD: ..."
+    assert line.startswith(f"OSError could not write {out}: the file ends early"), proc.stderr
     assert out.read_bytes() == old
     assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+
+
+@pytest.mark.parametrize(
+    ("suffix", "reason"),
+    [
+        (".nii", "; the disk is full or a file-size limit was reached"),
+        (".nii.gz", "; the disk is full or a file-size limit was reached"),
+        (".mha", ": File too large"),
+        (".nrrd", ""),  # teem says where it failed, not why
+    ],
+)
+def test_a_field_past_the_file_size_limit_is_refused_in_our_line_alone(tmp_path, suffix, reason):
+    # ITK's writers print their own complaints (NIfTI's "** ERROR: NWAD: wrote only ...",
+    # MetaIO's "file stream is fail after write") on stderr: the user reads one line
+    head = data_path("volumes", "headsq_64x64x93.vti")
+    field = tmp_path / f"field{suffix}"
+    command = [sys.executable, "-m", "vhm_viz.cli", "deform", str(head), "--scene", str(SCENE),
+               "-o", str(tmp_path / "out.nii.gz"), "--write-field", str(field), "-q"]  # fmt: skip
+    subprocess.run(command, capture_output=True, check=True, timeout=600)
+    field.write_bytes(b"the previous field, which must survive\n")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    # the output (0.5 MB) fits under the limit, the field (8 to 17 MB) does not; Python
+    # ignores SIGXFSZ, so the writes past the limit fail with EFBIG
+    proc = subprocess.run(
+        command, capture_output=True, text=True, preexec_fn=_limited(1 << 20), timeout=600
+    )
+    assert proc.returncode == 1
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"vhm-viz deform: error: could not write {field}: "), lines[0]
+    assert lines[0].endswith(reason), lines[0]
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
 
 def test_a_report_that_fails_leaves_no_folder_it_created(tmp_path):

@@ -32,8 +32,7 @@ import numpy as np
 from vhm_viz.atomic import atomic_directory
 from vhm_viz.core.displacement import DisplacementField
 from vhm_viz.core.image import ImageGeometry
-from vhm_viz.io.errors import ReadError
-from vhm_viz.io.medical import check_nifti
+from vhm_viz.io.itk_images import write_sitk_image
 from vhm_viz.io.registry import suffix_of
 
 __all__ = ["FIELD_SUFFIXES", "check_field_path", "mask_path_of", "write_displacement_field"]
@@ -92,11 +91,9 @@ def write_displacement_field(path, field: DisplacementField) -> tuple[Path, Path
     ValueError
         Another suffix, or a NIfTI file for a sheared grid.
     OSError
-        SimpleITK could not write a file (the message is its first line), or a NIfTI
-        file it wrote ends early (a full disk, a file-size limit).
+        SimpleITK could not write a file, or a NIfTI file it wrote ends early (a full
+        disk, a file-size limit): :func:`~vhm_viz.io.itk_images.write_sitk_image`.
     """
-    import SimpleITK as sitk
-
     path = check_field_path(path)
     mask = mask_path_of(path)
     vectors = np.asarray(field.vectors, dtype=np.float64)
@@ -116,28 +113,5 @@ def write_displacement_field(path, field: DisplacementField) -> tuple[Path, Path
               mask.name: _itk_image(field.mask, field.geometry, False)}  # fmt: skip
     with atomic_directory(path.parent) as stage:
         for name, image in images.items():
-            try:
-                sitk.WriteImage(image, str(stage / name), True)
-            except RuntimeError as exc:
-                lines = [line for line in str(exc).splitlines() if line.strip()]
-                raise OSError(f"cannot write {path.parent / name}: {lines[-1]}") from None
-            if suffix_of(path) in (".nii", ".nii.gz"):
-                _check_written_nifti(stage / name, path.parent / name)
+            write_sitk_image(image, stage / name, path.parent / name)
     return path, mask
-
-
-def _check_written_nifti(written: Path, final: Path) -> None:
-    """Raise OSError naming ``final`` when the NIfTI file ``written`` holds fewer voxels.
-
-    ITK's NIfTI writer reports a failed write (a full disk or quota, a file-size limit)
-    only on stderr and leaves the file short; counted before the file is renamed into
-    place, so a short field never replaces the previous one.
-    """
-    try:
-        check_nifti(written)
-    except ReadError as exc:
-        reason = str(exc).removeprefix(f"{written}: ")
-        raise OSError(
-            f"cannot write {final}: the file ends early ({reason}); the disk is full or a "
-            "file-size limit was reached"
-        ) from None

@@ -5,6 +5,11 @@ runs in. :func:`read_isolated` runs it in a child and turns a crash into a
 :class:`~vhm_viz.io.ReadError` naming the file; the child's address space is capped, so
 a corrupt count cannot exhaust the machine's memory either. While the child reads, this
 process does the work :func:`meanwhile` hands it, if any.
+
+What a library prints on stderr is not for the user, who reads the one line vhm_viz
+words of what went wrong: the child's stderr goes nowhere, and
+:func:`native_stderr_silenced` sends this process's there while a library works in it
+(ITK's writers).
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ import faulthandler
 import os
 import pickle
 import signal
+import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +29,7 @@ from vhm_viz import interrupts
 from vhm_viz.io.errors import ReadError, first_line
 from vhm_viz.resources import memory_limit
 
-__all__ = ["meanwhile", "read_isolated"]
+__all__ = ["meanwhile", "native_stderr_silenced", "read_isolated"]
 
 #: The work handed to the reads in progress (:func:`meanwhile`), innermost last; each a
 #: list holding the work until a read (or the block's end) takes it.
@@ -51,6 +58,40 @@ def meanwhile(work):
         _pending.remove(held)
     if held:
         held.pop()()
+
+
+#: Guards :data:`_silenced`: the blocks of :func:`native_stderr_silenced` open (in all
+#: threads) and the descriptor of the stderr they put back, while any is open.
+_silencing = threading.Lock()
+_silenced = {"blocks": 0, "stderr": -1}
+
+
+@contextlib.contextmanager
+def native_stderr_silenced():
+    """In the block, what is printed on stderr (file descriptor 2) goes to the null device.
+
+    For a library that prints its own diagnostics beside the exception it raises, or
+    instead of one (ITK's NIfTI writer's ``** ERROR: NWAD: wrote only ...``): the caller
+    words what went wrong in one line. Python's own prints in the block go too. Blocks
+    open in several threads at once share the redirection; stderr comes back when the
+    last one ends.
+    """
+    sys.stderr.flush()  # what was printed before the block is not lost with it
+    with _silencing:
+        if _silenced["blocks"] == 0:
+            _silenced["stderr"] = os.dup(2)
+            quiet = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(quiet, 2)
+            os.close(quiet)
+        _silenced["blocks"] += 1
+    try:
+        yield
+    finally:
+        with _silencing:
+            _silenced["blocks"] -= 1
+            if _silenced["blocks"] == 0:
+                os.dup2(_silenced["stderr"], 2)
+                os.close(_silenced["stderr"])
 
 
 def _take_pending() -> None:
@@ -87,7 +128,8 @@ def read_isolated(path, read, what: str = "the reader"):
     """
     p = Path(path)
     if not hasattr(os, "fork"):  # pragma: no cover - Windows: the header checks alone must do
-        return read(p)
+        with native_stderr_silenced():
+            return read(p)
     read_end, write_end = os.pipe()
     pid = os.fork()
     if pid == 0:  # pragma: no cover - the child (coverage does not follow the fork)
@@ -95,8 +137,9 @@ def read_isolated(path, read, what: str = "the reader"):
         try:
             faulthandler.disable()  # a crash here is expected and reported by the parent
             os.close(read_end)
-            # what a library prints (MetaIO's complaints on std::cerr) is not for the user:
-            # the child's result or error goes back through the pipe, as one line
+            # what a library prints (MetaIO's complaints on std::cerr, the HDF5 diagnostics
+            # of ITK's format probes) is not for the user: the child's result or error
+            # goes back through the pipe, as one line
             quiet = os.open(os.devnull, os.O_WRONLY)
             os.dup2(quiet, 1)
             os.dup2(quiet, 2)

@@ -20,8 +20,8 @@ import numpy as np
 
 from vhm_viz.atomic import atomic_path
 from vhm_viz.core.image import ImageGeometry
-from vhm_viz.io.errors import complex_voxels
-from vhm_viz.io.isolated import read_isolated
+from vhm_viz.io.errors import ReadError, complex_voxels
+from vhm_viz.io.isolated import native_stderr_silenced, read_isolated
 
 __all__ = [
     "grid_origin",
@@ -29,6 +29,7 @@ __all__ = [
     "sitk_from_image",
     "read_with_sitk",
     "write_with_sitk",
+    "write_sitk_image",
     "sitk_message",
 ]
 
@@ -155,10 +156,6 @@ def read_with_sitk(path, read, what: str):
 
         sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(1)
         sitk.ProcessObject.GlobalWarningDisplayOff()
-        # ITK's format probes print library diagnostics (HDF5's) on stderr: the child's
-        # only voice is its result, an error included
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, 2)
         try:
             image, name = read(p)
         except RuntimeError as exc:
@@ -168,7 +165,9 @@ def read_with_sitk(path, read, what: str):
     return read_isolated(path, child, what)
 
 
-_ITK_PREFIX = re.compile(r"^(\[\w+\]\s*|(sitk|itk)::ERROR:\s*|\w+\(0x[0-9a-fA-F]+\):\s*)+")
+_ITK_PREFIX = re.compile(
+    r"^(\[\w+\]\s*|(sitk|itk)::ERROR:\s*|\w+\(0x[0-9a-fA-F]+\):\s*|Reason:\s*)+"
+)
 
 
 def sitk_message(exc) -> str:
@@ -176,7 +175,7 @@ def sitk_message(exc) -> str:
 
     SimpleITK's first line names its own source file; the last non-empty line is the
     innermost cause (``Unable to determine ImageIO reader for "x"``, teem's
-    ``_nrrdReadNrrdParse_sizes: ...``).
+    ``_nrrdReadNrrdParse_sizes: ...``, MetaIO's ``Reason: File too large``).
     """
     lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
     if len(lines) > 1:
@@ -197,11 +196,51 @@ def write_with_sitk(path, image, values: np.ndarray, compress: bool = True) -> N
     compress : bool
         Compress the voxels where the format allows (gzip for NRRD).
     """
-    import SimpleITK as sitk
-
     out = sitk_from_image(image, values)
     with atomic_path(Path(path)) as tmp:
+        write_sitk_image(out, tmp, path, compress)
+
+
+def write_sitk_image(image, written, final, compress: bool = True) -> None:
+    """Write a SimpleITK image to ``written``, a temporary renamed to ``final`` after.
+
+    Every write through SimpleITK goes here. ITK's writers print their own complaints on
+    stderr (NIfTI's ``** ERROR: NWAD: ...``, MetaIO's ``file stream is fail after
+    write``), which are kept from the user: a failure is one OSError naming ``final``.
+    ITK's NIfTI writer reports a short write (a full disk or quota, a file-size limit)
+    only there, so a NIfTI file's voxels are counted before it is renamed into place.
+
+    Parameters
+    ----------
+    image : SimpleITK.Image
+    written : path-like
+        The file written; SimpleITK picks the format from its suffix.
+    final : path-like
+        Where it goes: named in messages.
+    compress : bool
+        Compress the voxels where the format allows (gzip for NRRD, MetaImage).
+
+    Raises
+    ------
+    OSError
+        ``could not write FINAL: REASON``.
+    """
+    import SimpleITK as sitk
+
+    from vhm_viz.io.medical import check_nifti  # here: medical imports this module
+    from vhm_viz.io.registry import suffix_of
+
+    with native_stderr_silenced():
         try:
-            sitk.WriteImage(out, os.fspath(tmp), useCompression=compress)
+            sitk.WriteImage(image, os.fspath(written), useCompression=compress)
         except RuntimeError as exc:  # a full disk, a file-size limit
-            raise OSError(f"could not write {path}: {sitk_message(exc)}") from None
+            raise OSError(f"could not write {final}: {sitk_message(exc)}") from None
+    if suffix_of(written) in (".nii", ".nii.gz"):
+        try:
+            check_nifti(Path(written))
+        except ReadError as exc:
+            reason = str(exc).removeprefix(f"{written}: ")
+            raise OSError(
+                f"could not write {final}: the file ends early ({reason}); the disk is full "
+                "or a file-size limit was reached"
+            ) from None
