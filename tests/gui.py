@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
 import pytest
+
+RES = 8  # bar resolution of the tests (1,410 surface points: fast bindings)
 
 
 def _start_xvfb():
@@ -69,3 +72,24 @@ def window(qtbot):
     yield win
     win.runner.wait(60000)
     win.close()
+
+
+def open_bar(win, kind="bend-90", apply=True):
+    """Open the bundled bar ``kind`` in ``win`` and wait until it is solved and shown."""
+    with win.waiting_for_jobs():
+        assert win.open_bar(kind, resolution=RES, apply=apply)
+    assert win.last_error is None, win.last_error
+    assert win.ctrl.ready
+    return win.ctrl
+
+
+def bar_with_a_gizmo(win):
+    """The bar bent 90 degrees, a Jacobian constraint near its top and its gizmo shown."""
+    ctrl = open_bar(win, "bend-90", apply=False)
+    top = ctrl.rest_points[np.argmax(ctrl.rest_points[:, 2])] * [0, 0, 0.9]
+    with win.editing.recorded():
+        ctrl.add_jacobian_constraint(top)
+    win.gizmo.index = 0
+    with win.waiting_for_jobs():
+        win.editing.after_edit(structure=False)
+    return ctrl, top

@@ -28,17 +28,9 @@ pytest.importorskip("pytestqt")
 pytestmark = pytest.mark.gui
 
 # the real X display, one-thread BLAS and the window (fixtures shared with other GUI tests)
-from tests.gui import single_threaded_blas, window, xvfb_display  # noqa: E402, F401
-
-RES = 8  # bar resolution of the tests (1,410 surface points: fast bindings)
-
-
-def _open_bar(win, kind="bend-90", apply=True):
-    with win.waiting_for_jobs():
-        assert win.open_bar(kind, resolution=RES, apply=apply)
-    assert win.last_error is None, win.last_error
-    assert win.ctrl.ready
-    return win.ctrl
+from tests.gui import RES, single_threaded_blas, window, xvfb_display  # noqa: E402, F401
+from tests.gui import bar_with_a_gizmo as _bar_with_a_gizmo  # noqa: E402
+from tests.gui import open_bar as _open_bar  # noqa: E402
 
 
 def _direct_points(ctrl, mode=None):
@@ -659,18 +651,6 @@ def test_undo_redo_delete_of_constraints_and_anchors(window):
     with win.waiting_for_jobs():
         win.undo_action.trigger()  # and that is undone too
     assert len(ctrl.positions) == n0 + 1
-
-
-def _bar_with_a_gizmo(win):
-    """The bar bent 90 degrees, a Jacobian constraint near its top and its gizmo shown."""
-    ctrl = _open_bar(win, "bend-90", apply=False)
-    top = ctrl.rest_points[np.argmax(ctrl.rest_points[:, 2])] * [0, 0, 0.9]
-    with win.editing.recorded():
-        ctrl.add_jacobian_constraint(top)
-    win.gizmo.index = 0
-    with win.waiting_for_jobs():
-        win.editing.after_edit(structure=False)
-    return ctrl, top
 
 
 def test_rotation_gizmo_sets_the_jacobian_target(window):
