@@ -238,6 +238,21 @@ def test_malformed_scene_names_the_field(change, field):
     assert "\n" not in str(err.value)
 
 
+@pytest.mark.parametrize("value", [1e300, -2e15, float("nan")])
+def test_an_array_edited_in_memory_is_refused_as_the_file_is(value):
+    from vhm_viz.scene_fields import check_scene_values
+
+    targets = [[0.1, 0.1, 0.15], [0.1, value, 0.1]]
+    constraints = {"positions": [[0.1, 0.1, 0.1], [0.2, 0.1, 0.1]], "targets": targets}
+    with pytest.raises(SceneError) as read:
+        Scene.from_dict(_minimal(constraints=constraints))
+    with pytest.raises(SceneError) as edited:
+        check_scene_values(targets, "constraints.targets")
+    assert str(edited.value) == str(read.value)
+    assert edited.value.field == "constraints.targets[1][1]"
+    np.testing.assert_array_equal(check_scene_values([[1e15, -1e15, 0]], "t"), [[1e15, -1e15, 0]])
+
+
 def test_missing_fields_and_bad_json(tmp_path):
     d = _minimal()
     del d["constraints"]

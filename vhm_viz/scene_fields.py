@@ -37,6 +37,7 @@ __all__ = [
     "MAX_SCENE_BYTES",
     "MAX_SCENE_ROWS",
     "check_scene_size",
+    "check_scene_values",
     "SCENE_FORMAT",
     "SCENE_VERSION",
     "SCENE_FIELDS",
@@ -160,6 +161,26 @@ def _number(value, name: str, *, positive: bool = False, integer: bool = False):
     if positive and value <= 0:
         raise SceneError(name, f"must be positive, got {value}")
     return value
+
+
+def check_scene_values(values, name: str) -> np.ndarray:
+    """``values`` as a float64 array, if every entry may stand in a scene file.
+
+    The rule the scene's coordinates and matrix entries are read with (finite, magnitude
+    at most :data:`MAX_SCENE_VALUE`), for arrays edited in memory (the explorer's
+    constraints): a scene that passes can be saved and read back.
+
+    Raises
+    ------
+    SceneError
+        Naming the first offending entry (``constraints.targets[0][2]``), as reading does.
+    """
+    array = np.asarray(values, dtype=np.float64)
+    bad = ~(np.abs(array) <= MAX_SCENE_VALUE)  # NaN compares false
+    if bad.any():
+        index = np.unravel_index(np.argmax(bad), array.shape)
+        _number(float(array[index]), name + "".join(f"[{i}]" for i in index))
+    return array
 
 
 def parse_setting(kind: str, value, name: str):

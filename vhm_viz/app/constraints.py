@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from vhm_viz.scene_fields import check_scene_values
+
 __all__ = [
     "PositionConstraint",
     "JacobianConstraint",
@@ -146,7 +148,8 @@ class Similarity:
 
 # ----------------------------------------------------------------------------------------
 # edits of a scene's constraint arrays: each returns a new dict, the arrays are never
-# changed in place (undo snapshots and the deformer may hold them)
+# changed in place (undo snapshots and the deformer may hold them); a value a scene file
+# could not hold is refused (:func:`vhm_viz.scene_fields.check_scene_values`)
 # ----------------------------------------------------------------------------------------
 
 #: The two arrays of each kind of constraint: rest-space points, and targets.
@@ -159,9 +162,17 @@ def _shaped(name: str, value) -> np.ndarray:
 
 
 def replaced(constraints: dict, **arrays) -> dict:
-    """``constraints`` with some arrays replaced (copied as float64)."""
+    """``constraints`` with some arrays replaced (copied as float64).
+
+    Raises
+    ------
+    SceneError
+        A value that is not finite or beyond a scene's range, named as in a scene file
+        (``constraints.targets[0][0]``); ``constraints`` is left as it was.
+    """
     out = dict(constraints)
-    out.update({name: _shaped(name, value) for name, value in arrays.items()})
+    for name, value in arrays.items():
+        out[name] = check_scene_values(_shaped(name, value), f"constraints.{name}")
     return out
 
 

@@ -474,8 +474,6 @@ class ExplorerController:
     def set_target(self, index: int, target) -> None:
         """Move the target of position constraint ``index`` (no refactorisation)."""
         t = np.asarray(target, dtype=float).reshape(3)
-        if not np.isfinite(t).all():
-            raise ValueError("target must be finite")
         self._edit_constraints(with_row, "targets", index, t)
         self._targets_stale = True
 

@@ -213,7 +213,7 @@ class Editing:
         if not np.isfinite(target).all():
             self.refresh_panels()
             raise ValueError("target values must be numbers")
-        with self.recorded():
+        with self._table_edit():
             self.ctrl.set_target(index, target)
         self.window.selected = ("position", index)
         self.window.shape_view.move_handle(index, target)
@@ -227,14 +227,20 @@ class Editing:
         if not (np.isfinite(angles).all() and np.isfinite(scale)):
             self.refresh_panels()
             raise ValueError("angles and scale must be numbers")
+        with self._table_edit():
+            self.ctrl.set_jacobian(index, angles, scale)
+        self.window.selected = ("jacobian", index)
+        self.solve_and_show()
+
+    @contextlib.contextmanager
+    def _table_edit(self):
+        """Record an edit typed into the table; a refused one shows the scene's values again."""
         try:
             with self.recorded():
-                self.ctrl.set_jacobian(index, angles, scale)
+                yield
         except Exception:
             self.refresh_panels()
             raise
-        self.window.selected = ("jacobian", index)
-        self.solve_and_show()
 
     def delete_constraint(self, kind: str, index: int) -> None:
         """Delete a constraint (the last position constraint is kept)."""
