@@ -59,6 +59,7 @@ def _history(win, action: str) -> None:
 FIELDS = {
     "target x beyond the scene's range": (0, 1, "1e300", "out of range"),
     "scale beyond the scene's range": ("J", 4, "1e308", "out of range"),
+    "scale whose matrix is singular in float64": ("J", 4, "1e-200", "edit was undone"),
 }
 
 

@@ -878,6 +878,13 @@ class ExplorerController:
         """Re-apply the last undone action; False when there is none."""
         return self._restore(self.history.redo(self.scene))
 
+    def take_back(self) -> bool:
+        """Back to the scene before the last recorded action, which failed; nothing to redo.
+
+        False when undo or redo came since the record (:meth:`SceneHistory.take_back`).
+        """
+        return self._restore(self.history.take_back())
+
     def _restore(self, scene: Scene | None) -> bool:
         """Edit the recorded ``scene``, marking stale exactly what differs (cheapest rebuild)."""
         if scene is None:

@@ -4,7 +4,9 @@
 interaction mode, :mod:`vhm_viz.app.picking`), Delete, undo and redo onto the controller.
 Every edit is recorded for undo (:meth:`Editing.recorded`) and followed by
 :meth:`Editing.after_edit`: what the edit made stale is rebuilt in a background job, then
-the scene is solved to convergence and shown (:meth:`Editing.solve_and_show`).
+the scene is solved to convergence and shown (:meth:`Editing.solve_and_show`). An edit
+solved at once (a target or Jacobian typed into the table, the mode) whose solve fails is
+taken back: the scene, the undo history and the shown shape stay as they were before it.
 """
 
 from __future__ import annotations
@@ -70,7 +72,7 @@ class Editing:
             self.ctrl.set_mode(mode)
         self.window.constraints_panel.set_mode(mode)
         if self.ctrl.ready:
-            self.solve_and_show()
+            self._solve_edit()
 
     def set_alpha(self, alpha: float) -> None:
         """Stiffness alpha (rebuilds the deformer in the background)."""
@@ -217,7 +219,7 @@ class Editing:
             self.ctrl.set_target(index, target)
         self.window.selected = ("position", index)
         self.window.shape_view.move_handle(index, target)
-        self.solve_and_show()
+        self._solve_edit()
 
     def edit_jacobian(self, index: int, angles, scale: float) -> None:
         """Numeric edit of a Jacobian constraint's angles (degrees) and scale."""
@@ -230,7 +232,7 @@ class Editing:
         with self._table_edit():
             self.ctrl.set_jacobian(index, angles, scale)
         self.window.selected = ("jacobian", index)
-        self.solve_and_show()
+        self._solve_edit()
 
     @contextlib.contextmanager
     def _table_edit(self):
@@ -410,10 +412,31 @@ class Editing:
         """
         self._guarded(self._solve_and_show, rebuild)
 
-    def _solve_and_show(self, rebuild: bool) -> None:
+    def _solve_edit(self) -> None:
+        """Solve and show the edit just recorded; an edit whose solve fails is taken back.
+
+        The scene, the undo history and the shown shape return to what they were before the
+        edit (solved again from the local matrices the failed solve started from), and one
+        line says so.
+        """
+        ctrl = self.ctrl
+        start = ctrl.deformer.rotations_at_anchors if ctrl.ready else "previous"
+        try:
+            self._solve_and_show(True)
+        except Exception as exc:  # noqa: BLE001 - whatever failed, the edit is taken back
+            failure, details = f"{type(exc).__name__}: {exc}", traceback.format_exc()
+            if not ctrl.take_back():
+                raise
+            self.refresh_panels()
+            self._solve_and_show(True, start)
+            self.window.report_error(
+                f"the solve failed, so the edit was undone: {failure}", details
+            )
+
+    def _solve_and_show(self, rebuild: bool, init="previous") -> None:
         win, ctrl = self.window, self.ctrl
         t0 = time.perf_counter()
-        rep = ctrl.settle()
+        rep = ctrl.settle(init)
         t1 = time.perf_counter()
         win.drag.stop()
         ctrl.deform()

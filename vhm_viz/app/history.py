@@ -29,6 +29,8 @@ class SceneHistory:
         self._undo: list[Scene] = []
         self._redo: list[Scene] = []
         self._cages: list = []
+        # what the last record forgot (oldest undo steps, the redo history), for take_back
+        self._forgotten: tuple[list, list] | None = None
 
     @staticmethod
     def snapshot(scene: Scene) -> Scene:
@@ -61,14 +63,30 @@ class SceneHistory:
     def record(self, before: Scene) -> None:
         """Remember the scene before a user action; clears the redo history."""
         self._undo.append(before)
+        self._forgotten = (self._undo[: -self.limit], self._redo)
         del self._undo[: -self.limit]
-        self._redo.clear()
+        self._redo = []
+
+    def take_back(self) -> Scene | None:
+        """Forget the last :meth:`record` (its action failed): the history is as before it.
+
+        Returns the scene it recorded, or None when undo or redo came since (or nothing
+        was recorded).
+        """
+        if self._forgotten is None:
+            return None
+        oldest, self._redo = self._forgotten
+        self._forgotten = None
+        before = self._undo.pop()
+        self._undo[:0] = oldest
+        return before
 
     def clear(self) -> None:
         """Forget everything (new data loaded)."""
         self._undo.clear()
         self._redo.clear()
         self._cages.clear()
+        self._forgotten = None
 
     def remember_cage(self, cage) -> None:
         """Keep a cage in use, so that :meth:`cage_of` finds it without rebuilding it."""
@@ -110,5 +128,6 @@ class SceneHistory:
     def _step(self, source: list, target: list, current: Scene) -> Scene | None:
         if not source:
             return None
+        self._forgotten = None
         target.append(self.snapshot(current))
         return source.pop()
