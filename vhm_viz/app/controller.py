@@ -168,7 +168,6 @@ class ExplorerController:
         self.threshold = None
         self.volume = None
         self.history = SceneHistory()
-        # cages used since loading, so that undo finds a scene's cage without rebuilding it
 
     # ------------------------------------------------------------------ the scene's fields
     @property
