@@ -15,11 +15,17 @@ where the command prints ``--timings``, the stage breakdown.
     python benchmarks/bench_cli.py --only ct           # cases whose name contains "ct"
     python benchmarks/bench_cli.py --repo ../old -r 3  # another checkout's vhm_viz
     python benchmarks/bench_cli.py --compare ../old    # alternate two checkouts, one table
+    python benchmarks/bench_cli.py --python ENV/bin/python  # also an installed vhm_viz
     python benchmarks/bench_cli.py --busy              # also with a busy process beside it
     python benchmarks/bench_cli.py --cold --only demo -r 2  # the first run of the demo
     python benchmarks/bench_cli.py --anchors           # also the machine anchors, scaled goals
     python benchmarks/bench_cli.py --anchors only      # the anchors alone
     python benchmarks/bench_cli.py --huge --only "^3 -> .vti" -r 1  # 512^3 embryo vs 256^3
+
+``--python`` also runs, alternately, the vhm_viz installed for an interpreter as a user
+installs it (``python -m venv ENV && ENV/bin/pip install .``: the runtime dependencies
+only, no editable-install hook, no test or docs packages): a process's start-up grows with
+the packages beside it (numba scans every installed distribution's entry points).
 
 ``--anchors`` times two jobs of other tools (:mod:`machine_anchors`) and prints issue
 #34's goals scaled by this machine's ratio to the machine they were set on. The embryo's
@@ -48,6 +54,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -373,8 +380,19 @@ def busy_process():
     return subprocess.Popen([sys.executable, "-c", code])
 
 
-def environment(repo: Path, cache: Path | None) -> dict:
-    """The child's environment: ``repo``'s vhm_viz first on the path.
+class Runner(NamedTuple):
+    """Where a case's command runs: a checkout's vhm_viz, or an interpreter's installed one."""
+
+    python: str
+    repo: Path | None
+
+    @property
+    def label(self) -> str:
+        return self.repo.name if self.repo is not None else f"installed: {self.python}"
+
+
+def environment(repo: Path | None, cache: Path | None) -> dict:
+    """The child's environment: ``repo``'s vhm_viz first on the path (None: as installed).
 
     ``cache``: a compiled-code cache folder for the child (default: the caller's own, as
     a user's command would find it). Python's bytecode is cached as an installed
@@ -383,15 +401,16 @@ def environment(repo: Path, cache: Path | None) -> dict:
     """
     env = dict(os.environ)
     env.pop("PYTHONDONTWRITEBYTECODE", None)
-    env["PYTHONPATH"] = str(repo) + os.pathsep + env.get("PYTHONPATH", "")
+    if repo is not None:
+        env["PYTHONPATH"] = str(repo) + os.pathsep + env.get("PYTHONPATH", "")
     if cache is not None:
         env["NUMBA_CACHE_DIR"] = str(cache)
     env.setdefault("QT_QPA_PLATFORM", "offscreen")
     return env
 
 
-def run_case(case: Case, k: int, scratch: Path, repos: list, args) -> list[dict]:
-    """Run one case ``args.repeats`` times per checkout (quiet, then busy with ``--busy``)."""
+def run_case(case: Case, k: int, scratch: Path, repos: list[Runner], args) -> list[dict]:
+    """Run one case ``args.repeats`` times per runner (quiet, then busy with ``--busy``)."""
     input_path = case.prepare(scratch) if case.prepare is not None else case.input
     scene = case.scene
     if case.prepare is not None and scene is None:
@@ -402,7 +421,7 @@ def run_case(case: Case, k: int, scratch: Path, repos: list, args) -> list[dict]
     results = []
     warmup = 0 if args.cold or not case.warmup else 1
     for loaded in [False, True] if args.busy else [False]:
-        runs = {str(r): [] for r in repos}
+        runs = {r.label: [] for r in repos}
         for rep in range(args.repeats + warmup):
             for repo in repos:
                 cache = None
@@ -418,11 +437,12 @@ def run_case(case: Case, k: int, scratch: Path, repos: list, args) -> list[dict]
                 argv_ = [a.format(**fill) for a in case.args]
                 if "--timings" not in argv_:
                     argv_.append("--timings")
-                cmd = [sys.executable, "-m", "vhm_viz.cli", *argv_]
+                cmd = [repo.python, "-m", "vhm_viz.cli", *argv_]
                 busy = busy_process() if loaded else None
                 try:
                     load = os.getloadavg()[0]
-                    wall, cpu, rss, err, code = run_once(cmd, environment(repo, cache), scratch)
+                    env = environment(repo.repo, cache)
+                    wall, cpu, rss, err, code = run_once(cmd, env, scratch)
                 finally:
                     if busy is not None:
                         busy.kill()
@@ -431,8 +451,8 @@ def run_case(case: Case, k: int, scratch: Path, repos: list, args) -> list[dict]
                 newer = [a for a in NEWER_OPTIONS if unknown and a in unknown[1].split()]
                 if newer:  # an older checkout (--compare, --repo): without what it lacks
                     argv_ = [a for a in argv_ if a not in newer]
-                    cmd = [sys.executable, "-m", "vhm_viz.cli", *argv_]
-                    wall, cpu, rss, err, code = run_once(cmd, environment(repo, cache), scratch)
+                    cmd = [repo.python, "-m", "vhm_viz.cli", *argv_]
+                    wall, cpu, rss, err, code = run_once(cmd, env, scratch)
                 if code != 0:
                     print(f"{case.name}: exit {code}: {err.strip()[-400:]}", flush=True)
                 if rep < warmup:
@@ -441,16 +461,16 @@ def run_case(case: Case, k: int, scratch: Path, repos: list, args) -> list[dict]
                        "stages": parse_timings(err)}  # fmt: skip
                 if case.prepare is not None and code == 0:
                     run["input_mb"], run["output_mb"] = voxel_mb(input_path), voxel_mb(out)
-                runs[str(repo)].append(run)
+                runs[repo.label].append(run)
         for repo in repos:
             results.append(
-                {"case": case.name, "busy": loaded, "repo": str(repo), "runs": runs[str(repo)]}
+                {"case": case.name, "busy": loaded, "repo": repo.label, "runs": runs[repo.label]}
             )
             print(
-                f"  {case.name}{' (busy)' if loaded else ''} [{repo.name}]: "
+                f"  {case.name}{' (busy)' if loaded else ''} [{repo.label}]: "
                 + ", ".join(
                     f"{r['wall']:.2f}s (cpu {r['cpu']:.1f}s, load {r['load']:.1f})"
-                    for r in runs[str(repo)]
+                    for r in runs[repo.label]
                 ),
                 flush=True,
             )
@@ -477,10 +497,10 @@ def voxel_mb(path: Path) -> float:
     return voxels * per_voxel / 2**20
 
 
-def median_of(results: list, name: str, key: str = "wall") -> float | None:
-    """Median of ``key`` over the quiet runs of case ``name`` (the first checkout's)."""
+def median_of(results: list, name: str, key: str = "wall", runner=None) -> float | None:
+    """Median of ``key`` over the quiet runs of case ``name`` (``runner``'s, else the first's)."""
     for res in results:
-        if res["case"] == name and not res["busy"]:
+        if res["case"] == name and not res["busy"] and runner in (None, res["repo"]):
             vals = [r[key] for r in res["runs"] if r["code"] == 0 and key in r]
             return statistics.median(vals) if vals else None
     return None
@@ -507,8 +527,12 @@ def yes(ok: bool) -> str:
     return "yes" if ok else "no"
 
 
-def print_goals(results: list, anchors: dict, cold: bool) -> None:
-    """Issue #34's goals beside what was measured, time goals scaled by each anchor ratio."""
+def print_goals(results: list, anchors: dict, cold: bool, runner: str | None = None) -> None:
+    """Issue #34's goals beside what was measured, time goals scaled by each anchor ratio.
+
+    ``runner``: whose runs (a :attr:`Runner.label`; default: the first runner's).
+    """
+    results = [r for r in results if runner in (None, r["repo"])]
     ratios = {name: a["ratio"] for name, a in anchors.items()}
     order = [n for n in ("vtk", "simpleitk") if n in ratios]
     goals = dict(GOALS)
@@ -552,7 +576,8 @@ def print_goals(results: list, anchors: dict, cold: bool) -> None:
     if not rows:
         return
     scale = ", ".join(f"x {ratios[n]:.2f} ({n})" for n in order) or "no anchors timed: unscaled"
-    print(f"\nissue #34's goals; times scaled by this machine's ratio {scale}")
+    whose = f" [{runner}]" if runner is not None else ""
+    print(f"\nissue #34's goals{whose}; times scaled by this machine's ratio {scale}")
     print_table(["goal", "issue machine", "scaled here", "measured (median)", "met"], rows)
 
 
@@ -571,6 +596,7 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--repo", type=Path, default=ROOT, help="checkout whose vhm_viz runs")
     ap.add_argument("--compare", type=Path, help="a second checkout, run alternately")
+    ap.add_argument("--python", help="also the vhm_viz installed for this interpreter")
     ap.add_argument("--cold", action="store_true", help="empty compiled-code cache each run")
     ap.add_argument("--busy", action="store_true", help="also time with a busy process beside")
     ap.add_argument("--json", type=Path, help="write the raw results here")
@@ -578,7 +604,11 @@ def main(argv=None) -> int:
 
     print(f"load average before: {os.getloadavg()}", flush=True)
     scratch = Path(tempfile.mkdtemp(prefix="bench_cli_"))
-    repos = [args.repo.resolve()] + ([args.compare.resolve()] if args.compare else [])
+    repos = [Runner(sys.executable, args.repo.resolve())]
+    if args.compare:
+        repos.append(Runner(sys.executable, args.compare.resolve()))
+    if args.python:
+        repos.append(Runner(args.python, None))
     results, anchors = [], {}
     try:
         pair = (EMBRYO_VTI, HUGE_VTI) if args.huge else ()  # --huge compares the two
@@ -593,7 +623,7 @@ def main(argv=None) -> int:
         if any(c.name == EMBRYO_VTI for c in todo) and "simpleitk" not in which:
             which.append("simpleitk")  # the embryo's goal is a multiple of it, same run
         if which:
-            anchors = time_anchors(which, args.repeats, scratch, environment(repos[0], None),
+            anchors = time_anchors(which, args.repeats, scratch, environment(repos[0].repo, None),
                                    lambda path: box_scene(bounds_of(path)))  # fmt: skip
             print_anchors(anchors)
         for k, case in enumerate(todo):
@@ -616,7 +646,7 @@ def main(argv=None) -> int:
                 stages[s] = statistics.median(vals)
         label = res["case"] + (" (busy)" if res["busy"] else "")
         if len(repos) > 1:
-            label += f" [{Path(res['repo']).name}]"
+            label += f" [{res['repo']}]"
         failed = sum(r["code"] != 0 for r in res["runs"])
         versus = "-"
         if itk is not None and res["case"] == EMBRYO_VTI:
@@ -641,7 +671,8 @@ def main(argv=None) -> int:
              "vs anchor", "failed"],
             rows,
         )  # fmt: skip
-    print_goals(results, anchors, args.cold)
+    for runner in repos if len(repos) > 1 else [None]:
+        print_goals(results, anchors, args.cold, runner and runner.label)
     print(f"\nload average after: {os.getloadavg()}")
     if args.json:
         args.json.write_text(json.dumps({"anchors": anchors, "cases": results}, indent=1))
