@@ -67,7 +67,7 @@ from vhm_viz.app.explorer_scene import (
     solve_loaded,
 )
 from vhm_viz.app.export import export_path, write_deformed, write_deformed_volume
-from vhm_viz.app.history import SceneHistory
+from vhm_viz.app.history import SceneHistory, UndoRedo
 from vhm_viz.app.lod import LevelOfDetail, level_of_detail_setting
 from vhm_viz.app.volume import displayed
 from vhm_viz.autocage import auto_anchors, auto_cage
@@ -105,7 +105,7 @@ class FrameTiming:
         return self.solve + self.deform + self.analysis + self.render
 
 
-class ExplorerController:
+class ExplorerController(UndoRedo):
     """Everything the explorer shows and does, without Qt.
 
     Attributes
@@ -161,6 +161,9 @@ class ExplorerController:
         self._rest_points = np.zeros((0, 3))
         # a loaded scene's contraction rate: the next solve starts at its solution with it
         self._resume_contraction = None
+        # the local matrices an undone or redone scene was solved with: its next solve
+        # starts there, so that the shape shown before comes back (the solve is not convex)
+        self._resume_solution = None
         #: Messages for the user from the last load (e.g. an old scene file converted).
         self.notes: list[str] = []
         self.certificate = None
@@ -243,7 +246,7 @@ class ExplorerController:
         self.full_stale = False
         self.last_report = None
         self.certificate = None
-        self._resume_contraction = None
+        self._resume_contraction = self._resume_solution = None
         self._deformer_stale = True
         self._layout_stale = True
         self.history.clear()
@@ -620,11 +623,15 @@ class ExplorerController:
         self.certificate = None  # it certified the previous solution
         self.deformer.mode = self.mode
         contraction, self._resume_contraction = self._resume_contraction, None
+        resume, self._resume_solution = self._resume_solution, None
+        previous = isinstance(init, str) and init == "previous"
+        if previous and resume is not None and resume.shape == (len(self.anchors), 3, 3):
+            init = resume
         rep = self.deformer.solve(
             max_iterations=self.max_iterations if max_iterations is None else max_iterations,
             tolerance=self.tolerance if tolerance is None else float(tolerance),
             init=init,
-            contraction=contraction if isinstance(init, str) and init == "previous" else None,
+            contraction=contraction if previous else None,
         )
         self.last_report = rep
         return rep
@@ -854,50 +861,3 @@ class ExplorerController:
             self._set_data(current.rest, dict(current.source))
         else:
             raise ValueError(f"{scene_path.name}: the scene names no data: open the data first")
-
-    # ------------------------------------------------------------------ undo / redo
-    def snapshot(self) -> Scene:
-        """A copy of the edited scene (what :meth:`checkpoint` records)."""
-        return SceneHistory.snapshot(self.scene)
-
-    def checkpoint(self, state: Scene | None = None) -> None:
-        """Remember the scene before a user action (default: now); clears the redo history.
-
-        The window calls this for every constraint, anchor, cage and setting edit (with the
-        :meth:`snapshot` taken before it, once the edit succeeded) and once at the start of
-        a drag, so :meth:`undo` steps back one user action.
-        """
-        self.history.record(self.snapshot() if state is None else state)
-
-    def undo(self) -> bool:
-        """Go back to the scene before the last user action; False when there is none."""
-        return self._restore(self.history.undo(self.scene))
-
-    def redo(self) -> bool:
-        """Re-apply the last undone action; False when there is none."""
-        return self._restore(self.history.redo(self.scene))
-
-    def take_back(self) -> bool:
-        """Back to the scene before the last recorded action, which failed; nothing to redo.
-
-        False when undo or redo came since the record (:meth:`SceneHistory.take_back`).
-        """
-        return self._restore(self.history.take_back())
-
-    def _restore(self, scene: Scene | None) -> bool:
-        """Edit the recorded ``scene``, marking stale exactly what differs (cheapest rebuild)."""
-        if scene is None:
-            return False
-        same_shape, same_layout = SceneHistory.changes(self.scene, scene)
-        new = scene
-        self.scene = new
-        self.cage = self.history.cage_of(new)
-        if self.deformer is not None:
-            self.deformer.mode = self.mode
-        if not same_shape:
-            self._deformer_stale = True
-        elif not same_layout:
-            self._layout_stale = True
-        self._targets_stale = True
-        self.certificate = None
-        return True

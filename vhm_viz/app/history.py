@@ -1,4 +1,8 @@
-"""Undo and redo for the explorer: a history of :class:`~vhm_viz.scene.Scene` snapshots."""
+"""Undo and redo for the explorer: a history of :class:`~vhm_viz.scene.Scene` snapshots.
+
+:class:`SceneHistory` keeps the snapshots; :class:`UndoRedo`, a base of the explorer's
+controller, records and restores them with the solved state each was shown with.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +13,7 @@ import numpy as np
 from vhm_viz.core.cage import Cage
 from vhm_viz.scene import Scene
 
-__all__ = ["SceneHistory", "UNDO_LIMIT"]
+__all__ = ["SceneHistory", "UNDO_LIMIT", "UndoRedo"]
 
 # undo steps kept
 UNDO_LIMIT = 100
@@ -131,3 +135,71 @@ class SceneHistory:
         self._forgotten = None
         target.append(self.snapshot(current))
         return source.pop()
+
+
+class UndoRedo:
+    """Undo and redo of :class:`~vhm_viz.app.controller.ExplorerController`, a base of it.
+
+    Steps through :class:`SceneHistory` snapshots of its ``scene``, each with the solved
+    state it was shown with, and marks stale only what a step changes.
+    """
+
+    def snapshot(self) -> Scene:
+        """A copy of the edited scene (what :meth:`checkpoint` records).
+
+        With the deformer's local matrices as its ``solution`` once it has solved, so that
+        undo and redo bring back the shape that was shown, not another solution of the same
+        scene.
+        """
+        snap = SceneHistory.snapshot(self.scene)
+        if self.deformer is not None and self.last_report is not None:
+            snap.solution = np.array(self.deformer.rotations_at_anchors)
+            rho = self.last_report.contraction
+            snap.solution_contraction = float(rho) if np.isfinite(rho) else None
+        return snap
+
+    def checkpoint(self, state: Scene | None = None) -> None:
+        """Remember the scene before a user action (default: now); clears the redo history.
+
+        The window calls this for every constraint, anchor, cage and setting edit (with the
+        :meth:`snapshot` taken before it, once the edit succeeded) and once at the start of
+        a drag, so :meth:`undo` steps back one user action.
+        """
+        self.history.record(self.snapshot() if state is None else state)
+        self._resume_solution = None
+
+    def undo(self) -> bool:
+        """Go back to the scene before the last user action; False when there is none."""
+        return self._restore(self.history.undo(self.snapshot()))
+
+    def redo(self) -> bool:
+        """Re-apply the last undone action; False when there is none."""
+        return self._restore(self.history.redo(self.snapshot()))
+
+    def take_back(self) -> bool:
+        """Back to the scene before the last recorded action, which failed; nothing to redo.
+
+        False when undo or redo came since the record (:meth:`SceneHistory.take_back`).
+        """
+        return self._restore(self.history.take_back())
+
+    def _restore(self, scene: Scene | None) -> bool:
+        """Edit the recorded ``scene``, marking stale exactly what differs (cheapest rebuild)."""
+        if scene is None:
+            return False
+        same_shape, same_layout = SceneHistory.changes(self.scene, scene)
+        new = scene
+        # the solved state travels beside the scene, which the explorer edits without one
+        self._resume_solution, new.solution = new.solution, None
+        self._resume_contraction, new.solution_contraction = new.solution_contraction, None
+        self.scene = new
+        self.cage = self.history.cage_of(new)
+        if self.deformer is not None:
+            self.deformer.mode = self.mode
+        if not same_shape:
+            self._deformer_stale = True
+        elif not same_layout:
+            self._layout_stale = True
+        self._targets_stale = True
+        self.certificate = None
+        return True
