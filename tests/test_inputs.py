@@ -680,3 +680,29 @@ def test_a_tet_mesh_written_to_legacy_vtk_reads_in_meshio(tmp_path, capsys):
     assert not np.array_equal(got.points, points)
     back = pv.read(tmp_path / "bent.vtk").field_data["vhm_outside_count"]
     assert back.dtype == np.int64 and back.tolist() == [0]
+
+
+def test_a_deformed_tet_mesh_written_to_vtu_reads_in_meshio(tmp_path, capsys):
+    """``.vtu`` is how tet meshes go on to finite-element tools, whose Python reader is
+    meshio: it reads a deformed mesh with its point and cell arrays (an outside flag,
+    uint8, among them) as VTK's reader does, value for value."""
+    meshio = pytest.importorskip("meshio")
+    points, tets = examples.bar_tets(12)
+    longer = points * [1.0, 1.0, 1.5]  # its far end outside the cage: flagged, left in place
+    pv.UnstructuredGrid({pv.CellType.TETRA: tets}, longer).save(tmp_path / "bar.vtu")
+    box_scene(tmp_path, points.min(axis=0), points.max(axis=0))
+    rc = main(["deform", str(tmp_path / "bar.vtu"), "-s", str(tmp_path / "scene.json"),
+               "-o", str(tmp_path / "bent.vtu"), "-q", "--outside", "passthrough",
+               "--allow-folds", "--arrays", "displacement,det,cells"])  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    got, want = meshio.read(tmp_path / "bent.vtu"), pv.read(tmp_path / "bent.vtu")
+    assert [c.type for c in got.cells] == ["tetra"]
+    assert np.array_equal(got.cells[0].data, tets)
+    assert np.array_equal(got.points, want.points)
+    assert 0 < want.point_data["vhm_outside"].sum() < want.n_points
+    assert set(want.point_data) <= set(got.point_data)
+    for name in want.point_data:
+        np.testing.assert_array_equal(got.point_data[name], want.point_data[name], err_msg=name)
+    assert set(want.cell_data) - {"vtkOriginalCellIds"} <= set(got.cell_data)
+    for name in set(want.cell_data) & set(got.cell_data):
+        np.testing.assert_array_equal(got.cell_data[name][0], want.cell_data[name], err_msg=name)

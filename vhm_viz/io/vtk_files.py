@@ -36,12 +36,17 @@ _WRITERS = {
     ".stl": ("vtkIOGeometry", "vtkSTLWriter", True),
     ".obj": ("vtkIOGeometry", "vtkOBJWriter", False),
 }
+#: XML formats written zlib-compressed rather than LZ4: ``.vtu`` is how unstructured
+#: meshes go to the finite-element world, whose Python reader (meshio) knows zlib and LZMA
+#: but not LZ4. Level 1: most of zlib's size for a fraction of its default level's time.
+_ZLIB_SUFFIXES = (".vtu",)
+_ZLIB_LEVEL = 1
 
 
 def write_vtk_file(path, data) -> None:
     """Write ``data`` atomically with VTK's writer for the suffix, binary where it can.
 
-    XML formats are LZ4-compressed.
+    XML formats are LZ4-compressed, ``.vtu`` zlib-compressed (:data:`_ZLIB_SUFFIXES`).
 
     VTK's writers report a failed write (a full disk or quota, a file-size limit) through
     their error code and an error message that may be silenced, and leave a truncated
@@ -68,10 +73,14 @@ def write_vtk_file(path, data) -> None:
     writer = getattr(importlib.import_module(f"vtkmodules.{module}"), name)()
     if binary:
         writer.SetFileTypeToBinary()
-    if hasattr(writer, "SetCompressorTypeToLZ4"):
+    if suffix_of(path) in _ZLIB_SUFFIXES:
+        writer.SetCompressorTypeToZLib()
+        writer.SetCompressionLevel(_ZLIB_LEVEL)
+    elif hasattr(writer, "SetCompressorTypeToLZ4"):
         # XML formats: LZ4 writes and reads several times faster than zlib, for a larger
         # file (every VTK reader since 8.1 and ParaView read it)
         writer.SetCompressorTypeToLZ4()
+    if hasattr(writer, "SetEncodeAppendedData"):
         # the appended data as raw bytes, not base64 text: a quarter smaller, and encoding
         # it would take most of the write (every VTK XML reader and ParaView read both)
         writer.SetEncodeAppendedData(False)
