@@ -229,6 +229,94 @@ def test_meshio_sys_exit_and_prints_become_one_error(tmp_path, capsys):
     assert out == "" and err == ""
 
 
+def _hand_mesh_cut(folder: Path, name: str, lines: int, tail: str = "") -> Path:
+    """The first ``lines`` lines of the tet hand (MEDIT), then ``tail``."""
+    text = data_path("hand_tet", "hand.mesh").read_text().splitlines(keepends=True)
+    (folder / name).write_text("".join(text[:lines]) + tail)
+    return folder / name
+
+
+# hand.mesh: Vertices (7234) on lines 5-7238, Tetrahedra (29998) from line 16799
+@pytest.mark.parametrize(
+    ("lines", "tail", "block", "announced", "held"),
+    [
+        (3000, "", "Vertices", 7234, 2996),  # cut at a line's end
+        (20000, "", "Tetrahedra", 29998, 3202),
+        (20000, "6612 5385 70", "Tetrahedra", 29998, 3202),  # cut inside a line
+        (16798, "", "Tetrahedra", 29998, 0),
+    ],  # fmt: skip
+)
+def test_a_medit_file_cut_short_says_which_block_lacks_entries(
+    tmp_path, lines, tail, block, announced, held
+):
+    cut = _hand_mesh_cut(tmp_path, "cut.mesh", lines, tail)
+    with pytest.raises(ReadError) as err:
+        read_dataset(cut)
+    msg = str(err.value)
+    assert msg.startswith(f"{cut}: truncated: ") and "\n" not in msg, msg
+    assert f"its {block} block lists {announced} entries, the file ends after {held}" in msg
+    assert "export it again" in msg and "reshape" not in msg
+
+
+def test_a_medit_count_larger_than_its_entries_is_one_line_through_the_command_line(tmp_path):
+    text = data_path("hand_tet", "hand.mesh").read_text().splitlines(keepends=True)
+    text[3] = "9000\n"  # the Vertices count; 7234 follow
+    (tmp_path / "count.mesh").write_text("".join(text))
+    cut = _hand_mesh_cut(tmp_path, "cut.mesh", 20000)
+    for bad, said in ((tmp_path / "count.mesh", "corrupt: its Vertices block lists 9000 "
+                       "entries but holds 7234"),
+                      (cut, "truncated: its Tetrahedra block lists 29998 entries")):  # fmt: skip
+        res = run_cli("cage", bad, "-o", tmp_path / "cage.obj", "-q")
+        assert res.returncode == 1 and res.stdout == "", res.stderr
+        assert res.stderr.count("\n") == 1 and f"{bad}: {said}" in res.stderr, res.stderr
+    assert not (tmp_path / "cage.obj").exists()
+
+
+@pytest.mark.parametrize("kind", ["gmsh22", "gmsh"])
+@pytest.mark.parametrize("binary", [False, True])
+@pytest.mark.parametrize("fraction", [0.05, 0.3, 0.6, 0.999])
+def test_a_gmsh_file_cut_short_says_so(tmp_path, kind, binary, fraction):
+    meshio = pytest.importorskip("meshio")
+    grid = pv.ImageData(dimensions=(6, 6, 9), spacing=(0.3, 0.3, 0.3)).to_tetrahedra()
+    tets = grid.cells_dict[pv.CellType.TETRA]
+    whole = tmp_path / "whole.msh"
+    meshio.Mesh(np.asarray(grid.points), [("tetra", tets)]).write(
+        whole, file_format=kind, binary=binary
+    )
+    cut = _truncate(whole, tmp_path / "cut.msh", fraction)
+    with pytest.raises(ReadError) as err:
+        read_dataset(cut)
+    msg = str(err.value)
+    assert re.fullmatch(
+        re.escape(f"{cut}: truncated: the file ends inside its ")
+        + r"\$(Nodes|Elements) section; copy or export it again",
+        msg,
+    ), msg
+
+
+def test_a_gmsh_count_larger_than_its_entries_is_refused(tmp_path):
+    meshio = pytest.importorskip("meshio")
+    grid = pv.ImageData(dimensions=(3, 3, 3)).to_tetrahedra()
+    tets = grid.cells_dict[pv.CellType.TETRA]
+    for kind, line in (("gmsh22", 4), ("gmsh", 4)):
+        path = tmp_path / f"{kind}.msh"
+        meshio.Mesh(np.asarray(grid.points), [("tetra", tets)]).write(
+            path, file_format=kind, binary=False
+        )
+        text = path.read_text().splitlines(keepends=True)
+        assert text[line - 1].startswith("$Nodes")
+        head = text[line].split()
+        head[-3 if kind == "gmsh" else 0] = "40"  # the node count
+        text[line] = " ".join(head) + "\n"
+        path.write_text("".join(text))
+        with pytest.raises(ReadError) as err:
+            read_dataset(path)
+        assert str(err.value) == (
+            f"{path}: corrupt: its $Nodes section lists 40 entries but holds 27; correct the "
+            "count or export the file again"
+        )
+
+
 def test_a_vtu_of_triangles_keeps_its_cell_and_field_arrays(tmp_path):
     """A .vtu holding only triangles is read as the surface it is: its cell and field
     arrays come along with the point arrays, into the deformed output."""

@@ -42,14 +42,15 @@ def read_dataset(path, *, meanwhile=None):
       bytes or values that follow; binary STL: the triangle count against the file size;
       MetaImage (``.mhd``/``.mha``), NIfTI (``.nii``/``.nii.gz``), NRRD (``.nrrd``, and
       ``.nhdr`` with its data file) and SLC: the voxel count against the (decompressed)
-      data; OFF: parsed here;
+      data; MEDIT and Gmsh: each block's or section's count against the entries it holds
+      (text), and every Gmsh section's end; OFF: parsed here;
     * VTK's and SimpleITK's readers then run in a forked child process, so that a crash
       of a reader on a file these checks could not fully vet becomes an error message,
       not the end of the process; an error the library reports while reading refuses the
       file too;
     * the result must have finite points and cells whose point ids exist;
     * meshio (MEDIT ``.mesh``, Gmsh ``.msh``) runs with its printed output captured and its
-      ``sys.exit`` turned into a :class:`ReadError`.
+      ``sys.exit`` and internal errors turned into a :class:`ReadError`.
 
     Parameters
     ----------

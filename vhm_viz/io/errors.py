@@ -11,6 +11,9 @@ class TruncatedError(ReadError):
     """A file that ends before what its header announces."""
 
 
+#: What every message about a file that holds less than its header announces says to do.
+AGAIN = "copy or export it again"
+
 #: The largest cage or anchor-point file read (bytes): a cage of a million faces takes
 #: some 40 MB as OBJ; what lies beyond is no cage a harmonic map can be solved on, and
 #: reading it would take the memory of many copies of it.
@@ -49,7 +52,7 @@ def need(path, what: str, needed: int, available: int) -> None:
     if needed > available:
         raise TruncatedError(
             f"{path}: truncated or corrupt: {what} needs {needed} bytes, the file has "
-            f"{max(available, 0)}"
+            f"{max(available, 0)}; {AGAIN}"
         )
 
 
@@ -64,6 +67,47 @@ def complex_voxels(kind: str) -> str:
         f"its voxel type is {kind}, which vhm_viz does not deform; convert it to its "
         "magnitude or real part first, e.g. with SimpleITK's ComplexToModulus or ComplexToReal"
     )
+
+
+def check_count(
+    path, what: str, announced: int, held: int, *, unit: str = "entries", ends: bool, exact=False
+) -> None:
+    """Refuse a file in which ``what`` holds fewer ``unit`` than it lists (or, ``exact``, more).
+
+    The one wording of a count that does not match what follows it, whatever the format.
+
+    Parameters
+    ----------
+    path : path-like
+        The file, named in the message.
+    what : str
+        What lists the count (``"its Tetrahedra block"``, ``"the header"``).
+    announced, held : int
+        The count, and the entries (points, values, rows) the file holds for it.
+    unit : str
+        What is counted, plural.
+    ends : bool
+        The file ends inside ``what``: it was cut short (:class:`TruncatedError`);
+        otherwise more follows, and the count is wrong (:class:`ReadError`).
+    exact : bool
+        Refuse more entries than the count too.
+    """
+    if held == announced or (held > announced and not exact):
+        return
+    if held < announced and ends:
+        raise TruncatedError(
+            f"{path}: truncated: {what} lists {announced} {unit}, the file ends after {held}; "
+            f"{AGAIN}"
+        )
+    raise ReadError(
+        f"{path}: corrupt: {what} lists {announced} {unit} but holds {held}; correct the count "
+        "or export the file again"
+    )
+
+
+def cut_short(path, where: str) -> TruncatedError:
+    """The error for a file that ends inside ``where`` (``"its $Nodes section"``)."""
+    return TruncatedError(f"{path}: truncated: the file ends inside {where}; {AGAIN}")
 
 
 def first_line(exc) -> str:

@@ -2,7 +2,8 @@
 
 PLY and STL headers are checked against the file (:func:`check_ply`, :func:`check_stl`)
 before VTK reads them; OFF is parsed here (:func:`parse_off`, the one OFF parser, also
-for cages and rigidity lines); MEDIT and Gmsh go through meshio; point lists through NumPy.
+for cages and rigidity lines); MEDIT and Gmsh are checked here (:func:`check_medit`,
+:func:`check_gmsh`), then read by meshio; point lists through NumPy.
 """
 
 from __future__ import annotations
@@ -10,16 +11,26 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.io.errors import ReadError, TruncatedError, first_line, need
-from vhm_viz.io.registry import suffix_of
+from vhm_viz.io.errors import (
+    ReadError,
+    TruncatedError,
+    check_count,
+    cut_short,
+    first_line,
+    need,
+)
+from vhm_viz.io.registry import format_of, suffix_of
 
 __all__ = [
     "check_ply",
     "check_stl",
+    "check_medit",
+    "check_gmsh",
     "parse_off",
     "read_off_dataset",
     "read_meshio",
@@ -180,6 +191,167 @@ def check_stl(p: Path) -> None:
     )
 
 
+#: The MEDIT blocks meshio reads: values per entry ("d": the dimension; "d+1": with the
+#: reference number), or None for the blocks it skips a line per entry of.
+_MEDIT_BLOCKS = {
+    "Vertices": "d+1", "Edges": 3, "Triangles": 4, "Quadrilaterals": 5, "Tetrahedra": 5,
+    "Prisms": 7, "Pyramids": 6, "Hexahedra": 9, "Hexaedra": 9, "Corners": 1, "Normals": "d",
+    "NormalAtVertices": 2, "SubDomainFromMesh": 4, "VertexOnGeometricVertex": 2,
+    "VertexOnGeometricEdge": 3, "EdgeOnGeometricEdge": 2, "RequiredVertices": None,
+    "TangentAtVertices": None, "Tangents": None, "Ridges": None,
+}  # fmt: skip
+
+#: A MEDIT keyword line: a word at the start of a line (never a number, nan or inf).
+_MEDIT_KEYWORD = re.compile(rb"^[ \t]*(?!(?:nan|inf)\b)([A-Za-z]\w*)[^\n]*", re.M | re.I)
+
+
+def check_medit(p: Path) -> None:
+    """MEDIT ``.mesh`` (text): every block holds the entries its count lists.
+
+    Entries are counted as meshio reads them: values for vertices and elements, lines for
+    the blocks it skips.
+
+    meshio reshapes what it read to the count and fails with NumPy's words; a file cut
+    short is refused here with the block, its count and what the file holds.
+    """
+    blob = p.read_bytes()
+    keywords = [m for m in _MEDIT_KEYWORD.finditer(blob) if not _comment(blob, m.start())]
+    dim, skip_to = 0, 0
+    for k, m in enumerate(keywords):
+        if m.start() < skip_to:
+            continue  # the line after Identifier or Geometry: text, not a keyword
+        word = m.group(1).decode("ascii")
+        end = keywords[k + 1].start() if k + 1 < len(keywords) else len(blob)
+        body = blob[m.end() : end]
+        if word == "End":
+            return
+        if word in ("Identifier", "Geometry"):
+            skip_to = blob.find(b"\n", m.end() + 1) + 1 or len(blob)
+            continue
+        if word == "MeshVersionFormatted":
+            continue
+        if word == "Dimension":  # "Dimension 3", or the 3 on the next line
+            inline = m.group(0).split()[1:]
+            dim = _medit_int(p, (inline or body.split() or [b""])[0], "Dimension")
+            continue
+        if word not in _MEDIT_BLOCKS:
+            line = blob.count(b"\n", 0, m.start()) + 1
+            raise ReadError(f"{p}: line {line}: unknown MEDIT keyword {word!r}")
+        width = _MEDIT_BLOCKS[word]
+        if width in ("d", "d+1"):
+            if dim not in (2, 3):
+                raise ReadError(f"{p}: malformed MEDIT file: {word} before a Dimension of 2 or 3")
+            width = dim + (width == "d+1")
+        last = k + 1 == len(keywords)
+        head, _, rest = body.removeprefix(b"\n").partition(b"\n")  # the count's line
+        if last and not body.strip():
+            raise cut_short(p, f"its {word} block")
+        count = _medit_int(p, head.strip(), f"the {word} count")
+        if width is None:
+            held = _count_lines(rest)
+        else:
+            values = _count_tokens(rest)
+            held = values // width if values < count * width else -(-values // width)
+        check_count(p, f"its {word} block", count, held, ends=last, exact=True)
+
+
+def _comment(blob: bytes, at: int) -> bool:
+    """Whether the line of ``blob`` holding offset ``at`` starts with ``#``."""
+    start = blob.rfind(b"\n", 0, at) + 1
+    return blob[start:at].lstrip().startswith(b"#")
+
+
+def _medit_int(p: Path, text: bytes, what: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise ReadError(f"{p}: malformed MEDIT file: {what} is {text[:20].decode('latin-1')!r}")
+    return value
+
+
+def _count_tokens(blob: bytes) -> int:
+    """Whitespace-separated words in ``blob`` (``#`` comment lines left out)."""
+    if b"#" in blob:
+        blob = re.sub(rb"(?m)^[ \t]*#[^\n]*", b"", blob)
+    a = np.frombuffer(blob, np.uint8)
+    if not a.size:
+        return 0
+    word = a > 32
+    return int(np.count_nonzero(word[1:] & ~word[:-1])) + int(word[0])
+
+
+def _count_lines(blob: bytes) -> int:
+    """Lines of ``blob`` that hold a word (``#`` comment lines left out)."""
+    if b"#" in blob:
+        blob = re.sub(rb"(?m)^[ \t]*#[^\n]*", b"", blob)
+    a = np.frombuffer(blob, np.uint8)
+    line = np.cumsum(a == 10)[a > 32]
+    return int(np.count_nonzero(np.diff(line))) + 1 if line.size else 0
+
+
+#: A Gmsh section's first line (``$Nodes``): its end is ``$EndNodes``.
+_GMSH_SECTION = re.compile(rb"^\$(\w+)[ \t\r]*$", re.M)
+
+
+def check_gmsh(p: Path) -> None:
+    """Gmsh ``.msh`` (text or binary, versions 2 and 4): every section has its end.
+
+    In text files, ``$Nodes`` and ``$Elements`` hold the entries their counts list too.
+
+    meshio reads a section cut short into arrays it then reshapes, and fails with NumPy's
+    words; here such a file is refused with the section it ends in.
+    """
+    blob = p.read_bytes()
+    pos, version, text = 0, "", True
+    while (m := _GMSH_SECTION.search(blob, pos)) is not None:
+        name = m.group(1)
+        if name.startswith(b"End"):
+            pos = m.end()
+            continue
+        end = re.compile(rb"^\$End" + re.escape(name) + rb"\b", re.M).search(blob, m.end())
+        if end is None:
+            raise cut_short(p, f"its ${name.decode('latin-1')} section")
+        body = blob[m.end() : end.start()]
+        if name == b"MeshFormat":
+            head = body.strip().split(b"\n", 1)[0].split()  # version, 0 (text) or 1, size
+            if len(head) > 1:
+                version, text = head[0].decode("latin-1"), head[1] == b"0"
+        elif text and name in (b"Nodes", b"Elements"):
+            _check_gmsh_counts(p, name.decode("ascii"), body, version)
+        pos = end.end()
+
+
+def _check_gmsh_counts(p: Path, name: str, body: bytes, version: str) -> None:
+    """A text ``$Nodes`` or ``$Elements`` section: its entries against its count.
+
+    Version 2: a count line, then one line per entry. Version 4: a line of the block count
+    B and the entry count N, then B blocks of a header line and their entries -- one line
+    each, and in version 4.1 nodes a line of tags before their coordinates (two lines).
+    """
+    head, _, rest = body.strip().partition(b"\n")
+    words = head.split()
+    try:
+        numbers = [int(w) for w in words[:2]]
+    except ValueError:
+        numbers = []
+    v4 = version.startswith("4")
+    if len(numbers) < (2 if v4 else 1) or min(numbers) < 0:
+        raise ReadError(
+            f"{p}: malformed Gmsh file: ${name} starts with {head[:40].decode('latin-1')!r}"
+        )
+    lines = _count_lines(rest)
+    if not v4:
+        count, held = numbers[0], lines
+    else:
+        blocks, count = numbers
+        held = max(lines - blocks, 0)
+        if name == "Nodes" and not version.startswith("4.0"):
+            held //= 2
+    check_count(p, f"its ${name} section", count, held, ends=False, exact=True)
+
+
 def parse_off(path: Path) -> tuple[np.ndarray, list[np.ndarray], int]:
     """The one OFF parser: points, every record after them, and the header's face count.
 
@@ -256,6 +428,15 @@ def read_meshio(path):
         said = printed.getvalue().strip().splitlines()
         raise ReadError(
             f"{p}: malformed {suffix_of(p)} file" + (f" ({said[0]})" if said else "")
+        ) from exc
+    except meshio.ReadError as exc:  # meshio's own words, meant for its users
+        raise ReadError(f"{p}: malformed {suffix_of(p)} file ({first_line(exc)})") from None
+    except (ValueError, IndexError, KeyError, TypeError, AttributeError) as exc:
+        # what the checks above missed fails inside meshio, in NumPy's or Python's words
+        kind = format_of(p).name
+        raise ReadError(
+            f"{p}: corrupt {kind} file: its data do not follow its counts and keywords; "
+            "export it again"
         ) from exc
     return pv.from_meshio(mesh)
 
