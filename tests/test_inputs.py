@@ -201,6 +201,35 @@ def test_truncated_legacy_vtk_exits_1_through_the_command_line(models, tmp_path)
     assert not (tmp_path / "o.vtp").exists()
 
 
+@pytest.mark.parametrize(
+    ("name", "said"),
+    [
+        ("ascii.ply", r"element 'face' lists 12288 rows, the file ends after \d+"),
+        ("ascii.vtk", r"[A-Z]+ \w+ lists \d+ values, the file ends after \d+"),
+        ("points.off", r"the header lists 6146 points, the file ends after \d+"),
+        ("faces.off", r"the header lists 12288 faces, the file ends after \d+"),
+    ],
+)
+def test_text_files_cut_short_say_what_they_list_and_hold(models, tmp_path, name, said):
+    """One wording for a count the file does not hold, whatever the text format."""
+    if name.endswith(".off"):
+        mesh = pv.read(models / "ascii.ply")
+        faces = mesh.faces.reshape(-1, 4)[:, 1:]
+        text = (f"OFF\n{mesh.n_points} {len(faces)} 0\n"
+                + "".join(f"{x} {y} {z}\n" for x, y, z in mesh.points)
+                + "".join(f"3 {a} {b} {c}\n" for a, b, c in faces))  # fmt: skip
+        (tmp_path / "whole.off").write_text(text)
+        bad = _truncate(
+            tmp_path / "whole.off", tmp_path / "cut.off", 0.3 if "points" in name else 0.9
+        )
+    else:
+        bad = _truncate(models / name, tmp_path / f"cut{Path(name).suffix}", 0.7)
+    with pytest.raises(ReadError) as err:
+        read_dataset(bad)
+    assert re.fullmatch(re.escape(f"{bad}: truncated: ") + said + "; copy or export it again",
+                        str(err.value)), err.value  # fmt: skip
+
+
 def test_ply_with_a_corrupt_vertex_index_is_refused(models, tmp_path):
     mesh = pv.read(models / "bin.ply")
     blob = bytearray((models / "bin.ply").read_bytes())
@@ -244,7 +273,7 @@ def _hand_mesh_cut(folder: Path, name: str, lines: int, tail: str = "") -> Path:
         (20000, "", "Tetrahedra", 29998, 3202),
         (20000, "6612 5385 70", "Tetrahedra", 29998, 3202),  # cut inside a line
         (16798, "", "Tetrahedra", 29998, 0),
-    ],  # fmt: skip
+    ],
 )
 def test_a_medit_file_cut_short_says_which_block_lacks_entries(
     tmp_path, lines, tail, block, announced, held

@@ -150,12 +150,10 @@ def _check_ply_ascii(p, body: bytes, elements, n_vertices) -> None:
     tokens = body.split()
     pos = 0
     for name, count, props in elements:
-        for _ in range(count):
+        for row in range(count):
             for prop, _t, item in props:
                 if pos >= len(tokens):
-                    raise TruncatedError(
-                        f"{p}: truncated: element '{name}' has fewer rows than {count}"
-                    )
+                    check_count(p, f"element '{name}'", count, row, unit="rows", ends=True)
                 if item is None:
                     pos += 1
                     continue
@@ -164,8 +162,10 @@ def _check_ply_ascii(p, body: bytes, elements, n_vertices) -> None:
                     ids = [int(t) for t in tokens[pos + 1 : pos + 1 + k]]
                 except ValueError:
                     raise ReadError(f"{p}: corrupt PLY: non-integer list in '{name}'") from None
-                if k < 0 or len(ids) < k:
-                    raise TruncatedError(f"{p}: truncated or corrupt list in element '{name}'")
+                if k < 0:
+                    raise ReadError(f"{p}: corrupt PLY: a list of length {k} in element '{name}'")
+                if len(ids) < k:  # the file ends inside this row's list
+                    check_count(p, f"element '{name}'", count, row, unit="rows", ends=True)
                 if prop in ("vertex_indices", "vertex_index"):
                     _check_ids(p, name, ids, n_vertices)
                 pos += 1 + k
@@ -372,29 +372,27 @@ def parse_off(path: Path) -> tuple[np.ndarray, list[np.ndarray], int]:
         nv, nf = int(head[0]), int(head[1])
         if nv < 0 or nf < 0:
             raise ValueError(f"negative count in {' '.join(head)!r}")
-        if len(rest) < nv:
-            raise TruncatedError(
-                f"{path}: truncated: the header announces {nv} points, the file has {len(rest)}"
-            )
+        check_count(path, "the header", nv, len(rest), unit="points", ends=True)
+        short = next((i for i, t in enumerate(rest[:nv]) if len(t) < 3), None)
+        if short is not None:
+            if short == len(rest) - 1:  # the file's last line, cut inside
+                check_count(path, "the header", nv, short, unit="points", ends=True)
+            raise ValueError(f"point {short} has fewer than 3 coordinates")
         verts = np.array([[float(x) for x in t[:3]] for t in rest[:nv]], dtype=np.float64)
-        if verts.size and verts.shape[1:] != (3,):
-            raise ValueError("a point line with fewer than 3 coordinates")
         records = []
-        for t in rest[nv:]:
+        for line, t in enumerate(rest[nv:], nv):
             k = int(t[0])
             ids = np.array([int(x) for x in t[1 : 1 + k]], dtype=np.int64)
             if k < 1 or len(ids) != k:
+                if line == len(rest) - 1 and len(ids) < k:  # the file's last line, cut inside
+                    check_count(path, "the header", nf, len(records), unit="faces", ends=True)
                 raise ValueError(f"bad record {' '.join(t)[:40]!r}")
             records.append(ids)
     except ReadError:
         raise
     except (ValueError, IndexError) as exc:
         raise ReadError(f"{path}: malformed OFF file: {exc}") from None
-    if len(records) < nf:
-        raise TruncatedError(
-            f"{path}: truncated: the header announces {nv} points and {nf} faces, the file "
-            f"holds {len(records)} faces"
-        )
+    check_count(path, "the header", nf, len(records), unit="faces", ends=True)
     bad = [i for i, r in enumerate(records) if r.min() < 0 or r.max() >= nv]
     if bad:
         raise ReadError(f"{path}: record {bad[0]} refers to a point outside [0, {nv})")

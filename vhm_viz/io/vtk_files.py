@@ -17,7 +17,7 @@ from pathlib import Path
 
 from vhm_viz import interrupts
 from vhm_viz.atomic import atomic_path
-from vhm_viz.io.errors import ReadError, TruncatedError, need
+from vhm_viz.io.errors import ReadError, TruncatedError, check_count, need
 from vhm_viz.io.isolated import read_isolated
 from vhm_viz.io.registry import suffix_of
 
@@ -238,10 +238,7 @@ class _Cursor:
             nl = blob.find(b"\n", self.pos)
             end = len(blob) if nl < 0 else nl + 1
             if self.pos >= len(blob):
-                raise TruncatedError(
-                    f"{self.p}: truncated: {what} announces {count} values, the file ends "
-                    f"after {seen}"
-                )
+                check_count(self.p, what, count, seen, unit="values", ends=True)
             seen += len(blob[self.pos : end].split())
             self.pos = end
         if seen != count:
