@@ -346,6 +346,31 @@ def test_a_gmsh_count_larger_than_its_entries_is_refused(tmp_path):
         )
 
 
+def test_a_cage_leaving_points_out_is_named_in_the_one_line(tmp_path):
+    """With several cages about, the line says which one leaves the data's points out."""
+    from vhm_viz import read_cage
+
+    data = data_path("bad_cages", "armadillo_252v_for_partial_cage.obj")
+    (tmp_path / "cages").mkdir()
+    (tmp_path / "cages" / "partial.obj").symlink_to(
+        data_path("bad_cages", "partial_armadillo_cage.obj")
+    )
+    points = np.asarray(pv.read(data).points)
+    inside = points[read_cage(tmp_path / "cages" / "partial.obj").contains(points)]
+    scene = {"format": "vhm_viz.scene", "version": 1, "cage": "cages/partial.obj",
+             "anchors": inside[::25].tolist(),
+             "constraints": {"positions": [inside[0].tolist()],
+                             "targets": [(inside[0] + 0.01).tolist()]}}  # fmt: skip
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    said = (f"{len(points) - len(inside)} of {len(points)} points of {data} are outside the "
+            f"cage {tmp_path / 'cages' / 'partial.obj'} (indices ")  # fmt: skip
+    for command, out in (("deform", tmp_path / "o.vtp"), ("analyze", tmp_path / "report")):
+        res = run_cli(command, data, "-s", tmp_path / "scene.json", "-o", out, "-q")
+        assert res.returncode == 1 and res.stderr.count("\n") == 1, res.stderr
+        assert said in res.stderr and "--outside passthrough" in res.stderr, res.stderr
+        assert not out.exists()
+
+
 def test_a_vtu_of_triangles_keeps_its_cell_and_field_arrays(tmp_path):
     """A .vtu holding only triangles is read as the surface it is: its cell and field
     arrays come along with the point arrays, into the deformed output."""

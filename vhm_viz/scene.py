@@ -433,6 +433,14 @@ class Scene:
         return paths
 
     @property
+    def cage_file(self) -> Path | None:
+        """The file the cage is read from, resolved; None for an inline or automatic cage.
+
+        Messages about the cage name it: a user may have several cages at hand.
+        """
+        return self._resolve_path(self.cage["path"]) if "path" in self.cage else None
+
+    @property
     def needs_data(self) -> bool:
         """Whether building needs the data to deform (automatic cage or anchors)."""
         return "auto" in self.cage or "auto" in self.anchors

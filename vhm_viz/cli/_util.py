@@ -149,7 +149,15 @@ def observe_progress(algorithm, progress: Progress) -> None:
 
 
 def run_filter(
-    algorithm, data, deformer, label: str, *, quiet: bool, source=None, drops: bool = True
+    algorithm,
+    data,
+    deformer,
+    label: str,
+    *,
+    quiet: bool,
+    source=None,
+    cage=None,
+    drops: bool = True,
 ):
     """Run one of the VTK filters on ``data`` with ``deformer``, its progress on stderr.
 
@@ -166,6 +174,9 @@ def run_filter(
     source : path-like, optional
         The file ``data`` came from: with it, points outside the cage are one
         :class:`CLIError` naming the file (else the filter's error is raised).
+    cage : path-like, optional
+        The file the cage came from (:attr:`~vhm_viz.scene.Scene.cage_file`), named in
+        that line too.
     drops : bool
         The command has ``--outside nan`` (the message suggests it).
 
@@ -187,7 +198,7 @@ def run_filter(
     except OutsideCageError as exc:
         if source is None:
             raise
-        raise CLIError(outside_message(exc, data.n_points, source, drops=drops)) from exc
+        raise CLIError(outside_message(exc, data.n_points, source, cage=cage, drops=drops)) from exc
     bar.finish()
     return result
 
@@ -262,16 +273,18 @@ def _refuse_inputs(path: Path, inputs, option: str = "-o") -> None:
         raise CLIError(f"{exc} ({option})") from None
 
 
-def outside_message(exc, n_points: int, source, *, drops: bool = True) -> str:
+def outside_message(exc, n_points: int, source, *, cage=None, drops: bool = True) -> str:
     """One line for an :class:`OutsideCageError` raised on the input's points.
 
+    ``cage``: the file the cage came from, named after "the cage" (None: not a file).
     ``drops``: the command has ``--outside nan``, which the line then suggests too.
     """
     idx = getattr(exc, "indices", None)
     if idx is None or len(idx) == 0:
         return one_line(exc)
+    which = "the cage" if cage is None else f"the cage {cage}"
     return (
-        f"{len(idx)} of {n_points} points of {source} are outside the cage (indices "
+        f"{len(idx)} of {n_points} points of {source} are outside {which} (indices "
         f"{describe_indices(np.asarray(idx))}): the cage must enclose the data, or pass "
         "--outside passthrough to leave them in place"
         + (" (or --outside nan to drop them)" if drops else "")

@@ -178,7 +178,14 @@ def analyze(args: argparse.Namespace) -> str:
     ana.SetOutsidePolicy(args.outside)
     with timer.stage("map"):
         analysed = run_filter(
-            ana, mesh, dfm, "analyzing", quiet=args.quiet, source=src, drops=False
+            ana,
+            mesh,
+            dfm,
+            "analyzing",
+            quiet=args.quiet,
+            source=src,
+            cage=scene.cage_file,
+            drops=False,
         )
     inside = np.ones(mesh.n_points, bool)
     if "vhm_outside" in analysed.point_data:

@@ -376,7 +376,9 @@ def deform(args: argparse.Namespace) -> str:
                             reference=ref_image, outside=args.outside,
                             field=None if field_paths is None else args.field_kind)  # fmt: skip
     with timer.stage("map"):
-        result = run_filter(flt, mesh, dfm, label, quiet=args.quiet, source=src)
+        result = run_filter(
+            flt, mesh, dfm, label, quiet=args.quiet, source=src, cage=scene.cage_file
+        )
         field = None if field_paths is None else field_of(args, mesh, result, dfm, tolerance)
     # everything that can fail happens before the write: an error never follows an output
     with timer.stage("checks"):
