@@ -226,3 +226,28 @@ def test_a_solver_of_too_many_anchors_is_refused_before_it_allocates(tmp_path):
     assert "the solver for 4000 anchors needs about 2" in lines[-1], lines
     assert "use fewer anchors" in lines[-1] and not out.exists()
     assert "Traceback" not in done.stderr
+
+
+@pytest.fixture()
+def fine_cage_scene(tmp_path):
+    """A surface given as the cage (the bar's 12,288 triangles) and two points to deform."""
+    scene = _bend_scene((-0.5, 0.5, 0.0, 3.5, -0.5, 0.5))
+    scene["cage"] = str(data_path("bar", "bar_dense.obj"))
+    (tmp_path / "fine.json").write_text(json.dumps(scene))
+    (tmp_path / "points.csv").write_text("0,1,0\n0,2,0\n")
+    return tmp_path / "points.csv", tmp_path / "fine.json"
+
+
+def test_a_cage_too_fine_for_its_smoothness_term_is_refused_before_it_allocates(
+    fine_cage_scene, tmp_path
+):
+    # the basis Hessians at its 36,864 smoothness samples need some 54 GB: refused under
+    # 6 GB at once, in one line that says what to change
+    points, scene = fine_cage_scene
+    out = tmp_path / "bent.vtp"
+    done = _cli("deform", points, "--scene", scene, "-o", out, "-q", limit=6 * 10**9)
+    assert done.returncode == 1 and done.stderr.count("\n") == 1, done.stderr
+    assert done.stderr.startswith(
+        "vhm-viz deform: error: the smoothness term of a cage of 12288 faces needs about "
+    ), done.stderr
+    assert "use a cage of fewer faces" in done.stderr and not out.exists()

@@ -84,7 +84,7 @@ from vhm_viz.core.errors import ConstraintError, OutsideCageError, describe_indi
 from vhm_viz.core.geometry import face_normals_and_areas
 from vhm_viz.core.harmonic_map import HarmonicMap
 from vhm_viz.core.limits import check_setting
-from vhm_viz.core.memory import solver_bytes
+from vhm_viz.core.memory import smoothness_bytes, solver_bytes
 from vhm_viz.core.points import as_points
 from vhm_viz.core.smoothness import (
     default_smoothness_samples,
@@ -195,6 +195,12 @@ class Deformer:
         self.pinned_shells: tuple[int, ...] = ()
         self.notes: list[str] = []
 
+        k = 3 * self._m if smoothness_samples is None else len(np.atleast_2d(smoothness_samples))
+        require_memory(
+            smoothness_bytes(k, self._N),
+            f"the smoothness term of a cage of {self._m} faces",
+            "use a cage of fewer faces (vhm-viz cage --max-faces N makes one)",
+        )
         self._samples, self._Hhat = smoothness_rows(
             self._V, self._Fc, smoothness_samples, smoothness_host_faces
         )

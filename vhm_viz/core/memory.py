@@ -259,3 +259,19 @@ def solver_bytes(anchors: int, coefficients: int) -> int:
     """
     rows = 3 * int(anchors)
     return 8 * rows * (SOLVER_SQUARE_COPIES * rows + SOLVER_TALL_COPIES * int(coefficients))
+
+
+#: (5k, N) float64 matrices of the smoothness term held at once, k its samples: the basis
+#: Hessians and the least-squares matrix they are copied into (the values and gradients
+#: evaluated beside the Hessians take about as much, earlier).
+SMOOTHNESS_ROW_COPIES = 2
+
+
+def smoothness_bytes(samples: int, coefficients: int) -> int:
+    """Bytes the smoothness term of a :class:`~vhm_viz.core.deformer.Deformer` takes.
+
+    Its rows are the basis Hessians at ``samples`` points (three per cage face by
+    default), each ``coefficients`` long (the cage's vertices plus faces): it grows with
+    the square of the cage's size.
+    """
+    return 8 * 5 * int(samples) * int(coefficients) * SMOOTHNESS_ROW_COPIES
