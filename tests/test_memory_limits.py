@@ -251,3 +251,17 @@ def test_a_cage_too_fine_for_its_smoothness_term_is_refused_before_it_allocates(
         "vhm-viz deform: error: the smoothness term of a cage of 12288 faces needs about "
     ), done.stderr
     assert "use a cage of fewer faces" in done.stderr and not out.exists()
+
+
+def test_memory_running_out_where_no_estimate_refused_the_job_is_one_line(
+    fine_cage_scene, tmp_path
+):
+    # under 1.2 GB the cage's own checks run out first: NumPy's "Unable to allocate ...
+    # for an array with shape ..." is not what the user reads
+    points, scene = fine_cage_scene
+    out = tmp_path / "bent.vtp"
+    done = _cli("deform", points, "--scene", scene, "-o", out, "-q", limit=LIMIT)
+    assert done.returncode == 1 and done.stderr.count("\n") == 1, done.stderr
+    assert done.stderr.startswith("vhm-viz deform: error: out of memory"), done.stderr
+    assert "the address-space limit" in done.stderr and "shape" not in done.stderr
+    assert not out.exists()

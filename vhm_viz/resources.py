@@ -21,7 +21,7 @@ import resource
 from pathlib import Path
 from typing import NamedTuple
 
-__all__ = ["MemoryLimit", "memory_limit", "require_memory", "format_bytes"]
+__all__ = ["MemoryLimit", "memory_limit", "require_memory", "memory_error_line", "format_bytes"]
 
 #: cgroup v1 reports "no limit" as a huge number (a page count near 2**63).
 _UNLIMITED = 2**60
@@ -136,6 +136,24 @@ def memory_limit() -> MemoryLimit:
         return MemoryLimit(None, "no known limit")
     room, source = min(candidates)
     return MemoryLimit(int(room), source)
+
+
+def memory_error_line(exc: MemoryError) -> str:
+    """One line for a ``MemoryError``: :func:`require_memory`'s as it is, else reworded.
+
+    An allocation that failed where no estimate refused the job first raises NumPy's
+    ("Unable to allocate ... for an array with shape ...") or Python's (no message); the
+    line says instead how much was asked for, what limits this process, and what to do.
+    """
+    text = str(exc).strip()
+    if type(exc) is MemoryError and text:
+        return text.splitlines()[0]
+    size = getattr(exc, "_total_size", None)  # NumPy's: the bytes of the failed array
+    asked = f"a step asked for {format_bytes(size)} more" if size else "an allocation failed"
+    return (
+        f"out of memory: {asked} than is left under {memory_limit().source}; make the job "
+        "smaller (a cage of fewer faces, fewer anchors, coarser data) or give it more memory"
+    )
 
 
 def require_memory(needed: int, what: str, remedy: str, error: type = MemoryError) -> None:

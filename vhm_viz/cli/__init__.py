@@ -232,7 +232,13 @@ def _run_command(argv: list[str] | None) -> int:
             if _not_converged(exc):
                 print(f"vhm-viz {args.command}: {one_line(exc)}", file=sys.stderr)
                 return EXIT_NOT_CONVERGED
-            print(f"vhm-viz {args.command}: error: {one_line(exc)}", file=sys.stderr)
+            if isinstance(exc, MemoryError):
+                from vhm_viz.resources import memory_error_line
+
+                text = memory_error_line(exc)
+            else:
+                text = one_line(exc)
+            print(f"vhm-viz {args.command}: error: {text}", file=sys.stderr)
             return getattr(exc, "exit_status", 1)
         finally:
             args.timer.report(args.timings)
