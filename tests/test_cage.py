@@ -451,6 +451,22 @@ def test_from_file_errors(tmp_path):
         read_cage(bad)
 
 
+def test_an_obj_cage_cut_inside_a_face_line_says_which_line(tmp_path):
+    """A face of fewer than 3 vertices (an OBJ cut short) is named, not left out to
+    make the cage look open."""
+    path = tmp_path / "cut.obj"
+    lines = [f"v {x} {y} {z}" for x, y, z in BOX_V]
+    lines += ["f " + " ".join(str(i + 1) for i in t) for t in BOX_F]
+    cut = lines[-1][:4]  # "f 5 8 7" -> "f 5 "
+    path.write_text("\n".join([*lines[:-1], cut]))
+    with pytest.raises(CageError) as err:
+        read_cage(path)
+    assert str(err.value) == (
+        f"{path}:{len(lines)}: face with fewer than 3 vertices {cut.strip()!r}; the file may "
+        "be cut short: copy or export it again"
+    )
+
+
 def test_public_name():
     import vhm_viz
 

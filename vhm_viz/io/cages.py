@@ -17,7 +17,7 @@ from vhm_viz.core.cage import MIN_FACE_ANGLE, Cage
 from vhm_viz.core.errors import CageError
 from vhm_viz.core.geometry import triangulate_polygons
 from vhm_viz.io.datasets import check_dataset, write_dataset
-from vhm_viz.io.errors import ReadError, check_file_size, first_line
+from vhm_viz.io.errors import AGAIN, ReadError, check_file_size, first_line
 from vhm_viz.io.mesh_files import parse_off
 from vhm_viz.io.registry import cage_suffixes, format_of, suffix_of
 from vhm_viz.io.text import write_text
@@ -289,11 +289,14 @@ def _obj_min_angle(path: Path) -> float:
 def _read_obj(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     verts: list[list[float]] = []
     polys: list[np.ndarray] = []
+    short = None  # the first face of fewer than 3 vertices: (line number, text)
+    last = 0  # the last line that holds anything
     with open(path, encoding="utf-8", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             tok = line.split()
             if not tok:
                 continue
+            last = lineno
             if tok[0] == "v":
                 try:
                     verts.append([float(x) for x in tok[1:4]])
@@ -306,7 +309,13 @@ def _read_obj(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
                     ids = [int(t.split("/")[0]) for t in tok[1:]]
                 except ValueError as exc:
                     raise CageError(f"{path}:{lineno}: bad face line {line.strip()!r}") from exc
+                if len(ids) < 3 and short is None:
+                    short = (lineno, line.strip())
                 nv = len(verts)
                 # 1-based; negative indices count back from the latest vertex
                 polys.append(np.array([i - 1 if i > 0 else nv + i for i in ids], dtype=np.int64))
+    if short is not None:
+        # left out, it would open the cage; on the last line, the file was likely cut there
+        cut = f"; the file may be cut short: {AGAIN}" if short[0] == last else ""
+        raise CageError(f"{path}:{short[0]}: face with fewer than 3 vertices {short[1]!r}{cut}")
     return np.asarray(verts, dtype=np.float64).reshape(-1, 3), polys
