@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from conftest import box_cage, data_path
@@ -9,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from vhm_viz.core import metrics
 from vhm_viz.core.anchors import anchors_from_polylines
-from vhm_viz.io import read_polylines, read_tgf
+from vhm_viz.io import ReadError, read_polylines, read_tgf
 
 
 @pytest.fixture(scope="module")
@@ -135,6 +137,23 @@ def test_read_tgf(tmp_path):
     path.write_text("1 0 0 0\n#\n1 5\n")
     with pytest.raises(ValueError):
         read_tgf(path)
+
+
+def test_a_file_that_is_no_tgf_skeleton_is_named_as_such(tmp_path):
+    """An OBJ named as the skeleton, or joints without bones: the file, not 'the polylines
+    have zero total length' from the anchors placed on nothing."""
+    obj = tmp_path / "cage.obj"
+    obj.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(ReadError, match=re.escape(f"{obj}:1: malformed TGF joint line 'v 0 0 0'")):
+        read_tgf(obj)
+    joints = tmp_path / "joints.tgf"
+    joints.write_text("1 0 0 0\n2 0 1 0\n#\n")
+    with pytest.raises(ReadError) as err:
+        read_tgf(joints)
+    assert str(err.value) == (
+        f"{joints}: no bones: a TGF skeleton lists its joints, a line '#', then its bones "
+        "(two joint numbers a line)"
+    )
 
 
 @pytest.mark.data

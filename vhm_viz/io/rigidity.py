@@ -80,8 +80,8 @@ def read_tgf(path) -> tuple[np.ndarray, np.ndarray]:
 
     Raises
     ------
-    ValueError
-        Malformed lines or bone indices out of range.
+    ReadError
+        Malformed lines, no bones, or bone indices out of range.
     """
     with open(os.fspath(path), encoding="utf-8", errors="replace") as fh:
         raw = fh.read().splitlines()
@@ -99,17 +99,24 @@ def read_tgf(path) -> tuple[np.ndarray, np.ndarray]:
         vals = s.split()
         try:
             if section == 0:
+                int(vals[0])  # the joint's number: an OBJ's "v x y z" is no joint
                 joints.append([float(v) for v in vals[1:4]])
                 if len(joints[-1]) != 3:
                     raise ValueError
             else:
                 bones.append([int(vals[0]) - 1, int(vals[1]) - 1])
         except (ValueError, IndexError) as exc:
-            raise ValueError(f"{path}:{n}: malformed line {s!r}") from exc
+            kind = "joint" if section == 0 else "bone"
+            raise ReadError(f"{path}:{n}: malformed TGF {kind} line {s[:40]!r}") from exc
     j = np.asarray(joints, dtype=np.float64).reshape(-1, 3)
     b = np.asarray(bones, dtype=np.int64).reshape(-1, 2)
-    if b.size and (b.min() < 0 or b.max() >= len(j)):
-        raise ValueError(f"{path}: bone index out of range [1, {len(j)}]")
+    if not b.size:
+        raise ReadError(
+            f"{path}: no bones: a TGF skeleton lists its joints, a line '#', then its bones "
+            "(two joint numbers a line)"
+        )
+    if b.min() < 0 or b.max() >= len(j):
+        raise ReadError(f"{path}: bone index out of range [1, {len(j)}]")
     return j, b
 
 
