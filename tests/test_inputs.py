@@ -230,6 +230,52 @@ def test_text_files_cut_short_say_what_they_list_and_hold(models, tmp_path, name
                         str(err.value)), err.value  # fmt: skip
 
 
+def test_an_error_vtk_reports_is_the_same_line_in_every_command(models, tmp_path):
+    """VTK's reader refusing a file (an OBJ cut inside a face line) is one line of ours --
+    not VTK's source file, line and object address, nor 'no points' where the command
+    line had silenced VTK's messages."""
+    mesh = pv.read(models / "ascii.ply")
+    faces = mesh.faces.reshape(-1, 4)[:, 1:]
+    text = ("".join(f"v {x} {y} {z}\n" for x, y, z in mesh.points)
+            + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces))  # fmt: skip
+    bad = tmp_path / "cut.obj"
+    bad.write_text(text[: len(text) - 5])  # inside the last face line
+    said = f"{bad}: not a valid .obj file (Definition of a face needs at least 3 vertices"
+    with pytest.raises(ReadError) as err:
+        read_dataset(bad)
+    assert str(err.value).startswith(said), err.value
+    for argv in (("deform", bad, "-s", models / "scene.json", "-o", tmp_path / "o.vtp"),
+                 ("cage", bad, "-o", tmp_path / "c.obj")):  # fmt: skip
+        res = run_cli(*argv, "-q")
+        assert res.returncode == 1 and res.stderr.count("\n") == 1, res.stderr
+        assert said in res.stderr and "0x" not in res.stderr and ".cxx" not in res.stderr
+
+
+@pytest.mark.parametrize("suffix", [".vtp", ".vtu"])
+def test_a_vtk_xml_file_cut_short_says_so(models, tmp_path, suffix):
+    mesh = pv.read(models / "bin.vtk")
+    whole = tmp_path / f"whole{suffix}"
+    (mesh if suffix == ".vtp" else mesh.cast_to_unstructured_grid()).save(whole)
+    bad = _truncate(whole, tmp_path / f"cut{suffix}", 0.6)
+    said = f"{bad}: truncated: the file ends inside its VTKFile element; copy or export it again"
+    with pytest.raises(ReadError) as err:
+        read_dataset(bad)
+    assert str(err.value) == said
+    res = run_cli("cage", bad, "-o", tmp_path / "c.obj", "-q")
+    assert res.returncode == 1 and res.stderr == f"vhm-viz cage: error: {said}\n", res.stderr
+
+
+def test_a_vtk_xml_file_of_broken_xml_is_one_line_of_ours(models, tmp_path):
+    pv.read(models / "bin.vtk").save(tmp_path / "whole.vtp")
+    blob = (tmp_path / "whole.vtp").read_bytes()
+    bad = tmp_path / "broken.vtp"
+    bad.write_bytes(blob.replace(b"<Piece", b"<Pie<ce", 1))
+    with pytest.raises(ReadError) as err:
+        read_dataset(bad)
+    assert str(err.value).startswith(f"{bad}: not a valid .vtp file (Error parsing"), err.value
+    assert ".cxx" not in str(err.value)
+
+
 def test_ply_with_a_corrupt_vertex_index_is_refused(models, tmp_path):
     mesh = pv.read(models / "bin.ply")
     blob = bytearray((models / "bin.ply").read_bytes())

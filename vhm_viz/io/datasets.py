@@ -39,7 +39,8 @@ def read_dataset(path, *, meanwhile=None):
 
     * PLY: the header's element counts and property types against the file size (binary)
       or the number of values (ASCII); legacy VTK: the point and cell counts against the
-      bytes or values that follow; binary STL: the triangle count against the file size;
+      bytes or values that follow; VTK XML: its closing ``</VTKFile>``; binary STL: the
+      triangle count against the file size;
       MetaImage (``.mhd``/``.mha``), NIfTI (``.nii``/``.nii.gz``), NRRD (``.nrrd``, and
       ``.nhdr`` with its data file) and SLC: the voxel count against the (decompressed)
       data; MEDIT and Gmsh: each block's or section's count against the entries it holds

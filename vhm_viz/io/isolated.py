@@ -175,8 +175,8 @@ def read_isolated(path, read, what: str = "the reader"):
         )
         raise ReadError(f"{p}: {what} crashed on this file ({how}): corrupt file")
     kind, value = pickle.loads(blob)  # noqa: S301 - our own child's data
-    if kind == "error":
-        raise ReadError(f"{p}: cannot read ({value})")
+    if kind == "error":  # a ReadError of the reader names the file already
+        raise ReadError(value if value.startswith(f"{p}: ") else f"{p}: cannot read ({value})")
     return _unpack(value)
 
 

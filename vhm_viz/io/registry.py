@@ -121,19 +121,20 @@ _ALL = DATASET_TYPES
 _VTK_READ = "vtk_files:read_vtk_file"
 _VTK_WRITE = "vtk_files:write_vtk_file"
 _VTK_CAGE = "cages:read_vtk_cage"
+_VTK_XML = "vtk_files:check_vtk_xml"
 
 #: Every format, in the order messages list them.
 FORMATS: tuple[Format, ...] = (
     Format("VTK XML unstructured grid", (".vtu",), ("UnstructuredGrid",), ("UnstructuredGrid",),
-           read=_VTK_READ, write=_VTK_WRITE, cage=_VTK_CAGE),
+           read=_VTK_READ, write=_VTK_WRITE, check=_VTK_XML, cage=_VTK_CAGE),
     Format("VTK XML polygonal data", (".vtp",), ("PolyData",), ("PolyData",),
-           read=_VTK_READ, write=_VTK_WRITE, cage=_VTK_CAGE),
+           read=_VTK_READ, write=_VTK_WRITE, check=_VTK_XML, cage=_VTK_CAGE),
     Format("VTK XML image", (".vti",), ("ImageData",), ("ImageData",), image=True,
-           read=_VTK_READ, write=_VTK_WRITE),
+           read=_VTK_READ, write=_VTK_WRITE, check=_VTK_XML),
     Format("VTK XML structured grid", (".vts",), ("StructuredGrid",), ("StructuredGrid",),
-           read=_VTK_READ, write=_VTK_WRITE),
+           read=_VTK_READ, write=_VTK_WRITE, check=_VTK_XML),
     Format("VTK XML rectilinear grid", (".vtr",), ("RectilinearGrid",), ("RectilinearGrid",),
-           read=_VTK_READ, write=_VTK_WRITE),
+           read=_VTK_READ, write=_VTK_WRITE, check=_VTK_XML),
     Format("legacy VTK", (".vtk",), _ALL, _ALL, read=_VTK_READ,
            write=_VTK_WRITE, check="vtk_files:check_legacy_vtk", cage=_VTK_CAGE),
     Format("PLY", (".ply",), ("PolyData",), ("PolyData",), read=_VTK_READ,

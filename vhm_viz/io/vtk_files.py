@@ -17,7 +17,7 @@ from pathlib import Path
 
 from vhm_viz import interrupts
 from vhm_viz.atomic import atomic_path
-from vhm_viz.io.errors import ReadError, TruncatedError, check_count, need
+from vhm_viz.io.errors import ReadError, TruncatedError, check_count, cut_short, need
 from vhm_viz.io.isolated import read_isolated
 from vhm_viz.io.registry import suffix_of
 
@@ -171,11 +171,49 @@ def read_vtk(path, reader=None):
         on_error.CallDataType = on_warning.CallDataType = "string0"
         vtk_reader.AddObserver("ErrorEvent", on_error)
         vtk_reader.AddObserver("WarningEvent", on_warning)
-    data = reader.read()
+        # PyVista's XML readers read the file's header when made, before the observers:
+        # read it again under them
+        vtk_reader.Modified()
+    from vtkmodules.vtkCommonCore import vtkObject
+
+    # VTK invokes a reader's ErrorEvent only while its messages are displayed, which the
+    # command line turns off: on for the read, so that every command refuses alike
+    shown = vtkObject.GetGlobalWarningDisplay()
+    vtkObject.GlobalWarningDisplayOn()
+    try:
+        data = reader.read()
+    except Exception:  # PyVista raises what it caught of VTK's output, its first line
+        if not errors:
+            raise
+    finally:
+        vtkObject.SetGlobalWarningDisplay(shown)
     if errors:
-        text = " ".join(errors[0].split())
-        raise ReadError(f"{p}: VTK reports an error reading it ({text[-160:]})")
+        raise ReadError(f"{p}: not a valid {suffix_of(p)} file ({_vtk_message(errors[0])})")
     return data
+
+
+def _vtk_message(text: str) -> str:
+    """VTK's message without its source file, line and object address, on one line."""
+    text = re.sub(r"^\s*(ERROR|Warning): In .*?, line \d+\s+\w+ \(0x[0-9a-fA-F]+\):", "", text)
+    text = " ".join(text.split())
+    return text if len(text) <= 160 else text[:157] + "..."
+
+
+def check_vtk_xml(p: Path) -> None:
+    """VTK XML (``.vtu``, ``.vtp``, ...): an XML file that ends with ``</VTKFile>``.
+
+    VTK's XML reader reports a file cut short as a parse error of its XML, deep inside; the
+    closing tag missing says it plainly.
+    """
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        head = fh.read(256).lstrip()
+        fh.seek(max(0, size - 1024))
+        tail = fh.read()
+    if not head.startswith((b"<?xml", b"<VTKFile")):
+        raise ReadError(f"{p}: not a VTK XML file (no '<VTKFile' at its start)")
+    if b"</VTKFile>" not in tail:
+        raise cut_short(p, "its VTKFile element")
 
 
 _VTK_TYPES = {
