@@ -149,7 +149,9 @@ def memory_error_line(exc: MemoryError) -> str:
     if type(exc) is MemoryError and text:
         return text.splitlines()[0]
     size = getattr(exc, "_total_size", None)  # NumPy's: the bytes of the failed array
-    asked = f"a step asked for {format_bytes(size)} more" if size else "an allocation failed"
+    asked = (
+        f"a step asked for {format_bytes(size)}, more" if size else "an allocation asked for more"
+    )
     return (
         f"out of memory: {asked} than is left under {memory_limit().source}; make the job "
         "smaller (a cage of fewer faces, fewer anchors, coarser data) or give it more memory"
