@@ -346,6 +346,12 @@ def test_anchors_outside_are_reported(cage, anchors):
     with pytest.raises(OutsideCageError) as exc:
         _deformer(cage, bad)
     assert list(exc.value.indices) == [6]
+    assert str(exc.value) == f"1 of {len(bad)} anchors is outside the cage (indices 6)"
+    bad = np.vstack([anchors, [[3.0, 0.0, 1.0]], [[0.0, 4.0, 1.0]]])
+    with pytest.raises(OutsideCageError, match=f"^2 of {len(bad)} anchors are outside the cage"):
+        _deformer(cage, bad)
+    with pytest.raises(OutsideCageError, match="^1 of 1 anchor is outside the cage"):
+        _deformer(cage, [[3.0, 0.0, 1.0]])
 
 
 def test_constraint_points_outside_are_reported(cage, anchors):
@@ -356,6 +362,8 @@ def test_constraint_points_outside_are_reported(cage, anchors):
     with pytest.raises(OutsideCageError) as exc:
         dfm.set_constraints(**c)
     assert list(exc.value.indices) == [2]
+    n = len(c["positions"])
+    assert str(exc.value).startswith(f"1 of {n} position constraints is outside the cage")
     c = _bend_constraints()
     c["jacobian_points"] = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 9.0]])
     with pytest.raises(OutsideCageError) as exc:

@@ -305,12 +305,19 @@ class Deformer:
 
     # ------------------------------------------------------------------ helpers
     def _evaluate_inside(self, points: np.ndarray, order: int, what: str):
-        """The basis at points that must lie inside the cage (or on it: interior limit)."""
+        """The basis at points that must lie inside the cage (or on it: interior limit).
+
+        ``what``: the points, plural (``"anchors"``), as the message names them.
+        """
         ev, inside = evaluate_inside(points, self._V, self._Fc, order=order)
         if not inside.all():
             idx = np.nonzero(~inside)[0]
+            noun = what if len(inside) > 1 else what.removesuffix("s")
+            verb = "are" if idx.size > 1 else "is"
             raise OutsideCageError(
-                f"{idx.size} {what} outside the cage (indices {describe_indices(idx)})", idx
+                f"{idx.size} of {len(inside)} {noun} {verb} outside the cage (indices "
+                f"{describe_indices(idx)})",
+                idx,
             )
         return ev
 
