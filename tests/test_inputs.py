@@ -894,3 +894,32 @@ def test_a_deformed_tet_mesh_written_to_vtu_reads_in_meshio(tmp_path, capsys):
     assert set(want.cell_data) - {"vtkOriginalCellIds"} <= set(got.cell_data)
     for name in set(want.cell_data) & set(got.cell_data):
         np.testing.assert_array_equal(got.cell_data[name][0], want.cell_data[name], err_msg=name)
+
+
+def test_a_folder_named_like_a_file_is_said_to_be_a_folder(bar_case, tmp_path):
+    # "bunny.ply/" as the data, a cage or an anchors file: one line saying it is a folder
+    # and to name the file itself, not "no DICOM series", "no such cage file" or a reader's
+    folder = bar_case
+    for name in ("bar.ply", "cage.obj", "anchors.json"):
+        (tmp_path / name).mkdir()
+    scene = json.loads((folder / "scene.json").read_text())
+    cases = {
+        "bar.ply": ("deform", tmp_path / "bar.ply", folder / "scene.json"),
+        "cage.obj": ("deform", folder / "bar.vtp", dict(scene, cage=str(tmp_path / "cage.obj"))),
+        "anchors.json": (
+            "deform", folder / "bar.vtp", dict(scene, cage=str(folder / "cage.obj"),
+                                               anchors=str(tmp_path / "anchors.json")),
+        ),
+    }  # fmt: skip
+    for name, (command, data, sc) in cases.items():
+        if isinstance(sc, dict):
+            (tmp_path / "s.json").write_text(json.dumps(sc))
+            sc = tmp_path / "s.json"
+        done = run_cli(command, data, "--scene", sc, "-o", tmp_path / "out.vtp", "-q")
+        assert done.returncode == 1, (name, done.stderr)
+        assert done.stderr.count("\n") == 1, (name, done.stderr)
+        suffix = name[name.index(".") :]
+        said = f"{tmp_path / name}: a folder, not a"
+        assert said in done.stderr and "name the file itself" in done.stderr, (name, done.stderr)
+        assert suffix in done.stderr or "file" in done.stderr
+        assert not (tmp_path / "out.vtp").exists()

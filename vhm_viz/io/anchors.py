@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.io.errors import ReadError, check_file_size, first_line
+from vhm_viz.io.errors import ReadError, check_file_size, first_line, require_file
 from vhm_viz.io.markups import is_markups_path, read_markups, write_markups
 from vhm_viz.io.text import JSONTextError, json_text, parse_json, write_text
 
@@ -31,8 +31,7 @@ def read_anchors(path) -> np.ndarray:
     FileNotFoundError, ReadError
     """
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"no such anchors file: {p}")
+    require_file(p, "anchors")
     check_file_size(p, "anchors")
     if is_markups_path(p):
         return read_markups(p)

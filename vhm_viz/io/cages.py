@@ -17,7 +17,7 @@ from vhm_viz.core.cage import MIN_FACE_ANGLE, Cage
 from vhm_viz.core.errors import CageError
 from vhm_viz.core.geometry import triangulate_polygons
 from vhm_viz.io.datasets import check_dataset, write_dataset
-from vhm_viz.io.errors import AGAIN, ReadError, check_file_size, first_line
+from vhm_viz.io.errors import AGAIN, ReadError, check_file_size, first_line, require_file
 from vhm_viz.io.mesh_files import parse_off
 from vhm_viz.io.registry import cage_suffixes, format_of, suffix_of
 from vhm_viz.io.text import write_text
@@ -65,8 +65,7 @@ def read_cage(path, **kwargs) -> Cage:
         Unreadable file, or not a valid cage (the message says why).
     """
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"no such cage file: {p}")
+    require_file(p, "cage")
     check_file_size(p, "cage")
     fmt = format_of(p)
     if fmt is None or fmt.cage is None:

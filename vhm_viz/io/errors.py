@@ -20,6 +20,32 @@ AGAIN = "copy or export it again"
 MAX_POINT_FILE_BYTES = 64 * 2**20
 
 
+def require_file(path, what: str) -> None:
+    """Refuse a ``path`` that is not a file: missing, or a folder.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        Named in the message.
+    what : str
+        What the file should hold (``"cage"``): ``no such cage file``, ``a folder, not a
+        cage file``.
+
+    Raises
+    ------
+    FileNotFoundError
+        Nothing is there.
+    ReadError
+        Something other than a file is: a folder, a device.
+    """
+    if path.is_file():
+        return
+    if not path.exists():
+        raise FileNotFoundError(f"no such {what} file: {path}")
+    kind = "a folder" if path.is_dir() else "not a regular file"
+    raise ReadError(f"{path}: {kind}, not a {what} file; name the file itself")
+
+
 def check_file_size(path, what: str, limit: int = MAX_POINT_FILE_BYTES) -> None:
     """Raise :class:`ReadError` for a file ``path`` larger than ``limit`` bytes, unread.
 

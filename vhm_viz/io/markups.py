@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vhm_viz.io.errors import ReadError, first_line
+from vhm_viz.io.errors import ReadError, first_line, require_file
 from vhm_viz.io.text import JSONTextError, json_text, parse_json, write_text
 
 __all__ = [
@@ -72,8 +72,7 @@ def read_markups(path) -> np.ndarray:
         unit other than LPS/RAS and mm, a control point without a defined position.
     """
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"no such markups file: {p}")
+    require_file(p, "markups")
     try:
         data = parse_json(p.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, JSONTextError) as exc:

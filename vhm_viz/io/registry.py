@@ -19,6 +19,8 @@ import importlib
 from dataclasses import dataclass
 from pathlib import Path
 
+from vhm_viz.io.errors import ReadError
+
 __all__ = [
     "DATASET_TYPES",
     "Format",
@@ -184,10 +186,14 @@ def format_of(path) -> Format | None:
 
     An existing file whose suffix no row lists but which starts like a DICOM file (many
     have no suffix, or a UID's last number for one) is a DICOM file. Returns None for
-    other suffixes no row lists.
+    other suffixes no row lists; raises :class:`ReadError` for a folder named like a file
+    of a format (``bunny.ply/``).
     """
     p = Path(path)
     if p.is_dir():
+        named = _format_with_suffix(suffix_of(p))
+        if named is not None and not named.folder:  # "bunny.ply/": not read as a series
+            raise ReadError(f"{p}: a folder, not a {suffix_of(p)} file; name the file itself")
         return next((f for f in FORMATS if f.folder), None)
     fmt = _format_with_suffix(suffix_of(p))
     if fmt is None and p.is_file():
