@@ -95,3 +95,31 @@ def test_scipy_linalg_imported_afterwards_works_beside_it():
     )
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == "ok"
+
+
+def test_kd_tree_without_scipy_spatial_is_scipys_and_stays_so():
+    """The KD-tree loaded without ``scipy.spatial``'s ``__init__`` (which the command line
+    never imports for it) answers as ``scipy.spatial.cKDTree`` does, and is its class once
+    ``scipy.spatial`` is imported afterwards."""
+    code = (
+        "import sys\n"
+        "import numpy as np\n"
+        "from vhm_viz.core.scipy_extensions import kd_tree\n"
+        "rng = np.random.default_rng(2)\n"
+        "points, queries = rng.random((500, 3)), rng.random((50, 3))\n"
+        "tree = kd_tree(points, leafsize=8)\n"
+        "ours = tree.query(queries, k=3)\n"
+        "assert 'scipy.spatial' not in sys.modules, 'scipy.spatial was imported'\n"
+        "import scipy.spatial\n"
+        "assert isinstance(tree, scipy.spatial.cKDTree)\n"
+        "theirs = scipy.spatial.cKDTree(points, leafsize=8).query(queries, k=3)\n"
+        "assert all(np.array_equal(x, y) for x, y in zip(ours, theirs))\n"
+        "assert sorted(tree.query_ball_point(queries[0], 0.2)) == sorted(\n"
+        "    scipy.spatial.KDTree(points).query_ball_point(queries[0], 0.2))\n"
+        "print('ok')\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=subprocess_env()
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "ok"

@@ -29,11 +29,11 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from vhm_viz import io
 from vhm_viz.autocage import voxel as vx
@@ -42,6 +42,10 @@ from vhm_viz.core.basis import domain_columns, inside_cage, winding_number
 from vhm_viz.core.cage import Cage
 from vhm_viz.core.errors import OutsideCageError, describe_indices
 from vhm_viz.core.limits import check_integer_at_least, check_setting
+from vhm_viz.core.scipy_extensions import kd_tree
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 __all__ = ["auto_anchors", "AnchorReport"]
 
@@ -292,7 +296,7 @@ class _Trees:
         every = index is None or len(index) == len(self.centres)  # ascending: all of them
         key = "all" if every else np.asarray(index, dtype=np.int64).tobytes()
         if key not in self._built:
-            self._built[key] = cKDTree(
+            self._built[key] = kd_tree(
                 self.centres if every else self.centres[index],
                 balanced_tree=False,
                 compact_nodes=False,
@@ -361,7 +365,7 @@ def _farthest_point_anchors(trees, skeleton, part, targets, seeds, count, on_ske
             # (a pool all taken -- a skeleton of a voxel or two -- widens to the part,
             # then to every candidate: anchors never coincide)
             if gap is None:
-                gap = cKDTree(centres[chosen]).query(centres)[0]
+                gap = kd_tree(centres[chosen]).query(centres)[0]
             for wider in (pool, members, None):
                 free = np.flatnonzero(~taken) if wider is None else wider[~taken[wider]]
                 if len(free):
@@ -390,7 +394,7 @@ def _closest_pair(points: np.ndarray) -> float:
     """Smallest distance between two of the points (``inf`` for fewer than two)."""
     if len(points) < 2:
         return float("inf")
-    return float(cKDTree(points).query(points, k=2)[0][:, 1].min())
+    return float(kd_tree(points).query(points, k=2)[0][:, 1].min())
 
 
 def _minimax_rounds(trees, allowed, part, targets, chosen, rounds: int = 40):
@@ -408,7 +412,7 @@ def _minimax_rounds(trees, allowed, part, targets, chosen, rounds: int = 40):
         if len(idx) == 0:
             idx = np.flatnonzero(part == k)
         of_part[int(k)] = (idx, trees.of(idx))
-    d, lab = cKDTree(centres[chosen]).query(targets)
+    d, lab = kd_tree(centres[chosen]).query(targets)
     best, best_chosen = float(d.max()), chosen.copy()
     # anchors may not crowd closer than half the closest pair farthest-point sampling left
     spread = 0.5 * _closest_pair(centres[chosen])
@@ -428,7 +432,7 @@ def _minimax_rounds(trees, allowed, part, targets, chosen, rounds: int = 40):
         if np.array_equal(moved, chosen):
             break
         chosen = moved
-        d, lab = cKDTree(centres[chosen]).query(targets)
+        d, lab = kd_tree(centres[chosen]).query(targets)
         if d.max() < best:
             best, best_chosen = float(d.max()), chosen.copy()
     return best_chosen, best
@@ -444,7 +448,7 @@ def _undo_crowding(centres, chosen, moved, spread: float) -> None:
     n = len(moved)
     if n < 2 or not spread > 0:  # no distance is below zero
         return
-    tree = cKDTree(np.concatenate([centres[moved], centres[chosen]]))
+    tree = kd_tree(np.concatenate([centres[moved], centres[chosen]]))
     near = tree.query_ball_point(centres[moved], r=spread * (1 + 1e-9))  # then exactly
     back = np.zeros(n, dtype=bool)
     for a in range(n):
@@ -470,7 +474,7 @@ def _relocated(trees, allowed, part, targets, chosen, cover, tries: int = 6):
     """
     centres, tree = trees.centres, trees.of()
     for _ in range(tries):
-        d, lab = cKDTree(centres[chosen]).query(targets)
+        d, lab = kd_tree(centres[chosen]).query(targets)
         radius = np.zeros(len(chosen))
         np.maximum.at(radius, lab, d)
         alone = np.bincount(part[chosen])[part[chosen]] == 1  # its part's only anchor
@@ -650,7 +654,7 @@ def auto_anchors(
     if samples.kind == "volume":
         # a voxel of the anchor grid can straddle the region's rim (anisotropic images):
         # the anchor goes to the nearest voxel above the threshold, in the region for sure
-        nearest = cKDTree(pts).query(centres)[1]
+        nearest = kd_tree(pts).query(centres)[1]
         _, first = np.unique(nearest, return_index=True)
         cand, centres = cand[np.sort(first)], pts[nearest[np.sort(first)]]
     shell = _shell_of(cage, centres)
@@ -715,7 +719,7 @@ def auto_anchors(
             f"{count} anchors"
         )
     anchors = centres[chosen]
-    dist, _ = cKDTree(anchors).query(pts)
+    dist, _ = kd_tree(anchors).query(pts)
     min_pair = _closest_pair(anchors)
     report = AnchorReport(
         count=count,

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from vhm_viz.autocage import voxel as vx
 from vhm_viz.autocage.parts import ShapeSamples, gap_to_other_groups, group_parts, merge_groups
+from vhm_viz.core.scipy_extensions import kd_tree
 
 __all__ = [
     "GAP_SHARE",
@@ -77,16 +77,16 @@ def _group_offset_surface(points, clear, grid, inside, offset, solid_radius=None
     idx = np.argwhere(band_out)
     if len(idx):
         k = min(8, len(points)) if varies else 1
-        d, j = cKDTree(points).query(grid.centers(idx), k=k, workers=-1)
+        d, j = kd_tree(points).query(grid.centers(idx), k=k, workers=-1)
         field_[band_out] = (d - clear[j]).reshape(len(idx), k).min(axis=1)
     idx = np.argwhere(band_in)
     if len(idx):
         where = grid.centers(idx)
-        d, j = cKDTree(points).query(where, k=1, workers=-1)
+        d, j = kd_tree(points).query(where, k=1, workers=-1)
         values = -d - clear[j]
         if solid_radius is not None and varies:
             k = min(8, len(points))
-            d, j = cKDTree(points).query(where, k=k, workers=-1)
+            d, j = kd_tree(points).query(where, k=k, workers=-1)
             d, j = d.reshape(len(idx), k), j.reshape(len(idx), k)
             out = d[:, 0] > solid_radius
             values[out] = (d[out] - clear[j[out]]).min(axis=1)
@@ -260,6 +260,6 @@ def gap_midpoints(shape: ShapeSamples, groups: PartGroups, limit: int = 20_000) 
     for g in np.unique(groups.label[tight]):
         mine = tight[groups.label[tight] == g]
         others = np.flatnonzero(groups.label != g)
-        _, j = cKDTree(shape.points[others]).query(shape.points[mine])
+        _, j = kd_tree(shape.points[others]).query(shape.points[mine])
         mids.append(0.5 * (shape.points[mine] + shape.points[others[j]]))
     return np.concatenate(mids)

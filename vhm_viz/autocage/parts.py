@@ -22,10 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from vhm_viz.autocage import voxel as vx
 from vhm_viz.autocage.mesh import edge_components
+from vhm_viz.core.scipy_extensions import kd_tree
 
 __all__ = ["ShapeSamples", "shape_samples", "group_parts", "gap_to_other_groups"]
 
@@ -87,7 +87,7 @@ def shape_samples(samples, spacing: float) -> ShapeSamples:
         # input points are the surface's vertices (surfaces) or the tet mesh's points,
         # which lie inside the component whose boundary vertex is nearest
         used = np.unique(tf)
-        dist, near = cKDTree(tv[used]).query(pts)
+        dist, near = kd_tree(tv[used]).query(pts)
         on = dist == 0  # a tet mesh's inner points are not on its boundary
         part, n_parts = _compact_labels(np.concatenate([vlab[used[near[on]]], vlab[tf[owner, 0]]]))
         return ShapeSamples(np.concatenate([pts[on], extra]), int(on.sum()), part, n_parts)
@@ -102,7 +102,7 @@ def shape_samples(samples, spacing: float) -> ShapeSamples:
     # point clouds: points within twice the typical spacing are connected
     step = 2.0 * float(samples.spacing or 0.0)
     if step > 0 and n_in > 1:
-        pairs = cKDTree(pts).query_pairs(step, output_type="ndarray")
+        pairs = kd_tree(pts).query_pairs(step, output_type="ndarray")
         part, n_parts = _compact_labels(_components(n_in, pairs))
     else:
         part, n_parts = np.zeros(n_in, dtype=np.int64), 1
@@ -146,7 +146,7 @@ def _close_pairs(points, labels, n, radius):
         if not inside.any():
             continue
         q, qlab = q[inside], qlab[inside]
-        d, _ = cKDTree(points[order[starts[a] : starts[a + 1]]]).query(
+        d, _ = kd_tree(points[order[starts[a] : starts[a + 1]]]).query(
             points[q], distance_upper_bound=radius
         )
         best = np.full(n, np.inf)
@@ -252,6 +252,6 @@ def gap_to_other_groups(points: np.ndarray, group: np.ndarray, radius: float) ->
             members[a], points[others].min(axis=0) - radius, points[others].max(axis=0) + radius
         )
         if len(mine):
-            d, _ = cKDTree(points[others]).query(points[mine], distance_upper_bound=radius)
+            d, _ = kd_tree(points[others]).query(points[mine], distance_upper_bound=radius)
             out[mine] = d
     return out

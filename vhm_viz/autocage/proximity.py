@@ -8,12 +8,17 @@ cage needs: the clearance and the points that violate it all lie near the cage.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from vhm_viz.core.geometry import closest_point_on_triangle, closest_points_on_triangles
 from vhm_viz.core.row_threads import run_rows
+from vhm_viz.core.scipy_extensions import kd_tree
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 __all__ = ["NearDistance", "near_signed_distance"]
 
@@ -81,7 +86,7 @@ class NearDistance:
         """
         P = np.asarray(points, dtype=np.float64)
         if tree is None:
-            tree = cKDTree(P)
+            tree = kd_tree(P)
         if np.isfinite(radius):
             lists = tree.query_ball_point(self.centroid, self.radius + radius, workers=-1)
             counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))

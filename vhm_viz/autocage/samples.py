@@ -14,12 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from vhm_viz.autocage import voxel as vx
 from vhm_viz.autocage.mesh import box_corners
 from vhm_viz.autocage.threshold import resolve_threshold, volume_values
 from vhm_viz.core.errors import SettingError
+from vhm_viz.core.scipy_extensions import kd_tree
 from vhm_viz.io import read_dataset
 
 __all__ = ["InputSamples", "collect_samples", "check_points", "point_spacing"]
@@ -69,7 +69,7 @@ class InputSamples:
             return np.asarray(self.boundary, dtype=bool)
         if self.kind == "tetmesh" and self.tri_faces is not None and len(self.tri_faces):
             surface = self.tri_vertices[np.unique(self.tri_faces)]
-            d, _ = cKDTree(surface).query(self.points)
+            d, _ = kd_tree(surface).query(self.points)
             return d == 0
         return np.ones(len(self.points), dtype=bool)
 
@@ -321,5 +321,5 @@ def point_spacing(points: np.ndarray) -> float:
         The 90th percentile of the nearest-neighbour distances (world units).
     """
     p = points if len(points) <= 50_000 else points[:: len(points) // 50_000 + 1]
-    d, _ = cKDTree(p).query(p, k=2)
+    d, _ = kd_tree(p).query(p, k=2)
     return float(np.percentile(d[:, 1], 90))

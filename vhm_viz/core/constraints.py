@@ -126,9 +126,9 @@ def check_duplicate_points(
     """
     if len(points) < 2 or not _may_have_close_pair(points, tol):
         return
-    from scipy.spatial import cKDTree  # here: importing it is slow, most scenes skip it
+    from vhm_viz.core.scipy_extensions import kd_tree
 
-    pairs = cKDTree(points).query_pairs(tol, output_type="ndarray")
+    pairs = kd_tree(points).query_pairs(tol, output_type="ndarray")
     if len(pairs):
         i, j = (int(v) for v in pairs[0])
         differ = not np.allclose(targets[i], targets[j], rtol=0, atol=target_tol)

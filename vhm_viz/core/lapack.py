@@ -6,8 +6,8 @@ and ``numpy.ma``): far more than the few LAPACK routines the solver calls. Those
 compiled extensions of SciPy's linalg folder: ``_flapack`` (the f2py wrappers behind
 :func:`scipy.linalg.qr` and :func:`scipy.linalg.solve_triangular`), ``cython_blas`` and
 ``cython_lapack`` (the function pointers numba's array functions call). They are loaded
-here by file, without the package's ``__init__``; once ``scipy.linalg`` is imported the
-real modules are used instead.
+by file, without the package's ``__init__`` (:mod:`vhm_viz.core.scipy_extensions`); once
+``scipy.linalg`` is imported the real modules are used instead.
 
 The functions call the same routines with the same arguments and workspace sizes as the
 SciPy functions named in their docstrings, so the results are the same, bit for bit.
@@ -15,13 +15,12 @@ SciPy functions named in their docstrings, so the results are the same, bit for 
 
 from __future__ import annotations
 
-import importlib.machinery
-import importlib.util
-import os
 import sys
 from functools import cache
 
 import numpy as np
+
+from vhm_viz.core.scipy_extensions import extension
 
 __all__ = ["flapack", "qr", "register_cython_linalg", "solve_triangular"]
 
@@ -29,26 +28,8 @@ _PACKAGE = "scipy.linalg"
 
 
 def _extension(name: str):
-    """SciPy's compiled ``scipy.linalg.<name>``, loaded without ``scipy.linalg``'s ``__init__``.
-
-    The real submodule when ``scipy.linalg`` is already imported, or when the extension's
-    file is not where a SciPy installation puts it.
-    """
-    full = f"{_PACKAGE}.{name}"
-    if full in sys.modules or _PACKAGE in sys.modules:
-        return importlib.import_module(full)
-    scipy_spec = importlib.util.find_spec("scipy")
-    folders = scipy_spec.submodule_search_locations if scipy_spec is not None else None
-    for folder in folders or ():
-        for suffix in importlib.machinery.EXTENSION_SUFFIXES:
-            path = os.path.join(folder, "linalg", name + suffix)
-            if os.path.isfile(path):
-                loader = importlib.machinery.ExtensionFileLoader(full, path)
-                spec = importlib.util.spec_from_file_location(full, path, loader=loader)
-                module = importlib.util.module_from_spec(spec)
-                loader.exec_module(module)
-                return module
-    return importlib.import_module(full)
+    """SciPy's compiled ``scipy.linalg.<name>`` (:func:`.scipy_extensions.extension`)."""
+    return extension(_PACKAGE, name)
 
 
 @cache

@@ -210,11 +210,11 @@ class _Balls:
         # classes of radius (top/2^(k+1), top/2^k]; the tiny ones share the last class
         cls = np.minimum(np.floor(-np.log2(np.maximum(rad, top * 1e-6) / top)), 16).astype(int)
         self.classes = []
-        from scipy.spatial import cKDTree  # here: importing it is slow, most regions skip it
+        from vhm_viz.core.scipy_extensions import kd_tree
 
         for k in np.unique(cls):
             ids = np.nonzero(cls == k)[0]
-            self.classes.append((ids, cKDTree(c[ids]), float(rad[ids].max())))
+            self.classes.append((ids, kd_tree(c[ids]), float(rad[ids].max())))
 
     def bounds(self):
         """Bounding box of the union of balls."""
