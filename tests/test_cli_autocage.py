@@ -129,6 +129,8 @@ def test_anchors_refuse_a_cage_that_does_not_enclose_the_data(data, cage, count,
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 1 and not out.exists()
     assert len(err) == 1 and f"{count} of {n} points" in err[0] and "outside the cage" in err[0]
+    # the step that failed in words, not the library function's name
+    assert err[0].startswith(f"vhm-viz anchors: error: automatic anchors: {count} of {n} points")
 
 
 def test_anchors_are_distinct_where_the_skeleton_is_one_voxel(tmp_path, capsys):

@@ -186,7 +186,7 @@ def _as_cage(cage):
         return Cage(*cage)
     if hasattr(cage, "GetPoints"):
         return io.cage_from_dataset(cage)
-    raise ValueError(f"auto_anchors: cannot use {type(cage).__name__} as a cage")
+    raise ValueError(f"automatic anchors: cannot use {type(cage).__name__} as a cage")
 
 
 def _shape_voxels(samples, grid):
@@ -536,7 +536,7 @@ def _check_enclosed(samples, cage, points: np.ndarray) -> None:
             f"{n} of {total} points of the data are outside the cage (indices "
             f"{describe_indices(outside)}): give a cage that encloses the data"
         )
-    raise OutsideCageError(f"auto_anchors: {what}", outside)
+    raise OutsideCageError(f"automatic anchors: {what}", outside)
 
 
 def _inside_shape(samples, points: np.ndarray) -> np.ndarray:
@@ -621,7 +621,7 @@ def auto_anchors(
     if outside == "error":
         _check_enclosed(samples, cage, pts)
     elif outside != "ignore":
-        raise ValueError(f"auto_anchors: outside must be 'error' or 'ignore'; got {outside!r}")
+        raise ValueError(f"automatic anchors: outside must be 'error' or 'ignore'; got {outside!r}")
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     ext = float(np.max(hi - lo))
     if resolution is None and samples.kind == "volume" and samples.spacing:
@@ -647,7 +647,7 @@ def auto_anchors(
     cand = np.argwhere(cand_mask)
     if len(cand) == 0:
         raise ValueError(
-            f"auto_anchors: the shape is too thin for a {r}-voxel grid (no interior voxel); "
+            f"automatic anchors: the shape is too thin for a {r}-voxel grid (no interior voxel); "
             "raise resolution"
         )
     centres = grid.centers(cand)
@@ -666,7 +666,7 @@ def auto_anchors(
     cand, centres, shell = cand[keep], centres[keep], shell[keep]
     if len(cand) < count:
         raise ValueError(
-            f"auto_anchors: only {len(cand)} interior voxels inside the cage for {count} "
+            f"automatic anchors: only {len(cand)} interior voxels inside the cage for {count} "
             "anchors; raise resolution or lower count"
         )
     dep = depth[cand[:, 0], cand[:, 1], cand[:, 2]]
@@ -715,7 +715,7 @@ def auto_anchors(
     chosen = medial if on_medial else mixed
     if len(np.unique(chosen)) < count:  # pragma: no cover - guarded by construction
         raise RuntimeError(
-            f"auto_anchors: internal error, {len(np.unique(chosen))} distinct positions for "
+            f"automatic anchors: internal error, {len(np.unique(chosen))} distinct positions for "
             f"{count} anchors"
         )
     anchors = centres[chosen]

@@ -226,7 +226,7 @@ def auto_cage(
     """
     t0 = time.perf_counter()
     if method not in ("auto", "offset", "voxel"):
-        raise ValueError(f"auto_cage: unknown method {method!r} (auto, offset, voxel)")
+        raise ValueError(f"automatic cage: unknown method {method!r} (auto, offset, voxel)")
     max_faces = check_integer_at_least("max_faces", max_faces, 12, " (a box needs 12 triangles)")
     if resolution is not None:
         resolution = check_integer_at_least("resolution", resolution, 1)
@@ -290,7 +290,7 @@ def auto_cage(
     enclosed = bool(clearance > 0 and wmin > 0.5)
     if not enclosed:  # pragma: no cover - guarded by construction
         raise RuntimeError(
-            f"auto_cage: internal error, the cage does not enclose the input "
+            f"automatic cage: internal error, the cage does not enclose the input "
             f"(clearance {clearance:g}, min winding number {wmin:g})"
         )
     report = AutoCageReport(
@@ -343,7 +343,7 @@ def _offset_with_retries(samples, lo, hi, offset, max_faces, resolution, method,
             )
         except (RuntimeError, ValueError) as exc:
             if method == "offset":
-                raise RuntimeError(f"auto_cage: offset method failed: {exc}") from exc
+                raise RuntimeError(f"automatic cage: offset method failed: {exc}") from exc
             notes.append(f"offset method failed at offset {off:.4g} ({exc})")
             continue
         if k:

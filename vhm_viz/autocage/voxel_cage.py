@@ -52,7 +52,7 @@ def _fitting_solid(samples, lo, hi, offset, max_faces, resolution, notes):
             break
     if good is None:
         raise ValueError(
-            f"auto_cage: even the coarsest voxel cage needs {cache[2][0]} faces, more than "
+            f"automatic cage: even the coarsest voxel cage needs {cache[2][0]} faces, more than "
             f"max_faces={max_faces} (the input has many separate parts); raise max_faces"
         )
     if bad is None:
@@ -101,7 +101,7 @@ def voxel_cage(samples: InputSamples, lo, hi, offset, max_faces, resolution, not
     Vi, F = cage_surface(solid)
     if len(F) > max_faces:
         raise ValueError(
-            f"auto_cage: the voxel cage at resolution {resolution} has {len(F)} faces, "
+            f"automatic cage: the voxel cage at resolution {resolution} has {len(F)} faces, "
             f"more than max_faces={max_faces}"
         )
     return grid, grid.vertex_positions(Vi), F
