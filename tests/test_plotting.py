@@ -230,6 +230,10 @@ def test_figure4_draws_folds_in_the_fold_colour(bar_and_map, tmp_path):
     det_bar = pl.scalar_bars["det J"].GetLookupTable()
     np.testing.assert_allclose(det_bar.GetRange(), _log_det_range(det), rtol=1e-6)
     np.testing.assert_allclose(det_bar.GetBelowRangeColor()[:3], fold)
+    # the swatch is drawn, unlabelled: a horizontal bar's label would be drawn over it (the
+    # panel's heading says what black is)
+    assert pl.scalar_bars["det J"].GetDrawBelowRangeSwatch()
+    assert pl.scalar_bars["det J"].GetBelowRangeAnnotation() == ""
     pl.close()
     img = _png(path)
     black = lambda region: (np.abs(region - fold).max(axis=-1) < 3 / 255).sum()  # noqa: E731

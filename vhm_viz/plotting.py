@@ -280,6 +280,9 @@ def figure4(
                 clim=clim,
                 scalar_bar_args={
                     "title": label,
+                    # the panel's heading says what black is: VTK draws a horizontal bar's
+                    # below-range label over its swatch
+                    "below_label": "",
                     "vertical": False,
                     "position_x": 0.2,
                     "position_y": 0.09,
