@@ -923,3 +923,23 @@ def test_a_folder_named_like_a_file_is_said_to_be_a_folder(bar_case, tmp_path):
         assert said in done.stderr and "name the file itself" in done.stderr, (name, done.stderr)
         assert suffix in done.stderr or "file" in done.stderr
         assert not (tmp_path / "out.vtp").exists()
+
+
+def test_anchors_outside_a_cage_file_name_it(bar_case, tmp_path):
+    # a user with several cages at hand reads which one the anchors fall outside of
+    folder = bar_case
+    anchors = json.loads((folder / "anchors.json").read_text())["anchors"]
+    anchors.append([40.0, 0.0, 0.0])
+    (tmp_path / "anchors.json").write_text(json.dumps({"anchors": anchors}))
+    scene = json.loads((folder / "scene.json").read_text())
+    scene.update(cage=str(folder / "cage.obj"), anchors=str(tmp_path / "anchors.json"))
+    (tmp_path / "s.json").write_text(json.dumps(scene))
+    done = run_cli("deform", folder / "bar.vtp", "--scene", tmp_path / "s.json", "-o",
+                   tmp_path / "out.vtp", "-q")  # fmt: skip
+    n = len(anchors)
+    assert done.returncode == 1 and done.stderr.count("\n") == 1, done.stderr
+    assert done.stderr.strip() == (
+        f"vhm-viz deform: error: 1 of {n} anchors is outside the cage (indices {n - 1}) "
+        f"(the cage: {folder / 'cage.obj'})"
+    )
+    assert not (tmp_path / "out.vtp").exists()

@@ -355,9 +355,16 @@ def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False
     NotConverged
         The (last) solve stopped at ``solver.max_iterations`` and ``allow_unconverged``
         is false.
+    CLIError
+        Anchors or constraints outside a cage read from a file: the line names it.
     """
     bar = Progress("solving", enabled=not quiet)
-    solved = scene.solve_map(mesh, progress=bar, reuse_stored=False, on_note=_print_note)
+    try:
+        solved = scene.solve_map(mesh, progress=bar, reuse_stored=False, on_note=_print_note)
+    except OutsideCageError as exc:  # anchors or constraints: which cage, of several at hand
+        if scene.cage_file is None:
+            raise
+        raise CLIError(f"{one_line(exc)} (the cage: {scene.cage_file})") from exc
     bar.finish()
     solved.require_converged(
         allow_unconverged,
