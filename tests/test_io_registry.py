@@ -123,6 +123,22 @@ def test_every_read_suffix_refuses_an_empty_file_in_one_line(suffix, tmp_path):
     with pytest.raises(ReadError) as exc:
         read_dataset(path)
     assert "\n" not in str(exc.value) and str(path) in str(exc.value)
+    # one wording for every format: nothing of a reader's own (a header's size, a count)
+    assert str(exc.value) == f"{path}: empty file (0 bytes); copy or export it again"
+
+
+@pytest.mark.parametrize(
+    ("suffix", "read"),
+    [(".obj", "read_cage"), (".off", "read_cage"), (".json", "read_anchors")],
+)
+def test_an_empty_cage_or_anchors_file_is_said_to_be_empty(suffix, read, tmp_path):
+    import vhm_viz.io as io
+
+    path = tmp_path / f"empty{suffix}"
+    path.write_bytes(b"")
+    with pytest.raises(ReadError) as exc:
+        getattr(io, read)(path)
+    assert str(exc.value) == f"{path}: empty file (0 bytes); copy or export it again"
 
 
 def test_unknown_suffixes_are_refused_in_one_line(tmp_path):

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz.atomic import atomic_directory, atomic_path
-from vhm_viz.io.errors import ReadError, first_line
+from vhm_viz.io.errors import ReadError, first_line, refuse_empty
 from vhm_viz.io.guard import refuse_inputs
 from vhm_viz.io.isolated import meanwhile as read_meanwhile
 from vhm_viz.io.registry import (
@@ -89,6 +89,8 @@ def read_dataset(path, *, meanwhile=None):
         raise FileNotFoundError(f"no such file: {p}")
     if not (p.is_file() or p.is_dir()):
         raise ReadError(f"{p}: not a file")
+    if p.is_file():
+        refuse_empty(p)
     fmt = format_of(p)
     if fmt is None or fmt.read is None:
         suffix = suffix_of(p)

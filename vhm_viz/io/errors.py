@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 
 class ReadError(ValueError):
     """A file that cannot be read as what was asked for; the message names the file."""
@@ -36,14 +38,21 @@ def require_file(path, what: str) -> None:
     FileNotFoundError
         Nothing is there.
     ReadError
-        Something other than a file is: a folder, a device.
+        Something other than a file is (a folder, a device), or the file is empty.
     """
     if path.is_file():
+        refuse_empty(path)
         return
     if not path.exists():
         raise FileNotFoundError(f"no such {what} file: {path}")
     kind = "a folder" if path.is_dir() else "not a regular file"
     raise ReadError(f"{path}: {kind}, not a {what} file; name the file itself")
+
+
+def refuse_empty(path) -> None:
+    """Refuse a file of no bytes, whatever its format, in one line (a failed copy or save)."""
+    if os.stat(path).st_size == 0:
+        raise ReadError(f"{path}: empty file (0 bytes); {AGAIN}")
 
 
 def check_file_size(path, what: str, limit: int = MAX_POINT_FILE_BYTES) -> None:
