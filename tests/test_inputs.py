@@ -939,7 +939,7 @@ def test_anchors_outside_a_cage_file_name_it(bar_case, tmp_path):
     n = len(anchors)
     assert done.returncode == 1 and done.stderr.count("\n") == 1, done.stderr
     assert done.stderr.strip() == (
-        f"vhm-viz deform: error: 1 of {n} anchors is outside the cage (indices {n - 1}) "
-        f"(the cage: {folder / 'cage.obj'})"
+        f"vhm-viz deform: error: 1 of {n} anchors is outside the cage {folder / 'cage.obj'} "
+        f"(indices {n - 1})"
     )
     assert not (tmp_path / "out.vtp").exists()

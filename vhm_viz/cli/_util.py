@@ -364,7 +364,9 @@ def build_and_solve(scene, mesh, *, quiet: bool, allow_unconverged: bool = False
     except OutsideCageError as exc:  # anchors or constraints: which cage, of several at hand
         if scene.cage_file is None:
             raise
-        raise CLIError(f"{one_line(exc)} (the cage: {scene.cage_file})") from exc
+        # worded as the line for the data's points (outside_message): "the cage PATH"
+        text = one_line(exc).replace("outside the cage", f"outside the cage {scene.cage_file}", 1)
+        raise CLIError(text) from exc
     bar.finish()
     solved.require_converged(
         allow_unconverged,
