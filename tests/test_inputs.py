@@ -265,6 +265,21 @@ def test_a_vtk_xml_file_cut_short_says_so(models, tmp_path, suffix):
     assert res.returncode == 1 and res.stderr == f"vhm-viz cage: error: {said}\n", res.stderr
 
 
+def test_an_ascii_stl_or_gzip_cut_short_says_to_copy_it_again(tmp_path):
+    # the remedy every other file cut short gives
+    pv.Sphere().save(tmp_path / "whole.stl", binary=False)
+    nii = data_path("volumes", "avg152T1_RL_nifti.nii.gz")
+    for whole, said in (
+        (tmp_path / "whole.stl", "truncated ASCII STL (no 'endsolid' at the end)"),
+        (nii, "truncated or corrupt gzip data ("),
+    ):
+        bad = _truncate(whole, tmp_path / f"cut{''.join(whole.suffixes)}", 0.5)
+        with pytest.raises(ReadError) as err:
+            read_dataset(bad)
+        assert str(err.value).startswith(f"{bad}: {said}"), err.value
+        assert str(err.value).endswith("; copy or export it again"), err.value
+
+
 def test_a_vtk_xml_file_of_broken_xml_is_one_line_of_ours(models, tmp_path):
     pv.read(models / "bin.vtk").save(tmp_path / "whole.vtp")
     blob = (tmp_path / "whole.vtp").read_bytes()

@@ -26,7 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz.atomic import atomic_output_set, atomic_path
-from vhm_viz.io.errors import ReadError, TruncatedError, complex_voxels, first_line, need
+from vhm_viz.io.errors import (
+    AGAIN,
+    ReadError,
+    TruncatedError,
+    complex_voxels,
+    first_line,
+    need,
+)
 from vhm_viz.io.itk_images import grid_origin, read_with_sitk
 from vhm_viz.io.registry import suffix_of
 from vhm_viz.io.vtk_files import read_vtk_file
@@ -227,7 +234,9 @@ def check_nifti(p: Path) -> None:
             else:
                 available = p.stat().st_size
     except (OSError, EOFError) as exc:
-        raise TruncatedError(f"{p}: truncated or corrupt gzip data ({first_line(exc)})") from None
+        raise TruncatedError(
+            f"{p}: truncated or corrupt gzip data ({first_line(exc)}); {AGAIN}"
+        ) from None
     need(p, f"{voxels} voxels of {bits} bits", needed, available)
 
 

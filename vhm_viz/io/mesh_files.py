@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from vhm_viz.io.errors import (
+    AGAIN,
     ReadError,
     TruncatedError,
     check_count,
@@ -183,7 +184,7 @@ def check_stl(p: Path) -> None:
             fh.seek(max(0, size - 1024))
             if b"endsolid" in fh.read().lower():
                 return
-        raise TruncatedError(f"{p}: truncated ASCII STL (no 'endsolid' at the end)")
+        raise TruncatedError(f"{p}: truncated ASCII STL (no 'endsolid' at the end); {AGAIN}")
     n = int.from_bytes(head[80:84], "little") if len(head) == 84 else 0
     raise TruncatedError(
         f"{p}: truncated or corrupt binary STL: {n} triangles need {84 + 50 * n} bytes, the "
