@@ -234,6 +234,7 @@ def test_figure4_draws_folds_in_the_fold_colour(bar_and_map, tmp_path):
     # panel's heading says what black is)
     assert pl.scalar_bars["det J"].GetDrawBelowRangeSwatch()
     assert pl.scalar_bars["det J"].GetBelowRangeAnnotation() == ""
+    assert not pl.scalar_bars["cond J"].GetDrawBelowRangeSwatch()  # cond J has no folds
     pl.close()
     img = _png(path)
     black = lambda region: (np.abs(region - fold).max(axis=-1) < 3 / 255).sum()  # noqa: E731

@@ -281,8 +281,8 @@ def figure4(
                 scalar_bar_args={
                     "title": label,
                     # the panel's heading says what black is: VTK draws a horizontal bar's
-                    # below-range label over its swatch
-                    "below_label": "",
+                    # below-range label over its swatch (a label, even empty, draws one)
+                    **({"below_label": ""} if measure == "determinant" else {}),
                     "vertical": False,
                     "position_x": 0.2,
                     "position_y": 0.09,
