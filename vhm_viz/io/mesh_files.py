@@ -288,8 +288,12 @@ def _count_lines(blob: bytes) -> int:
     if b"#" in blob:
         blob = re.sub(rb"(?m)^[ \t]*#[^\n]*", b"", blob)
     a = np.frombuffer(blob, np.uint8)
-    line = np.cumsum(a == 10)[a > 32]
-    return int(np.count_nonzero(np.diff(line))) + 1 if line.size else 0
+    if not a.size:
+        return 0
+    starts = np.flatnonzero(a == 10) + 1
+    starts = np.concatenate(([0], starts[starts < a.size]))
+    # one flag a line, not a count a byte: whether any byte of it is a word's
+    return int(np.count_nonzero(np.logical_or.reduceat(a > 32, starts)))
 
 
 #: A Gmsh section's first line (``$Nodes``): its end is ``$EndNodes``.
