@@ -122,18 +122,22 @@ class SceneHistory:
         return bool(self._redo)
 
     def undo(self, current: Scene) -> Scene | None:
-        """The scene before the last action (``current`` becomes redoable); None if none."""
+        """The scene before the last action; None if none.
+
+        ``current``, a :meth:`snapshot` of the scene now, becomes redoable (kept as given,
+        as :meth:`record` keeps its scene).
+        """
         return self._step(self._undo, self._redo, current)
 
     def redo(self, current: Scene) -> Scene | None:
-        """The scene after the last undone action; None if none."""
+        """The scene after the last undone action; None if none (``current``: as for undo)."""
         return self._step(self._redo, self._undo, current)
 
     def _step(self, source: list, target: list, current: Scene) -> Scene | None:
         if not source:
             return None
         self._forgotten = None
-        target.append(self.snapshot(current))
+        target.append(current)
         return source.pop()
 
 
