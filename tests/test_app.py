@@ -33,6 +33,20 @@ from tests.gui import bar_with_a_gizmo as _bar_with_a_gizmo  # noqa: E402
 from tests.gui import open_bar as _open_bar  # noqa: E402
 
 
+def _turn_gizmo(win, centre, degrees: float) -> None:
+    """One frame of the user turning the gizmo's box ``degrees`` about y, around ``centre``."""
+    import vtk
+    from scipy.spatial.transform import Rotation
+
+    r = Rotation.from_euler("y", degrees, degrees=True).as_matrix()
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = r, centre - r @ centre
+    t = vtk.vtkTransform()
+    t.SetMatrix(m.ravel())
+    win.gizmo.widget.SetTransform(t)
+    win.gizmo.widget.InvokeEvent("InteractionEvent")
+
+
 def _direct_points(ctrl, mode=None):
     """Independent reference: a fresh Deformer solved to convergence from the identity."""
     from vhm_viz.core.deformer import Deformer
@@ -654,7 +668,6 @@ def test_undo_redo_delete_of_constraints_and_anchors(window):
 
 
 def test_rotation_gizmo_sets_the_jacobian_target(window):
-    import vtk
     from scipy.spatial.transform import Rotation
 
     win = window
@@ -664,13 +677,7 @@ def test_rotation_gizmo_sets_the_jacobian_target(window):
     # the user turns the box 35 degrees about y (the widget's transform), frame by frame
     centre = ctrl.image_of(top)
     for deg in (10, 25, 35):
-        r = Rotation.from_euler("y", deg, degrees=True).as_matrix()
-        m = np.eye(4)
-        m[:3, :3], m[:3, 3] = r, centre - r @ centre
-        t = vtk.vtkTransform()
-        t.SetMatrix(m.ravel())
-        win.gizmo.widget.SetTransform(t)
-        win.gizmo.widget.InvokeEvent("InteractionEvent")
+        _turn_gizmo(win, centre, deg)
     win.gizmo.widget.InvokeEvent("EndInteractionEvent")
     assert win.last_error is None, win.last_error
     expected = Rotation.from_euler("y", 35, degrees=True).as_matrix()
@@ -859,22 +866,12 @@ def test_a_drag_during_a_background_job_never_leaves_the_handle_off_its_target(w
 def test_a_turn_refused_during_a_background_job_turns_the_gizmo_back(window):
     import threading
 
-    import vtk
-    from scipy.spatial.transform import Rotation
-
     win = window
     ctrl, top = _bar_with_a_gizmo(win)
     before = ctrl.jacobians[0].matrix.copy()
     release = threading.Event()
     assert win.run_job("slow", lambda progress, cancelled: release.wait(30), lambda r: None)
-    centre = ctrl.image_of(top)
-    r = Rotation.from_euler("y", 30, degrees=True).as_matrix()
-    m = np.eye(4)
-    m[:3, :3], m[:3, 3] = r, centre - r @ centre
-    t = vtk.vtkTransform()
-    t.SetMatrix(m.ravel())
-    win.gizmo.widget.SetTransform(t)
-    win.gizmo.widget.InvokeEvent("InteractionEvent")
+    _turn_gizmo(win, ctrl.image_of(top), 30)
     assert "busy" in win.statusBar().currentMessage()
     win.gizmo.widget.InvokeEvent("EndInteractionEvent")
     np.testing.assert_allclose(ctrl.jacobians[0].matrix, before)  # the target is unchanged

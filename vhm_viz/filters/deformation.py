@@ -429,9 +429,9 @@ def _image_folds(piece, points, vol, box, progress, outside=None) -> dict:
     its neighbours' cells, which they count. ``outside``: (N,) flags of the points left in
     place outside the cage, whose inverted cells straddle it.
     """
-    own = own_cells(piece)
     from vhm_viz.folds import proof_sized, warped_voxel_folds
 
+    own = own_cells(piece)
     geometry = vol.geometry.sub(box)
     unproven = vol.unproven_cells(box) if proof_sized(geometry.dimensions) else None
     cells = warped_voxel_folds(geometry, points, progress, None, unproven)

@@ -22,6 +22,7 @@ from vhm_viz.atomic import atomic_path
 from vhm_viz.core.image import ImageGeometry
 from vhm_viz.io.errors import ReadError, complex_voxels
 from vhm_viz.io.isolated import native_stderr_silenced, read_isolated
+from vhm_viz.io.registry import suffix_of
 
 __all__ = [
     "grid_origin",
@@ -228,7 +229,6 @@ def write_sitk_image(image, written, final, compress: bool = True) -> None:
     import SimpleITK as sitk
 
     from vhm_viz.io.medical import check_nifti  # here: medical imports this module
-    from vhm_viz.io.registry import suffix_of
 
     with native_stderr_silenced():
         try:
