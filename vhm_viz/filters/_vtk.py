@@ -39,7 +39,10 @@ def numpy_points(ds) -> np.ndarray:
     """Points of any vtkDataSet as a (N, 3) float64 array (a copy for implicit points)."""
     pts = ds.GetPoints() if hasattr(ds, "GetPoints") else None
     if pts is not None and pts.GetData() is not None:
-        return np.asarray(ns.vtk_to_numpy(pts.GetData()), dtype=np.float64).reshape(-1, 3)
+        data = pts.GetData()
+        if hasattr(data, "GetXCoordinates") and not data.GetUsesDirectionMatrix():
+            return _axis_points(data)
+        return np.asarray(ns.vtk_to_numpy(data), dtype=np.float64).reshape(-1, 3)
     n = ds.GetNumberOfPoints()
     out = np.empty((n, 3))
     p = [0.0, 0.0, 0.0]
@@ -47,6 +50,24 @@ def numpy_points(ds) -> np.ndarray:
         ds.GetPoint(i, p)
         out[i] = p
     return out
+
+
+def _axis_points(data) -> np.ndarray:
+    """The points of an implicit axis-aligned lattice (VTK's ``vtkStructuredPointArray``).
+
+    VTK's own conversion goes through three meshgrids and a column stack, several times
+    the output's memory and time; the values here are the same coordinates, copied into
+    place.
+    """
+    x, y, z = (
+        ns.vtk_to_numpy(c).astype(np.float64, copy=False)
+        for c in (data.GetXCoordinates(), data.GetYCoordinates(), data.GetZCoordinates())
+    )
+    out = np.empty((len(z), len(y), len(x), 3))
+    out[..., 0] = x
+    out[..., 1] = y[:, None]
+    out[..., 2] = z[:, None, None]
+    return out.reshape(-1, 3)
 
 
 def image_geometry(img, extent=None) -> ImageGeometry:
