@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from conftest import trilinear_corner_dets
@@ -9,6 +11,8 @@ from conftest import trilinear_corner_dets
 from vhm_viz.core.cell_kernels import (
     hexahedron_corner_determinants,
     inverted_hexahedra,
+    kuhn_corners,
+    lattice_tetrahedron_measures,
     singular_values_3x3,
     tetrahedron_measures,
 )
@@ -83,6 +87,40 @@ def test_tetrahedra_match_numpy_on_random_flat_and_inverted_tets():
     np.testing.assert_allclose(m["condition_number"][well], cond[well], rtol=1e-12)
 
 
+def _with_singular_values(rng, s):
+    """Random rotations around the diagonal of singular values ``s`` (N, 3)."""
+    q1 = np.linalg.qr(rng.normal(size=(len(s), 3, 3)))[0]
+    q2 = np.linalg.qr(rng.normal(size=(len(s), 3, 3)))[0]
+    return q1 @ (s[:, :, None] * q2)
+
+
+@pytest.mark.parametrize("gap", [1e-1, 1e-4, 1e-8, 1e-12, 0.0])
+def test_condition_numbers_where_singular_values_meet_match_numpy(gap):
+    # where two or three singular values (nearly) meet, a closed form of the eigenvalues of
+    # F^T F loses digits: the cells' condition numbers must not
+    rng = np.random.default_rng(int(gap * 1e12) % 997)
+    n = 4000
+    one = np.ones(n)
+    s = np.concatenate([
+        np.column_stack([2 * one, 2 * (1 - gap) * one, 1 + rng.random(n)]),  # top pair
+        np.column_stack([3 * one, (1 + gap) * one, one]),  # bottom pair
+        1 + gap * rng.normal(size=(n, 3)),  # all three: a scaled rotation, nearly
+        -(1 + gap * rng.normal(size=(n, 3))),  # the same, mirrored
+        np.column_stack([one, 0.5 + rng.random(n), 10 ** rng.uniform(-8, -1, n)]),  # flat
+    ])  # fmt: skip
+    a = _with_singular_values(rng, s)
+    m = len(a)
+    # the unit corner tet, so F is a itself, to the bit
+    x = np.tile(np.vstack([np.zeros(3), np.eye(3)]), (m, 1))
+    y = np.einsum("tij,tkj->tki", a, x.reshape(m, 4, 3)).reshape(-1, 3)
+    cond = tetrahedron_measures(x, y, np.arange(4 * m).reshape(m, 4))["condition_number"]
+    sv = np.linalg.svd(a, compute_uv=False)
+    ref = sv[:, 0] / sv[:, 2]
+    # numpy's s_min is accurate to rounding of s_max: its cond to eps times cond squared
+    assert np.all(np.abs(cond - ref) <= 1e-12 * ref + 1e-15 * ref**2)
+    np.testing.assert_allclose(cond[: 4 * n], ref[: 4 * n], rtol=1e-12)
+
+
 def test_cells_take_the_worst_tet_and_flag_rest_problems():
     x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [2, 2, 2]], float)
     y = x.copy()
@@ -134,6 +172,91 @@ def test_a_cell_per_tet_gives_the_per_cell_reduction_s_numbers(condition):
     assert (alone["determinant"] <= 0).sum() > n // 7
     with pytest.raises(ValueError, match="n_cells"):  # a tet's cell beyond the arrays
         tetrahedron_measures(x, y, tets, n_cells=n - 1, condition=condition)
+
+
+def _brute_kuhn_tets(dims):
+    """Kuhn's six tets of every lattice cell, one monotone corner path per axis order."""
+    nx, ny, nz = dims
+    tets, owner = [], []
+    for k, j, i in itertools.product(range(nz - 1), range(ny - 1), range(nx - 1)):
+        for order in itertools.permutations(range(3)):
+            corner, path = [i, j, k], [i + nx * (j + ny * k)]
+            for axis in order:
+                corner[axis] += 1
+                path.append(corner[0] + nx * (corner[1] + ny * corner[2]))
+            inversions = sum(a > b for a, b in itertools.combinations(order, 2))
+            if inversions % 2:  # an odd path: its middle corners swapped
+                path[1], path[2] = path[2], path[1]
+            tets.append(path)
+            owner.append(i + (nx - 1) * (j + (ny - 1) * k))
+    return np.array(tets), np.array(owner)
+
+
+def _lattice_points(dims, frame):
+    nx, ny, nz = dims
+    k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    return np.column_stack([i.ravel(), j.ravel(), k.ravel()]).astype(float) @ frame.T
+
+
+def test_kuhn_tets_of_a_voxel_are_positive_and_fill_it():
+    tets, _ = _brute_kuhn_tets((2, 2, 2))
+    corners = kuhn_corners()
+    ids = corners[..., 0] + 2 * (corners[..., 1] + 2 * corners[..., 2])
+    np.testing.assert_array_equal(ids, tets)
+    x = _lattice_points((2, 2, 2), np.eye(3))
+    vol = [np.linalg.det((x[t[1:]] - x[t[0]]).T) / 6 for t in tets]
+    np.testing.assert_allclose(vol, 1 / 6, rtol=1e-15)  # six positive tets of volume 1/6
+
+
+@pytest.mark.parametrize("condition", [True, False])
+def test_lattice_cells_match_numpy_on_their_kuhn_tets(condition):
+    # a skewed, mirrored lattice (an LPS image's frame can flip) with jittered points, moved
+    # by a random affine map plus noise: some cells fold, one corner is not mapped and one
+    # cell is flat at rest
+    rng = np.random.default_rng(33)
+    dims = (6, 5, 4)
+    frame = np.diag([0.7, -1.1, 2.0]) + 0.2 * rng.normal(size=(3, 3))
+    x = _lattice_points(dims, frame) + 0.05 * rng.normal(size=(np.prod(dims), 3))
+    y = x @ rng.normal(size=(3, 3)).T + 0.3 * rng.normal(size=x.shape)
+    y[37] = np.nan
+    x[[0, 1, 6, 7]] = x[0] + [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]  # cell 0 is flat
+    x[[30, 31, 36, 37]] = x[30]
+    m = lattice_tetrahedron_measures(x, y, dims, condition=condition)
+    tets, owner = _brute_kuhn_tets(dims)
+    n = (dims[0] - 1) * (dims[1] - 1) * (dims[2] - 1)
+    # the general kernel on the same tets: the same numbers, bit for bit
+    general = tetrahedron_measures(x, y, tets, owner, n, condition=condition)
+    for key in general:
+        np.testing.assert_array_equal(m[key], general[key])
+    # numpy, tet by tet: the smallest det and the largest cond of each cell's measured tets
+    rest = np.stack([x[tets[:, q]] - x[tets[:, 0]] for q in (1, 2, 3)], axis=2)
+    mapped = np.isfinite(y[tets]).all(axis=(1, 2))
+    flat = np.abs(np.linalg.det(rest)) <= 1e-12 * np.linalg.norm(rest, axis=1).max(1) ** 3
+    measured = mapped & ~flat
+    det, cond = _numpy_measures(x, y, tets[measured])
+    ref_det = np.full(n, np.inf)
+    ref_cond = np.full(n, -np.inf)
+    np.minimum.at(ref_det, owner[measured], det)
+    np.maximum.at(ref_cond, owner[measured], cond)
+    has = np.bincount(owner[measured], minlength=n) > 0
+    assert not has[0] and has.sum() > n - 5
+    scale = np.abs(y[np.isfinite(y)]).max() ** 3 / np.abs(np.linalg.det(frame))
+    assert np.all(np.abs(m["determinant"][has] - ref_det[has]) <= 1e-12 * scale)
+    assert np.isnan(m["determinant"][~has]).all()
+    assert 0 < (m["determinant"] <= 0).sum() < has.sum()
+    if condition:
+        np.testing.assert_allclose(m["condition_number"][has], ref_cond[has], rtol=1e-10)
+    else:
+        assert np.isnan(m["condition_number"]).all()
+    np.testing.assert_array_equal(m["degenerate"], np.bincount(owner[flat], minlength=n) > 0)
+    # stored inverted at rest (the mirrored frame), compared where no tet is flat (whose
+    # sign is rounding's)
+    sound = ~m["degenerate"]
+    mirrored = np.bincount(owner[(np.linalg.det(rest) < 0) & ~flat], minlength=n) > 0
+    np.testing.assert_array_equal(m["rest_inverted"][sound], mirrored[sound])
+    assert 0 < (~sound).sum() < 10 and mirrored[sound].sum() > n - 10
+    with pytest.raises(ValueError, match="needs 120 rest and deformed points"):
+        lattice_tetrahedron_measures(x[:-1], y[:-1], dims)
 
 
 def test_hexahedra_of_an_affine_map_have_its_determinant():

@@ -27,7 +27,11 @@ from vhm_viz.core.row_threads import run_rows
 __all__ = [
     "DEGENERATE_RTOL",
     "singular_values_3x3",
+    "condition_number_3x3",
     "tetrahedron_measures",
+    "KUHN_PATHS",
+    "kuhn_corners",
+    "lattice_tetrahedron_measures",
     "hexahedron_corner_determinants",
     "inverted_hexahedra",
 ]
@@ -92,6 +96,58 @@ def _jacobi_singular_values(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pra
     return s0, s1, s2
 
 
+#: Bound on the closed form's relative error in ``cond F`` below which it is taken.
+_CLOSED_FORM_RTOL = 1e-13
+_EPS = 2.220446049250313e-16
+
+
+@numba.njit(cache=True)
+def condition_number_3x3(f00, f01, f02, f10, f11, f12, f20, f21, f22):  # pragma: no cover
+    """``s_max / s_min`` of a finite 3 x 3 matrix ``F`` (inf where ``s_min`` is 0).
+
+    The eigenvalues of ``S = F^T F`` in closed form (the trigonometric solution of its
+    characteristic cubic, Smith 1961) where a first-order bound on their rounding keeps
+    ``cond F`` within :data:`_CLOSED_FORM_RTOL`: ``S`` is formed to ``eps |F|^2`` (a
+    relative error ``eps cond^2`` in ``s_min^2``), and the angle of the solution loses
+    accuracy as two eigenvalues meet (``sin 3 phi -> 0``). Elsewhere (nearly flat
+    matrices, nearly double eigenvalues) the one-sided Jacobi SVD
+    (:func:`_jacobi_singular_values`), accurate relative to ``s_max``.
+    """
+    s00 = f00 * f00 + f10 * f10 + f20 * f20
+    s11 = f01 * f01 + f11 * f11 + f21 * f21
+    s22 = f02 * f02 + f12 * f12 + f22 * f22
+    s01 = f00 * f01 + f10 * f11 + f20 * f21
+    s02 = f00 * f02 + f10 * f12 + f20 * f22
+    s12 = f01 * f02 + f11 * f12 + f21 * f22
+    q = (s00 + s11 + s22) / 3.0
+    a, b, c = s00 - q, s11 - q, s22 - q
+    r = math.sqrt((a * a + b * b + c * c + 2.0 * (s01 * s01 + s02 * s02 + s12 * s12)) / 6.0)
+    if r > 1e-150 * q:
+        a, b, c = a / r, b / r, c / r
+        d01, d02, d12 = s01 / r, s02 / r, s12 / r
+        h = 0.5 * (
+            a * (b * c - d12 * d12) - d01 * (d01 * c - d12 * d02) + d02 * (d01 * d12 - b * d02)
+        )
+        h = min(1.0, max(-1.0, h))
+        phi = math.acos(h) / 3.0
+        cos_phi = math.cos(phi)
+        sin_phi = math.sqrt(max(0.0, 1.0 - cos_phi * cos_phi))
+        # the largest and smallest roots: phi and phi + 2 pi / 3
+        lmax = q + 2.0 * r * cos_phi
+        lmin = q - r * (cos_phi + 1.7320508075688772 * sin_phi)
+        sin_3phi = math.sqrt(max(0.0, 1.0 - h * h))
+        sin_min = abs(0.8660254037844386 * cos_phi - 0.5 * sin_phi)
+        if lmin > 0.0 and sin_3phi > 0.0:
+            bound = 20.0 * _EPS * q * (sin_phi / lmax + sin_min / lmin) / sin_3phi
+            bound += 4.0 * _EPS * lmax / lmin
+            if bound <= _CLOSED_FORM_RTOL:
+                return math.sqrt(lmax / lmin)
+    elif q > 0.0:
+        return 1.0  # S = q I to rounding: a scaled rotation or mirror
+    s0, _, s2 = _jacobi_singular_values(f00, f01, f02, f10, f11, f12, f20, f21, f22)
+    return s0 / s2 if s2 > 0.0 else np.inf
+
+
 @numba.njit(cache=True, nogil=True)
 def _singular_values_rows(start, stop, m, out):  # pragma: no cover - compiled
     for k in range(start, stop):
@@ -121,68 +177,65 @@ def singular_values_3x3(matrices) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
+def _tet_measure(x, y, i0, i1, i2, i3, rtol, want_cond):  # pragma: no cover - compiled
+    """``(det F, cond F, det D_rest, state)`` of the tet of points ``i0 .. i3``.
+
+    ``state``: 0 measured, 1 degenerate at rest, 2 a corner not finite (deformed); the
+    measures are NaN unless it is 0 (``cond F`` NaN too where not ``want_cond``).
+    """
+    # rest edge matrix R = [x1 - x0 | x2 - x0 | x3 - x0] (columns)
+    r00, r10, r20 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
+    r01, r11, r21 = x[i2, 0] - x[i0, 0], x[i2, 1] - x[i0, 1], x[i2, 2] - x[i0, 2]
+    r02, r12, r22 = x[i3, 0] - x[i0, 0], x[i3, 1] - x[i0, 1], x[i3, 2] - x[i0, 2]
+    # cofactors of R (rows of adj(R)^T)
+    k00, k01, k02, k10, k11, k12, k20, k21, k22 = cofactors3(
+        r00, r01, r02, r10, r11, r12, r20, r21, r22
+    )
+    dr = r00 * k00 + r01 * k01 + r02 * k02
+    e0 = math.sqrt(r00 * r00 + r10 * r10 + r20 * r20)
+    e1 = math.sqrt(r01 * r01 + r11 * r11 + r21 * r21)
+    e2 = math.sqrt(r02 * r02 + r12 * r12 + r22 * r22)
+    edge = max(e0, max(e1, e2))
+    if not abs(dr) > rtol * edge * edge * edge:
+        return np.nan, np.nan, dr, 1
+    # deformed edge matrix D
+    d00, d10, d20 = y[i1, 0] - y[i0, 0], y[i1, 1] - y[i0, 1], y[i1, 2] - y[i0, 2]
+    d01, d11, d21 = y[i2, 0] - y[i0, 0], y[i2, 1] - y[i0, 1], y[i2, 2] - y[i0, 2]
+    d02, d12, d22 = y[i3, 0] - y[i0, 0], y[i3, 1] - y[i0, 1], y[i3, 2] - y[i0, 2]
+    s = d00 + d10 + d20 + d01 + d11 + d21 + d02 + d12 + d22
+    if not math.isfinite(s):
+        return np.nan, np.nan, dr, 2
+    # det F = det D / det R, from the deformed edges directly
+    inv = 1.0 / dr
+    dd = (
+        d00 * (d11 * d22 - d12 * d21)
+        - d01 * (d10 * d22 - d12 * d20)
+        + d02 * (d10 * d21 - d11 * d20)
+    )
+    if not want_cond:
+        return dd * inv, np.nan, dr, 0
+    # F = D R^-1, R^-1 = adj(R) / det R, adj(R)[i][j] = cofactor k_ji
+    f00 = (d00 * k00 + d01 * k01 + d02 * k02) * inv
+    f01 = (d00 * k10 + d01 * k11 + d02 * k12) * inv
+    f02 = (d00 * k20 + d01 * k21 + d02 * k22) * inv
+    f10 = (d10 * k00 + d11 * k01 + d12 * k02) * inv
+    f11 = (d10 * k10 + d11 * k11 + d12 * k12) * inv
+    f12 = (d10 * k20 + d11 * k21 + d12 * k22) * inv
+    f20 = (d20 * k00 + d21 * k01 + d22 * k02) * inv
+    f21 = (d20 * k10 + d21 * k11 + d22 * k12) * inv
+    f22 = (d20 * k20 + d21 * k21 + d22 * k22) * inv
+    return dd * inv, condition_number_3x3(f00, f01, f02, f10, f11, f12, f20, f21, f22), dr, 0
+
+
+@numba.njit(cache=True, nogil=True)
 def _tet_kernel(  # pragma: no cover - compiled
     start, stop, x, y, tets, rtol, want_cond, det, cond, rest_det, state
 ):
-    """Per tet ``start <= t < stop``: ``det F``, ``cond F``, ``det D_rest`` and a state code.
-
-    ``state``: 0 measured, 1 degenerate at rest, 2 a corner not finite (deformed).
-    """
+    """:func:`_tet_measure` of each tet ``start <= t < stop`` into the arrays' row ``t``."""
     for t in range(start, stop):
-        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        # rest edge matrix R = [x1 - x0 | x2 - x0 | x3 - x0] (columns)
-        r00, r10, r20 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
-        r01, r11, r21 = x[i2, 0] - x[i0, 0], x[i2, 1] - x[i0, 1], x[i2, 2] - x[i0, 2]
-        r02, r12, r22 = x[i3, 0] - x[i0, 0], x[i3, 1] - x[i0, 1], x[i3, 2] - x[i0, 2]
-        # cofactors of R (rows of adj(R)^T)
-        k00, k01, k02, k10, k11, k12, k20, k21, k22 = cofactors3(
-            r00, r01, r02, r10, r11, r12, r20, r21, r22
+        det[t], cond[t], rest_det[t], state[t] = _tet_measure(
+            x, y, tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3], rtol, want_cond
         )
-        dr = r00 * k00 + r01 * k01 + r02 * k02
-        rest_det[t] = dr
-        e0 = math.sqrt(r00 * r00 + r10 * r10 + r20 * r20)
-        e1 = math.sqrt(r01 * r01 + r11 * r11 + r21 * r21)
-        e2 = math.sqrt(r02 * r02 + r12 * r12 + r22 * r22)
-        edge = max(e0, max(e1, e2))
-        if not abs(dr) > rtol * edge * edge * edge:
-            det[t] = np.nan
-            cond[t] = np.nan
-            state[t] = 1
-            continue
-        # deformed edge matrix D
-        d00, d10, d20 = y[i1, 0] - y[i0, 0], y[i1, 1] - y[i0, 1], y[i1, 2] - y[i0, 2]
-        d01, d11, d21 = y[i2, 0] - y[i0, 0], y[i2, 1] - y[i0, 1], y[i2, 2] - y[i0, 2]
-        d02, d12, d22 = y[i3, 0] - y[i0, 0], y[i3, 1] - y[i0, 1], y[i3, 2] - y[i0, 2]
-        s = d00 + d10 + d20 + d01 + d11 + d21 + d02 + d12 + d22
-        if not math.isfinite(s):
-            det[t] = np.nan
-            cond[t] = np.nan
-            state[t] = 2
-            continue
-        # F = D R^-1, R^-1 = adj(R) / det R, adj(R)[i][j] = cofactor k_ji
-        inv = 1.0 / dr
-        f00 = (d00 * k00 + d01 * k01 + d02 * k02) * inv
-        f01 = (d00 * k10 + d01 * k11 + d02 * k12) * inv
-        f02 = (d00 * k20 + d01 * k21 + d02 * k22) * inv
-        f10 = (d10 * k00 + d11 * k01 + d12 * k02) * inv
-        f11 = (d10 * k10 + d11 * k11 + d12 * k12) * inv
-        f12 = (d10 * k20 + d11 * k21 + d12 * k22) * inv
-        f20 = (d20 * k00 + d21 * k01 + d22 * k02) * inv
-        f21 = (d20 * k10 + d21 * k11 + d22 * k12) * inv
-        f22 = (d20 * k20 + d21 * k21 + d22 * k22) * inv
-        # det F = det D / det R, from the deformed edges directly
-        dd = (
-            d00 * (d11 * d22 - d12 * d21)
-            - d01 * (d10 * d22 - d12 * d20)
-            + d02 * (d10 * d21 - d11 * d20)
-        )
-        det[t] = dd * inv
-        state[t] = 0
-        if want_cond:
-            s0, _, s2 = _jacobi_singular_values(f00, f01, f02, f10, f11, f12, f20, f21, f22)
-            cond[t] = s0 / s2 if s2 > 0.0 else np.inf
-        else:
-            cond[t] = np.nan
 
 
 @numba.njit(cache=True)
@@ -289,6 +342,121 @@ def tetrahedron_measures(
         "condition_number": out_cond,
         "rest_inverted": rest_inverted,
         "degenerate": degenerate,
+    }
+
+
+#: Kuhn's split of a voxel: one tet per monotone path from corner (0, 0, 0) to (1, 1, 1),
+#: the axes in the order taken; the odd permutations swap their middle corners, so every
+#: tet of a positively oriented voxel has a positive volume.
+KUHN_PATHS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
+_ODD_PATHS = ((0, 2, 1), (1, 0, 2), (2, 1, 0))
+
+
+def kuhn_corners() -> np.ndarray:
+    """(6, 4, 3) int64: the voxel corners ``(di, dj, dk)`` of Kuhn's six tets, in order."""
+    out = np.zeros((len(KUHN_PATHS), 4, 3), dtype=np.int64)
+    for q, order in enumerate(KUHN_PATHS):
+        for step, axis in enumerate(order):
+            out[q, step + 1 :, axis] = 1
+        if order in _ODD_PATHS:
+            out[q, [1, 2]] = out[q, [2, 1]]
+    return out
+
+
+#: Rows of lattice cells per chunk of :func:`lattice_tetrahedron_measures` at least.
+_LATTICE_GRAIN = 16
+
+
+@numba.njit(cache=True, nogil=True)
+def _lattice_kernel(  # pragma: no cover - compiled
+    start, stop, x, y, nx, ny, delta, rtol, want_cond, out_det, out_cond, flags
+):
+    """:func:`_reduce_cells` of the Kuhn tets of the lattice cells in rows ``start .. stop``.
+
+    Row ``r`` holds the cells ``(i, j, k)`` with ``r = j + (ny - 1) k``, ``i`` fastest;
+    ``delta`` (6, 4): each tet's point ids less that of the cell's corner (0, 0, 0).
+    """
+    for r in range(start, stop):
+        j = r % (ny - 1)
+        k = r // (ny - 1)
+        for i in range(nx - 1):
+            base = i + nx * (j + ny * k)
+            c = i + (nx - 1) * r
+            low = np.inf
+            high = -np.inf
+            f = 0
+            for q in range(delta.shape[0]):
+                d, g, rest, state = _tet_measure(
+                    x, y, base + delta[q, 0], base + delta[q, 1], base + delta[q, 2],
+                    base + delta[q, 3], rtol, want_cond,
+                )  # fmt: skip
+                if rest < 0.0:
+                    f |= 1
+                if state == 1:
+                    f |= 2
+                elif state == 0:
+                    f |= 4
+                    if d < low:
+                        low = d
+                    if g > high:
+                        high = g
+            if f & 4:
+                out_det[c], out_cond[c] = low, high
+            else:
+                out_det[c], out_cond[c] = np.nan, np.nan
+            flags[c] = f
+
+
+def lattice_tetrahedron_measures(
+    rest_points, deformed_points, dimensions, *, condition=True
+) -> dict:
+    """:func:`tetrahedron_measures` of a lattice's cells, each split into Kuhn's six tets.
+
+    The cells of an image, rectilinear or structured grid, measured where they lie: no
+    tet or owner arrays are made.
+
+    Parameters
+    ----------
+    rest_points, deformed_points : (N, 3) array_like
+        The lattice's points at rest and after the deformation, in VTK's order (``i``
+        fastest), ``N = nx * ny * nz``.
+    dimensions : (3,) int
+        ``(nx, ny, nz)`` points, each at least 2.
+    condition : bool
+        Compute ``cond F`` (skipped work when False: NaN).
+
+    Returns
+    -------
+    dict
+        As :func:`tetrahedron_measures` for the ``(nx - 1) (ny - 1) (nz - 1)`` cells in
+        VTK's order, with the tets of :func:`kuhn_corners`.
+    """
+    nx, ny, nz = (int(d) for d in dimensions)
+    if min(nx, ny, nz) < 2:
+        raise ValueError(f"a lattice of {nx} x {ny} x {nz} points has no 3D cells")
+    x = np.ascontiguousarray(rest_points, dtype=np.float64).reshape(-1, 3)
+    y = np.ascontiguousarray(deformed_points, dtype=np.float64).reshape(-1, 3)
+    if len(x) != nx * ny * nz or y.shape != x.shape:
+        raise ValueError(
+            f"a lattice of {nx} x {ny} x {nz} points needs {nx * ny * nz} rest and deformed "
+            f"points; got {len(x)} and {len(y)}"
+        )
+    corners = kuhn_corners()
+    delta = corners[..., 0] + nx * (corners[..., 1] + ny * corners[..., 2])
+    n = (nx - 1) * (ny - 1) * (nz - 1)
+    out_det, out_cond = np.empty(n), np.empty(n)
+    flags = np.empty(n, dtype=np.int8)
+    run_rows(
+        _lattice_kernel, (ny - 1) * (nz - 1), x, y, nx, ny, delta, DEGENERATE_RTOL,
+        bool(condition), out_det, out_cond, flags, grain=_LATTICE_GRAIN,
+    )  # fmt: skip
+    if not condition:
+        out_cond[:] = np.nan
+    return {
+        "determinant": out_det,
+        "condition_number": out_cond,
+        "rest_inverted": (flags & 1).astype(bool),
+        "degenerate": (flags & 2).astype(bool),
     }
 
 

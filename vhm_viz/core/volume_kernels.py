@@ -13,6 +13,7 @@ import numba
 import numpy as np
 
 from vhm_viz.core.basis import DEFAULT_MEMORY_BUDGET
+from vhm_viz.core.cell_kernels import condition_number_3x3
 from vhm_viz.core.image import (
     INTERPOLATIONS,
     ImageGeometry,
@@ -238,8 +239,8 @@ def _finish_rows(kind: int):
 def _measures(jac, det, cond, angle, hard):  # pragma: no cover - compiled
     """Det J, s_max / s_min and the polar rotation's angle of 3x3 matrices, fast.
 
-    The singular values come from the eigenvalues of ``J^T J`` in closed form
-    (trigonometric solution of the characteristic cubic, Smith 1961); the rotation from
+    The condition number from :func:`~vhm_viz.core.cell_kernels.condition_number_3x3`
+    (closed form where it keeps the digits); the rotation from
     Higham's scaled Newton iteration ``X <- (g X + X^-T / g) / 2`` (Higham 1986), a few
     3x3 inverses. Matrices with ``det J <= 0`` or that do not converge are flagged in
     ``hard`` (the caller takes the SVD's values there). NaN matrices give NaN.
@@ -255,32 +256,11 @@ def _measures(jac, det, cond, angle, hard):  # pragma: no cover - compiled
             cond[p] = np.nan
             angle[p] = np.nan
             continue
-        # eigenvalues of the symmetric S = J^T J
-        s00 = a0 * a0 + a3 * a3 + a6 * a6
-        s11 = a1 * a1 + a4 * a4 + a7 * a7
-        s22 = a2 * a2 + a5 * a5 + a8 * a8
-        s01 = a0 * a1 + a3 * a4 + a6 * a7
-        s02 = a0 * a2 + a3 * a5 + a6 * a8
-        s12 = a1 * a2 + a4 * a5 + a7 * a8
-        q = (s00 + s11 + s22) / 3.0
-        off = s01 * s01 + s02 * s02 + s12 * s12
-        r = math.sqrt(((s00 - q) ** 2 + (s11 - q) ** 2 + (s22 - q) ** 2 + 2.0 * off) / 6.0)
-        if r <= 1e-300:
-            lmax = lmin = q
-        else:
-            b00, b11, b22 = (s00 - q) / r, (s11 - q) / r, (s22 - q) / r
-            b01, b02, b12 = s01 / r, s02 / r, s12 / r
-            half = 0.5 * (
-                b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02)
-                + b02 * (b01 * b12 - b11 * b02)
-            )  # fmt: skip
-            phi = math.acos(min(1.0, max(-1.0, half))) / 3.0
-            lmax = q + 2.0 * r * math.cos(phi)
-            lmin = q + 2.0 * r * math.cos(phi + 2.0 * math.pi / 3.0)
-        if not lmin > 1e-12 * lmax:  # nearly singular: the cubic loses s_min
+        c = condition_number_3x3(a0, a1, a2, a3, a4, a5, a6, a7, a8)
+        if not c < 1e6:  # nearly singular: the polar iteration below may not converge
             hard[p] = True
             continue
-        cond[p] = math.sqrt(lmax / lmin)
+        cond[p] = c
         # polar rotation: X <- (g X + X^-T / g) / 2, X^-T = cofactor(X) / det(X)
         x0, x1, x2, x3, x4, x5, x6, x7, x8 = a0, a1, a2, a3, a4, a5, a6, a7, a8
         dx = d

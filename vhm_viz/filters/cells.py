@@ -25,6 +25,7 @@ from vtkmodules.vtkCommonCore import vtkIdList
 from vtkmodules.vtkCommonDataModel import vtkDataSetAttributes
 
 from vhm_viz.core.basis import inside_cage, winding_number
+from vhm_viz.core.cell_kernels import kuhn_corners, lattice_tetrahedron_measures
 from vhm_viz.core.certify import INSIDE, MEETS, OUTSIDE, Region, default_margin
 from vhm_viz.core.geometry import open_edge_count, signed_volume
 from vhm_viz.core.metrics import cell_measures, cell_summary
@@ -50,9 +51,6 @@ _CHUNK_TETS = 2_000_000
 _VTK_TETRA = 10
 _VTK_POLYHEDRON = 42
 _ID_ARRAY = "vhm_cell_id"
-# Kuhn's split of a voxel: one tet per monotone path from corner (0,0,0) to (1,1,1).
-_KUHN_PATHS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
-_ODD_PATHS = ((0, 2, 1), (1, 0, 2), (2, 1, 0))
 
 
 def _dimensions(ds):
@@ -93,17 +91,11 @@ def _kuhn_tets(dims, k0: int, k1: int):
     i, j, k = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), np.arange(k0, k1), indexing="ij")
     i, j, k = (np.ravel(a, order="F") for a in (i, j, k))  # VTK order: i fastest
     voxel = i + (nx - 1) * (j + (ny - 1) * k)
-    tets = []
-    for order in _KUHN_PATHS:
-        corner = [0, 0, 0]
-        ids = [i + nx * (j + ny * k)]
-        for axis in order:
-            corner[axis] = 1
-            ids.append((i + corner[0]) + nx * ((j + corner[1]) + ny * (k + corner[2])))
-        if order in _ODD_PATHS:  # odd permutations: swap two corners for positive volume
-            ids[1], ids[2] = ids[2], ids[1]
-        tets.append(np.column_stack(ids))
-    return np.concatenate(tets), np.tile(voxel, len(_KUHN_PATHS))
+    base = i + nx * (j + ny * k)
+    corners = kuhn_corners()
+    delta = corners[..., 0] + nx * (corners[..., 1] + ny * corners[..., 2])
+    tets = (base[None, :, None] + delta[:, None, :]).reshape(-1, 4)
+    return tets, np.tile(voxel, len(delta))
 
 
 def cell_tetrahedra(ds, chunk_tets: int = _CHUNK_TETS):
@@ -362,6 +354,18 @@ def cell_quality(ds, deformed_points, *, condition: bool = True) -> dict | None:
         return None
     rest = numpy_points(ds)
     moved = np.asarray(deformed_points, dtype=np.float64).reshape(-1, 3)
+    dims = _dimensions(ds)
+    if dims is not None:  # a lattice: its cells measured where they lie, six tets each
+        out = lattice_tetrahedron_measures(rest, moved, dims, condition=condition)
+        out["rest_inverted"][:] = False  # the tets are ours: a lattice stores no orientation
+    else:
+        out = _split_cell_measures(ds, rest, moved, condition)
+    out["summary"] = cell_summary(out)
+    return out
+
+
+def _split_cell_measures(ds, rest, moved, condition: bool) -> dict:
+    """:func:`cell_quality`'s measures of a mesh's 3D cells, chunk by chunk of their tets."""
     n = ds.GetNumberOfCells()
     det = np.full(n, np.nan)
     cond = np.full(n, np.nan)
@@ -378,16 +382,13 @@ def cell_quality(ds, deformed_points, *, condition: bool = True) -> dict | None:
             m = cell_measures(rest, moved, tets, local, len(used), condition=condition)
         det[used], cond[used] = m["determinant"], m["condition_number"]
         degenerate[used] |= m["degenerate"]
-        if _dimensions(ds) is None:  # a lattice's tets are ours: it stores no orientation
-            rest_inverted[used] |= m["rest_inverted"]
-    out = {
+        rest_inverted[used] |= m["rest_inverted"]
+    return {
         "determinant": det,
         "condition_number": cond,
         "rest_inverted": rest_inverted,
         "degenerate": degenerate,
     }
-    out["summary"] = cell_summary(out)
-    return out
 
 
 def add_cell_arrays(data, quality: dict) -> None:
