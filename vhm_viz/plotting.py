@@ -161,8 +161,10 @@ def jacobian_slice(mesh, harmonic_map, *, normal=None, origin=None, resolution: 
     """
     import pyvista as pv
 
+    from vhm_viz.filters._vtk import numpy_points
+
     mesh = pv.wrap(mesh)
-    pts = np.asarray(mesh.points, dtype=np.float64)
+    pts = numpy_points(mesh)  # an image's without VTK's meshgrids
     # the slice lies inside the cage: data left outside it (--outside passthrough), however
     # far, neither stretches the plane's grid nor moves its centre
     cage = np.asarray(harmonic_map.cage.vertices, dtype=np.float64)

@@ -150,6 +150,7 @@ def analyze(args: argparse.Namespace) -> str:
     import pyvista as pv
 
     from vhm_viz.filters import HarmonicDeformationFilter, JacobianAnalysisFilter, update
+    from vhm_viz.filters._vtk import numpy_points
 
     src = check_input(args.input)
     normal = _parse_normal(args.normal)
@@ -200,7 +201,7 @@ def analyze(args: argparse.Namespace) -> str:
     deformer_filter.SetOutsidePolicy(args.outside)
     with timer.stage("map"):
         deformed = pv.wrap(update(deformer_filter))
-    analysed.point_data["displacement"] = np.asarray(deformed.points) - np.asarray(mesh.points)
+    analysed.point_data["displacement"] = np.asarray(deformed.points) - numpy_points(mesh)
     analysis_name = ANALYSIS_FILES.get(type(analysed).__name__, "analysis.vtk")
 
     surf = deformed if isinstance(deformed, pv.PolyData) else None
@@ -295,6 +296,7 @@ def _certify(dfm, mesh, args):
     the input's points it leaves out; else None.
     """
     from vhm_viz.filters import region_of
+    from vhm_viz.filters._vtk import numpy_points
 
     region = region_of(mesh, dfm.cage)
     bar = Progress("certify", enabled=not args.quiet)
@@ -302,7 +304,7 @@ def _certify(dfm, mesh, args):
     bar.finish()
     if region.kind != "cage":
         return cert, None
-    left_out = int(np.count_nonzero(~region.contains(np.asarray(mesh.points, dtype=np.float64))))
+    left_out = int(np.count_nonzero(~region.contains(numpy_points(mesh))))
     cert_region = (
         f"over the cage's interior at least {region.description['margin']:.4g} from the cage "
         f"({left_out} of {mesh.n_points} points nearer the cage, not covered)"
