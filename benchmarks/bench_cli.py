@@ -296,6 +296,20 @@ def cases(big: bool, huge: bool = False) -> list[Case]:
         deform(EMBRYO_VTI, embryo, ".vti", scene, is_big=True)
     if big:
         deform("embryo 256^3 -> .vts (box cage)", embryo, ".vts", scene, is_big=True)
+        deform(
+            "embryo 256^3 -> .vts --arrays cells (box cage)", embryo, ".vts", scene,
+            ("--arrays", "cells"), is_big=True,
+        )  # fmt: skip
+        out.append(
+            Case(
+                "analyze embryo 256^3 (box cage)",
+                embryo,
+                ["analyze", "{input}", "--scene", "{scene}", "-o", "{out}", "-q"],
+                scene=scene,
+                output="",
+                big=True,
+            )
+        )
     if huge:
         deform(HUGE_VTI, Path(), ".vti", None, is_big=True)
         out[-1].prepare, out[-1].warmup = upsampled_embryo, False
