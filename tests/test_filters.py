@@ -192,6 +192,14 @@ def test_cell_quality_of_every_dataset_with_3d_cells(kind):
         assert flt.cell_summary["inverted"] == inverted
 
 
+def test_numpy_points_are_vtks_points_on_every_lattice_kind():
+    import runpy
+    from pathlib import Path
+
+    script = Path(__file__).parent / "paraview" / "points_check.py"
+    assert runpy.run_path(str(script))["check"]() == "points ok"
+
+
 def test_filter_on_hand_tets():
     path = data_path("hand_tet", "hand.mesh")
     mesh = pv.read(path)

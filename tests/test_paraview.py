@@ -136,6 +136,17 @@ def test_pvpython_loads_the_three_filters(paraview_env, tmp_path):
     assert "SceneFile default: ''" in out.stdout
 
 
+def test_numpy_points_are_vtks_points_in_pvpython(paraview_env):
+    # ParaView's VTK (< 9.6) has no points array for images, and a rectilinear grid's
+    # GetPoints fills an argument: the rest points of the cell measures come another way
+    script = Path(__file__).parent / "paraview" / "points_check.py"
+    out = subprocess.run(
+        ["pvpython", str(script)], capture_output=True, text=True, env=paraview_env, timeout=300
+    )
+    assert out.returncode == 0, out.stderr
+    assert "points ok" in out.stdout
+
+
 def test_vhm_viz_paraview_runs_pvpython_with_the_plugin_loaded(paraview_env, tmp_path):
     """The installed package's route, ``vhm-viz paraview pvpython SCRIPT``, with numba for
     ParaView's Python installed as a user would (its user site-packages) and nothing else

@@ -37,27 +37,32 @@ _SDDP = vtkStreamingDemandDrivenPipeline
 
 def numpy_points(ds) -> np.ndarray:
     """Points of any vtkDataSet as a (N, 3) float64 array (a copy for implicit points)."""
+    if ds.IsA("vtkRectilinearGrid"):  # its axes (VTK < 9.6's GetPoints fills an argument)
+        return _axis_points(ds)
     pts = ds.GetPoints() if hasattr(ds, "GetPoints") else None
     if pts is not None and pts.GetData() is not None:
         data = pts.GetData()
         if hasattr(data, "GetXCoordinates") and not data.GetUsesDirectionMatrix():
             return _axis_points(data)
         return np.asarray(ns.vtk_to_numpy(data), dtype=np.float64).reshape(-1, 3)
+    if ds.IsA("vtkImageData"):  # VTK < 9.6 (ParaView's) makes no points array for images
+        return image_geometry(ds).points()
     n = ds.GetNumberOfPoints()
     out = np.empty((n, 3))
     p = [0.0, 0.0, 0.0]
-    for i in range(n):  # only reached for exotic datasets; image/rectilinear are converted
+    for i in range(n):  # only reached for exotic datasets
         ds.GetPoint(i, p)
         out[i] = p
     return out
 
 
 def _axis_points(data) -> np.ndarray:
-    """The points of an implicit axis-aligned lattice (VTK's ``vtkStructuredPointArray``).
+    """The points of an axis-aligned lattice, from its three axes.
 
-    VTK's own conversion goes through three meshgrids and a column stack, several times
-    the output's memory and time; the values here are the same coordinates, copied into
-    place.
+    ``data``: a rectilinear grid, or the implicit points (VTK's ``vtkStructuredPointArray``)
+    of an image without a direction matrix. VTK's own conversion goes through three
+    meshgrids and a column stack, several times the output's memory and time; the values
+    here are the same coordinates, copied into place.
     """
     x, y, z = (
         ns.vtk_to_numpy(c).astype(np.float64, copy=False)
