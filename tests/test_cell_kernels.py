@@ -47,6 +47,22 @@ def test_singular_values_match_numpy(kind):
         np.testing.assert_allclose(s, ref, rtol=1e-12)
 
 
+@pytest.mark.parametrize("scale", [1e-200, 1e-150, 1e150, 1e200])
+def test_singular_values_and_condition_numbers_hold_at_any_scale(scale):
+    # squares of the entries over- or underflow at these scales: the matrices are scaled
+    # by a power of two while they are worked on
+    rng = np.random.default_rng(8)
+    a = rng.normal(size=(500, 3, 3))
+    ref = np.linalg.svd(a, compute_uv=False)
+    s = singular_values_3x3(a * scale)
+    assert np.all(np.abs(s / scale - ref) <= 1e-12 * ref[:, :1])
+    x = np.tile(np.vstack([np.zeros(3), np.eye(3)]), (len(a), 1))
+    y = np.einsum("tij,tkj->tki", a * scale, x.reshape(-1, 4, 3)).reshape(-1, 3)
+    cond = tetrahedron_measures(x, y, np.arange(len(x)).reshape(-1, 4))["condition_number"]
+    want = ref[:, 0] / ref[:, 2]
+    assert np.all(np.abs(cond - want) <= 1e-12 * want + 1e-13 * want**2)
+
+
 def test_singular_values_of_nan_matrices_are_nan():
     m = np.eye(3)[None].repeat(2, axis=0)
     m[1, 0, 1] = np.nan

@@ -70,23 +70,39 @@ def _rotate_columns(x0, x1, x2, y0, y1, y2):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
+def _unit_scale(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pragma: no cover - compiled
+    """The power of two that brings a matrix's largest entry into ``[0.5, 1)``.
+
+    Exact to multiply by, so products of entries neither overflow nor underflow where the
+    matrix's own scale would make them; 1 for a zero or non-finite matrix.
+    """
+    m = max(abs(a00), abs(a01), abs(a02), abs(a10), abs(a11), abs(a12))
+    m = max(m, max(abs(a20), max(abs(a21), abs(a22))))
+    if not (m > 0.0 and m < math.inf):
+        return 1.0
+    return math.ldexp(1.0, -math.frexp(m)[1])
+
+
+@numba.njit(cache=True)
 def _jacobi_singular_values(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pragma: no cover
     """Singular values of a 3 x 3 matrix by one-sided Jacobi rotations of its columns.
 
-    Returns ``(s_max, s_mid, s_min)``; NaN for a matrix with a NaN entry.
+    Returns ``(s_max, s_mid, s_min)``; NaN for a matrix with a NaN entry. The columns are
+    scaled by a power of two (:func:`_unit_scale`) while they turn.
     """
-    u0, u1, u2 = a00, a10, a20
-    v0, v1, v2 = a01, a11, a21
-    w0, w1, w2 = a02, a12, a22
+    k = _unit_scale(a00, a01, a02, a10, a11, a12, a20, a21, a22)
+    u0, u1, u2 = a00 * k, a10 * k, a20 * k
+    v0, v1, v2 = a01 * k, a11 * k, a21 * k
+    w0, w1, w2 = a02 * k, a12 * k, a22 * k
     for _ in range(_JACOBI_SWEEPS):
         u0, u1, u2, v0, v1, v2, r1 = _rotate_columns(u0, u1, u2, v0, v1, v2)
         u0, u1, u2, w0, w1, w2, r2 = _rotate_columns(u0, u1, u2, w0, w1, w2)
         v0, v1, v2, w0, w1, w2, r3 = _rotate_columns(v0, v1, v2, w0, w1, w2)
         if not (r1 or r2 or r3):
             break
-    s0 = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
-    s1 = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-    s2 = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    s0 = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2) / k
+    s1 = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2) / k
+    s2 = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) / k
     if s0 < s1:
         s0, s1 = s1, s0
     if s1 < s2:
@@ -113,6 +129,9 @@ def condition_number_3x3(f00, f01, f02, f10, f11, f12, f20, f21, f22):  # pragma
     matrices, nearly double eigenvalues) the one-sided Jacobi SVD
     (:func:`_jacobi_singular_values`), accurate relative to ``s_max``.
     """
+    k = _unit_scale(f00, f01, f02, f10, f11, f12, f20, f21, f22)  # cond F = cond kF
+    f00, f01, f02, f10, f11, f12 = f00 * k, f01 * k, f02 * k, f10 * k, f11 * k, f12 * k
+    f20, f21, f22 = f20 * k, f21 * k, f22 * k
     s00 = f00 * f00 + f10 * f10 + f20 * f20
     s11 = f01 * f01 + f11 * f11 + f21 * f21
     s22 = f02 * f02 + f12 * f12 + f22 * f22
@@ -122,7 +141,9 @@ def condition_number_3x3(f00, f01, f02, f10, f11, f12, f20, f21, f22):  # pragma
     q = (s00 + s11 + s22) / 3.0
     a, b, c = s00 - q, s11 - q, s22 - q
     r = math.sqrt((a * a + b * b + c * c + 2.0 * (s01 * s01 + s02 * s02 + s12 * s12)) / 6.0)
-    if r > 1e-150 * q:
+    if q > 0.0:  # not F = 0
+        if r <= 1e-150 * q:
+            return 1.0  # S = q I to rounding: a scaled rotation or mirror
         a, b, c = a / r, b / r, c / r
         d01, d02, d12 = s01 / r, s02 / r, s12 / r
         h = 0.5 * (
@@ -131,7 +152,7 @@ def condition_number_3x3(f00, f01, f02, f10, f11, f12, f20, f21, f22):  # pragma
         h = min(1.0, max(-1.0, h))
         phi = math.acos(h) / 3.0
         cos_phi = math.cos(phi)
-        sin_phi = math.sqrt(max(0.0, 1.0 - cos_phi * cos_phi))
+        sin_phi = math.sin(phi)
         # the largest and smallest roots: phi and phi + 2 pi / 3
         lmax = q + 2.0 * r * cos_phi
         lmin = q - r * (cos_phi + 1.7320508075688772 * sin_phi)
@@ -142,8 +163,6 @@ def condition_number_3x3(f00, f01, f02, f10, f11, f12, f20, f21, f22):  # pragma
             bound += 4.0 * _EPS * lmax / lmin
             if bound <= _CLOSED_FORM_RTOL:
                 return math.sqrt(lmax / lmin)
-    elif q > 0.0:
-        return 1.0  # S = q I to rounding: a scaled rotation or mirror
     s0, _, s2 = _jacobi_singular_values(f00, f01, f02, f10, f11, f12, f20, f21, f22)
     return s0 / s2 if s2 > 0.0 else np.inf
 
