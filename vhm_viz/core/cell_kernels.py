@@ -69,12 +69,16 @@ def _rotate_columns(x0, x1, x2, y0, y1, y2):  # pragma: no cover - compiled
     )  # fmt: skip
 
 
+#: Squared Frobenius norms within which products of a matrix's squared entries neither
+#: overflow nor underflow (the Jacobi rotations' ``alpha beta``).
+_SAFE_NORM2 = 1e-150, 1e150
+
+
 @numba.njit(cache=True)
 def _unit_scale(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pragma: no cover - compiled
     """The power of two that brings a matrix's largest entry into ``[0.5, 1)``.
 
-    Exact to multiply by, so products of entries neither overflow nor underflow where the
-    matrix's own scale would make them; 1 for a zero or non-finite matrix.
+    Exact to multiply by; 1 for a zero or non-finite matrix.
     """
     m = max(abs(a00), abs(a01), abs(a02), abs(a10), abs(a11), abs(a12))
     m = max(m, max(abs(a20), max(abs(a21), abs(a22))))
@@ -84,25 +88,20 @@ def _unit_scale(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pragma: no cove
 
 
 @numba.njit(cache=True)
-def _jacobi_singular_values(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pragma: no cover
-    """Singular values of a 3 x 3 matrix by one-sided Jacobi rotations of its columns.
-
-    Returns ``(s_max, s_mid, s_min)``; NaN for a matrix with a NaN entry. The columns are
-    scaled by a power of two (:func:`_unit_scale`) while they turn.
-    """
-    k = _unit_scale(a00, a01, a02, a10, a11, a12, a20, a21, a22)
-    u0, u1, u2 = a00 * k, a10 * k, a20 * k
-    v0, v1, v2 = a01 * k, a11 * k, a21 * k
-    w0, w1, w2 = a02 * k, a12 * k, a22 * k
+def _jacobi_rotations(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pragma: no cover
+    """:func:`_jacobi_singular_values` of a matrix of a safe norm (:data:`_SAFE_NORM2`)."""
+    u0, u1, u2 = a00, a10, a20
+    v0, v1, v2 = a01, a11, a21
+    w0, w1, w2 = a02, a12, a22
     for _ in range(_JACOBI_SWEEPS):
         u0, u1, u2, v0, v1, v2, r1 = _rotate_columns(u0, u1, u2, v0, v1, v2)
         u0, u1, u2, w0, w1, w2, r2 = _rotate_columns(u0, u1, u2, w0, w1, w2)
         v0, v1, v2, w0, w1, w2, r3 = _rotate_columns(v0, v1, v2, w0, w1, w2)
         if not (r1 or r2 or r3):
             break
-    s0 = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2) / k
-    s1 = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2) / k
-    s2 = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) / k
+    s0 = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    s1 = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    s2 = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
     if s0 < s1:
         s0, s1 = s1, s0
     if s1 < s2:
@@ -110,6 +109,25 @@ def _jacobi_singular_values(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pra
     if s0 < s1:
         s0, s1 = s1, s0
     return s0, s1, s2
+
+
+@numba.njit(cache=True)
+def _jacobi_singular_values(a00, a01, a02, a10, a11, a12, a20, a21, a22):  # pragma: no cover
+    """Singular values of a 3 x 3 matrix by one-sided Jacobi rotations of its columns.
+
+    Returns ``(s_max, s_mid, s_min)``; NaN for a matrix with a NaN entry. A matrix whose
+    squared entries would over- or underflow turns scaled by a power of two
+    (:func:`_unit_scale`).
+    """
+    n2 = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12
+    n2 += a20 * a20 + a21 * a21 + a22 * a22
+    if _SAFE_NORM2[0] < n2 < _SAFE_NORM2[1]:
+        return _jacobi_rotations(a00, a01, a02, a10, a11, a12, a20, a21, a22)
+    k = _unit_scale(a00, a01, a02, a10, a11, a12, a20, a21, a22)
+    s0, s1, s2 = _jacobi_rotations(
+        a00 * k, a01 * k, a02 * k, a10 * k, a11 * k, a12 * k, a20 * k, a21 * k, a22 * k
+    )
+    return s0 / k, s1 / k, s2 / k
 
 
 #: Bound on the closed form's relative error in ``cond F`` below which it is taken.
@@ -129,12 +147,16 @@ def condition_number_3x3(f00, f01, f02, f10, f11, f12, f20, f21, f22):  # pragma
     matrices, nearly double eigenvalues) the one-sided Jacobi SVD
     (:func:`_jacobi_singular_values`), accurate relative to ``s_max``.
     """
-    k = _unit_scale(f00, f01, f02, f10, f11, f12, f20, f21, f22)  # cond F = cond kF
-    f00, f01, f02, f10, f11, f12 = f00 * k, f01 * k, f02 * k, f10 * k, f11 * k, f12 * k
-    f20, f21, f22 = f20 * k, f21 * k, f22 * k
     s00 = f00 * f00 + f10 * f10 + f20 * f20
     s11 = f01 * f01 + f11 * f11 + f21 * f21
     s22 = f02 * f02 + f12 * f12 + f22 * f22
+    if not _SAFE_NORM2[0] < s00 + s11 + s22 < _SAFE_NORM2[1]:  # cond F = cond kF
+        k = _unit_scale(f00, f01, f02, f10, f11, f12, f20, f21, f22)
+        f00, f01, f02, f10, f11, f12 = f00 * k, f01 * k, f02 * k, f10 * k, f11 * k, f12 * k
+        f20, f21, f22 = f20 * k, f21 * k, f22 * k
+        s00 = f00 * f00 + f10 * f10 + f20 * f20
+        s11 = f01 * f01 + f11 * f11 + f21 * f21
+        s22 = f02 * f02 + f12 * f12 + f22 * f22
     s01 = f00 * f01 + f10 * f11 + f20 * f21
     s02 = f00 * f02 + f10 * f12 + f20 * f22
     s12 = f01 * f02 + f11 * f12 + f21 * f22
@@ -163,7 +185,7 @@ def condition_number_3x3(f00, f01, f02, f10, f11, f12, f20, f21, f22):  # pragma
             bound += 4.0 * _EPS * lmax / lmin
             if bound <= _CLOSED_FORM_RTOL:
                 return math.sqrt(lmax / lmin)
-    s0, _, s2 = _jacobi_singular_values(f00, f01, f02, f10, f11, f12, f20, f21, f22)
+    s0, _, s2 = _jacobi_rotations(f00, f01, f02, f10, f11, f12, f20, f21, f22)
     return s0 / s2 if s2 > 0.0 else np.inf
 
 
