@@ -15,9 +15,9 @@ def _by_point(ds):
 
 
 def lattices():
-    """An image, a turned and mirrored image, a rectilinear and a structured grid."""
+    """An image piece, a turned and mirrored image, a rectilinear and a structured grid."""
     image = vtkImageData()
-    image.SetDimensions(7, 5, 4)
+    image.SetExtent(3, 9, -2, 2, 5, 8)  # a piece of a larger image: 7 x 5 x 4 points
     image.SetSpacing(0.3, 1.1, 2.0)
     image.SetOrigin(1.1, -2.0, 3.0)
     turned = vtkImageData()
