@@ -1,13 +1,15 @@
-"""numpy_points against VTK's GetPoint on every lattice kind (run by test_filters, and in
-pvpython by test_paraview: VTK < 9.6 has no points array for images, and its rectilinear
-grid's GetPoints fills an argument)."""
+"""numpy_points and displacement against VTK's GetPoint on every lattice kind.
+
+Run by test_filters, and in pvpython by test_paraview: VTK < 9.6 has no points array for
+images, and its rectilinear grid's GetPoints fills an argument.
+"""
 
 import numpy as np
 from vtkmodules.util import numpy_support as ns
 from vtkmodules.vtkCommonCore import vtkPoints
 from vtkmodules.vtkCommonDataModel import vtkImageData, vtkRectilinearGrid, vtkStructuredGrid
 
-from vhm_viz.filters._vtk import numpy_points
+from vhm_viz.filters._vtk import displacement, numpy_points
 
 
 def _by_point(ds):
@@ -41,6 +43,11 @@ def check():
         got, want = numpy_points(ds), _by_point(ds)
         assert got.dtype == np.float64 and got.shape == want.shape, name
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12, err_msg=name)
+        moved = want * 1.5 + 0.25
+        step = displacement(ds, moved)
+        assert step.dtype == np.float64 and step.shape == want.shape, name
+        np.testing.assert_allclose(step, moved - want, rtol=0, atol=1e-12, err_msg=name)
+        np.testing.assert_array_equal(moved, want * 1.5 + 0.25)  # its input is left alone
     return "points ok"
 
 

@@ -150,7 +150,7 @@ def analyze(args: argparse.Namespace) -> str:
     import pyvista as pv
 
     from vhm_viz.filters import HarmonicDeformationFilter, JacobianAnalysisFilter, update
-    from vhm_viz.filters._vtk import numpy_points
+    from vhm_viz.filters._vtk import displacement
 
     src = check_input(args.input)
     normal = _parse_normal(args.normal)
@@ -188,12 +188,16 @@ def analyze(args: argparse.Namespace) -> str:
             cage=scene.cage_file,
             drops=False,
         )
-    inside = np.ones(mesh.n_points, bool)
+    # the measures of the points the map moved: the arrays themselves where it moved all
+    inside = None
     if "vhm_outside" in analysed.point_data:
-        inside = np.asarray(analysed.point_data["vhm_outside"]) == 0
-    det = np.asarray(analysed.point_data["jacobian_determinant"])[inside]
-    cond = np.asarray(analysed.point_data["condition_number"])[inside]
-    rot = np.asarray(analysed.point_data["rotation_angle"])[inside]
+        moved = np.asarray(analysed.point_data["vhm_outside"]) == 0
+        inside = None if moved.all() else moved
+    det, cond, rot = (
+        np.asarray(analysed.point_data[name]) if inside is None
+        else np.asarray(analysed.point_data[name])[inside]
+        for name in ("jacobian_determinant", "condition_number", "rotation_angle")
+    )  # fmt: skip
 
     deformer_filter = HarmonicDeformationFilter()
     deformer_filter.SetInputData(mesh)
@@ -201,9 +205,13 @@ def analyze(args: argparse.Namespace) -> str:
     deformer_filter.SetOutsidePolicy(args.outside)
     with timer.stage("map"):
         deformed = pv.wrap(update(deformer_filter))
-    analysed.point_data["displacement"] = np.asarray(deformed.points) - numpy_points(mesh)
+    analysed.point_data["displacement"] = displacement(mesh, deformed.points)
     analysis_name = ANALYSIS_FILES.get(type(analysed).__name__, "analysis.vtk")
-
+    surface = surface_metrics(mesh, deformed)
+    if not (args.certify or isinstance(deformed, pv.PolyData)):
+        # no figure draws it: a volume's moved points (three times its input) go, with the
+        # filter that holds them as its output
+        deformed = deformer_filter = None
     surf = deformed if isinstance(deformed, pv.PolyData) else None
     with timer.stage("checks"):
         slice_ = plotting.jacobian_slice(mesh, hm, normal=normal)
@@ -218,7 +226,7 @@ def analyze(args: argparse.Namespace) -> str:
         "iterations": int(sum(r.iterations for r in reports)),
         "converged": bool(reports[-1].converged),
         "energy": float(reports[-1].final_energy),
-        **surface_metrics(mesh, deformed),
+        **surface,
         "jacobian_determinant": _stats(det),
         "condition_number": _stats(cond),
         "rotation_angle_degrees": _stats(rot),

@@ -37,14 +37,17 @@ _SDDP = vtkStreamingDemandDrivenPipeline
 
 def numpy_points(ds) -> np.ndarray:
     """Points of any vtkDataSet as a (N, 3) float64 array (a copy for implicit points)."""
-    if ds.IsA("vtkRectilinearGrid"):  # its axes (VTK < 9.6's GetPoints fills an argument)
-        return _axis_points(ds)
+    axes = _axes(ds)
+    if axes is not None:
+        x, y, z = axes
+        out = np.empty((len(z), len(y), len(x), 3))
+        out[..., 0] = x
+        out[..., 1] = y[:, None]
+        out[..., 2] = z[:, None, None]
+        return out.reshape(-1, 3)
     pts = ds.GetPoints() if hasattr(ds, "GetPoints") else None
     if pts is not None and pts.GetData() is not None:
-        data = pts.GetData()
-        if hasattr(data, "GetXCoordinates") and not data.GetUsesDirectionMatrix():
-            return _axis_points(data)
-        return np.asarray(ns.vtk_to_numpy(data), dtype=np.float64).reshape(-1, 3)
+        return np.asarray(ns.vtk_to_numpy(pts.GetData()), dtype=np.float64).reshape(-1, 3)
     if ds.IsA("vtkImageData"):  # VTK < 9.6 (ParaView's) makes no points array for images
         return image_geometry(ds).points()
     n = ds.GetNumberOfPoints()
@@ -56,23 +59,47 @@ def numpy_points(ds) -> np.ndarray:
     return out
 
 
-def _axis_points(data) -> np.ndarray:
-    """The points of an axis-aligned lattice, from its three axes.
+def displacement(ds, moved_points) -> np.ndarray:
+    """``moved_points - numpy_points(ds)`` as a new (N, 3) float64 array.
 
-    ``data``: a rectilinear grid, or the implicit points (VTK's ``vtkStructuredPointArray``)
-    of an image without a direction matrix. VTK's own conversion goes through three
-    meshgrids and a column stack, several times the output's memory and time; the values
-    here are the same coordinates, copied into place.
+    An axis-aligned lattice's points are subtracted axis by axis, never made: the same
+    values without a second array of the output's size.
     """
-    x, y, z = (
+    out = np.array(moved_points, dtype=np.float64).reshape(-1, 3)
+    axes = _axes(ds)
+    if axes is None:
+        out -= numpy_points(ds)
+        return out
+    x, y, z = axes
+    grid = out.reshape(len(z), len(y), len(x), 3)
+    grid[..., 0] -= x
+    grid[..., 1] -= y[:, None]
+    grid[..., 2] -= z[:, None, None]
+    return out
+
+
+def _axes(ds):
+    """The x, y and z coordinates of an axis-aligned lattice's points, else None.
+
+    A rectilinear grid's (VTK < 9.6's ``GetPoints`` fills an argument), or the implicit
+    points (VTK's ``vtkStructuredPointArray``) of an image without a direction matrix,
+    whose own conversion to numpy builds three meshgrids and a column stack, several
+    times the output's memory and time.
+    """
+    data = None
+    if ds.IsA("vtkRectilinearGrid"):
+        data = ds
+    elif ds.IsA("vtkImageData") and hasattr(ds, "GetPoints"):
+        pts = ds.GetPoints()
+        implicit = None if pts is None else pts.GetData()
+        if hasattr(implicit, "GetXCoordinates") and not implicit.GetUsesDirectionMatrix():
+            data = implicit
+    if data is None:
+        return None
+    return tuple(
         ns.vtk_to_numpy(c).astype(np.float64, copy=False)
         for c in (data.GetXCoordinates(), data.GetYCoordinates(), data.GetZCoordinates())
     )
-    out = np.empty((len(z), len(y), len(x), 3))
-    out[..., 0] = x
-    out[..., 1] = y[:, None]
-    out[..., 2] = z[:, None, None]
-    return out.reshape(-1, 3)
 
 
 def image_geometry(img, extent=None) -> ImageGeometry:
