@@ -280,13 +280,41 @@ def _tet_kernel(  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
+def _add_tet(low, high, flags, det, cond, rest_det, state):  # pragma: no cover - compiled
+    """A cell's ``(smallest det, largest cond, flags)`` with one more tet's measures.
+
+    ``flags``: bit 0 a tet of the cell is stored inverted at rest, bit 1 a tet of the cell
+    is degenerate at rest, bit 2 the cell has a measured tet (``state`` of
+    :func:`_tet_measure`).
+    """
+    if rest_det < 0.0:
+        flags |= 1
+    if state == 1:
+        flags |= 2
+    elif state == 0:
+        flags |= 4
+        if det < low:
+            low = det
+        if cond > high:
+            high = cond
+    return low, high, flags
+
+
+@numba.njit(cache=True)
+def _cell_values(low, high, flags):  # pragma: no cover - compiled
+    """A cell's ``(det, cond)`` from :func:`_add_tet`'s: NaN without a measured tet."""
+    if flags & 4:
+        return low, high
+    return np.nan, np.nan
+
+
+@numba.njit(cache=True)
 def _reduce_cells(  # pragma: no cover - compiled
     owner, det, cond, rest_det, state, n_cells, out_det, out_cond, flags
 ):
     """Smallest ``det`` and largest ``cond`` of each cell's measured tets (serial, O(T)).
 
-    ``flags``: bit 0 a tet of the cell is stored inverted at rest, bit 1 a tet of the cell
-    is degenerate at rest, bit 2 the cell has a measured tet.
+    ``flags``: as :func:`_add_tet`'s.
     """
     for c in range(n_cells):
         out_det[c] = np.inf
@@ -294,20 +322,11 @@ def _reduce_cells(  # pragma: no cover - compiled
         flags[c] = 0
     for t in range(owner.shape[0]):
         c = owner[t]
-        if rest_det[t] < 0.0:
-            flags[c] |= 1
-        if state[t] == 1:
-            flags[c] |= 2
-        elif state[t] == 0:
-            flags[c] |= 4
-            if det[t] < out_det[c]:
-                out_det[c] = det[t]
-            if cond[t] > out_cond[c]:
-                out_cond[c] = cond[t]
+        out_det[c], out_cond[c], flags[c] = _add_tet(
+            out_det[c], out_cond[c], flags[c], det[t], cond[t], rest_det[t], state[t]
+        )
     for c in range(n_cells):
-        if not flags[c] & 4:
-            out_det[c] = np.nan
-            out_cond[c] = np.nan
+        out_det[c], out_cond[c] = _cell_values(out_det[c], out_cond[c], flags[c])
 
 
 def tetrahedron_measures(
@@ -423,28 +442,14 @@ def _lattice_kernel(  # pragma: no cover - compiled
         for i in range(nx - 1):
             base = i + nx * (j + ny * k)
             c = i + (nx - 1) * r
-            low = np.inf
-            high = -np.inf
-            f = 0
+            low, high, f = np.inf, -np.inf, 0
             for q in range(delta.shape[0]):
                 d, g, rest, state = _tet_measure(
                     x, y, base + delta[q, 0], base + delta[q, 1], base + delta[q, 2],
                     base + delta[q, 3], rtol, want_cond,
                 )  # fmt: skip
-                if rest < 0.0:
-                    f |= 1
-                if state == 1:
-                    f |= 2
-                elif state == 0:
-                    f |= 4
-                    if d < low:
-                        low = d
-                    if g > high:
-                        high = g
-            if f & 4:
-                out_det[c], out_cond[c] = low, high
-            else:
-                out_det[c], out_cond[c] = np.nan, np.nan
+                low, high, f = _add_tet(low, high, f, d, g, rest, state)
+            out_det[c], out_cond[c] = _cell_values(low, high, f)
             flags[c] = f
 
 
